@@ -1,0 +1,38 @@
+"""`mmf-rl <command> [args]`: one entry point, one module per command.
+
+Commands are imported lazily so that `mmf-rl --help` stays fast and a command's heavy
+dependencies (MuJoCo, lerobot) load only when it runs.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# command -> (module exposing `main(argv: list[str]) -> int | None`, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {}
+
+
+def _usage() -> str:
+    lines = ["usage: mmf-rl <command> [args]", "", "commands:"]
+    lines += [f"  {name:<10} {help_}" for name, (_, help_) in sorted(COMMANDS.items())]
+    if not COMMANDS:
+        lines.append("  (none yet)")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"mmf-rl: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(COMMANDS[name][0])
+    return int(module.main(rest) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
