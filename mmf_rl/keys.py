@@ -1,0 +1,203 @@
+"""The TensorDict key contract shared by data, models, losses and RL glue.
+
+Every module imports key names from here; none retypes them. A batch has batch size ``[B]``:
+
+===================================  ===================  ==================================================
+key                                  shape                meaning
+===================================  ===================  ==================================================
+``("obs", m)``                       ``[B, H, *feat_m]``  past window of modality ``m`` (``[B, *feat_m]`` for
+                                                          a single-vector modality)
+``("present", m)``                   ``[B]`` bool         modality ``m`` is available for this sample
+``"target"``                         ``[B, T, D]``        future of the forecast variable (normalised frame)
+``"target_past"``                    ``[B, H, D]``        its history, when the data provides it
+``("forecast", "loc" | "scale")``    ``[B, T, D]``        diagonal-Gaussian forecast
+``("forecast", "samples")``          ``[B, K, T, D]``     K forecasts, one per latent sample (best-of-K)
+``("forecast_dropped", ...)``        ``[B, T, D]``        forecast with the modalities in ``("drop", m)`` removed
+``("drop", m)``                      ``[B]`` bool         modality removed for the missing-modality loss
+``("posterior" | "prior", ...)``     ``[B, d_z]``         latent distributions (``loc``/``scale``)
+``"latent"``                         ``[B, d_z]``         the latent code the forecast was decoded from
+``"loss_*"``                         scalar               one loss term each, summed by the trainer
+===================================  ===================  ==================================================
+
+Rules: a sample needs at least one present modality; the value stored under an absent modality
+never changes any output; output shapes never depend on presence.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+OBS = "obs"
+PRESENT = "present"
+DROP = "drop"
+TARGET = "target"
+TARGET_PAST = "target_past"
+LATENT = "latent"
+
+LOC = "loc"
+SCALE = "scale"
+SAMPLES = "samples"
+
+FORECAST = "forecast"
+FORECAST_DROPPED = "forecast_dropped"
+POSTERIOR = "posterior"
+PRIOR = "prior"
+
+FORECAST_LOC = (FORECAST, LOC)
+FORECAST_SCALE = (FORECAST, SCALE)
+FORECAST_SAMPLES = (FORECAST, SAMPLES)
+FORECAST_DROPPED_LOC = (FORECAST_DROPPED, LOC)
+FORECAST_DROPPED_SCALE = (FORECAST_DROPPED, SCALE)
+POSTERIOR_LOC = (POSTERIOR, LOC)
+POSTERIOR_SCALE = (POSTERIOR, SCALE)
+PRIOR_LOC = (PRIOR, LOC)
+PRIOR_SCALE = (PRIOR, SCALE)
+
+
+def obs_key(modality: str) -> tuple[str, str]:
+    return (OBS, modality)
+
+
+def present_key(modality: str) -> tuple[str, str]:
+    return (PRESENT, modality)
+
+
+def drop_key(modality: str) -> tuple[str, str]:
+    return (DROP, modality)
+
+
+ModalityKind = Literal["image", "sequence", "vector"]
+
+# The encoder each kind gets unless the spec names another one.
+DEFAULT_ENCODER: dict[str, str] = {"image": "conv", "sequence": "gru", "vector": "mlp"}
+ALLOWED_ENCODERS: dict[str, tuple[str, ...]] = {
+    "image": ("conv", "conv_gru"),
+    "sequence": ("gru", "mlp"),
+    "vector": ("mlp",),
+}
+
+
+@dataclass(frozen=True)
+class ModalitySpec:
+    """What one modality is: its name, kind, per-step feature shape and encoder.
+
+    ``kind``:
+      * ``"image"``: a window of RGB frames, ``uint8 [B, H, C, h, w]``; ``shape = (C, h, w)``.
+      * ``"sequence"``: a window of vectors, ``float32 [B, H, d]``; ``shape = (d,)``.
+      * ``"vector"``: one vector per sample, ``float32 [B, d]``; ``shape = (d,)``.
+
+    ``encoder`` (default by kind): ``conv`` (frames stacked on channels: cheap, and motion is
+    visible to the first layer) or ``conv_gru`` (per-frame ConvNet + GRU) for images, ``gru`` or
+    ``mlp`` (flattened window) for sequences, ``mlp`` for vectors.
+    """
+
+    name: str
+    kind: ModalityKind
+    shape: tuple[int, ...]
+    encoder: str | None = None
+    required: bool = False
+    encoder_kwargs: dict = field(default_factory=dict, hash=False, compare=False)
+
+    def __post_init__(self):
+        if self.kind not in DEFAULT_ENCODER:
+            raise ValueError(
+                f"modality {self.name!r}: unknown kind {self.kind!r}; expected one of {sorted(DEFAULT_ENCODER)}"
+            )
+        object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
+        expected_rank = 3 if self.kind == "image" else 1
+        if len(self.shape) != expected_rank or min(self.shape) < 1:
+            raise ValueError(
+                f"modality {self.name!r} ({self.kind}): shape must have {expected_rank} positive "
+                f"dims ({'(C, h, w)' if self.kind == 'image' else '(d,)'}), found {self.shape}"
+            )
+        encoder = self.encoder or DEFAULT_ENCODER[self.kind]
+        if encoder not in ALLOWED_ENCODERS[self.kind]:
+            raise ValueError(
+                f"modality {self.name!r} ({self.kind}): encoder {encoder!r} is not available; "
+                f"expected one of {ALLOWED_ENCODERS[self.kind]}"
+            )
+        object.__setattr__(self, "encoder", encoder)
+
+    @property
+    def obs_key(self) -> tuple[str, str]:
+        return obs_key(self.name)
+
+    @property
+    def present_key(self) -> tuple[str, str]:
+        return present_key(self.name)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return torch.uint8 if self.kind == "image" else torch.float32
+
+    def obs_shape(self, history: int) -> tuple[int, ...]:
+        """Shape of one sample's observation (without the batch dim)."""
+        return self.shape if self.kind == "vector" else (history, *self.shape)
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "shape": list(self.shape),
+            "encoder": self.encoder,
+            "required": self.required,
+            "encoder_kwargs": dict(self.encoder_kwargs),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ModalitySpec:
+        d = dict(d)
+        d["shape"] = tuple(d["shape"])
+        return cls(**d)
+
+
+def _describe(t: torch.Tensor) -> str:
+    return f"{str(t.dtype).removeprefix('torch.')} {list(t.shape)}"
+
+
+def validate_batch(td, modalities: list[ModalitySpec], history: int, horizon: int | None = None,
+                   target_dim: int | None = None, require_target: bool = False) -> None:
+    """Check a batch against the contract; raise errors that name the key, expected and found.
+
+    Checked: every ``("obs", m)`` and ``("present", m)`` exists with the right dtype and shape,
+    every sample has at least one present modality, and ``"target"`` (if present or required)
+    is ``float [B, T, D]``.
+    """
+    if len(td.batch_size) != 1:
+        raise ValueError(f"expected a TensorDict with batch size [B], found batch size {list(td.batch_size)}")
+    batch = td.batch_size[0]
+    any_present = None
+    for spec in modalities:
+        for key in (spec.obs_key, spec.present_key):
+            if key not in td.keys(include_nested=True):
+                hint = " (True where the modality is available)" if key[0] == PRESENT else ""
+                raise KeyError(f"batch is missing key {key} for modality {spec.name!r}{hint}")
+        obs = td.get(spec.obs_key)
+        expected = (batch, *spec.obs_shape(history))
+        if obs.dtype != spec.dtype or tuple(obs.shape) != expected:
+            raise ValueError(
+                f"td[{spec.obs_key}]: expected {str(spec.dtype).removeprefix('torch.')} {list(expected)}, "
+                f"found {_describe(obs)}"
+            )
+        present = td.get(spec.present_key)
+        if present.dtype != torch.bool or tuple(present.shape) != (batch,):
+            raise ValueError(f"td[{spec.present_key}]: expected bool [{batch}], found {_describe(present)}")
+        any_present = present if any_present is None else any_present | present
+    if any_present is not None and not bool(any_present.all()):
+        bad = (~any_present).nonzero().flatten().tolist()
+        raise ValueError(
+            f"{len(bad)} sample(s) have no present modality (batch indices {bad[:10]}"
+            f"{'...' if len(bad) > 10 else ''}); every sample needs at least one of "
+            f"{[s.name for s in modalities]}"
+        )
+    if TARGET in td.keys() or require_target:
+        if TARGET not in td.keys():
+            raise KeyError(f"batch is missing key {TARGET!r} (the future to forecast, [B, T, D])")
+        target = td.get(TARGET)
+        expected = (batch, horizon if horizon is not None else target.shape[1],
+                    target_dim if target_dim is not None else target.shape[-1])
+        if not target.is_floating_point() or tuple(target.shape) != expected:
+            raise ValueError(f"td[{TARGET!r}]: expected float {list(expected)}, found {_describe(target)}")

@@ -1,0 +1,111 @@
+"""Unimodal encoders ``E_m``: one modality's window -> one ``d``-vector per sample.
+
+No BatchNorm anywhere: the forecaster encodes only the samples where a modality is present,
+and batch statistics would make one sample's output depend on which others are present.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from mmf_rl.keys import ModalitySpec
+
+
+def mlp(in_dim: int, hidden_dim: int, out_dim: int, num_layers: int = 2) -> nn.Sequential:
+    """``num_layers`` linear layers with ReLU between them (the paper's MLP blocks)."""
+    dims = [in_dim] + [hidden_dim] * (num_layers - 1) + [out_dim]
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:])):
+        layers.append(nn.Linear(a, b))
+        if i < num_layers - 1:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+def _conv_trunk(in_channels: int, channels: tuple[int, ...]) -> nn.Sequential:
+    # Stride-2 4x4 convolutions halve the resolution each layer; GroupNorm keeps training
+    # stable without batch statistics.
+    layers: list[nn.Module] = []
+    for out in channels:
+        layers += [nn.Conv2d(in_channels, out, 4, stride=2, padding=1), nn.GroupNorm(min(8, out), out), nn.ReLU()]
+        in_channels = out
+    return nn.Sequential(*layers)
+
+
+class ImageWindowEncoder(nn.Module):
+    """ConvNet for a window of frames ``uint8 [N, H, C, h, w]`` -> ``[N, d]``.
+
+    ``temporal="stack"``: the ``H`` frames are stacked on the channel axis and go through one
+    ConvNet, so motion is visible to the first layer and the cost is one image per sample
+    instead of ``H``. ``temporal="gru"``: a ConvNet per frame, then a GRU over the frame
+    features (``H`` times the convolution cost).
+    """
+
+    def __init__(self, spec: ModalitySpec, history: int, d_model: int, channels: tuple[int, ...] = (32, 64, 64, 64),
+                 temporal: str = "stack"):
+        super().__init__()
+        c, h, w = spec.shape
+        if temporal not in ("stack", "gru"):
+            raise ValueError(f"image encoder for {spec.name!r}: temporal must be 'stack' or 'gru', found {temporal!r}")
+        self.temporal = temporal
+        in_channels = c * history if temporal == "stack" else c
+        self.trunk = _conv_trunk(in_channels, tuple(channels))
+        reduce = 2 ** len(channels)
+        if h % reduce or w % reduce:
+            raise ValueError(
+                f"image encoder for {spec.name!r}: image size {h}x{w} must be divisible by {reduce} "
+                f"({len(channels)} stride-2 layers); resize the images or change encoder channels"
+            )
+        flat = channels[-1] * (h // reduce) * (w // reduce)
+        self.project = nn.Linear(flat, d_model)
+        self.gru = nn.GRU(d_model, d_model, batch_first=True) if temporal == "gru" else None
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        n, hist = frames.shape[:2]
+        # uint8 [0, 255] -> float [-0.5, 0.5]
+        x = frames.float().mul_(1.0 / 255.0).sub_(0.5)
+        if self.temporal == "stack":
+            x = x.flatten(1, 2)
+            return self.project(self.trunk(x).flatten(1))
+        feats = self.project(self.trunk(x.flatten(0, 1)).flatten(1)).view(n, hist, -1)
+        return self.gru(torch.relu(feats))[1][-1]
+
+
+class SequenceGRUEncoder(nn.Module):
+    """GRU over a window of vectors ``[N, H, d_in]`` -> last hidden state ``[N, d]``."""
+
+    def __init__(self, spec: ModalitySpec, d_model: int, num_layers: int = 1):
+        super().__init__()
+        self.embed = nn.Linear(spec.shape[0], d_model)
+        self.gru = nn.GRU(d_model, d_model, num_layers=num_layers, batch_first=True)
+
+    def forward(self, seq: torch.Tensor) -> torch.Tensor:
+        return self.gru(torch.relu(self.embed(seq)))[1][-1]
+
+
+class FlatMLPEncoder(nn.Module):
+    """MLP over a single vector ``[N, d_in]`` or a flattened window ``[N, H, d_in]``."""
+
+    def __init__(self, in_dim: int, d_model: int, hidden_dim: int | None = None):
+        super().__init__()
+        self.net = mlp(in_dim, hidden_dim or 2 * d_model, d_model)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x.flatten(1))
+
+
+def build_encoder(spec: ModalitySpec, history: int, d_model: int) -> nn.Module:
+    """The encoder a spec names, with its ``encoder_kwargs``."""
+    kwargs = dict(spec.encoder_kwargs)
+    try:
+        if spec.encoder == "conv":
+            return ImageWindowEncoder(spec, history, d_model, temporal="stack", **kwargs)
+        if spec.encoder == "conv_gru":
+            return ImageWindowEncoder(spec, history, d_model, temporal="gru", **kwargs)
+        if spec.encoder == "gru":
+            return SequenceGRUEncoder(spec, d_model, **kwargs)
+        in_dim = spec.shape[0] * (1 if spec.kind == "vector" else history)
+        return FlatMLPEncoder(in_dim, d_model, **kwargs)
+    except TypeError as err:
+        raise ValueError(f"modality {spec.name!r}: bad encoder_kwargs {kwargs} for encoder {spec.encoder!r}: {err}") from None

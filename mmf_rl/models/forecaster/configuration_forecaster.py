@@ -1,0 +1,81 @@
+"""Configuration of the paper's attention-based CVAE forecaster."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Literal
+
+from mmf_rl.keys import ModalitySpec
+
+
+@dataclass
+class ForecasterConfig:
+    """Sizes and choices of :class:`MultimodalForecaster`.
+
+    Args:
+        modalities: one :class:`ModalitySpec` per input modality; their order fixes the rows of
+            the learned modality embeddings ``P^E`` and ``P^D``.
+        history: ``H``, past steps per window.
+        horizon: ``T``, future steps forecast.
+        target_dim: ``D``, dims of the forecast variable.
+        d_model: ``d``, the common width of modality tokens.
+        d_latent: ``d_z``.
+        num_heads: heads of every attention block.
+        num_encoder_layers: ``L``: ``L - 1`` pre-LN Transformer layers, then the fixed-query
+            aggregation layer (the paper uses ``L = 2``).
+        mlp_hidden: hidden width of the Transformer MLPs and the decoder's shared MLP.
+        head_hidden: hidden width of the posterior and output heads.
+        min_scale: floor added to every predicted standard deviation.
+        posterior_uses_target: a CVAE posterior ``q(z|X, y)``: the future enters the posterior
+            head during training. ``False`` gives the paper's literal ``q(z|X)``.
+        eval_latent: the latent used by ``forward`` in eval mode: ``"mean"`` (``z = 0``, the
+            prior's mode: a deterministic forecast) or ``"sample"`` (``z ~ N(0, I)``).
+            :meth:`MultimodalForecaster.sample` always samples.
+    """
+
+    modalities: list[ModalitySpec] = field(default_factory=list)
+    history: int = 10
+    horizon: int = 10
+    target_dim: int = 2
+    d_model: int = 64
+    d_latent: int = 16
+    num_heads: int = 4
+    num_encoder_layers: int = 2
+    mlp_hidden: int = 128
+    head_hidden: int = 256
+    min_scale: float = 1e-3
+    posterior_uses_target: bool = True
+    eval_latent: Literal["mean", "sample"] = "mean"
+
+    def __post_init__(self):
+        self.modalities = [m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities]
+        if not self.modalities:
+            raise ValueError("ForecasterConfig.modalities is empty: the forecaster needs at least one modality")
+        names = [m.name for m in self.modalities]
+        if len(set(names)) != len(names):
+            raise ValueError(f"ForecasterConfig.modalities: duplicate names in {names}")
+        for name in ("history", "horizon", "target_dim", "d_model", "d_latent", "num_heads", "num_encoder_layers",
+                     "mlp_hidden", "head_hidden"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"ForecasterConfig.{name} must be >= 1, found {getattr(self, name)}")
+        if self.d_model % self.num_heads:
+            raise ValueError(f"ForecasterConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}")
+        if self.eval_latent not in ("mean", "sample"):
+            raise ValueError(f"ForecasterConfig.eval_latent must be 'mean' or 'sample', found {self.eval_latent!r}")
+
+    @property
+    def modality_names(self) -> list[str]:
+        return [m.name for m in self.modalities]
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["modalities"] = [m.to_dict() for m in self.modalities]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ForecasterConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"ForecasterConfig: unknown keys {unknown}; expected a subset of {sorted(known)}")
+        return cls(**d)

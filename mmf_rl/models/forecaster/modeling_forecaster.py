@@ -1,0 +1,235 @@
+"""The paper's attention-based CVAE forecaster as a ``TensorDictModule``.
+
+Pipeline for a batch ``[B]`` with ``M`` modalities (paper, "Model Architecture"):
+
+1. **Unimodal encoders** ``E_m`` turn each present window into ``x̄_m ∈ R^d``. Each encoder runs
+   once, on the rows where its modality is present (gathered); absent rows get zeros. So the
+   value stored under an absent modality never reaches any computation, and an encoder whose
+   modality is absent from the whole batch does not run and gets no gradient.
+2. **Multimodal encoder** (posterior): ``x̄_m + p^E_m``, ``L - 1`` pre-LN Transformer layers, then
+   modality-agnostic attention with the fixed queries ``P^E`` (always ``M`` rows), flatten, MLP
+   -> ``(μ, σ)`` of ``q(z | X, y)``. Absent modalities are padded slots masked out of every
+   attention (``key_padding_mask``): one pass for any mix of presence patterns.
+3. **Decoder**: ``[(x̄_m + p^D_m) ⊕ z]`` -> shared MLP -> ``H0``; ``H1 = MHA(LN(P^D), LN(H0),
+   LN(H0)) + P^D``; ``H2 = MHA(LN(H1), LN(H0), LN(H0)) + H1``; flatten, MLP -> ``loc``, ``scale``
+   of a diagonal Gaussian over the ``T × D`` future, in the normalised frame of the target.
+
+Open points of the paper, and what this implementation does:
+
+* **Residual after the fixed-query attention.** The paper adds the block's input (``M^(i)``
+  rows) to an output of ``M`` rows. We add the queries (``P^E`` in the encoder, ``P^D`` for
+  ``H1``), as the Set Transformer's pooling block does; ``H2``'s residual is ``H1`` (same rows).
+  Adding the padded input instead would leak which modalities are present into fixed rows.
+* **Concatenation size.** ``(x̄_m + p^D_m) ⊕ z`` has ``d + d_z`` features (the paper's
+  ``d × d_z`` is a typo for concatenation); the shared MLP maps it back to ``d``.
+* **How ``y`` reaches the posterior.** A CVAE posterior needs the future: ``y`` (flattened
+  ``T × D``) goes through an MLP to a ``d``-vector that is concatenated to the flattened
+  modality-agnostic output before the posterior head. The fusion itself stays over the inputs
+  only, so ``q`` sees exactly the modalities the decoder sees. ``posterior_uses_target=False``
+  gives the paper's literal ``q(z|X)``.
+* **Inference.** ``z ~ N(0, I)`` (prior) as in the paper. ``forward`` in eval mode uses
+  ``z = 0`` by default (deterministic forecasts for RL and metrics); :meth:`sample` draws ``K``
+  latents for best-of-K.
+* **Missing-modality decode.** If the batch carries ``("drop", m)`` masks, the same ``z`` and
+  tokens are decoded twice, with and without the dropped modalities, in **one** batched pass
+  of ``2B`` rows (used by :class:`~mmf_rl.objectives.MissingModalityLoss`).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+
+from mmf_rl import keys
+from mmf_rl.models.attention import FixedQueryAttention, PreLNTransformerLayer
+from mmf_rl.models.encoders import build_encoder, mlp
+from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
+
+
+class ModalityAgnosticEncoder(nn.Module):
+    """The paper's multimodal encoder: tokens ``[B, M, d]`` + presence -> ``[B, M, d]``."""
+
+    def __init__(self, num_modalities: int, d_model: int, num_heads: int, num_layers: int, mlp_hidden: int):
+        super().__init__()
+        self.modality_embedding = nn.Parameter(torch.randn(num_modalities, d_model) * 0.02)  # P^E
+        self.layers = nn.ModuleList(
+            PreLNTransformerLayer(d_model, num_heads, mlp_hidden) for _ in range(num_layers - 1)
+        )
+        self.aggregate = FixedQueryAttention(d_model, num_heads)
+        self.norm_mlp = nn.LayerNorm(d_model)
+        self.mlp = mlp(d_model, mlp_hidden, d_model)
+
+    def forward(self, tokens: torch.Tensor, absent: torch.Tensor) -> torch.Tensor:
+        x = tokens + self.modality_embedding
+        for layer in self.layers:
+            x = layer(x, absent)
+        queries = self.modality_embedding.expand(tokens.shape[0], -1, -1)
+        x = self.aggregate(queries, x, absent, residual=queries)
+        return x + self.mlp(self.norm_mlp(x))
+
+
+class ModalitySpecificDecoder(nn.Module):
+    """The paper's decoder: tokens, presence and ``z`` -> Gaussian parameters over ``T × D``."""
+
+    def __init__(self, cfg: ForecasterConfig):
+        super().__init__()
+        m, d = len(cfg.modalities), cfg.d_model
+        self.modality_embedding = nn.Parameter(torch.randn(m, d) * 0.02)  # P^D
+        self.joint = mlp(d + cfg.d_latent, cfg.mlp_hidden, d)
+        self.aggregate = FixedQueryAttention(d, cfg.num_heads)
+        self.refine = FixedQueryAttention(d, cfg.num_heads)
+        self.head = mlp(m * d, cfg.head_hidden, 2 * cfg.horizon * cfg.target_dim)
+        self.out_shape = (cfg.horizon, cfg.target_dim)
+        self.min_scale = cfg.min_scale
+
+    def forward(self, tokens: torch.Tensor, absent: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        n, m, _ = tokens.shape
+        joint = torch.cat([tokens + self.modality_embedding, z.unsqueeze(1).expand(n, m, -1)], dim=-1)
+        h0 = self.joint(joint)
+        queries = self.modality_embedding.expand(n, -1, -1)
+        h1 = self.aggregate(queries, h0, absent, residual=queries)
+        h2 = self.refine(h1, h0, absent, residual=h1)
+        loc, raw_scale = self.head(h2.flatten(1)).view(n, 2, *self.out_shape).unbind(1)
+        return loc, F.softplus(raw_scale) + self.min_scale
+
+
+class MultimodalForecaster(TensorDictModuleBase):
+    """Attention-based CVAE forecaster robust to missing modalities (see module docstring).
+
+    Reads ``("obs", m)``, ``("present", m)`` for every modality, ``"target"`` when training
+    (and, if present, in eval, to report the posterior) and optional ``("drop", m)``; writes
+    ``("forecast", "loc"/"scale")``, ``"latent"``, ``("prior", ...)``, ``("posterior", ...)``
+    (when ``"target"`` is given) and ``("forecast_dropped", ...)`` (when ``("drop", m)`` is given).
+
+    In train mode ``z`` is sampled from the posterior (reparameterised); in eval mode from the
+    prior (``z = 0`` with ``eval_latent="mean"``).
+
+    Example:
+        >>> cfg = ForecasterConfig(modalities=[ModalitySpec("force", "sequence", (6,))], history=10)
+        >>> model = MultimodalForecaster(cfg).eval()
+        >>> td = model(batch)           # batch follows mmf_rl.keys
+        >>> td["forecast", "loc"].shape  # [B, T, D]
+    """
+
+    def __init__(self, config: ForecasterConfig):
+        super().__init__()
+        self.config = config
+        self.modalities = list(config.modalities)
+        d = config.d_model
+        self.encoders = nn.ModuleDict({s.name: build_encoder(s, config.history, d) for s in self.modalities})
+        self.fusion = ModalityAgnosticEncoder(len(self.modalities), d, config.num_heads, config.num_encoder_layers,
+                                              config.mlp_hidden)
+        target_numel = config.horizon * config.target_dim
+        self.target_encoder = mlp(target_numel, config.head_hidden, d) if config.posterior_uses_target else None
+        posterior_in = len(self.modalities) * d + (d if config.posterior_uses_target else 0)
+        self.posterior_head = mlp(posterior_in, config.head_hidden, 2 * config.d_latent)
+        self.decoder = ModalitySpecificDecoder(config)
+
+        self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
+        self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.LATENT, keys.PRIOR_LOC, keys.PRIOR_SCALE,
+                         keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE, keys.FORECAST_DROPPED_LOC,
+                         keys.FORECAST_DROPPED_SCALE]
+
+    # -- building blocks -------------------------------------------------------------------------
+
+    def validate(self, td: TensorDictBase, require_target: bool = False) -> None:
+        """Raise a clear error if ``td`` does not follow the key contract for this model."""
+        keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim,
+                            require_target=require_target)
+
+    def encode(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """Unimodal encoders -> tokens ``[B, M, d]`` (zeros where absent) and presence ``[B, M]``."""
+        present = torch.stack([td.get(s.present_key) for s in self.modalities], dim=1)
+        batch = present.shape[0]
+        columns = []
+        for i, spec in enumerate(self.modalities):
+            rows = present[:, i].nonzero().squeeze(1)
+            column = torch.zeros(batch, self.config.d_model, device=present.device)
+            if rows.numel():
+                column = column.index_copy(0, rows, self.encoders[spec.name](td.get(spec.obs_key)[rows]))
+            columns.append(column)
+        return torch.stack(columns, dim=1), present
+
+    def posterior(self, tokens: torch.Tensor, present: torch.Tensor, target: torch.Tensor | None):
+        """``q(z | X, y)``: ``loc``, ``scale`` ``[B, d_z]``."""
+        features = self.fusion(tokens, ~present).flatten(1)
+        if self.target_encoder is not None:
+            if target is None:
+                raise KeyError(f"the posterior q(z|X, y) needs {keys.TARGET!r} in the batch "
+                               "(or build the model with posterior_uses_target=False)")
+            features = torch.cat([features, self.target_encoder(target.flatten(1))], dim=-1)
+        loc, raw_scale = self.posterior_head(features).chunk(2, dim=-1)
+        return loc, F.softplus(raw_scale) + 1e-4
+
+    def decode(self, tokens: torch.Tensor, present: torch.Tensor, z: torch.Tensor):
+        """``p(y | X, z)``: ``loc``, ``scale`` ``[N, T, D]`` for ``N`` rows of tokens, presence and ``z``."""
+        return self.decoder(tokens, ~present, z)
+
+    def _drop_mask(self, td: TensorDictBase) -> torch.Tensor | None:
+        drop_keys = [keys.drop_key(s.name) for s in self.modalities]
+        found = [k in td.keys(include_nested=True) for k in drop_keys]
+        if not any(found):
+            return None
+        if not all(found):
+            missing = [k for k, f in zip(drop_keys, found) if not f]
+            raise KeyError(f"batch has some ('drop', m) masks but not {missing}; give one for every modality")
+        return torch.stack([td.get(k) for k in drop_keys], dim=1)
+
+    # -- TensorDict API --------------------------------------------------------------------------
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        self.validate(td, require_target=self.training and self.target_encoder is not None)
+        tokens, present = self.encode(td)
+        batch = present.shape[0]
+        target = td.get(keys.TARGET, None)
+        z_zeros = torch.zeros(batch, self.config.d_latent, device=present.device)
+        td.set(keys.PRIOR_LOC, z_zeros)
+        td.set(keys.PRIOR_SCALE, torch.ones_like(z_zeros))
+        if target is not None or self.target_encoder is None:
+            post_loc, post_scale = self.posterior(tokens, present, target)
+            td.set(keys.POSTERIOR_LOC, post_loc)
+            td.set(keys.POSTERIOR_SCALE, post_scale)
+        if self.training:
+            z = post_loc + post_scale * torch.randn_like(post_scale)
+        elif self.config.eval_latent == "mean":
+            z = z_zeros
+        else:
+            z = torch.randn_like(z_zeros)
+        td.set(keys.LATENT, z)
+
+        drop = self._drop_mask(td)
+        if drop is None:
+            loc, scale = self.decode(tokens, present, z)
+        else:
+            kept = present & ~drop
+            if not bool(kept.any(1).all()):
+                raise ValueError("('drop', m) removes every present modality of some sample; keep at least one")
+            # Teacher (all present) and student (dropped) decodes share tokens and z: one pass of 2B rows.
+            loc2, scale2 = self.decode(tokens.repeat(2, 1, 1), torch.cat([present, kept]), z.repeat(2, 1))
+            loc, loc_dropped = loc2.split(batch)
+            scale, scale_dropped = scale2.split(batch)
+            td.set(keys.FORECAST_DROPPED_LOC, loc_dropped)
+            td.set(keys.FORECAST_DROPPED_SCALE, scale_dropped)
+        td.set(keys.FORECAST_LOC, loc)
+        td.set(keys.FORECAST_SCALE, scale)
+        return td
+
+    def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
+        """Decode ``num_samples`` latents from the prior ``N(0, I)`` in one batched pass.
+
+        Writes ``("forecast", "samples")`` ``[B, K, T, D]``: the mean of ``p(y | X, z_k)`` for each
+        ``z_k``. Other outputs are left untouched. Use under ``torch.no_grad()`` for evaluation.
+        """
+        if num_samples < 1:
+            raise ValueError(f"num_samples must be >= 1, found {num_samples}")
+        self.validate(td)
+        tokens, present = self.encode(td)
+        batch = present.shape[0]
+        z = torch.randn(num_samples * batch, self.config.d_latent, device=present.device)
+        # Row k * B + b is sample k of batch element b.
+        loc, _ = self.decode(tokens.repeat(num_samples, 1, 1), present.repeat(num_samples, 1), z)
+        td.set(keys.FORECAST_SAMPLES, loc.view(num_samples, batch, *loc.shape[1:]).transpose(0, 1))
+        return td

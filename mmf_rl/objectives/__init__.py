@@ -1,0 +1,14 @@
+from mmf_rl.objectives.combined import CombinedLoss
+from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl, gaussian_kl_to_standard, gaussian_nll
+from mmf_rl.objectives.elbo import ELBOLoss
+from mmf_rl.objectives.missing_modality import MissingModalityLoss
+
+__all__ = [
+    "CombinedLoss",
+    "ELBOLoss",
+    "ForecasterLossBase",
+    "MissingModalityLoss",
+    "gaussian_kl",
+    "gaussian_kl_to_standard",
+    "gaussian_nll",
+]

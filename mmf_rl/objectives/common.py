@@ -1,0 +1,80 @@
+"""Closed-form Gaussian terms and the base class shared by the forecaster's losses."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.objectives import LossModule
+
+_LOG_2PI = math.log(2 * math.pi)
+
+
+def gaussian_nll(value: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Elementwise ``-log N(value; loc, scale²)``."""
+    return 0.5 * (((value - loc) / scale) ** 2 + _LOG_2PI) + scale.log()
+
+
+def gaussian_kl(loc_p: torch.Tensor, scale_p: torch.Tensor, loc_q: torch.Tensor, scale_q: torch.Tensor) -> torch.Tensor:
+    """Elementwise ``KL(N(loc_p, scale_p²) || N(loc_q, scale_q²))``."""
+    var_ratio = (scale_p / scale_q) ** 2
+    return 0.5 * (var_ratio + ((loc_p - loc_q) / scale_q) ** 2 - 1 - var_ratio.log())
+
+
+def gaussian_kl_to_standard(loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Elementwise ``KL(N(loc, scale²) || N(0, 1))``."""
+    return 0.5 * (scale**2 + loc**2 - 1) - scale.log()
+
+
+def reduce_batch(per_sample: torch.Tensor, reduction: str) -> torch.Tensor:
+    if reduction == "mean":
+        return per_sample.mean()
+    if reduction == "sum":
+        return per_sample.sum()
+    return per_sample
+
+
+class ForecasterLossBase(LossModule):
+    """A loss over one forecaster's outputs.
+
+    ``loss(td)`` runs the forecaster on a shallow copy of ``td`` and computes the loss, so the
+    caller's batch is never modified and never carries stale outputs. To run several losses on
+    one forward pass, use :class:`~mmf_rl.objectives.CombinedLoss`, which calls each loss's
+    :meth:`prepare` (inputs the pass needs), the forecaster once, then each
+    :meth:`loss_from_outputs`.
+    """
+
+    REDUCTIONS = ("mean", "sum", "none")
+
+    def __init__(self, forecaster, reduction: str = "mean"):
+        super().__init__()
+        if reduction not in self.REDUCTIONS:
+            raise ValueError(f"reduction must be one of {self.REDUCTIONS}, found {reduction!r}")
+        self.forecaster = forecaster
+        self.reduction = reduction
+
+    @property
+    def functional(self) -> bool:
+        # The forecaster is used as a plain stateful module: no target networks, no vmap.
+        return False
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        """No value estimator: nothing to forward (required by ``set_keys``)."""
+
+    def prepare(self, td: TensorDictBase) -> TensorDictBase:
+        """Add the inputs this loss needs from the forecaster's forward pass (none by default)."""
+        return td
+
+    def loss_from_outputs(self, td: TensorDictBase) -> TensorDict:
+        raise NotImplementedError
+
+    def forward(self, td: TensorDictBase) -> TensorDict:
+        return self.loss_from_outputs(self.forecaster(self.prepare(td.clone(False))))
+
+    def _get(self, td: TensorDictBase, key):
+        value = td.get(key, None)
+        if value is None:
+            raise KeyError(f"{type(self).__name__}: key {key} not found in the forecaster's outputs; "
+                           f"was the forecaster run on this batch (and with this loss's prepare())?")
+        return value

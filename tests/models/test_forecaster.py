@@ -1,0 +1,188 @@
+import pytest
+import torch
+from tensordict.nn import TensorDictSequential
+
+from mmf_rl import keys
+from mmf_rl.keys import ModalitySpec
+from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+from tests.conftest import HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch, presence_patterns
+
+NAMES = [s.name for s in SMALL_MODALITIES]
+OUTPUTS = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE, keys.LATENT]
+
+
+def with_presence(td, pattern):
+    td = td.clone()
+    for name in NAMES:
+        td.set(keys.present_key(name), torch.full((td.shape[0],), name in pattern))
+    return td
+
+
+@pytest.mark.parametrize("train", [True, False])
+def test_output_shapes_do_not_depend_on_presence(small_model, batch, train):
+    small_model.train(train)
+    shapes = set()
+    for pattern in presence_patterns(NAMES):
+        out = small_model(with_presence(batch, pattern))
+        shapes.add(tuple(tuple(out.get(k).shape) for k in OUTPUTS))
+    assert shapes == {((8, HORIZON, TARGET_DIM), (8, HORIZON, TARGET_DIM), (8, 4), (8, 4), (8, 4))}
+
+
+def test_mixed_batch_equals_per_sample_results(small_model, mixed_batch):
+    small_model.eval()
+    with torch.no_grad():
+        together = small_model(mixed_batch.clone())
+        for i in range(mixed_batch.shape[0]):
+            alone = small_model(mixed_batch[i : i + 1].clone())
+            for key in OUTPUTS:
+                torch.testing.assert_close(alone.get(key)[0], together.get(key)[i], rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("fill", ["noise", "nan", "zeros"])
+def test_value_under_absent_modality_changes_nothing(small_model, mixed_batch, fill):
+    small_model.eval()
+    reference = small_model(mixed_batch.clone())
+    corrupted = mixed_batch.clone()
+    g = torch.Generator().manual_seed(3)
+    for spec in SMALL_MODALITIES:
+        absent = ~corrupted.get(spec.present_key)
+        obs = corrupted.get(spec.obs_key)
+        if spec.kind == "image":
+            junk = torch.randint(0, 256, obs.shape, generator=g, dtype=torch.uint8) if fill == "noise" else torch.zeros_like(obs)
+        else:
+            junk = {"noise": 1e6 * torch.randn(obs.shape, generator=g), "nan": torch.full_like(obs, float("nan")),
+                    "zeros": torch.zeros_like(obs)}[fill]
+        obs[absent] = junk[absent]
+    out = small_model(corrupted)
+    for key in OUTPUTS:
+        assert torch.equal(out.get(key), reference.get(key)), key
+
+
+def test_no_gradient_reaches_encoder_of_modality_absent_from_whole_batch(small_model, batch):
+    td = batch.clone()
+    td.set(keys.present_key("image"), torch.zeros(8, dtype=torch.bool))
+    td.set(keys.obs_key("image"), torch.full_like(td.get(keys.obs_key("image")), 255))
+    small_model.train()
+    out = small_model(td)
+    (out.get(keys.FORECAST_LOC).sum() + out.get(keys.POSTERIOR_LOC).sum()).backward()
+    assert all(p.grad is None for p in small_model.encoders["image"].parameters())
+    for name in ("force", "proprio"):
+        grads = [p.grad for p in small_model.encoders[name].parameters()]
+        assert all(g is not None for g in grads) and any(g.abs().sum() > 0 for g in grads)
+
+
+def test_zero_present_modalities_is_a_value_error(small_model):
+    td = make_batch(2, present={n: torch.tensor([True, False]) for n in NAMES})
+    with pytest.raises(ValueError, match=r"have no present modality \(batch indices \[1\]\)"):
+        small_model(td)
+
+
+def test_wrong_dtype_names_key_expected_and_found(small_model, batch):
+    batch.set(keys.obs_key("force"), batch.get(keys.obs_key("force")).double())
+    with pytest.raises(ValueError, match=r"td\[\('obs', 'force'\)\]: expected float32 \[8, 4, 6\], found float64 \[8, 4, 6\]"):
+        small_model(batch)
+
+
+def test_training_needs_target_for_the_posterior(small_model, batch):
+    del batch[keys.TARGET]
+    with pytest.raises(KeyError, match="'target'"):
+        small_model.train()(batch)
+    small_model.eval()(batch)  # inference needs no target
+
+
+def test_eval_mean_latent_is_deterministic_and_train_mode_samples(small_model, batch):
+    small_model.eval()
+    first, second = small_model(batch.clone()), small_model(batch.clone())
+    assert torch.equal(first.get(keys.LATENT), torch.zeros(8, 4))
+    assert torch.equal(first.get(keys.FORECAST_LOC), second.get(keys.FORECAST_LOC))
+    small_model.train()
+    z1, z2 = small_model(batch.clone()).get(keys.LATENT), small_model(batch.clone()).get(keys.LATENT)
+    assert not torch.equal(z1, z2)
+
+
+def test_sample_draws_k_prior_forecasts_in_one_pass(small_model, mixed_batch):
+    small_model.eval()
+    with torch.no_grad():
+        out = small_model.sample(mixed_batch.clone(), num_samples=6)
+    samples = out.get(keys.FORECAST_SAMPLES)
+    assert samples.shape == (mixed_batch.shape[0], 6, HORIZON, TARGET_DIM)
+    assert samples.std(dim=1).mean() > 0  # different latents, different forecasts
+    # Sample k of element b is the decode of that element with that latent alone.
+    torch.manual_seed(5)
+    with torch.no_grad():
+        out = small_model.sample(mixed_batch.clone(), num_samples=3)
+    torch.manual_seed(5)
+    z = torch.randn(3 * mixed_batch.shape[0], 4).view(3, mixed_batch.shape[0], 4)
+    tokens, present = small_model.encode(mixed_batch)
+    with torch.no_grad():
+        loc, _ = small_model.decode(tokens, present, z[2])
+    torch.testing.assert_close(out.get(keys.FORECAST_SAMPLES)[:, 2], loc, rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="num_samples must be >= 1"):
+        small_model.sample(mixed_batch.clone(), num_samples=0)
+
+
+def test_drop_masks_decode_teacher_and_student_in_one_batched_pass(small_model, mixed_batch):
+    small_model.train()
+    td = mixed_batch.clone()
+    present = torch.stack([td.get(keys.present_key(n)) for n in NAMES], 1)
+    drop = torch.zeros_like(present)
+    multi = present.sum(1) >= 2
+    drop[multi, present[multi].float().argmax(1)] = True  # drop the first present modality
+    for i, name in enumerate(NAMES):
+        td.set(keys.drop_key(name), drop[:, i])
+    calls = []
+    hook = small_model.decoder.register_forward_hook(lambda mod, args, out: calls.append(args[0].shape[0]))
+    out = small_model(td)
+    hook.remove()
+    assert calls == [2 * td.shape[0]]
+    # Teacher = a plain decode with all present modalities; student = decode without the dropped ones.
+    tokens, _ = small_model.encode(td)
+    z = out.get(keys.LATENT)
+    teacher, _ = small_model.decode(tokens, present, z)
+    student, _ = small_model.decode(tokens, present & ~drop, z)
+    torch.testing.assert_close(out.get(keys.FORECAST_LOC), teacher, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out.get(keys.FORECAST_DROPPED_LOC), student, rtol=1e-4, atol=1e-5)
+    assert not torch.allclose(teacher[multi], student[multi])
+    assert torch.equal(out.get(keys.FORECAST_DROPPED_LOC)[~multi], out.get(keys.FORECAST_LOC)[~multi])
+
+
+def test_dropping_every_present_modality_is_refused(small_model, batch):
+    for name in NAMES:
+        batch.set(keys.drop_key(name), torch.ones(8, dtype=torch.bool))
+    with pytest.raises(ValueError, match="removes every present modality"):
+        small_model(batch)
+
+
+@pytest.mark.parametrize("encoder", ["conv", "conv_gru"])
+def test_image_encoders_and_vector_modality(encoder):
+    specs = [ModalitySpec("cam", "image", (3, 16, 16), encoder=encoder, encoder_kwargs={"channels": (4, 8)}),
+             ModalitySpec("goal", "vector", (3,))]
+    model = MultimodalForecaster(ForecasterConfig(modalities=specs, history=3, horizon=2, target_dim=3, d_model=8,
+                                                  d_latent=2, num_heads=2, mlp_hidden=8, head_hidden=8))
+    td = make_batch(5, modalities=specs, history=3, horizon=2, target_dim=3)
+    out = model(td)
+    assert out.get(keys.FORECAST_LOC).shape == (5, 2, 3)
+    assert (out.get(keys.FORECAST_SCALE) > 0).all()
+
+
+def test_image_size_not_divisible_is_a_clear_error():
+    spec = ModalitySpec("cam", "image", (3, 20, 20), encoder_kwargs={"channels": (4, 8, 8)})
+    with pytest.raises(ValueError, match="image size 20x20 must be divisible by 8"):
+        MultimodalForecaster(ForecasterConfig(modalities=[spec], history=2))
+
+
+def test_is_a_tensordict_module_with_explicit_keys(small_model, batch):
+    assert keys.obs_key("image") in small_model.in_keys and keys.present_key("force") in small_model.in_keys
+    assert keys.FORECAST_LOC in small_model.out_keys
+    out = TensorDictSequential(small_model.eval())(batch)
+    assert out.get(keys.FORECAST_LOC).shape == (8, HORIZON, TARGET_DIM)
+
+
+def test_config_roundtrip_and_bad_keys(small_config):
+    assert ForecasterConfig.from_dict(small_config.to_dict()) == small_config
+    with pytest.raises(ValueError, match=r"unknown keys \['d_modle'\]"):
+        ForecasterConfig.from_dict({**small_config.to_dict(), "d_modle": 3})
+    with pytest.raises(ValueError, match="d_model=10 must be divisible by num_heads=4"):
+        ForecasterConfig(modalities=list(SMALL_MODALITIES), d_model=10, num_heads=4)
+    with pytest.raises(ValueError, match="modalities is empty"):
+        ForecasterConfig()

@@ -1,0 +1,65 @@
+import pytest
+import torch
+from torch.distributions import Normal, kl_divergence
+
+from mmf_rl import keys
+from mmf_rl.objectives import ELBOLoss
+
+
+def test_terms_equal_the_distributions_of_the_forward_pass(small_model, batch):
+    loss = ELBOLoss(small_model, kl_weight=0.5)
+    torch.manual_seed(0)
+    out = loss(batch)
+    torch.manual_seed(0)
+    td = small_model(batch.clone())
+    nll = -Normal(td.get(keys.FORECAST_LOC), td.get(keys.FORECAST_SCALE)).log_prob(td.get(keys.TARGET)).sum((1, 2))
+    kl = kl_divergence(Normal(td.get(keys.POSTERIOR_LOC), td.get(keys.POSTERIOR_SCALE)),
+                       Normal(torch.zeros(4), torch.ones(4))).sum(-1)
+    torch.testing.assert_close(out["loss_nll"], nll.mean())
+    torch.testing.assert_close(out["loss_kl"], 0.5 * kl.mean())
+    torch.testing.assert_close(out["kl"], kl.mean())
+    assert out["loss_nll"].requires_grad and not out["kl"].requires_grad
+
+
+def test_does_not_modify_the_callers_batch(small_model, batch):
+    before = set(batch.keys(include_nested=True, leaves_only=True))
+    ELBOLoss(small_model)(batch)
+    assert set(batch.keys(include_nested=True, leaves_only=True)) == before
+
+
+def test_kl_warmup_is_linear_and_saved_with_state(small_model, batch):
+    loss = ELBOLoss(small_model, kl_weight=2.0, kl_warmup_steps=4)
+    weights = []
+    for _ in range(6):
+        weights.append(float(loss(batch)["kl_weight"]))
+    assert weights == [0.5, 1.0, 1.5, 2.0, 2.0, 2.0]
+    restored = ELBOLoss(small_model, kl_weight=2.0, kl_warmup_steps=4)
+    restored.load_state_dict(loss.state_dict())
+    assert int(restored.num_updates) == 6
+    with torch.no_grad():
+        loss(batch)
+    assert int(loss.num_updates) == 6  # evaluation does not advance the schedule
+
+
+def test_set_keys_reads_a_renamed_target(small_model, batch):
+    batch.rename_key_(keys.TARGET, "future")
+    loss = ELBOLoss(small_model.eval(), kl_weight=1.0)
+    loss.set_keys(target="future")
+    assert "future" in loss.in_keys
+    # posterior_uses_target reads the contract's "target" key; put it back for the model only.
+    batch.set(keys.TARGET, batch.get("future"))
+    assert torch.isfinite(loss(batch)["loss_nll"])
+    with pytest.raises(ValueError, match="not an accepted tensordict key"):
+        loss.set_keys(nope="x")
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="kl_weight and kl_warmup_steps must be >= 0"):
+        ELBOLoss(torch.nn.Identity(), kl_weight=-1)
+    with pytest.raises(ValueError, match="reduction must be one of"):
+        ELBOLoss(torch.nn.Identity(), reduction="max")
+
+
+def test_reduction_none_gives_per_sample_terms(small_model, batch):
+    out = ELBOLoss(small_model, reduction="none")(batch)
+    assert out["loss_nll"].shape == (8,) and out["loss_kl"].shape == (8,)

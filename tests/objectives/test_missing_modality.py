@@ -1,0 +1,108 @@
+import pytest
+import torch
+from tensordict import TensorDict
+
+from mmf_rl import keys
+from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
+from tests.conftest import SMALL_MODALITIES, make_batch
+
+NAMES = [s.name for s in SMALL_MODALITIES]
+
+
+def outputs(teacher_loc, student_loc, drop_first=True):
+    b = teacher_loc.shape[0]
+    td = TensorDict({keys.FORECAST_LOC: teacher_loc, keys.FORECAST_SCALE: torch.ones_like(teacher_loc),
+                     keys.FORECAST_DROPPED_LOC: student_loc, keys.FORECAST_DROPPED_SCALE: torch.ones_like(student_loc)},
+                    batch_size=[b])
+    for i, name in enumerate(NAMES):
+        td.set(keys.drop_key(name), torch.full((b,), drop_first and i == 0))
+    return td
+
+
+def test_loss_is_zero_when_masked_decode_equals_full_and_positive_otherwise(small_model):
+    loss = MissingModalityLoss(small_model)
+    loc = torch.randn(4, 5, 2)
+    assert loss.loss_from_outputs(outputs(loc, loc.clone()))["loss_mis"] == 0
+    shifted = loss.loss_from_outputs(outputs(loc, loc + 0.5))["loss_mis"]
+    # KL(N(a,1) || N(a+0.5,1)) = 0.125 per element, 10 elements per sample.
+    torch.testing.assert_close(shifted, torch.tensor(1.25))
+
+
+def test_samples_with_nothing_dropped_do_not_count(small_model):
+    loss = MissingModalityLoss(small_model)
+    loc = torch.randn(4, 5, 2)
+    out = loss.loss_from_outputs(outputs(loc, loc + 0.5, drop_first=False))
+    assert out["loss_mis"] == 0 and out["mis_fraction"] == 0
+
+
+def test_prepare_drops_exactly_one_present_modality_where_two_or_more(small_model):
+    present = {"image": torch.tensor([1, 1, 0, 1, 0] * 400).bool(),
+               "force": torch.tensor([1, 0, 0, 1, 1] * 400).bool(),
+               "proprio": torch.tensor([1, 0, 1, 1, 0] * 400).bool()}
+    td = make_batch(2000, present=present)
+    loss = MissingModalityLoss(small_model)
+    torch.manual_seed(0)
+    loss.prepare(td)
+    drop = torch.stack([td.get(keys.drop_key(n)) for n in NAMES], 1)
+    pres = torch.stack([present[n] for n in NAMES], 1)
+    assert not (drop & ~pres).any()  # only present modalities are dropped
+    assert torch.equal(drop.sum(1), (pres.sum(1) >= 2).long())  # one where possible, none otherwise
+    # Uniform over the present ones: all three present in rows 3, 8, ... -> each ~1/3.
+    shares = drop[3::5].float().mean(0)
+    assert torch.allclose(shares, torch.full((3,), 1 / 3), atol=0.06)
+    torch.manual_seed(0)
+    again = loss.prepare(make_batch(2000, present=present))
+    assert torch.equal(drop, torch.stack([again.get(keys.drop_key(n)) for n in NAMES], 1))
+
+
+def test_end_to_end_loss_is_positive_and_trains_the_student_only(small_model, batch):
+    small_model.train()
+    out = MissingModalityLoss(small_model, weight=2.0)(batch)
+    assert out["loss_mis"] > 0 and out["mis_fraction"] == 1
+    torch.testing.assert_close(out["loss_mis"], 2.0 * out["mis_kl"])
+    out["loss_mis"].backward()
+    # The teacher is detached: gradients still flow (through the student), and stay finite.
+    grads = [p.grad for p in small_model.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_detached_teacher_gets_no_gradient_from_loss_mis(small_model):
+    loc = torch.randn(4, 5, 2, requires_grad=True)
+    student = torch.randn(4, 5, 2, requires_grad=True)
+    for detach, teacher_has_grad in ((True, False), (False, True)):
+        loc.grad = None
+        MissingModalityLoss(small_model, detach_teacher=detach).loss_from_outputs(outputs(loc, student))["loss_mis"].backward()
+        assert (loc.grad is not None) == teacher_has_grad
+        assert student.grad is not None
+
+
+def test_combined_loss_runs_the_forecaster_once(small_model, batch):
+    calls = []
+    handle = small_model.register_forward_hook(lambda *args: calls.append(1))
+    combined = CombinedLoss(ELBOLoss(small_model), MissingModalityLoss(small_model))
+    out = combined(batch)
+    handle.remove()
+    assert len(calls) == 1
+    assert {"loss_nll", "loss_kl", "loss_mis"} <= set(out.keys())
+    assert set(combined.out_keys) >= {"loss_nll", "loss_kl", "loss_mis"}
+
+
+def test_combined_teacher_equals_plain_elbo_forward(small_model, batch):
+    torch.manual_seed(1)
+    plain = ELBOLoss(small_model)(batch)
+    torch.manual_seed(1)
+    td = batch.clone()
+    z_state = torch.get_rng_state()
+    combined = CombinedLoss(ELBOLoss(small_model), MissingModalityLoss(small_model))
+    # prepare() draws its random choice first; replay the plain run's RNG for the latent.
+    td = combined.prepare(td)
+    torch.set_rng_state(z_state)
+    out = combined.loss_from_outputs(small_model(td))
+    torch.testing.assert_close(out["loss_nll"], plain["loss_nll"])
+
+
+def test_combined_loss_refuses_different_forecasters(small_model, small_config):
+    from mmf_rl.models import MultimodalForecaster
+
+    with pytest.raises(ValueError, match="same forecaster"):
+        CombinedLoss(ELBOLoss(small_model), MissingModalityLoss(MultimodalForecaster(small_config)))
