@@ -147,6 +147,9 @@ class MultimodalForecaster(TensorDictModuleBase):
         columns = []
         for i, spec in enumerate(self.modalities):
             rows = present[:, i].nonzero().squeeze(1)
+            if rows.numel() == batch:  # all present: no gather (an image window batch is tens of MB)
+                columns.append(self.encoders[spec.name](td.get(spec.obs_key)))
+                continue
             column = torch.zeros(batch, self.config.d_model, device=present.device)
             if rows.numel():
                 column = column.index_copy(0, rows, self.encoders[spec.name](td.get(spec.obs_key)[rows]))
