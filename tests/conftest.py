@@ -135,3 +135,22 @@ SYNTH_MODALITIES = [
 @pytest.fixture(scope="session")
 def synthetic_task() -> dict[str, TensorDict]:
     return {"train": synthetic_motion_task(4096, seed=0), "test": synthetic_motion_task(1024, seed=1)}
+
+
+class InMemoryLoader:
+    """A loader over an in-memory TensorDict with the WindowLoader protocol: one epoch per
+    iteration, a seeded permutation per ``set_epoch``."""
+
+    def __init__(self, data: TensorDict, batch_size: int, seed: int = 0):
+        self.data, self.batch_size, self.seed, self.epoch = data, batch_size, seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.data.shape[0] // self.batch_size
+
+    def __iter__(self):
+        order = torch.randperm(self.data.shape[0], generator=torch.Generator().manual_seed(self.seed * 1000 + self.epoch))
+        for i in range(len(self)):
+            yield self.data[order[i * self.batch_size : (i + 1) * self.batch_size]]

@@ -1,0 +1,379 @@
+"""An offline trainer for forecasters: loss modules + optimizer + hooks, resumable exactly.
+
+torchrl's ``Trainer`` is built around a data *collector* (frame counting, policy-weight updates,
+collector shutdown); training here iterates a fixed dataset, so this trainer keeps torchrl's
+vocabulary (``register_op`` with ``batch_process``, ``post_loss``, ``post_optim``,
+``post_steps``, ``post_steps_log``) over a batch loader instead.
+
+The loader must be re-iterable, yield one epoch per iteration and be deterministic given
+``set_epoch(epoch)`` (:class:`mmf_rl.datasets.windows.WindowLoader` is). With the RNG states,
+optimizer, scheduler and loss buffers stored in the checkpoint, a resumed run replays exactly
+the batches and random draws of an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+from collections import defaultdict
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from tensordict import TensorDictBase
+from tqdm.auto import tqdm
+
+from mmf_rl.trainers.checkpoint import load_checkpoint, load_model_state, save_checkpoint
+
+OPS = ("batch_process", "post_loss", "post_optim", "post_steps", "post_steps_log")
+
+
+class TrainingStopped(RuntimeError):
+    """Training cannot go on (non-finite or exploding loss); the message says where and what to do."""
+
+
+@dataclass
+class TrainerConfig:
+    """Optimisation and bookkeeping of one run.
+
+    ``max_nonfinite_steps``: a step whose loss is NaN/Inf is skipped (no update) and counted;
+    more than this many in a row stop the run. ``loss_explosion_threshold``: a finite total loss
+    above it stops the run, naming the last good checkpoint.
+    """
+
+    total_steps: int = 1000
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    lr_schedule: str = "cosine"
+    warmup_steps: int = 50
+    grad_clip_norm: float | None = 1.0
+    log_every: int = 25
+    eval_every: int = 250
+    checkpoint_every: int = 250
+    keep_checkpoints: int = 2
+    early_stopping_patience: int | None = None
+    early_stopping_metric: str = "val/loss"
+    max_nonfinite_steps: int = 10
+    loss_explosion_threshold: float = 1e6
+    seed: int = 0
+    progress_bar: bool = True
+
+    def __post_init__(self):
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"trainer.lr_schedule must be 'constant' or 'cosine', found {self.lr_schedule!r}")
+        for name in ("total_steps", "log_every", "eval_every", "checkpoint_every", "keep_checkpoints"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"trainer.{name} must be >= 1, found {getattr(self, name)}")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainerConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"trainer config: unknown keys {unknown}; expected a subset of {sorted(known)}")
+        return cls(**d)
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def rng_state() -> dict:
+    mt, keys_, pos, has_gauss, cached = np.random.get_state()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": {"keys": torch.from_numpy(keys_.astype(np.int64)), "pos": pos, "has_gauss": has_gauss,
+                  "cached": cached},
+        "python": random.getstate(),
+    }
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    n = state["numpy"]
+    np.random.set_state(("MT19937", n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"]))
+    python = state["python"]
+    random.setstate((python[0], tuple(python[1]), python[2]))
+
+
+def make_optimizer(params, config: TrainerConfig) -> torch.optim.Optimizer:
+    return torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
+
+
+def make_scheduler(optimizer: torch.optim.Optimizer, config: TrainerConfig) -> torch.optim.lr_scheduler.LRScheduler:
+    """Linear warm-up, then constant or cosine decay to 0 at ``total_steps``."""
+    warmup, total, cosine = config.warmup_steps, config.total_steps, config.lr_schedule == "cosine"
+
+    def factor(step: int) -> float:
+        if step < warmup:
+            return (step + 1) / warmup
+        if not cosine:
+            return 1.0
+        progress = (step - warmup) / max(1, total - warmup)
+        return 0.5 * (1 + math.cos(math.pi * min(1.0, progress)))
+
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
+
+
+def average_gradients(model: torch.nn.Module, world_size: int) -> None:
+    """Average gradients over ranks (data parallelism), treating a missing gradient as zero.
+
+    Done by hand rather than with ``DistributedDataParallel``: the forecaster skips the encoder of
+    a modality absent from a local batch, so ranks disagree on which parameters got gradients,
+    and DDP's ``find_unused_parameters`` cannot see through TensorDict outputs to know which.
+    One flattened all-reduce per step keeps the cost of a bucketed DDP reduce.
+    """
+    params = [p for p in model.parameters() if p.requires_grad]
+    flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params])
+    dist.all_reduce(flat)
+    flat /= world_size
+    offset = 0
+    for p in params:
+        n = p.numel()
+        p.grad = flat[offset : offset + n].view_as(p).clone()
+        offset += n
+
+
+class Trainer:
+    """Trains ``model`` by summing the ``loss_*`` entries of ``loss_module`` over ``loader`` batches.
+
+    Args:
+        model: the module whose weights are checkpointed (the loss module's forecaster).
+        loss_module: a torchrl ``LossModule`` returning ``loss_*`` entries.
+        loader: re-iterable, one epoch per iteration, deterministic given ``set_epoch``.
+        config: :class:`TrainerConfig`.
+        run_dir: where ``checkpoints/`` go (only rank 0 writes); ``None``: no checkpoints.
+        logger: a ``torchrl.record.loggers.Logger`` (rank 0 only), or ``None``.
+        evaluate: ``evaluate(model) -> {name: value}``, called every ``eval_every`` steps and at
+            the end; its values are logged as ``name`` and can drive early stopping.
+        checkpoint_meta / checkpoint_tensors: stored with every checkpoint (config, data
+            fingerprint, normalisation statistics).
+        rank, world_size: data-parallel position (``torch.distributed`` must be initialised
+            when ``world_size > 1``).
+    """
+
+    def __init__(self, model: torch.nn.Module, loss_module: torch.nn.Module, loader, config: TrainerConfig, *,
+                 run_dir: str | Path | None = None, logger=None,
+                 evaluate: Callable[[torch.nn.Module], dict[str, float]] | None = None,
+                 checkpoint_meta: dict | None = None, checkpoint_tensors: dict[str, torch.Tensor] | None = None,
+                 rank: int = 0, world_size: int = 1):
+        self.model, self.loss_module, self.loader, self.config = model, loss_module, loader, config
+        self.run_dir = Path(run_dir) if run_dir is not None else None
+        self.logger = logger if rank == 0 else None
+        self.evaluate = evaluate
+        self.checkpoint_meta = dict(checkpoint_meta or {})
+        self.checkpoint_tensors = dict(checkpoint_tensors or {})
+        self.rank, self.world_size = rank, world_size
+        self.optimizer = make_optimizer(model.parameters(), config)
+        self.scheduler = make_scheduler(self.optimizer, config)
+        self.ops: dict[str, list[Callable]] = {name: [] for name in OPS}
+        self.step = 0
+        self.epoch = 0
+        self.batch_in_epoch = 0
+        self.nonfinite_in_a_row = 0
+        self.nonfinite_total = 0
+        self.best_metric = math.inf
+        self.evals_without_improvement = 0
+        self.last_checkpoint: Path | None = None
+        self.history: list[dict[str, float]] = []
+        if config.grad_clip_norm:
+            self.register_op("post_loss", self._clip_gradients)
+
+    # -- hooks ------------------------------------------------------------------------------------
+
+    def register_op(self, dest: str, op: Callable) -> None:
+        """Call ``op`` at ``dest``: ``batch_process(batch) -> batch``, ``post_loss(trainer)``,
+        ``post_optim(trainer)``, ``post_steps(trainer)``, ``post_steps_log(trainer, logs)``."""
+        if dest not in self.ops:
+            raise ValueError(f"unknown hook point {dest!r}; expected one of {list(OPS)}")
+        self.ops[dest].append(op)
+
+    def _clip_gradients(self, trainer: Trainer) -> None:
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip_norm)
+
+    # -- state ------------------------------------------------------------------------------------
+
+    def _loss_buffers(self) -> dict[str, torch.Tensor]:
+        # The loss module's own state (e.g. the KL warm-up counter), not the model weights it wraps.
+        model_tensors = {id(t) for t in self.model.state_dict(keep_vars=True).values()}
+        return {k: v for k, v in self.loss_module.state_dict(keep_vars=True).items() if id(v) not in model_tensors}
+
+    def state_dict(self) -> dict:
+        epoch, batch_in_epoch = self.epoch, self.batch_in_epoch
+        if batch_in_epoch >= len(self.loader):  # the epoch is finished: resume at the next one
+            epoch, batch_in_epoch = epoch + 1, 0
+        return {
+            "step": self.step, "epoch": epoch, "batch_in_epoch": batch_in_epoch,
+            "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
+            "loss_buffers": {k: v.detach().clone() for k, v in self._loss_buffers().items()},
+            "rng": rng_state(), "nonfinite_total": self.nonfinite_total, "best_metric": self.best_metric,
+            "evals_without_improvement": self.evals_without_improvement,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step, self.epoch, self.batch_in_epoch = state["step"], state["epoch"], state["batch_in_epoch"]
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.loss_module.load_state_dict(state["loss_buffers"], strict=False)
+        set_rng_state(state["rng"])
+        self.nonfinite_total = state["nonfinite_total"]
+        self.best_metric = state["best_metric"]
+        self.evals_without_improvement = state["evals_without_improvement"]
+
+    def save(self) -> Path | None:
+        if self.run_dir is None or self.rank != 0:
+            return None
+        self.last_checkpoint = save_checkpoint(
+            self.run_dir / "checkpoints", self.step, self.model.state_dict(),
+            meta={**self.checkpoint_meta, "trainer": asdict(self.config)},
+            tensors=self.checkpoint_tensors, trainer_state=self.state_dict(),
+            keep_last=self.config.keep_checkpoints,
+        )
+        return self.last_checkpoint
+
+    def resume(self, path: str | Path) -> None:
+        """Continue from a checkpoint (or a directory's ``last`` one): weights and trainer state."""
+        checkpoint = load_checkpoint(path)
+        load_model_state(self.model, checkpoint)
+        if checkpoint.trainer_state is None:
+            raise RuntimeError(f"{checkpoint.path} holds weights only (no trainer state); it cannot be resumed")
+        self.load_state_dict(checkpoint.trainer_state)
+        self.last_checkpoint = checkpoint.path
+
+    # -- loop -------------------------------------------------------------------------------------
+
+    def _batches(self):
+        if len(self.loader) == 0:
+            raise ValueError("the training loader yields no batch: the training split has fewer windows than "
+                             "one batch per rank; lower the batch size or record more episodes")
+        while True:
+            self.loader.set_epoch(self.epoch)
+            for index, batch in enumerate(self.loader):
+                if index < self.batch_in_epoch:  # resuming inside an epoch: replay up to where we were
+                    continue
+                self.batch_in_epoch = index + 1
+                yield batch
+            self.epoch += 1
+            self.batch_in_epoch = 0
+
+    def _train_step(self, batch: TensorDictBase) -> dict[str, float] | None:
+        losses = self.loss_module(batch)
+        loss_terms = {k: v for k, v in losses.items() if k.startswith("loss_")}
+        total = sum(loss_terms.values())
+        total_value = float(total.detach())
+        if self.world_size > 1:  # every rank must agree to skip, or the all-reduce would hang
+            flag = torch.tensor([float(math.isfinite(total_value))])
+            dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+            finite = bool(flag.item())
+        else:
+            finite = math.isfinite(total_value)
+        if not finite:
+            self.nonfinite_in_a_row += 1
+            self.nonfinite_total += 1
+            bad = [k for k, v in loss_terms.items() if not torch.isfinite(v)]
+            if self.nonfinite_in_a_row > self.config.max_nonfinite_steps:
+                raise TrainingStopped(
+                    f"{self.nonfinite_in_a_row} steps in a row had a non-finite loss ({bad or 'on another rank'}); "
+                    f"last at step {self.step}, epoch {self.epoch}, batch {self.batch_in_epoch - 1}. Check that batch "
+                    f"for NaN/Inf inputs, or lower trainer.lr. Last good checkpoint: {self.last_checkpoint}")
+            return None
+        if total_value > self.config.loss_explosion_threshold:
+            raise TrainingStopped(
+                f"loss exploded to {total_value:.3g} at step {self.step} (threshold "
+                f"trainer.loss_explosion_threshold={self.config.loss_explosion_threshold:g}); lower trainer.lr or "
+                f"enable gradient clipping. Last good checkpoint: {self.last_checkpoint}")
+        self.nonfinite_in_a_row = 0
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        if self.world_size > 1:
+            average_gradients(self.model, self.world_size)
+        for op in self.ops["post_loss"]:
+            op(self)
+        self.optimizer.step()
+        self.scheduler.step()
+        for op in self.ops["post_optim"]:
+            op(self)
+        logs = {k: float(v.detach()) for k, v in losses.items() if v.numel() == 1}
+        logs["loss"] = total_value
+        return logs
+
+    def _evaluate(self) -> dict[str, float]:
+        if self.evaluate is None:
+            return {}
+        was_training = self.model.training
+        self.model.eval()
+        with torch.no_grad():
+            metrics = self.evaluate(self.model)
+        self.model.train(was_training)
+        metric = metrics.get(self.config.early_stopping_metric)
+        if metric is not None:
+            if metric < self.best_metric:
+                self.best_metric, self.evals_without_improvement = metric, 0
+            else:
+                self.evals_without_improvement += 1
+        return metrics
+
+    def _log(self, values: dict[str, float]) -> None:
+        if self.logger is not None:
+            for name, value in values.items():
+                self.logger.log_scalar(name, value, step=self.step)
+
+    def train(self) -> dict[str, float]:
+        """Run until ``total_steps`` (or early stopping); return the last evaluation's metrics."""
+        cfg = self.config
+        self.model.train()
+        self.loss_module.train()
+        batches = self._batches()
+        window: dict[str, list[float]] = defaultdict(list)
+        samples, started = 0, time.perf_counter()
+        bar = tqdm(total=cfg.total_steps, initial=self.step, disable=not cfg.progress_bar or self.rank != 0,
+                   desc="train", unit="step", dynamic_ncols=True)
+        metrics: dict[str, float] = {}
+        try:
+            while self.step < cfg.total_steps:
+                batch = next(batches)
+                for op in self.ops["batch_process"]:
+                    batch = op(batch)
+                logs = self._train_step(batch)
+                if logs is None:
+                    self._log({"train/nonfinite_steps": float(self.nonfinite_total)})
+                    continue
+                self.step += 1
+                bar.update(1)
+                samples += batch.shape[0] * self.world_size
+                for k, v in logs.items():
+                    window[k].append(v)
+                for op in self.ops["post_steps"]:
+                    op(self)
+                if self.step % cfg.log_every == 0 or self.step == cfg.total_steps:
+                    rate = samples / max(time.perf_counter() - started, 1e-9)
+                    averaged = {f"train/{k}": sum(v) / len(v) for k, v in window.items()}
+                    averaged["train/samples_per_s"] = rate
+                    averaged["train/lr"] = self.scheduler.get_last_lr()[0]
+                    self._log(averaged)
+                    self.history.append({"step": self.step, **averaged})
+                    for op in self.ops["post_steps_log"]:
+                        op(self, averaged)
+                    bar.set_postfix(loss=f"{averaged['train/loss']:.3f}", samples_s=f"{rate:.0f}")
+                    window.clear()
+                last = self.step == cfg.total_steps
+                if self.step % cfg.eval_every == 0 or last:
+                    metrics = self._evaluate()
+                    self._log(metrics)
+                    if (cfg.early_stopping_patience is not None
+                            and self.evals_without_improvement > cfg.early_stopping_patience):
+                        tqdm.write(f"early stopping at step {self.step}: {cfg.early_stopping_metric} has not improved "
+                                   f"for {self.evals_without_improvement} evaluations (best {self.best_metric:.4g})")
+                        self.save()
+                        break
+                if self.step % cfg.checkpoint_every == 0 or last:
+                    self.save()
+        finally:
+            bar.close()
+        return metrics
