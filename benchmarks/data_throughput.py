@@ -1,0 +1,134 @@
+"""Windows/s of the cached window pipeline vs lerobot's own loader, on the same windows.
+
+    .venv/bin/python benchmarks/data_throughput.py                 # records a small dataset
+    .venv/bin/python benchmarks/data_throughput.py --root data/push
+
+The reference is ``LeRobotDataset(..., delta_timestamps=...)`` in a ``torch.utils.data.DataLoader``
+reading exactly the windows the cache serves (same history, horizon, stride and features). The
+cache's build time is compared with one lerobot pass over all windows (extrapolated from the
+measured subset). The last line is ``ratio: N.Nx (cache W windows/s vs lerobot L windows/s)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+import torch
+
+from mmf_rl.datasets.config import DataConfig
+from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
+from mmf_rl.datasets.windows import WindowDataset
+
+
+def make_dataset(root: Path, episodes: int, steps: int, image_size: int, workers: int) -> str:
+    """Record with the project's recorder when it exists, else write the synthetic dataset."""
+    try:
+        from mmf_rl.datasets.record import RecordConfig, record
+    except ImportError:
+        from mmf_rl.datasets.synthetic import make_synthetic_dataset
+
+        make_synthetic_dataset(root, [steps] * episodes, image_size=image_size)
+        return "synthetic (mmf_rl.datasets.record is not available)"
+    # No sensor faults: lerobot's shard aggregation stores NaN as parquet nulls, which the
+    # reference loader (LeRobotDataset.__getitem__) cannot turn into tensors.
+    record(RecordConfig(out=root, episodes=episodes, steps=steps, image_size=image_size, workers=workers))
+    return "recorded with mmf_rl.datasets.record"
+
+
+def cache_throughput(dataset: WindowDataset, batch_size: int, seconds: float) -> float:
+    loader = dataset.loader("train", batch_size, seed=0)
+    next(iter(loader))  # warm the page cache, like the reference's first batch
+    windows, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        for batch in loader:
+            windows += batch.batch_size[0]
+    return windows / (time.perf_counter() - start)
+
+
+def lerobot_throughput(config: DataConfig, frame_indices: list[int], batch_size: int, workers: int) -> float:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    fps = LeRobotDataset(config.repo_id, root=config.root).fps
+    step = config.stride / fps
+    observed = [(i - config.history + 1) * step for i in range(config.history)]
+    future = [k * step for k in range(1, config.horizon + 1)]
+    delta_timestamps = {m.feature: observed for m in config.modalities.values()}
+    delta_timestamps[config.target.feature] = future
+    dataset = LeRobotDataset(config.repo_id, root=config.root, delta_timestamps=delta_timestamps)
+    loader = torch.utils.data.DataLoader(
+        torch.utils.data.Subset(dataset, frame_indices), batch_size=batch_size, shuffle=True,
+        num_workers=workers, persistent_workers=False,
+    )
+    batches = iter(loader)
+    first = next(batches)  # worker start-up and first decoders excluded, as for the cache
+    windows, start = 0, time.perf_counter()
+    for batch in batches:
+        windows += len(batch["index"])
+    elapsed = time.perf_counter() - start
+    if windows == 0:
+        raise SystemExit(f"--lerobot-windows must exceed one batch ({len(first['index'])} windows)")
+    return windows / elapsed
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--root", type=Path, help="an existing LeRobot v3.0 dataset (default: record one)")
+    parser.add_argument("--episodes", type=int, default=16, help="episodes to record when --root is not given")
+    parser.add_argument("--steps", type=int, default=60, help="frames per recorded episode")
+    parser.add_argument("--image-size", type=int, default=64)
+    parser.add_argument("--history", type=int, default=10)
+    parser.add_argument("--horizon", type=int, default=10)
+    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--lerobot-windows", type=int, default=384, help="windows the reference loader reads")
+    parser.add_argument("--seconds", type=float, default=3.0, help="how long to time the cached loader")
+    parser.add_argument("--workers", type=int, default=min(2, len(os.sched_getaffinity(0))),
+                        help="recording processes and lerobot DataLoader workers")
+    parser.add_argument("--decode-workers", type=int, default=None,
+                        help="cache build decode processes (default: a pool only for large datasets)")
+    args = parser.parse_args(argv)
+
+    with tempfile.TemporaryDirectory(prefix="mmf_rl_bench_") as scratch:
+        scratch = Path(scratch)
+        root = args.root
+        if root is None:
+            root = scratch / "push"
+            print(f"dataset: {make_dataset(root, args.episodes, args.steps, args.image_size, args.workers)} at {root}")
+        config = DataConfig.from_dict({
+            "root": str(root), "cache_dir": str(scratch / "cache"),
+            "history": args.history, "horizon": args.horizon,
+            "image_size": [args.image_size, args.image_size], "split_fractions": [1.0, 0.0, 0.0],
+            "modalities": {"image": IMAGE_FEATURE, "force": FORCE_FEATURE, "proprio": STATE_FEATURE},
+            "target": {"feature": POSE_FEATURE, "dims": [0, 1]},
+        })
+
+        import lerobot.datasets.lerobot_dataset  # noqa: F401  (both sides need lerobot: keep its import out of the timing)
+
+        start = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a user's --root may lack cameras: measured all the same
+            dataset = WindowDataset(config, num_workers=args.decode_workers)
+        build_s = time.perf_counter() - start
+        cache_rate = cache_throughput(dataset, args.batch_size, args.seconds)
+
+        ids = dataset.split_windows["train"]
+        subset = ids[torch.randperm(len(ids), generator=torch.Generator().manual_seed(0))[: args.lerobot_windows]]
+        last_observed = dataset.window_start[subset] + (config.history - 1) * config.stride
+        lerobot_rate = lerobot_throughput(config, last_observed.tolist(), args.batch_size, args.workers)
+
+    one_pass_s = len(ids) / lerobot_rate
+    print(f"windows: {len(ids)} (H={config.history}, T={config.horizon}, {args.image_size}px image + 2 vectors)")
+    print(f"cache build: {build_s:.1f} s vs one "
+          f"lerobot pass over the same windows: {one_pass_s:.1f} s -> "
+          f"{'no slower' if build_s <= one_pass_s else 'SLOWER'} ({one_pass_s / build_s:.1f}x)")
+    print(f"ratio: {cache_rate / lerobot_rate:.1f}x (cache {cache_rate:.0f} windows/s vs lerobot {lerobot_rate:.0f} windows/s)")
+
+
+if __name__ == "__main__":
+    main()

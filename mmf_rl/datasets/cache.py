@@ -1,0 +1,261 @@
+"""The window cache: a LeRobot dataset decoded once into memory-mapped TensorDicts.
+
+Layout of one cache directory (``<cache_dir>/<dataset>-<fingerprint>/``):
+
+* ``frames/`` (batch ``[N]``, one row per dataset frame, never duplicated per window):
+  ``("obs", m)`` images ``uint8 [N, C, h, w]`` (resized) or raw vectors ``float32 [N, d]`` (NaN
+  stored as 0), ``("present", m)`` bool, ``target`` raw ``float32 [N, D]``, ``target_valid``,
+  ``episode``.
+* ``windows/`` (batch ``[W]``): ``start`` (first observed frame), ``episode``, ``("present", m)``.
+* ``cache.json``: the fingerprint, the config fields it covers, what was missing (files,
+  undecodable videos with the decoder's error) and what was skipped.
+
+The directory is written under a temporary name and renamed into place as the last step, so a
+killed build never reads as a cache. The key covers every dataset file's path, size and mtime
+plus the config fields that decide the content; any change gives a new directory.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing
+import os
+import re
+import shutil
+import tempfile
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from tqdm.auto import tqdm
+
+from mmf_rl.datasets.lerobot_source import LeRobotSource, VideoJob, clear_decoders, run_video_job
+
+CACHE_FORMAT = 1
+CACHE_META = "cache.json"
+# A spawned decode worker pays ~10 s of imports (torch, torchvision via lerobot): below this
+# many frames, decoding in-process is faster than starting a pool.
+POOL_MIN_FRAMES = 3000
+
+
+def fingerprint(source: LeRobotSource) -> str:
+    """Hash of the dataset's files (relative path, size, mtime) and the content-deciding config."""
+    digest = hashlib.sha256()
+    digest.update(json.dumps({"format": CACHE_FORMAT, "config": source.config.cache_fields()}, sort_keys=True).encode())
+    for path in source.files():
+        stat = path.stat()
+        digest.update(f"{path.relative_to(source.root)}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
+    return digest.hexdigest()[:24]
+
+
+def cache_path(source: LeRobotSource) -> Path:
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", source.root.name or source.config.repo_id)
+    return source.config.resolved_cache_dir() / f"{name}-{fingerprint(source)}"
+
+
+def window_offsets(history: int, horizon: int, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Frame offsets from a window's first observed frame: observed steps, then forecast steps."""
+    observed = torch.arange(history) * stride
+    future = (history - 1) * stride + torch.arange(1, horizon + 1) * stride
+    return observed, future
+
+
+def _as_matrix(column: np.ndarray, n: int) -> np.ndarray:
+    return np.asarray(column, dtype=np.float32).reshape(n, -1)
+
+
+def _frame_columns(source: LeRobotSource, columns: dict[str, np.ndarray]) -> dict:
+    """Per-frame vectors (NaN → 0), per-frame presence from NaN and validity features."""
+    n = len(columns["index"])
+    obs, present = {}, {}
+    for name, m in source.modalities.items():
+        ok = np.ones(n, dtype=bool)
+        if not m.is_video:
+            values = _as_matrix(columns[m.feature], n)
+            if m.dims is not None:
+                values = values[:, m.dims]
+            ok &= np.isfinite(values).all(1)
+            obs[name] = torch.from_numpy(np.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0))
+        if m.valid_feature is not None:
+            ok &= np.asarray(columns[m.valid_feature]).reshape(n, -1).astype(bool).all(1)
+        present[name] = torch.from_numpy(ok)
+    target = _as_matrix(columns[source.target_feature], n)
+    if source.config.target.dims is not None:
+        target = target[:, source.config.target.dims]
+    target_valid = np.isfinite(target).all(1)
+    return {
+        "obs": obs,
+        "present": present,
+        "target": torch.from_numpy(np.nan_to_num(target, nan=0.0)),
+        "target_valid": torch.from_numpy(target_valid),
+        "episode": torch.from_numpy(np.asarray(columns["episode_index"], dtype=np.int64)),
+    }
+
+
+def _video_jobs(source: LeRobotSource, columns: dict, frames_dir: Path, missing: dict[str, list[Path]]) -> list[VideoJob]:
+    jobs = []
+    for name, m in source.modalities.items():
+        if not m.is_video:
+            continue
+        absent = set(missing.get(name, []))
+        for episode in source.episodes:
+            path = source.video_path(episode.index, m.feature)
+            if path in absent:
+                continue
+            offset = source.video_from_timestamp(episode.index, m.feature)
+            stamps = columns["timestamp"][episode.start : episode.stop].astype(np.float64) + offset
+            jobs.append(VideoJob(
+                modality=name, video_path=str(path), timestamps=tuple(stamps.tolist()), row_start=episode.start,
+                frames_dir=str(frames_dir), image_size=tuple(source.config.image_size),
+                tolerance_s=source.config.tolerance_s,
+                source_frame_values=int(np.prod(source.features[m.feature]["shape"])),
+            ))
+    return jobs
+
+
+def _decode(jobs: list[VideoJob], num_workers: int | None) -> list[tuple[VideoJob, str]]:
+    """Run the decode jobs (process pool with ``spawn`` when worth it); return the failed ones."""
+    total = sum(len(j.timestamps) for j in jobs)
+    if num_workers is None:
+        cores = len(os.sched_getaffinity(0))
+        num_workers = min(cores, len(jobs)) if total >= POOL_MIN_FRAMES else 1
+    failed = []
+    with tqdm(total=total, desc="decoding videos into the window cache", unit="frame", disable=not jobs) as bar:
+        if num_workers > 1 and len(jobs) > 1:
+            # spawn, not fork: torchcodec decoders break in forked children; each spawned worker
+            # starts with its own empty decoder cache.
+            context = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=num_workers, mp_context=context) as pool:
+                for future in as_completed([pool.submit(run_video_job, job) for job in jobs]):
+                    job, error = future.result()
+                    if error is not None:
+                        failed.append((job, error))
+                    bar.update(len(job.timestamps))
+        else:
+            try:
+                for job in jobs:
+                    _, error = run_video_job(job)
+                    if error is not None:
+                        failed.append((job, error))
+                    bar.update(len(job.timestamps))
+            finally:
+                clear_decoders()
+    return failed
+
+
+def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> dict:
+    config = source.config
+    columns = source.read_columns()
+    n = len(columns["index"])
+    per_frame = _frame_columns(source, columns)
+
+    layout = {
+        "obs": {
+            name: torch.zeros((), dtype=m.spec.dtype).expand(n, *m.spec.shape)
+            for name, m in source.modalities.items()
+        },
+        "present": per_frame["present"],
+        "target": per_frame["target"],
+        "target_valid": per_frame["target_valid"],
+        "episode": per_frame["episode"],
+    }
+    frames = TensorDict(layout, batch_size=[n]).memmap_like(directory / "frames")
+    # memmap_like only allocates the files; fill the vector columns (images come from decoding).
+    for key in ("target", "target_valid", "episode"):
+        frames.get(key).copy_(layout[key])
+    for name in source.modalities:
+        frames.get(("present", name)).copy_(per_frame["present"][name])
+        if name in per_frame["obs"]:
+            frames.get(("obs", name)).copy_(per_frame["obs"][name])
+
+    missing = source.missing_videos()
+    failed = _decode(_video_jobs(source, columns, directory / "frames", missing), num_workers)
+    undecodable: dict[str, dict[str, str]] = {}
+    for job, error in failed:
+        undecodable.setdefault(job.modality, {})[job.video_path] = error
+        frames.get(("present", job.modality))[job.row_start : job.row_start + len(job.timestamps)] = False
+    for name, paths in missing.items():
+        absent = {str(p) for p in paths}
+        for episode in source.episodes:
+            if str(source.video_path(episode.index, source.modalities[name].feature)) in absent:
+                frames.get(("present", name))[episode.start : episode.stop] = False
+
+    windows, skipped = _windows(source, frames)
+    windows.memmap_(directory / "windows")
+    report = {
+        "format": CACHE_FORMAT,
+        "config": config.cache_fields(),
+        "dataset_root": str(source.root),
+        "n_frames": n,
+        "n_windows": int(windows.batch_size[0]),
+        "specs": [s.to_dict() for s in source.specs],
+        "target_dim": source.target_dim,
+        "episodes": [[e.index, e.start, e.stop] for e in source.episodes],
+        "missing_files": {name: [str(p) for p in paths] for name, paths in missing.items()},
+        "undecodable_files": undecodable,
+        "skipped": skipped,
+    }
+    (directory / CACHE_META).write_text(json.dumps(report, indent=2))
+    return report
+
+
+def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dict]:
+    """Every in-episode window that has a finite target and at least one present modality."""
+    config = source.config
+    observed, future = window_offsets(config.history, config.horizon, config.stride)
+    span = int(future[-1])
+    starts, too_short = [], []
+    for episode in source.episodes:
+        if episode.stop - episode.start > span:
+            starts.append(torch.arange(episode.start, episode.stop - span))
+        else:
+            too_short.append(episode.index)
+    starts = torch.cat(starts) if starts else torch.zeros(0, dtype=torch.long)
+    observed_rows = starts[:, None] + observed
+    last_rows = starts + int(observed[-1])
+    present = {}
+    for name, m in source.modalities.items():
+        frame_present = frames.get(("present", name)).as_subclass(torch.Tensor)
+        present[name] = frame_present[last_rows] if m.spec.kind == "vector" else frame_present[observed_rows].all(1)
+    target_valid = frames.get("target_valid").as_subclass(torch.Tensor)
+    target_ok = target_valid[starts[:, None] + future].all(1)
+    if config.include_target_past:
+        target_ok &= target_valid[observed_rows].all(1)
+    any_present = torch.stack(list(present.values())).any(0)
+    keep = target_ok & any_present
+    windows = TensorDict(
+        {
+            "start": starts[keep],
+            "episode": frames.get("episode").as_subclass(torch.Tensor)[starts[keep]],
+            "present": {name: mask[keep] for name, mask in present.items()},
+        },
+        batch_size=[int(keep.sum())],
+    )
+    skipped = {
+        "episodes_too_short": too_short,
+        "min_episode_frames": span + 1,
+        "windows_target_not_finite": int((~target_ok).sum()),
+        "windows_without_any_modality": int((target_ok & ~any_present).sum()),
+    }
+    return windows, skipped
+
+
+def build_cache(source: LeRobotSource, destination: Path, num_workers: int | None = None) -> None:
+    """Decode ``source`` into ``destination`` atomically (temp dir, then rename)."""
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    building = Path(tempfile.mkdtemp(prefix=f".building-{destination.name}-", dir=destination.parent))
+    try:
+        _write(source, building, num_workers)
+        os.chmod(building, 0o755)  # mkdtemp makes it private; a finished cache is as readable as any
+        try:
+            os.rename(building, destination)
+        except OSError:
+            if not (destination / CACHE_META).is_file():
+                raise
+            shutil.rmtree(building)  # a concurrent build finished first; its cache is identical
+    except BaseException:
+        shutil.rmtree(building, ignore_errors=True)
+        raise

@@ -1,0 +1,167 @@
+"""The data config: which dataset, which features are which modalities, window geometry.
+
+Built from a plain dict (Hydra YAML feeds it) with :meth:`DataConfig.from_dict`; ``to_dict``
+gives it back so a run can store exactly what it trained on, missingness protocol included.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+from mmf_rl.keys import DEFAULT_ENCODER
+
+SPLIT_NAMES = ("train", "val", "test")
+
+
+def _check_keys(cls, d: dict, where: str) -> None:
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {unknown}; expected some of {sorted(known)}")
+
+
+@dataclass
+class ModalityConfig:
+    """One modality read from one dataset feature.
+
+    ``kind`` defaults from the feature's dtype: video/image features → ``"image"``, vector
+    features → ``"sequence"`` (``"vector"`` keeps only the last step of the window).
+    ``valid_feature`` names a per-frame boolean feature saying when this modality is valid; when
+    unset, ``"<feature>_valid"`` (or, for a camera ``observation.images.<cam>``,
+    ``observation.<cam>_camera_valid`` as the recorder writes it) is used if the dataset has it.
+    ``dims`` selects feature dims.
+    ``required`` turns "absent" from a warning into an error.
+    """
+
+    feature: str
+    kind: str | None = None
+    dims: list[int] | None = None
+    valid_feature: str | None = None
+    required: bool = False
+    encoder: str | None = None
+
+    def __post_init__(self):
+        if self.kind is not None and self.kind not in DEFAULT_ENCODER:
+            raise ValueError(
+                f"modality feature {self.feature!r}: unknown kind {self.kind!r}; expected one of "
+                f"{sorted(DEFAULT_ENCODER)} or leave it unset to infer it from the feature dtype"
+            )
+        if self.dims is not None:
+            self.dims = [int(i) for i in self.dims]
+
+
+@dataclass
+class TargetConfig:
+    """The forecast variable: a vector feature and optionally which of its dims."""
+
+    feature: str
+    dims: list[int] | None = None
+
+    def __post_init__(self):
+        if self.dims is not None:
+            self.dims = [int(i) for i in self.dims]
+
+
+@dataclass
+class DataConfig:
+    """Everything the pipeline needs to turn a LeRobot dataset into forecasting windows.
+
+    A sample at window index ``t`` observes frames ``t-(H-1)s .. t`` and forecasts
+    ``t+s .. t+Ts`` (``s = stride``), all inside one episode.
+
+    ``missing`` is the training missingness protocol: ``{modality: p}`` removes modality ``m`` from
+    a fixed, ``missing_seed``-seeded fraction ``p`` of the training windows.
+    """
+
+    modalities: dict[str, ModalityConfig]
+    target: TargetConfig
+    root: str | None = None
+    repo_id: str = "local/dataset"
+    history: int = 10
+    horizon: int = 10
+    stride: int = 1
+    image_size: tuple[int, int] = (64, 64)
+    include_target_past: bool = False
+    split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)
+    split_seed: int = 0
+    std_floor: float = 1e-3
+    missing: dict[str, float] = field(default_factory=dict)
+    missing_seed: int = 0
+    tolerance_s: float = 1e-4
+    cache_dir: str | None = None
+
+    def __post_init__(self):
+        if not self.modalities:
+            raise ValueError("data config: `modalities` is empty; map at least one name to a dataset feature")
+        for name, value in [("history", self.history), ("horizon", self.horizon), ("stride", self.stride)]:
+            if int(value) < 1:
+                raise ValueError(f"data config: `{name}` must be >= 1, found {value}")
+        self.image_size = tuple(int(s) for s in self.image_size)
+        if len(self.image_size) != 2 or min(self.image_size) < 1:
+            raise ValueError(f"data config: `image_size` must be [height, width], found {list(self.image_size)}")
+        self.split_fractions = tuple(float(f) for f in self.split_fractions)
+        if (len(self.split_fractions) != len(SPLIT_NAMES) or min(self.split_fractions) < 0
+                or abs(sum(self.split_fractions) - 1.0) > 1e-6):
+            raise ValueError(
+                f"data config: `split_fractions` must be 3 non-negative numbers (train, val, test) "
+                f"summing to 1, found {list(self.split_fractions)}"
+            )
+        for name, p in self.missing.items():
+            if name not in self.modalities:
+                raise ValueError(
+                    f"data config: `missing` names modality {name!r}, which is not one of {sorted(self.modalities)}"
+                )
+            if not 0.0 <= float(p) <= 1.0:
+                raise ValueError(f"data config: `missing.{name}` must be a fraction in [0, 1], found {p}")
+        if self.std_floor <= 0:
+            raise ValueError(f"data config: `std_floor` must be > 0, found {self.std_floor}")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DataConfig:
+        """Build from plain data. A modality may be given as just its feature name."""
+        d = dict(d)
+        _check_keys(cls, d, "data config")
+        for required in ("modalities", "target"):
+            if required not in d:
+                raise ValueError(f"data config: missing key `{required}`")
+        modalities = {}
+        for name, value in dict(d["modalities"]).items():
+            value = {"feature": value} if isinstance(value, str) else dict(value)
+            _check_keys(ModalityConfig, value, f"data config: modalities.{name}")
+            modalities[str(name)] = ModalityConfig(**value)
+        target = d["target"]
+        target = {"feature": target} if isinstance(target, str) else dict(target)
+        _check_keys(TargetConfig, target, "data config: target")
+        d["modalities"] = modalities
+        d["target"] = TargetConfig(**target)
+        d["missing"] = {str(k): float(v) for k, v in dict(d.get("missing", {})).items()}
+        return cls(**d)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["image_size"] = list(self.image_size)
+        d["split_fractions"] = list(self.split_fractions)
+        return d
+
+    def cache_fields(self) -> dict:
+        """The fields that decide what the window cache contains (its key, with the files)."""
+        return {
+            "modalities": {
+                name: {"feature": m.feature, "kind": m.kind, "dims": m.dims, "valid_feature": m.valid_feature}
+                for name, m in sorted(self.modalities.items())
+            },
+            "target": asdict(self.target),
+            "history": self.history,
+            "horizon": self.horizon,
+            "stride": self.stride,
+            "image_size": list(self.image_size),
+            "tolerance_s": self.tolerance_s,
+        }
+
+    def resolved_cache_dir(self) -> Path:
+        """``cache_dir``, else ``$MMF_RL_CACHE``, else ``~/.cache/mmf_rl``; windows live in ``windows/``."""
+        if self.cache_dir is not None:
+            return Path(self.cache_dir)
+        return Path(os.environ.get("MMF_RL_CACHE", Path.home() / ".cache" / "mmf_rl")) / "windows"

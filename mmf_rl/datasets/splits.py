@@ -1,0 +1,71 @@
+"""Episode-level splits and normalisation statistics (training split only)."""
+
+from __future__ import annotations
+
+import torch
+
+from mmf_rl.datasets.config import SPLIT_NAMES
+
+
+def split_episodes(episodes: list[int], fractions: tuple[float, float, float], seed: int) -> dict[str, list[int]]:
+    """Shuffle episodes with ``seed`` and cut them into train/val/test by ``fractions``.
+
+    Every split with a positive fraction gets at least one episode (so a 4-episode dataset still
+    has a val and a test episode); train takes what is left and must keep at least one.
+    """
+    n = len(episodes)
+    counts = {name: 0 for name in SPLIT_NAMES}
+    for name, fraction in zip(SPLIT_NAMES[1:], fractions[1:]):
+        counts[name] = max(1, round(fraction * n)) if fraction > 0 else 0
+    counts["train"] = n - counts["val"] - counts["test"]
+    if counts["train"] < 1:
+        raise ValueError(
+            f"cannot split {n} episode(s) by fractions {list(fractions)} (train/val/test): "
+            f"train would get {counts['train']}; record more episodes or lower the val/test fractions"
+        )
+    order = torch.randperm(n, generator=torch.Generator().manual_seed(seed)).tolist()
+    shuffled = [episodes[i] for i in order]
+    splits, start = {}, 0
+    for name in SPLIT_NAMES:
+        splits[name] = sorted(shuffled[start : start + counts[name]])
+        start += counts[name]
+    return splits
+
+
+def mean_std(values: torch.Tensor, valid: torch.Tensor, std_floor: float, what: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-dim mean/std of ``values[valid]`` (float64 accumulation); std floored at ``std_floor``."""
+    rows = values[valid].double()
+    if rows.shape[0] == 0:
+        raise ValueError(
+            f"normalisation statistics for {what}: no valid frame in the training split "
+            "(all NaN, invalid or absent); check the feature or the split fractions"
+        )
+    mean = rows.mean(0)
+    std = rows.std(0, correction=0) if rows.shape[0] > 1 else torch.zeros_like(mean)
+    return mean.float(), std.clamp_min(std_floor).float()
+
+
+class Normalizer:
+    """Normalises vector observations and the target with training-split statistics.
+
+    ``stats`` is a flat ``{"<modality>/mean": tensor, "<modality>/std": ..., "target/mean": ...}``
+    dict: store it beside a run (``safetensors.torch.save_file(normalizer.stats, ...)``) and
+    rebuild with ``Normalizer(stats)``.
+    """
+
+    def __init__(self, stats: dict[str, torch.Tensor]):
+        self.stats = {k: v.float() for k, v in stats.items()}
+        for required in ("target/mean", "target/std"):
+            if required not in self.stats:
+                raise KeyError(f"normalisation stats lack {required!r}; found {sorted(self.stats)}")
+
+    def normalize(self, name: str, values: torch.Tensor) -> torch.Tensor:
+        return (values - self.stats[f"{name}/mean"]) / self.stats[f"{name}/std"]
+
+    def denormalize_target(self, target: torch.Tensor) -> torch.Tensor:
+        """Normalised target (or forecast location) back to the target's units."""
+        return target * self.stats["target/std"] + self.stats["target/mean"]
+
+    def denormalize_target_scale(self, scale: torch.Tensor) -> torch.Tensor:
+        """A forecast standard deviation back to the target's units."""
+        return scale * self.stats["target/std"]

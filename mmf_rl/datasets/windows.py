@@ -1,0 +1,220 @@
+"""Forecasting windows served from the cache as batches of the TensorDict contract."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from collections.abc import Iterator
+
+import torch
+from tensordict import TensorDict
+
+from mmf_rl.datasets.cache import CACHE_META, build_cache, cache_path, window_offsets
+from mmf_rl.datasets.config import SPLIT_NAMES, DataConfig
+from mmf_rl.datasets.lerobot_source import LeRobotSource
+from mmf_rl.datasets.protocols import training_dropout
+from mmf_rl.datasets.splits import Normalizer, mean_std, split_episodes
+from mmf_rl.keys import TARGET, TARGET_PAST, ModalitySpec
+
+
+def _plain(tensor: torch.Tensor) -> torch.Tensor:
+    """The memory-mapped tensor as a plain ``torch.Tensor`` view (no subclass dispatch per gather)."""
+    return tensor.as_subclass(torch.Tensor)
+
+
+def _wide_rows(frames: torch.Tensor) -> torch.Tensor:
+    """``uint8 [N, *shape]`` frames viewed as ``[N, row_bytes / 8]`` int64 when the size allows.
+
+    Gathering rows copies element by element; 8-byte elements make an image gather several
+    times faster than 1-byte ones. The result is viewed back as uint8 after the gather.
+    """
+    row_bytes = frames[0].numel() * frames.element_size()
+    if row_bytes % 8:
+        return frames
+    return frames.reshape(len(frames), row_bytes).view(torch.int64)
+
+
+class WindowDataset:
+    """A LeRobot dataset as forecasting windows, with splits, normalisation and presence.
+
+    Opening builds the window cache if no valid one matches the dataset files and the config,
+    otherwise memory-maps the existing one (``built`` tells which). Batches are gathered with
+    one vectorised index per key: ``frames[start[:, None] + offsets]``.
+
+    Attributes: ``specs`` (one :class:`ModalitySpec` per modality, for the model),
+    ``target_dim``, ``split_episodes`` and ``split_windows`` (window ids per split),
+    ``normalizer`` (training-split statistics; ``normalizer.stats`` is the plain dict to store),
+    ``report`` (what was missing or skipped), ``cache_path``.
+
+    ``num_workers`` sets the decode processes of a build (default: one per core when there are
+    enough frames to repay their start-up). They are spawned, so a script that builds a cache
+    must guard its entry point with ``if __name__ == "__main__":``.
+    """
+
+    def __init__(self, config: DataConfig, num_workers: int | None = None):
+        self.config = config
+        source = LeRobotSource(config)
+        self.cache_path = cache_path(source)
+        self.built = not (self.cache_path / CACHE_META).is_file()
+        if self.built:
+            build_cache(source, self.cache_path, num_workers)
+        self.report = json.loads((self.cache_path / CACHE_META).read_text())
+        self.specs: list[ModalitySpec] = source.specs
+        self.target_dim: int = source.target_dim
+        self._check_presence(source)
+
+        frames = TensorDict.load_memmap(self.cache_path / "frames")
+        windows = TensorDict.load_memmap(self.cache_path / "windows")
+        self._obs = {}
+        for spec in self.specs:
+            values = _plain(frames.get(("obs", spec.name)))
+            self._obs[spec.name] = _wide_rows(values) if spec.kind == "image" else values
+        self._target = _plain(frames.get("target"))
+        self.frame_episode = _plain(frames.get("episode"))
+        self.window_start = _plain(windows.get("start"))
+        self.window_episode = _plain(windows.get("episode"))
+        self.presence = {s.name: _plain(windows.get(("present", s.name))) for s in self.specs}
+        self._observed, self._future = window_offsets(config.history, config.horizon, config.stride)
+
+        # A required modality means every sample has it: windows where it is absent are left out.
+        usable = torch.ones(len(self.window_start), dtype=torch.bool)
+        for spec in self.specs:
+            if spec.required:
+                usable &= self.presence[spec.name]
+        self.report["skipped"]["windows_without_required_modality"] = int((~usable).sum())
+
+        self.split_episodes = split_episodes(
+            [e[0] for e in self.report["episodes"]], config.split_fractions, config.split_seed
+        )
+        self.split_windows = {
+            name: (usable & torch.isin(self.window_episode, torch.tensor(episodes, dtype=torch.long)))
+            .nonzero().flatten()
+            for name, episodes in self.split_episodes.items()
+        }
+        self.normalizer = Normalizer(self._train_stats(frames))
+        self.train_presence = self._train_presence()
+
+    def _check_presence(self, source: LeRobotSource) -> None:
+        problems = {}
+        for name, paths in self.report["missing_files"].items():
+            problems.setdefault(name, []).extend(f"{p} (missing)" for p in paths)
+        for name, errors in self.report["undecodable_files"].items():
+            problems.setdefault(name, []).extend(f"{p} (undecodable: {e})" for p, e in errors.items())
+        required = [n for n in problems if source.modalities[n].spec.required]
+        if required:
+            lines = "; ".join(f"{n!r} ({source.modalities[n].feature}): {problems[n]}" for n in required)
+            raise FileNotFoundError(
+                f"required modality absent from {source.root}: {lines}. Restore the files, or set "
+                f"`required: false` for it to train with the modality marked absent"
+            )
+        if problems:
+            lines = "; ".join(f"{n!r} ({source.modalities[n].feature}): {', '.join(p)}" for n, p in problems.items())
+            warnings.warn(
+                f"dataset {source.root}: modality absent for the episodes of these video files, marked "
+                f"present=False there: {lines}",
+                stacklevel=3,
+            )
+
+    def _train_stats(self, frames: TensorDict) -> dict[str, torch.Tensor]:
+        train_frames = torch.isin(self.frame_episode, torch.tensor(self.split_episodes["train"], dtype=torch.long))
+        stats = {}
+        floor = self.config.std_floor
+        for spec in self.specs:
+            if spec.kind != "image":
+                valid = train_frames & _plain(frames.get(("present", spec.name)))
+                mean, std = mean_std(self._obs[spec.name], valid, floor, f"modality {spec.name!r}")
+                stats[f"{spec.name}/mean"], stats[f"{spec.name}/std"] = mean, std
+        valid = train_frames & _plain(frames.get("target_valid"))
+        stats["target/mean"], stats["target/std"] = mean_std(self._target, valid, floor, "the target")
+        return stats
+
+    def _train_presence(self) -> dict[str, torch.Tensor]:
+        """Window presence with the config's training missingness protocol applied to train windows."""
+        if not self.config.missing:
+            return self.presence
+        train = self.split_windows["train"]
+        dropped = training_dropout(
+            {name: mask[train] for name, mask in self.presence.items()}, self.config.missing, self.config.missing_seed
+        )
+        presence = {name: mask.clone() for name, mask in self.presence.items()}
+        for name, mask in dropped.items():
+            presence[name][train] = mask
+        return presence
+
+    def __len__(self) -> int:
+        return len(self.window_start)
+
+    def batch(self, window_ids: torch.Tensor, split: str = "eval") -> TensorDict:
+        """The batch of windows ``window_ids``; ``split="train"`` applies the missingness protocol."""
+        presence = self.train_presence if split == "train" else self.presence
+        start = self.window_start[window_ids]
+        observed = start[:, None] + self._observed
+        batch = TensorDict(batch_size=[len(window_ids)])
+        for spec in self.specs:
+            present = presence[spec.name][window_ids]
+            rows = observed if spec.kind != "vector" else observed[:, -1]
+            values = self._obs[spec.name][rows]
+            if spec.kind == "image":
+                values = values.view(torch.uint8).view(*rows.shape, *spec.shape)
+            else:
+                values = self.normalizer.normalize(spec.name, values)
+                # Absent samples carry zeros, not the stored placeholder: never NaN, never data.
+                values = values * present.view(-1, *[1] * (values.dim() - 1))
+            batch.set(spec.obs_key, values)
+            batch.set(spec.present_key, present)
+        batch.set(TARGET, self.normalizer.normalize("target", self._target[start[:, None] + self._future]))
+        if self.config.include_target_past:
+            batch.set(TARGET_PAST, self.normalizer.normalize("target", self._target[observed]))
+        return batch
+
+    def loader(self, split: str, batch_size: int, shuffle: bool | None = None, seed: int = 0,
+               rank: int = 0, world_size: int = 1, drop_last: bool | None = None) -> WindowLoader:
+        """Batches of ``split``: shuffled (seeded, per epoch) for train by default, sequential otherwise."""
+        return WindowLoader(self, split, batch_size, shuffle=split == "train" if shuffle is None else shuffle,
+                            seed=seed, rank=rank, world_size=world_size, drop_last=drop_last)
+
+
+class WindowLoader:
+    """Iterates a split in batches; each iteration is one epoch.
+
+    Shuffled loaders draw a permutation from ``(seed, epoch)`` (the epoch advances after each full
+    pass, or set it with :meth:`set_epoch`) and give rank ``rank`` of ``world_size`` an equal share
+    (the tail that does not divide is dropped, like ``DistributedSampler(drop_last=True)``), so DDP
+    ranks step together. Sequential loaders cover every window exactly once across ranks.
+    """
+
+    def __init__(self, dataset: WindowDataset, split: str, batch_size: int, shuffle: bool, seed: int = 0,
+                 rank: int = 0, world_size: int = 1, drop_last: bool | None = None):
+        if split not in SPLIT_NAMES:
+            raise ValueError(f"unknown split {split!r}; expected one of {list(SPLIT_NAMES)}")
+        if not 0 <= rank < world_size:
+            raise ValueError(f"rank must be in [0, world_size={world_size}), found {rank}")
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, found {batch_size}")
+        self.dataset, self.split, self.batch_size = dataset, split, batch_size
+        self.shuffle, self.seed, self.rank, self.world_size = shuffle, seed, rank, world_size
+        self.drop_last = shuffle if drop_last is None else drop_last
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def _ids(self) -> torch.Tensor:
+        ids = self.dataset.split_windows[self.split]
+        if self.shuffle:
+            generator = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
+            ids = ids[torch.randperm(len(ids), generator=generator)]
+            ids = ids[: len(ids) // self.world_size * self.world_size]
+        return ids[self.rank :: self.world_size]
+
+    def __len__(self) -> int:
+        n = len(self._ids())
+        return n // self.batch_size if self.drop_last else math.ceil(n / self.batch_size)
+
+    def __iter__(self) -> Iterator[TensorDict]:
+        ids = self._ids()
+        stop = len(ids) // self.batch_size * self.batch_size if self.drop_last else len(ids)
+        for first in range(0, stop, self.batch_size):
+            yield self.dataset.batch(ids[first : first + self.batch_size], self.split)
+        self.epoch += 1

@@ -1,0 +1,304 @@
+"""The LeRobot → windows pipeline: reading, presence, windows, splits, cache, loaders."""
+
+import os
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from mmf_rl.datasets.config import DataConfig
+from mmf_rl.datasets.splits import Normalizer
+from mmf_rl.datasets.synthetic import FORCE_FEATURE, POSE_FEATURE, STATE_FEATURE
+from mmf_rl.datasets.windows import WindowDataset
+from mmf_rl.keys import TARGET, TARGET_PAST, obs_key, present_key, validate_batch
+from tests.datasets.conftest import (
+    EPISODE_LENGTHS,
+    INVALID_IMAGE_EPISODE,
+    NAN_FORCE_EPISODE,
+    SO101_ROOT,
+    so101_config,
+    synthetic_config,
+)
+
+
+def raw_frames(root) -> pd.DataFrame:
+    frames = pd.concat([pd.read_parquet(p) for p in sorted((root / "data").glob("*/*.parquet"))])
+    return frames.sort_values("index").reset_index(drop=True)
+
+
+def column(frames: pd.DataFrame, feature: str) -> np.ndarray:
+    return np.stack(frames[feature].to_numpy()).astype(np.float32)
+
+
+def open_quietly(config, **kwargs) -> WindowDataset:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return WindowDataset(config, **kwargs)
+
+
+def all_windows(dataset: WindowDataset):
+    return dataset.batch(torch.arange(len(dataset)))
+
+
+# --- the real SO-101 recording: cameras declared, videos absent -------------------------------
+
+
+def test_so101_loads_with_cameras_absent_and_warns_naming_files(tmp_path):
+    before = {p: p.stat().st_mtime_ns for p in SO101_ROOT.rglob("*")}
+    with pytest.warns(UserWarning) as record:
+        dataset = WindowDataset(so101_config(tmp_path))
+    message = " ".join(str(w.message) for w in record)
+    for camera in ("observation.images.front", "observation.images.top"):
+        assert f"videos/{camera}/chunk-000/file-000.mp4" in message
+    assert not dataset.presence["front"].any() and not dataset.presence["top"].any()
+    assert dataset.presence["state"].all()
+    # 4 episodes, 1,492 frames; each episode of n frames has n - (H + T - 1) windows.
+    assert len(dataset) == 1492 - 4 * 9
+    batch = next(iter(dataset.loader("train", batch_size=16)))
+    validate_batch(batch, dataset.specs, history=5, horizon=5, target_dim=3, require_target=True)
+    assert not batch.get(present_key("front")).any()
+    assert {p: p.stat().st_mtime_ns for p in SO101_ROOT.rglob("*")} == before, "the fixture was written to"
+
+
+def test_so101_required_camera_is_a_clear_error(tmp_path):
+    config = so101_config(tmp_path)
+    config.modalities["front"].required = True
+    with pytest.raises(FileNotFoundError, match=r"required modality.*'front'.*observation\.images\.front.*file-000\.mp4"):
+        WindowDataset(config)
+
+
+def test_bad_feature_name_lists_available_features(tmp_path):
+    config = so101_config(tmp_path, modalities={"state": "observation.stat"})
+    with pytest.raises(ValueError, match=r"'observation\.stat' is not in the dataset.*'observation\.state'"):
+        WindowDataset(config)
+    with pytest.raises(ValueError, match=r"target.*'nope'.*available features"):
+        WindowDataset(so101_config(tmp_path, target="nope"))
+    with pytest.raises(FileNotFoundError, match=r"not a LeRobot dataset.*meta/info\.json"):
+        WindowDataset(so101_config(tmp_path, root=str(tmp_path)))
+    bad_validity = {"state": {"feature": "observation.state", "valid_feature": "observation.state_ok"}}
+    with pytest.raises(ValueError, match=r"valid_feature.*'observation\.state_ok' is not in the dataset"):
+        WindowDataset(so101_config(tmp_path, modalities=bad_validity))
+    with pytest.raises(ValueError, match=r"dims \[6\] out of range.*width 6"):
+        WindowDataset(so101_config(tmp_path, target={"feature": "action", "dims": [6]}))
+
+
+def test_config_from_dict_round_trip_and_errors():
+    d = {"root": "/data", "modalities": {"image": "observation.images.front",
+                                         "force": {"feature": "observation.force", "required": True}},
+         "target": {"feature": "observation.object_pose", "dims": [0, 1]}, "stride": 2,
+         "missing": {"force": 0.25}, "missing_seed": 7}
+    config = DataConfig.from_dict(d)
+    assert config.modalities["image"].feature == "observation.images.front"
+    assert config.modalities["force"].required and config.stride == 2
+    assert DataConfig.from_dict(config.to_dict()) == config
+    with pytest.raises(ValueError, match="unknown key.*histroy"):
+        DataConfig.from_dict({**d, "histroy": 3})
+    with pytest.raises(ValueError, match="`missing` names modality 'camera'"):
+        DataConfig.from_dict({**d, "missing": {"camera": 0.5}})
+    with pytest.raises(ValueError, match="split_fractions"):
+        DataConfig.from_dict({**d, "split_fractions": [0.5, 0.5, 0.5]})
+
+
+# --- the synthetic dataset: video, NaN spans, validity feature ---------------------------------
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_windows_match_raw_parquet_and_stay_in_episodes(synthetic_root, tmp_path, stride):
+    history, horizon = 4, 3
+    dataset = open_quietly(synthetic_config(synthetic_root, tmp_path, stride=stride, include_target_past=True))
+    frames = raw_frames(synthetic_root)
+    pose, state = column(frames, POSE_FEATURE)[:, :2], column(frames, STATE_FEATURE)
+    span = (history + horizon - 1) * stride
+
+    expected = sum(max(0, n - span) for n in EPISODE_LENGTHS)
+    assert len(dataset) == expected
+    assert dataset.report["skipped"]["episodes_too_short"] == [i for i, n in enumerate(EPISODE_LENGTHS) if n <= span]
+
+    batch = all_windows(dataset)
+    validate_batch(batch, dataset.specs, history, horizon, target_dim=2, require_target=True)
+    target = dataset.normalizer.denormalize_target(batch.get(TARGET))
+    t = dataset.window_start + (history - 1) * stride  # the last observed frame
+    future = t[:, None] + torch.arange(1, horizon + 1) * stride
+    torch.testing.assert_close(target, torch.from_numpy(pose)[future])
+    past = dataset.normalizer.denormalize_target(batch.get(TARGET_PAST))
+    observed = t[:, None] - torch.arange(history - 1, -1, -1) * stride
+    torch.testing.assert_close(past, torch.from_numpy(pose)[observed])
+    state_obs = batch.get(obs_key("state")) * dataset.normalizer.stats["state/std"] + dataset.normalizer.stats["state/mean"]
+    torch.testing.assert_close(state_obs, torch.from_numpy(state)[observed], rtol=1e-5, atol=1e-4)
+    # pose[0] = episode + frame / 1000: every observed and future frame of a window is one episode.
+    episode_of = torch.floor(torch.cat([past[..., 0], target[..., 0]], 1) + 1e-4)
+    assert (episode_of == dataset.window_episode[:, None].float()).all()
+
+
+def test_presence_masks_follow_nan_spans_and_validity(synthetic_root, tmp_path):
+    dataset = open_quietly(synthetic_config(synthetic_root, tmp_path))
+    frames = raw_frames(synthetic_root)
+    frame_index = torch.tensor(frames["frame_index"].to_numpy())
+    observed = dataset.window_start[:, None] + torch.arange(4)
+    touches_span = ((frame_index[observed] >= 5) & (frame_index[observed] < 10)).any(1)
+    episode = dataset.window_episode
+    assert torch.equal(dataset.presence["force"], ~(touches_span & (episode == NAN_FORCE_EPISODE)))
+    assert torch.equal(dataset.presence["image"], ~(touches_span & (episode == INVALID_IMAGE_EPISODE)))
+    assert dataset.presence["state"].all()
+    assert (~dataset.presence["force"]).sum() > 0 and (~dataset.presence["image"]).sum() > 0
+
+    batch = all_windows(dataset)
+    force = batch.get(obs_key("force"))
+    assert torch.isfinite(force).all()
+    assert (force[~batch.get(present_key("force"))] == 0).all()
+    raw_force = column(frames, FORCE_FEATURE)
+    assert np.isnan(raw_force).any(), "the fixture should contain NaN force values"
+    image = batch.get(obs_key("image"))
+    assert image.dtype == torch.uint8 and image.shape[-3:] == (3, 24, 24) and image.float().mean() > 1
+
+
+def test_missing_and_undecodable_videos_mark_camera_absent(synthetic_copy, tmp_path):
+    video = next((synthetic_copy / "videos").rglob("*.mp4"))
+    video.write_bytes(b"not an mp4 file")
+    with pytest.warns(UserWarning, match=rf"{video.name} \(undecodable"):
+        dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "a"))
+    assert not dataset.presence["image"].any() and dataset.presence["state"].all()
+
+    video.unlink()
+    with pytest.warns(UserWarning, match=rf"{video.name} \(missing\)"):
+        dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "b"))
+    assert not dataset.presence["image"].any()
+    validate_batch(all_windows(dataset), dataset.specs, 4, 3, 2)
+
+
+def test_split_by_episode_and_stats_from_train_only(synthetic_root, tmp_path):
+    dataset = open_quietly(synthetic_config(synthetic_root, tmp_path, split_seed=3))
+    splits = dataset.split_episodes
+    assert sorted(splits["train"] + splits["val"] + splits["test"]) == list(range(len(EPISODE_LENGTHS)))
+    assert all(splits[name] for name in splits)
+    for name, ids in dataset.split_windows.items():
+        assert set(dataset.window_episode[ids].tolist()) <= set(splits[name])
+    assert sum(len(ids) for ids in dataset.split_windows.values()) == len(dataset)
+    assert open_quietly(synthetic_config(synthetic_root, tmp_path, split_seed=3)).split_episodes == splits
+
+    frames = raw_frames(synthetic_root)
+    train = frames["episode_index"].isin(splits["train"]).to_numpy()
+    force = column(frames, FORCE_FEATURE)[train]
+    force = force[np.isfinite(force).all(1)]
+    stats = dataset.normalizer.stats
+    torch.testing.assert_close(stats["force/mean"], torch.from_numpy(force.mean(0)), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(stats["force/std"], torch.from_numpy(force.std(0)), atol=1e-5, rtol=1e-5)
+    pose = column(frames, POSE_FEATURE)[train][:, :2]
+    torch.testing.assert_close(stats["target/mean"], torch.from_numpy(pose.mean(0)), atol=1e-5, rtol=1e-5)
+    all_pose = column(frames, POSE_FEATURE)[:, :2]
+    assert not np.allclose(all_pose.mean(0), pose.mean(0)), "train-only stats must differ from all-data stats"
+
+    save_file(stats, tmp_path / "stats.safetensors")  # stored with a run, restored for metrics
+    restored = Normalizer(load_file(tmp_path / "stats.safetensors"))
+    target = dataset.batch(dataset.split_windows["test"]).get(TARGET)
+    torch.testing.assert_close(restored.denormalize_target(target), dataset.normalizer.denormalize_target(target))
+
+
+def test_constant_dims_get_the_std_floor(synthetic_root, tmp_path):
+    # state[2:4] is the per-episode velocity: constant within an episode, so with a single
+    # training episode its std is 0 and must be floored.
+    config = synthetic_config(synthetic_root, tmp_path, split_fractions=[0.2, 0.4, 0.4], std_floor=0.01)
+    dataset = open_quietly(config)
+    assert len(dataset.split_episodes["train"]) == 1
+    assert torch.equal(dataset.normalizer.stats["state/std"][2:], torch.full((2,), 0.01))
+    assert torch.isfinite(all_windows(dataset).get(obs_key("state"))).all()
+
+
+def test_cache_reused_when_unchanged_rebuilt_when_files_or_config_change(synthetic_copy, tmp_path):
+    config = synthetic_config(synthetic_copy, tmp_path)
+    first = open_quietly(config)
+    assert first.built
+    second = open_quietly(config)
+    assert not second.built and second.cache_path == first.cache_path
+    torch.testing.assert_close(all_windows(first), all_windows(second))
+
+    changed_config = open_quietly(synthetic_config(synthetic_copy, tmp_path, horizon=2))
+    assert changed_config.built and changed_config.cache_path != first.cache_path
+    # Split and protocol settings do not change the cached content.
+    assert not open_quietly(synthetic_config(synthetic_copy, tmp_path, split_seed=9)).built
+
+    data_file = next((synthetic_copy / "data").rglob("*.parquet"))
+    stat = data_file.stat()
+    os.utime(data_file, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000_000))
+    touched = open_quietly(config)
+    assert touched.built and touched.cache_path not in (first.cache_path, changed_config.cache_path)
+
+
+def test_killed_build_never_reads_as_a_cache(synthetic_root, tmp_path, monkeypatch):
+    import mmf_rl.datasets.cache as cache
+
+    def crash(*args, **kwargs):
+        raise KeyboardInterrupt("simulated kill during the build")
+
+    monkeypatch.setattr(cache, "_windows", crash)
+    config = synthetic_config(synthetic_root, tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        open_quietly(config)
+    assert list(tmp_path.iterdir()) == []  # neither a cache nor a half-written temp dir
+    monkeypatch.undo()
+    assert open_quietly(config).built
+
+
+def test_pool_build_equals_in_process_build(synthetic_root, tmp_path):
+    in_process = open_quietly(synthetic_config(synthetic_root, tmp_path / "a"), num_workers=1)
+    pooled = open_quietly(synthetic_config(synthetic_root, tmp_path / "b"), num_workers=2)
+    assert pooled.built and in_process.built
+    torch.testing.assert_close(all_windows(pooled), all_windows(in_process))
+
+
+# --- loaders -----------------------------------------------------------------------------------
+
+
+def test_loader_shuffles_reproducibly_and_shards_by_rank(synthetic_root, tmp_path):
+    dataset = open_quietly(synthetic_config(synthetic_root, tmp_path))
+    train = dataset.split_windows["train"]
+
+    def epoch_targets(loader):
+        return torch.cat([b.get(TARGET) for b in loader])
+
+    a, b = dataset.loader("train", 8, seed=1), dataset.loader("train", 8, seed=1)
+    torch.testing.assert_close(epoch_targets(a), epoch_targets(b))
+    assert not torch.equal(epoch_targets(a), epoch_targets(dataset.loader("train", 8, seed=1)))  # epoch 1 ≠ 0
+    for batch in dataset.loader("train", 8):
+        validate_batch(batch, dataset.specs, 4, 3, 2, require_target=True)
+        assert batch.batch_size[0] == 8  # drop_last for training
+
+    shards = [dataset.loader("train", 5, seed=2, rank=r, world_size=2) for r in range(2)]
+    ids = [s._ids() for s in shards]
+    assert len(ids[0]) == len(ids[1]) == len(train) // 2
+    assert not set(ids[0].tolist()) & set(ids[1].tolist())
+
+    for split in ("val", "test"):
+        loader = dataset.loader(split, 4)
+        targets = epoch_targets(loader)
+        torch.testing.assert_close(targets, dataset.batch(dataset.split_windows[split]).get(TARGET))
+        assert len(loader) == -(-len(dataset.split_windows[split]) // 4)
+
+
+def test_parquet_nulls_read_as_absent_like_nan(synthetic_copy, tmp_path):
+    # lerobot's aggregate_datasets (the recorder's multi-worker path) writes NaN as parquet nulls.
+    nan_presence = open_quietly(synthetic_config(synthetic_copy, tmp_path / "nan")).presence["force"]
+    data_file = next((synthetic_copy / "data").rglob("*.parquet"))
+    frames = pd.read_parquet(data_file)
+    frames[FORCE_FEATURE] = [[None if np.isnan(v) else float(v) for v in row] for row in frames[FORCE_FEATURE]]
+    frames.to_parquet(data_file)
+    dataset = open_quietly(synthetic_config(synthetic_copy, tmp_path / "null"))
+    assert torch.equal(dataset.presence["force"], nan_presence) and not nan_presence.all()
+    assert torch.isfinite(all_windows(dataset).get(obs_key("force"))).all()
+
+
+def test_vector_kind_and_required_vector_modality(synthetic_root, tmp_path):
+    modalities = {"state": {"feature": STATE_FEATURE, "kind": "vector"},
+                  "force": {"feature": FORCE_FEATURE, "required": True}}
+    dataset = open_quietly(synthetic_config(synthetic_root, tmp_path, modalities=modalities))
+    batch = all_windows(dataset)
+    validate_batch(batch, dataset.specs, 4, 3, 2)
+    assert batch.get(obs_key("state")).shape == (len(dataset), 4)
+    # A required modality is in every sample: the windows where force is NaN are left out.
+    absent = int((~dataset.presence["force"]).sum())
+    assert absent > 0 and dataset.report["skipped"]["windows_without_required_modality"] == absent
+    in_splits = torch.cat(list(dataset.split_windows.values()))
+    assert dataset.presence["force"][in_splits].all() and len(in_splits) == len(dataset) - absent
