@@ -40,12 +40,14 @@ class TrainingStopped(RuntimeError):
 class TrainerConfig:
     """Optimisation and bookkeeping of one run.
 
+    ``batch_size`` is per rank and is used by whoever builds the loader.
     ``max_nonfinite_steps``: a step whose loss is NaN/Inf is skipped (no update) and counted;
     more than this many in a row stop the run. ``loss_explosion_threshold``: a finite total loss
     above it stops the run, naming the last good checkpoint.
     """
 
     total_steps: int = 1000
+    batch_size: int = 128
     lr: float = 1e-3
     weight_decay: float = 0.0
     lr_schedule: str = "cosine"
@@ -65,7 +67,7 @@ class TrainerConfig:
     def __post_init__(self):
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"trainer.lr_schedule must be 'constant' or 'cosine', found {self.lr_schedule!r}")
-        for name in ("total_steps", "log_every", "eval_every", "checkpoint_every", "keep_checkpoints"):
+        for name in ("total_steps", "batch_size", "log_every", "eval_every", "checkpoint_every", "keep_checkpoints"):
             if getattr(self, name) < 1:
                 raise ValueError(f"trainer.{name} must be >= 1, found {getattr(self, name)}")
 
@@ -184,6 +186,9 @@ class Trainer:
         self.history: list[dict[str, float]] = []
         if config.grad_clip_norm:
             self.register_op("post_loss", self._clip_gradients)
+        if world_size > 1:  # every rank starts from rank 0's weights
+            for tensor in self.model.state_dict().values():
+                dist.broadcast(tensor, src=0)
 
     # -- hooks ------------------------------------------------------------------------------------
 
@@ -212,29 +217,45 @@ class Trainer:
             "step": self.step, "epoch": epoch, "batch_in_epoch": batch_in_epoch,
             "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
             "loss_buffers": {k: v.detach().clone() for k, v in self._loss_buffers().items()},
-            "rng": rng_state(), "nonfinite_total": self.nonfinite_total, "best_metric": self.best_metric,
+            "rng": self._rng_states(), "nonfinite_total": self.nonfinite_total, "best_metric": self.best_metric,
             "evals_without_improvement": self.evals_without_improvement,
         }
+
+    def _rng_states(self) -> list[dict]:
+        """Every rank's RNG state (a collective call under DDP): each rank draws its own latents."""
+        if self.world_size == 1:
+            return [rng_state()]
+        states: list = [None] * self.world_size
+        dist.all_gather_object(states, rng_state())
+        return states
 
     def load_state_dict(self, state: dict) -> None:
         self.step, self.epoch, self.batch_in_epoch = state["step"], state["epoch"], state["batch_in_epoch"]
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         self.loss_module.load_state_dict(state["loss_buffers"], strict=False)
-        set_rng_state(state["rng"])
+        rngs = state["rng"]
+        if len(rngs) != self.world_size:
+            raise RuntimeError(f"the checkpoint was written by {len(rngs)} rank(s) and this run has "
+                               f"{self.world_size}; resume with the same number of processes")
+        set_rng_state(rngs[self.rank])
         self.nonfinite_total = state["nonfinite_total"]
         self.best_metric = state["best_metric"]
         self.evals_without_improvement = state["evals_without_improvement"]
 
     def save(self) -> Path | None:
-        if self.run_dir is None or self.rank != 0:
+        """Checkpoint (rank 0 writes; under DDP every rank must call it: the RNG states are gathered)."""
+        if self.run_dir is None:
             return None
-        self.last_checkpoint = save_checkpoint(
-            self.run_dir / "checkpoints", self.step, self.model.state_dict(),
-            meta={**self.checkpoint_meta, "trainer": asdict(self.config)},
-            tensors=self.checkpoint_tensors, trainer_state=self.state_dict(),
-            keep_last=self.config.keep_checkpoints,
-        )
+        state = self.state_dict()
+        if self.rank == 0:
+            self.last_checkpoint = save_checkpoint(
+                self.run_dir / "checkpoints", self.step, self.model.state_dict(),
+                meta={**self.checkpoint_meta, "trainer": asdict(self.config)},
+                tensors=self.checkpoint_tensors, trainer_state=state, keep_last=self.config.keep_checkpoints,
+            )
+        if self.world_size > 1:
+            dist.barrier()  # no rank runs ahead of a checkpoint it may be asked to resume from
         return self.last_checkpoint
 
     def resume(self, path: str | Path) -> None:
