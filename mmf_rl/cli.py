@@ -10,7 +10,9 @@ import importlib
 import sys
 
 # command -> (module exposing `main(argv: list[str]) -> int | None`, one-line help)
-COMMANDS: dict[str, tuple[str, str]] = {}
+COMMANDS: dict[str, tuple[str, str]] = {
+    "record": ("mmf_rl.datasets.record", "record a multimodal push dataset (LeRobot v3.0)"),
+}
 
 
 def _usage() -> str:

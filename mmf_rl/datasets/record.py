@@ -1,0 +1,373 @@
+"""`mmf-rl record`: record scripted pushes in `MultimodalPushEnv` as a LeRobot v3.0 dataset.
+
+    mmf-rl record --out data/push --episodes 200 --workers 2 --seed 0 --image-size 64 --steps 50
+
+Episode ``i`` depends only on ``(seed, i)``: worker ``k`` records a contiguous block of episodes
+into its own shard, and lerobot's `aggregate_datasets` concatenates the shards in order. All of it
+happens in a hidden temporary directory beside ``--out``, renamed into place at the end, so an
+interrupted or failed recording never leaves a partial dataset at ``--out``.
+
+Features (float32 vectors carry per-dimension ``names``):
+
+===================================  =========  ================================================
+``observation.images.front``         video      RGB camera, ``[h, w, 3]``
+``observation.front_camera_valid``   bool [1]   true when the frame is fresh, false frozen/black
+``observation.force``                [6]        gripper->object force/torque, world frame, summed
+                                                over the physics sub-steps; NaN during a dropout
+``observation.state``                [17]       proprioception (gripper position/velocity,
+                                                fingers, arm joints)
+``observation.object_pose``          [7]        object position and quaternion (the target)
+``observation.goal``                 [3]        goal position
+``action``                           [4]        FetchPush action (dx, dy, dz, gripper)
+===================================  =========  ================================================
+
+With ``--faults``, sensor outages are written into the data (`SensorFaults`); without it the
+validity feature is all true and no value is NaN, and the two recordings are otherwise identical.
+lerobot's statistics are not NaN-aware: a recording with force dropouts has NaN force entries in
+``meta/stats.json``, so normalise force from the valid frames instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import queue
+import shutil
+import sys
+import tempfile
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+PROG = "mmf-rl record"
+TASK = "Push the block to the red target."
+ROBOT_TYPE = "fetch"
+CAMERA_KEY = "observation.images.front"
+# lerobot 0.4.4 treats every feature whose name contains "image" as a camera when it aggregates
+# stats, so the camera's validity flag cannot live under "observation.images.".
+CAMERA_VALID_KEY = "observation.front_camera_valid"
+FORCE_KEY = "observation.force"
+STATE_KEY = "observation.state"
+OBJECT_POSE_KEY = "observation.object_pose"
+GOAL_KEY = "observation.goal"
+ACTION_KEY = "action"
+MIN_IMAGE_SIZE = 32  # SVT-AV1 (lerobot's default codec) dies of SIGFPE on 16x16 frames
+FAULTS_STREAM = 1  # keeps the fault generator independent of the episode's pusher generator
+
+
+class RecordError(ValueError):
+    """Bad arguments or destination; the message names the problem and the fix."""
+
+
+@dataclass(frozen=True)
+class SensorFaults:
+    """Seeded sensor outages, written into an episode as data.
+
+    Each kind of outage starts a Poisson number of spans per episode, at uniform positions:
+    force dropouts (values become NaN), black frames, and camera freezes (the last delivered
+    frame repeats). Frozen and black frames are marked invalid.
+    """
+
+    force_dropouts: float = 1.0  # mean spans per episode
+    force_dropout_steps: tuple[int, int] = (3, 15)  # span length range, inclusive
+    camera_freezes: float = 0.7
+    camera_freeze_steps: tuple[int, int] = (3, 10)
+    black_frames: float = 0.5
+    black_frame_steps: tuple[int, int] = (1, 5)
+
+    def apply(self, episode: dict[str, np.ndarray], rng: np.random.Generator) -> None:
+        """Corrupt ``episode`` (from `rollout`) in place and set its ``image_valid``."""
+        steps = len(episode["force"])
+        for start, stop in self._spans(rng, steps, self.force_dropouts, self.force_dropout_steps):
+            episode["force"][start:stop] = np.nan
+        for start, stop in self._spans(rng, steps, self.black_frames, self.black_frame_steps):
+            episode["image"][start:stop] = 0
+            episode["image_valid"][start:stop] = False
+        # After the black frames: a frozen camera repeats whatever it delivered last, black or not.
+        for start, stop in self._spans(rng, steps, self.camera_freezes, self.camera_freeze_steps):
+            # A camera that freezes at t=0 has no earlier frame to repeat: it shows black.
+            episode["image"][start:stop] = episode["image"][start - 1] if start > 0 else 0
+            episode["image_valid"][start:stop] = False
+
+    @staticmethod
+    def _spans(rng: np.random.Generator, steps: int, rate: float, lengths: tuple[int, int]):
+        for _ in range(rng.poisson(rate)):
+            start = int(rng.integers(steps))
+            yield start, min(steps, start + int(rng.integers(lengths[0], lengths[1] + 1)))
+
+
+def dataset_features(image_size: int) -> dict[str, dict]:
+    from mmf_rl.envs.push import ACTION_NAMES, FORCE_NAMES, GOAL_NAMES, OBJECT_POSE_NAMES, PROPRIO_NAMES
+
+    def vector(names: list[str]) -> dict:
+        return {"dtype": "float32", "shape": (len(names),), "names": list(names)}
+
+    return {
+        CAMERA_KEY: {
+            "dtype": "video",
+            "shape": (image_size, image_size, 3),
+            "names": ["height", "width", "channels"],
+        },
+        CAMERA_VALID_KEY: {"dtype": "bool", "shape": (1,), "names": ["valid"]},
+        FORCE_KEY: vector(FORCE_NAMES),
+        STATE_KEY: vector(PROPRIO_NAMES),
+        OBJECT_POSE_KEY: vector(OBJECT_POSE_NAMES),
+        GOAL_KEY: vector(GOAL_NAMES),
+        ACTION_KEY: vector(ACTION_NAMES),
+    }
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    out: Path
+    episodes: int
+    workers: int = 1
+    seed: int = 0
+    image_size: int = 64
+    steps: int = 50
+    camera: str = "front"
+    faults: bool = False
+    overwrite: bool = False
+    repo_id: str = "local/mmf-push"
+    vcodec: str = "libsvtav1"
+
+
+def record_episode(env, config: RecordConfig, episode_index: int) -> dict[str, np.ndarray]:
+    """Roll out episode ``episode_index`` and apply its sensor faults when enabled."""
+    from mmf_rl.envs.scripted import rollout
+
+    episode = rollout(env, config.seed, episode_index, config.steps)
+    episode["image_valid"] = np.ones((config.steps, 1), dtype=bool)
+    if config.faults:
+        rng = np.random.default_rng(np.random.SeedSequence([config.seed, episode_index, FAULTS_STREAM]))
+        SensorFaults().apply(episode, rng)
+    return episode
+
+
+def record_shard(
+    config: RecordConfig, root: Path, episode_indices: range, on_episode: Callable[[int], None]
+) -> None:
+    """Record ``episode_indices`` into a new LeRobot dataset at ``root``; report each episode."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from mmf_rl.envs.push import MultimodalPushEnv
+
+    env = MultimodalPushEnv(image_size=config.image_size, camera=config.camera)
+    try:
+        dataset = LeRobotDataset.create(
+            repo_id=config.repo_id,
+            fps=round(1.0 / env.dt),
+            features=dataset_features(config.image_size),
+            root=root,
+            robot_type=ROBOT_TYPE,
+            use_videos=True,
+            vcodec=config.vcodec,
+        )
+        for index in episode_indices:
+            episode = record_episode(env, config, index)
+            for t in range(config.steps):
+                dataset.add_frame(
+                    {
+                        CAMERA_KEY: episode["image"][t],
+                        CAMERA_VALID_KEY: episode["image_valid"][t],
+                        FORCE_KEY: episode["force"][t],
+                        STATE_KEY: episode["proprio"][t],
+                        OBJECT_POSE_KEY: episode["object_pose"][t],
+                        GOAL_KEY: episode["goal"][t],
+                        ACTION_KEY: episode["action"][t],
+                        "task": TASK,
+                    }
+                )
+            # One encoder process per worker: the workers already fill the cores.
+            dataset.save_episode(parallel_encoding=False)
+            on_episode(index)
+        dataset.finalize()
+    finally:
+        env.close()
+
+
+def _worker(config: RecordConfig, root: Path, episode_indices: range, progress) -> None:
+    try:
+        record_shard(config, root, episode_indices, lambda index: progress.put(("episode", index)))
+    except KeyboardInterrupt:
+        return  # the parent saw the interrupt too and cleans up
+    except BaseException:
+        progress.put(("error", traceback.format_exc()))
+        return
+    progress.put(("done", None))
+
+
+def _check_destination(config: RecordConfig) -> None:
+    out = config.out
+    if out.exists() and not out.is_dir():
+        raise RecordError(f"--out {out} is a file; choose a directory path.")
+    if out.is_dir() and any(out.iterdir()) and not config.overwrite:
+        raise RecordError(
+            f"--out {out} already exists and is not empty; pass --overwrite to replace it, "
+            "or choose another directory."
+        )
+    parent = out.parent
+    existing = next(p for p in (parent, *parent.parents) if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise RecordError(f"cannot write to {existing} (needed for --out {out}); choose a writable --out.")
+
+
+def _validate(config: RecordConfig) -> None:
+    for name, value, minimum in (
+        ("--episodes", config.episodes, 1),
+        ("--workers", config.workers, 1),
+        ("--steps", config.steps, 1),
+        ("--image-size", config.image_size, MIN_IMAGE_SIZE),
+    ):
+        if value < minimum:
+            raise RecordError(f"{name} {value}: must be at least {minimum}.")
+    if config.seed < 0:
+        raise RecordError(f"--seed {config.seed}: must be non-negative.")
+    _check_destination(config)
+    # Slower checks last: these import MuJoCo and lerobot.
+    from mmf_rl.envs.push import camera_names
+
+    if config.camera not in camera_names():
+        raise RecordError(f"--camera {config.camera!r} is unknown; choose one of {camera_names()}.")
+    from lerobot.datasets.video_utils import VALID_VIDEO_CODECS
+
+    if config.vcodec not in VALID_VIDEO_CODECS:
+        raise RecordError(f"--vcodec {config.vcodec!r} is unknown; choose one of {sorted(VALID_VIDEO_CODECS)}.")
+
+
+def _shard_ranges(episodes: int, workers: int) -> list[range]:
+    bounds = np.linspace(0, episodes, workers + 1).round().astype(int)
+    return [range(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def _run_workers(config: RecordConfig, shard_roots: list[Path], ranges: list[range], bar) -> None:
+    # spawn, not fork: MuJoCo's GL contexts and torchcodec's decoders do not survive a fork.
+    context = mp.get_context("spawn")
+    progress = context.Queue()
+    processes = [
+        context.Process(target=_worker, args=(config, root, indices, progress), daemon=True)
+        for root, indices in zip(shard_roots, ranges)
+    ]
+    for process in processes:
+        process.start()
+    running = len(processes)
+    try:
+        while running:
+            try:
+                kind, payload = progress.get(timeout=1.0)
+            except queue.Empty:
+                if any(p.exitcode not in (None, 0) for p in processes):
+                    raise RuntimeError("a recording worker died without a report (out of memory?)") from None
+                continue
+            if kind == "episode":
+                bar.update(1)
+            elif kind == "done":
+                running -= 1
+            else:
+                raise RuntimeError(f"a recording worker failed:\n{payload}")
+    finally:
+        for process in processes:
+            if process.is_alive():
+                process.terminate()
+            process.join()
+
+
+def record(config: RecordConfig) -> Path:
+    """Record ``config.episodes`` episodes into ``config.out``; return the dataset's path."""
+    _validate(config)
+    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its whole config per episode otherwise
+    out = config.out.resolve()
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    except OSError as error:
+        raise RecordError(f"cannot write next to --out {out} ({error.strerror}); choose a writable --out.") from None
+    try:
+        ranges = _shard_ranges(config.episodes, config.workers)
+        shard_roots = [work / f"shard-{k}" for k in range(len(ranges))]
+        with tqdm(total=config.episodes, unit="episode", desc="recording", dynamic_ncols=True) as bar:
+            if len(ranges) == 1:  # no worker process: spares a second import of torch and lerobot
+                record_shard(config, shard_roots[0], ranges[0], lambda _: bar.update(1))
+            else:
+                _run_workers(config, shard_roots, ranges, bar)
+        if len(shard_roots) == 1:
+            dataset_root = shard_roots[0]
+        else:
+            from lerobot.datasets.aggregate import aggregate_datasets
+
+            dataset_root = work / "dataset"
+            aggregate_datasets(
+                repo_ids=[config.repo_id] * len(shard_roots),
+                aggr_repo_id=config.repo_id,
+                roots=shard_roots,
+                aggr_root=dataset_root,
+            )
+        if out.exists():  # --overwrite was checked in _validate
+            replaced = work / "replaced"
+            out.rename(replaced)
+            try:
+                dataset_root.rename(out)
+            except OSError:
+                replaced.rename(out)  # keep the old dataset rather than nothing
+                raise
+        else:
+            dataset_root.rename(out)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=PROG, description="Record scripted pushes as a LeRobot v3.0 dataset.")
+    parser.add_argument("--out", type=Path, required=True, help="dataset directory to create")
+    parser.add_argument("--episodes", type=int, required=True, help="number of episodes")
+    parser.add_argument("--workers", type=int, default=1, help="recording processes (default 1)")
+    parser.add_argument("--seed", type=int, default=0, help="episode i depends only on (seed, i)")
+    parser.add_argument("--image-size", type=int, default=64, help="camera image side in pixels")
+    parser.add_argument("--steps", type=int, default=50, help="steps per episode, at 25 Hz")
+    parser.add_argument("--camera", default="front", help="'front', 'top', or a camera of the model XML")
+    parser.add_argument("--faults", action="store_true", help="write seeded sensor outages into the data")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    parser.add_argument("--repo-id", default=RecordConfig.repo_id, help="LeRobot repo_id stored in the metadata")
+    parser.add_argument(
+        "--vcodec",
+        default=RecordConfig.vcodec,
+        help="video codec for the camera (lerobot's choices: libsvtav1, h264, hevc, ...)",
+    )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    config = RecordConfig(
+        out=args.out,
+        episodes=args.episodes,
+        workers=args.workers,
+        seed=args.seed,
+        image_size=args.image_size,
+        steps=args.steps,
+        camera=args.camera,
+        faults=args.faults,
+        overwrite=args.overwrite,
+        repo_id=args.repo_id,
+        vcodec=args.vcodec,
+    )
+    try:
+        out = record(config)
+    except RecordError as error:
+        print(f"{PROG}: error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; nothing was written to {args.out}", file=sys.stderr)
+        return 130
+    print(f"recorded {config.episodes} episodes to {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

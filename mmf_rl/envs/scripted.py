@@ -1,0 +1,189 @@
+"""A scripted pusher for `MultimodalPushEnv`, and the seeded rollout that records with it.
+
+The pusher is a small state machine over the gripper position:
+
+    approach (travel above the pre-push point behind the object, on the goal line)
+      -> descend (to pushing height) -> push (along object->goal, steering back onto the line)
+      -> hold (object at the goal: step away, lift and wait; push again if it drifts off)
+
+and a ``retreat`` (lift clear, then approach again) whenever the object gets away from the
+fingers. Each episode draws a `PusherStyle` — speeds, approach error, action noise, pause and
+re-approach rates — so that trajectories differ in tempo and contact pattern, and the object's
+future is not a straight extrapolation of its past.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mmf_rl.envs.push import MultimodalPushEnv
+
+# Geometry of FetchPush, in metres (block half-size 0.025, closed fingers ~0.014 thick).
+CONTACT_DISTANCE = 0.04  # gripper-site to object-centre distance when the fingers touch the block
+PRE_PUSH_DISTANCE = 0.075  # where the push starts, behind the object on the goal line
+CLEARANCE = 0.06  # travel height above the object's centre: fingertips clear the block's top
+ACTION_SCALE = 0.05  # FetchPush moves the gripper target by 0.05 m per unit of action
+MIN_START_DISTANCE = 0.08  # object-goal distance below which an episode would need no push
+BACK_OFF_DISTANCE = 0.055  # closer than this, the fingers step away from the block before lifting
+SLOW_DOWN_DISTANCE = 0.08  # closer than this to the goal, the push slows down
+FREEZE_DIRECTION_DISTANCE = 0.06  # closer than this to the goal, the push direction stays fixed
+RESUME_DISTANCE = 0.04  # an object this far from the goal is pushed again (success is < 0.05)
+TRACKING_GAIN = 1.5  # the arm covers ~2/3 of a commanded move per step; ask for more
+
+
+@dataclass(frozen=True)
+class PusherStyle:
+    """Per-episode behaviour, drawn from the episode's generator by `sample`."""
+
+    travel_speed: float  # action-norm cap while travelling (FetchPush actions are in [-1, 1])
+    push_lead: float  # metres per step the push target runs ahead of the contact point
+    approach_error: float  # lateral error of the pre-push point, metres
+    action_noise: float  # std of Gaussian noise added to every action
+    pause_rate: float  # per-step probability of a pause
+    reapproach_rate: float  # per-step probability, while pushing, of backing off to re-approach
+    stop_radius: float  # object-goal distance at which the push stops
+
+    @classmethod
+    def sample(cls, rng: np.random.Generator) -> PusherStyle:
+        return cls(
+            travel_speed=rng.uniform(0.7, 1.0),
+            push_lead=rng.uniform(0.01, 0.022),
+            approach_error=rng.normal(0.0, 0.008),
+            action_noise=rng.uniform(0.0, 0.15),
+            pause_rate=rng.choice([0.0, 0.03]),
+            reapproach_rate=rng.choice([0.0, 0.0, 0.04]),
+            stop_radius=rng.uniform(0.01, 0.025),
+        )
+
+
+class ScriptedPusher:
+    """Pushes the object to the goal; call `reset` with the episode's generator, then `act`."""
+
+    def __init__(self) -> None:
+        self.reset(np.random.default_rng(0))
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.style = PusherStyle.sample(rng)
+        self.phase = "approach"
+        self.pause_steps = 0
+        self.direction = np.zeros(2)  # push direction in the plane, unit
+
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        grip = obs["proprio"][:3]
+        obj = obs["object_pose"][:3]
+        goal = obs["desired_goal"]
+        to_goal = goal[:2] - obj[:2]
+        distance = np.linalg.norm(to_goal)
+        # Near the goal the object->goal bearing swings with every millimetre of lateral error;
+        # pushing along the last bearing taken from afar keeps the push straight.
+        if self.phase != "push" or distance > FREEZE_DIRECTION_DISTANCE:
+            self.direction = to_goal / max(distance, 1e-6)
+        direction = self.direction
+        lateral_axis = np.array([-direction[1], direction[0]])
+        offset = grip[:2] - obj[:2]  # gripper relative to the object, in the plane
+        along, lateral = offset @ direction, offset @ lateral_axis
+        push_height, travel_height = obj[2], obj[2] + CLEARANCE
+
+        if self.pause_steps > 0:
+            self.pause_steps -= 1
+            return self._noisy(np.zeros(3))
+        if self.phase != "hold" and self.rng.random() < self.style.pause_rate:
+            self.pause_steps = int(self.rng.integers(2, 7))
+
+        if self.phase == "push":
+            lost = abs(lateral) > 0.03 or along > -0.02 or along < -0.12
+            if distance < self.style.stop_radius or to_goal @ direction < 0.005:
+                self.phase = "hold"
+            elif lost or self.rng.random() < self.style.reapproach_rate:
+                self.phase = "retreat"
+        if self.phase == "hold" and distance > RESUME_DISTANCE:
+            self.phase = "retreat"
+        if self.phase in ("hold", "retreat"):
+            if grip[2] < travel_height - 0.01:
+                if np.linalg.norm(offset) < BACK_OFF_DISTANCE:
+                    # Step away before lifting: lifting fingers pressed against the block can
+                    # drag it up and tip it over.
+                    away = offset / max(np.linalg.norm(offset), 1e-6)
+                    return self._move(grip, np.r_[obj[:2] + away * (BACK_OFF_DISTANCE + 0.01), grip[2]])
+                return self._move(grip, np.r_[grip[:2], travel_height])
+            if self.phase == "hold":
+                return self._move(grip, grip)  # done: wait above the table
+            self.phase = "approach"
+
+        if self.phase == "approach":
+            pre_push = obj[:2] - direction * PRE_PUSH_DISTANCE + lateral_axis * self.style.approach_error
+            if np.linalg.norm(grip[:2] - pre_push) > 0.015:
+                if grip[2] < travel_height - 0.02:
+                    # Lift straight up first: a diagonal move from pushing height can clip the block.
+                    return self._move(grip, np.r_[grip[:2], travel_height])
+                return self._move(grip, np.r_[pre_push, travel_height])
+            self.phase = "descend"
+
+        if self.phase == "descend":
+            behind = obj[:2] - direction * PRE_PUSH_DISTANCE
+            if grip[2] > push_height + 0.008:
+                return self._move(grip, np.r_[behind, push_height])
+            self.phase = "push"
+
+        # push: aim just inside the block, on the push line, so the lateral error steers back onto
+        # it; ease off near the goal, where a fast block slides past (or off the table).
+        lead = self.style.push_lead * np.clip(distance / SLOW_DOWN_DISTANCE, 0.3, 1.0)
+        target = obj[:2] - direction * (CONTACT_DISTANCE - lead)
+        return self._move(grip, np.r_[target, push_height], speed=1.0)
+
+    def _move(self, grip: np.ndarray, target: np.ndarray, speed: float | None = None) -> np.ndarray:
+        step = TRACKING_GAIN * (target - grip) / ACTION_SCALE
+        cap = self.style.travel_speed if speed is None else speed
+        norm = np.linalg.norm(step)
+        if norm > cap:
+            step *= cap / norm
+        return self._noisy(step)
+
+    def _noisy(self, step: np.ndarray) -> np.ndarray:
+        step = step + self.rng.normal(0.0, self.style.action_noise, size=3)
+        # The fourth action drives the fingers, which FetchPush keeps closed.
+        return np.clip(np.r_[step, 0.0], -1.0, 1.0).astype(np.float32)
+
+
+def episode_generator(seed: int, episode_index: int) -> np.random.Generator:
+    """The generator of episode ``episode_index``: a function of (seed, index) only."""
+    return np.random.default_rng(np.random.SeedSequence([seed, episode_index]))
+
+
+def reset_for_push(env: MultimodalPushEnv, rng: np.random.Generator):
+    """Reset until the goal is far enough from the object that reaching it takes a push."""
+    while True:
+        obs, info = env.reset(seed=int(rng.integers(2**31)))
+        if np.linalg.norm(obs["desired_goal"][:2] - obs["object_pose"][:2]) >= MIN_START_DISTANCE:
+            return obs, info
+
+
+def rollout(env: MultimodalPushEnv, seed: int, episode_index: int, steps: int) -> dict[str, np.ndarray]:
+    """Run one scripted episode and return its per-step arrays.
+
+    Frame ``t`` holds the observation before action ``t``. Keys: ``image`` ``[steps, h, w, 3]``
+    uint8; ``force``, ``proprio``, ``object_pose``, ``goal``, ``action`` float32 ``[steps, d]``;
+    ``success`` bool ``[steps]`` (object within the env's threshold of the goal).
+    """
+    if steps < 1:
+        raise ValueError(f"steps={steps}: an episode needs at least 1 step.")
+    rng = episode_generator(seed, episode_index)
+    obs, _ = reset_for_push(env, rng)
+    pusher = ScriptedPusher()
+    pusher.reset(rng)
+    frames: dict[str, list] = {k: [] for k in ("image", "force", "proprio", "object_pose", "goal", "action")}
+    success = []
+    for _ in range(steps):
+        action = pusher.act(obs)
+        for key in ("image", "force", "proprio", "object_pose"):
+            frames[key].append(obs[key])
+        frames["goal"].append(obs["desired_goal"])
+        frames["action"].append(action)
+        success.append(np.linalg.norm(obs["achieved_goal"] - obs["desired_goal"]) < env.distance_threshold)
+        obs, *_ = env.step(action)
+    arrays = {k: np.stack(v).astype(np.uint8 if k == "image" else np.float32) for k, v in frames.items()}
+    arrays["success"] = np.array(success)
+    return arrays

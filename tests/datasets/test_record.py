@@ -1,0 +1,238 @@
+"""`mmf-rl record`: recorded datasets load back with lerobot, match the rollouts, fail cleanly."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")  # before lerobot / huggingface_hub load
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mmf_rl import cli
+from mmf_rl.datasets import record as record_module
+from mmf_rl.datasets.record import (
+    ACTION_KEY,
+    CAMERA_KEY,
+    CAMERA_VALID_KEY,
+    FORCE_KEY,
+    GOAL_KEY,
+    OBJECT_POSE_KEY,
+    STATE_KEY,
+    TASK,
+    RecordConfig,
+    SensorFaults,
+    record,
+    record_episode,
+)
+
+EPISODES = 2
+STEPS = 40
+IMAGE_SIZE = 64
+VECTOR_KEYS = {FORCE_KEY: 6, STATE_KEY: 17, OBJECT_POSE_KEY: 7, GOAL_KEY: 3, ACTION_KEY: 4}
+
+
+def load(root: Path):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    return LeRobotDataset(RecordConfig.repo_id, root=root)
+
+
+def columns(dataset, episode: int) -> dict[str, np.ndarray]:
+    """The parquet (non-video) columns of one episode, as float32 / bool arrays."""
+    table = dataset.hf_dataset.with_format("numpy")
+    keep = np.flatnonzero(np.asarray(table["episode_index"]) == episode)
+    rows = table.select(keep)
+    out = {key: np.stack(rows[key]) for key in VECTOR_KEYS}
+    out[CAMERA_VALID_KEY] = np.stack(rows[CAMERA_VALID_KEY]).reshape(-1, 1)
+    return out
+
+
+@pytest.fixture(scope="module")
+def config(tmp_path_factory) -> RecordConfig:
+    return RecordConfig(
+        out=tmp_path_factory.mktemp("record") / "push",
+        episodes=EPISODES,
+        workers=1,
+        seed=0,
+        image_size=IMAGE_SIZE,
+        steps=STEPS,
+    )
+
+
+@pytest.fixture(scope="module")
+def recorded(config) -> Path:
+    return record(config)
+
+
+@pytest.fixture(scope="module")
+def push_env():
+    from mmf_rl.envs.push import MultimodalPushEnv
+
+    env = MultimodalPushEnv(image_size=IMAGE_SIZE)
+    yield env
+    env.close()
+
+
+def test_dataset_loads_back_with_lerobot(recorded):
+    dataset = load(recorded)
+    assert dataset.num_episodes == EPISODES and dataset.num_frames == EPISODES * STEPS
+    assert dataset.fps == 25
+    assert dataset.meta.info["codebase_version"] == "v3.0"
+    assert dataset.meta.video_keys == [CAMERA_KEY]
+    for key, width in VECTOR_KEYS.items():
+        feature = dataset.features[key]
+        assert feature["dtype"] == "float32" and tuple(feature["shape"]) == (width,), key
+        assert len(feature["names"]) == width, key
+    assert dataset.features[CAMERA_VALID_KEY]["dtype"] == "bool"
+
+    first, last = dataset[0], dataset[STEPS - 1]
+    assert first[CAMERA_KEY].shape == (3, IMAGE_SIZE, IMAGE_SIZE)
+    assert first[FORCE_KEY].shape == (6,) and first[STATE_KEY].shape == (17,)
+    assert first["task"] == TASK
+    assert first[CAMERA_KEY].std() > 0.05, "the camera sees a scene"
+    assert (first[CAMERA_KEY] - last[CAMERA_KEY]).abs().mean() > 0.005, "and the scene changes"
+
+
+def test_dataset_holds_the_seeded_rollouts(recorded, config, push_env):
+    """Episode i is exactly `record_episode(seed, i)`: numbers bit-for-bit, video up to the codec."""
+    dataset = load(recorded)
+    for episode in range(EPISODES):
+        expected = record_episode(push_env, config, episode)
+        stored = columns(dataset, episode)
+        for key, name in ((FORCE_KEY, "force"), (STATE_KEY, "proprio"), (OBJECT_POSE_KEY, "object_pose"),
+                          (GOAL_KEY, "goal"), (ACTION_KEY, "action"), (CAMERA_VALID_KEY, "image_valid")):
+            np.testing.assert_array_equal(stored[key], expected[name], err_msg=key)
+        start = int(dataset.meta.episodes["dataset_from_index"][episode])
+        for t in (0, STEPS // 2, STEPS - 1):
+            decoded = dataset[start + t][CAMERA_KEY].permute(1, 2, 0).numpy() * 255
+            assert np.abs(decoded - expected["image"][t]).mean() < 8, "video frame matches the render"
+
+
+def test_pushes_show_contact_forces(recorded):
+    dataset = load(recorded)
+    for episode in range(EPISODES):
+        force = columns(dataset, episode)[FORCE_KEY]
+        assert np.all(np.isfinite(force))
+        assert np.count_nonzero(np.linalg.norm(force[:, :3], axis=1) > 1.0) >= 2, episode
+
+
+def test_worker_count_does_not_change_the_episodes(recorded, config, tmp_path):
+    two_workers = record(replace(config, out=tmp_path / "push", workers=2))
+    one, two = load(recorded), load(two_workers)
+    assert two.num_episodes == EPISODES and two.num_frames == EPISODES * STEPS
+    for episode in range(EPISODES):
+        a, b = columns(one, episode), columns(two, episode)
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=f"episode {episode} {key}")
+
+
+def test_faults_are_written_as_data(config, push_env, tmp_path):
+    # Seed 5 draws force dropouts and camera outages in both of its first two episodes.
+    faulty = replace(config, out=tmp_path / "faulty", seed=5, faults=True)
+    dataset = load(record(faulty))
+    for episode in range(EPISODES):
+        stored = columns(dataset, episode)
+        expected = record_episode(push_env, faulty, episode)
+        clean = record_episode(push_env, replace(faulty, faults=False), episode)
+        dropped = np.isnan(stored[FORCE_KEY]).any(axis=1)
+        invalid = ~stored[CAMERA_VALID_KEY][:, 0]
+        assert dropped.any() and invalid.any(), episode
+        assert np.isnan(stored[FORCE_KEY][dropped]).all(), "a dropout loses the whole wrench"
+        np.testing.assert_array_equal(stored[FORCE_KEY], expected["force"])  # NaN where expected
+        np.testing.assert_array_equal(stored[FORCE_KEY][~dropped], clean["force"][~dropped])
+        np.testing.assert_array_equal(stored[CAMERA_VALID_KEY], expected["image_valid"])
+        np.testing.assert_array_equal(stored[OBJECT_POSE_KEY], clean["object_pose"])
+
+        # The video carries the corrupted frames (up to the codec); clean frames stay as rendered.
+        assert not np.array_equal(expected["image"][invalid], clean["image"][invalid])
+        np.testing.assert_array_equal(expected["image"][~invalid], clean["image"][~invalid])
+        start = int(dataset.meta.episodes["dataset_from_index"][episode])
+        for t in np.flatnonzero(invalid):
+            decoded = dataset[start + t][CAMERA_KEY].permute(1, 2, 0).numpy() * 255
+            assert np.abs(decoded - expected["image"][t]).mean() < 8, (episode, t)
+
+
+def test_sensor_faults_are_seeded_spans():
+    steps = 60
+    episode = {
+        "force": np.ones((steps, 6), np.float32),
+        "image": np.arange(steps, dtype=np.uint8)[:, None, None, None].repeat(4, 1).repeat(4, 2).repeat(3, 3) + 1,
+        "image_valid": np.ones((steps, 1), bool),
+    }
+    faults = SensorFaults(force_dropouts=3, camera_freezes=2, black_frames=2)
+    first = {k: v.copy() for k, v in episode.items()}
+    faults.apply(first, np.random.default_rng(0))
+    again = {k: v.copy() for k, v in episode.items()}
+    faults.apply(again, np.random.default_rng(0))
+    for key in first:
+        np.testing.assert_array_equal(first[key], again[key])
+
+    assert np.isnan(first["force"]).any() and not np.isnan(first["force"]).all()
+    invalid = ~first["image_valid"][:, 0]
+    assert invalid.any()
+    for t in range(steps):
+        if not invalid[t]:
+            np.testing.assert_array_equal(first["image"][t], episode["image"][t])
+        else:
+            black = (first["image"][t] == 0).all()
+            frozen = t > 0 and (first["image"][t] == first["image"][t - 1]).all()
+            assert black or frozen, t
+
+
+def _run_cli(argv, capsys) -> tuple[int, str]:
+    code = cli.main(["record", *argv])
+    return code, capsys.readouterr().err.strip()
+
+
+def _assert_one_line_error(code: int, err: str, *words: str):
+    assert code == 2
+    last = err.splitlines()[-1]
+    assert last.startswith("mmf-rl record: error: "), err
+    assert "Traceback" not in err
+    for word in words:
+        assert word in last, (word, last)
+
+
+def test_zero_episodes_is_a_clear_error(tmp_path, capsys):
+    code, err = _run_cli(["--out", str(tmp_path / "x"), "--episodes", "0"], capsys)
+    _assert_one_line_error(code, err, "--episodes 0", "at least 1")
+    assert not (tmp_path / "x").exists()
+
+
+def test_unwritable_out_is_a_clear_error(tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a directory")
+    code, err = _run_cli(["--out", str(blocker / "push"), "--episodes", "1"], capsys)
+    _assert_one_line_error(code, err, str(blocker), "writable --out")
+
+
+def test_existing_out_needs_overwrite(tmp_path, capsys):
+    out = tmp_path / "push"
+    out.mkdir()
+    (out / "keep.txt").write_text("precious")
+    code, err = _run_cli(["--out", str(out), "--episodes", "1"], capsys)
+    _assert_one_line_error(code, err, str(out), "--overwrite")
+    assert (out / "keep.txt").read_text() == "precious"
+
+    code, _ = _run_cli(["--out", str(out), "--episodes", "1", "--steps", "3", "--overwrite"], capsys)
+    assert code == 0
+    assert not (out / "keep.txt").exists() and load(out).num_frames == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["push"], "no temporary directory left behind"
+
+
+def test_interrupted_recording_leaves_nothing(tmp_path, capsys, monkeypatch):
+    real_record_shard = record_module.record_shard
+
+    def interrupted(config, root, episode_indices, on_episode):
+        real_record_shard(config, root, range(1), on_episode)  # a shard with one finished episode...
+        raise KeyboardInterrupt  # ...then Ctrl-C
+
+    monkeypatch.setattr(record_module, "record_shard", interrupted)
+    out = tmp_path / "push"
+    code, err = _run_cli(["--out", str(out), "--episodes", "2", "--steps", "3"], capsys)
+    assert code == 130 and "interrupted" in err
+    assert list(tmp_path.iterdir()) == [], "neither --out nor a temporary directory remains"

@@ -1,0 +1,40 @@
+from __future__ import annotations
+
+import numpy as np
+
+from mmf_rl.envs.scripted import MIN_START_DISTANCE, PusherStyle, episode_generator, rollout
+
+
+def test_rollout_shapes(push_env):
+    episode = rollout(push_env, seed=0, episode_index=0, steps=7)
+    assert episode["image"].shape == (7, 32, 32, 3) and episode["image"].dtype == np.uint8
+    for key, width in (("force", 6), ("proprio", 17), ("object_pose", 7), ("goal", 3), ("action", 4)):
+        assert episode[key].shape == (7, width) and episode[key].dtype == np.float32, key
+    assert np.all(np.abs(episode["action"]) <= 1.0)
+    start = np.linalg.norm(episode["goal"][0, :2] - episode["object_pose"][0, :2])
+    assert start >= MIN_START_DISTANCE
+
+
+def test_episode_depends_only_on_seed_and_index(push_env):
+    first = rollout(push_env, seed=5, episode_index=3, steps=30)
+    rollout(push_env, seed=5, episode_index=0, steps=10)  # other episodes in between change nothing
+    again = rollout(push_env, seed=5, episode_index=3, steps=30)
+    for key in first:
+        np.testing.assert_array_equal(first[key], again[key], err_msg=key)
+    other = rollout(push_env, seed=6, episode_index=3, steps=30)
+    assert not np.array_equal(first["object_pose"], other["object_pose"])
+
+
+def test_pusher_reaches_the_goal(push_env):
+    episodes = [rollout(push_env, seed=0, episode_index=i, steps=50) for i in range(4)]
+    assert sum(e["success"][-1] for e in episodes) >= 3
+    for e in episodes:
+        start = np.linalg.norm(e["goal"][0, :2] - e["object_pose"][0, :2])
+        end = np.linalg.norm(e["goal"][-1, :2] - e["object_pose"][-1, :2])
+        assert end < start
+        assert np.any(e["force"] != 0), "every episode pushes"
+
+
+def test_styles_vary_between_episodes():
+    styles = {PusherStyle.sample(episode_generator(0, i)) for i in range(10)}
+    assert len(styles) == 10
