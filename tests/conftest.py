@@ -154,3 +154,24 @@ class InMemoryLoader:
         order = torch.randperm(self.data.shape[0], generator=torch.Generator().manual_seed(self.seed * 1000 + self.epoch))
         for i in range(len(self)):
             yield self.data[order[i * self.batch_size : (i + 1) * self.batch_size]]
+
+
+@pytest.fixture(scope="session")
+def recorded_push_root(tmp_path_factory):
+    """A small multimodal push dataset recorded by the project's own recorder (real MuJoCo data)."""
+    from mmf_rl.datasets.record import RecordConfig, record
+
+    root = tmp_path_factory.mktemp("recorded") / "push"
+    return record(RecordConfig(out=root, episodes=6, steps=40, image_size=32, seed=3))
+
+
+def push_train_overrides(root, cache_dir, run_dir, steps: int = 6) -> list[str]:
+    """`mmf-rl train` overrides for a tiny, fast run on ``recorded_push_root``."""
+    return [
+        f"data.root={root}", f"data.cache_dir={cache_dir}", f"run_dir={run_dir}", "data.image_size=[32,32]",
+        "data.history=4", "data.horizon=3", "data.split_fractions=[0.5,0.25,0.25]",
+        "model.d_model=16", "model.d_latent=4", "model.num_heads=2", "model.mlp_hidden=32", "model.head_hidden=32",
+        f"trainer.total_steps={steps}", "trainer.batch_size=16", "trainer.log_every=2", "trainer.eval_every=3",
+        "trainer.checkpoint_every=3", "trainer.warmup_steps=2", "trainer.progress_bar=false", "logger=csv",
+        "num_workers=0",
+    ]

@@ -1,3 +1,5 @@
 from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
+from mmf_rl.models.registry import MODELS, build_loss, build_model, model_from_saved_config, saved_config
 
-__all__ = ["ForecasterConfig", "MultimodalForecaster"]
+__all__ = ["MODELS", "ForecasterConfig", "MultimodalForecaster", "build_loss", "build_model",
+           "model_from_saved_config", "saved_config"]

@@ -397,4 +397,21 @@ class Trainer:
                     self.save()
         finally:
             bar.close()
+        if self.world_size > 1:
+            self.check_replicas_agree()
         return metrics
+
+    def check_replicas_agree(self, tolerance: float = 1e-6) -> float:
+        """Every rank must hold rank 0's weights after data-parallel training; raise if not."""
+        flat = torch.cat([p.detach().reshape(-1) for p in self.model.parameters()])
+        reference = flat.clone()
+        dist.broadcast(reference, src=0)
+        gap = (flat - reference).abs().max()
+        dist.all_reduce(gap, op=dist.ReduceOp.MAX)
+        if gap > tolerance:
+            raise RuntimeError(f"data-parallel ranks diverged: max weight difference {float(gap):.3g} after "
+                               f"{self.step} steps")
+        if self.rank == 0:
+            print(f"data parallel: {self.world_size} ranks agree after {self.step} steps "
+                  f"(max weight difference {float(gap):.1e})")
+        return float(gap)

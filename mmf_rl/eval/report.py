@@ -1,0 +1,126 @@
+"""Evaluation results as files: ``results.json``, ``results.md`` (the paper's Table 3 layout), plots."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only: no display on training machines
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+
+COLUMNS = [
+    ("windows", "windows", "{:.0f}"),
+    ("mse", "MSE (norm.)", "{:.4f}"),
+    ("mse_units", "MSE", "{:.3g}"),
+    ("ade", "ADE", "{:.4g}"),
+    ("fde", "FDE", "{:.4g}"),
+    ("ade_best_of_k", "ADE best-of-K", "{:.4g}"),
+    ("fde_best_of_k", "FDE best-of-K", "{:.4g}"),
+    ("nll", "NLL", "{:.3f}"),
+    ("degradation", "MSE vs all", "{:+.1%}"),
+]
+
+
+def write_json(path: Path, obj) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=2, sort_keys=True))
+    os.replace(tmp, path)
+
+
+def markdown_table(results: dict[str, dict[str, float]], baseline: dict[str, float] | None,
+                   units: str = "target units") -> str:
+    """One row per presence subset (+ the constant-velocity baseline), one column per metric."""
+    columns = [c for c in COLUMNS if any(c[0] in r for r in results.values())]
+    lines = ["| subset | " + " | ".join(title for _, title, _ in columns) + " |",
+             "|---" * (len(columns) + 1) + "|"]
+    for subset, metrics in results.items():
+        cells = [fmt.format(metrics[key]) if key in metrics else "" for key, _, fmt in columns]
+        lines.append(f"| {subset} | " + " | ".join(cells) + " |")
+    if baseline:
+        cells = [fmt.format(baseline[key]) if key in baseline else "" for key, _, fmt in columns]
+        lines.append("| constant velocity | " + " | ".join(cells) + " |")
+    lines.append("")
+    lines.append(f"MSE (norm.) is on the normalised target; MSE, ADE and FDE are in {units}. Best-of-K uses K "
+                 "prior samples; the other columns the deterministic forecast (z = 0). 'MSE vs all' is the "
+                 "relative change of MSE (norm.) against all modalities present.")
+    return "\n".join(lines) + "\n"
+
+
+def plot_error_per_subset(results: dict[str, dict[str, float]], baseline: dict[str, float] | None, path: Path) -> None:
+    names = list(results)
+    fig, ax = plt.subplots(figsize=(max(5, 1.1 * len(names)), 3.5))
+    ax.bar(names, [results[n]["mse"] for n in names], color="tab:blue")
+    if baseline:
+        ax.axhline(baseline["mse"], color="tab:red", linestyle="--", label="constant velocity")
+        ax.legend()
+    ax.set_ylabel("MSE (normalised)")
+    ax.set_title("forecast error per presence subset")
+    ax.tick_params(axis="x", rotation=30)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_forecasts(examples: dict[str, dict[str, torch.Tensor]], path: Path, units: str) -> None:
+    """Per subset (rows) and window (columns): past, truth, mean forecast and samples.
+
+    A 2-D target is drawn as a trajectory in its plane; otherwise each dim over time.
+    """
+    subsets = list(examples)
+    num_windows = examples[subsets[0]]["target"].shape[0]
+    fig, axes = plt.subplots(len(subsets), num_windows, figsize=(3.2 * num_windows, 2.8 * len(subsets)), squeeze=False)
+    for row, subset in enumerate(subsets):
+        ex = examples[subset]
+        for col in range(num_windows):
+            ax = axes[row][col]
+            target, mean, samples = ex["target"][col], ex["mean"][col], ex["samples"][col]
+            past = ex["past"][col] if ex.get("past") is not None else None
+            if target.shape[-1] == 2:
+                for s in samples:
+                    ax.plot(s[:, 0], s[:, 1], color="tab:orange", alpha=0.25, linewidth=0.8)
+                if past is not None:
+                    ax.plot(past[:, 0], past[:, 1], "k.-", linewidth=1, markersize=3, label="past")
+                ax.plot(target[:, 0], target[:, 1], "g.-", linewidth=1.5, markersize=3, label="truth")
+                ax.plot(mean[:, 0], mean[:, 1], "b.-", linewidth=1.5, markersize=3, label="forecast")
+                ax.set_aspect("equal", adjustable="datalim")
+            else:
+                steps = torch.arange(1, target.shape[0] + 1)
+                for s in samples:
+                    ax.plot(steps, s[:, 0], color="tab:orange", alpha=0.25, linewidth=0.8)
+                ax.plot(steps, target[:, 0], "g.-", label="truth (dim 0)")
+                ax.plot(steps, mean[:, 0], "b.-", label="forecast (dim 0)")
+            if row == 0 and col == 0:
+                ax.legend(fontsize=7)
+            if col == 0:
+                ax.set_ylabel(subset, fontsize=9)
+            ax.tick_params(labelsize=7)
+    fig.suptitle(f"forecasts vs ground truth ({units}); orange: samples from the prior", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_latent_tsne(latents: dict[str, torch.Tensor], path: Path, seed: int = 0) -> None:
+    """t-SNE of posterior means, coloured by presence subset (the paper's latent-space figure)."""
+    from sklearn.manifold import TSNE
+
+    names = [n for n, z in latents.items() if len(z)]
+    stacked = torch.cat([latents[n] for n in names]).numpy()
+    labels = [n for n in names for _ in range(len(latents[n]))]
+    perplexity = max(2.0, min(30.0, (len(stacked) - 1) / 3))
+    embedded = TSNE(n_components=2, perplexity=perplexity, random_state=seed, init="pca").fit_transform(stacked)
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    for name in names:
+        mask = [label == name for label in labels]
+        ax.scatter(embedded[mask, 0], embedded[mask, 1], s=6, alpha=0.6, label=name)
+    ax.legend(fontsize=7, markerscale=2)
+    ax.set_title("t-SNE of posterior means by presence subset")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,150 @@
+"""`mmf-rl eval checkpoint=RUN_DIR [overrides]`: score a trained forecaster on every presence subset.
+
+    mmf-rl eval checkpoint=runs/forecaster                  # the run's last checkpoint, its test split
+    mmf-rl eval checkpoint=runs/forecaster data_root=/data/copy num_samples=50
+
+For each subset (all modalities, each leave-one-out, each single modality) it reports MSE
+(normalised and in units), ADE/FDE of the deterministic forecast and best-of-K, NLL, and the
+relative degradation against all modalities; the constant-velocity baseline is a reference row.
+Writes ``results.json``, ``results.md`` and the plots into ``out_dir`` (default ``RUN_DIR/eval``).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import torch
+
+from mmf_rl import keys
+from mmf_rl.configuration import ConfigError, compose_config, to_container
+from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
+from mmf_rl.datasets.splits import Normalizer
+from mmf_rl.eval.metrics import evaluate_forecasts
+from mmf_rl.eval.report import markdown_table, plot_error_per_subset, plot_forecasts, plot_latent_tsne, write_json
+from mmf_rl.models import model_from_saved_config
+from mmf_rl.trainers.checkpoint import CheckpointError, load_checkpoint, load_model_state
+from mmf_rl.trainers.run import resolve_device
+
+BASELINE_KEYS = {"cv_mse": "mse", "cv_mse_units": "mse_units", "cv_ade": "ade", "cv_fde": "fde"}
+
+
+def checkpoint_location(path: Path) -> Path:
+    """A run directory, its ``checkpoints/`` or a single checkpoint directory."""
+    return path / "checkpoints" if (path / "checkpoints").is_dir() else path
+
+
+def check_modalities_match(model_specs, data_specs, checkpoint_path: Path, data_root) -> None:
+    def describe(specs):
+        return {s.name: (s.kind, tuple(s.shape)) for s in specs}
+
+    model_side, data_side = describe(model_specs), describe(data_specs)
+    if model_side != data_side:
+        raise CheckpointError(f"the checkpoint {checkpoint_path} was trained on modalities {model_side} but the data "
+                              f"at {data_root} gives {data_side}; evaluate on a dataset with the same features")
+
+
+def run_evaluation(cfg) -> dict:
+    device = resolve_device(cfg.device)
+    checkpoint = load_checkpoint(checkpoint_location(Path(cfg.checkpoint)), with_trainer_state=False)
+    train_cfg = checkpoint.meta.get("config")
+    if not train_cfg or "model_config" not in checkpoint.meta:
+        raise CheckpointError(f"{checkpoint.path}/meta.json lacks the run config; it was not written by `mmf-rl train`")
+    data_dict = dict(train_cfg["data"])
+    if cfg.data_root is not None:
+        data_dict["root"] = str(cfg.data_root)
+    data = WindowDataset(DataConfig.from_dict(data_dict))
+    # Normalise with the statistics the model was trained with, whatever data it is scored on.
+    data.normalizer = Normalizer(checkpoint.tensors)
+    model = model_from_saved_config(checkpoint.meta["model_config"])
+    check_modalities_match(model.modalities, data.specs, checkpoint.path, data.config.root)
+    load_model_state(model, checkpoint)
+    model.to(device).eval()
+
+    if len(data.split_windows[cfg.split]) == 0:
+        raise ValueError(f"the {cfg.split!r} split of {data.config.root} has no window; evaluate another split "
+                         "(split=val|train) or record more episodes")
+    loader = data.loader(cfg.split, cfg.batch_size)
+    denormalize = data.normalizer.denormalize_target
+    with_baseline = data.config.include_target_past
+    torch.manual_seed(cfg.seed)  # best-of-K draws are repeatable
+
+    results, baseline = {}, None
+    for name, subset in presence_subsets([s.name for s in data.specs]):
+        batches = (apply_presence_subset(b, subset).to(device) for b in loader)
+        metrics = evaluate_forecasts(model, (b for b in batches if b.shape[0]), lambda t: denormalize(t.cpu()).to(t),
+                                     num_samples=cfg.num_samples, with_baseline=with_baseline)
+        if not metrics:
+            continue  # no test window has any of this subset's modalities
+        if with_baseline and baseline is None:
+            baseline = {short: metrics[long] for long, short in BASELINE_KEYS.items()} | {"windows": metrics["windows"]}
+        results[name] = {k: v for k, v in metrics.items() if not k.startswith("cv_")}
+    reference = results.get("all")
+    for metrics in results.values():
+        if reference is not None:
+            metrics["degradation"] = metrics["mse"] / reference["mse"] - 1
+
+    out_dir = Path(cfg.out_dir) if cfg.out_dir is not None else checkpoint.path.parent.parent / "eval"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    units = f"units of {data.config.target.feature}"
+    summary = {"checkpoint": str(checkpoint.path), "step": checkpoint.step, "split": cfg.split,
+               "data_root": str(data.config.root), "num_samples": cfg.num_samples, "subsets": results,
+               "constant_velocity": baseline}
+    write_json(out_dir / "results.json", summary)
+    table = markdown_table(results, baseline, units)
+    tmp = out_dir / ".results.md.tmp"
+    tmp.write_text(f"# {checkpoint.path} on {data.config.root} ({cfg.split} split)\n\n{table}")
+    os.replace(tmp, out_dir / "results.md")
+    plots = []
+    if cfg.plots:
+        plots = make_plots(model, data, loader, denormalize, cfg, out_dir, units, results, baseline)
+    summary["table"], summary["plots"] = table, [str(p) for p in plots]
+    return summary
+
+
+@torch.no_grad()
+def make_plots(model, data, loader, denormalize, cfg, out_dir: Path, units: str, results: dict,
+               baseline: dict | None) -> list[Path]:
+    """Forecasts vs truth on a few test windows, error per subset, t-SNE of posterior means."""
+    paths = [out_dir / "error_per_subset.png", out_dir / "forecasts.png", out_dir / "latent_tsne.png"]
+    plot_error_per_subset(results, baseline, paths[0])
+
+    first = next(iter(loader))
+    picks = torch.linspace(0, first.shape[0] - 1, min(cfg.plot_windows, first.shape[0])).long()
+    examples, latents = {}, {}
+    for name, subset in presence_subsets([s.name for s in data.specs]):
+        batch = apply_presence_subset(first[picks], subset)
+        if batch.shape[0] == 0 or name not in results:
+            continue
+        out = model(batch.clone())
+        samples = model.sample(batch.clone(), num_samples=min(cfg.num_samples, 10)).get(keys.FORECAST_SAMPLES)
+        past = batch.get(keys.TARGET_PAST, None)
+        examples[name] = {"target": denormalize(batch.get(keys.TARGET)), "mean": denormalize(out.get(keys.FORECAST_LOC)),
+                          "samples": denormalize(samples), "past": denormalize(past) if past is not None else None}
+        # The batch carries the target, so a latent model's forward pass reports q(z | X, y).
+        posterior = model(apply_presence_subset(first[: cfg.tsne_windows], subset)).get(keys.POSTERIOR_LOC, None)
+        if posterior is not None:
+            latents[name] = posterior
+    plot_forecasts(examples, paths[1], units)
+    if not latents:  # a model without a latent space (a deterministic baseline)
+        return paths[:2]
+    plot_latent_tsne(latents, paths[2], seed=cfg.seed)
+    return paths
+
+
+def main(argv: list[str]) -> int:
+    try:
+        cfg = compose_config("eval", argv)
+        if cfg.get("checkpoint") is None:
+            raise ConfigError("checkpoint=PATH is required (a run directory, its checkpoints/ or one checkpoint)")
+        summary = run_evaluation(cfg)
+    except (ConfigError, CheckpointError, FileNotFoundError, ValueError, KeyError) as err:
+        if os.environ.get("MMF_RL_DEBUG"):
+            raise
+        print(f"mmf-rl eval: error: {err.args[0] if isinstance(err, KeyError) and err.args else err}", file=sys.stderr)
+        return 1
+    print(summary["table"])
+    for path in summary["plots"]:
+        print(f"plot: {path}")
+    return 0

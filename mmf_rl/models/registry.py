@@ -1,0 +1,71 @@
+"""Models by name, so configs, checkpoints and benchmarks build any of them the same way.
+
+An entry gives the model's config class, its module class, and the losses it trains with. Every
+model reads the same batch contract (mmf_rl.keys) and writes ``("forecast", "loc"/"scale")``;
+models with a latent also write ``("posterior", ...)``. Baselines register here beside the
+paper's forecaster.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+from torch import nn
+
+from mmf_rl.keys import ModalitySpec
+from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
+from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
+
+
+@dataclass(frozen=True)
+class ModelEntry:
+    config_cls: type
+    model_cls: type
+    make_loss: Callable[[nn.Module, dict], nn.Module]
+
+
+def forecaster_loss(model: MultimodalForecaster, loss_cfg: dict) -> CombinedLoss:
+    """ELBO, plus the missing-modality loss unless its weight is 0 (the paper's ablation)."""
+    losses = [ELBOLoss(model, kl_weight=loss_cfg["kl_weight"], kl_warmup_steps=loss_cfg["kl_warmup_steps"])]
+    if loss_cfg["missing_modality_weight"] > 0:
+        losses.append(MissingModalityLoss(model, weight=loss_cfg["missing_modality_weight"],
+                                          detach_teacher=loss_cfg["detach_teacher"]))
+    return CombinedLoss(*losses)
+
+
+MODELS: dict[str, ModelEntry] = {
+    "forecaster": ModelEntry(ForecasterConfig, MultimodalForecaster, forecaster_loss),
+}
+
+
+def _entry(name: str) -> ModelEntry:
+    if name not in MODELS:
+        raise ValueError(f"unknown model {name!r}; expected one of {sorted(MODELS)}")
+    return MODELS[name]
+
+
+def build_model(model_cfg: dict, modalities: list[ModalitySpec], history: int, horizon: int,
+                target_dim: int) -> nn.Module:
+    """``model_cfg`` is the model config group (its ``name`` picks the entry); the data fixes the rest."""
+    cfg = dict(model_cfg)
+    entry = _entry(cfg.pop("name", "forecaster"))
+    config = entry.config_cls.from_dict({**cfg, "modalities": modalities, "history": history, "horizon": horizon,
+                                         "target_dim": target_dim})
+    return entry.model_cls(config)
+
+
+def model_from_saved_config(saved: dict) -> nn.Module:
+    """Rebuild a model from the ``model_config`` a checkpoint stores (see :func:`saved_config`)."""
+    cfg = dict(saved)
+    entry = _entry(cfg.pop("name", "forecaster"))
+    return entry.model_cls(entry.config_cls.from_dict(cfg))
+
+
+def saved_config(name: str, model: nn.Module) -> dict:
+    """What a checkpoint stores to rebuild ``model``: its registry name and full config."""
+    return {"name": name, **model.config.to_dict()}
+
+
+def build_loss(name: str, model: nn.Module, loss_cfg: dict) -> nn.Module:
+    return _entry(name).make_loss(model, loss_cfg)

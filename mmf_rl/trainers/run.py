@@ -1,0 +1,156 @@
+"""`mmf-rl train [overrides]`: a LeRobot dataset in, a trained missing-modality forecaster out.
+
+    mmf-rl train data=so101 trainer.total_steps=500 run_dir=runs/so101
+    mmf-rl train data.root=/path/to/my/lerobot/dataset data.modalities.wrist=observation.images.wrist ...
+    torchrun --nproc_per_node=2 -m mmf_rl.cli train ...     # data parallel (gloo on CPU, NCCL on GPU)
+
+Top to bottom: compose the config, set up devices and processes, open the window cache, build
+the model and its losses, train with checkpoints, logs and validation, then save the final
+weights. ``resume=true`` continues the run in ``run_dir`` exactly where its last checkpoint was.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+from datetime import timedelta
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from omegaconf import OmegaConf
+
+from mmf_rl.configuration import ConfigError, compose_config, load_config, save_config, to_container
+from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.eval.metrics import evaluate_forecasts
+from mmf_rl.models import build_loss, build_model, saved_config
+from mmf_rl.trainers.checkpoint import CheckpointError, list_checkpoints
+from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
+
+RUN_CONFIG = "config.yaml"
+# Keys that may differ between a run and its resumption.
+RESUMABLE_CHANGES = {"resume", "trainer.progress_bar", "logger", "num_workers"}
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={name} was requested but CUDA is not available here; use device=cpu or device=auto")
+    return device
+
+
+def init_distributed(device: torch.device) -> tuple[int, int]:
+    """Join the process group torchrun describes (``WORLD_SIZE``/``RANK``); (0, 1) when alone."""
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    if world_size == 1:
+        return 0, 1
+    backend = "nccl" if device.type == "cuda" else "gloo"
+    # A bounded timeout: if a rank dies, the others fail in a collective instead of hanging forever.
+    dist.init_process_group(backend, timeout=timedelta(seconds=int(os.environ.get("MMF_RL_DIST_TIMEOUT", "300"))))
+    if device.type == "cuda":
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+    return dist.get_rank(), world_size
+
+
+def make_logger(kind: str, run_dir: Path):
+    if kind == "none":
+        return None
+    from torchrl.record.loggers import get_logger
+
+    if kind not in ("csv", "tensorboard", "wandb"):
+        raise ValueError(f"logger must be one of csv, tensorboard, wandb, none; found {kind!r}")
+    return get_logger(kind, logger_name=str(run_dir), experiment_name="logs")
+
+
+def check_resumable(run_dir: Path, cfg) -> None:
+    saved_path = run_dir / RUN_CONFIG
+    if not saved_path.is_file():
+        raise CheckpointError(f"resume=true but {saved_path} does not exist: nothing to resume in {run_dir}")
+    saved = OmegaConf.to_container(load_config(saved_path))
+    current = to_container(cfg)
+
+    def flat(d, prefix=""):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                yield from flat(v, f"{prefix}{k}.")
+            else:
+                yield f"{prefix}{k}", v
+
+    a, b = dict(flat(saved)), dict(flat(current))
+    changed = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
+    if changed:
+        details = ", ".join(f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in changed[:8])
+        raise CheckpointError(f"resume=true with a config that differs from {saved_path} ({details}); resume with "
+                              "the same config, or train into a new run_dir")
+
+
+def train(cfg) -> Path:
+    device = resolve_device(cfg.device)
+    rank, world_size = init_distributed(device)
+    trainer_cfg = TrainerConfig.from_dict(to_container(cfg.trainer))
+    run_dir = Path(cfg.run_dir)
+    if rank == 0:
+        if cfg.resume:
+            check_resumable(run_dir, cfg)
+        elif list_checkpoints(run_dir / "checkpoints"):
+            raise CheckpointError(f"{run_dir} already holds a trained run; pass resume=true to continue it, or "
+                                  "choose another run_dir (nothing was overwritten)")
+        save_config(cfg, run_dir / RUN_CONFIG)
+
+    data_cfg = DataConfig.from_dict(to_container(cfg.data))
+    if rank == 0:  # one process builds the cache, the others open it
+        data = WindowDataset(data_cfg, num_workers=cfg.num_workers)
+    if world_size > 1:
+        dist.barrier()
+    if rank != 0:
+        with warnings.catch_warnings():  # rank 0 already warned about absent modalities
+            warnings.simplefilter("ignore")
+            data = WindowDataset(data_cfg)
+
+    seed_everything(trainer_cfg.seed)  # same initial weights on every rank
+    model_cfg = to_container(cfg.model)
+    model = build_model(model_cfg, data.specs, data_cfg.history, data_cfg.horizon, data.target_dim).to(device)
+    model_name = model_cfg.get("name", "forecaster")
+    loss = build_loss(model_name, model, to_container(cfg.loss))
+    seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents
+    loader = data.loader("train", trainer_cfg.batch_size, seed=trainer_cfg.seed, rank=rank, world_size=world_size)
+    val_loader = data.loader("val", max(trainer_cfg.batch_size, 256))
+    denormalize = data.normalizer.denormalize_target
+
+    def validate(m):
+        metrics = evaluate_forecasts(m, (b.to(device) for b in val_loader), lambda t: denormalize(t.cpu()).to(t))
+        return {f"val/{k}": v for k, v in metrics.items() if k != "windows"}
+
+    trainer = Trainer(
+        model, loss, loader, trainer_cfg, run_dir=run_dir, logger=make_logger(cfg.logger, run_dir) if rank == 0 else None,
+        evaluate=validate if len(data.split_windows["val"]) else None,
+        checkpoint_meta={"config": to_container(cfg), "model_config": saved_config(model_name, model),
+                         "data_fingerprint": data.cache_path.name, "world_size": world_size},
+        checkpoint_tensors=data.normalizer.stats, rank=rank, world_size=world_size,
+    )
+    if device.type != "cpu":
+        trainer.register_op("batch_process", lambda batch: batch.to(device, non_blocking=True))
+    if cfg.resume:
+        trainer.resume(run_dir / "checkpoints")
+    metrics = trainer.train()
+    if rank == 0:
+        summary = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
+        print(f"trained {trainer.step} steps -> {trainer.last_checkpoint}" + (f" ({summary})" if summary else ""))
+    if world_size > 1:
+        dist.destroy_process_group()
+    return run_dir
+
+
+def main(argv: list[str]) -> int:
+    try:
+        train(compose_config("train", argv))
+    except (ConfigError, CheckpointError, TrainingStopped, FileNotFoundError, ValueError, KeyError) as err:
+        if os.environ.get("MMF_RL_DEBUG"):
+            raise
+        message = err.args[0] if isinstance(err, KeyError) and err.args else err
+        print(f"mmf-rl train: error: {message}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,133 @@
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from mmf_rl.cli import main as cli
+from mmf_rl.trainers import list_checkpoints, load_checkpoint
+from tests.conftest import push_train_overrides
+
+
+@pytest.fixture
+def overrides(recorded_push_root, tmp_path):
+    return lambda run, **kw: push_train_overrides(recorded_push_root, tmp_path / "cache", tmp_path / run, **kw)
+
+
+def test_train_then_eval_writes_checkpoint_logs_table_and_plots(overrides, tmp_path, capsys):
+    assert cli(["train", *overrides("run")]) == 0
+    run = tmp_path / "run"
+    checkpoint = load_checkpoint(run / "checkpoints")
+    assert checkpoint.step == 6 and checkpoint.meta["model_config"]["name"] == "forecaster"
+    assert {"target/mean", "target/std", "force/mean"} <= set(checkpoint.tensors)
+    assert (run / "config.yaml").is_file() and (run / "logs" / "scalars" / "train" / "loss.csv").is_file()
+
+    assert cli(["eval", f"checkpoint={run}", "num_samples=3", "plot_windows=2"]) == 0
+    out = capsys.readouterr().out
+    assert "| all |" in out and "| without_image |" in out and "| constant velocity |" in out
+    results = json.loads((run / "eval" / "results.json").read_text())
+    assert set(results["subsets"]) >= {"all", "without_image", "without_force", "without_proprio", "only_image"}
+    assert results["subsets"]["all"]["degradation"] == 0
+    assert all(v["ade_best_of_k"] <= v["ade"] * 1.5 for v in results["subsets"].values())
+    for plot in ("error_per_subset.png", "forecasts.png", "latent_tsne.png"):
+        assert (run / "eval" / plot).stat().st_size > 1000
+
+
+def test_existing_run_is_never_overwritten_and_resume_needs_same_config(overrides, tmp_path, capsys):
+    assert cli(["train", *overrides("run")]) == 0
+    assert cli(["train", *overrides("run")]) == 1
+    assert "already holds a trained run; pass resume=true" in capsys.readouterr().err
+    assert cli(["train", *overrides("run"), "resume=true", "model.d_latent=6"]) == 1
+    err = capsys.readouterr().err
+    assert "differs from" in err and "model.d_latent: 4 -> 6" in err
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["trainer.lrr=1"], "Could not override 'trainer.lrr'"),
+        (["model=transformer"], "Could not find 'model/transformer'"),
+        (["data.root=/nonexistent/dataset"], "/nonexistent/dataset"),
+        (["device=cuda"] if not torch.cuda.is_available() else ["device=tpu"], "device="),
+    ],
+)
+def test_bad_train_inputs_are_one_line_errors(overrides, args, message, capsys):
+    assert cli(["train", *overrides("run"), *args]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("mmf-rl train: error:") and message in err and "Traceback" not in err
+
+
+def test_eval_errors_for_missing_and_corrupted_checkpoints(overrides, tmp_path, capsys):
+    assert cli(["eval"]) == 1
+    assert "checkpoint=PATH is required" in capsys.readouterr().err
+    assert cli(["eval", f"checkpoint={tmp_path / 'nothing'}"]) == 1
+    assert "does not exist" in capsys.readouterr().err
+    assert cli(["train", *overrides("run")]) == 0
+    weights = load_checkpoint(tmp_path / "run" / "checkpoints").path / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:100])
+    assert cli(["eval", f"checkpoint={tmp_path / 'run'}"]) == 1
+    assert "corrupted or truncated" in capsys.readouterr().err
+
+
+def subprocess_env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([os.getcwd(), env.get("PYTHONPATH", "")])
+    env["OMP_NUM_THREADS"] = "1"
+    return env
+
+
+def final_weights(run_dir):
+    return load_file(load_checkpoint(run_dir / "checkpoints").path / "model.safetensors")
+
+
+def test_killed_training_resumes_to_the_weights_of_an_uninterrupted_run(overrides, tmp_path):
+    steps = ["trainer.total_steps=40", "trainer.checkpoint_every=1", "trainer.eval_every=100"]
+    torch.set_num_threads(1)  # the same kernels as the single-threaded subprocess
+    try:
+        assert cli(["train", *overrides("reference"), *steps]) == 0
+    finally:
+        torch.set_num_threads(min(2, os.cpu_count() or 1))
+    killed = tmp_path / "killed"
+    command = [sys.executable, "-m", "mmf_rl.cli", "train", *overrides("killed"), *steps]
+    process = subprocess.Popen(command, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 300
+        while not any(int(p.name.split("_")[1]) >= 3 for p in list_checkpoints(killed / "checkpoints")):
+            assert process.poll() is None, "training ended before it could be killed"
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        process.kill()  # SIGKILL: no cleanup, no final checkpoint
+    finally:
+        process.wait()
+    interrupted_at = load_checkpoint(killed / "checkpoints").step
+    assert 3 <= interrupted_at < 40
+    torch.set_num_threads(1)
+    try:
+        assert cli(["train", *overrides("killed"), *steps, "resume=true"]) == 0
+    finally:
+        torch.set_num_threads(min(2, os.cpu_count() or 1))
+    reference, resumed = final_weights(tmp_path / "reference"), final_weights(killed)
+    for name, value in reference.items():
+        torch.testing.assert_close(resumed[name], value, rtol=1e-5, atol=1e-6, msg=name)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_two_gloo_ranks_train_in_lockstep_and_agree(overrides, tmp_path):
+    command = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", f"--master_port={free_port()}",
+               "--master_addr=127.0.0.1", "-m", "mmf_rl.cli", "train", *overrides("ddp")]
+    result = subprocess.run(command, env=subprocess_env(), capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "data parallel: 2 ranks agree after 6 steps" in result.stdout
+    checkpoint = load_checkpoint(tmp_path / "ddp" / "checkpoints")
+    assert checkpoint.step == 6 and checkpoint.meta["world_size"] == 2
+    assert len(checkpoint.trainer_state["rng"]) == 2
