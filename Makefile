@@ -11,8 +11,7 @@ test: setup
 	$(VENV_PY) -m pytest -q tests
 
 demo: setup
-	@echo "make demo: the record -> train -> evaluate demo arrives with the Trainer issue; nothing to run yet." >&2
-	@exit 2
+	$(VENV_PY) -m mmf_rl.cli demo
 
 bench: setup
 	$(VENV_PY) benchmarks/model_throughput.py

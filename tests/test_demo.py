@@ -1,0 +1,29 @@
+from mmf_rl.cli import main as cli
+from tests.conftest import push_train_overrides
+
+
+def small_overrides(root, tmp_path):
+    # The demo sets data.root and run_dir itself.
+    return [o for o in push_train_overrides(root, tmp_path / "cache", tmp_path / "unused")
+            if not o.startswith(("data.root=", "run_dir="))]
+
+
+def test_demo_trains_evaluates_and_reruns_without_starting_over(recorded_push_root, tmp_path, capsys):
+    args = ["demo", "--data", str(recorded_push_root), "--run-dir", str(tmp_path / "demo"), "--",
+            *small_overrides(recorded_push_root, tmp_path)]
+    assert cli(args) == 0
+    out = capsys.readouterr().out
+    assert f"using the recording in {recorded_push_root}" in out
+    assert "| all |" in out and "| constant velocity |" in out and "all modalities: MSE" in out
+    assert (tmp_path / "demo" / "eval" / "forecasts.png").is_file()
+    assert cli(args) == 0
+    assert "has checkpoints: resuming" in capsys.readouterr().out
+
+
+def test_demo_records_when_the_dataset_is_absent(tmp_path, capsys):
+    data = tmp_path / "push"
+    args = ["demo", "--data", str(data), "--episodes", "3", "--workers", "1", "--run-dir", str(tmp_path / "demo"),
+            "--", *small_overrides(data, tmp_path), "data.image_size=[64,64]", "data.split_fractions=[0.34,0.33,0.33]"]
+    assert cli(args) == 0
+    assert "recording 3 push episodes" in capsys.readouterr().out
+    assert (data / "meta" / "info.json").is_file()
