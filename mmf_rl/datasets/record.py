@@ -153,7 +153,10 @@ def record_shard(
     config: RecordConfig, root: Path, episode_indices: range, on_episode: Callable[[int], None]
 ) -> None:
     """Record ``episode_indices`` into a new LeRobot dataset at ``root``; report each episode."""
+    from datasets.utils.logging import disable_progress_bar
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    disable_progress_bar()  # lerobot's per-episode "Map" bars would drown the episodes bar
 
     from mmf_rl.envs.push import MultimodalPushEnv
 
