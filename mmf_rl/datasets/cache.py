@@ -8,11 +8,15 @@ Layout of one cache directory (``<cache_dir>/<dataset>-<fingerprint>/``):
   ``episode``.
 * ``windows/`` (batch ``[W]``): ``start`` (first observed frame), ``episode``, ``("present", m)``.
 * ``cache.json``: the fingerprint, the config fields it covers, what was missing (files,
-  undecodable videos with the decoder's error) and what was skipped.
+  undecodable videos with the decoder's error), what was skipped, and the size and checksum
+  of every file in ``frames/`` and ``windows/``.
 
-The directory is written under a temporary name and renamed into place as the last step, so a
-killed build never reads as a cache. The key covers every dataset file's path, size and mtime
-plus the config fields that decide the content; any change gives a new directory.
+The directory is written under a temporary name (``.building-<pid>-<host>-...``) and renamed into
+place as the last step, so a killed build never reads as a cache; the next open removes the temp
+directories whose build died. The key covers every dataset file's path, size and mtime plus the
+config fields that decide the content; any change gives a new directory. Opening checks the
+files against their recorded sizes and checksums: a cache changed on disk after its build is
+rebuilt, with a warning naming the file.
 """
 
 from __future__ import annotations
@@ -23,7 +27,10 @@ import multiprocessing
 import os
 import re
 import shutil
+import socket
 import tempfile
+import time
+import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
@@ -34,8 +41,20 @@ from tqdm.auto import tqdm
 
 from mmf_rl.datasets.lerobot_source import LeRobotSource, VideoJob, clear_decoders, run_video_job
 
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2  # 2: cache.json records each file's size and checksum
 CACHE_META = "cache.json"
+BUILDING_PREFIX = ".building-"
+# A temp dir of another host (a shared cache dir) or of an unknown owner is stale once nothing
+# in it has been written for this long; a live build writes frames continuously. One of this
+# host whose PID is alive is stale only after a day without writes (the PID was reused).
+STALE_BUILD_AGE_S = 3600
+STALE_REUSED_PID_AGE_S = 24 * 3600
+# Checksums: files up to this size are hashed whole (measured: ~80 ms for 64 MiB on a loaded core);
+# larger ones (image frames) by their size plus CHECKSUM_SAMPLES blocks of CHECKSUM_BLOCK bytes
+# spread from the first to the last byte, so an open stays cheap for a cache of any size.
+FULL_CHECKSUM_MAX_BYTES = 64 * 2**20
+CHECKSUM_BLOCK = 2**20
+CHECKSUM_SAMPLES = 16
 # A spawned decode worker pays ~10 s of imports (torch, torchvision via lerobot): below this
 # many frames, decoding in-process is faster than starting a pool.
 POOL_MIN_FRAMES = 3000
@@ -198,6 +217,7 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
         "undecodable_files": undecodable,
         "skipped": skipped,
     }
+    report["files"] = _file_records(directory)
     (directory / CACHE_META).write_text(json.dumps(report, indent=2))
     return report
 
@@ -243,10 +263,130 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
     return windows, skipped
 
 
+def _checksum(path: Path) -> str:
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        if size <= FULL_CHECKSUM_MAX_BYTES:
+            return hashlib.file_digest(f, "sha256").hexdigest()
+        digest = hashlib.sha256()
+        for offset in np.linspace(0, size - CHECKSUM_BLOCK, CHECKSUM_SAMPLES).astype(np.int64).tolist():
+            f.seek(offset)
+            digest.update(f.read(CHECKSUM_BLOCK))
+        return digest.hexdigest()
+
+
+def _file_records(directory: Path) -> dict[str, dict]:
+    """Size and checksum of every file of the cache's TensorDicts (memmaps and their meta.json)."""
+    return {
+        str(path.relative_to(directory)): {"size": path.stat().st_size, "sha256": _checksum(path)}
+        for sub in ("frames", "windows")
+        for path in sorted((directory / sub).rglob("*"))
+        if path.is_file()
+    }
+
+
+def cache_damage(directory: Path) -> str | None:
+    """What differs between the cache at ``directory`` and what its build recorded; None if nothing."""
+    meta = directory / CACHE_META
+    try:
+        recorded = json.loads(meta.read_text())["files"]
+    except FileNotFoundError:
+        return f"{meta} is missing"
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as error:
+        return f"{meta} is unreadable ({type(error).__name__}: {error})"
+    for name, expected in recorded.items():
+        path = directory / name
+        if not path.is_file():
+            return f"{path} is missing"
+        size = path.stat().st_size
+        if size != expected["size"]:
+            return f"{path} has {size} bytes, the build wrote {expected['size']}"
+        if _checksum(path) != expected["sha256"]:
+            return f"{path} has changed since the build (sha256 differs)"
+    return None
+
+
+def _host() -> str:
+    """This host's name as it appears in temp dir names (no '-', which separates the fields)."""
+    return re.sub(r"[^A-Za-z0-9_.]", "_", socket.gethostname())
+
+
+def _temp_prefix(name: str) -> str:
+    return f"{BUILDING_PREFIX}{os.getpid()}-{_host()}-{name}-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, owned by another user
+        return True
+    return True
+
+
+def _last_write(directory: Path) -> float:
+    times = [directory.stat().st_mtime]
+    for parent, _, files in os.walk(directory):
+        times.extend(os.stat(os.path.join(parent, f)).st_mtime for f in files)
+    return max(times)
+
+
+def _is_stale(directory: Path) -> bool:
+    """A temp dir whose build is over: its process is gone (same host) or it has not been written for long."""
+    owner = re.match(rf"{re.escape(BUILDING_PREFIX)}(\d+)-([^-]+)-", directory.name)
+    idle = time.time() - _last_write(directory)
+    if owner is not None and owner[2] == _host():
+        return not _pid_alive(int(owner[1])) or idle > STALE_REUSED_PID_AGE_S
+    # Another host's build (no PID to ask), or one named before PIDs were recorded.
+    return idle > STALE_BUILD_AGE_S
+
+
+def remove_stale_builds(cache_dir: Path) -> None:
+    """Delete the temp dirs under ``cache_dir`` that killed builds left behind (never a live one)."""
+    if not cache_dir.is_dir():
+        return
+    for directory in cache_dir.glob(f"{BUILDING_PREFIX}*"):
+        try:
+            stale = directory.is_dir() and _is_stale(directory)
+        except FileNotFoundError:  # removed meanwhile by its build or another cleaner
+            continue
+        if stale:
+            shutil.rmtree(directory, ignore_errors=True)
+
+
+def _discard(directory: Path) -> None:
+    """Remove a damaged cache: renamed to a temp dir first, so no reader ever sees it half-deleted."""
+    trash = Path(tempfile.mkdtemp(prefix=_temp_prefix(directory.name), dir=directory.parent))
+    try:
+        os.rename(directory, trash)  # replaces the empty temp dir
+    except FileNotFoundError:
+        pass  # another process discarded it first
+    shutil.rmtree(trash, ignore_errors=True)
+
+
+def open_cache(source: LeRobotSource, num_workers: int | None = None) -> tuple[Path, dict, bool]:
+    """The cache directory of ``source``, its report, and whether it was built by this call.
+
+    Removes stale temp dirs of killed builds first. A cache whose files no longer match what its
+    build recorded is discarded and rebuilt, with a warning naming the file.
+    """
+    destination = cache_path(source)
+    remove_stale_builds(destination.parent)
+    if destination.exists():
+        damage = cache_damage(destination)
+        if damage is None:
+            return destination, json.loads((destination / CACHE_META).read_text()), False
+        warnings.warn(f"window cache {destination} is damaged: {damage}; rebuilding it", stacklevel=3)
+        _discard(destination)
+    build_cache(source, destination, num_workers)
+    return destination, json.loads((destination / CACHE_META).read_text()), True
+
+
 def build_cache(source: LeRobotSource, destination: Path, num_workers: int | None = None) -> None:
     """Decode ``source`` into ``destination`` atomically (temp dir, then rename)."""
     destination.parent.mkdir(parents=True, exist_ok=True)
-    building = Path(tempfile.mkdtemp(prefix=f".building-{destination.name}-", dir=destination.parent))
+    building = Path(tempfile.mkdtemp(prefix=_temp_prefix(destination.name), dir=destination.parent))
     try:
         _write(source, building, num_workers)
         os.chmod(building, 0o755)  # mkdtemp makes it private; a finished cache is as readable as any

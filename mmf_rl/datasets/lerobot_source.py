@@ -8,10 +8,16 @@ its video utilities.
 
 from __future__ import annotations
 
+import json
+import shlex
 from dataclasses import dataclass
+from importlib.metadata import version as package_version
 from pathlib import Path
 
 import numpy as np
+import packaging.version
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.keys import ModalitySpec
@@ -19,6 +25,15 @@ from mmf_rl.keys import ModalitySpec
 # Bytes of decoded frames per decode call: lerobot returns float32 frames at full resolution,
 # so a call covers many small frames (fast) but only a few HD ones (bounded memory).
 DECODE_CHUNK_BYTES = 64 * 2**20
+
+INFO_FILE = Path("meta") / "info.json"
+# The info.json keys the pipeline reads; `video_path` too when a feature is a video.
+REQUIRED_INFO_KEYS = ("codebase_version", "features", "total_frames")
+# Per-frame bookkeeping columns every LeRobot dataset has; the pipeline reads the first three.
+FRAME_COLUMNS = ("index", "episode_index", "timestamp")
+BOOKKEEPING_FEATURES = (*FRAME_COLUMNS, "frame_index", "task_index")
+# lerobot's v2.1 -> v3.0 converter (in lerobot 0.4.4 the only one it ships).
+V21_CONVERTER = "lerobot.datasets.v30.convert_dataset_v21_to_v30"
 
 
 @dataclass(frozen=True)
@@ -43,7 +58,12 @@ class Episode:
 
 
 def open_metadata(config: DataConfig):
-    """``LeRobotDatasetMetadata`` for a local ``root`` (never downloads) or the hub ``repo_id``."""
+    """``LeRobotDatasetMetadata`` for a local ``root`` (never downloads) or the hub ``repo_id``.
+
+    A local dataset is checked first (layout, info.json, format version, parquet footers) so a
+    problem is reported by file instead of as a traceback from deep inside lerobot or pyarrow,
+    and so lerobot never falls back to downloading into ``root`` when a metadata file is absent.
+    """
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
     if config.root is None:
@@ -52,12 +72,165 @@ def open_metadata(config: DataConfig):
         meta.pull_from_repo(allow_patterns=["data/*", "videos/*"])
         return meta
     root = Path(config.root)
-    if not (root / "meta" / "info.json").is_file():
+    _check_local_dataset(root)
+    try:
+        return LeRobotDatasetMetadata(config.repo_id, root=root)
+    except Exception as error:  # noqa: BLE001 - whatever lerobot trips on, report it by directory
+        raise ValueError(
+            f"{root / 'meta'}: lerobot {package_version('lerobot')} could not read the dataset metadata "
+            f"({_one_line(error)}); restore meta/ from the original dataset or re-record it"
+        ) from None
+
+
+def _one_line(error: BaseException) -> str:
+    """``Type: message`` on one line, from the innermost cause (wrappers like ``datasets``' say little)."""
+    while (error.__cause__ or error.__context__) is not None:
+        error = error.__cause__ or error.__context__
+    return f"{type(error).__name__}: {' '.join(str(error).split())}"[:400]
+
+
+def _check_local_dataset(root: Path) -> None:
+    """Raise a clear error unless ``root`` holds a LeRobot v3.0 dataset lerobot can open."""
+    if not root.exists():
         raise FileNotFoundError(
-            f"{root} is not a LeRobot dataset: {root / 'meta' / 'info.json'} does not exist "
-            "(set `root` to the directory holding meta/, data/ and videos/)"
+            f"dataset root {root} does not exist: set `root` to the directory of a LeRobot v3.0 dataset "
+            "(the one holding meta/info.json, data/ and videos/), or leave `root` unset to read `repo_id` "
+            "from the Hugging Face hub"
         )
-    return LeRobotDatasetMetadata(config.repo_id, root=root)
+    if not root.is_dir():
+        raise NotADirectoryError(f"dataset root {root} is a file, not a directory: set `root` to a dataset directory")
+    info_path = root / INFO_FILE
+    if not info_path.is_file():
+        found = sorted(p.name + ("/" if p.is_dir() else "") for p in root.iterdir())
+        nested = sorted(p.parent.parent for p in root.glob(f"*/{INFO_FILE}"))
+        hint = f"; did you mean `root: {nested[0]}`?" if nested else ""
+        raise FileNotFoundError(
+            f"{root} is not a LeRobot dataset: {info_path} does not exist (found "
+            f"{found[:10] + ['...'] if len(found) > 10 else found or 'an empty directory'}); "
+            f"set `root` to the directory holding meta/, data/ and videos/{hint}"
+        )
+    info = _read_info(root)
+    _check_version(root, info)
+    _check_info(info_path, info)
+    tasks = root / "meta" / "tasks.parquet"
+    episodes = sorted((root / "meta" / "episodes").glob("*/*.parquet"))
+    if not tasks.is_file() or not episodes:
+        absent = [str(tasks)] if not tasks.is_file() else []
+        absent += [] if episodes else [f"{root / 'meta' / 'episodes'}/chunk-*/file-*.parquet"]
+        raise FileNotFoundError(
+            f"{root} is an incomplete LeRobot v3.0 dataset: {', '.join(absent)} missing; "
+            "restore meta/ from the original dataset or re-record it"
+        )
+    for path in [tasks, *episodes]:
+        _read_parquet_schema(path)
+
+
+def _read_info(root: Path) -> dict:
+    path = root / INFO_FILE
+    try:
+        info = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: not valid JSON ({error}); restore it from the original dataset") from None
+    if not isinstance(info, dict):
+        raise ValueError(f"{path}: expected a JSON object, found {type(info).__name__}")
+    return info
+
+
+def _check_version(root: Path, info: dict) -> None:
+    """Reject v2.x (and older) datasets with lerobot's converter command, and newer majors."""
+    from lerobot.datasets.lerobot_dataset import CODEBASE_VERSION
+
+    path = root / INFO_FILE
+    found = info.get("codebase_version")
+    try:
+        version = packaging.version.parse(str(found))
+    except packaging.version.InvalidVersion:
+        raise ValueError(
+            f"{path}: `codebase_version` should be a version like {CODEBASE_VERSION!r}, found {found!r}"
+        ) from None
+    supported = packaging.version.parse(CODEBASE_VERSION)
+    # A v2 layout keeps its episodes in meta/episodes.jsonl (v3.0: meta/episodes/*/*.parquet).
+    v2_layout = (root / "meta" / "episodes.jsonl").is_file() and not (root / "meta" / "episodes").is_dir()
+    if version.major < supported.major or v2_layout:
+        command = (f"python -m {V21_CONVERTER} --repo-id={shlex.quote(root.name)} "
+                   f"--root={shlex.quote(str(root.parent))} --push-to-hub=false")
+        older = (
+            "" if version >= packaging.version.parse("v2.1") else
+            f" That converter takes only v2.1: first bring this {found} dataset to v2.1 with the "
+            "convert_dataset_v20_to_v21 script of an older lerobot release, then run it."
+        )
+        raise ValueError(
+            f"{root} is a LeRobot v2.x dataset ({path}: codebase_version {found!r}"
+            f"{', but the v2 layout meta/episodes.jsonl' if v2_layout else ''}); "
+            f"lerobot {package_version('lerobot')} and mmf-rl read only {CODEBASE_VERSION}. Convert it in place with lerobot's converter (the original "
+            f"is kept as {root.parent / (root.name + '_old')}).{older}\n  {command}"
+        )
+    if version.major > supported.major:
+        raise ValueError(
+            f"{path}: codebase_version {found!r} is newer than the {CODEBASE_VERSION} that lerobot "
+            f"{package_version('lerobot')} reads; upgrade lerobot (and mmf-rl) to read it"
+        )
+
+
+def _check_info(path: Path, info: dict) -> None:
+    missing = [key for key in REQUIRED_INFO_KEYS if key not in info]
+    if missing:
+        raise ValueError(
+            f"{path}: missing key(s) {missing}; a LeRobot v3.0 info.json has {list(REQUIRED_INFO_KEYS)}. "
+            "Restore it from the original dataset or re-record it"
+        )
+    features = info["features"]
+    if not isinstance(features, dict) or not features:
+        raise ValueError(f"{path}: `features` should map feature names to {{dtype, shape, names}}, found {features!r}")
+    for name, ft in features.items():
+        if not isinstance(ft, dict) or "dtype" not in ft or "shape" not in ft:
+            found = sorted(ft) if isinstance(ft, dict) else repr(ft)
+            raise ValueError(f"{path}: feature {name!r} needs `dtype` and `shape`, found {found}")
+        shape = ft["shape"]
+        if (not isinstance(shape, list) or not shape
+                or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in shape)):
+            raise ValueError(f"{path}: feature {name!r} `shape` should be a list of positive integers, found {shape!r}")
+        if ft["dtype"] == "video" and len(shape) != 3:
+            raise ValueError(
+                f"{path}: video feature {name!r} `shape` should be [height, width, channels], found {shape}"
+            )
+    absent = [c for c in FRAME_COLUMNS if c not in features]
+    if absent:
+        raise ValueError(f"{path}: `features` lacks the per-frame column(s) {absent} every LeRobot dataset has")
+    if any(ft["dtype"] == "video" for ft in features.values()) and not info.get("video_path"):
+        raise ValueError(f"{path}: the dataset has video features but no `video_path` pattern")
+
+
+def _read_parquet_schema(path: Path) -> pa.Schema:
+    """The schema in a parquet file's footer: reading it proves the file is not truncated."""
+    try:
+        return pq.read_schema(path)
+    except (pa.ArrowException, OSError) as error:
+        raise _unreadable_parquet(path, error) from None
+
+
+def _unreadable_parquet(path: Path, error: BaseException) -> ValueError:
+    return ValueError(
+        f"{path}: not a readable parquet file ({path.stat().st_size} bytes; {_one_line(error)}). It is "
+        "probably truncated or corrupted (an interrupted copy, download or recording): restore it from "
+        "the original dataset"
+    )
+
+
+def _is_numeric(dtype: str) -> bool:
+    try:
+        return np.dtype(dtype).kind in "biuf"
+    except TypeError:  # lerobot's "video", "image", "string"
+        return False
+
+
+def _arrow_layout(arrow_type: pa.DataType) -> tuple[pa.DataType, int | None, bool]:
+    """A column's (value type, values per frame if fixed, whether it is a list)."""
+    if pa.types.is_fixed_size_list(arrow_type):
+        return arrow_type.value_type, arrow_type.list_size, True
+    if pa.types.is_list(arrow_type) or pa.types.is_large_list(arrow_type):
+        return arrow_type.value_type, None, True
+    return arrow_type, 1, False
 
 
 def _validity_candidates(feature: str) -> list[str]:
@@ -96,6 +269,8 @@ class LeRobotSource:
             Episode(int(e["episode_index"]), int(e["dataset_from_index"]), int(e["dataset_to_index"]))
             for e in self.meta.episodes
         ]
+        self._check_window_fits()
+        self._check_data_files()
 
     @property
     def specs(self) -> list[ModalitySpec]:
@@ -111,12 +286,89 @@ class LeRobotSource:
 
     def _vector_width(self, feature: str, what: str) -> int:
         ft = self.features[feature]
-        if ft["dtype"] in ("video", "image", "string") or len(ft["shape"]) != 1:
+        if not _is_numeric(ft["dtype"]) or len(ft["shape"]) != 1:
+            vectors = sorted(
+                name for name, f in self.features.items()
+                if _is_numeric(f["dtype"]) and len(f["shape"]) == 1 and name not in BOOKKEEPING_FEATURES
+            )
             raise ValueError(
-                f"{what}: feature {feature!r} must be a vector (1-D numeric), found dtype {ft['dtype']!r} "
-                f"shape {list(ft['shape'])}"
+                f"{what}: feature {feature!r} has dtype {ft['dtype']!r} and shape {list(ft['shape'])} "
+                f"({self.root / INFO_FILE}), but it must be a numeric vector (a float, int or bool dtype, "
+                f"shape [d]); use one of the dataset's numeric vector features: {vectors}"
             )
         return int(ft["shape"][0])
+
+    def _check_window_fits(self) -> None:
+        """At least one episode must hold one window, or the dataset would give no sample at all."""
+        config = self.config
+        needed = (config.history + config.horizon - 1) * config.stride + 1
+        if not self.episodes:
+            raise ValueError(f"{self.root}: the dataset has no episodes (meta/episodes lists none); record some")
+        longest = max(self.episodes, key=lambda e: e.stop - e.start)
+        if longest.stop - longest.start < needed:
+            raise ValueError(
+                f"{self.root}: every episode is shorter than one window. A window of history={config.history} "
+                f"and horizon={config.horizon} at stride={config.stride} spans "
+                f"(history + horizon - 1) * stride + 1 = {needed} frames, but the longest episode "
+                f"(episode {longest.index}) has {longest.stop - longest.start} frames. Lower `history`, "
+                f"`horizon` or `stride` so that the window fits"
+            )
+
+    def _columns(self) -> set[str]:
+        """The per-frame parquet columns the pipeline reads."""
+        columns = {*FRAME_COLUMNS, self.target_feature}
+        for m in self.modalities.values():
+            if not m.is_video:
+                columns.add(m.feature)
+            if m.valid_feature is not None:
+                columns.add(m.valid_feature)
+        return columns
+
+    def _check_data_files(self) -> None:
+        """Every data file is readable and stores its columns as info.json declares.
+
+        Only the parquet footers are read, so this costs milliseconds per file; without it a
+        mismatch surfaces as a cast error deep inside ``datasets``, naming no file.
+        """
+        paths = sorted((self.root / "data").glob("*/*.parquet"))
+        if not paths:
+            raise FileNotFoundError(
+                f"{self.root} has no data files: expected {self.root / 'data'}/chunk-*/file-*.parquet; "
+                "restore data/ from the original dataset"
+            )
+        info_path = self.root / INFO_FILE
+        # lerobot casts every declared non-video feature when it loads the data, used or not.
+        stored = sorted(name for name, ft in self.features.items() if ft["dtype"] != "video")
+        for path in paths:
+            schema = _read_parquet_schema(path)
+            for column in stored:
+                ft = self.features[column]
+                declared = f"dtype {ft['dtype']!r} shape {list(ft['shape'])}"
+                if column not in schema.names:
+                    raise ValueError(
+                        f"{path}: no column {column!r}, which {info_path} declares ({declared}); found columns "
+                        f"{schema.names}. Restore the data file, or fix `features` in info.json"
+                    )
+                if not _is_numeric(ft["dtype"]):
+                    continue
+                arrow_type = schema.field(column).type
+                value_type, per_frame, is_list = _arrow_layout(arrow_type)
+                shape = tuple(ft["shape"])
+                if shape == (1,):  # lerobot stores a shape-[1] feature as a scalar column
+                    fits_shape = not is_list
+                elif len(shape) == 1:
+                    fits_shape = is_list and per_frame in (None, shape[0])
+                else:  # arrays: never read by the pipeline, left to lerobot
+                    fits_shape = True
+                numeric = any(check(value_type) for check in (pa.types.is_integer, pa.types.is_floating,
+                                                               pa.types.is_boolean))
+                if not fits_shape or not numeric:
+                    found = f"{per_frame} value(s) per frame" if per_frame is not None else "a variable-length list"
+                    raise ValueError(
+                        f"{path}: column {column!r} holds {arrow_type} ({found}), but {info_path} declares "
+                        f"{declared}; fix the feature's `shape`/`dtype` in info.json to match the data, or "
+                        "restore the data file"
+                    )
 
     def _resolve(self, name: str) -> ResolvedModality:
         cfg = self.config.modalities[name]
@@ -172,14 +424,11 @@ class LeRobotSource:
         """The per-frame columns the pipeline needs, ordered by the global frame ``index``."""
         from lerobot.datasets.utils import get_hf_features_from_features, load_nested_dataset
 
-        columns = {"index", "episode_index", "timestamp", self.target_feature}
-        for m in self.modalities.values():
-            if not m.is_video:
-                columns.add(m.feature)
-            if m.valid_feature is not None:
-                columns.add(m.valid_feature)
-        hf = load_nested_dataset(self.root / "data", features=get_hf_features_from_features(self.features))
-        data = hf.select_columns(sorted(columns)).with_format("numpy")[:]
+        try:
+            hf = load_nested_dataset(self.root / "data", features=get_hf_features_from_features(self.features))
+            data = hf.select_columns(sorted(self._columns())).with_format("numpy")[:]
+        except Exception as error:  # noqa: BLE001 - footers and schemas were fine: a damaged page or a cast
+            raise self._data_error(error) from None
         order = np.argsort(data["index"], kind="stable")
         data = {k: np.asarray(v)[order] for k, v in data.items()}
         expected = np.arange(self.meta.total_frames)
@@ -191,6 +440,19 @@ class LeRobotSource:
                 f"{data['index'].max() if len(data['index']) else None}"
             )
         return data
+
+    def _data_error(self, error: BaseException) -> ValueError:
+        """The error for data that failed to load: names the file that fails on its own, if one does."""
+        for path in sorted((self.root / "data").glob("*/*.parquet")):
+            try:
+                pq.read_table(path)
+            except (pa.ArrowException, OSError) as file_error:
+                return _unreadable_parquet(path, file_error)
+        return ValueError(
+            f"{self.root / 'data'}: the parquet files do not hold what {self.root / INFO_FILE} declares "
+            f"({_one_line(error)}); fix the features' `dtype`/`shape` in info.json to match the data, or "
+            "restore data/ from the original dataset"
+        )
 
     def files(self) -> list[Path]:
         """Every file that makes up the dataset: what the cache fingerprint covers."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from collections.abc import Iterator
@@ -10,7 +9,7 @@ from collections.abc import Iterator
 import torch
 from tensordict import TensorDict
 
-from mmf_rl.datasets.cache import CACHE_META, build_cache, cache_path, window_offsets
+from mmf_rl.datasets.cache import open_cache, window_offsets
 from mmf_rl.datasets.config import SPLIT_NAMES, DataConfig
 from mmf_rl.datasets.lerobot_source import LeRobotSource
 from mmf_rl.datasets.protocols import training_dropout
@@ -55,11 +54,7 @@ class WindowDataset:
     def __init__(self, config: DataConfig, num_workers: int | None = None):
         self.config = config
         source = LeRobotSource(config)
-        self.cache_path = cache_path(source)
-        self.built = not (self.cache_path / CACHE_META).is_file()
-        if self.built:
-            build_cache(source, self.cache_path, num_workers)
-        self.report = json.loads((self.cache_path / CACHE_META).read_text())
+        self.cache_path, self.report, self.built = open_cache(source, num_workers)
         self.specs: list[ModalitySpec] = source.specs
         self.target_dim: int = source.target_dim
         self._check_presence(source)
