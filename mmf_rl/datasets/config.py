@@ -54,10 +54,18 @@ class ModalityConfig:
 
 @dataclass
 class TargetConfig:
-    """The forecast variable: a vector feature and optionally which of its dims."""
+    """The forecast variable: a vector feature and optionally which of its dims.
+
+    ``relative``: forecast the change from the window's last observed frame (that frame's value
+    is subtracted from the future and from ``target_past``) instead of absolute values; the
+    normalisation statistics then describe those displacements. A model then predicts motion,
+    not where things are, which is what a forecaster needs when the target's current value is
+    not one of its inputs (the push task's object position).
+    """
 
     feature: str
     dims: list[int] | None = None
+    relative: bool = False
 
     def __post_init__(self):
         if self.dims is not None:
@@ -152,7 +160,7 @@ class DataConfig:
                 name: {"feature": m.feature, "kind": m.kind, "dims": m.dims, "valid_feature": m.valid_feature}
                 for name, m in sorted(self.modalities.items())
             },
-            "target": asdict(self.target),
+            "target": {"feature": self.target.feature, "dims": self.target.dims},  # `relative` is applied at batch time
             "history": self.history,
             "horizon": self.horizon,
             "stride": self.stride,

@@ -120,9 +120,25 @@ class WindowDataset:
                 valid = train_frames & _plain(frames.get(("present", spec.name)))
                 mean, std = mean_std(self._obs[spec.name], valid, floor, f"modality {spec.name!r}")
                 stats[f"{spec.name}/mean"], stats[f"{spec.name}/std"] = mean, std
-        valid = train_frames & _plain(frames.get("target_valid"))
-        stats["target/mean"], stats["target/std"] = mean_std(self._target, valid, floor, "the target")
+        if self.config.target.relative:
+            future, _ = self._targets(self.window_start[self.split_windows["train"]], with_past=False)
+            rows = future.reshape(-1, future.shape[-1])
+            valid = torch.ones(rows.shape[0], dtype=torch.bool)
+        else:
+            rows, valid = self._target, train_frames & _plain(frames.get("target_valid"))
+        stats["target/mean"], stats["target/std"] = mean_std(rows, valid, floor, "the target")
         return stats
+
+    def _targets(self, start: torch.Tensor, with_past: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Future ``[N, T, D]`` (and past ``[N, H, D]``) target values of the windows at ``start``,
+        unnormalised, relative to the last observed frame when the config says so."""
+        future = self._target[start[:, None] + self._future]
+        past = self._target[start[:, None] + self._observed] if with_past else None
+        if self.config.target.relative:
+            anchor = self._target[start + self._observed[-1]][:, None]
+            future = future - anchor
+            past = past - anchor if past is not None else None
+        return future, past
 
     def _train_presence(self) -> dict[str, torch.Tensor]:
         """Window presence with the config's training missingness protocol applied to train windows."""
@@ -158,9 +174,10 @@ class WindowDataset:
                 values = values * present.view(-1, *[1] * (values.dim() - 1))
             batch.set(spec.obs_key, values)
             batch.set(spec.present_key, present)
-        batch.set(TARGET, self.normalizer.normalize("target", self._target[start[:, None] + self._future]))
-        if self.config.include_target_past:
-            batch.set(TARGET_PAST, self.normalizer.normalize("target", self._target[observed]))
+        future, past = self._targets(start, with_past=self.config.include_target_past)
+        batch.set(TARGET, self.normalizer.normalize("target", future))
+        if past is not None:
+            batch.set(TARGET_PAST, self.normalizer.normalize("target", past))
         return batch
 
     def loader(self, split: str, batch_size: int, shuffle: bool | None = None, seed: int = 0,

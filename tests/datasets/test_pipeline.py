@@ -133,6 +133,29 @@ def test_windows_match_raw_parquet_and_stay_in_episodes(synthetic_root, tmp_path
     assert (episode_of == dataset.window_episode[:, None].float()).all()
 
 
+def test_relative_target_is_the_change_from_the_last_observed_frame(synthetic_root, tmp_path):
+    history, horizon = 4, 3
+    absolute = open_quietly(synthetic_config(synthetic_root, tmp_path, include_target_past=True))
+    relative = open_quietly(synthetic_config(synthetic_root, tmp_path, include_target_past=True,
+                                             target={"feature": POSE_FEATURE, "dims": [0, 1], "relative": True}))
+    assert relative.cache_path == absolute.cache_path  # same frames: the cache is shared
+    ids = torch.arange(len(absolute))
+    a, r = absolute.batch(ids), relative.batch(ids)
+    future_abs = absolute.normalizer.denormalize_target(a.get(TARGET))
+    past_abs = absolute.normalizer.denormalize_target(a.get(TARGET_PAST))
+    anchor = past_abs[:, -1:]
+    torch.testing.assert_close(relative.normalizer.denormalize_target(r.get(TARGET)), future_abs - anchor)
+    past_rel = relative.normalizer.denormalize_target(r.get(TARGET_PAST))
+    torch.testing.assert_close(past_rel, past_abs - anchor)
+    assert past_rel[:, -1].abs().max() < 1e-5
+    # Statistics describe the training windows' displacements, not positions.
+    train = relative.split_windows["train"]
+    displacement = (future_abs - anchor)[train].reshape(-1, 2)
+    torch.testing.assert_close(relative.normalizer.stats["target/mean"], displacement.mean(0), rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(relative.normalizer.stats["target/std"],
+                               displacement.std(0, correction=0).clamp_min(1e-3), rtol=1e-4, atol=1e-6)
+
+
 def test_presence_masks_follow_nan_spans_and_validity(synthetic_root, tmp_path):
     dataset = open_quietly(synthetic_config(synthetic_root, tmp_path))
     frames = raw_frames(synthetic_root)
