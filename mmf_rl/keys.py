@@ -12,6 +12,8 @@ key                                  shape                meaning
 ``"target_past"``                    ``[B, H, D]``        its history, when the data provides it
 ``("forecast", "loc" | "scale")``    ``[B, T, D]``        diagonal-Gaussian forecast
 ``("forecast", "samples")``          ``[B, K, T, D]``     K forecasts, one per latent sample (best-of-K)
+``("forecast", "valid")``            ``[B]`` bool         False where no modality was present (RL glue: the
+                                                          forecast is then the target's training prior)
 ``("forecast_dropped", ...)``        ``[B, T, D]``        forecast with the modalities in ``("drop", m)`` removed
 ``("drop", m)``                      ``[B]`` bool         modality removed for the missing-modality loss
 ``("posterior" | "prior", ...)``     ``[B, d_z]``         latent distributions (``loc``/``scale``)
@@ -49,6 +51,7 @@ PRIOR = "prior"
 FORECAST_LOC = (FORECAST, LOC)
 FORECAST_SCALE = (FORECAST, SCALE)
 FORECAST_SAMPLES = (FORECAST, SAMPLES)
+FORECAST_VALID = (FORECAST, "valid")
 FORECAST_DROPPED_LOC = (FORECAST_DROPPED, LOC)
 FORECAST_DROPPED_SCALE = (FORECAST_DROPPED, SCALE)
 POSTERIOR_LOC = (POSTERIOR, LOC)

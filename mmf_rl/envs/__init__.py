@@ -15,4 +15,22 @@ if ENV_ID not in gymnasium.registry:
     # FetchPush's own time limit: 50 steps, 2 s at 25 Hz.
     gymnasium.register(ENV_ID, entry_point=MultimodalPushEnv, max_episode_steps=50)
 
-__all__ = ["ENV_ID", "MultimodalPushEnv", "PusherStyle", "ScriptedPusher", "rollout"]
+# The TorchRL side imports torchrl and the models; it loads on first use so that importing the
+# MuJoCo env alone (e.g. in the recorder's worker processes) stays cheap.
+_TORCHRL_EXPORTS = {
+    "MultimodalPushTorchEnv": "mmf_rl.envs.torchrl_env",
+    "ModalityDropout": "mmf_rl.envs.transforms",
+    "UniformBursts": "mmf_rl.envs.transforms",
+    "GeometricBursts": "mmf_rl.envs.transforms",
+    "ForecastTransform": "mmf_rl.envs.transforms",
+}
+
+__all__ = ["ENV_ID", "MultimodalPushEnv", "PusherStyle", "ScriptedPusher", "rollout", *_TORCHRL_EXPORTS]
+
+
+def __getattr__(name):
+    if name not in _TORCHRL_EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(_TORCHRL_EXPORTS[name]), name)

@@ -1,0 +1,114 @@
+"""Per-step cost of `ForecastTransform` against the push env's own step, batch 1 and 16 envs.
+
+    MUJOCO_GL=egl .venv/bin/python benchmarks/forecast_transform_cost.py [--steps 20] [--batches 1 16]
+
+The forecaster is freshly initialised from the default model config (configs/model/forecaster.yaml)
+with the push data's shape (configs/data/push.yaml: image 64x64, force, proprio, H = 10, T = 10,
+D = 2), saved as a checkpoint and loaded with `ForecastTransform.from_checkpoint`: the real loading
+path, untrained weights (the cost does not depend on them).
+
+For each batch size, a `SerialEnv` of `MultimodalPushTorchEnv` is stepped with random actions
+(timed: the env step, rendering included), and the recorded tensordicts are then fed to the
+transform alone (timed: history update, normalisation, one batched forward, outputs), so the two
+costs are measured separately in the same run. Medians over the timed steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+import yaml
+from torchrl.envs import SerialEnv
+
+from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
+from mmf_rl.envs.transforms import ForecastTransform
+from mmf_rl.keys import ModalitySpec
+from mmf_rl.models import build_model, saved_config
+from mmf_rl.trainers.checkpoint import save_checkpoint
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+def push_checkpoint(directory: Path) -> tuple[Path, dict]:
+    data = yaml.safe_load((CONFIGS / "data" / "push.yaml").read_text())
+    model_cfg = yaml.safe_load((CONFIGS / "model" / "forecaster.yaml").read_text())
+    h, w = data["image_size"]
+    specs = [ModalitySpec("image", "image", (3, h, w)), ModalitySpec("force", "sequence", (6,)),
+             ModalitySpec("proprio", "sequence", (17,))]
+    target_dim = len(data["target"]["dims"])
+    torch.manual_seed(0)
+    model = build_model(model_cfg, specs, data["history"], data["horizon"], target_dim)
+    stats = {"force/mean": torch.zeros(6), "force/std": torch.ones(6), "proprio/mean": torch.zeros(17),
+             "proprio/std": torch.ones(17), "target/mean": torch.zeros(target_dim), "target/std": torch.ones(target_dim)}
+    path = save_checkpoint(directory, 0, model.state_dict(), tensors=stats,
+                           meta={"model_config": saved_config(model_cfg.get("name", "forecaster"), model),
+                                 "config": {"data": data}})
+    return path, data
+
+
+def measure(num_envs: int, checkpoint: Path, image_size: int, steps: int, warmup: int) -> tuple[float, float, float]:
+    """Median seconds per step for ``num_envs`` envs: env step, transform call, model forward alone."""
+    env = SerialEnv(num_envs, MultimodalPushTorchEnv, create_env_kwargs={"image_size": image_size})
+    try:
+        env.set_seed(0)
+        td = env.reset()
+        reset = td.clone()
+        frames, env_times = [], []
+        for _ in range(warmup + steps):
+            td = env.rand_action(td)
+            start = time.perf_counter()
+            out = env.step(td)
+            env_times.append(time.perf_counter() - start)
+            frames.append(out["next"].clone())
+            td = env.step_mdp(out)  # rand actions rarely finish an episode in these few steps
+    finally:
+        env.close()
+
+    transform = ForecastTransform.from_checkpoint(checkpoint)
+    transform._reset(reset.empty(), reset.clone())  # noqa: SLF001 - the transform alone, no env around it
+    transform_times, model_times = [], []
+    for frame in frames:
+        start = time.perf_counter()
+        transform._call(frame)  # noqa: SLF001
+        transform_times.append(time.perf_counter() - start)
+        # The model alone on the same window: what is left is the transform's own bookkeeping.
+        window = transform.window()
+        with torch.no_grad():
+            start = time.perf_counter()
+            transform.model(window)
+            model_times.append(time.perf_counter() - start)
+    return tuple(statistics.median(times[warmup:]) for times in (env_times, transform_times, model_times))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--steps", type=int, default=20, help="timed steps per batch size")
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 16])
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        checkpoint, data = push_checkpoint(Path(tmp))
+        image_size = data["image_size"][0]
+        results = {b: measure(b, checkpoint, image_size, args.steps, args.warmup) for b in args.batches}
+
+    print(f"forecaster: default config, image {image_size}x{image_size} + force 6 + proprio 17, H={data['history']}, "
+          f"T={data['horizon']}; {args.threads} threads; median of {args.steps} steps")
+    for b, (env_time, transform_time, model_time) in results.items():
+        print(f"batch {b:>3}: env step {env_time * 1e3:7.2f} ms, ForecastTransform {transform_time * 1e3:7.2f} ms "
+              f"({transform_time / b * 1e3:.2f} ms/env; model forward alone {model_time * 1e3:.2f} ms), "
+              f"transform/env = {transform_time / env_time:.2f}")
+    first, last = args.batches[0], args.batches[-1]
+    print(f"summary: forecast per step: batch{first} {results[first][1] * 1e3:.2f} ms, batch{last} "
+          f"{results[last][1] * 1e3:.2f} ms (env step {results[first][0] * 1e3:.2f} ms)")
+
+
+if __name__ == "__main__":
+    main()
