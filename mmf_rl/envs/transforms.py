@@ -226,7 +226,9 @@ class ForecastTransform(Transform):
         num_samples: ``K > 0`` also writes ``("forecast", "samples")`` ``[*batch, K, T, D]``, one
             forecast per prior latent draw (costs a second forward).
         denormalize: ``True`` writes forecasts in the target's units (for the push data: metres,
-            world frame), ``False`` in the normalised frame the model was trained in.
+            world frame; a run trained with ``data.target.relative`` forecasts displacements from
+            the current step, as the push config does), ``False`` in the normalised frame the
+            model was trained in.
 
     Written every step (env batch ``[*batch]``): ``("forecast", "loc")`` and ``("forecast",
     "scale")`` ``float32 [*batch, T, D]`` (the model's deterministic eval forecast, a diagonal
