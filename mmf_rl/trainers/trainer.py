@@ -288,6 +288,138 @@ class Trainer:
         loss_terms = {k: v for k, v in losses.items() if k.startswith("loss_")}
         total = sum(loss_terms.values())
         total_value = float(total.detach())
+        # [any non-finite loss, largest finite loss]: under DDP every rank must take the same
+        # decision (skip, stop or step), or the gradient all-reduce would wait forever.
+        status = torch.tensor([0.0 if math.isfinite(total_value) else 1.0,
+                               total_value if math.isfinite(total_value) else -math.inf])
+        if self.world_size > 1:
+            dist.all_reduce(status, op=dist.ReduceOp.MAX)
+        if status[0] > 0:
+            self.nonfinite_in_a_row += 1
+            self.nonfinite_total += 1
+            bad = [k for k, v in loss_terms.items() if not torch.isfinite(v)]
+            if self.nonfinite_in_a_row > self.config.max_nonfinite_steps:
+                raise TrainingStopped(
+                    f"{self.nonfinite_in_a_row} steps in a row had a non-finite loss ({bad or 'on another rank'}); "
+                    f"last at step {self.step}, epoch {self.epoch}, batch {self.batch_in_epoch - 1}. Check that batch "
+                    f"for NaN/Inf inputs, or lower trainer.lr. Last good checkpoint: {self.last_checkpoint}")
+            return None
+        worst = float(status[1])
+        if worst > self.config.loss_explosion_threshold:
+            raise TrainingStopped(
+                f"loss exploded to {worst:.3g} at step {self.step} (threshold "
+                f"trainer.loss_explosion_threshold={self.config.loss_explosion_threshold:g}); lower trainer.lr or "
+                f"enable gradient clipping. Last good checkpoint: {self.last_checkpoint}")
+        self.nonfinite_in_a_row = 0
+        self.nonfinite_total = 0
+        self.best_metric = math.inf
+        self.evals_without_improvement = 0
+        self.last_checkpoint: Path | None = None
+        self.history: list[dict[str, float]] = []
+        if config.grad_clip_norm:
+            self.register_op("post_loss", self._clip_gradients)
+        if world_size > 1:  # every rank starts from rank 0's weights
+            for tensor in self.model.state_dict().values():
+                dist.broadcast(tensor, src=0)
+
+    # -- hooks ------------------------------------------------------------------------------------
+
+    def register_op(self, dest: str, op: Callable) -> None:
+        """Call ``op`` at ``dest``: ``batch_process(batch) -> batch``, ``post_loss(trainer)``,
+        ``post_optim(trainer)``, ``post_steps(trainer)``, ``post_steps_log(trainer, logs)``."""
+        if dest not in self.ops:
+            raise ValueError(f"unknown hook point {dest!r}; expected one of {list(OPS)}")
+        self.ops[dest].append(op)
+
+    def _clip_gradients(self, trainer: Trainer) -> None:
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.config.grad_clip_norm)
+
+    # -- state ------------------------------------------------------------------------------------
+
+    def _loss_buffers(self) -> dict[str, torch.Tensor]:
+        # The loss module's own state (e.g. the KL warm-up counter), not the model weights it wraps.
+        model_tensors = {id(t) for t in self.model.state_dict(keep_vars=True).values()}
+        return {k: v for k, v in self.loss_module.state_dict(keep_vars=True).items() if id(v) not in model_tensors}
+
+    def state_dict(self) -> dict:
+        epoch, batch_in_epoch = self.epoch, self.batch_in_epoch
+        if batch_in_epoch >= len(self.loader):  # the epoch is finished: resume at the next one
+            epoch, batch_in_epoch = epoch + 1, 0
+        return {
+            "step": self.step, "epoch": epoch, "batch_in_epoch": batch_in_epoch,
+            "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
+            "loss_buffers": {k: v.detach().clone() for k, v in self._loss_buffers().items()},
+            "rng": self._rng_states(), "nonfinite_total": self.nonfinite_total, "best_metric": self.best_metric,
+            "evals_without_improvement": self.evals_without_improvement,
+        }
+
+    def _rng_states(self) -> list[dict]:
+        """Every rank's RNG state (a collective call under DDP): each rank draws its own latents."""
+        if self.world_size == 1:
+            return [rng_state()]
+        states: list = [None] * self.world_size
+        dist.all_gather_object(states, rng_state())
+        return states
+
+    def load_state_dict(self, state: dict) -> None:
+        self.step, self.epoch, self.batch_in_epoch = state["step"], state["epoch"], state["batch_in_epoch"]
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.loss_module.load_state_dict(state["loss_buffers"], strict=False)
+        rngs = state["rng"]
+        if len(rngs) != self.world_size:
+            raise RuntimeError(f"the checkpoint was written by {len(rngs)} rank(s) and this run has "
+                               f"{self.world_size}; resume with the same number of processes")
+        set_rng_state(rngs[self.rank])
+        self.nonfinite_total = state["nonfinite_total"]
+        self.best_metric = state["best_metric"]
+        self.evals_without_improvement = state["evals_without_improvement"]
+
+    def save(self) -> Path | None:
+        """Checkpoint (rank 0 writes; under DDP every rank must call it: the RNG states are gathered)."""
+        if self.run_dir is None:
+            return None
+        state = self.state_dict()
+        if self.rank == 0:
+            self.last_checkpoint = save_checkpoint(
+                self.run_dir / "checkpoints", self.step, self.model.state_dict(),
+                meta={**self.checkpoint_meta, "trainer": asdict(self.config)},
+                tensors=self.checkpoint_tensors, trainer_state=state, keep_last=self.config.keep_checkpoints,
+            )
+        if self.world_size > 1:
+            dist.barrier()  # no rank runs ahead of a checkpoint it may be asked to resume from
+        return self.last_checkpoint
+
+    def resume(self, path: str | Path) -> None:
+        """Continue from a checkpoint (or a directory's ``last`` one): weights and trainer state."""
+        checkpoint = load_checkpoint(path)
+        load_model_state(self.model, checkpoint)
+        if checkpoint.trainer_state is None:
+            raise RuntimeError(f"{checkpoint.path} holds weights only (no trainer state); it cannot be resumed")
+        self.load_state_dict(checkpoint.trainer_state)
+        self.last_checkpoint = checkpoint.path
+
+    # -- loop -------------------------------------------------------------------------------------
+
+    def _batches(self):
+        if len(self.loader) == 0:
+            raise ValueError("the training loader yields no batch: the training split has fewer windows than "
+                             "one batch per rank; lower the batch size or record more episodes")
+        while True:
+            self.loader.set_epoch(self.epoch)
+            for index, batch in enumerate(self.loader):
+                if index < self.batch_in_epoch:  # resuming inside an epoch: replay up to where we were
+                    continue
+                self.batch_in_epoch = index + 1
+                yield batch
+            self.epoch += 1
+            self.batch_in_epoch = 0
+
+    def _train_step(self, batch: TensorDictBase) -> dict[str, float] | None:
+        losses = self.loss_module(batch)
+        loss_terms = {k: v for k, v in losses.items() if k.startswith("loss_")}
+        total = sum(loss_terms.values())
+        total_value = float(total.detach())
         if self.world_size > 1:  # every rank must agree to skip, or the all-reduce would hang
             flag = torch.tensor([float(math.isfinite(total_value))])
             dist.all_reduce(flag, op=dist.ReduceOp.MIN)
