@@ -4,8 +4,8 @@ Layout of one cache directory (``<cache_dir>/<dataset>-<fingerprint>/``):
 
 * ``frames/`` (batch ``[N]``, one row per dataset frame, never duplicated per window):
   ``("obs", m)`` images ``uint8 [N, C, h, w]`` (resized) or raw vectors ``float32 [N, d]`` (NaN
-  stored as 0), ``("present", m)`` bool, ``target`` raw ``float32 [N, D]``, ``target_valid``,
-  ``episode``.
+  and ±Inf stored as 0 and marked absent), ``("present", m)`` bool, ``target`` raw ``float32
+  [N, D]`` (non-finite stored as 0, ``target_valid`` False), ``target_valid``, ``episode``.
 * ``windows/`` (batch ``[W]``): ``start`` (first observed frame), ``episode``, ``("present", m)``.
 * ``cache.json``: the fingerprint, the config fields it covers, what was missing (files,
   undecodable videos with the decoder's error), what was skipped, and the size and checksum
@@ -21,6 +21,7 @@ rebuilt, with a warning naming the file.
 
 from __future__ import annotations
 
+import glob
 import hashlib
 import json
 import multiprocessing
@@ -41,7 +42,9 @@ from tqdm.auto import tqdm
 
 from mmf_rl.datasets.lerobot_source import LeRobotSource, VideoJob, clear_decoders, run_video_job
 
-CACHE_FORMAT = 2  # 2: cache.json records each file's size and checksum
+# 2: cache.json records each file's size and checksum; 3: Inf targets stored as 0, windows need a
+# finite target at their last observed frame
+CACHE_FORMAT = 3
 CACHE_META = "cache.json"
 BUILDING_PREFIX = ".building-"
 # A temp dir of another host (a shared cache dir) or of an unknown owner is stale once nothing
@@ -87,7 +90,7 @@ def _as_matrix(column: np.ndarray, n: int) -> np.ndarray:
 
 
 def _frame_columns(source: LeRobotSource, columns: dict[str, np.ndarray]) -> dict:
-    """Per-frame vectors (NaN → 0), per-frame presence from NaN and validity features."""
+    """Per-frame vectors (NaN/Inf → 0), per-frame presence from non-finite values and validity features."""
     n = len(columns["index"])
     obs, present = {}, {}
     for name, m in source.modalities.items():
@@ -108,7 +111,7 @@ def _frame_columns(source: LeRobotSource, columns: dict[str, np.ndarray]) -> dic
     return {
         "obs": obs,
         "present": present,
-        "target": torch.from_numpy(np.nan_to_num(target, nan=0.0)),
+        "target": torch.from_numpy(np.nan_to_num(target, nan=0.0, posinf=0.0, neginf=0.0)),
         "target_valid": torch.from_numpy(target_valid),
         "episode": torch.from_numpy(np.asarray(columns["episode_index"], dtype=np.int64)),
     }
@@ -223,7 +226,11 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
 
 
 def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dict]:
-    """Every in-episode window that has a finite target and at least one present modality."""
+    """Every in-episode window that has a finite target and at least one present modality.
+
+    The target must be finite at the forecast steps and at the last observed frame: a relative
+    target is measured from that frame (``relative`` is applied at batch time, not cached).
+    """
     config = source.config
     observed, future = window_offsets(config.history, config.horizon, config.stride)
     span = int(future[-1])
@@ -241,7 +248,7 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
         frame_present = frames.get(("present", name)).as_subclass(torch.Tensor)
         present[name] = frame_present[last_rows] if m.spec.kind == "vector" else frame_present[observed_rows].all(1)
     target_valid = frames.get("target_valid").as_subclass(torch.Tensor)
-    target_ok = target_valid[starts[:, None] + future].all(1)
+    target_ok = target_valid[starts[:, None] + future].all(1) & target_valid[last_rows]
     if config.include_target_past:
         target_ok &= target_valid[observed_rows].all(1)
     any_present = torch.stack(list(present.values())).any(0)
@@ -311,8 +318,13 @@ def _host() -> str:
     return re.sub(r"[^A-Za-z0-9_.]", "_", socket.gethostname())
 
 
+def owned_temp_prefix(prefix: str) -> str:
+    """``prefix`` followed by this process's PID and host, which `remove_stale_temp_dirs` reads back."""
+    return f"{prefix}{os.getpid()}-{_host()}-"
+
+
 def _temp_prefix(name: str) -> str:
-    return f"{BUILDING_PREFIX}{os.getpid()}-{_host()}-{name}-"
+    return f"{owned_temp_prefix(BUILDING_PREFIX)}{name}-"
 
 
 def _pid_alive(pid: int) -> bool:
@@ -332,27 +344,36 @@ def _last_write(directory: Path) -> float:
     return max(times)
 
 
-def _is_stale(directory: Path) -> bool:
-    """A temp dir whose build is over: its process is gone (same host) or it has not been written for long."""
-    owner = re.match(rf"{re.escape(BUILDING_PREFIX)}(\d+)-([^-]+)-", directory.name)
+def _is_stale(directory: Path, prefix: str) -> bool:
+    """A temp dir whose writer is gone (same host) or that has not been written for long."""
+    owner = re.match(rf"{re.escape(prefix)}(\d+)-([^-]+)-", directory.name)
     idle = time.time() - _last_write(directory)
     if owner is not None and owner[2] == _host():
         return not _pid_alive(int(owner[1])) or idle > STALE_REUSED_PID_AGE_S
-    # Another host's build (no PID to ask), or one named before PIDs were recorded.
+    # Another host's writer (no PID to ask), or one named before PIDs were recorded.
     return idle > STALE_BUILD_AGE_S
+
+
+def remove_stale_temp_dirs(parent: Path, prefix: str) -> list[Path]:
+    """Delete the ``prefix*`` dirs in ``parent`` that killed writers left behind (never a live
+    one's); return them. Their names come from `owned_temp_prefix`."""
+    removed = []
+    if not parent.is_dir():
+        return removed
+    for directory in parent.glob(f"{glob.escape(prefix)}*"):
+        try:
+            stale = directory.is_dir() and _is_stale(directory, prefix)
+        except FileNotFoundError:  # removed meanwhile by its writer or another cleaner
+            continue
+        if stale:
+            shutil.rmtree(directory, ignore_errors=True)
+            removed.append(directory)
+    return removed
 
 
 def remove_stale_builds(cache_dir: Path) -> None:
     """Delete the temp dirs under ``cache_dir`` that killed builds left behind (never a live one)."""
-    if not cache_dir.is_dir():
-        return
-    for directory in cache_dir.glob(f"{BUILDING_PREFIX}*"):
-        try:
-            stale = directory.is_dir() and _is_stale(directory)
-        except FileNotFoundError:  # removed meanwhile by its build or another cleaner
-            continue
-        if stale:
-            shutil.rmtree(directory, ignore_errors=True)
+    remove_stale_temp_dirs(cache_dir, BUILDING_PREFIX)
 
 
 def _discard(directory: Path) -> None:

@@ -4,8 +4,10 @@
 
 Episode ``i`` depends only on ``(seed, i)``: worker ``k`` records a contiguous block of episodes
 into its own shard, and lerobot's `aggregate_datasets` concatenates the shards in order. All of it
-happens in a hidden temporary directory beside ``--out``, renamed into place at the end, so an
-interrupted or failed recording never leaves a partial dataset at ``--out``.
+happens in a hidden temporary directory beside ``--out`` (``.NAME.partial-PID-HOST-*``), renamed
+into place at the end, so an interrupted or failed recording never leaves a partial dataset at
+``--out``. A recording that was killed outright (SIGKILL, power loss) cannot clean up: the next
+recording beside the same ``--out`` removes the temporary directories whose process is gone.
 
 Features (float32 vectors carry per-dimension ``names``):
 
@@ -280,14 +282,23 @@ def _run_workers(config: RecordConfig, shard_roots: list[Path], ranges: list[ran
             process.join()
 
 
+def partial_prefix(out: Path) -> str:
+    """Name prefix of the temporary directories of recordings into ``out`` (beside it)."""
+    return f".{out.name}.partial-"
+
+
 def record(config: RecordConfig) -> Path:
     """Record ``config.episodes`` episodes into ``config.out``; return the dataset's path."""
+    from mmf_rl.datasets.cache import owned_temp_prefix, remove_stale_temp_dirs
+
     _validate(config)
     os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its whole config per episode otherwise
     out = config.out.resolve()
+    for stale in remove_stale_temp_dirs(out.parent, partial_prefix(out)):
+        print(f"{PROG}: removed {stale}, left by a recording that is no longer running", file=sys.stderr)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        work = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+        work = Path(tempfile.mkdtemp(prefix=owned_temp_prefix(partial_prefix(out)), dir=out.parent))
     except OSError as error:
         raise RecordError(f"cannot write next to --out {out} ({error.strerror}); choose a writable --out.") from None
     try:

@@ -7,6 +7,8 @@ For each subset (all modalities, each leave-one-out, each single modality) it re
 (normalised and in units), ADE/FDE of the deterministic forecast and best-of-K, NLL, and the
 relative degradation against all modalities; the constant-velocity baseline is a reference row.
 Writes ``results.json``, ``results.md`` and the plots into ``out_dir`` (default ``RUN_DIR/eval``).
+An ``out_dir`` outside the run directory needs ``allow_outside_run_dir=true``: a config copied
+from elsewhere cannot make an evaluation write over unrelated files by accident.
 """
 
 from __future__ import annotations
@@ -45,9 +47,23 @@ def check_modalities_match(model_specs, data_specs, checkpoint_path: Path, data_
                               f"at {data_root} gives {data_side}; evaluate on a dataset with the same features")
 
 
+def output_directory(cfg, run_dir: Path) -> Path:
+    """``out_dir`` resolved; outside ``run_dir`` only when ``allow_outside_run_dir`` says so."""
+    run_dir = run_dir.resolve()
+    if cfg.out_dir is None:
+        return run_dir / "eval"
+    out_dir = Path(cfg.out_dir).resolve()
+    if not out_dir.is_relative_to(run_dir) and not cfg.allow_outside_run_dir:
+        raise ConfigError(f"out_dir={cfg.out_dir} resolves to {out_dir}, outside the run directory {run_dir}; "
+                          "pass allow_outside_run_dir=true to write there, or choose an out_dir inside the run")
+    return out_dir
+
+
 def run_evaluation(cfg) -> dict:
     device = resolve_device(cfg.device)
     checkpoint = load_checkpoint(checkpoint_location(Path(cfg.checkpoint)), with_trainer_state=False)
+    # Checked before the slow part: a refused out_dir fails in a second, not after the scoring.
+    out_dir = output_directory(cfg, checkpoint.path.parent.parent)
     train_cfg = checkpoint.meta.get("config")
     if not train_cfg or "model_config" not in checkpoint.meta:
         raise CheckpointError(f"{checkpoint.path}/meta.json lacks the run config; it was not written by `mmf-rl train`")
@@ -85,7 +101,6 @@ def run_evaluation(cfg) -> dict:
         if reference is not None:
             metrics["degradation"] = metrics["mse"] / reference["mse"] - 1
 
-    out_dir = Path(cfg.out_dir) if cfg.out_dir is not None else checkpoint.path.parent.parent / "eval"
     out_dir.mkdir(parents=True, exist_ok=True)
     units = f"units of {data.config.target.feature}"
     summary = {"checkpoint": str(checkpoint.path), "step": checkpoint.step, "split": cfg.split,

@@ -101,7 +101,11 @@ def save_checkpoint(directory: str | os.PathLike, step: int, model_state: dict[s
     os.replace(pointer_tmp, directory / LAST_POINTER)
     if keep_last is not None:
         for old in list_checkpoints(directory)[:-keep_last]:
-            shutil.rmtree(old, ignore_errors=True)
+            # Out of the step_* names first (rename onto an empty temp dir), so a kill during the
+            # delete leaves a hidden leftover, never a step_* checkpoint with files missing.
+            trash = tempfile.mkdtemp(prefix=f".{old.name}.", suffix=".deleting", dir=directory)
+            os.replace(old, trash)
+            shutil.rmtree(trash, ignore_errors=True)
     return final
 
 

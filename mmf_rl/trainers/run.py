@@ -29,8 +29,8 @@ from mmf_rl.trainers.checkpoint import CheckpointError, list_checkpoints
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
 RUN_CONFIG = "config.yaml"
-# Keys that may differ between a run and its resumption.
-RESUMABLE_CHANGES = {"resume", "trainer.progress_bar", "logger", "num_workers"}
+# Keys that may differ between a run and its resumption (run_dir: the run may have been moved).
+RESUMABLE_CHANGES = {"resume", "trainer.progress_bar", "logger", "num_workers", "run_dir"}
 
 
 def resolve_device(name: str) -> torch.device:
@@ -87,11 +87,22 @@ def check_resumable(run_dir: Path, cfg) -> None:
                               "the same config, or train into a new run_dir")
 
 
+def check_name(name: str) -> None:
+    """``name`` becomes a directory name (``run_dir: runs/${name}``): one path component, no traversal."""
+    if any(sep in name for sep in (os.sep, os.altsep) if sep) or name in ("", ".", ".."):
+        raise ConfigError(f"name={name!r} must be a plain name without path separators (it names the run "
+                          "directory runs/<name>); to train elsewhere set run_dir=PATH instead")
+
+
 def train(cfg) -> Path:
+    check_name(str(cfg.name))
     device = resolve_device(cfg.device)
     rank, world_size = init_distributed(device)
     trainer_cfg = TrainerConfig.from_dict(to_container(cfg.trainer))
-    run_dir = Path(cfg.run_dir)
+    # Relative paths and '..' are the user's choice; the saved config and the messages show where
+    # they really lead.
+    run_dir = Path(cfg.run_dir).resolve()
+    cfg.run_dir = str(run_dir)
     if rank == 0:
         if cfg.resume:
             check_resumable(run_dir, cfg)
@@ -144,13 +155,33 @@ def train(cfg) -> Path:
     return run_dir
 
 
+def distributed_failure(error: RuntimeError, run_dir: Path) -> str:
+    """One line for a rank whose training broke under DDP: usually a peer died or hung."""
+    checkpoints = list_checkpoints(run_dir / "checkpoints")
+    resume = (f"continue from {checkpoints[-1]} with resume=true" if checkpoints
+              else "nothing was checkpointed yet; start again")
+    cause = " ".join(str(error).split())[:300]
+    return (f"rank {os.environ.get('RANK', '?')} of {os.environ['WORLD_SIZE']} stopped ({type(error).__name__}: "
+            f"{cause}); if another rank died or hung, torchrun's report names it; {resume}")
+
+
 def main(argv: list[str]) -> int:
     try:
-        train(compose_config("train", argv))
+        cfg = compose_config("train", argv)
+        run_dir = Path(cfg.run_dir).resolve()
+        train(cfg)
     except (ConfigError, CheckpointError, TrainingStopped, FileNotFoundError, ValueError, KeyError) as err:
         if os.environ.get("MMF_RL_DEBUG"):
             raise
         message = err.args[0] if isinstance(err, KeyError) and err.args else err
         print(f"mmf-rl train: error: {message}", file=sys.stderr)
+        return 1
+    except RuntimeError as err:
+        # Under DDP a dead or hung peer surfaces as a RuntimeError from a collective (gloo's
+        # "Connection reset by peer", a timeout after MMF_RL_DIST_TIMEOUT seconds): say so in one
+        # line instead of one traceback per surviving rank.
+        if int(os.environ.get("WORLD_SIZE", "1")) == 1 or os.environ.get("MMF_RL_DEBUG"):
+            raise
+        print(f"mmf-rl train: error: {distributed_failure(err, run_dir)}", file=sys.stderr)
         return 1
     return 0
