@@ -18,7 +18,8 @@ from mmf_rl.datasets.synthetic import (
     make_synthetic_dataset,
 )
 
-SO101_ROOT = Path("/work/shared/data/so101_record_test")
+# The shared real recordings sit beside the repository (../shared), in CI as here.
+SO101_ROOT = Path(__file__).resolve().parents[3] / "shared" / "data" / "so101_record_test"
 # Episode 4 (6 frames) is shorter than history + horizon = 7: it must be skipped.
 EPISODE_LENGTHS = [30, 25, 20, 12, 6]
 NAN_FORCE_EPISODE = 1  # force is NaN on frames [5, 10)
