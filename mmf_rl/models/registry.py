@@ -14,8 +14,9 @@ from typing import Callable
 from torch import nn
 
 from mmf_rl.keys import ModalitySpec
+from mmf_rl.models.baselines import MVAE, LateFusionLSTM, LFLSTMConfig, MulT, MulTConfig, MVAEConfig
 from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
-from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
+from mmf_rl.objectives import CombinedLoss, ELBOLoss, GaussianNLLLoss, MissingModalityLoss
 
 
 @dataclass(frozen=True)
@@ -34,8 +35,21 @@ def forecaster_loss(model: MultimodalForecaster, loss_cfg: dict) -> CombinedLoss
     return CombinedLoss(*losses)
 
 
+def nll_loss(model: nn.Module, loss_cfg: dict) -> GaussianNLLLoss:
+    """Deterministic baselines: the Gaussian NLL of the future (the loss config has no term for them)."""
+    return GaussianNLLLoss(model)
+
+
+def mvae_loss(model: MVAE, loss_cfg: dict) -> ELBOLoss:
+    """The MVAE's ELBO with the loss config's KL weight and warm-up; it has no missing-modality term."""
+    return ELBOLoss(model, kl_weight=loss_cfg["kl_weight"], kl_warmup_steps=loss_cfg["kl_warmup_steps"])
+
+
 MODELS: dict[str, ModelEntry] = {
     "forecaster": ModelEntry(ForecasterConfig, MultimodalForecaster, forecaster_loss),
+    "lf_lstm": ModelEntry(LFLSTMConfig, LateFusionLSTM, nll_loss),
+    "mvae": ModelEntry(MVAEConfig, MVAE, mvae_loss),
+    "mult": ModelEntry(MulTConfig, MulT, nll_loss),
 }
 
 

@@ -2,11 +2,13 @@ from mmf_rl.objectives.combined import CombinedLoss
 from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl, gaussian_kl_to_standard, gaussian_nll
 from mmf_rl.objectives.elbo import ELBOLoss
 from mmf_rl.objectives.missing_modality import MissingModalityLoss
+from mmf_rl.objectives.nll import GaussianNLLLoss
 
 __all__ = [
     "CombinedLoss",
     "ELBOLoss",
     "ForecasterLossBase",
+    "GaussianNLLLoss",
     "MissingModalityLoss",
     "gaussian_kl",
     "gaussian_kl_to_standard",

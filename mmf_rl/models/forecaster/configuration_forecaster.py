@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Literal
 
 from mmf_rl.keys import ModalitySpec
+from mmf_rl.models.fusion import FUSIONS
 
 
 @dataclass
@@ -31,6 +32,9 @@ class ForecasterConfig:
         eval_latent: the latent used by ``forward`` in eval mode: ``"mean"`` (``z = 0``, the
             prior's mode: a deterministic forecast) or ``"sample"`` (``z ~ N(0, I)``).
             :meth:`MultimodalForecaster.sample` always samples.
+        fusion: the multimodal encoder of the posterior: ``"agnostic"`` (the paper's
+            modality-agnostic attention) or an ablation of :mod:`mmf_rl.models.fusion`
+            (``"linear"``, ``"average"``, ``"sum"``, ``"cross_attention"``).
     """
 
     modalities: list[ModalitySpec] = field(default_factory=list)
@@ -46,6 +50,7 @@ class ForecasterConfig:
     min_scale: float = 1e-3
     posterior_uses_target: bool = True
     eval_latent: Literal["mean", "sample"] = "mean"
+    fusion: str = "agnostic"
 
     def __post_init__(self):
         self.modalities = [m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities]
@@ -62,6 +67,8 @@ class ForecasterConfig:
             raise ValueError(f"ForecasterConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}")
         if self.eval_latent not in ("mean", "sample"):
             raise ValueError(f"ForecasterConfig.eval_latent must be 'mean' or 'sample', found {self.eval_latent!r}")
+        if self.fusion not in FUSIONS:
+            raise ValueError(f"ForecasterConfig.fusion must be one of {FUSIONS}, found {self.fusion!r}")
 
     @property
     def modality_names(self) -> list[str]:

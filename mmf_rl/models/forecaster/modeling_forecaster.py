@@ -47,6 +47,7 @@ from mmf_rl import keys
 from mmf_rl.models.attention import FixedQueryAttention, PreLNTransformerLayer
 from mmf_rl.models.encoders import build_encoder, mlp
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
+from mmf_rl.models.fusion import build_fusion
 
 
 class ModalityAgnosticEncoder(nn.Module):
@@ -54,6 +55,7 @@ class ModalityAgnosticEncoder(nn.Module):
 
     def __init__(self, num_modalities: int, d_model: int, num_heads: int, num_layers: int, mlp_hidden: int):
         super().__init__()
+        self.out_rows = num_modalities
         self.modality_embedding = nn.Parameter(torch.randn(num_modalities, d_model) * 0.02)  # P^E
         self.layers = nn.ModuleList(
             PreLNTransformerLayer(d_model, num_heads, mlp_hidden) for _ in range(num_layers - 1)
@@ -120,11 +122,14 @@ class MultimodalForecaster(TensorDictModuleBase):
         self.modalities = list(config.modalities)
         d = config.d_model
         self.encoders = nn.ModuleDict({s.name: build_encoder(s, config.history, d) for s in self.modalities})
-        self.fusion = ModalityAgnosticEncoder(len(self.modalities), d, config.num_heads, config.num_encoder_layers,
-                                              config.mlp_hidden)
+        if config.fusion == "agnostic":
+            self.fusion = ModalityAgnosticEncoder(len(self.modalities), d, config.num_heads,
+                                                  config.num_encoder_layers, config.mlp_hidden)
+        else:  # an ablation of the multimodal encoder (paper Table 4)
+            self.fusion = build_fusion(config.fusion, len(self.modalities), d, config.num_heads, config.mlp_hidden)
         target_numel = config.horizon * config.target_dim
         self.target_encoder = mlp(target_numel, config.head_hidden, d) if config.posterior_uses_target else None
-        posterior_in = len(self.modalities) * d + (d if config.posterior_uses_target else 0)
+        posterior_in = self.fusion.out_rows * d + (d if config.posterior_uses_target else 0)
         self.posterior_head = mlp(posterior_in, config.head_hidden, 2 * config.d_latent)
         self.decoder = ModalitySpecificDecoder(config)
 

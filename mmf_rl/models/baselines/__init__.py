@@ -1,0 +1,8 @@
+"""Baselines of the paper's robot table, with the forecaster's batch contract: LF-LSTM, MVAE, MulT."""
+
+from mmf_rl.models.baselines.common import BaselineConfig
+from mmf_rl.models.baselines.lf_lstm import LateFusionLSTM, LFLSTMConfig
+from mmf_rl.models.baselines.mult import MulT, MulTConfig
+from mmf_rl.models.baselines.mvae import MVAE, MVAEConfig
+
+__all__ = ["BaselineConfig", "LFLSTMConfig", "LateFusionLSTM", "MVAE", "MVAEConfig", "MulT", "MulTConfig"]

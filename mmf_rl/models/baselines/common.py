@@ -1,0 +1,145 @@
+"""What the baselines share: their configuration, the zero-fill protocol, per-step tokenizers.
+
+Every baseline follows the batch contract of :mod:`mmf_rl.keys`: it reads ``("obs", m)`` and
+``("present", m)`` and writes a diagonal Gaussian ``("forecast", "loc"/"scale")`` ``[B, T, D]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+
+from mmf_rl import keys
+from mmf_rl.keys import ModalitySpec
+from mmf_rl.models.encoders import ImageWindowEncoder
+
+
+@dataclass
+class BaselineConfig:
+    """Sizes shared by every baseline; each baseline's config adds its own fields.
+
+    Args:
+        modalities: one :class:`ModalitySpec` per input modality.
+        history: ``H``, past steps per window.
+        horizon: ``T``, future steps forecast.
+        target_dim: ``D``, dims of the forecast variable.
+        d_model: width of every per-modality representation.
+        head_hidden: hidden width of the output head.
+        min_scale: floor added to every predicted standard deviation.
+    """
+
+    modalities: list[ModalitySpec] = field(default_factory=list)
+    history: int = 10
+    horizon: int = 10
+    target_dim: int = 2
+    d_model: int = 64
+    head_hidden: int = 256
+    min_scale: float = 1e-3
+
+    def __post_init__(self):
+        self.modalities = [m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities]
+        name = type(self).__name__
+        if not self.modalities:
+            raise ValueError(f"{name}.modalities is empty: the model needs at least one modality")
+        names = [m.name for m in self.modalities]
+        if len(set(names)) != len(names):
+            raise ValueError(f"{name}.modalities: duplicate names in {names}")
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type in ("int", int) and value < 1:
+                raise ValueError(f"{name}.{f.name} must be >= 1, found {value}")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["modalities"] = [m.to_dict() for m in self.modalities]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"{cls.__name__}: unknown keys {unknown}; expected a subset of {sorted(known)}")
+        return cls(**d)
+
+
+def zero_filled(td: TensorDictBase, spec: ModalitySpec) -> torch.Tensor:
+    """``("obs", m)`` with absent samples replaced by zeros: the zero-fill protocol.
+
+    A baseline that cannot represent absence sees a missing sensor as an all-zero signal: for
+    vectors zero is the training mean (they are normalised), for images an all-black window
+    (what a dead camera delivers). ``torch.where`` rather than a product, so a NaN stored under an
+    absent modality cannot leak through ``0 * NaN``.
+    """
+    obs = td.get(spec.obs_key)
+    present = td.get(spec.present_key).view(-1, *[1] * (obs.dim() - 1))
+    return torch.where(present, obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
+
+
+class StepTokenizer(nn.Module):
+    """One modality's window -> one ``d``-token per step ``[N, L, d]``.
+
+    Images: the forecaster's ConvNet applied to each frame separately (``L = H``; the spec's
+    ``encoder_kwargs`` set its channels). Sequences: a linear layer + ReLU per step (``L = H``).
+    Single vectors: the same, as a one-step sequence (``L = 1``).
+    """
+
+    def __init__(self, spec: ModalitySpec, d_model: int):
+        super().__init__()
+        self.kind = spec.kind
+        if spec.kind == "image":
+            self.frame = ImageWindowEncoder(spec, 1, d_model, temporal="stack", **spec.encoder_kwargs)
+        else:
+            self.frame = nn.Sequential(nn.Linear(spec.shape[0], d_model), nn.ReLU())
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if self.kind == "image":
+            n, steps = obs.shape[:2]
+            return self.frame(obs.flatten(0, 1).unsqueeze(1)).view(n, steps, -1)
+        if self.kind == "vector":
+            obs = obs.unsqueeze(1)
+        return self.frame(obs)
+
+
+def gaussian_head_output(raw: torch.Tensor, horizon: int, target_dim: int, min_scale: float):
+    """``[N, 2 T D]`` head output -> ``loc``, ``scale`` ``[N, T, D]`` (softplus + floor)."""
+    loc, raw_scale = raw.view(raw.shape[0], 2, horizon, target_dim).unbind(1)
+    return loc, F.softplus(raw_scale) + min_scale
+
+
+class DeterministicForecaster(TensorDictModuleBase):
+    """Base of the baselines without a latent: ``forward`` computes ``loc``/``scale``; ``sample``
+    repeats the mean ``K`` times (best-of-K of a deterministic model is its single forecast)."""
+
+    def __init__(self, config: BaselineConfig):
+        super().__init__()
+        self.config = config
+        self.modalities = list(config.modalities)
+        self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
+        self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE]
+
+    def validate(self, td: TensorDictBase) -> None:
+        keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim)
+
+    def forecast(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        raise NotImplementedError
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        self.validate(td)
+        loc, scale = self.forecast(td)
+        td.set(keys.FORECAST_LOC, loc)
+        td.set(keys.FORECAST_SCALE, scale)
+        return td
+
+    def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
+        if num_samples < 1:
+            raise ValueError(f"num_samples must be >= 1, found {num_samples}")
+        self.validate(td)
+        loc, _ = self.forecast(td)
+        td.set(keys.FORECAST_SAMPLES, loc.unsqueeze(1).expand(-1, num_samples, -1, -1))
+        return td

@@ -1,0 +1,90 @@
+"""MulT: pairwise cross-modal Transformers (Tsai et al. 2019), small.
+
+Each modality's window becomes a token sequence (per-step encoder + learned step embedding).
+For every ordered pair ``(target i, source j)``, ``i != j``, a cross-modal Transformer lets
+``i``'s tokens attend to ``j``'s: ``M (M - 1)`` streams. Each stream's last token is kept
+(MulT's "last element" readout), the ``M (M - 1)`` vectors are concatenated and an MLP head
+outputs the Gaussian over ``T × D``. With a single modality the stream is its self-attention.
+Absent modalities follow the zero-fill protocol, as in MulT's handling of unaligned/missing
+inputs by padding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from mmf_rl.models.baselines.common import BaselineConfig, DeterministicForecaster, StepTokenizer, \
+    gaussian_head_output, zero_filled
+from mmf_rl.models.encoders import mlp
+
+
+@dataclass
+class MulTConfig(BaselineConfig):
+    """:class:`BaselineConfig` plus ``num_heads``, ``num_layers`` (per cross-modal Transformer)
+    and ``mlp_hidden`` (their feed-forward width)."""
+
+    num_heads: int = 4
+    num_layers: int = 1
+    mlp_hidden: int = 128
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.d_model % self.num_heads:
+            raise ValueError(f"MulTConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}")
+
+
+class CrossModalLayer(nn.Module):
+    """Pre-LN cross-modal block: ``Q = Q + MHA(LN(Q), LN(S), LN(S))``; ``Q = Q + MLP(LN(Q))``."""
+
+    def __init__(self, d_model: int, num_heads: int, mlp_hidden: int):
+        super().__init__()
+        self.norm_query = nn.LayerNorm(d_model)
+        self.norm_source = nn.LayerNorm(d_model)
+        self.attn = nn.MultiheadAttention(d_model, num_heads, batch_first=True)
+        self.norm_mlp = nn.LayerNorm(d_model)
+        self.mlp = mlp(d_model, mlp_hidden, d_model)
+
+    def forward(self, query: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
+        kv = self.norm_source(source)
+        query = query + self.attn(self.norm_query(query), kv, kv, need_weights=False)[0]
+        return query + self.mlp(self.norm_mlp(query))
+
+
+class CrossModalTransformer(nn.Module):
+    def __init__(self, d_model: int, num_heads: int, mlp_hidden: int, num_layers: int):
+        super().__init__()
+        self.layers = nn.ModuleList(CrossModalLayer(d_model, num_heads, mlp_hidden) for _ in range(num_layers))
+
+    def forward(self, query: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
+        for layer in self.layers:
+            query = layer(query, source)
+        return query
+
+
+class MulT(DeterministicForecaster):
+    """Pairwise cross-modal attention, concatenation, MLP head (see module docstring)."""
+
+    def __init__(self, config: MulTConfig):
+        super().__init__(config)
+        d = config.d_model
+        names = [s.name for s in self.modalities]
+        self.tokenizers = nn.ModuleDict({s.name: StepTokenizer(s, d) for s in self.modalities})
+        self.step_embedding = nn.Parameter(torch.randn(config.history, d) * 0.02)
+        self.pairs = [(i, j) for i in names for j in names if i != j] or [(names[0], names[0])]
+        self.streams = nn.ModuleDict({
+            f"{i}<-{j}": CrossModalTransformer(d, config.num_heads, config.mlp_hidden, config.num_layers)
+            for i, j in self.pairs
+        })
+        self.head = mlp(len(self.pairs) * d, config.head_hidden, 2 * config.horizon * config.target_dim)
+
+    def forecast(self, td):
+        tokens = {}
+        for spec in self.modalities:
+            seq = self.tokenizers[spec.name](zero_filled(td, spec))
+            tokens[spec.name] = seq + self.step_embedding[-seq.shape[1]:]  # a single vector is the last step
+        readouts = [self.streams[f"{i}<-{j}"](tokens[i], tokens[j])[:, -1] for i, j in self.pairs]
+        cfg = self.config
+        return gaussian_head_output(self.head(torch.cat(readouts, dim=-1)), cfg.horizon, cfg.target_dim, cfg.min_scale)

@@ -1,0 +1,128 @@
+"""MVAE: a product-of-experts latent over the present modalities (Wu & Goodman 2018).
+
+Each modality ``m`` has an expert ``q_m(z | x_m) = N(μ_m, σ_m²)`` (the forecaster's window
+encoder, then a linear layer). The joint posterior is the product of the present experts and
+a prior expert ``N(0, I)``:
+
+    precision = 1 + Σ_{m present} σ_m⁻²,   μ = (Σ_{m present} μ_m σ_m⁻²) / precision,
+
+so a missing modality is simply a missing factor: no zero-fill, no imputation. A decoder MLP
+maps ``z`` to the Gaussian over the ``T × D`` future; training maximises the ELBO
+(:class:`~mmf_rl.objectives.ELBOLoss`: NLL of the future + KL of the PoE posterior to
+``N(0, I)``).
+
+Choices: as in Lee et al. 2020's use of MVAE for forecasting, the latent is inferred from the
+inputs only (``q(z | X)``), so at test time the forecast decodes the posterior mean (or samples
+of it: :meth:`MVAE.sample`), not the prior. Wu & Goodman's sub-sampled ELBO terms (each single
+modality alone) are not added: the model trains on the presence patterns the data gives, like
+the other baselines.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+
+from mmf_rl import keys
+from mmf_rl.models.baselines.common import BaselineConfig, gaussian_head_output
+from mmf_rl.models.encoders import build_encoder, mlp
+
+
+@dataclass
+class MVAEConfig(BaselineConfig):
+    """:class:`BaselineConfig` plus ``d_latent`` and ``eval_latent``: the latent ``forward``
+    decodes in eval mode, ``"mean"`` (the posterior mean: deterministic) or ``"sample"``."""
+
+    d_latent: int = 16
+    eval_latent: Literal["mean", "sample"] = "mean"
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.eval_latent not in ("mean", "sample"):
+            raise ValueError(f"MVAEConfig.eval_latent must be 'mean' or 'sample', found {self.eval_latent!r}")
+
+
+def product_of_experts(loc: torch.Tensor, scale: torch.Tensor, present: torch.Tensor):
+    """Experts ``[B, M, d_z]`` with presence ``[B, M]`` times the prior ``N(0, I)`` -> ``loc``, ``scale``."""
+    precision = torch.where(present.unsqueeze(-1), scale.pow(-2), torch.zeros((), device=scale.device))
+    total = 1.0 + precision.sum(1)
+    return (precision * loc).sum(1) / total, total.rsqrt()
+
+
+class MVAE(TensorDictModuleBase):
+    """Product-of-experts VAE forecaster (see module docstring).
+
+    Writes ``("forecast", "loc"/"scale")``, ``("posterior", ...)``, ``("prior", ...)`` and
+    ``"latent"``. In train mode ``z`` is a reparameterised posterior sample.
+    """
+
+    def __init__(self, config: MVAEConfig):
+        super().__init__()
+        self.config = config
+        self.modalities = list(config.modalities)
+        d, dz = config.d_model, config.d_latent
+        self.encoders = nn.ModuleDict({s.name: build_encoder(s, config.history, d) for s in self.modalities})
+        self.experts = nn.ModuleDict({s.name: nn.Linear(d, 2 * dz) for s in self.modalities})
+        self.decoder = mlp(dz, config.head_hidden, 2 * config.horizon * config.target_dim)
+        self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
+        self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.LATENT, keys.PRIOR_LOC, keys.PRIOR_SCALE,
+                         keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE]
+
+    def validate(self, td: TensorDictBase) -> None:
+        keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim)
+
+    def posterior(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """PoE posterior ``loc``, ``scale`` ``[B, d_z]``; each expert runs on its present rows only."""
+        present = torch.stack([td.get(s.present_key) for s in self.modalities], dim=1)
+        batch, dz = present.shape[0], self.config.d_latent
+        locs, scales = [], []
+        for i, spec in enumerate(self.modalities):
+            rows = present[:, i].nonzero().squeeze(1)
+            # Absent rows: a placeholder expert with unit scale, excluded from the product.
+            raw = torch.zeros(batch, 2 * dz, device=present.device)
+            if rows.numel():
+                expert = self.experts[spec.name](self.encoders[spec.name](td.get(spec.obs_key)[rows]))
+                raw = raw.index_copy(0, rows, expert)
+            loc, raw_scale = raw.chunk(2, dim=-1)
+            locs.append(loc)
+            scales.append(F.softplus(raw_scale) + 1e-4)
+        return product_of_experts(torch.stack(locs, 1), torch.stack(scales, 1), present)
+
+    def decode(self, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        cfg = self.config
+        return gaussian_head_output(self.decoder(z), cfg.horizon, cfg.target_dim, cfg.min_scale)
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        self.validate(td)
+        loc, scale = self.posterior(td)
+        td.set(keys.POSTERIOR_LOC, loc)
+        td.set(keys.POSTERIOR_SCALE, scale)
+        td.set(keys.PRIOR_LOC, torch.zeros_like(loc))
+        td.set(keys.PRIOR_SCALE, torch.ones_like(scale))
+        if self.training or self.config.eval_latent == "sample":
+            z = loc + scale * torch.randn_like(scale)
+        else:
+            z = loc
+        td.set(keys.LATENT, z)
+        forecast_loc, forecast_scale = self.decode(z)
+        td.set(keys.FORECAST_LOC, forecast_loc)
+        td.set(keys.FORECAST_SCALE, forecast_scale)
+        return td
+
+    def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
+        """``("forecast", "samples")`` ``[B, K, T, D]``: decoded means of ``K`` posterior samples."""
+        if num_samples < 1:
+            raise ValueError(f"num_samples must be >= 1, found {num_samples}")
+        self.validate(td)
+        loc, scale = self.posterior(td)
+        z = loc.unsqueeze(1) + scale.unsqueeze(1) * torch.randn(loc.shape[0], num_samples, loc.shape[1],
+                                                                 device=loc.device)
+        forecast_loc, _ = self.decode(z.flatten(0, 1))
+        td.set(keys.FORECAST_SAMPLES, forecast_loc.view(loc.shape[0], num_samples, *forecast_loc.shape[1:]))
+        return td

@@ -1,0 +1,44 @@
+"""Gaussian negative log-likelihood of the future: the loss of the deterministic baselines."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+
+from mmf_rl import keys
+from mmf_rl.objectives.common import ForecasterLossBase, gaussian_nll, reduce_batch
+
+
+class GaussianNLLLoss(ForecasterLossBase):
+    """``-log N(y; loc, scale²)`` summed over ``T × D`` and reduced over the batch.
+
+    For forecasters without a latent (LF-LSTM, MulT): the same likelihood term as the ELBO's
+    ``loss_nll``, so every model is fitted to the same objective on the forecast.
+
+    Args:
+        forecaster: any module writing ``("forecast", "loc"/"scale")``.
+        reduction: ``"mean"`` | ``"sum"`` | ``"none"`` over the batch.
+
+    Returns a TensorDict with ``loss_nll``.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        target: NestedKey = keys.TARGET
+        forecast_loc: NestedKey = keys.FORECAST_LOC
+        forecast_scale: NestedKey = keys.FORECAST_SCALE
+
+    default_keys = _AcceptedKeys
+    out_keys = ["loss_nll"]
+
+    @property
+    def in_keys(self):
+        k = self.tensor_keys
+        return [k.target, k.forecast_loc, k.forecast_scale]
+
+    def loss_from_outputs(self, td: TensorDictBase) -> TensorDict:
+        k = self.tensor_keys
+        nll = gaussian_nll(self._get(td, k.target), self._get(td, k.forecast_loc), self._get(td, k.forecast_scale))
+        return TensorDict(loss_nll=reduce_batch(nll.flatten(1).sum(-1), self.reduction))
