@@ -83,11 +83,22 @@ def test_wrong_dtype_names_key_expected_and_found(small_model, batch):
         small_model(batch)
 
 
-def test_training_needs_target_for_the_posterior(small_model, batch):
+def test_cvae_posterior_needs_the_target_in_training_only(small_config, batch):
+    model = MultimodalForecaster(ForecasterConfig.from_dict({**small_config.to_dict(), "posterior_uses_target": True}))
     del batch[keys.TARGET]
     with pytest.raises(KeyError, match="'target'"):
-        small_model.train()(batch)
-    small_model.eval()(batch)  # inference needs no target
+        model.train()(batch.clone())
+    model.eval()(batch.clone())  # inference needs no target
+
+
+def test_default_posterior_reads_only_the_inputs(small_model, batch):
+    small_model.eval()
+    with_target = small_model(batch.clone()).get(keys.POSTERIOR_LOC)
+    other = batch.clone()
+    other.set(keys.TARGET, torch.randn_like(other.get(keys.TARGET)))
+    assert torch.equal(small_model(other).get(keys.POSTERIOR_LOC), with_target)
+    del other[keys.TARGET]
+    assert small_model.train()(other).get(keys.POSTERIOR_LOC).shape == with_target.shape  # no target needed
 
 
 def test_eval_mean_latent_is_deterministic_and_train_mode_samples(small_model, batch):

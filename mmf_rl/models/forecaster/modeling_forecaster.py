@@ -22,11 +22,12 @@ Open points of the paper, and what this implementation does:
   Adding the padded input instead would leak which modalities are present into fixed rows.
 * **Concatenation size.** ``(x̄_m + p^D_m) ⊕ z`` has ``d + d_z`` features (the paper's
   ``d × d_z`` is a typo for concatenation); the shared MLP maps it back to ``d``.
-* **How ``y`` reaches the posterior.** A CVAE posterior needs the future: ``y`` (flattened
-  ``T × D``) goes through an MLP to a ``d``-vector that is concatenated to the flattened
-  modality-agnostic output before the posterior head. The fusion itself stays over the inputs
-  only, so ``q`` sees exactly the modalities the decoder sees. ``posterior_uses_target=False``
-  gives the paper's literal ``q(z|X)``.
+* **How ``y`` reaches the posterior.** The paper writes ``q(z|X)`` but trains "with the target
+  ``y`` as input". By default we follow the equations: ``q(z|X)``. With
+  ``posterior_uses_target=True``, ``y`` (flattened ``T × D``) goes through an MLP to a
+  ``d``-vector concatenated to the flattened modality-agnostic output before the posterior head
+  (a CVAE's ``q(z|X, y)``). On the push data that variant lets ``z`` carry the future and the
+  forecast decoded from the prior at test time degrades (see ``ForecasterConfig``).
 * **Inference.** ``z ~ N(0, I)`` (prior) as in the paper. ``forward`` in eval mode uses
   ``z = 0`` by default (deterministic forecasts for RL and metrics); :meth:`sample` draws ``K``
   latents for best-of-K.
