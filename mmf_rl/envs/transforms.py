@@ -39,14 +39,21 @@ from mmf_rl.keys import ModalitySpec
 RESET_KEY = "_reset"
 
 
-def _reset_rows(tensordict: TensorDictBase, batch_size: torch.Size) -> torch.Tensor:
-    """The envs a reset applies to, flattened to ``[n]``: ``"_reset"`` if given, else all."""
+def _reset_rows(tensordict: TensorDictBase, batch_size: torch.Size, known_batch_size: torch.Size | None,
+                owner: str) -> torch.Tensor:
+    """The envs a reset applies to, flattened to ``[n]``: ``"_reset"`` if given, else all.
+
+    A transform allocates its per-env state on the first reset of a batch shape, so a batch it
+    has not seen must be reset whole.
+    """
     n = batch_size.numel()
     reset = tensordict.get(RESET_KEY, None) if tensordict is not None else None
-    if reset is None:
-        return torch.ones(n, dtype=torch.bool)
     # "_reset" carries the done spec's trailing dim ([*batch, 1]).
-    return reset.reshape(n, -1).any(-1).cpu()
+    rows = torch.ones(n, dtype=torch.bool) if reset is None else reset.reshape(n, -1).any(-1).cpu()
+    if known_batch_size != batch_size and not rows.all():
+        raise RuntimeError(f"{owner}: partial reset of an env batch {list(batch_size)} it has not seen; "
+                           "reset every env first")
+    return rows
 
 
 def _not_standalone(name: str) -> RuntimeError:
@@ -180,11 +187,8 @@ class ModalityDropout(Transform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch_size = tensordict_reset.batch_size
-        rows = _reset_rows(tensordict, batch_size)
+        rows = _reset_rows(tensordict, batch_size, self._batch_size, "ModalityDropout")
         if self._batch_size != batch_size:
-            if not rows.all():
-                raise RuntimeError(f"ModalityDropout: partial reset of an env batch {list(batch_size)} it has not "
-                                   "seen; reset every env first")
             self._batch_size = batch_size
             self._remaining = torch.zeros(batch_size.numel(), len(self.modalities), dtype=torch.long)
             self._absent = torch.zeros(batch_size.numel(), len(self.modalities), dtype=torch.bool)
@@ -445,11 +449,8 @@ class ForecastTransform(Transform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch_size = tensordict_reset.batch_size
-        rows = _reset_rows(tensordict, batch_size)
+        rows = _reset_rows(tensordict, batch_size, self._batch_size, "ForecastTransform")
         if self._batch_size != batch_size:
-            if not rows.all():
-                raise RuntimeError(f"ForecastTransform: partial reset of an env batch {list(batch_size)} it has not "
-                                   "seen; reset every env first")
             self._allocate(batch_size)
         self._push(tensordict_reset, rows)
         return self._forecast(tensordict_reset)
