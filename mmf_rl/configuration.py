@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import os
+from dataclasses import fields
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
-from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
 
 # The repository's configs/ (editable install); MMF_RL_CONFIG_DIR points elsewhere.
 DEFAULT_CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
@@ -26,8 +24,21 @@ def config_dir() -> Path:
     return path
 
 
+def reject_unknown_keys(cls, d: dict, where: str) -> None:
+    """A dataclass config built from plain data: name any key it does not have, and what it has."""
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise ValueError(f"{where}: unknown keys {unknown}; expected a subset of {sorted(known)}")
+
+
 def compose_config(name: str, overrides: list[str]) -> DictConfig:
     """``configs/<name>.yaml`` + ``key=value`` / ``group=option`` overrides, resolved, struct mode."""
+    # Imported here: models and datasets import this module for reject_unknown_keys only.
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
     try:
         with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
             cfg = compose(config_name=name, overrides=list(overrides))

@@ -7,19 +7,13 @@ gives it back so a run can store exactly what it trained on, missingness protoco
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import DEFAULT_ENCODER
 
 SPLIT_NAMES = ("train", "val", "test")
-
-
-def _check_keys(cls, d: dict, where: str) -> None:
-    known = {f.name for f in fields(cls)}
-    unknown = sorted(set(d) - known)
-    if unknown:
-        raise ValueError(f"{where}: unknown key(s) {unknown}; expected some of {sorted(known)}")
 
 
 @dataclass
@@ -130,18 +124,18 @@ class DataConfig:
     def from_dict(cls, d: dict) -> DataConfig:
         """Build from plain data. A modality may be given as just its feature name."""
         d = dict(d)
-        _check_keys(cls, d, "data config")
+        reject_unknown_keys(cls, d, "data config")
         for required in ("modalities", "target"):
             if required not in d:
                 raise ValueError(f"data config: missing key `{required}`")
         modalities = {}
         for name, value in dict(d["modalities"]).items():
             value = {"feature": value} if isinstance(value, str) else dict(value)
-            _check_keys(ModalityConfig, value, f"data config: modalities.{name}")
+            reject_unknown_keys(ModalityConfig, value, f"data config: modalities.{name}")
             modalities[str(name)] = ModalityConfig(**value)
         target = d["target"]
         target = {"feature": target} if isinstance(target, str) else dict(target)
-        _check_keys(TargetConfig, target, "data config: target")
+        reject_unknown_keys(TargetConfig, target, "data config: target")
         d["modalities"] = modalities
         d["target"] = TargetConfig(**target)
         d["missing"] = {str(k): float(v) for k, v in dict(d.get("missing", {})).items()}

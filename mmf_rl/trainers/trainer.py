@@ -17,7 +17,7 @@ import math
 import random
 import time
 from collections import defaultdict
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -27,6 +27,7 @@ import torch.distributed as dist
 from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
+from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.trainers.checkpoint import load_checkpoint, load_model_state, save_checkpoint
 
 OPS = ("batch_process", "post_loss", "post_optim", "post_steps", "post_steps_log")
@@ -73,10 +74,7 @@ class TrainerConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainerConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"trainer config: unknown keys {unknown}; expected a subset of {sorted(known)}")
+        reject_unknown_keys(cls, d, "trainer config")
         return cls(**d)
 
 

@@ -15,6 +15,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from mmf_rl import keys
+from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.encoders import ImageWindowEncoder
 
@@ -61,10 +62,7 @@ class BaselineConfig:
 
     @classmethod
     def from_dict(cls, d: dict):
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"{cls.__name__}: unknown keys {unknown}; expected a subset of {sorted(known)}")
+        reject_unknown_keys(cls, d, cls.__name__)
         return cls(**d)
 
 

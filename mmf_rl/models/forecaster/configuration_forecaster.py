@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Literal
 
+from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.fusion import FUSIONS
 
@@ -84,8 +85,5 @@ class ForecasterConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ForecasterConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise ValueError(f"ForecasterConfig: unknown keys {unknown}; expected a subset of {sorted(known)}")
+        reject_unknown_keys(cls, d, "ForecasterConfig")
         return cls(**d)
