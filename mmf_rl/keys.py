@@ -10,6 +10,9 @@ key                                  shape                meaning
 ``("present", m)``                   ``[B]`` bool         modality ``m`` is available for this sample
 ``"target"``                         ``[B, T, D]``        future of the forecast variable (normalised frame)
 ``"target_past"``                    ``[B, H, D]``        its history, when the data provides it
+``"future_action"``                  ``[B, S, A]``        actions applied over the horizon (``S = T·stride``
+                                                          frames from the last observed one; normalised),
+                                                          read by action-conditioned models (world models)
 ``("forecast", "loc" | "scale")``    ``[B, T, D]``        diagonal-Gaussian forecast
 ``("forecast", "samples")``          ``[B, K, T, D]``     K forecasts, one per latent sample (best-of-K)
 ``("forecast", "valid")``            ``[B]`` bool         False where no modality was present (RL glue: the
@@ -37,6 +40,8 @@ PRESENT = "present"
 DROP = "drop"
 TARGET = "target"
 TARGET_PAST = "target_past"
+FUTURE_ACTION = "future_action"
+HISTORY = "history"  # RL glue: an env's current model input window, a sub-TensorDict of this contract
 LATENT = "latent"
 
 LOC = "loc"
@@ -162,12 +167,14 @@ def _describe(t: torch.Tensor) -> str:
 
 
 def validate_batch(td, modalities: list[ModalitySpec], history: int, horizon: int | None = None,
-                   target_dim: int | None = None, require_target: bool = False) -> None:
+                   target_dim: int | None = None, require_target: bool = False,
+                   action_shape: tuple[int, int] | None = None) -> None:
     """Check a batch against the contract; raise errors that name the key, expected and found.
 
     Checked: every ``("obs", m)`` and ``("present", m)`` exists with the right dtype and shape,
-    every sample has at least one present modality, and ``"target"`` (if present or required)
-    is ``float [B, T, D]``.
+    every sample has at least one present modality, ``"target"`` (if present or required)
+    is ``float [B, T, D]``, and, for an action-conditioned model (``action_shape = (S, A)``),
+    ``"future_action"`` is ``float32 [B, S, A]``.
     """
     if len(td.batch_size) != 1:
         raise ValueError(f"expected a TensorDict with batch size [B], found batch size {list(td.batch_size)}")
@@ -204,3 +211,14 @@ def validate_batch(td, modalities: list[ModalitySpec], history: int, horizon: in
                     target_dim if target_dim is not None else target.shape[-1])
         if not target.is_floating_point() or tuple(target.shape) != expected:
             raise ValueError(f"td[{TARGET!r}]: expected float {list(expected)}, found {_describe(target)}")
+    if action_shape is not None:
+        if FUTURE_ACTION not in td.keys():
+            raise KeyError(
+                f"batch is missing key {FUTURE_ACTION!r}: this model is action-conditioned (a world model) and "
+                f"needs the actions applied over the horizon, float32 [B, {action_shape[0]}, {action_shape[1]}] "
+                "(set `action` in the data config)"
+            )
+        action = td.get(FUTURE_ACTION)
+        expected = (batch, *action_shape)
+        if action.dtype != torch.float32 or tuple(action.shape) != expected:
+            raise ValueError(f"td[{FUTURE_ACTION!r}]: expected float32 {list(expected)}, found {_describe(action)}")

@@ -10,6 +10,7 @@ Names are resolved on first use, so importing a submodule (e.g. the recorder) st
 from importlib import import_module
 
 _EXPORTS = {
+    "ActionConfig": "config",
     "DataConfig": "config",
     "ModalityConfig": "config",
     "TargetConfig": "config",

@@ -85,6 +85,12 @@ def window_offsets(history: int, horizon: int, stride: int) -> tuple[torch.Tenso
     return observed, future
 
 
+def action_offsets(history: int, horizon: int, stride: int) -> torch.Tensor:
+    """Frame offsets (from a window's first frame) of the actions over the horizon: the last
+    observed frame's action up to the one before the last forecast frame (``T·stride`` frames)."""
+    return (history - 1) * stride + torch.arange(horizon * stride)
+
+
 def _as_matrix(column: np.ndarray, n: int) -> np.ndarray:
     return np.asarray(column, dtype=np.float32).reshape(n, -1)
 
@@ -108,13 +114,20 @@ def _frame_columns(source: LeRobotSource, columns: dict[str, np.ndarray]) -> dic
     if source.config.target.dims is not None:
         target = target[:, source.config.target.dims]
     target_valid = np.isfinite(target).all(1)
-    return {
+    per_frame = {
         "obs": obs,
         "present": present,
         "target": torch.from_numpy(np.nan_to_num(target, nan=0.0, posinf=0.0, neginf=0.0)),
         "target_valid": torch.from_numpy(target_valid),
         "episode": torch.from_numpy(np.asarray(columns["episode_index"], dtype=np.int64)),
     }
+    if source.action_feature is not None:
+        action = _as_matrix(columns[source.action_feature], n)
+        if source.config.action.dims is not None:
+            action = action[:, source.config.action.dims]
+        per_frame["action"] = torch.from_numpy(np.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0))
+        per_frame["action_valid"] = torch.from_numpy(np.isfinite(action).all(1))
+    return per_frame
 
 
 def _video_jobs(source: LeRobotSource, columns: dict, frames_dir: Path, missing: dict[str, list[Path]]) -> list[VideoJob]:
@@ -184,9 +197,13 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
         "target_valid": per_frame["target_valid"],
         "episode": per_frame["episode"],
     }
+    vector_keys = ["target", "target_valid", "episode"]
+    if "action" in per_frame:
+        vector_keys += ["action", "action_valid"]
+        layout.update(action=per_frame["action"], action_valid=per_frame["action_valid"])
     frames = TensorDict(layout, batch_size=[n]).memmap_like(directory / "frames")
     # memmap_like only allocates the files; fill the vector columns (images come from decoding).
-    for key in ("target", "target_valid", "episode"):
+    for key in vector_keys:
         frames.get(key).copy_(layout[key])
     for name in source.modalities:
         frames.get(("present", name)).copy_(per_frame["present"][name])
@@ -215,6 +232,7 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
         "n_windows": int(windows.batch_size[0]),
         "specs": [s.to_dict() for s in source.specs],
         "target_dim": source.target_dim,
+        "action_dim": source.action_dim,
         "episodes": [[e.index, e.start, e.stop] for e in source.episodes],
         "missing_files": {name: [str(p) for p in paths] for name, paths in missing.items()},
         "undecodable_files": undecodable,
@@ -229,7 +247,8 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
     """Every in-episode window that has a finite target and at least one present modality.
 
     The target must be finite at the forecast steps and at the last observed frame: a relative
-    target is measured from that frame (``relative`` is applied at batch time, not cached).
+    target is measured from that frame (``relative`` is applied at batch time, not cached). With
+    an action feature, the actions over the horizon must be finite too.
     """
     config = source.config
     observed, future = window_offsets(config.history, config.horizon, config.stride)
@@ -251,8 +270,13 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
     target_ok = target_valid[starts[:, None] + future].all(1) & target_valid[last_rows]
     if config.include_target_past:
         target_ok &= target_valid[observed_rows].all(1)
+    if source.action_feature is not None:
+        action_valid = frames.get("action_valid").as_subclass(torch.Tensor)
+        action_ok = action_valid[starts[:, None] + action_offsets(config.history, config.horizon, config.stride)].all(1)
+    else:
+        action_ok = torch.ones_like(target_ok)
     any_present = torch.stack(list(present.values())).any(0)
-    keep = target_ok & any_present
+    keep = target_ok & any_present & action_ok
     windows = TensorDict(
         {
             "start": starts[keep],
@@ -266,6 +290,7 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
         "min_episode_frames": span + 1,
         "windows_target_not_finite": int((~target_ok).sum()),
         "windows_without_any_modality": int((target_ok & ~any_present).sum()),
+        "windows_action_not_finite": int((target_ok & any_present & ~action_ok).sum()),
     }
     return windows, skipped
 

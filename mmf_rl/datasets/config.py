@@ -67,6 +67,23 @@ class TargetConfig:
 
 
 @dataclass
+class ActionConfig:
+    """The action feature a world model is conditioned on (``"future_action"`` in a batch).
+
+    A window at ``t`` carries the actions of frames ``t .. t + T·stride - 1``: in LeRobot a frame's
+    ``action`` is the command sent after that frame's observation, so these are exactly the
+    commands that move the system from the last observed frame to the last forecast one.
+    """
+
+    feature: str = "action"
+    dims: list[int] | None = None
+
+    def __post_init__(self):
+        if self.dims is not None:
+            self.dims = [int(i) for i in self.dims]
+
+
+@dataclass
 class DataConfig:
     """Everything the pipeline needs to turn a LeRobot dataset into forecasting windows.
 
@@ -75,6 +92,9 @@ class DataConfig:
 
     ``missing`` is the training missingness protocol: ``{modality: p}`` removes modality ``m`` from
     a fixed, ``missing_seed``-seeded fraction ``p`` of the training windows.
+
+    ``action`` (optional) adds the actions applied over the horizon to every window, for an
+    action-conditioned world model (see :class:`ActionConfig`).
     """
 
     modalities: dict[str, ModalityConfig]
@@ -93,10 +113,15 @@ class DataConfig:
     missing_seed: int = 0
     tolerance_s: float = 1e-4
     cache_dir: str | None = None
+    action: ActionConfig | None = None
 
     def __post_init__(self):
         if not self.modalities:
             raise ValueError("data config: `modalities` is empty; map at least one name to a dataset feature")
+        reserved = {"target", "future_action"} & set(self.modalities)
+        if reserved:
+            raise ValueError(f"data config: modality name(s) {sorted(reserved)} are reserved (normalisation "
+                             "statistics use them); rename the modality")
         for name, value in [("history", self.history), ("horizon", self.horizon), ("stride", self.stride)]:
             if int(value) < 1:
                 raise ValueError(f"data config: `{name}` must be >= 1, found {value}")
@@ -139,6 +164,11 @@ class DataConfig:
         d["modalities"] = modalities
         d["target"] = TargetConfig(**target)
         d["missing"] = {str(k): float(v) for k, v in dict(d.get("missing", {})).items()}
+        action = d.get("action")
+        if action is not None:
+            action = {"feature": action} if isinstance(action, str) else dict(action)
+            reject_unknown_keys(ActionConfig, action, "data config: action")
+            d["action"] = ActionConfig(**action)
         return cls(**d)
 
     def to_dict(self) -> dict:
@@ -149,7 +179,7 @@ class DataConfig:
 
     def cache_fields(self) -> dict:
         """The fields that decide what the window cache contains (its key, with the files)."""
-        return {
+        fields = {
             "modalities": {
                 name: {"feature": m.feature, "kind": m.kind, "dims": m.dims, "valid_feature": m.valid_feature}
                 for name, m in sorted(self.modalities.items())
@@ -161,6 +191,9 @@ class DataConfig:
             "image_size": list(self.image_size),
             "tolerance_s": self.tolerance_s,
         }
+        if self.action is not None:  # only when set: caches built before actions existed stay valid
+            fields["action"] = {"feature": self.action.feature, "dims": self.action.dims}
+        return fields
 
     def resolved_cache_dir(self) -> Path:
         """``cache_dir``, else ``$MMF_RL_CACHE``, else ``~/.cache/mmf_rl``; windows live in ``windows/``."""

@@ -265,6 +265,12 @@ class LeRobotSource:
         target_width = self._vector_width(self.target_feature, "target")
         _check_dims(config.target.dims, target_width, f"target {self.target_feature!r}")
         self.target_dim = len(config.target.dims) if config.target.dims is not None else target_width
+        self.action_feature, self.action_dim = None, None
+        if config.action is not None:
+            self.action_feature = self._require_feature(config.action.feature, "action")
+            action_width = self._vector_width(self.action_feature, "action")
+            _check_dims(config.action.dims, action_width, f"action {self.action_feature!r}")
+            self.action_dim = len(config.action.dims) if config.action.dims is not None else action_width
         self.episodes = [
             Episode(int(e["episode_index"]), int(e["dataset_from_index"]), int(e["dataset_to_index"]))
             for e in self.meta.episodes
@@ -317,6 +323,8 @@ class LeRobotSource:
     def _columns(self) -> set[str]:
         """The per-frame parquet columns the pipeline reads."""
         columns = {*FRAME_COLUMNS, self.target_feature}
+        if self.action_feature is not None:
+            columns.add(self.action_feature)
         for m in self.modalities.values():
             if not m.is_video:
                 columns.add(m.feature)

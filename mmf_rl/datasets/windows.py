@@ -9,12 +9,12 @@ from collections.abc import Iterator
 import torch
 from tensordict import TensorDict
 
-from mmf_rl.datasets.cache import open_cache, window_offsets
+from mmf_rl.datasets.cache import action_offsets, open_cache, window_offsets
 from mmf_rl.datasets.config import SPLIT_NAMES, DataConfig
 from mmf_rl.datasets.lerobot_source import LeRobotSource
 from mmf_rl.datasets.protocols import training_dropout
 from mmf_rl.datasets.splits import Normalizer, mean_std, split_episodes
-from mmf_rl.keys import TARGET, TARGET_PAST, ModalitySpec
+from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, ModalitySpec
 
 
 def _plain(tensor: torch.Tensor) -> torch.Tensor:
@@ -42,7 +42,8 @@ class WindowDataset:
     one vectorised index per key: ``frames[start[:, None] + offsets]``.
 
     Attributes: ``specs`` (one :class:`ModalitySpec` per modality, for the model),
-    ``target_dim``, ``split_episodes`` and ``split_windows`` (window ids per split),
+    ``target_dim``, ``action_shape`` (``(S, A)`` of ``"future_action"`` when the config sets
+    ``action``, else ``None``), ``split_episodes`` and ``split_windows`` (window ids per split),
     ``normalizer`` (training-split statistics; ``normalizer.stats`` is the plain dict to store),
     ``report`` (what was missing or skipped), ``cache_path``.
 
@@ -57,6 +58,8 @@ class WindowDataset:
         self.cache_path, self.report, self.built = open_cache(source, num_workers)
         self.specs: list[ModalitySpec] = source.specs
         self.target_dim: int = source.target_dim
+        self.action_shape: tuple[int, int] | None = (
+            None if source.action_dim is None else (config.horizon * config.stride, source.action_dim))
         self._check_presence(source)
 
         frames = TensorDict.load_memmap(self.cache_path / "frames")
@@ -71,6 +74,8 @@ class WindowDataset:
         self.window_episode = _plain(windows.get("episode"))
         self.presence = {s.name: _plain(windows.get(("present", s.name))) for s in self.specs}
         self._observed, self._future = window_offsets(config.history, config.horizon, config.stride)
+        self._action = _plain(frames.get("action")) if self.action_shape is not None else None
+        self._action_offsets = action_offsets(config.history, config.horizon, config.stride)
 
         # A required modality means every sample has it: windows where it is absent are left out.
         usable = torch.ones(len(self.window_start), dtype=torch.bool)
@@ -127,6 +132,10 @@ class WindowDataset:
         else:
             rows, valid = self._target, train_frames & _plain(frames.get("target_valid"))
         stats["target/mean"], stats["target/std"] = mean_std(rows, valid, floor, "the target")
+        if self._action is not None:
+            valid = train_frames & _plain(frames.get("action_valid"))
+            stats[f"{FUTURE_ACTION}/mean"], stats[f"{FUTURE_ACTION}/std"] = mean_std(
+                self._action, valid, floor, f"the action ({self.config.action.feature!r})")
         return stats
 
     def _targets(self, start: torch.Tensor, with_past: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -178,6 +187,9 @@ class WindowDataset:
         batch.set(TARGET, self.normalizer.normalize("target", future))
         if past is not None:
             batch.set(TARGET_PAST, self.normalizer.normalize("target", past))
+        if self._action is not None:
+            actions = self._action[start[:, None] + self._action_offsets]
+            batch.set(FUTURE_ACTION, self.normalizer.normalize(FUTURE_ACTION, actions))
         return batch
 
     def loader(self, split: str, batch_size: int, shuffle: bool | None = None, seed: int = 0,

@@ -13,7 +13,7 @@ from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.datasets.synthetic import FORCE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
-from mmf_rl.keys import TARGET, TARGET_PAST, obs_key, present_key, validate_batch
+from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, obs_key, present_key, validate_batch
 from tests.datasets.conftest import (
     EPISODE_LENGTHS,
     INVALID_IMAGE_EPISODE,
@@ -83,6 +83,42 @@ def test_bad_feature_name_lists_available_features(tmp_path):
         WindowDataset(so101_config(tmp_path, modalities=bad_validity))
     with pytest.raises(ValueError, match=r"dims \[6\] out of range.*width 6"):
         WindowDataset(so101_config(tmp_path, target={"feature": "action", "dims": [6]}))
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_so101_action_windows_are_the_commands_over_the_horizon(tmp_path, stride):
+    """A world model's ``future_action`` on the real SO-101 recording: the actions of frames
+    t .. t + T*stride - 1 (t = last observed frame), normalised with training-split statistics."""
+    history, horizon = 5, 5
+    dataset = open_quietly(so101_config(tmp_path, stride=stride, action="action"))
+    assert dataset.action_shape == (horizon * stride, 6)
+    batch = all_windows(dataset)
+    validate_batch(batch, dataset.specs, history, horizon, target_dim=3, require_target=True,
+                   action_shape=dataset.action_shape)
+    actions = torch.from_numpy(column(raw_frames(SO101_ROOT), "action"))
+    stats = dataset.normalizer.stats
+    t = dataset.window_start + (history - 1) * stride
+    expected = actions[t[:, None] + torch.arange(horizon * stride)]
+    torch.testing.assert_close(batch.get(FUTURE_ACTION) * stats["future_action/std"] + stats["future_action/mean"],
+                               expected, rtol=1e-5, atol=1e-4)
+    train_frames = torch.isin(torch.tensor(raw_frames(SO101_ROOT)["episode_index"].to_numpy()),
+                              torch.tensor(dataset.split_episodes["train"]))
+    torch.testing.assert_close(stats["future_action/mean"], actions[train_frames].mean(0), rtol=1e-4, atol=1e-4)
+    # Without `action` the same frames serve a plain forecaster: no action key, and its own cache.
+    plain = open_quietly(so101_config(tmp_path, stride=stride))
+    assert plain.action_shape is None and FUTURE_ACTION not in plain.batch(torch.arange(4)).keys()
+    assert plain.cache_path != dataset.cache_path
+
+
+def test_action_feature_errors_name_the_feature(tmp_path):
+    with pytest.raises(ValueError, match=r"action: feature 'act' is not in the dataset.*'action'"):
+        WindowDataset(so101_config(tmp_path, action="act"))
+    with pytest.raises(ValueError, match=r"action: feature 'observation\.images\.front' has dtype 'video'.*numeric vector"):
+        WindowDataset(so101_config(tmp_path, action="observation.images.front"))
+    with pytest.raises(ValueError, match=r"dims \[9\] out of range"):
+        WindowDataset(so101_config(tmp_path, action={"feature": "action", "dims": [9]}))
+    with pytest.raises(ValueError, match=r"unknown key.*featur"):
+        so101_config(tmp_path, action={"featur": "action"})
 
 
 def test_config_from_dict_round_trip_and_errors():
