@@ -50,11 +50,15 @@ def make_batch(batch_size: int, modalities=SMALL_MODALITIES, present: dict[str, 
     return TensorDict(data, batch_size=[batch_size])
 
 
-def assert_a_few_steps_reduce_the_loss(model, loss_module) -> None:
-    """15 Adam steps on a fixed mixed-presence batch cut the summed ``loss_*`` by at least 20%."""
+def assert_a_few_steps_reduce_the_loss(model, loss_module, action_shape: tuple[int, int] | None = None) -> None:
+    """15 Adam steps on a fixed mixed-presence batch cut the summed ``loss_*`` by at least 20%.
+
+    ``action_shape = (S, A)`` adds random ``"future_action"`` for a world model."""
     names = [s.name for s in SMALL_MODALITIES]
     pattern = torch.arange(8) % 4
     batch = make_batch(8, present={n: (pattern != i) for i, n in enumerate(names)}, seed=2)
+    if action_shape is not None:
+        batch.set(keys.FUTURE_ACTION, torch.randn(8, *action_shape, generator=torch.Generator().manual_seed(3)))
     optimizer = torch.optim.Adam(model.parameters(), lr=5e-3)
 
     def total():
@@ -195,3 +199,16 @@ def push_train_overrides(root, cache_dir, run_dir, steps: int = 6) -> list[str]:
         "trainer.checkpoint_every=3", "trainer.warmup_steps=2", "trainer.progress_bar=false", "logger=csv",
         "num_workers=0",
     ]
+
+
+@pytest.fixture(scope="session")
+def push_world_model_run(recorded_push_root, tmp_path_factory):
+    """A tiny action-conditioned world model trained by `mmf-rl train data=push_world_model` on the
+    recorded push data (H = 4, T = 3, 32 px): the real pipeline end to end, for the RL glue tests."""
+    from mmf_rl.cli import main as cli
+
+    base = tmp_path_factory.mktemp("world_model")
+    run = base / "run"
+    assert cli(["train", "data=push_world_model",
+                *push_train_overrides(recorded_push_root, base / "cache", run, steps=6)]) == 0
+    return run

@@ -60,13 +60,24 @@ def _entry(name: str) -> ModelEntry:
 
 
 def build_model(model_cfg: dict, modalities: list[ModalitySpec], history: int, horizon: int,
-                target_dim: int) -> nn.Module:
-    """``model_cfg`` is the model config group (its ``name`` picks the entry); the data fixes the rest."""
+                target_dim: int, action_shape: tuple[int, int] | None = None) -> nn.Module:
+    """``model_cfg`` is the model config group (its ``name`` picks the entry); the data fixes the rest.
+
+    ``action_shape = (S, A)`` (the data config sets ``action``) builds an action-conditioned world
+    model; only the paper's forecaster has that option.
+    """
     cfg = dict(model_cfg)
-    entry = _entry(cfg.pop("name", "forecaster"))
-    config = entry.config_cls.from_dict({**cfg, "modalities": modalities, "history": history, "horizon": horizon,
-                                         "target_dim": target_dim})
-    return entry.model_cls(config)
+    name = cfg.pop("name", "forecaster")
+    entry = _entry(name)
+    fields = {**cfg, "modalities": modalities, "history": history, "horizon": horizon, "target_dim": target_dim}
+    if action_shape is not None:
+        if entry.config_cls is not ForecasterConfig:
+            raise ValueError(
+                f"model {name!r} has no action input, but the data config sets `action` (a world model); "
+                "use model=forecaster, or remove `action` from the data config"
+            )
+        fields.update(action_steps=action_shape[0], action_dim=action_shape[1])
+    return entry.model_cls(entry.config_cls.from_dict(fields))
 
 
 def model_from_saved_config(saved: dict) -> nn.Module:
@@ -74,6 +85,21 @@ def model_from_saved_config(saved: dict) -> nn.Module:
     cfg = dict(saved)
     entry = _entry(cfg.pop("name", "forecaster"))
     return entry.model_cls(entry.config_cls.from_dict(cfg))
+
+
+def load_trained_model(path, map_location="cpu") -> tuple[nn.Module, dict, dict]:
+    """A trained model from a checkpoint (``path``: a checkpoint, or a run's ``checkpoints/``):
+    the model with its weights in eval mode, its normalisation stats, and the run's data config."""
+    from mmf_rl.trainers.checkpoint import CheckpointError, load_checkpoint, load_model_state
+
+    checkpoint = load_checkpoint(path, with_trainer_state=False)
+    if "model_config" not in checkpoint.meta:
+        raise CheckpointError(f"{checkpoint.path} has no 'model_config' in its meta.json; it was not written by "
+                              "`mmf-rl train` (or save_checkpoint(meta={'model_config': saved_config(...)}))")
+    model = model_from_saved_config(checkpoint.meta["model_config"])
+    load_model_state(model, checkpoint)
+    data_config = checkpoint.meta.get("config", {}).get("data", {})
+    return model.to(map_location).eval(), checkpoint.tensors, data_config
 
 
 def saved_config(name: str, model: nn.Module) -> dict:

@@ -123,7 +123,8 @@ def train(cfg) -> Path:
 
     seed_everything(trainer_cfg.seed)  # same initial weights on every rank
     model_cfg = to_container(cfg.model)
-    model = build_model(model_cfg, data.specs, data_cfg.history, data_cfg.horizon, data.target_dim).to(device)
+    model = build_model(model_cfg, data.specs, data_cfg.history, data_cfg.horizon, data.target_dim,
+                        action_shape=data.action_shape).to(device)
     model_name = model_cfg.get("name", "forecaster")
     loss = build_loss(model_name, model, to_container(cfg.loss))
     seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents

@@ -1,11 +1,21 @@
+import dataclasses
+
 import pytest
 import torch
+from tensordict import TensorDict
 from tensordict.nn import TensorDictSequential
 
 from mmf_rl import keys
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster
-from tests.conftest import HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch, presence_patterns
+from tests.conftest import (
+    HORIZON,
+    SMALL_MODALITIES,
+    TARGET_DIM,
+    assert_a_few_steps_reduce_the_loss,
+    make_batch,
+    presence_patterns,
+)
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 OUTPUTS = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE, keys.LATENT]
@@ -197,3 +207,115 @@ def test_config_roundtrip_and_bad_keys(small_config):
         ForecasterConfig(modalities=list(SMALL_MODALITIES), d_model=10, num_heads=4)
     with pytest.raises(ValueError, match="modalities is empty"):
         ForecasterConfig()
+
+
+# -- action-conditioned world model ---------------------------------------------------------------
+
+ACTION_SHAPE = (HORIZON, 3)
+
+
+def with_actions(td, seed: int):
+    td = td.clone()
+    td.set(keys.FUTURE_ACTION, torch.randn(td.shape[0], *ACTION_SHAPE, generator=torch.Generator().manual_seed(seed)))
+    return td
+
+
+@pytest.fixture
+def world_model(small_config) -> MultimodalForecaster:
+    torch.manual_seed(0)
+    return MultimodalForecaster(dataclasses.replace(small_config, action_steps=ACTION_SHAPE[0],
+                                                    action_dim=ACTION_SHAPE[1]))
+
+
+def test_world_model_forecast_depends_on_the_actions_only_through_them(world_model, batch):
+    world_model.eval()
+    with torch.no_grad():
+        first = world_model(with_actions(batch, 0)).get(keys.FORECAST_LOC)
+        again = world_model(with_actions(batch, 0)).get(keys.FORECAST_LOC)
+        other = world_model(with_actions(batch, 1)).get(keys.FORECAST_LOC)
+    torch.testing.assert_close(first, again)
+    assert (first - other).abs().amax(dim=(1, 2)).min() > 1e-4  # every sample's forecast moves
+
+
+def test_forecast_under_actions_equals_one_forward_per_candidate(world_model, mixed_batch):
+    world_model.eval()
+    actions = torch.randn(mixed_batch.shape[0], 4, *ACTION_SHAPE, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        loc, scale = world_model.forecast_under_actions(mixed_batch, actions)
+        for k in range(actions.shape[1]):
+            td = mixed_batch.clone()
+            td.set(keys.FUTURE_ACTION, actions[:, k])
+            out = world_model(td)
+            torch.testing.assert_close(loc[:, k], out.get(keys.FORECAST_LOC), rtol=1e-4, atol=1e-5)
+            torch.testing.assert_close(scale[:, k], out.get(keys.FORECAST_SCALE), rtol=1e-4, atol=1e-5)
+
+
+def test_world_model_names_missing_or_malformed_actions(world_model, batch):
+    with pytest.raises(KeyError, match="future_action.*float32 \\[B, 5, 3\\]"):
+        world_model(batch.clone())
+    td = batch.clone()
+    td.set(keys.FUTURE_ACTION, torch.zeros(8, 4, 3))
+    with pytest.raises(ValueError, match=r"td\['future_action'\]: expected float32 \[8, 5, 3\], found float32 \[8, 4, 3\]"):
+        world_model(td)
+    with pytest.raises(ValueError, match=r"actions: expected \[B, N, S, A\] = \[8, N, 5, 3\]"):
+        world_model.forecast_under_actions(batch, torch.zeros(8, 2, 5, 4))
+
+
+def test_action_fields_go_together_and_a_plain_forecaster_cannot_plan(small_config, small_model, batch):
+    with pytest.raises(ValueError, match="action_dim=3 and action_steps=0 must both be > 0"):
+        dataclasses.replace(small_config, action_dim=3)
+    with pytest.raises(ValueError, match="needs an action-conditioned model"):
+        small_model.forecast_under_actions(batch, torch.zeros(8, 2, *ACTION_SHAPE))
+
+
+def test_world_model_trains_with_both_losses(world_model):
+    from mmf_rl.models.registry import forecaster_loss
+
+    loss = forecaster_loss(world_model, {"kl_weight": 1.0, "kl_warmup_steps": 0, "missing_modality_weight": 1.0,
+                                         "detach_teacher": True})
+    assert_a_few_steps_reduce_the_loss(world_model, loss, action_shape=ACTION_SHAPE)
+
+
+def action_task(num_samples: int, seed: int, history: int = 6, horizon: int = 6) -> TensorDict:
+    """A point whose future is its velocity plus what the (random) actions push it by: the past
+    shows the velocity, only the actions show the rest."""
+    g = torch.Generator().manual_seed(seed)
+    velocity = torch.randn(num_samples, 1, 2, generator=g)
+    actions = torch.randn(num_samples, horizon, 2, generator=g)
+    steps = torch.arange(1, horizon + 1, dtype=torch.float32)[None, :, None]
+    target = 0.1 * velocity * steps + 0.1 * actions.cumsum(1)
+    ones = torch.ones(num_samples, dtype=torch.bool)
+    return TensorDict({keys.obs_key("vel"): velocity.expand(-1, history, -1) + 0.05 * torch.randn(
+                           num_samples, history, 2, generator=g),
+                       keys.obs_key("noise"): torch.randn(num_samples, history, 2, generator=g),
+                       keys.present_key("vel"): ones, keys.present_key("noise"): ones.clone(),
+                       keys.TARGET: target, keys.FUTURE_ACTION: actions}, batch_size=[num_samples])
+
+
+def test_world_model_learns_what_the_actions_do():
+    """Same data, same budget: with the actions as input the forecast error falls far below the
+    best a forecaster without them can do (which must guess the pushes)."""
+    from mmf_rl.models.registry import forecaster_loss
+
+    train, test = action_task(2048, seed=0), action_task(512, seed=1)
+    specs = [ModalitySpec("vel", "sequence", (2,)), ModalitySpec("noise", "sequence", (2,))]
+    errors = {}
+    for name, action_shape in [("plain", None), ("world", (6, 2))]:
+        torch.manual_seed(0)
+        cfg = ForecasterConfig(modalities=specs, history=6, horizon=6, target_dim=2, d_model=32, d_latent=4,
+                               num_heads=2, mlp_hidden=64, head_hidden=64,
+                               **({} if action_shape is None else {"action_steps": 6, "action_dim": 2}))
+        model = MultimodalForecaster(cfg)
+        loss = forecaster_loss(model, {"kl_weight": 1.0, "kl_warmup_steps": 0, "missing_modality_weight": 1.0,
+                                       "detach_teacher": True})
+        optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+        g = torch.Generator().manual_seed(0)
+        for _ in range(300):
+            rows = torch.randint(0, 2048, (128,), generator=g)
+            optimizer.zero_grad()
+            sum(v for k, v in loss(train[rows]).items() if k.startswith("loss_")).backward()
+            optimizer.step()
+        model.eval()
+        with torch.no_grad():
+            errors[name] = float((model(test.clone()).get(keys.FORECAST_LOC) - test.get(keys.TARGET)).square().mean())
+    assert errors["world"] < 0.25 * errors["plain"], errors

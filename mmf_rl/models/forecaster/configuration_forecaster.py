@@ -39,6 +39,10 @@ class ForecasterConfig:
         fusion: the multimodal encoder of the posterior: ``"agnostic"`` (the paper's
             modality-agnostic attention) or an ablation of :mod:`mmf_rl.models.fusion`
             (``"linear"``, ``"average"``, ``"sum"``, ``"cross_attention"``).
+        action_dim: ``A``; with ``action_steps``, makes the model an action-conditioned world
+            model that reads ``"future_action"`` ``[B, action_steps, A]`` (the actions applied
+            over the horizon). ``0`` (default): no action input, the paper's forecaster.
+        action_steps: ``S``, frames of actions over the horizon (``T × stride`` in the data).
     """
 
     modalities: list[ModalitySpec] = field(default_factory=list)
@@ -55,6 +59,8 @@ class ForecasterConfig:
     posterior_uses_target: bool = False
     eval_latent: Literal["mean", "sample"] = "mean"
     fusion: str = "agnostic"
+    action_dim: int = 0
+    action_steps: int = 0
 
     def __post_init__(self):
         self.modalities = [m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities]
@@ -71,12 +77,22 @@ class ForecasterConfig:
             raise ValueError(f"ForecasterConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}")
         if self.eval_latent not in ("mean", "sample"):
             raise ValueError(f"ForecasterConfig.eval_latent must be 'mean' or 'sample', found {self.eval_latent!r}")
+        if self.action_dim < 0 or self.action_steps < 0 or (self.action_dim > 0) != (self.action_steps > 0):
+            raise ValueError(
+                f"ForecasterConfig: action_dim={self.action_dim} and action_steps={self.action_steps} must both be "
+                "> 0 (an action-conditioned world model) or both 0 (no action input)"
+            )
         if self.fusion not in FUSIONS:
             raise ValueError(f"ForecasterConfig.fusion must be one of {FUSIONS}, found {self.fusion!r}")
 
     @property
     def modality_names(self) -> list[str]:
         return [m.name for m in self.modalities]
+
+    @property
+    def action_shape(self) -> tuple[int, int] | None:
+        """``(S, A)`` of ``"future_action"`` for a world model, else ``None``."""
+        return (self.action_steps, self.action_dim) if self.action_dim else None
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -31,6 +31,16 @@ Open points of the paper, and what this implementation does:
 * **Inference.** ``z ~ N(0, I)`` (prior) as in the paper. ``forward`` in eval mode uses
   ``z = 0`` by default (deterministic forecasts for RL and metrics); :meth:`sample` draws ``K``
   latents for best-of-K.
+* **World model (action conditioning, not in the paper).** With ``action_dim > 0`` the model
+  forecasts the future *under a given action sequence*: ``"future_action"`` ``[B, S, A]``
+  (``S = T × stride`` actions, from the last observed frame on) is flattened and mapped by an
+  MLP to one ``d``-vector ``a``, concatenated beside ``z`` to every decoder token:
+  ``[(x̄_m + p^D_m) ⊕ z ⊕ a]``. The actions enter the decoder only: the posterior still
+  summarises the observed history, so the presence handling (masks, ``L_mis``) is unchanged,
+  and a planner scores ``N`` candidate sequences for one history by encoding it once and
+  decoding ``N`` rows (:meth:`MultimodalForecaster.forecast_under_actions`). One vector for the
+  whole sequence, not per-step tokens: with ``T`` of about 10 the MLP sees every action at every
+  output step, and the decoder's cost stays that of ``M`` tokens.
 * **Missing-modality decode.** If the batch carries ``("drop", m)`` masks, the same ``z`` and
   tokens are decoded twice, with and without the dropped modalities, in **one** batched pass
   of ``2B`` rows (used by :class:`~mmf_rl.objectives.MissingModalityLoss`).
@@ -81,16 +91,18 @@ class ModalitySpecificDecoder(nn.Module):
         super().__init__()
         m, d = len(cfg.modalities), cfg.d_model
         self.modality_embedding = nn.Parameter(torch.randn(m, d) * 0.02)  # P^D
-        self.joint = mlp(d + cfg.d_latent, cfg.mlp_hidden, d)
+        self.joint = mlp(d + cfg.d_latent + (d if cfg.action_dim else 0), cfg.mlp_hidden, d)
         self.aggregate = FixedQueryAttention(d, cfg.num_heads)
         self.refine = FixedQueryAttention(d, cfg.num_heads)
         self.head = mlp(m * d, cfg.head_hidden, 2 * cfg.horizon * cfg.target_dim)
         self.out_shape = (cfg.horizon, cfg.target_dim)
         self.min_scale = cfg.min_scale
 
-    def forward(self, tokens: torch.Tensor, absent: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, tokens: torch.Tensor, absent: torch.Tensor, z: torch.Tensor,
+                action: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         n, m, _ = tokens.shape
-        joint = torch.cat([tokens + self.modality_embedding, z.unsqueeze(1).expand(n, m, -1)], dim=-1)
+        conditions = z if action is None else torch.cat([z, action], dim=-1)
+        joint = torch.cat([tokens + self.modality_embedding, conditions.unsqueeze(1).expand(n, m, -1)], dim=-1)
         h0 = self.joint(joint)
         queries = self.modality_embedding.expand(n, -1, -1)
         h1 = self.aggregate(queries, h0, absent, residual=queries)
@@ -133,8 +145,12 @@ class MultimodalForecaster(TensorDictModuleBase):
         posterior_in = self.fusion.out_rows * d + (d if config.posterior_uses_target else 0)
         self.posterior_head = mlp(posterior_in, config.head_hidden, 2 * config.d_latent)
         self.decoder = ModalitySpecificDecoder(config)
+        self.action_encoder = (mlp(config.action_steps * config.action_dim, config.head_hidden, d)
+                               if config.action_dim else None)
 
         self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
+        if config.action_dim:
+            self.in_keys.append(keys.FUTURE_ACTION)
         self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.LATENT, keys.PRIOR_LOC, keys.PRIOR_SCALE,
                          keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE, keys.FORECAST_DROPPED_LOC,
                          keys.FORECAST_DROPPED_SCALE]
@@ -144,7 +160,7 @@ class MultimodalForecaster(TensorDictModuleBase):
     def validate(self, td: TensorDictBase, require_target: bool = False) -> None:
         """Raise a clear error if ``td`` does not follow the key contract for this model."""
         keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim,
-                            require_target=require_target)
+                            require_target=require_target, action_shape=self.config.action_shape)
 
     def encode(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Unimodal encoders -> tokens ``[B, M, d]`` (zeros where absent) and presence ``[B, M]``."""
@@ -173,9 +189,16 @@ class MultimodalForecaster(TensorDictModuleBase):
         loc, raw_scale = self.posterior_head(features).chunk(2, dim=-1)
         return loc, F.softplus(raw_scale) + 1e-4
 
-    def decode(self, tokens: torch.Tensor, present: torch.Tensor, z: torch.Tensor):
-        """``p(y | X, z)``: ``loc``, ``scale`` ``[N, T, D]`` for ``N`` rows of tokens, presence and ``z``."""
-        return self.decoder(tokens, ~present, z)
+    def decode(self, tokens: torch.Tensor, present: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None = None):
+        """``p(y | X, z[, a])``: ``loc``, ``scale`` ``[N, T, D]`` for ``N`` rows of tokens, presence, ``z``
+        and, for a world model, the embedded action sequence (:meth:`embed_actions`)."""
+        return self.decoder(tokens, ~present, z, action)
+
+    def embed_actions(self, td: TensorDictBase) -> torch.Tensor | None:
+        """The action-sequence embedding ``[B, d]`` of a world model, ``None`` for a plain forecaster."""
+        if self.action_encoder is None:
+            return None
+        return self.action_encoder(td.get(keys.FUTURE_ACTION).flatten(1))
 
     def _drop_mask(self, td: TensorDictBase) -> torch.Tensor | None:
         drop_keys = [keys.drop_key(s.name) for s in self.modalities]
@@ -209,15 +232,17 @@ class MultimodalForecaster(TensorDictModuleBase):
             z = torch.randn_like(z_zeros)
         td.set(keys.LATENT, z)
 
+        action = self.embed_actions(td)
         drop = self._drop_mask(td)
         if drop is None:
-            loc, scale = self.decode(tokens, present, z)
+            loc, scale = self.decode(tokens, present, z, action)
         else:
             kept = present & ~drop
             if not bool(kept.any(1).all()):
                 raise ValueError("('drop', m) removes every present modality of some sample; keep at least one")
             # Teacher (all present) and student (dropped) decodes share tokens and z: one pass of 2B rows.
-            loc2, scale2 = self.decode(tokens.repeat(2, 1, 1), torch.cat([present, kept]), z.repeat(2, 1))
+            loc2, scale2 = self.decode(tokens.repeat(2, 1, 1), torch.cat([present, kept]), z.repeat(2, 1),
+                                       None if action is None else action.repeat(2, 1))
             loc, loc_dropped = loc2.split(batch)
             scale, scale_dropped = scale2.split(batch)
             td.set(keys.FORECAST_DROPPED_LOC, loc_dropped)
@@ -239,6 +264,44 @@ class MultimodalForecaster(TensorDictModuleBase):
         batch = present.shape[0]
         z = torch.randn(num_samples * batch, self.config.d_latent, device=present.device)
         # Row k * B + b is sample k of batch element b.
-        loc, _ = self.decode(tokens.repeat(num_samples, 1, 1), present.repeat(num_samples, 1), z)
+        action = self.embed_actions(td)
+        loc, _ = self.decode(tokens.repeat(num_samples, 1, 1), present.repeat(num_samples, 1), z,
+                             None if action is None else action.repeat(num_samples, 1))
         td.set(keys.FORECAST_SAMPLES, loc.view(num_samples, batch, *loc.shape[1:]).transpose(0, 1))
         return td
+
+    def forecast_under_actions(self, td: TensorDictBase, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A world model's forecasts for ``N`` candidate action sequences per history.
+
+        ``td`` holds ``B`` history windows (its ``"future_action"``, if any, is ignored);
+        ``actions`` is ``[B, N, S, A]`` in the normalised frame of ``"future_action"``. Each
+        history is encoded once and decoded for its ``N`` sequences in one batched pass (a
+        planner that scores several batches of candidates for one history calls :meth:`encode`
+        once and :meth:`decode_under_actions` per batch). Returns ``loc``, ``scale`` ``[B, N, T, D]``.
+        """
+        self._require_actions("forecast_under_actions")
+        keys.validate_batch(td, self.modalities, self.config.history)
+        return self.decode_under_actions(*self.encode(td), actions)
+
+    def decode_under_actions(self, tokens: torch.Tensor, present: torch.Tensor,
+                             actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Decode encoded histories (:meth:`encode`: tokens ``[B, M, d]``, presence ``[B, M]``) under
+        ``[B, N, S, A]`` normalised action sequences, ``z`` from ``eval_latent`` (``0`` by default)."""
+        self._require_actions("decode_under_actions")
+        expected = (tokens.shape[0], *self.config.action_shape)
+        if actions.dim() != 4 or (actions.shape[0], *actions.shape[2:]) != expected:
+            raise ValueError(f"actions: expected [B, N, S, A] = [{expected[0]}, N, {expected[1]}, {expected[2]}], "
+                             f"found {list(actions.shape)}")
+        batch, candidates = actions.shape[:2]
+        z = torch.zeros(batch * candidates, self.config.d_latent, device=tokens.device)
+        if self.config.eval_latent == "sample":
+            z.normal_()
+        embedded = self.action_encoder(actions.reshape(batch * candidates, -1))
+        loc, scale = self.decode(tokens.repeat_interleave(candidates, 0), present.repeat_interleave(candidates, 0),
+                                 z, embedded)
+        return loc.view(batch, candidates, *loc.shape[1:]), scale.view(batch, candidates, *scale.shape[1:])
+
+    def _require_actions(self, method: str) -> None:
+        if self.action_encoder is None:
+            raise ValueError(f"{method} needs an action-conditioned model: this forecaster was built without "
+                             "action_dim (train it with `action` set in the data config)")
