@@ -23,6 +23,9 @@ Features (float32 vectors carry per-dimension ``names``):
 ``action``                           [4]        FetchPush action (dx, dy, dz, gripper)
 ===================================  =========  ================================================
 
+With ``--exploration P``, the pusher makes random-move bursts (`ScriptedPusher`): the data a
+world model needs to learn what the actions do, not what the pusher tends to do.
+
 With ``--faults``, sensor outages are written into the data (`SensorFaults`); without it the
 validity feature is all true and no value is NaN, and the two recordings are otherwise identical.
 lerobot's statistics are not NaN-aware: a recording with force dropouts has NaN force entries in
@@ -134,6 +137,7 @@ class RecordConfig:
     steps: int = 50
     camera: str = "front"
     faults: bool = False
+    exploration: float = 0.0
     overwrite: bool = False
     repo_id: str = "local/mmf-push"
     vcodec: str = "libsvtav1"
@@ -143,7 +147,7 @@ def record_episode(env, config: RecordConfig, episode_index: int) -> dict[str, n
     """Roll out episode ``episode_index`` and apply its sensor faults when enabled."""
     from mmf_rl.envs.scripted import rollout
 
-    episode = rollout(env, config.seed, episode_index, config.steps)
+    episode = rollout(env, config.seed, episode_index, config.steps, config.exploration)
     episode["image_valid"] = np.ones((config.steps, 1), dtype=bool)
     if config.faults:
         rng = np.random.default_rng(np.random.SeedSequence([config.seed, episode_index, FAULTS_STREAM]))
@@ -233,6 +237,8 @@ def _validate(config: RecordConfig) -> None:
             raise RecordError(f"{name} {value}: must be at least {minimum}.")
     if config.seed < 0:
         raise RecordError(f"--seed {config.seed}: must be non-negative.")
+    if not 0.0 <= config.exploration <= 1.0:
+        raise RecordError(f"--exploration {config.exploration}: must be a probability in [0, 1].")
     _check_destination(config)
     # Slower checks last: these import MuJoCo and lerobot.
     from mmf_rl.envs.push import camera_names
@@ -346,6 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--steps", type=int, default=50, help="steps per episode, at 25 Hz")
     parser.add_argument("--camera", default="front", help="'front', 'top', or a camera of the model XML")
     parser.add_argument("--faults", action="store_true", help="write seeded sensor outages into the data")
+    parser.add_argument("--exploration", type=float, default=0.0,
+                        help="per-step probability of a random-move burst (data for world models; default 0)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     parser.add_argument("--repo-id", default=RecordConfig.repo_id, help="LeRobot repo_id stored in the metadata")
     parser.add_argument(
@@ -367,6 +375,7 @@ def main(argv: list[str] | None = None) -> int:
         steps=args.steps,
         camera=args.camera,
         faults=args.faults,
+        exploration=args.exploration,
         overwrite=args.overwrite,
         repo_id=args.repo_id,
         vcodec=args.vcodec,

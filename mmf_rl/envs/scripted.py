@@ -59,9 +59,19 @@ class PusherStyle:
 
 
 class ScriptedPusher:
-    """Pushes the object to the goal; call `reset` with the episode's generator, then `act`."""
+    """Pushes the object to the goal; call `reset` with the episode's generator, then `act`.
 
-    def __init__(self) -> None:
+    ``exploration`` (default 0): per-step probability of an exploratory burst, 2-7 steps of one
+    uniformly random move, after which the state machine carries on from wherever the gripper
+    and the object ended up. Data for a world model needs them: without bursts the gripper moves
+    sideways almost only while pushing, so a model learns "the object follows the gripper" and a
+    planner exploits it; with them it also sees moves that miss or bump the block.
+    """
+
+    def __init__(self, exploration: float = 0.0) -> None:
+        if not 0.0 <= exploration <= 1.0:
+            raise ValueError(f"exploration must be a probability in [0, 1], found {exploration}")
+        self.exploration = exploration
         self.reset(np.random.default_rng(0))
 
     def reset(self, rng: np.random.Generator) -> None:
@@ -70,8 +80,17 @@ class ScriptedPusher:
         self.phase = "approach"
         self.pause_steps = 0
         self.direction = np.zeros(2)  # push direction in the plane, unit
+        self.burst_steps, self.burst_action = 0, np.zeros(4, dtype=np.float32)
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        if self.burst_steps > 0:
+            self.burst_steps -= 1
+            return self.burst_action
+        # Drawn only when exploring, so episodes without it stay what they always were.
+        if self.exploration and self.rng.random() < self.exploration:
+            self.burst_steps = int(self.rng.integers(1, 7))
+            self.burst_action = np.r_[self.rng.uniform(-1.0, 1.0, 3), 0.0].astype(np.float32)
+            return self.burst_action
         grip = obs["proprio"][:3]
         obj = obs["object_pose"][:3]
         goal = obs["desired_goal"]
@@ -161,8 +180,9 @@ def reset_for_push(env: MultimodalPushEnv, rng: np.random.Generator):
             return obs, info
 
 
-def rollout(env: MultimodalPushEnv, seed: int, episode_index: int, steps: int) -> dict[str, np.ndarray]:
-    """Run one scripted episode and return its per-step arrays.
+def rollout(env: MultimodalPushEnv, seed: int, episode_index: int, steps: int,
+            exploration: float = 0.0) -> dict[str, np.ndarray]:
+    """Run one scripted episode (``exploration``: see `ScriptedPusher`) and return its per-step arrays.
 
     Frame ``t`` holds the observation before action ``t``. Keys: ``image`` ``[steps, h, w, 3]``
     uint8; ``force``, ``proprio``, ``object_pose``, ``goal``, ``action`` float32 ``[steps, d]``;
@@ -172,7 +192,7 @@ def rollout(env: MultimodalPushEnv, seed: int, episode_index: int, steps: int) -
         raise ValueError(f"steps={steps}: an episode needs at least 1 step.")
     rng = episode_generator(seed, episode_index)
     obs, _ = reset_for_push(env, rng)
-    pusher = ScriptedPusher()
+    pusher = ScriptedPusher(exploration)
     pusher.reset(rng)
     frames: dict[str, list] = {k: [] for k in ("image", "force", "proprio", "object_pose", "goal", "action")}
     success = []

@@ -203,6 +203,12 @@ def test_zero_episodes_is_a_clear_error(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
+def test_exploration_outside_zero_one_is_a_clear_error(tmp_path, capsys):
+    code, err = _run_cli(["--out", str(tmp_path / "x"), "--episodes", "1", "--exploration", "2"], capsys)
+    _assert_one_line_error(code, err, "--exploration 2.0", "probability in [0, 1]")
+    assert not (tmp_path / "x").exists()
+
+
 def test_unwritable_out_is_a_clear_error(tmp_path, capsys):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a directory")

@@ -38,3 +38,31 @@ def test_pusher_reaches_the_goal(push_env):
 def test_styles_vary_between_episodes():
     styles = {PusherStyle.sample(episode_generator(0, i)) for i in range(10)}
     assert len(styles) == 10
+
+
+def test_exploration_adds_seeded_random_bursts_and_zero_changes_nothing(push_env):
+    plain = rollout(push_env, seed=2, episode_index=1, steps=40)
+    np.testing.assert_array_equal(plain["action"], rollout(push_env, 2, 1, 40, exploration=0.0)["action"])
+    explored = rollout(push_env, seed=2, episode_index=1, steps=40, exploration=0.3)
+    np.testing.assert_array_equal(explored["action"], rollout(push_env, 2, 1, 40, exploration=0.3)["action"])
+    actions = explored["action"]
+    # A burst repeats one move exactly for 2-7 steps; the pusher's noisy moves never repeat.
+    repeats = np.all(actions[1:] == actions[:-1], axis=1)
+    runs, length = [], 0
+    for same in repeats:
+        if same:
+            length += 1
+        elif length:
+            runs.append(length + 1)
+            length = 0
+    assert runs and all(2 <= r <= 7 for r in runs[:-1]), runs
+    assert not np.any(np.all(plain["action"][1:] == plain["action"][:-1], axis=1) & (plain["action"][1:, :3] != 0).any(1))
+
+
+def test_exploration_must_be_a_probability():
+    import pytest
+
+    from mmf_rl.envs.scripted import ScriptedPusher
+
+    with pytest.raises(ValueError, match=r"exploration must be a probability in \[0, 1\], found 1.5"):
+        ScriptedPusher(exploration=1.5)
