@@ -24,7 +24,14 @@ from mmf_rl.configuration import ConfigError, compose_config, to_container
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.eval.metrics import evaluate_forecasts
-from mmf_rl.eval.report import markdown_table, plot_error_per_subset, plot_forecasts, plot_latent_tsne, write_json
+from mmf_rl.eval.report import (
+    markdown_table,
+    plot_error_per_subset,
+    plot_forecasts,
+    plot_latent_tsne,
+    write_json,
+    write_text,
+)
 from mmf_rl.models import model_from_saved_config
 from mmf_rl.trainers.checkpoint import CheckpointError, load_checkpoint, load_model_state
 from mmf_rl.trainers.run import resolve_device
@@ -108,9 +115,7 @@ def run_evaluation(cfg) -> dict:
                "constant_velocity": baseline}
     write_json(out_dir / "results.json", summary)
     table = markdown_table(results, baseline, units)
-    tmp = out_dir / ".results.md.tmp"
-    tmp.write_text(f"# {checkpoint.path} on {data.config.root} ({cfg.split} split)\n\n{table}")
-    os.replace(tmp, out_dir / "results.md")
+    write_text(out_dir / "results.md", f"# {checkpoint.path} on {data.config.root} ({cfg.split} split)\n\n{table}")
     plots = []
     if cfg.plots:
         plots = make_plots(model, data, loader, denormalize, cfg, out_dir, units, results, baseline)
