@@ -23,6 +23,9 @@ _TORCHRL_EXPORTS = {
     "UniformBursts": "mmf_rl.envs.transforms",
     "GeometricBursts": "mmf_rl.envs.transforms",
     "ForecastTransform": "mmf_rl.envs.transforms",
+    "HistoryWindow": "mmf_rl.envs.transforms",
+    "ForecasterWorldModelEnv": "mmf_rl.envs.world_model",
+    "ImaginedPlanningPolicy": "mmf_rl.envs.world_model",
 }
 
 __all__ = ["ENV_ID", "MultimodalPushEnv", "PusherStyle", "ScriptedPusher", "rollout", *_TORCHRL_EXPORTS]

@@ -8,6 +8,8 @@ by the env's batch size, so they work on a single env and on `SerialEnv`/`Parall
   modality's data is zeroed and its ``("present", m)`` flag cleared. Specs are unchanged.
 * `ForecastTransform`: rolling history of the last H steps, a trained forecaster run on it every
   step (one batched forward over all envs), the forecast written to ``("forecast", ...)``.
+* `HistoryWindow`: the same rolling history, written as a model batch under ``"history"`` for a
+  policy that runs its own model on it (a planner with a world model).
 
 Put the dropout before the forecaster::
 
@@ -29,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
-from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from mmf_rl import keys
@@ -216,93 +218,31 @@ def _describe_spec(spec, batch_dims: int) -> str:
     return f"{str(spec.dtype).removeprefix('torch.')} {list(spec.shape[batch_dims:])}"
 
 
-class ForecastTransform(Transform):
-    """Runs a trained forecaster on the last H steps of every env; writes ``("forecast", ...)``.
-
-    Args:
-        model: a forecaster from the model registry (``config.modalities``, ``config.history``,
-            ``config.horizon``, ``config.target_dim``); it is put in eval mode and run under
-            ``torch.no_grad()``.
-        stats: the normalisation statistics of its training run (a checkpoint's ``tensors``):
-            ``"<m>/mean"``, ``"<m>/std"`` for every non-image modality, ``"target/mean"``,
-            ``"target/std"``.
-        stride: frames between two window steps (the data config's ``stride``).
-        num_samples: ``K > 0`` also writes ``("forecast", "samples")`` ``[*batch, K, T, D]``, one
-            forecast per prior latent draw (costs a second forward).
-        denormalize: ``True`` writes forecasts in the target's units (for the push data: metres,
-            world frame; a run trained with ``data.target.relative`` forecasts displacements from
-            the current step, as the push config does), ``False`` in the normalised frame the
-            model was trained in.
-
-    Written every step (env batch ``[*batch]``): ``("forecast", "loc")`` and ``("forecast",
-    "scale")`` ``float32 [*batch, T, D]`` (the model's deterministic eval forecast, a diagonal
-    Gaussian), ``("forecast", "samples")`` when ``num_samples > 0``, and ``("forecast",
-    "valid")`` ``bool [*batch]``.
-
-    The window follows the data pipeline (`mmf_rl.datasets.windows`): vector observations are
-    normalised with ``stats``; images are resized to the model's size the way the cache resizes
-    them (bilinear, antialiased); a ``"sequence"``/``"image"`` modality is present in the window
-    only if it is present at all H steps (``"vector"``: at the last step), and an absent
-    modality's vector window is zeroed. After a reset, the first observation fills the whole
-    history (its presence too), so a full window exists from the first step; it is replaced step
-    by step over the next H-1 steps. A window with no present modality cannot be forecast: its
-    row gets ``valid = False`` and the training marginal of the target (normalised mean 0,
-    scale 1, i.e. ``target/mean`` and ``target/std`` in target units).
-
-    The history is a fixed ring buffer per env: the cost per step does not grow with time.
+class _WindowTransform(Transform):
+    """Keeps each env's last ``(H - 1) * stride + 1`` frames of every modality in a ring buffer and
+    builds the model's input window from them, as the data pipeline does (see `ForecastTransform`
+    for the rules). Subclasses say what to write each step (:meth:`_emit`) and add its specs.
     """
 
-    def __init__(self, model: nn.Module, stats: Mapping[str, torch.Tensor], *, stride: int = 1,
-                 num_samples: int = 0, denormalize: bool = True):
-        config = model.config
-        self.specs: list[ModalitySpec] = list(config.modalities)
+    def __init__(self, specs: Sequence[ModalitySpec], stats: Mapping[str, torch.Tensor], history: int,
+                 stride: int, out_keys: list):
+        self.specs: list[ModalitySpec] = list(specs)
         if stride < 1:
-            raise ValueError(f"ForecastTransform: stride must be >= 1, found {stride}")
-        if num_samples < 0:
-            raise ValueError(f"ForecastTransform: num_samples must be >= 0, found {num_samples}")
-        if num_samples and not hasattr(model, "sample"):
-            raise ValueError(f"ForecastTransform: {type(model).__name__} has no latent to sample; use num_samples=0")
+            raise ValueError(f"{type(self).__name__}: stride must be >= 1, found {stride}")
         required = [f"{s.name}/{stat}" for s in self.specs if s.kind != "image" for stat in ("mean", "std")]
         missing = [k for k in required + ["target/mean", "target/std"] if k not in stats]
         if missing:
-            raise KeyError(f"ForecastTransform: normalisation stats lack {missing} (found {sorted(stats)}); pass "
-                           "the stats of the run that trained the model (checkpoint.tensors)")
-        obs_keys = [s.obs_key for s in self.specs]
-        present_keys = [s.present_key for s in self.specs]
-        out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.FORECAST_VALID]
-        if num_samples:
-            out_keys.append(keys.FORECAST_SAMPLES)
-        super().__init__(in_keys=obs_keys + present_keys, out_keys=out_keys)
-        self.model = model.eval()
+            raise KeyError(f"{type(self).__name__}: normalisation stats lack {missing} (found {sorted(stats)}); "
+                           "pass the stats of the run that trained the model (checkpoint.tensors)")
+        in_keys = [s.obs_key for s in self.specs] + [s.present_key for s in self.specs]
+        super().__init__(in_keys=in_keys, out_keys=out_keys)
         self.normalizer = Normalizer(dict(stats))
-        self.history, self.horizon, self.target_dim = config.history, config.horizon, config.target_dim
-        self.stride, self.num_samples, self.denormalize = stride, num_samples, denormalize
-        self.buffer_length = (self.history - 1) * stride + 1
+        self.history, self.stride = history, stride
+        self.buffer_length = (history - 1) * stride + 1
         self._frames: dict[str, torch.Tensor] = {}
         self._present: dict[str, torch.Tensor] = {}
         self._newest = 0  # ring slot of the newest frame, shared by all envs (a reset fills every slot)
         self._batch_size: torch.Size | None = None
-
-    @classmethod
-    def from_checkpoint(cls, path: str | os.PathLike, *, num_samples: int = 0, denormalize: bool = True,
-                        map_location: str | torch.device = "cpu") -> ForecastTransform:
-        """Load the model, its weights, normalisation stats and window stride from a checkpoint.
-
-        ``path``: a checkpoint directory or a directory with a ``last`` pointer (a run's
-        ``checkpoints/``).
-        """
-        from mmf_rl.models.registry import model_from_saved_config
-        from mmf_rl.trainers.checkpoint import CheckpointError, load_checkpoint, load_model_state
-
-        checkpoint = load_checkpoint(path, with_trainer_state=False)
-        if "model_config" not in checkpoint.meta:
-            raise CheckpointError(f"{checkpoint.path} has no 'model_config' in its meta.json; it was not written by "
-                                  "`mmf-rl train` (or save_checkpoint(meta={'model_config': saved_config(...)}))")
-        model = model_from_saved_config(checkpoint.meta["model_config"])
-        load_model_state(model, checkpoint)
-        data_config = checkpoint.meta.get("config", {}).get("data", {})
-        return cls(model.to(map_location), checkpoint.tensors, stride=int(data_config.get("stride", 1)),
-                   num_samples=num_samples, denormalize=denormalize)
 
     # -- specs ---------------------------------------------------------------------------------
 
@@ -328,23 +268,11 @@ class ForecastTransform(Transform):
             model_side = ", ".join(f"{s.name} ({s.kind} {list(s.shape)})" for s in self.specs)
             env_listing = ", ".join(f"{name} ({_describe_spec(s, batch_dims)})" for name, s in sorted(env_side.items()))
             raise ValueError(
-                f"ForecastTransform: the checkpoint's modalities do not match the env's observations "
+                f"{type(self).__name__}: the checkpoint's modalities do not match the env's observations "
                 f"({'; '.join(problems)}). Checkpoint modalities: [{model_side}]; env ('obs', m) keys: "
                 f"[{env_listing}]. Use a checkpoint trained on this env's sensors (same names and sizes), "
                 f"or configure the env to emit the modalities the model was trained on."
             )
-
-    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        self._check_modalities(observation_spec)
-        batch = observation_spec.shape
-        out = (*batch, self.horizon, self.target_dim)
-        forecast = Composite(loc=Unbounded(out, dtype=torch.float32), scale=Unbounded(out, dtype=torch.float32),
-                             valid=Categorical(2, batch, dtype=torch.bool), shape=batch)
-        if self.num_samples:
-            forecast[keys.SAMPLES] = Unbounded((*batch, self.num_samples, self.horizon, self.target_dim),
-                                               dtype=torch.float32)
-        observation_spec[keys.FORECAST] = forecast
-        return observation_spec
 
     # -- history -------------------------------------------------------------------------------
 
@@ -353,7 +281,7 @@ class ForecastTransform(Transform):
         try:
             value = tensordict.get(spec.obs_key)
         except KeyError:
-            raise KeyError(f"ForecastTransform: the env output has no {spec.obs_key}; the model reads "
+            raise KeyError(f"{type(self).__name__}: the env output has no {spec.obs_key}; the model reads "
                            f"{[s.obs_key for s in self.specs]}") from None
         if spec.kind == "image":
             value = value.reshape(n, *value.shape[-3:])
@@ -408,10 +336,117 @@ class ForecastTransform(Transform):
             window.set(spec.present_key, present)
         return window
 
+    # -- env hooks -----------------------------------------------------------------------------
+
+    def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
+        raise NotImplementedError
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        batch_size = tensordict_reset.batch_size
+        rows = _reset_rows(tensordict, batch_size, self._batch_size, type(self).__name__)
+        if self._batch_size != batch_size:
+            self._allocate(batch_size)
+        self._push(tensordict_reset, rows)
+        return self._emit(tensordict_reset)
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        if self._batch_size is None:
+            raise RuntimeError(f"{type(self).__name__}: the env was stepped before its first reset; call env.reset()")
+        self._push(next_tensordict, None)
+        return self._emit(next_tensordict)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        raise _not_standalone(type(self).__name__)
+
+
+class ForecastTransform(_WindowTransform):
+    """Runs a trained forecaster on the last H steps of every env; writes ``("forecast", ...)``.
+
+    Args:
+        model: a forecaster from the model registry (``config.modalities``, ``config.history``,
+            ``config.horizon``, ``config.target_dim``); it is put in eval mode and run under
+            ``torch.no_grad()``. An action-conditioned world model cannot forecast without the
+            future actions: plan with it instead (`HistoryWindow` + `mmf_rl.planning`).
+        stats: the normalisation statistics of its training run (a checkpoint's ``tensors``):
+            ``"<m>/mean"``, ``"<m>/std"`` for every non-image modality, ``"target/mean"``,
+            ``"target/std"``.
+        stride: frames between two window steps (the data config's ``stride``).
+        num_samples: ``K > 0`` also writes ``("forecast", "samples")`` ``[*batch, K, T, D]``, one
+            forecast per prior latent draw (costs a second forward).
+        denormalize: ``True`` writes forecasts in the target's units (for the push data: metres,
+            world frame; a run trained with ``data.target.relative`` forecasts displacements from
+            the current step, as the push config does), ``False`` in the normalised frame the
+            model was trained in.
+
+    Written every step (env batch ``[*batch]``): ``("forecast", "loc")`` and ``("forecast",
+    "scale")`` ``float32 [*batch, T, D]`` (the model's deterministic eval forecast, a diagonal
+    Gaussian), ``("forecast", "samples")`` when ``num_samples > 0``, and ``("forecast",
+    "valid")`` ``bool [*batch]``.
+
+    The window follows the data pipeline (`mmf_rl.datasets.windows`): vector observations are
+    normalised with ``stats``; images are resized to the model's size the way the cache resizes
+    them (bilinear, antialiased); a ``"sequence"``/``"image"`` modality is present in the window
+    only if it is present at all H steps (``"vector"``: at the last step), and an absent
+    modality's vector window is zeroed. After a reset, the first observation fills the whole
+    history (its presence too), so a full window exists from the first step; it is replaced step
+    by step over the next H-1 steps. A window with no present modality cannot be forecast: its
+    row gets ``valid = False`` and the training marginal of the target (normalised mean 0,
+    scale 1, i.e. ``target/mean`` and ``target/std`` in target units).
+
+    The history is a fixed ring buffer per env: the cost per step does not grow with time.
+    """
+
+    def __init__(self, model: nn.Module, stats: Mapping[str, torch.Tensor], *, stride: int = 1,
+                 num_samples: int = 0, denormalize: bool = True):
+        config = model.config
+        if getattr(config, "action_dim", 0):
+            raise ValueError(
+                "ForecastTransform: this model is an action-conditioned world model (action_dim="
+                f"{config.action_dim}); it forecasts only under given future actions. Plan with it: "
+                "HistoryWindow + mmf_rl.planning.SequenceCEMPlanner, or ForecasterWorldModelEnv"
+            )
+        if num_samples < 0:
+            raise ValueError(f"ForecastTransform: num_samples must be >= 0, found {num_samples}")
+        if num_samples and not hasattr(model, "sample"):
+            raise ValueError(f"ForecastTransform: {type(model).__name__} has no latent to sample; use num_samples=0")
+        out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.FORECAST_VALID]
+        if num_samples:
+            out_keys.append(keys.FORECAST_SAMPLES)
+        super().__init__(config.modalities, stats, config.history, stride, out_keys)
+        self.model = model.eval()
+        self.horizon, self.target_dim = config.horizon, config.target_dim
+        self.num_samples, self.denormalize = num_samples, denormalize
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike, *, num_samples: int = 0, denormalize: bool = True,
+                        map_location: str | torch.device = "cpu") -> ForecastTransform:
+        """Load the model, its weights, normalisation stats and window stride from a checkpoint.
+
+        ``path``: a checkpoint directory or a directory with a ``last`` pointer (a run's
+        ``checkpoints/``).
+        """
+        from mmf_rl.models.registry import load_trained_model
+
+        model, stats, data_config = load_trained_model(path, map_location)
+        return cls(model, stats, stride=int(data_config.get("stride", 1)), num_samples=num_samples,
+                   denormalize=denormalize)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        self._check_modalities(observation_spec)
+        batch = observation_spec.shape
+        out = (*batch, self.horizon, self.target_dim)
+        forecast = Composite(loc=Unbounded(out, dtype=torch.float32), scale=Unbounded(out, dtype=torch.float32),
+                             valid=Categorical(2, batch, dtype=torch.bool), shape=batch)
+        if self.num_samples:
+            forecast[keys.SAMPLES] = Unbounded((*batch, self.num_samples, self.horizon, self.target_dim),
+                                               dtype=torch.float32)
+        observation_spec[keys.FORECAST] = forecast
+        return observation_spec
+
     # -- forecast ------------------------------------------------------------------------------
 
     @torch.no_grad()
-    def _forecast(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
         window = self.window()
         n = window.batch_size[0]
         valid = torch.stack([window.get(s.present_key) for s in self.specs], 1).any(1)
@@ -447,19 +482,49 @@ class ForecastTransform(Transform):
                            samples.reshape(*batch, self.num_samples, self.horizon, self.target_dim))
         return tensordict
 
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        batch_size = tensordict_reset.batch_size
-        rows = _reset_rows(tensordict, batch_size, self._batch_size, "ForecastTransform")
-        if self._batch_size != batch_size:
-            self._allocate(batch_size)
-        self._push(tensordict_reset, rows)
-        return self._forecast(tensordict_reset)
 
-    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        if self._batch_size is None:
-            raise RuntimeError("ForecastTransform: the env was stepped before its first reset; call env.reset()")
-        self._push(next_tensordict, None)
-        return self._forecast(next_tensordict)
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        raise _not_standalone("ForecastTransform")
+class HistoryWindow(_WindowTransform):
+    """Writes each env's model input window into the observation, under ``"history"``.
+
+    ``("history", "obs", m)`` ``[*batch, *window shape]`` and ``("history", "present", m)``
+    ``bool [*batch]``: exactly a model batch of the `mmf_rl.keys` contract, built by the rules of
+    `ForecastTransform` (normalised vectors, resized images, window presence). A policy reads it
+    with ``tensordict.get("history")`` and runs any forecaster on it: this is how a planner
+    conditions a world model on the real history (`mmf_rl.planning.SequenceCEMPlanner`).
+
+    Args:
+        specs: the model's modalities (``model.config.modalities``).
+        stats: the normalisation statistics of its training run.
+        history: ``H``, window steps.
+        stride: frames between two window steps.
+    """
+
+    def __init__(self, specs: Sequence[ModalitySpec], stats: Mapping[str, torch.Tensor], history: int,
+                 stride: int = 1):
+        specs = list(specs)
+        out_keys = [(keys.HISTORY, *s.obs_key) for s in specs] + [(keys.HISTORY, *s.present_key) for s in specs]
+        super().__init__(specs, stats, history, stride, out_keys)
+
+    @classmethod
+    def for_model(cls, model: nn.Module, stats: Mapping[str, torch.Tensor], stride: int = 1) -> HistoryWindow:
+        """The window ``model`` reads (its modalities and history)."""
+        return cls(model.config.modalities, stats, model.config.history, stride)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        self._check_modalities(observation_spec)
+        batch = observation_spec.shape
+        observations = Composite(shape=batch)
+        presence = Composite(shape=batch)
+        for spec in self.specs:
+            shape = (*batch, *spec.obs_shape(self.history))
+            observations[spec.name] = (Bounded(0, 255, shape, dtype=torch.uint8) if spec.kind == "image"
+                                       else Unbounded(shape, dtype=torch.float32))
+            presence[spec.name] = Categorical(2, batch, dtype=torch.bool)
+        observation_spec[keys.HISTORY] = Composite({keys.OBS: observations, keys.PRESENT: presence}, shape=batch)
+        return observation_spec
+
+    def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
+        window = self.window()
+        tensordict.set(keys.HISTORY, window.reshape(self._batch_size))
+        return tensordict

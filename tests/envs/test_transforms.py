@@ -13,7 +13,7 @@ from torchrl.envs.utils import check_env_specs
 from mmf_rl import keys
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
-from mmf_rl.envs.transforms import ForecastTransform, GeometricBursts, ModalityDropout, UniformBursts
+from mmf_rl.envs.transforms import ForecastTransform, GeometricBursts, HistoryWindow, ModalityDropout, UniformBursts
 from mmf_rl.keys import FORECAST_VALID, ModalitySpec
 from mmf_rl.models import build_model, saved_config
 from mmf_rl.trainers.checkpoint import save_checkpoint
@@ -355,3 +355,36 @@ def test_stats_without_a_modality_are_refused(checkpoint):
     stats = {k: v for k, v in make_stats().items() if not k.startswith("force/")}
     with pytest.raises(KeyError, match="force/mean"):
         ForecastTransform(transform.model, stats)
+
+
+# -- HistoryWindow -------------------------------------------------------------------------------
+
+
+def test_history_window_is_the_model_batch_built_by_hand(checkpoint):
+    forecast = ForecastTransform.from_checkpoint(checkpoint)
+    history = HistoryWindow.for_model(forecast.model, forecast.normalizer.stats)
+    env = TransformedEnv(SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)), Compose(
+        ModalityDropout(["image", "force"], outage_prob=0.25, bursts=UniformBursts(1, 3), seed=2), history))
+    try:
+        check_env_specs(env, seed=0)
+        assert env.observation_spec[keys.HISTORY, keys.OBS, "image"].shape == (2, HISTORY, 3, MODEL_IMAGE, MODEL_IMAGE)
+        env.set_seed(0)
+        td = env.rollout(6, break_when_any_done=False)
+    finally:
+        env.close()
+    frames = [td[:, 0].exclude("next")] + [td["next"][:, t] for t in range(td.shape[1])]
+    for t in range(1, len(frames)):
+        expected = hand_built_window(frames, forecast.normalizer, t)
+        written = td["next", keys.HISTORY][:, t - 1]
+        for spec in PUSH_SPECS:
+            torch.testing.assert_close(written.get(spec.obs_key), expected.get(spec.obs_key))
+            assert torch.equal(written.get(spec.present_key), expected.get(spec.present_key))
+    forecast.model.validate(td["next", keys.HISTORY][:, -1])  # a batch of the key contract
+
+
+def test_forecast_transform_refuses_a_world_model_and_names_the_way_to_plan(tmp_path):
+    torch.manual_seed(0)
+    model = build_model({"name": "forecaster", "d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32,
+                         "head_hidden": 32}, PUSH_SPECS, HISTORY, HORIZON, TARGET_DIM, action_shape=(HORIZON, 4))
+    with pytest.raises(ValueError, match="action-conditioned world model.*HistoryWindow.*SequenceCEMPlanner"):
+        ForecastTransform(model, make_stats())

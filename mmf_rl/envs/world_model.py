@@ -1,0 +1,132 @@
+"""A trained world model as a TorchRL model-based env: imagined rollouts from real history.
+
+`ForecasterWorldModelEnv` is a `torchrl.envs.model_based.ModelBasedEnvBase`, so torchrl's
+planners (`CEMPlanner`, `MPPIPlanner`) and any code written for model-based envs can roll it out.
+Its state starts from a real env's tensordict: the ``"history"`` window (`HistoryWindow`) and the
+objective's context keys. The history is encoded once at reset and the tokens kept in the state,
+so an imagined step costs one decoder pass.
+
+An imagined step ``k`` records the action in the sequence and, since the forecaster decodes a
+whole ``S``-step sequence at once, holds it for the steps not chosen yet; the step's observation
+is the forecast at ``k`` and its reward the objective's reward at ``k``. After ``S`` steps (the
+model's horizon) the imagined episode is done: the model cannot see further.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs.model_based import ModelBasedEnvBase
+from torchrl.modules.planners import MPCPlannerBase
+
+from mmf_rl import keys
+from mmf_rl.planning.cem import Objective
+from mmf_rl.planning.world_model import WorldModel
+
+IMAGINED = "imagined"
+TOKENS = (IMAGINED, "tokens")
+PRESENT = (IMAGINED, "present")
+VALID = (IMAGINED, "valid")
+ACTIONS = (IMAGINED, "actions")
+STEP = (IMAGINED, "step")
+FORECAST = (IMAGINED, "forecast")  # the imagined target at the current step (target units)
+
+
+class ForecasterWorldModelEnv(ModelBasedEnvBase):
+    """Imagined rollouts of a `WorldModel` scored by an objective (e.g. `PushObjective`).
+
+    ``self.world_model`` is the underlying forecaster (as `ModelBasedEnvBase` names it);
+    ``self.dynamics`` the `WorldModel` that wraps it with its normalisation.
+
+    Args:
+        world_model: the trained world model.
+        objective: ``(forecast, actions, context) -> rewards [n, N, T]`` with ``in_keys`` (the
+            context keys it reads, carried unchanged through the imagined state).
+        action_spec: the real env's action spec.
+        context_spec: specs of the objective's context keys (take them from the real env's
+            observation spec).
+
+    Example:
+        >>> state = wm_env.reset(real_tensordict.select("history", *objective.in_keys))
+        >>> action = CEMPlanner(wm_env, planning_horizon=10, optim_steps=3, num_candidates=64,
+        ...                     top_k=8).planning(state)
+        >>> # or, as the real env's policy: real_env.rollout(50, ImaginedPlanningPolicy(planner, wm_env))
+    """
+
+    def __init__(self, world_model: WorldModel, objective: Objective, action_spec: Bounded, context_spec: Composite):
+        super().__init__(world_model.model, device=world_model.device, batch_size=torch.Size([]))
+        self.dynamics, self.objective = world_model, objective
+        model = world_model.model
+        m, d = len(model.modalities), model.config.d_model
+        steps, dim = world_model.action_steps, world_model.action_dim
+        self.action_spec = action_spec
+        # The imagined state is observed (as Dreamer's model-based env observes its latent state),
+        # so every step carries it forward.
+        self.observation_spec = Composite(
+            {FORECAST: Unbounded((world_model.target_dim,), dtype=torch.float32),
+             TOKENS: Unbounded((m, d), dtype=torch.float32), PRESENT: Categorical(2, (m,), dtype=torch.bool),
+             VALID: Categorical(2, (), dtype=torch.bool), ACTIONS: Unbounded((steps, dim), dtype=torch.float32),
+             STEP: Unbounded((1,), dtype=torch.int64), **{k: context_spec[k] for k in objective.in_keys}})
+        self.reward_spec = Unbounded((1,), dtype=torch.float32)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        if tensordict is None or keys.HISTORY not in tensordict.keys():
+            raise KeyError(f"ForecasterWorldModelEnv.reset needs a real env's tensordict with {keys.HISTORY!r} (add "
+                           f"HistoryWindow to the real env) and the objective's keys {self.objective.in_keys}")
+        batch = tensordict.batch_size
+        n = batch.numel()
+        tokens, present, valid = self.dynamics.encode(tensordict.get(keys.HISTORY).reshape(n))
+        steps, dim = self.dynamics.action_steps, self.dynamics.action_dim
+        state = TensorDict(
+            {TOKENS: tokens, PRESENT: present, VALID: valid, ACTIONS: torch.zeros(n, steps, dim),
+             STEP: torch.zeros(n, 1, dtype=torch.int64), FORECAST: torch.zeros(n, self.dynamics.target_dim),
+             "done": torch.zeros(n, 1, dtype=torch.bool), "terminated": torch.zeros(n, 1, dtype=torch.bool)},
+            batch_size=[n]).reshape(batch)
+        return state.update(tensordict.select(*self.objective.in_keys))
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        batch = tensordict.batch_size
+        n = batch.numel()
+        flat = tensordict.reshape(n)
+        step = flat.get(STEP)  # [n, 1]
+        steps = self.dynamics.action_steps
+        if bool((step >= steps).any()):
+            raise RuntimeError(f"ForecasterWorldModelEnv: imagined past the model's horizon ({steps} steps); reset "
+                               "from real history")
+        # The new action replaces this step's and, until chosen, every later step's.
+        later = torch.arange(steps)[None, :, None] >= step[:, :, None]
+        actions = torch.where(later, flat.get("action")[:, None, :], flat.get(ACTIONS))
+        forecast = self.dynamics.forecast(flat.get(TOKENS), flat.get(PRESENT), flat.get(VALID), actions[:, None]).cpu()
+        context = flat.select(*self.objective.in_keys)
+        rewards = self.objective(forecast, actions[:, None], context)[:, 0]  # [n, T]
+        index = step // (steps // self.dynamics.horizon)  # the forecast step of this action's frame
+        reward = rewards.gather(1, index)
+        predicted = forecast[:, 0].gather(1, index[:, :, None].expand(-1, -1, forecast.shape[-1]))[:, 0]
+        done = step + 1 >= steps
+        out = TensorDict(
+            {TOKENS: flat.get(TOKENS), PRESENT: flat.get(PRESENT), VALID: flat.get(VALID), ACTIONS: actions,
+             STEP: step + 1, FORECAST: predicted, "reward": reward, "done": done, "terminated": done.clone()},
+            batch_size=[n])
+        return out.update(context).reshape(batch)
+
+
+class ImaginedPlanningPolicy(TensorDictModuleBase):
+    """A real env's policy that plans with a torchrl planner in a `ForecasterWorldModelEnv`.
+
+    Each call resets the world-model env from the real tensordict (``"history"`` and the
+    objective's context: the history is encoded once) and asks ``planner`` (torchrl's
+    `CEMPlanner`, `MPPIPlanner`, ... built on that env) for the action to take.
+    """
+
+    def __init__(self, planner: MPCPlannerBase, world_model_env: ForecasterWorldModelEnv):
+        super().__init__()
+        self.planner, self.world_model_env = planner, world_model_env
+        self.in_keys = [keys.HISTORY, *world_model_env.objective.in_keys]
+        self.out_keys = ["action"]
+
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        state = self.world_model_env.reset(tensordict.select(*self.in_keys))
+        return tensordict.set("action", self.planner.planning(state))

@@ -1,0 +1,129 @@
+"""Model-predictive control with a world model: the cross-entropy method over whole action
+sequences, vectorised over candidates and envs.
+
+Why not only torchrl's `CEMPlanner`: it scores candidates by rolling a model-based env forward
+one step at a time, so a forecaster that predicts all T steps in one decode would be decoded T
+times per candidate batch (and re-encoded, unless the env caches tokens, as
+`ForecasterWorldModelEnv` does). Here each CEM iteration is one decoder pass over all candidates
+of all envs. Measured by `benchmarks/mpc_push.py` (push world model, 128 candidates × 4
+iterations × 10 steps, 2 CPU threads): 12 ms per decision here, 369 ms with `CEMPlanner` on
+`ForecasterWorldModelEnv`, with similar success on the same episodes (8/10 and 6/10).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Bounded
+
+from mmf_rl import keys
+from mmf_rl.planning.world_model import WorldModel
+
+IS_INIT = "is_init"  # torchrl's InitTracker flag: the first step of an episode
+
+Objective = Callable[[torch.Tensor, torch.Tensor, TensorDictBase], torch.Tensor]
+
+
+class SequenceCEMPlanner(TensorDictModuleBase):
+    """A TorchRL policy: reads ``"history"`` (`mmf_rl.envs.HistoryWindow`) and the objective's
+    context keys, writes ``"action"``.
+
+    Every call (one control step, for every env of the batch): encode each env's history once;
+    then ``num_iterations`` times sample ``num_candidates`` action sequences of the world model's
+    ``S`` steps from a per-env diagonal Gaussian (clipped to ``action_spec``; the current mean is
+    always one of them), forecast all of them in one decode, score them with ``objective``
+    (rewards ``[n, N, T]`` summed over the horizon) and refit the Gaussian to the
+    ``num_elites`` best. The first action of the final mean is applied. The mean is kept and
+    shifted by one step to start the next call (warm start), except for envs whose ``"is_init"``
+    flag (`torchrl.envs.InitTracker`) says an episode just began.
+
+    The Gaussian lives in the world model's normalised action frame (the training data's action
+    mean and std): sampling starts around what the data did, with its spread, and an action
+    dim the data never varied (e.g. FetchPush's finger command) stays where the data kept it —
+    the model has no idea what changing it would do.
+
+    Args:
+        world_model: a `WorldModel`.
+        objective: ``(forecast [n, N, T, D], actions [n, N, S, A], context) -> rewards [n, N, T]``
+            with an ``in_keys`` attribute naming the context keys it reads.
+        action_spec: the env's bounded action spec (``[A]``).
+        num_candidates, num_iterations, num_elites: CEM sizes.
+        init_std: standard deviation of the first sampling distribution, in units of the
+            training data's action std.
+        min_std: floor of the refitted standard deviation (same units), so sampling never
+            collapses.
+        seed: seed of the planner's own generator.
+    """
+
+    def __init__(self, world_model: WorldModel, objective: Objective, action_spec: Bounded, *,
+                 num_candidates: int = 128, num_iterations: int = 4, num_elites: int = 16, init_std: float = 1.0,
+                 min_std: float = 0.05, seed: int = 0):
+        super().__init__()
+        if not 1 <= num_elites <= num_candidates:
+            raise ValueError(f"SequenceCEMPlanner: need 1 <= num_elites ({num_elites}) <= num_candidates "
+                             f"({num_candidates})")
+        if num_iterations < 1:
+            raise ValueError(f"SequenceCEMPlanner: num_iterations must be >= 1, found {num_iterations}")
+        if not action_spec.shape or action_spec.shape[-1] != world_model.action_dim:
+            raise ValueError(f"SequenceCEMPlanner: the env's action spec has shape {list(action_spec.shape)} but the "
+                             f"world model was trained on actions of {world_model.action_dim} dims")
+        self.world_model, self.objective = world_model, objective
+        # A batched env's spec repeats one env's bounds per row.
+        dim = world_model.action_dim
+        self.low = action_spec.space.low.float().reshape(-1, dim)[0]
+        self.high = action_spec.space.high.float().reshape(-1, dim)[0]
+        stats = world_model.normalizer.stats
+        self.center = stats[f"{keys.FUTURE_ACTION}/mean"].cpu()
+        self.spread = stats[f"{keys.FUTURE_ACTION}/std"].cpu()
+        self.num_candidates, self.num_iterations, self.num_elites = num_candidates, num_iterations, num_elites
+        self.init_std, self.min_std = init_std, min_std
+        self.generator = torch.Generator().manual_seed(seed)
+        self.in_keys = [keys.HISTORY, *objective.in_keys]
+        self.out_keys = ["action"]
+        self._mean: torch.Tensor | None = None  # [n, S, A] normalised, warm start
+
+    def _raw(self, normalized: torch.Tensor) -> torch.Tensor:
+        return (self.center + self.spread * normalized).clamp(self.low, self.high)
+
+    def _initial_mean(self, tensordict: TensorDictBase, n: int) -> torch.Tensor:
+        steps, dim = self.world_model.action_steps, self.world_model.action_dim
+        fresh = torch.zeros(n, steps, dim)
+        if self._mean is None or self._mean.shape[0] != n:
+            return fresh
+        shifted = torch.cat([self._mean[:, 1:], self._mean[:, -1:]], dim=1)
+        init = tensordict.get(IS_INIT, None)
+        if init is None:
+            return shifted
+        restart = init.reshape(n, -1).any(-1)
+        return torch.where(restart[:, None, None], fresh, shifted)
+
+    @torch.no_grad()
+    def plan(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The CEM's final mean sequences ``[*batch, S, A]`` (raw actions) for the envs of ``tensordict``."""
+        batch = tensordict.batch_size
+        n = batch.numel()
+        window = tensordict.get(keys.HISTORY).reshape(n)
+        context = tensordict.select(*self.objective.in_keys).reshape(n)
+        tokens, present, valid = self.world_model.encode(window)
+        mean = self._initial_mean(tensordict, n)
+        std = torch.full_like(mean, self.init_std)
+        for _ in range(self.num_iterations):
+            noise = torch.randn(n, self.num_candidates, *mean.shape[1:], generator=self.generator)
+            noise[:, 0] = 0.0  # the current mean competes too
+            actions = self._raw(mean[:, None] + std[:, None] * noise)
+            forecast = self.world_model.forecast(tokens, present, valid, actions).cpu()
+            returns = self.objective(forecast, actions, context).sum(-1)  # [n, N]
+            elite = returns.topk(self.num_elites, dim=1).indices
+            elites = actions.gather(1, elite[:, :, None, None].expand(-1, -1, *actions.shape[2:]))
+            elites = (elites - self.center) / self.spread  # clipped values, back in the sampling frame
+            mean = elites.mean(1)
+            std = elites.std(1, correction=0).clamp_min(self.min_std)
+        self._mean = mean
+        return self._raw(mean).reshape(*batch, *mean.shape[1:])
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict.set("action", self.plan(tensordict)[..., 0, :])
+        return tensordict

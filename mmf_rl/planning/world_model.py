@@ -1,0 +1,91 @@
+"""An action-conditioned forecaster with its normalisation: raw actions in, target units out."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+
+import torch
+from tensordict import TensorDictBase
+
+from mmf_rl import keys
+from mmf_rl.datasets.splits import Normalizer
+from mmf_rl.models.forecaster import MultimodalForecaster
+
+
+class WorldModel:
+    """A trained world model (a `MultimodalForecaster` with ``action_dim > 0``) ready to plan with.
+
+    Splits the forward in two so a planner pays for the encoders once per decision and for the
+    decoder once per batch of candidates: :meth:`encode` a history window, then
+    :meth:`forecast` it under any number of raw action sequences. Forecasts are in the target's
+    units (for the push data: the object's planar displacement from now, metres).
+
+    A window row with no present modality cannot be encoded; its forecasts are the target's
+    training mean (the marginal, as `ForecastTransform` does), whatever the actions.
+
+    Action dims the training data never varied (std at the data config's ``std_floor``, e.g.
+    FetchPush's finger command) are read as their training value whatever a planner asks: the
+    model knows nothing about changing them, and normalising by the floor would blow a small
+    change up into an input thousands of stds away.
+    """
+
+    def __init__(self, model: MultimodalForecaster, stats: Mapping[str, torch.Tensor], stride: int = 1,
+                 std_floor: float = 1e-3):
+        if not getattr(model.config, "action_dim", 0):
+            raise ValueError("WorldModel needs an action-conditioned forecaster (action_dim > 0): train one with "
+                             "`action` in the data config (mmf-rl train experiment=world_model)")
+        required = [f"{keys.FUTURE_ACTION}/mean", f"{keys.FUTURE_ACTION}/std"]
+        missing = [k for k in required if k not in stats]
+        if missing:
+            raise KeyError(f"WorldModel: normalisation stats lack {missing} (found {sorted(stats)}); pass the stats "
+                           "of the run that trained the model (checkpoint.tensors)")
+        self.model = model.eval()
+        self.normalizer = Normalizer({k: v.to(self.device) for k, v in stats.items()})
+        self.constant_action_dims = self.normalizer.stats[f"{keys.FUTURE_ACTION}/std"] <= std_floor * (1 + 1e-4)
+        self.stride = stride
+        self.action_steps, self.action_dim = model.config.action_shape
+        self.horizon, self.target_dim = model.config.horizon, model.config.target_dim
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike, map_location: str | torch.device = "cpu") -> WorldModel:
+        from mmf_rl.models.registry import load_trained_model
+
+        model, stats, data_config = load_trained_model(path, map_location)
+        return cls(model, stats, stride=int(data_config.get("stride", 1)),
+                   std_floor=float(data_config.get("std_floor", 1e-3)))
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.model.parameters()).device
+
+    @torch.no_grad()
+    def encode(self, window: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Tokens ``[n, M, d]``, presence ``[n, M]`` and ``valid`` ``[n]`` of ``n`` history windows."""
+        specs = self.model.modalities
+        present = torch.stack([window.get(s.present_key) for s in specs], dim=1).to(self.device)
+        valid = present.any(1)
+        n = present.shape[0]
+        tokens = torch.zeros(n, len(specs), self.model.config.d_model, device=self.device)
+        if valid.all():
+            tokens, present = self.model.encode(window.to(self.device))
+        elif valid.any():
+            rows = valid.nonzero().squeeze(1)
+            tokens[rows], present[rows] = self.model.encode(window[rows.cpu()].to(self.device))
+        return tokens, present, valid
+
+    @torch.no_grad()
+    def forecast(self, tokens: torch.Tensor, present: torch.Tensor, valid: torch.Tensor,
+                 actions: torch.Tensor) -> torch.Tensor:
+        """Forecast ``[n, N, T, D]`` (target units) for raw action sequences ``[n, N, S, A]``."""
+        n, candidates = actions.shape[:2]
+        normalized = torch.zeros(n, candidates, self.horizon, self.target_dim, device=self.device)
+        if valid.any():
+            rows = None if valid.all() else valid.nonzero().squeeze(1)
+            scaled = self.normalizer.normalize(keys.FUTURE_ACTION, actions.to(self.device))
+            scaled = scaled.masked_fill(self.constant_action_dims, 0.0)
+            if rows is None:
+                normalized, _ = self.model.decode_under_actions(tokens, present, scaled)
+            else:
+                normalized[rows] = self.model.decode_under_actions(tokens[rows], present[rows], scaled[rows])[0]
+        return self.normalizer.denormalize_target(normalized)
