@@ -44,7 +44,8 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         world_model: the trained world model.
         objective: ``(forecast, actions, context) -> rewards [n, N, T]`` with ``in_keys`` (the
             context keys it reads, carried unchanged through the imagined state).
-        action_spec: the real env's action spec.
+        action_spec: one real env's action spec (``[A]``; the imagined batch is whatever the
+            reset tensordict's is).
         context_spec: specs of the objective's context keys (take them from the real env's
             observation spec).
 
@@ -56,6 +57,9 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
     """
 
     def __init__(self, world_model: WorldModel, objective: Objective, action_spec: Bounded, context_spec: Composite):
+        if action_spec.shape != (world_model.action_dim,):
+            raise ValueError(f"ForecasterWorldModelEnv: action_spec must be one env's, shape [{world_model.action_dim}] "
+                             f"(what the world model was trained on); found {list(action_spec.shape)}")
         super().__init__(world_model.model, device=world_model.device, batch_size=torch.Size([]))
         self.dynamics, self.objective = world_model, objective
         model = world_model.model
