@@ -212,3 +212,27 @@ def push_world_model_run(recorded_push_root, tmp_path_factory):
     assert cli(["train", "data=push_world_model",
                 *push_train_overrides(recorded_push_root, base / "cache", run, steps=6)]) == 0
     return run
+
+
+@pytest.fixture(scope="session")
+def push_world_model(push_world_model_run):
+    """The world model of `push_world_model_run`, loaded for planning."""
+    from mmf_rl.planning import WorldModel
+
+    return WorldModel.from_checkpoint(push_world_model_run / "checkpoints")
+
+
+@pytest.fixture(scope="module")
+def push_history_env(push_world_model):
+    """The real push env (32 px, as recorded) emitting the world model's ``"history"`` window and
+    ``"is_init"``; one env (one GL context) per test module."""
+    from torchrl.envs import Compose, InitTracker, TransformedEnv
+
+    from mmf_rl.envs import HistoryWindow, MultimodalPushTorchEnv
+
+    env = TransformedEnv(MultimodalPushTorchEnv(image_size=32), Compose(
+        HistoryWindow.for_model(push_world_model.model, push_world_model.normalizer.stats, push_world_model.stride),
+        InitTracker()))
+    env.set_seed(0)
+    yield env
+    env.close()

@@ -2,70 +2,54 @@
 
 import pytest
 import torch
-from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.modules.planners import CEMPlanner, MPPIPlanner
 
 from mmf_rl import keys
-from mmf_rl.envs import ForecasterWorldModelEnv, HistoryWindow, MultimodalPushTorchEnv
+from mmf_rl.envs import ForecasterWorldModelEnv
 from mmf_rl.envs.world_model import ACTIONS, FORECAST, STEP
-from mmf_rl.planning import PushObjective, WorldModel
-
-IMAGE_SIZE = 32
-
-
-@pytest.fixture(scope="module")
-def world_model(push_world_model_run):
-    return WorldModel.from_checkpoint(push_world_model_run / "checkpoints")
-
-
-@pytest.fixture(scope="module")
-def real_env(world_model):
-    env = TransformedEnv(MultimodalPushTorchEnv(image_size=IMAGE_SIZE), Compose(
-        HistoryWindow.for_model(world_model.model, world_model.normalizer.stats, world_model.stride), InitTracker()))
-    env.set_seed(0)
-    yield env
-    env.close()
+from mmf_rl.planning import PushObjective
 
 
 @pytest.fixture
-def imagined(world_model, real_env):
+def imagined(push_world_model, push_history_env):
     objective = PushObjective()
-    env = ForecasterWorldModelEnv(world_model, objective, real_env.action_spec, real_env.observation_spec)
-    real = real_env.rollout(3, break_when_any_done=False)[-1].get("next")
+    env = ForecasterWorldModelEnv(push_world_model, objective, push_history_env.action_spec,
+                                  push_history_env.observation_spec)
+    real = push_history_env.rollout(3, break_when_any_done=False)[-1].get("next")
     return env, objective, real
 
 
-def test_imagined_rollout_equals_the_world_model_under_the_held_actions(world_model, imagined):
+def test_imagined_rollout_equals_the_world_model_under_the_held_actions(push_world_model, imagined):
     env, objective, real = imagined
     state = env.reset(real.select(keys.HISTORY, *objective.in_keys))
-    actions = torch.rand(world_model.action_steps, 4, generator=torch.Generator().manual_seed(0)) * 2 - 1
-    rollout = env.rollout(world_model.action_steps, policy=lambda td: td.set("action", actions[int(td.get(STEP))]),
+    actions = torch.rand(push_world_model.action_steps, 4, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    rollout = env.rollout(push_world_model.action_steps, policy=lambda td: td.set("action", actions[int(td.get(STEP))]),
                           auto_reset=False, tensordict=state.clone())
-    assert rollout.shape == (world_model.action_steps,)
+    assert rollout.shape == (push_world_model.action_steps,)
     assert rollout.get(("next", "done"))[-1].item() and not rollout.get(("next", "done"))[:-1].any()
     assert (rollout.get(("next", *ACTIONS))[-1] == actions).all()
 
     # Step k saw actions 0..k, the k-th held to the end: its forecast and reward are the model's.
     window = real.get(keys.HISTORY).unsqueeze(0)
-    tokens, present, valid = world_model.encode(window)
+    tokens, present, valid = push_world_model.encode(window)
     context = real.select(*objective.in_keys).unsqueeze(0)
-    for k in range(world_model.action_steps):
-        held = torch.cat([actions[: k + 1], actions[k : k + 1].expand(world_model.action_steps - k - 1, -1)])
-        forecast = world_model.forecast(tokens, present, valid, held[None, None])
+    for k in range(push_world_model.action_steps):
+        held = torch.cat([actions[: k + 1], actions[k : k + 1].expand(push_world_model.action_steps - k - 1, -1)])
+        forecast = push_world_model.forecast(tokens, present, valid, held[None, None])
         torch.testing.assert_close(rollout.get(("next", *FORECAST))[k], forecast[0, 0, k])
         reward = objective(forecast, held[None, None], context)[0, 0, k]
         torch.testing.assert_close(rollout.get(("next", "reward"))[k, 0], reward)
 
 
 @pytest.mark.parametrize("planner_cls", [CEMPlanner, MPPIPlanner])
-def test_torchrl_planners_plan_in_the_world_model_env(world_model, imagined, planner_cls):
+def test_torchrl_planners_plan_in_the_world_model_env(push_world_model, imagined, planner_cls):
     env, objective, real = imagined
     state = env.reset(real.select(keys.HISTORY, *objective.in_keys))
     if planner_cls is CEMPlanner:
-        planner = CEMPlanner(env, planning_horizon=world_model.action_steps, optim_steps=2, num_candidates=16, top_k=4)
+        planner = CEMPlanner(env, planning_horizon=push_world_model.action_steps, optim_steps=2, num_candidates=16, top_k=4)
     else:
         planner = MPPIPlanner(env, advantage_module=lambda td: td.set("advantage", td.get(("next", "reward"))),
-                              temperature=1.0, planning_horizon=world_model.action_steps, optim_steps=2,
+                              temperature=1.0, planning_horizon=push_world_model.action_steps, optim_steps=2,
                               num_candidates=16, top_k=4)
     action = planner.planning(state)
     assert action.shape == (4,) and torch.isfinite(action).all()

@@ -9,23 +9,10 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from mmf_rl import keys
 from mmf_rl.envs import HistoryWindow, MultimodalPushTorchEnv
 from mmf_rl.envs.scripted import ACTION_SCALE, CONTACT_DISTANCE, TRACKING_GAIN
-from mmf_rl.planning import PushObjective, SequenceCEMPlanner, WorldModel
+from mmf_rl.planning import PushObjective, SequenceCEMPlanner
 
 IMAGE_SIZE = 32
 ACTIONS = Bounded(-1.0, 1.0, (4,))
-
-
-@pytest.fixture(scope="module")
-def world_model(push_world_model_run):
-    return WorldModel.from_checkpoint(push_world_model_run / "checkpoints")
-
-
-@pytest.fixture(scope="module")
-def real_env(world_model):
-    env = TransformedEnv(MultimodalPushTorchEnv(image_size=IMAGE_SIZE), Compose(
-        HistoryWindow.for_model(world_model.model, world_model.normalizer.stats, world_model.stride), InitTracker()))
-    yield env
-    env.close()
 
 
 class TargetSequence:
@@ -40,11 +27,11 @@ class TargetSequence:
         return -(actions - self.target).abs().sum(-1)
 
 
-def test_cem_finds_the_best_sequence_of_a_known_objective(world_model, real_env):
-    td = real_env.reset()
-    target = torch.linspace(-0.8, 0.8, world_model.action_steps * 4).view(world_model.action_steps, 4)
+def test_cem_finds_the_best_sequence_of_a_known_objective(push_world_model, push_history_env):
+    td = push_history_env.reset()
+    target = torch.linspace(-0.8, 0.8, push_world_model.action_steps * 4).view(push_world_model.action_steps, 4)
     target[:, 3] = 0.0  # the finger command: constant in the data, so the planner never moves it
-    planner = SequenceCEMPlanner(world_model, TargetSequence(target), ACTIONS, num_candidates=256,
+    planner = SequenceCEMPlanner(push_world_model, TargetSequence(target), ACTIONS, num_candidates=256,
                                  num_iterations=8, num_elites=16, seed=0)
     plan = planner.plan(td)
     assert (plan - target).abs().max() < 0.1
@@ -53,14 +40,14 @@ def test_cem_finds_the_best_sequence_of_a_known_objective(world_model, real_env)
     assert torch.equal(action, planner._raw(planner._mean)[0, 0])
 
 
-def test_planner_is_reproducible_from_its_seed_and_restarts_on_new_episodes(world_model, real_env):
-    td = real_env.reset()
-    first = [SequenceCEMPlanner(world_model, PushObjective(), ACTIONS, num_candidates=32, num_iterations=2,
+def test_planner_is_reproducible_from_its_seed_and_restarts_on_new_episodes(push_world_model, push_history_env):
+    td = push_history_env.reset()
+    first = [SequenceCEMPlanner(push_world_model, PushObjective(), ACTIONS, num_candidates=32, num_iterations=2,
                                 num_elites=4, seed=3).plan(td) for _ in range(2)]
     torch.testing.assert_close(first[0], first[1])
-    planner = SequenceCEMPlanner(world_model, PushObjective(), ACTIONS, num_candidates=32, num_iterations=1,
+    planner = SequenceCEMPlanner(push_world_model, PushObjective(), ACTIONS, num_candidates=32, num_iterations=1,
                                  num_elites=4, init_std=1e-6, min_std=1e-6)
-    previous = torch.randn(1, world_model.action_steps, 4, generator=torch.Generator().manual_seed(0))
+    previous = torch.randn(1, push_world_model.action_steps, 4, generator=torch.Generator().manual_seed(0))
     shifted = torch.cat([previous[:, 1:], previous[:, -1:]], 1)
     planner._mean = previous.clone()
     continuing = td.clone().set("is_init", torch.zeros(1, dtype=torch.bool))
@@ -70,24 +57,25 @@ def test_planner_is_reproducible_from_its_seed_and_restarts_on_new_episodes(worl
     torch.testing.assert_close(planner.plan(td), fresh, atol=1e-4, rtol=0)
 
 
-def test_planner_drives_the_real_env_batched_with_outages(world_model):
+def test_planner_drives_the_real_env_batched_with_outages(push_world_model):
     from torchrl.envs import SerialEnv
 
     from mmf_rl.envs import ModalityDropout
 
     env = TransformedEnv(SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)), Compose(
         ModalityDropout(["image", "force"], outage_prob=0.5, per="episode", seed=0),
-        HistoryWindow.for_model(world_model.model, world_model.normalizer.stats, world_model.stride), InitTracker()))
+        HistoryWindow.for_model(push_world_model.model, push_world_model.normalizer.stats, push_world_model.stride),
+        InitTracker()))
     try:
         env.set_seed(0)
-        planner = SequenceCEMPlanner(world_model, PushObjective(), env.action_spec, num_candidates=16,
+        planner = SequenceCEMPlanner(push_world_model, PushObjective(), env.action_spec, num_candidates=16,
                                      num_iterations=2, num_elites=4)
         rollout = env.rollout(4, planner, break_when_any_done=False)
     finally:
         env.close()
     assert rollout.shape == (2, 4)
     assert torch.isfinite(rollout.get("action")).all() and rollout.get("action").abs().max() <= 1.0
-    assert rollout.get(("next", "history", "obs", "image")).shape[-4:] == (world_model.model.config.history, 3,
+    assert rollout.get(("next", "history", "obs", "image")).shape[-4:] == (push_world_model.model.config.history, 3,
                                                                             IMAGE_SIZE, IMAGE_SIZE)
 
 
@@ -111,16 +99,16 @@ def test_push_objective_prefers_pushing_toward_the_goal_and_approaching_from_beh
     torch.testing.assert_close(rewards[0, 0], -(0.10 - moved), atol=1e-5, rtol=0)
 
 
-def test_planner_refuses_an_action_spec_the_model_was_not_trained_on(world_model):
+def test_planner_refuses_an_action_spec_the_model_was_not_trained_on(push_world_model):
     with pytest.raises(ValueError, match=r"action spec has shape \[2\].*4 dims"):
-        SequenceCEMPlanner(world_model, PushObjective(), Bounded(-1.0, 1.0, (2,)))
+        SequenceCEMPlanner(push_world_model, PushObjective(), Bounded(-1.0, 1.0, (2,)))
 
 
-def test_world_model_ignores_action_dims_the_data_never_varied(world_model, real_env):
-    assert world_model.constant_action_dims.tolist() == [False, False, False, True]  # the finger command
-    tokens, present, valid = world_model.encode(real_env.reset().get(keys.HISTORY).unsqueeze(0))
-    actions = torch.rand(1, 1, world_model.action_steps, 4, generator=torch.Generator().manual_seed(0)) * 2 - 1
+def test_world_model_ignores_action_dims_the_data_never_varied(push_world_model, push_history_env):
+    assert push_world_model.constant_action_dims.tolist() == [False, False, False, True]  # the finger command
+    tokens, present, valid = push_world_model.encode(push_history_env.reset().get(keys.HISTORY).unsqueeze(0))
+    actions = torch.rand(1, 1, push_world_model.action_steps, 4, generator=torch.Generator().manual_seed(0)) * 2 - 1
     actions = actions.repeat(1, 2, 1, 1)
     actions[0, 1, :, 3] = -actions[0, 0, :, 3]  # the same moves, another finger command
-    forecast = world_model.forecast(tokens, present, valid, actions)
+    forecast = push_world_model.forecast(tokens, present, valid, actions)
     torch.testing.assert_close(forecast[0, 0], forecast[0, 1])
