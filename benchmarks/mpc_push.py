@@ -48,7 +48,6 @@ from torchrl.modules.planners import CEMPlanner
 from mmf_rl import keys
 from mmf_rl.envs import (
     ForecasterWorldModelEnv,
-    HistoryWindow,
     ImaginedPlanningPolicy,
     ModalityDropout,
     MultimodalPushTorchEnv,
@@ -72,8 +71,7 @@ class StaticObjectModel(WorldModel):
 
 def make_env(world_model: WorldModel, image_size: int, dropped: list[str]) -> TransformedEnv:
     transforms = [ModalityDropout(dropped, outage_prob=1.0, per="episode")] if dropped else []
-    transforms += [HistoryWindow.for_model(world_model.model, world_model.normalizer.stats, world_model.stride),
-                   InitTracker()]
+    transforms += [world_model.history_window(), InitTracker()]
     return TransformedEnv(MultimodalPushTorchEnv(image_size=image_size), Compose(*transforms))
 
 

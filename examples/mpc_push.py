@@ -16,7 +16,7 @@ import argparse
 import torch
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 
-from mmf_rl.envs import HistoryWindow, ModalityDropout, MultimodalPushTorchEnv
+from mmf_rl.envs import ModalityDropout, MultimodalPushTorchEnv
 from mmf_rl.planning import PushObjective, SequenceCEMPlanner, WorldModel
 
 parser = argparse.ArgumentParser(description="MPC with a push world model")
@@ -30,7 +30,7 @@ torch.set_num_threads(2)
 # The world model and the window of sensor history it reads.
 world_model = WorldModel.from_checkpoint(args.checkpoint)
 image_spec = next(s for s in world_model.model.modalities if s.name == "image")
-history = HistoryWindow.for_model(world_model.model, world_model.normalizer.stats, world_model.stride)
+history = world_model.history_window()  # writes ("history", ...): the model's input window, every step
 
 # The real env: the outage (if any) happens before the history sees the sensors.
 transforms = [ModalityDropout([args.drop], outage_prob=1.0, per="episode")] if args.drop else []

@@ -228,11 +228,10 @@ def push_history_env(push_world_model):
     ``"is_init"``; one env (one GL context) per test module."""
     from torchrl.envs import Compose, InitTracker, TransformedEnv
 
-    from mmf_rl.envs import HistoryWindow, MultimodalPushTorchEnv
+    from mmf_rl.envs import MultimodalPushTorchEnv
 
     env = TransformedEnv(MultimodalPushTorchEnv(image_size=32), Compose(
-        HistoryWindow.for_model(push_world_model.model, push_world_model.normalizer.stats, push_world_model.stride),
-        InitTracker()))
+        push_world_model.history_window(), InitTracker()))
     env.set_seed(0)
     yield env
     env.close()

@@ -10,6 +10,7 @@ from tensordict import TensorDictBase
 
 from mmf_rl import keys
 from mmf_rl.datasets.splits import Normalizer
+from mmf_rl.envs.transforms import HistoryWindow
 from mmf_rl.models.forecaster import MultimodalForecaster
 
 
@@ -54,6 +55,11 @@ class WorldModel:
         model, stats, data_config = load_trained_model(path, map_location)
         return cls(model, stats, stride=int(data_config.get("stride", 1)),
                    std_floor=float(data_config.get("std_floor", 1e-3)))
+
+    def history_window(self) -> HistoryWindow:
+        """The env transform that writes the ``"history"`` window this model reads (its modalities,
+        history, stride and normalisation)."""
+        return HistoryWindow.for_model(self.model, self.normalizer.stats, self.stride)
 
     @property
     def device(self) -> torch.device:

@@ -7,7 +7,7 @@ from torchrl.data import Bounded
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 
 from mmf_rl import keys
-from mmf_rl.envs import HistoryWindow, MultimodalPushTorchEnv
+from mmf_rl.envs import MultimodalPushTorchEnv
 from mmf_rl.envs.scripted import ACTION_SCALE, CONTACT_DISTANCE, TRACKING_GAIN
 from mmf_rl.planning import PushObjective, SequenceCEMPlanner
 
@@ -64,8 +64,7 @@ def test_planner_drives_the_real_env_batched_with_outages(push_world_model):
 
     env = TransformedEnv(SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)), Compose(
         ModalityDropout(["image", "force"], outage_prob=0.5, per="episode", seed=0),
-        HistoryWindow.for_model(push_world_model.model, push_world_model.normalizer.stats, push_world_model.stride),
-        InitTracker()))
+        push_world_model.history_window(), InitTracker()))
     try:
         env.set_seed(0)
         planner = SequenceCEMPlanner(push_world_model, PushObjective(), env.action_spec, num_candidates=16,
