@@ -30,7 +30,9 @@ Open points of the paper, and what this implementation does:
   forecast decoded from the prior at test time degrades (see ``ForecasterConfig``).
 * **Inference.** ``z ~ N(0, I)`` (prior) as in the paper. ``forward`` in eval mode uses
   ``z = 0`` by default (deterministic forecasts for RL and metrics); :meth:`sample` draws ``K``
-  latents for best-of-K.
+  latents for best-of-K. A consequence worth knowing: the multimodal encoder feeds only the
+  posterior, so a forecast decoded from the prior does not depend on it; it shapes the model
+  through training alone (on the push benchmark its fusion ablations land within noise of it).
 * **World model (action conditioning, not in the paper).** With ``action_dim > 0`` the model
   forecasts the future *under a given action sequence*: ``"future_action"`` ``[B, S, A]``
   (``S = T × stride`` actions, from the last observed frame on) is flattened and mapped by an
