@@ -319,3 +319,15 @@ def test_world_model_learns_what_the_actions_do():
         with torch.no_grad():
             errors[name] = float((model(test.clone()).get(keys.FORECAST_LOC) - test.get(keys.TARGET)).square().mean())
     assert errors["world"] < 0.25 * errors["plain"], errors
+
+
+def test_forecast_from_the_prior_does_not_depend_on_the_multimodal_encoder(small_model, batch):
+    """The fusion feeds only q(z|X): eval forecasts (z = 0) ignore it; only training sees it."""
+    small_model.eval()
+    with torch.no_grad():
+        before = small_model(batch.clone())
+        for parameter in small_model.fusion.parameters():
+            parameter.add_(1.0)
+        after = small_model(batch.clone())
+    torch.testing.assert_close(after.get(keys.FORECAST_LOC), before.get(keys.FORECAST_LOC))
+    assert not torch.allclose(after.get(keys.POSTERIOR_LOC), before.get(keys.POSTERIOR_LOC))
