@@ -61,10 +61,11 @@ class Budget:
 # depending on that load. 300 steps is ~3 epochs: too few for a stable ranking (see the report).
 QUICK = Budget(image_size=32, batch_size=32, steps=300, seeds=(0, 1),
                entries=("paper", "paper w/o L_mis", "LF-LSTM", "MVAE", "MulT"))
-# Full: every entry (13; 28 trainings per seed), 3 seeds, 2000 steps of batch 64 at 32x32 (MultiBench's
+# Full: every entry (14; 29 trainings per seed), 3 seeds, 2000 steps of batch 64 at 32x32 (MultiBench's
 # gentle_push image size; the per-frame ConvNets of LF-LSTM and MulT cost 4x more at 64x64).
-# Estimated from step times measured here: ~16 h per seed on 2 CPU cores (~2 days in all);
-# meant for a GPU (--device auto). Not run on the 2-core development machine.
+# Measured here: every entry at 1000 steps of batch 32, 3 seeds (87 trainings), took 83 min on 2 cores
+# (~57 s a training, MulT and LF-LSTM the slowest); FULL trains 4x the samples a run, so ~6 h in all.
+# Not run on the 2-core development machine; meant for a GPU (--device auto) or a long night.
 FULL = Budget(image_size=32, batch_size=64, steps=2000, seeds=(0, 1, 2), entries=None)
 
 
