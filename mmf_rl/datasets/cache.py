@@ -95,38 +95,38 @@ def _as_matrix(column: np.ndarray, n: int) -> np.ndarray:
     return np.asarray(column, dtype=np.float32).reshape(n, -1)
 
 
+def _vector_column(column: np.ndarray, dims: list[int] | None, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """A vector feature's frames ``[n, d]`` (selected ``dims``; NaN/Inf → 0) and where they were finite."""
+    values = _as_matrix(column, n)
+    if dims is not None:
+        values = values[:, dims]
+    finite = np.isfinite(values).all(1)
+    return torch.from_numpy(np.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0)), torch.from_numpy(finite)
+
+
 def _frame_columns(source: LeRobotSource, columns: dict[str, np.ndarray]) -> dict:
     """Per-frame vectors (NaN/Inf → 0), per-frame presence from non-finite values and validity features."""
     n = len(columns["index"])
     obs, present = {}, {}
     for name, m in source.modalities.items():
-        ok = np.ones(n, dtype=bool)
+        ok = torch.ones(n, dtype=torch.bool)
         if not m.is_video:
-            values = _as_matrix(columns[m.feature], n)
-            if m.dims is not None:
-                values = values[:, m.dims]
-            ok &= np.isfinite(values).all(1)
-            obs[name] = torch.from_numpy(np.nan_to_num(values, nan=0.0, posinf=0.0, neginf=0.0))
+            obs[name], finite = _vector_column(columns[m.feature], m.dims, n)
+            ok &= finite
         if m.valid_feature is not None:
-            ok &= np.asarray(columns[m.valid_feature]).reshape(n, -1).astype(bool).all(1)
-        present[name] = torch.from_numpy(ok)
-    target = _as_matrix(columns[source.target_feature], n)
-    if source.config.target.dims is not None:
-        target = target[:, source.config.target.dims]
-    target_valid = np.isfinite(target).all(1)
+            ok &= torch.from_numpy(np.asarray(columns[m.valid_feature]).reshape(n, -1).astype(bool).all(1))
+        present[name] = ok
+    target, target_valid = _vector_column(columns[source.target_feature], source.config.target.dims, n)
     per_frame = {
         "obs": obs,
         "present": present,
-        "target": torch.from_numpy(np.nan_to_num(target, nan=0.0, posinf=0.0, neginf=0.0)),
-        "target_valid": torch.from_numpy(target_valid),
+        "target": target,
+        "target_valid": target_valid,
         "episode": torch.from_numpy(np.asarray(columns["episode_index"], dtype=np.int64)),
     }
     if source.action_feature is not None:
-        action = _as_matrix(columns[source.action_feature], n)
-        if source.config.action.dims is not None:
-            action = action[:, source.config.action.dims]
-        per_frame["action"] = torch.from_numpy(np.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0))
-        per_frame["action_valid"] = torch.from_numpy(np.isfinite(action).all(1))
+        per_frame["action"], per_frame["action_valid"] = _vector_column(
+            columns[source.action_feature], source.config.action.dims, n)
     return per_frame
 
 

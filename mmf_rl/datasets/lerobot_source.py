@@ -261,16 +261,11 @@ class LeRobotSource:
         self.root = Path(self.meta.root)
         self.features: dict[str, dict] = self.meta.features
         self.modalities = {name: self._resolve(name) for name, _ in sorted(config.modalities.items())}
-        self.target_feature = self._require_feature(config.target.feature, "target")
-        target_width = self._vector_width(self.target_feature, "target")
-        _check_dims(config.target.dims, target_width, f"target {self.target_feature!r}")
-        self.target_dim = len(config.target.dims) if config.target.dims is not None else target_width
+        self.target_feature, self.target_dim = self._resolve_vector(config.target.feature, config.target.dims, "target")
         self.action_feature, self.action_dim = None, None
         if config.action is not None:
-            self.action_feature = self._require_feature(config.action.feature, "action")
-            action_width = self._vector_width(self.action_feature, "action")
-            _check_dims(config.action.dims, action_width, f"action {self.action_feature!r}")
-            self.action_dim = len(config.action.dims) if config.action.dims is not None else action_width
+            self.action_feature, self.action_dim = self._resolve_vector(config.action.feature, config.action.dims,
+                                                                        "action")
         self.episodes = [
             Episode(int(e["episode_index"]), int(e["dataset_from_index"]), int(e["dataset_to_index"]))
             for e in self.meta.episodes
@@ -303,6 +298,13 @@ class LeRobotSource:
                 f"shape [d]); use one of the dataset's numeric vector features: {vectors}"
             )
         return int(ft["shape"][0])
+
+    def _resolve_vector(self, feature: str, dims: list[int] | None, what: str) -> tuple[str, int]:
+        """A numeric vector feature (the target, the action) and its width after ``dims``."""
+        self._require_feature(feature, what)
+        width = self._vector_width(feature, what)
+        _check_dims(dims, width, f"{what} {feature!r}")
+        return feature, len(dims) if dims is not None else width
 
     def _check_window_fits(self) -> None:
         """At least one episode must hold one window, or the dataset would give no sample at all."""
