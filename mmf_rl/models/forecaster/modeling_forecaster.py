@@ -228,10 +228,8 @@ class MultimodalForecaster(TensorDictModuleBase):
             td.set(keys.POSTERIOR_SCALE, post_scale)
         if self.training:
             z = post_loc + post_scale * torch.randn_like(post_scale)
-        elif self.config.eval_latent == "mean":
-            z = z_zeros
         else:
-            z = torch.randn_like(z_zeros)
+            z = self._eval_latent(batch, present.device)
         td.set(keys.LATENT, z)
 
         action = self.embed_actions(td)
@@ -295,13 +293,16 @@ class MultimodalForecaster(TensorDictModuleBase):
             raise ValueError(f"actions: expected [B, N, S, A] = [{expected[0]}, N, {expected[1]}, {expected[2]}], "
                              f"found {list(actions.shape)}")
         batch, candidates = actions.shape[:2]
-        z = torch.zeros(batch * candidates, self.config.d_latent, device=tokens.device)
-        if self.config.eval_latent == "sample":
-            z.normal_()
+        z = self._eval_latent(batch * candidates, tokens.device)
         embedded = self.action_encoder(actions.reshape(batch * candidates, -1))
         loc, scale = self.decode(tokens.repeat_interleave(candidates, 0), present.repeat_interleave(candidates, 0),
                                  z, embedded)
         return loc.view(batch, candidates, *loc.shape[1:]), scale.view(batch, candidates, *scale.shape[1:])
+
+    def _eval_latent(self, rows: int, device: torch.device) -> torch.Tensor:
+        """``z`` for an eval forecast: the prior's mode (``eval_latent="mean"``) or a prior draw."""
+        z = torch.zeros(rows, self.config.d_latent, device=device)
+        return z if self.config.eval_latent == "mean" else z.normal_()
 
     def _require_actions(self, method: str) -> None:
         if self.action_encoder is None:
