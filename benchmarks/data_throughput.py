@@ -30,16 +30,16 @@ from mmf_rl.datasets.windows import WindowDataset
 def make_dataset(root: Path, episodes: int, steps: int, image_size: int, workers: int) -> str:
     """Record with the project's recorder when it exists, else write the synthetic dataset."""
     try:
-        from mmf_rl.datasets.record import RecordConfig, record
+        from mmf_rl.record import RecordConfig, record
     except ImportError:
         from mmf_rl.datasets.synthetic import make_synthetic_dataset
 
         make_synthetic_dataset(root, [steps] * episodes, image_size=image_size)
-        return "synthetic (mmf_rl.datasets.record is not available)"
+        return "synthetic (mmf_rl.record is not available)"
     # No sensor faults: lerobot's shard aggregation stores NaN as parquet nulls, which the
     # reference loader (LeRobotDataset.__getitem__) cannot turn into tensors.
     record(RecordConfig(out=root, episodes=episodes, steps=steps, image_size=image_size, workers=workers))
-    return "recorded with mmf_rl.datasets.record"
+    return "recorded with mmf_rl.record"
 
 
 def cache_throughput(dataset: WindowDataset, batch_size: int, seconds: float) -> float:

@@ -25,7 +25,7 @@ import torch
 from tensordict import TensorDict
 
 from mmf_rl import keys
-from mmf_rl.envs.transforms import ForecastTransform
+from mmf_rl.rl.transforms import ForecastTransform
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models import build_model
 

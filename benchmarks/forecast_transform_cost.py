@@ -26,10 +26,10 @@ import yaml
 from torchrl.envs import SerialEnv
 
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
-from mmf_rl.envs.transforms import ForecastTransform
+from mmf_rl.rl.transforms import ForecastTransform
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models import build_model, saved_config
-from mmf_rl.trainers.checkpoint import save_checkpoint
+from mmf_rl.checkpoint import save_checkpoint
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 

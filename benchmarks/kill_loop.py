@@ -26,7 +26,7 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file
 
-from mmf_rl.trainers.checkpoint import CheckpointError, load_checkpoint
+from mmf_rl.checkpoint import CheckpointError, load_checkpoint
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -135,7 +135,7 @@ def main() -> int:
         tmp = Path(tmp)
         data = args.data
         if data is None:
-            from mmf_rl.datasets.record import RecordConfig, record
+            from mmf_rl.record import RecordConfig, record
 
             data = record(RecordConfig(out=tmp / "push", episodes=6, steps=40, image_size=32, seed=3))
         started = time.perf_counter()

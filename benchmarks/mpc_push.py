@@ -46,15 +46,10 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.modules.planners import CEMPlanner
 
 from mmf_rl import keys
-from mmf_rl.envs import (
-    ForecasterWorldModelEnv,
-    ImaginedPlanningPolicy,
-    ModalityDropout,
-    MultimodalPushTorchEnv,
-)
+from mmf_rl.envs import ModalityDropout, MultimodalPushTorchEnv
 from mmf_rl.envs.scripted import ScriptedPusher, episode_generator
 from mmf_rl.eval.report import write_json, write_text
-from mmf_rl.planning import PushObjective, SequenceCEMPlanner, WorldModel
+from mmf_rl.rl import ForecasterWorldModelEnv, ImaginedPlanningPolicy, PushObjective, SequenceCEMPlanner, WorldModel
 
 CONDITIONS = {"all": [], "no-camera": ["image"], "no-force": ["force"]}
 

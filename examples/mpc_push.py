@@ -17,7 +17,7 @@ import torch
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 
 from mmf_rl.envs import ModalityDropout, MultimodalPushTorchEnv
-from mmf_rl.planning import PushObjective, SequenceCEMPlanner, WorldModel
+from mmf_rl.rl import PushObjective, SequenceCEMPlanner, WorldModel
 
 parser = argparse.ArgumentParser(description="MPC with a push world model")
 parser.add_argument("--checkpoint", default="runs/world_model/checkpoints")

@@ -11,7 +11,7 @@ import sys
 
 # command -> (module exposing `main(argv: list[str]) -> int | None`, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "record": ("mmf_rl.datasets.record", "record a multimodal push dataset (LeRobot v3.0)"),
+    "record": ("mmf_rl.record", "record a multimodal push dataset (LeRobot v3.0)"),
     "train": ("mmf_rl.trainers.run", "train a forecaster on a LeRobot dataset (Hydra overrides)"),
     "eval": ("mmf_rl.eval.run", "evaluate a checkpoint on every presence subset: table and plots"),
     "demo": ("mmf_rl.demo", "record a push dataset, train the default model on CPU, evaluate (make demo)"),

@@ -15,7 +15,10 @@ import time
 from pathlib import Path
 
 from mmf_rl.configuration import ConfigError, compose_config
-from mmf_rl.trainers.checkpoint import CheckpointError, list_checkpoints
+from mmf_rl.checkpoint import CheckpointError, list_checkpoints
+from mmf_rl.eval.run import run_evaluation
+from mmf_rl.record import RecordConfig, record
+from mmf_rl.trainers.run import train
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -32,18 +35,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 def main(argv: list[str]) -> int:
     args = parse_args(argv)
     started = time.perf_counter()
-    os.environ.setdefault("MUJOCO_GL", "egl")
     try:
         if not (args.data / "meta" / "info.json").is_file():
-            from mmf_rl.datasets.record import RecordConfig, record
-
             print(f"demo: recording {args.episodes} push episodes into {args.data}")
             record(RecordConfig(out=args.data, episodes=args.episodes, workers=args.workers, image_size=64, steps=50))
         else:
             print(f"demo: using the recording in {args.data}")
-        from mmf_rl.eval.run import run_evaluation
-        from mmf_rl.trainers.run import train
-
         overrides = ["experiment=demo", f"data.root={args.data}", f"run_dir={args.run_dir}", *args.overrides]
         if list_checkpoints(args.run_dir / "checkpoints"):
             print(f"demo: {args.run_dir} has checkpoints: resuming (nothing to do if training had finished)")

@@ -183,7 +183,7 @@ class InMemoryLoader:
 @pytest.fixture(scope="session")
 def recorded_push_root(tmp_path_factory):
     """A small multimodal push dataset recorded by the project's own recorder (real MuJoCo data)."""
-    from mmf_rl.datasets.record import RecordConfig, record
+    from mmf_rl.record import RecordConfig, record
 
     root = tmp_path_factory.mktemp("recorded") / "push"
     return record(RecordConfig(out=root, episodes=6, steps=40, image_size=32, seed=3))
@@ -217,7 +217,7 @@ def push_world_model_run(recorded_push_root, tmp_path_factory):
 @pytest.fixture(scope="session")
 def push_world_model(push_world_model_run):
     """The world model of `push_world_model_run`, loaded for planning."""
-    from mmf_rl.planning import WorldModel
+    from mmf_rl.rl import WorldModel
 
     return WorldModel.from_checkpoint(push_world_model_run / "checkpoints")
 

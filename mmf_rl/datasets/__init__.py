@@ -3,30 +3,12 @@
     from mmf_rl.datasets import DataConfig, WindowDataset
     data = WindowDataset(DataConfig.from_dict(cfg))
     for batch in data.loader("train", batch_size=64): ...
-
-Names are resolved on first use, so importing a submodule (e.g. the recorder) stays cheap.
 """
 
-from importlib import import_module
+from mmf_rl.datasets.config import ActionConfig, DataConfig, ModalityConfig, TargetConfig
+from mmf_rl.datasets.protocols import apply_presence_subset, presence_subsets, training_dropout
+from mmf_rl.datasets.splits import Normalizer, split_episodes
+from mmf_rl.datasets.windows import WindowDataset, WindowLoader
 
-_EXPORTS = {
-    "ActionConfig": "config",
-    "DataConfig": "config",
-    "ModalityConfig": "config",
-    "TargetConfig": "config",
-    "WindowDataset": "windows",
-    "WindowLoader": "windows",
-    "Normalizer": "splits",
-    "split_episodes": "splits",
-    "training_dropout": "protocols",
-    "presence_subsets": "protocols",
-    "apply_presence_subset": "protocols",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return getattr(import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+__all__ = ["ActionConfig", "DataConfig", "ModalityConfig", "Normalizer", "TargetConfig", "WindowDataset",
+           "WindowLoader", "apply_presence_subset", "presence_subsets", "split_episodes", "training_dropout"]

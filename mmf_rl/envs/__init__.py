@@ -1,4 +1,4 @@
-"""Simulated multimodal push: the MuJoCo env, its scripted pusher and a gymnasium id.
+"""Simulated multimodal push: the MuJoCo env, its scripted pusher, its TorchRL env and sensor outages.
 
 Importing this package selects the offscreen OpenGL backend (`MUJOCO_GL`, EGL else OSMesa)
 unless the caller already set it.
@@ -15,17 +15,13 @@ if ENV_ID not in gymnasium.registry:
     # FetchPush's own time limit: 50 steps, 2 s at 25 Hz.
     gymnasium.register(ENV_ID, entry_point=MultimodalPushEnv, max_episode_steps=50)
 
-# The TorchRL side imports torchrl and the models; it loads on first use so that importing the
-# MuJoCo env alone (e.g. in the recorder's worker processes) stays cheap.
+# Lazy for start-up time only: the TorchRL side imports torchrl (seconds), which the recorder's
+# worker processes, importing the MuJoCo env alone, never need.
 _TORCHRL_EXPORTS = {
     "MultimodalPushTorchEnv": "mmf_rl.envs.torchrl_env",
-    "ModalityDropout": "mmf_rl.envs.transforms",
-    "UniformBursts": "mmf_rl.envs.transforms",
-    "GeometricBursts": "mmf_rl.envs.transforms",
-    "ForecastTransform": "mmf_rl.envs.transforms",
-    "HistoryWindow": "mmf_rl.envs.transforms",
-    "ForecasterWorldModelEnv": "mmf_rl.envs.world_model",
-    "ImaginedPlanningPolicy": "mmf_rl.envs.world_model",
+    "ModalityDropout": "mmf_rl.envs.modality_dropout",
+    "UniformBursts": "mmf_rl.envs.modality_dropout",
+    "GeometricBursts": "mmf_rl.envs.modality_dropout",
 }
 
 __all__ = ["ENV_ID", "MultimodalPushEnv", "PusherStyle", "ScriptedPusher", "rollout", *_TORCHRL_EXPORTS]

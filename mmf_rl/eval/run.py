@@ -20,9 +20,11 @@ from pathlib import Path
 import torch
 
 from mmf_rl import keys
+from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state
 from mmf_rl.configuration import ConfigError, compose_config, to_container
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
 from mmf_rl.datasets.splits import Normalizer
+from mmf_rl.devices import resolve_device
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.eval.report import (
     markdown_table,
@@ -33,8 +35,6 @@ from mmf_rl.eval.report import (
     write_text,
 )
 from mmf_rl.models import model_from_saved_config
-from mmf_rl.trainers.checkpoint import CheckpointError, load_checkpoint, load_model_state
-from mmf_rl.trainers.run import resolve_device
 
 BASELINE_KEYS = {"cv_mse": "mse", "cv_mse_units": "mse_units", "cv_ade": "ade", "cv_fde": "fde"}
 

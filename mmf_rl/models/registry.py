@@ -13,6 +13,7 @@ from typing import Callable
 
 from torch import nn
 
+from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.baselines import MVAE, LateFusionLSTM, LFLSTMConfig, MulT, MulTConfig, MVAEConfig
 from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
@@ -90,8 +91,6 @@ def model_from_saved_config(saved: dict) -> nn.Module:
 def load_trained_model(path, map_location="cpu") -> tuple[nn.Module, dict, dict]:
     """A trained model from a checkpoint (``path``: a checkpoint, or a run's ``checkpoints/``):
     the model with its weights in eval mode, its normalisation stats, and the run's data config."""
-    from mmf_rl.trainers.checkpoint import CheckpointError, load_checkpoint, load_model_state
-
     checkpoint = load_checkpoint(path, with_trainer_state=False)
     if "model_config" not in checkpoint.meta:
         raise CheckpointError(f"{checkpoint.path} has no 'model_config' in its meta.json; it was not written by "

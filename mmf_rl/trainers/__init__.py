@@ -1,11 +1,3 @@
-from mmf_rl.trainers.checkpoint import (
-    Checkpoint,
-    CheckpointError,
-    list_checkpoints,
-    load_checkpoint,
-    load_model_state,
-    save_checkpoint,
-)
+from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
-__all__ = ["Checkpoint", "CheckpointError", "list_checkpoints", "load_checkpoint", "load_model_state",
-           "save_checkpoint"]
+__all__ = ["Trainer", "TrainerConfig", "TrainingStopped", "seed_everything"]

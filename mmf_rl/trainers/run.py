@@ -21,25 +21,17 @@ import torch
 import torch.distributed as dist
 from omegaconf import OmegaConf
 
+from mmf_rl.checkpoint import CheckpointError, list_checkpoints
 from mmf_rl.configuration import ConfigError, compose_config, load_config, save_config, to_container
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
+from mmf_rl.devices import resolve_device
 from mmf_rl.models import build_loss, build_model, saved_config
-from mmf_rl.trainers.checkpoint import CheckpointError, list_checkpoints
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
 RUN_CONFIG = "config.yaml"
 # Keys that may differ between a run and its resumption (run_dir: the run may have been moved).
 RESUMABLE_CHANGES = {"resume", "trainer.progress_bar", "logger", "num_workers", "run_dir"}
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device={name} was requested but CUDA is not available here; use device=cpu or device=auto")
-    return device
 
 
 def init_distributed(device: torch.device) -> tuple[int, int]:

@@ -28,7 +28,7 @@ from tensordict import TensorDictBase
 from tqdm.auto import tqdm
 
 from mmf_rl.configuration import reject_unknown_keys
-from mmf_rl.trainers.checkpoint import load_checkpoint, load_model_state, save_checkpoint
+from mmf_rl.checkpoint import load_checkpoint, load_model_state, save_checkpoint
 
 OPS = ("batch_process", "post_loss", "post_optim", "post_steps", "post_steps_log")
 

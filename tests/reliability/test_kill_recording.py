@@ -7,7 +7,7 @@ import pytest
 
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.datasets.cache import owned_temp_prefix
-from mmf_rl.datasets.record import RecordConfig, partial_prefix, record
+from mmf_rl.record import RecordConfig, partial_prefix, record
 from tests.reliability.conftest import background, cli_command, wait_for
 
 

@@ -10,7 +10,7 @@ import torch
 from safetensors.torch import load_file
 
 from mmf_rl.cli import main as cli
-from mmf_rl.trainers import list_checkpoints, load_checkpoint
+from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from tests.conftest import push_train_overrides
 
 

@@ -5,7 +5,7 @@ from torchrl.record.loggers import CSVLogger
 from mmf_rl import keys
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
-from mmf_rl.trainers import load_checkpoint
+from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 from tests.conftest import SYNTH_MODALITIES, InMemoryLoader
 

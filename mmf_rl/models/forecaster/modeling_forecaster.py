@@ -61,6 +61,7 @@ from mmf_rl.models.attention import FixedQueryAttention, PreLNTransformerLayer
 from mmf_rl.models.encoders import build_encoder, mlp
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.fusion import build_fusion
+from mmf_rl.models.rows import compute_on_rows
 
 
 class ModalityAgnosticEncoder(nn.Module):
@@ -167,17 +168,12 @@ class MultimodalForecaster(TensorDictModuleBase):
     def encode(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Unimodal encoders -> tokens ``[B, M, d]`` (zeros where absent) and presence ``[B, M]``."""
         present = torch.stack([td.get(s.present_key) for s in self.modalities], dim=1)
-        batch = present.shape[0]
+        absent = torch.zeros(present.shape[0], self.config.d_model, device=present.device)
         columns = []
         for i, spec in enumerate(self.modalities):
-            rows = present[:, i].nonzero().squeeze(1)
-            if rows.numel() == batch:  # all present: no gather (an image window batch is tens of MB)
-                columns.append(self.encoders[spec.name](td.get(spec.obs_key)))
-                continue
-            column = torch.zeros(batch, self.config.d_model, device=present.device)
-            if rows.numel():
-                column = column.index_copy(0, rows, self.encoders[spec.name](td.get(spec.obs_key)[rows]))
-            columns.append(column)
+            obs, encoder = td.get(spec.obs_key), self.encoders[spec.name]
+            columns += compute_on_rows(present[:, i], lambda rows: (encoder(obs if rows is None else obs[rows]),),
+                                       (absent,))
         return torch.stack(columns, dim=1), present
 
     def posterior(self, tokens: torch.Tensor, present: torch.Tensor, target: torch.Tensor | None):

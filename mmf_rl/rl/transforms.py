@@ -1,17 +1,14 @@
-"""TorchRL transforms for multimodal envs: simulated sensor outages and a live forecaster.
+"""TorchRL transforms that run a trained forecaster on a live multimodal env.
 
-Both read the `mmf_rl.keys` contract per env step (``("obs", m)`` single frames and
-``("present", m)`` flags, as `MultimodalPushTorchEnv` emits them) and keep per-env state shaped
-by the env's batch size, so they work on a single env and on `SerialEnv`/`ParallelEnv` alike.
+Both keep a rolling history of the last H steps of the `mmf_rl.keys` contract per env (shaped by
+the env's batch size, so they work on a single env and on `SerialEnv`/`ParallelEnv` alike):
 
-* `ModalityDropout`: seeded outages per modality (bursts of steps, or whole episodes); an absent
-  modality's data is zeroed and its ``("present", m)`` flag cleared. Specs are unchanged.
-* `ForecastTransform`: rolling history of the last H steps, a trained forecaster run on it every
-  step (one batched forward over all envs), the forecast written to ``("forecast", ...)``.
+* `ForecastTransform`: a trained forecaster run on the history every step (one batched forward
+  over all envs), the forecast written to ``("forecast", ...)``.
 * `HistoryWindow`: the same rolling history, written as a model batch under ``"history"`` for a
   policy that runs its own model on it (a planner with a world model).
 
-Put the dropout before the forecaster::
+Put the simulated outages (`mmf_rl.envs.ModalityDropout`) before the forecaster::
 
     env = TransformedEnv(SerialEnv(4, make_env), Compose(
         ModalityDropout(["image", "force"], outage_prob=0.05, bursts=UniformBursts(3, 10), seed=0),
@@ -21,11 +18,8 @@ Put the dropout before the forecaster::
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -36,181 +30,10 @@ from torchrl.envs.transforms import Transform
 
 from mmf_rl import keys
 from mmf_rl.datasets.splits import Normalizer
+from mmf_rl.envs.modality_dropout import not_standalone, reset_rows
 from mmf_rl.keys import ModalitySpec
-
-RESET_KEY = "_reset"
-
-
-def _reset_rows(tensordict: TensorDictBase, batch_size: torch.Size, known_batch_size: torch.Size | None,
-                owner: str) -> torch.Tensor:
-    """The envs a reset applies to, flattened to ``[n]``: ``"_reset"`` if given, else all.
-
-    A transform allocates its per-env state on the first reset of a batch shape, so a batch it
-    has not seen must be reset whole.
-    """
-    n = batch_size.numel()
-    reset = tensordict.get(RESET_KEY, None) if tensordict is not None else None
-    # "_reset" carries the done spec's trailing dim ([*batch, 1]).
-    rows = torch.ones(n, dtype=torch.bool) if reset is None else reset.reshape(n, -1).any(-1).cpu()
-    if known_batch_size != batch_size and not rows.all():
-        raise RuntimeError(f"{owner}: partial reset of an env batch {list(batch_size)} it has not seen; "
-                           "reset every env first")
-    return rows
-
-
-def _not_standalone(name: str) -> RuntimeError:
-    return RuntimeError(f"{name} keeps per-env state across steps and only runs inside a TransformedEnv "
-                        "(env.reset / env.step); it cannot be applied to a stored tensordict")
-
-
-# -- ModalityDropout ---------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class UniformBursts:
-    """Outage lengths uniform over ``[min_steps, max_steps]`` steps (inclusive)."""
-
-    min_steps: int
-    max_steps: int
-
-    def __post_init__(self):
-        if not 1 <= self.min_steps <= self.max_steps:
-            raise ValueError(f"UniformBursts needs 1 <= min_steps <= max_steps, found "
-                             f"min_steps={self.min_steps}, max_steps={self.max_steps}")
-
-    def sample(self, shape: torch.Size, generator: torch.Generator) -> torch.Tensor:
-        return torch.randint(self.min_steps, self.max_steps + 1, shape, generator=generator)
-
-
-@dataclass(frozen=True)
-class GeometricBursts:
-    """Outage lengths geometric on ``{1, 2, ...}`` with mean ``mean_steps`` (memoryless recovery)."""
-
-    mean_steps: float
-
-    def __post_init__(self):
-        if not self.mean_steps >= 1:
-            raise ValueError(f"GeometricBursts needs mean_steps >= 1, found {self.mean_steps}")
-
-    def sample(self, shape: torch.Size, generator: torch.Generator) -> torch.Tensor:
-        if self.mean_steps == 1:
-            return torch.ones(shape, dtype=torch.long)
-        # Inverse CDF: P(L > k) = (1 - p)^k with p = 1 / mean.
-        u = 1.0 - torch.rand(shape, generator=generator, dtype=torch.float64)  # (0, 1]
-        return (torch.log(u) / math.log(1.0 - 1.0 / self.mean_steps)).floor().long() + 1
-
-
-class ModalityDropout(Transform):
-    """Seeded sensor outages: zero ``("obs", m)`` and clear ``("present", m)`` while ``m`` is out.
-
-    Args:
-        modalities: names of the modalities that can fail.
-        outage_prob: one probability for all, or one per modality (a mapping over ``modalities``).
-            ``per="step"``: probability that an outage starts at a step where the modality is up;
-            ``per="episode"``: probability that the modality is out for the whole episode.
-        bursts: outage length distribution for ``per="step"`` (`UniformBursts` or
-            `GeometricBursts`); an outage lasts exactly the drawn number of steps unless the
-            episode ends first.
-        per: ``"step"`` (bursts) or ``"episode"``.
-        seed: seed of the transform's own ``torch.Generator``; the same seed, env batch size and
-            sequence of resets and steps give the same outages.
-
-    Every env (every row of a batched env) draws independently. The reset observation counts as
-    a step. After an outage the modality delivers at least one reading before it can fail again,
-    so each outage is one run of absent steps of the drawn length. A reset clears the outages of
-    the envs that reset (honouring ``"_reset"`` masks) and draws afresh for them.
-    """
-
-    def __init__(self, modalities: Sequence[str], outage_prob: float | Mapping[str, float] = 0.05,
-                 bursts: UniformBursts | GeometricBursts = UniformBursts(1, 10),
-                 per: Literal["step", "episode"] = "step", seed: int = 0):
-        modalities = list(modalities)
-        if not modalities:
-            raise ValueError("ModalityDropout needs at least one modality name")
-        if per not in ("step", "episode"):
-            raise ValueError(f"ModalityDropout(per={per!r}): expected 'step' or 'episode'")
-        if isinstance(outage_prob, Mapping):
-            unknown = sorted(set(outage_prob) - set(modalities))
-            missing = sorted(set(modalities) - set(outage_prob))
-            if unknown or missing:
-                raise ValueError(f"ModalityDropout: outage_prob names {sorted(outage_prob)} but modalities are "
-                                 f"{modalities}; give one probability per modality")
-            probs = [float(outage_prob[m]) for m in modalities]
-        else:
-            probs = [float(outage_prob)] * len(modalities)
-        if any(not 0.0 <= p <= 1.0 for p in probs):
-            raise ValueError(f"ModalityDropout: outage probabilities must be in [0, 1], found {probs}")
-        obs_keys = [keys.obs_key(m) for m in modalities]
-        present_keys = [keys.present_key(m) for m in modalities]
-        super().__init__(in_keys=obs_keys + present_keys, out_keys=obs_keys + present_keys)
-        self.modalities = modalities
-        self.outage_prob = torch.tensor(probs)
-        self.bursts = bursts
-        self.per = per
-        self.seed = seed
-        self.generator = torch.Generator().manual_seed(seed)
-        # Per env (flattened batch) and modality: steps of the current outage still to come, and
-        # whether the last observation was absent.
-        self._remaining: torch.Tensor | None = None
-        self._absent: torch.Tensor | None = None
-        self._batch_size: torch.Size | None = None
-
-    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        available = sorted(k[1] for k in observation_spec.keys(True, True) if isinstance(k, tuple) and k[0] == keys.OBS)
-        missing = [k for k in self.in_keys if k not in observation_spec.keys(True, True)]
-        if missing:
-            raise KeyError(f"ModalityDropout: the env has no {missing}; its modalities are {available}")
-        return observation_spec
-
-    def _draw(self, rows: torch.Tensor) -> None:
-        """Advance the outage state of ``rows`` by one observation."""
-        shape = self._remaining.shape
-        # Draws for every row and modality each time, so the stream does not depend on outcomes.
-        starts = torch.rand(shape, generator=self.generator) < self.outage_prob
-        if self.per == "step":
-            lengths = self.bursts.sample(shape, self.generator)
-        else:  # drawn at reset only: an outage that outlasts any episode
-            lengths = torch.full(shape, torch.iinfo(torch.long).max)
-        starts &= ~self._absent & rows[:, None]
-        remaining = torch.where(starts, lengths, self._remaining)
-        absent = remaining > 0
-        self._absent = torch.where(rows[:, None], absent, self._absent)
-        self._remaining = torch.where(rows[:, None], (remaining - 1).clamp_min(0), self._remaining)
-
-    def _apply_outages(self, tensordict: TensorDictBase) -> TensorDictBase:
-        absent = self._absent.reshape(*self._batch_size, len(self.modalities))
-        for i, name in enumerate(self.modalities):
-            out = absent[..., i]
-            obs = tensordict.get(keys.obs_key(name))
-            mask = out.reshape(*out.shape, *[1] * (obs.dim() - out.dim()))
-            tensordict.set(keys.obs_key(name), obs.masked_fill(mask, 0))
-            tensordict.set(keys.present_key(name), tensordict.get(keys.present_key(name)) & ~out)
-        return tensordict
-
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        batch_size = tensordict_reset.batch_size
-        rows = _reset_rows(tensordict, batch_size, self._batch_size, "ModalityDropout")
-        if self._batch_size != batch_size:
-            self._batch_size = batch_size
-            self._remaining = torch.zeros(batch_size.numel(), len(self.modalities), dtype=torch.long)
-            self._absent = torch.zeros(batch_size.numel(), len(self.modalities), dtype=torch.bool)
-        self._remaining[rows] = 0
-        self._absent[rows] = False
-        self._draw(rows)
-        return self._apply_outages(tensordict_reset)
-
-    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        if self._batch_size is None:
-            raise RuntimeError("ModalityDropout: the env was stepped before its first reset; call env.reset()")
-        if self.per == "step":
-            self._draw(torch.ones(self._batch_size.numel(), dtype=torch.bool))
-        return self._apply_outages(next_tensordict)
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        raise _not_standalone("ModalityDropout")
-
-
-# -- ForecastTransform -------------------------------------------------------------------------
+from mmf_rl.models.registry import load_trained_model
+from mmf_rl.models.rows import compute_on_rows
 
 
 def _describe_spec(spec, batch_dims: int) -> str:
@@ -343,7 +166,7 @@ class _WindowTransform(Transform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         batch_size = tensordict_reset.batch_size
-        rows = _reset_rows(tensordict, batch_size, self._batch_size, type(self).__name__)
+        rows = reset_rows(tensordict, batch_size, self._batch_size, type(self).__name__)
         if self._batch_size != batch_size:
             self._allocate(batch_size)
         self._push(tensordict_reset, rows)
@@ -356,7 +179,7 @@ class _WindowTransform(Transform):
         return self._emit(next_tensordict)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        raise _not_standalone(type(self).__name__)
+        raise not_standalone(type(self).__name__)
 
 
 class ForecastTransform(_WindowTransform):
@@ -366,7 +189,7 @@ class ForecastTransform(_WindowTransform):
         model: a forecaster from the model registry (``config.modalities``, ``config.history``,
             ``config.horizon``, ``config.target_dim``); it is put in eval mode and run under
             ``torch.no_grad()``. An action-conditioned world model cannot forecast without the
-            future actions: plan with it instead (`HistoryWindow` + `mmf_rl.planning`).
+            future actions: plan with it instead (`HistoryWindow` + `mmf_rl.rl`).
         stats: the normalisation statistics of its training run (a checkpoint's ``tensors``):
             ``"<m>/mean"``, ``"<m>/std"`` for every non-image modality, ``"target/mean"``,
             ``"target/std"``.
@@ -403,7 +226,7 @@ class ForecastTransform(_WindowTransform):
             raise ValueError(
                 "ForecastTransform: this model is an action-conditioned world model (action_dim="
                 f"{config.action_dim}); it forecasts only under given future actions. Plan with it: "
-                "HistoryWindow + mmf_rl.planning.SequenceCEMPlanner, or ForecasterWorldModelEnv"
+                "HistoryWindow + mmf_rl.rl.SequenceCEMPlanner, or ForecasterWorldModelEnv"
             )
         if num_samples < 0:
             raise ValueError(f"ForecastTransform: num_samples must be >= 0, found {num_samples}")
@@ -425,8 +248,6 @@ class ForecastTransform(_WindowTransform):
         ``path``: a checkpoint directory or a directory with a ``last`` pointer (a run's
         ``checkpoints/``).
         """
-        from mmf_rl.models.registry import load_trained_model
-
         model, stats, data_config = load_trained_model(path, map_location)
         return cls(model, stats, stride=int(data_config.get("stride", 1)), num_samples=num_samples,
                    denormalize=denormalize)
@@ -450,24 +271,22 @@ class ForecastTransform(_WindowTransform):
         window = self.window()
         n = window.batch_size[0]
         valid = torch.stack([window.get(s.present_key) for s in self.specs], 1).any(1)
-        loc = torch.zeros(n, self.horizon, self.target_dim)
-        scale = torch.ones(n, self.horizon, self.target_dim)
-        samples = loc.unsqueeze(1).repeat(1, self.num_samples, 1, 1) if self.num_samples else None
-        if valid.any():
-            rows = None if valid.all() else valid.nonzero().squeeze(1)
-            inputs = window if rows is None else window[rows]
-            device = next(self.model.parameters()).device
-            inputs = inputs.to(device)
+        # Envs with no present sensor get the target's training prior (zero mean, unit scale).
+        prior = [torch.zeros(n, self.horizon, self.target_dim), torch.ones(n, self.horizon, self.target_dim)]
+        if self.num_samples:
+            prior.append(torch.zeros(n, self.num_samples, self.horizon, self.target_dim))
+        device = next(self.model.parameters()).device
+
+        def predict(rows: torch.Tensor | None) -> list[torch.Tensor]:
+            inputs = (window if rows is None else window[rows]).to(device)
             out = self.model(inputs.clone(False))
             predicted = [out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)]
             if self.num_samples:
                 predicted.append(self.model.sample(inputs.clone(False), self.num_samples).get(keys.FORECAST_SAMPLES))
-            targets = [loc, scale] + ([samples] if self.num_samples else [])
-            for target, value in zip(targets, predicted):
-                if rows is None:
-                    target.copy_(value)
-                else:
-                    target[rows] = value.to(target.device)
+            return [p.cpu() for p in predicted]
+
+        loc, scale, *samples = compute_on_rows(valid, predict, prior)
+        samples = samples[0] if samples else None
         if self.denormalize:
             loc = self.normalizer.denormalize_target(loc)
             scale = self.normalizer.denormalize_target_scale(scale)
@@ -491,7 +310,7 @@ class HistoryWindow(_WindowTransform):
     ``bool [*batch]``: exactly a model batch of the `mmf_rl.keys` contract, built by the rules of
     `ForecastTransform` (normalised vectors, resized images, window presence). A policy reads it
     with ``tensordict.get("history")`` and runs any forecaster on it: this is how a planner
-    conditions a world model on the real history (`mmf_rl.planning.SequenceCEMPlanner`).
+    conditions a world model on the real history (`mmf_rl.rl.SequenceCEMPlanner`).
 
     Args:
         specs: the model's modalities (``model.config.modalities``).

@@ -20,7 +20,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded
 
 from mmf_rl import keys
-from mmf_rl.planning.world_model import WorldModel
+from mmf_rl.rl.world_model import WorldModel
 
 IS_INIT = "is_init"  # torchrl's InitTracker flag: the first step of an episode
 
@@ -28,7 +28,7 @@ Objective = Callable[[torch.Tensor, torch.Tensor, TensorDictBase], torch.Tensor]
 
 
 class SequenceCEMPlanner(TensorDictModuleBase):
-    """A TorchRL policy: reads ``"history"`` (`mmf_rl.envs.HistoryWindow`) and the objective's
+    """A TorchRL policy: reads ``"history"`` (`mmf_rl.rl.HistoryWindow`) and the objective's
     context keys, writes ``"action"``.
 
     Every call (one control step, for every env of the batch): encode each env's history once;

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster
-from mmf_rl.trainers import CheckpointError, list_checkpoints, load_checkpoint, load_model_state, save_checkpoint
+from mmf_rl.checkpoint import CheckpointError, list_checkpoints, load_checkpoint, load_model_state, save_checkpoint
 
 
 def test_roundtrip_restores_weights_tensors_and_state(tmp_path, small_model, small_config):

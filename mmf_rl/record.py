@@ -49,6 +49,18 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from mmf_rl.datasets.cache import owned_temp_prefix, remove_stale_temp_dirs
+from mmf_rl.envs.push import (
+    ACTION_NAMES,
+    FORCE_NAMES,
+    GOAL_NAMES,
+    OBJECT_POSE_NAMES,
+    PROPRIO_NAMES,
+    MultimodalPushEnv,
+    camera_names,
+)
+from mmf_rl.envs.scripted import rollout
+
 PROG = "mmf-rl record"
 TASK = "Push the block to the red target."
 ROBOT_TYPE = "fetch"
@@ -107,8 +119,6 @@ class SensorFaults:
 
 
 def dataset_features(image_size: int) -> dict[str, dict]:
-    from mmf_rl.envs.push import ACTION_NAMES, FORCE_NAMES, GOAL_NAMES, OBJECT_POSE_NAMES, PROPRIO_NAMES
-
     def vector(names: list[str]) -> dict:
         return {"dtype": "float32", "shape": (len(names),), "names": list(names)}
 
@@ -145,8 +155,6 @@ class RecordConfig:
 
 def record_episode(env, config: RecordConfig, episode_index: int) -> dict[str, np.ndarray]:
     """Roll out episode ``episode_index`` and apply its sensor faults when enabled."""
-    from mmf_rl.envs.scripted import rollout
-
     episode = rollout(env, config.seed, episode_index, config.steps, config.exploration)
     episode["image_valid"] = np.ones((config.steps, 1), dtype=bool)
     if config.faults:
@@ -164,7 +172,6 @@ def record_shard(
 
     disable_progress_bar()  # lerobot's per-episode "Map" bars would drown the episodes bar
 
-    from mmf_rl.envs.push import MultimodalPushEnv
 
     env = MultimodalPushEnv(image_size=config.image_size, camera=config.camera)
     try:
@@ -240,9 +247,7 @@ def _validate(config: RecordConfig) -> None:
     if not 0.0 <= config.exploration <= 1.0:
         raise RecordError(f"--exploration {config.exploration}: must be a probability in [0, 1].")
     _check_destination(config)
-    # Slower checks last: these import MuJoCo and lerobot.
-    from mmf_rl.envs.push import camera_names
-
+    # Slower checks last: this one imports lerobot.
     if config.camera not in camera_names():
         raise RecordError(f"--camera {config.camera!r} is unknown; choose one of {camera_names()}.")
     from lerobot.datasets.video_utils import VALID_VIDEO_CODECS
@@ -295,8 +300,6 @@ def partial_prefix(out: Path) -> str:
 
 def record(config: RecordConfig) -> Path:
     """Record ``config.episodes`` episodes into ``config.out``; return the dataset's path."""
-    from mmf_rl.datasets.cache import owned_temp_prefix, remove_stale_temp_dirs
-
     _validate(config)
     os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its whole config per episode otherwise
     out = config.out.resolve()

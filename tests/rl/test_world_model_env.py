@@ -5,9 +5,8 @@ import torch
 from torchrl.modules.planners import CEMPlanner, MPPIPlanner
 
 from mmf_rl import keys
-from mmf_rl.envs import ForecasterWorldModelEnv
-from mmf_rl.envs.world_model import ACTIONS, FORECAST, STEP
-from mmf_rl.planning import PushObjective
+from mmf_rl.rl import ForecasterWorldModelEnv, PushObjective
+from mmf_rl.rl.world_model_env import ACTIONS, FORECAST, STEP
 
 
 @pytest.fixture

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from mmf_rl import cli
-from mmf_rl.datasets import record as record_module
-from mmf_rl.datasets.record import (
+from mmf_rl import record as record_module
+from mmf_rl.record import (
     ACTION_KEY,
     CAMERA_KEY,
     CAMERA_VALID_KEY,

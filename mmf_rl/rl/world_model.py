@@ -10,8 +10,10 @@ from tensordict import TensorDictBase
 
 from mmf_rl import keys
 from mmf_rl.datasets.splits import Normalizer
-from mmf_rl.envs.transforms import HistoryWindow
 from mmf_rl.models.forecaster import MultimodalForecaster
+from mmf_rl.models.registry import load_trained_model
+from mmf_rl.models.rows import compute_on_rows
+from mmf_rl.rl.transforms import HistoryWindow
 
 
 class WorldModel:
@@ -50,8 +52,6 @@ class WorldModel:
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike, map_location: str | torch.device = "cpu") -> WorldModel:
-        from mmf_rl.models.registry import load_trained_model
-
         model, stats, data_config = load_trained_model(path, map_location)
         return cls(model, stats, stride=int(data_config.get("stride", 1)),
                    std_floor=float(data_config.get("std_floor", 1e-3)))
@@ -71,13 +71,10 @@ class WorldModel:
         specs = self.model.modalities
         present = torch.stack([window.get(s.present_key) for s in specs], dim=1).to(self.device)
         valid = present.any(1)
-        n = present.shape[0]
-        tokens = torch.zeros(n, len(specs), self.model.config.d_model, device=self.device)
-        if valid.all():
-            tokens, present = self.model.encode(window.to(self.device))
-        elif valid.any():
-            rows = valid.nonzero().squeeze(1)
-            tokens[rows], present[rows] = self.model.encode(window[rows.cpu()].to(self.device))
+        no_tokens = torch.zeros(present.shape[0], len(specs), self.model.config.d_model, device=self.device)
+        tokens, present = compute_on_rows(
+            valid, lambda rows: self.model.encode((window if rows is None else window[rows.cpu()]).to(self.device)),
+            (no_tokens, present))
         return tokens, present, valid
 
     @torch.no_grad()
@@ -85,13 +82,13 @@ class WorldModel:
                  actions: torch.Tensor) -> torch.Tensor:
         """Forecast ``[n, N, T, D]`` (target units) for raw action sequences ``[n, N, S, A]``."""
         n, candidates = actions.shape[:2]
-        normalized = torch.zeros(n, candidates, self.horizon, self.target_dim, device=self.device)
-        if valid.any():
-            rows = None if valid.all() else valid.nonzero().squeeze(1)
-            scaled = self.normalizer.normalize(keys.FUTURE_ACTION, actions.to(self.device))
+        prior = torch.zeros(n, candidates, self.horizon, self.target_dim, device=self.device)
+
+        def decode(rows: torch.Tensor | None) -> tuple[torch.Tensor]:
+            index = slice(None) if rows is None else rows
+            scaled = self.normalizer.normalize(keys.FUTURE_ACTION, actions.to(self.device)[index])
             scaled = scaled.masked_fill(self.constant_action_dims, 0.0)
-            if rows is None:
-                normalized, _ = self.model.decode_under_actions(tokens, present, scaled)
-            else:
-                normalized[rows] = self.model.decode_under_actions(tokens[rows], present[rows], scaled[rows])[0]
+            return (self.model.decode_under_actions(tokens[index], present[index], scaled)[0],)
+
+        (normalized,) = compute_on_rows(valid, decode, (prior,))
         return self.normalizer.denormalize_target(normalized)

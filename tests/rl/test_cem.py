@@ -9,7 +9,7 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from mmf_rl import keys
 from mmf_rl.envs import MultimodalPushTorchEnv
 from mmf_rl.envs.scripted import ACTION_SCALE, CONTACT_DISTANCE, TRACKING_GAIN
-from mmf_rl.planning import PushObjective, SequenceCEMPlanner
+from mmf_rl.rl import PushObjective, SequenceCEMPlanner
 
 IMAGE_SIZE = 32
 ACTIONS = Bounded(-1.0, 1.0, (4,))

@@ -1,76 +1,25 @@
 from __future__ import annotations
 
-import functools
-
 import pytest
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDict
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import Compose, EnvBase, SerialEnv, TransformedEnv
+from torchrl.envs import Compose, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from mmf_rl import keys
+from mmf_rl.checkpoint import save_checkpoint
 from mmf_rl.datasets.splits import Normalizer
+from mmf_rl.envs.modality_dropout import ModalityDropout, UniformBursts
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
-from mmf_rl.envs.transforms import ForecastTransform, GeometricBursts, HistoryWindow, ModalityDropout, UniformBursts
 from mmf_rl.keys import FORECAST_VALID, ModalitySpec
 from mmf_rl.models import build_model, saved_config
-from mmf_rl.trainers.checkpoint import save_checkpoint
+from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from tests.envs.conftest import IMAGE_SIZE
+from tests.envs.stamp_env import MODALITIES, VECTOR_DIMS, stamp_envs
 
 HISTORY, HORIZON, TARGET_DIM = 3, 4, 2
 MODEL_IMAGE = 16  # smaller than the env's frames: the transform resizes them
-MODALITIES = ("image", "force", "proprio")
-VECTOR_DIMS = {"force": 6, "proprio": 17}
-
-
-class StampEnv(EnvBase):
-    """The push env's observation layout, filled with a stamp of (env, episode, step).
-
-    Every entry of ``("obs", m)`` at step ``t`` of episode ``e`` of env ``k`` holds
-    ``stamp = 1000 * k + 100 * e + t + 1`` (images: ``stamp % 256``), so a window read back from a
-    transform tells exactly which steps it holds.
-    """
-
-    def __init__(self, env_index: int = 0, max_steps: int = 1000):
-        super().__init__(batch_size=torch.Size([]))
-        self.env_index, self.max_steps = env_index, max_steps
-        self.episode, self.t = -1, 0
-        self.observation_spec = Composite({
-            keys.OBS: Composite(image=Bounded(0, 255, (3, IMAGE_SIZE, IMAGE_SIZE), dtype=torch.uint8),
-                                **{m: Unbounded((d,)) for m, d in VECTOR_DIMS.items()}),
-            keys.PRESENT: Composite({m: Categorical(2, (), dtype=torch.bool) for m in MODALITIES}),
-        })
-        self.action_spec = Bounded(-1.0, 1.0, (1,))
-        self.reward_spec = Unbounded((1,))
-
-    def stamp(self) -> int:
-        return 1000 * self.env_index + 100 * self.episode + self.t + 1
-
-    def _observation(self) -> TensorDict:
-        stamp = self.stamp()
-        return TensorDict({
-            keys.OBS: {"image": torch.full((3, IMAGE_SIZE, IMAGE_SIZE), stamp % 256, dtype=torch.uint8),
-                       **{m: torch.full((d,), float(stamp)) for m, d in VECTOR_DIMS.items()}},
-            keys.PRESENT: {m: torch.tensor(True) for m in MODALITIES},
-        }, batch_size=[])
-
-    def _reset(self, tensordict=None, **kwargs):
-        self.episode, self.t = self.episode + 1, 0
-        return self._observation().update({"done": torch.tensor([False]), "terminated": torch.tensor([False])})
-
-    def _step(self, tensordict):
-        self.t += 1
-        done = torch.tensor([self.t >= self.max_steps])
-        return self._observation().update({"reward": torch.zeros(1), "done": done, "terminated": done.clone()})
-
-    def _set_seed(self, seed):
-        pass
-
-
-def stamp_envs(num_envs: int, max_steps: int = 1000) -> SerialEnv:
-    return SerialEnv(num_envs, [functools.partial(StampEnv, k, max_steps) for k in range(num_envs)])
 
 
 def make_stats(seed: int = 0) -> dict[str, torch.Tensor]:
@@ -104,108 +53,6 @@ def checkpoint(tmp_path_factory):
     return write_checkpoint(tmp_path_factory.mktemp("ckpt"), PUSH_SPECS)
 
 
-# -- ModalityDropout -----------------------------------------------------------------------------
-
-
-def dropout_rollout(dropout: ModalityDropout, num_envs: int = 4, steps: int = 120, max_steps: int = 1000):
-    env = TransformedEnv(stamp_envs(num_envs, max_steps), dropout)
-    try:
-        return env.rollout(steps, break_when_any_done=False)
-    finally:
-        env.close()
-
-
-def presence_over_time(td, name: str) -> torch.Tensor:
-    """``[envs, steps + 1]``: the reset observation, then every step's."""
-    return torch.cat([td[keys.present_key(name)][:, :1], td["next", keys.PRESENT, name]], dim=1)
-
-
-def runs_of_absence(present: torch.Tensor) -> list[int]:
-    """Lengths of the runs of False in each row, without runs cut by the rollout's ends."""
-    lengths = []
-    for row in present.tolist():
-        run, started_inside = 0, False
-        for i, p in enumerate(row):
-            if not p:
-                if run == 0:
-                    started_inside = i > 0
-                run += 1
-            else:
-                if run and started_inside:
-                    lengths.append(run)
-                run = 0
-    return lengths
-
-
-def test_dropout_zeroes_data_and_clears_presence():
-    td = dropout_rollout(ModalityDropout(["image", "force"], outage_prob=0.2, bursts=UniformBursts(1, 4), seed=0))
-    nxt = td["next"]
-    for name in ("image", "force"):
-        absent = ~nxt[keys.PRESENT, name]
-        assert 0 < absent.float().mean() < 1
-        obs = nxt[keys.obs_key(name)].flatten(2)
-        assert (obs[absent] == 0).all(), "an absent modality carries zeros"
-        assert (obs[~absent] != 0).all(), "a present modality keeps its data"
-    assert nxt[keys.PRESENT, "proprio"].all(), "modalities not listed never fail"
-
-
-def test_dropout_is_reproducible_from_its_seed_and_independent_per_env():
-    def pattern(seed):
-        td = dropout_rollout(ModalityDropout(["image", "force"], outage_prob=0.1, seed=seed), steps=60)
-        return torch.stack([presence_over_time(td, m) for m in ("image", "force")])
-
-    first = pattern(3)
-    assert torch.equal(first, pattern(3))
-    assert not torch.equal(first, pattern(4))
-    assert not torch.equal(first[:, 0], first[:, 1]), "each env draws its own outages"
-
-
-@pytest.mark.parametrize("bursts", [UniformBursts(2, 4), GeometricBursts(3.0)])
-def test_dropout_bursts_have_the_configured_lengths(bursts):
-    td = dropout_rollout(ModalityDropout(["force"], outage_prob=0.15, bursts=bursts, seed=1), num_envs=4, steps=300)
-    lengths = torch.tensor(runs_of_absence(presence_over_time(td, "force")))
-    assert len(lengths) > 40
-    if isinstance(bursts, UniformBursts):
-        assert set(lengths.tolist()) == {2, 3, 4}
-    else:
-        assert lengths.min() == 1 and lengths.max() > 6
-        assert abs(lengths.float().mean().item() - 3.0) < 0.6
-
-
-def test_dropout_per_episode_holds_for_the_whole_episode():
-    td = dropout_rollout(ModalityDropout(["image"], outage_prob=0.5, per="episode", seed=0),
-                         num_envs=8, steps=40, max_steps=10)
-    present = presence_over_time(td, "image")  # 4 episodes of 10 steps per env
-    steps = torch.arange(present.shape[1])
-    for env in range(present.shape[0]):
-        for episode in range(4):
-            # Step 10 of an episode is its terminal observation; the reset observation follows in the root td.
-            chunk = present[env, (steps > 10 * episode) & (steps <= 10 * episode + 9)]
-            assert chunk.all() or not chunk.any()
-    assert 0 < present.float().mean() < 1
-
-
-def test_dropout_reset_clears_the_outages_of_the_envs_that_reset():
-    env = TransformedEnv(stamp_envs(2), ModalityDropout(["force"], outage_prob=1.0, bursts=UniformBursts(5, 5)))
-    try:
-        td = env.reset()
-        # An outage starts at the reset observation: 5 absent observations, then one present.
-        for _ in range(3):
-            td = env.step(env.rand_action(td))["next"]
-        td["_reset"] = torch.tensor([[True], [False]])
-        td = env.reset(td)
-        present = [td[keys.present_key("force")].tolist()]
-        for _ in range(5):
-            td = env.step(env.rand_action(td))["next"]
-            present.append(td[keys.present_key("force")].tolist())
-        # env 0 restarted its 5-step outage at the reset; env 1 finished its outage 2 steps later.
-        assert [p[0] for p in present] == [False] * 5 + [True]
-        assert [p[1] for p in present] == [False, False, True, False, False, False]
-    finally:
-        env.close()
-
-
-# -- ForecastTransform ---------------------------------------------------------------------------
 
 
 def test_forecast_env_passes_check_env_specs(checkpoint):

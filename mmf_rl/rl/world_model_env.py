@@ -22,12 +22,12 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.modules.planners import MPCPlannerBase
 
 from mmf_rl import keys
-from mmf_rl.planning.cem import Objective
-from mmf_rl.planning.world_model import WorldModel
+from mmf_rl.rl.cem import Objective
+from mmf_rl.rl.world_model import WorldModel
 
 IMAGINED = "imagined"
 TOKENS = (IMAGINED, "tokens")
-PRESENT = (IMAGINED, "present")
+TOKEN_PRESENT = (IMAGINED, "token_present")  # [M] per token slot; not the batch key ("present", m)
 VALID = (IMAGINED, "valid")
 ACTIONS = (IMAGINED, "actions")
 STEP = (IMAGINED, "step")
@@ -70,7 +70,7 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         # so every step carries it forward.
         self.observation_spec = Composite(
             {FORECAST: Unbounded((world_model.target_dim,), dtype=torch.float32),
-             TOKENS: Unbounded((m, d), dtype=torch.float32), PRESENT: Categorical(2, (m,), dtype=torch.bool),
+             TOKENS: Unbounded((m, d), dtype=torch.float32), TOKEN_PRESENT: Categorical(2, (m,), dtype=torch.bool),
              VALID: Categorical(2, (), dtype=torch.bool), ACTIONS: Unbounded((steps, dim), dtype=torch.float32),
              STEP: Unbounded((1,), dtype=torch.int64), **{k: context_spec[k] for k in objective.in_keys}})
         self.reward_spec = Unbounded((1,), dtype=torch.float32)
@@ -84,7 +84,7 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         tokens, present, valid = self.dynamics.encode(tensordict.get(keys.HISTORY).reshape(n))
         steps, dim = self.dynamics.action_steps, self.dynamics.action_dim
         state = TensorDict(
-            {TOKENS: tokens, PRESENT: present, VALID: valid, ACTIONS: torch.zeros(n, steps, dim),
+            {TOKENS: tokens, TOKEN_PRESENT: present, VALID: valid, ACTIONS: torch.zeros(n, steps, dim),
              STEP: torch.zeros(n, 1, dtype=torch.int64), FORECAST: torch.zeros(n, self.dynamics.target_dim),
              "done": torch.zeros(n, 1, dtype=torch.bool), "terminated": torch.zeros(n, 1, dtype=torch.bool)},
             batch_size=[n]).reshape(batch)
@@ -102,7 +102,7 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         # The new action replaces this step's and, until chosen, every later step's.
         later = torch.arange(steps)[None, :, None] >= step[:, :, None]
         actions = torch.where(later, flat.get("action")[:, None, :], flat.get(ACTIONS))
-        forecast = self.dynamics.forecast(flat.get(TOKENS), flat.get(PRESENT), flat.get(VALID), actions[:, None]).cpu()
+        forecast = self.dynamics.forecast(flat.get(TOKENS), flat.get(TOKEN_PRESENT), flat.get(VALID), actions[:, None]).cpu()
         context = flat.select(*self.objective.in_keys)
         rewards = self.objective(forecast, actions[:, None], context)[:, 0]  # [n, T]
         index = step // (steps // self.dynamics.horizon)  # the forecast step of this action's frame
@@ -110,7 +110,7 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         predicted = forecast[:, 0].gather(1, index[:, :, None].expand(-1, -1, forecast.shape[-1]))[:, 0]
         done = step + 1 >= steps
         out = TensorDict(
-            {TOKENS: flat.get(TOKENS), PRESENT: flat.get(PRESENT), VALID: flat.get(VALID), ACTIONS: actions,
+            {TOKENS: flat.get(TOKENS), TOKEN_PRESENT: flat.get(TOKEN_PRESENT), VALID: flat.get(VALID), ACTIONS: actions,
              STEP: step + 1, FORECAST: predicted, "reward": reward, "done": done, "terminated": done.clone()},
             batch_size=[n])
         return out.update(context).reshape(batch)

@@ -1,0 +1,87 @@
+"""The package's import graph only points down its layers (README, "Layout")."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "mmf_rl"
+
+# Bottom to top; a module may import its own layer's modules or lower ones, never a higher layer.
+LAYERS: list[set[str]] = [
+    {"keys", "configuration", "checkpoint", "devices"},
+    {"envs"},
+    {"datasets"},
+    {"record"},
+    {"objectives"},
+    {"models"},
+    {"trainers", "eval"},
+    {"rl"},
+    {"cli", "demo"},
+]
+RANK = {name: rank for rank, layer in enumerate(LAYERS) for name in layer}
+
+
+def import_edges(package: Path) -> set[tuple[str, str, str]]:
+    """``(importing file, its top-level unit, imported top-level unit)`` for every ``mmf_rl`` import,
+    including imports inside functions (a lazy import is still a dependency)."""
+    edges = set()
+    for path in sorted(package.rglob("*.py")):
+        unit = path.relative_to(package).parts[0].removesuffix(".py")
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [f"{node.module}.{a.name}" for a in node.names] if node.module == "mmf_rl" else [node.module]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                parts = name.split(".")
+                if parts[0] == "mmf_rl" and len(parts) > 1 and parts[1] != unit:
+                    edges.add((str(path.relative_to(package.parent)), unit, parts[1]))
+    return edges
+
+
+def layer_violations(package: Path) -> list[str]:
+    problems = []
+    edges = import_edges(package)
+    units = {unit for _, unit, _ in edges} | {dst for _, _, dst in edges}
+    unknown = sorted(u for u in units if u not in RANK and u != "__init__")
+    problems += [f"mmf_rl.{u} has no layer: add it to tests/test_layers.py LAYERS" for u in unknown]
+    pairs = {(src, dst) for _, src, dst in edges}
+    for path, src, dst in sorted(edges):
+        if src in RANK and dst in RANK and RANK[dst] > RANK[src]:
+            problems.append(f"{path}: {src} imports {dst}, a higher layer")
+        elif src in RANK and RANK.get(dst) == RANK[src] and (dst, src) in pairs:
+            problems.append(f"{path}: {src} imports {dst}, which imports {src} back")
+    return problems
+
+
+def test_imports_only_point_down():
+    assert layer_violations(PACKAGE) == []
+
+
+@pytest.mark.parametrize("source, expected", [
+    ("from mmf_rl.models import build_model\n", "datasets imports models, a higher layer"),
+    ("def f():\n    from mmf_rl.rl.transforms import HistoryWindow\n", "datasets imports rl, a higher layer"),
+    ("import mmf_rl.trainers.trainer\n", "datasets imports trainers, a higher layer"),
+    ("from mmf_rl import eval\n", "datasets imports eval, a higher layer"),
+])
+def test_an_upward_import_is_reported(tmp_path, source, expected):
+    package = tmp_path / "mmf_rl"
+    (package / "datasets").mkdir(parents=True)
+    (package / "datasets" / "windows.py").write_text(source)
+    assert layer_violations(package) == [f"mmf_rl/datasets/windows.py: {expected}"]
+
+
+def test_a_loop_within_a_layer_is_reported(tmp_path):
+    package = tmp_path / "mmf_rl"
+    for unit, other in (("trainers", "eval"), ("eval", "trainers")):
+        (package / unit).mkdir(parents=True)
+        (package / unit / "run.py").write_text(f"from mmf_rl.{other}.run import main\n")
+    assert layer_violations(package) == [
+        "mmf_rl/eval/run.py: eval imports trainers, which imports eval back",
+        "mmf_rl/trainers/run.py: trainers imports eval, which imports trainers back",
+    ]
