@@ -40,6 +40,7 @@ import torch
 from tensordict import TensorDict
 from tqdm.auto import tqdm
 
+from mmf_rl import keys
 from mmf_rl.datasets.lerobot_source import LeRobotSource, VideoJob, clear_decoders, run_video_job
 
 # 2: cache.json records each file's size and checksum; 3: Inf targets stored as 0, windows need a
@@ -118,8 +119,8 @@ def _frame_columns(source: LeRobotSource, columns: dict[str, np.ndarray]) -> dic
         present[name] = ok
     target, target_valid = _vector_column(columns[source.target_feature], source.config.target.dims, n)
     per_frame = {
-        "obs": obs,
-        "present": present,
+        keys.OBS: obs,
+        keys.PRESENT: present,
         "target": target,
         "target_valid": target_valid,
         "episode": torch.from_numpy(np.asarray(columns["episode_index"], dtype=np.int64)),
@@ -188,11 +189,11 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
     per_frame = _frame_columns(source, columns)
 
     layout = {
-        "obs": {
+        keys.OBS: {
             name: torch.zeros((), dtype=m.spec.dtype).expand(n, *m.spec.shape)
             for name, m in source.modalities.items()
         },
-        "present": per_frame["present"],
+        keys.PRESENT: per_frame[keys.PRESENT],
         "target": per_frame["target"],
         "target_valid": per_frame["target_valid"],
         "episode": per_frame["episode"],
@@ -206,21 +207,21 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
     for key in vector_keys:
         frames.get(key).copy_(layout[key])
     for name in source.modalities:
-        frames.get(("present", name)).copy_(per_frame["present"][name])
-        if name in per_frame["obs"]:
-            frames.get(("obs", name)).copy_(per_frame["obs"][name])
+        frames.get(keys.present_key(name)).copy_(per_frame[keys.PRESENT][name])
+        if name in per_frame[keys.OBS]:
+            frames.get(keys.obs_key(name)).copy_(per_frame[keys.OBS][name])
 
     missing = source.missing_videos()
     failed = _decode(_video_jobs(source, columns, directory / "frames", missing), num_workers)
     undecodable: dict[str, dict[str, str]] = {}
     for job, error in failed:
         undecodable.setdefault(job.modality, {})[job.video_path] = error
-        frames.get(("present", job.modality))[job.row_start : job.row_start + len(job.timestamps)] = False
+        frames.get(keys.present_key(job.modality))[job.row_start : job.row_start + len(job.timestamps)] = False
     for name, paths in missing.items():
         absent = {str(p) for p in paths}
         for episode in source.episodes:
             if str(source.video_path(episode.index, source.modalities[name].feature)) in absent:
-                frames.get(("present", name))[episode.start : episode.stop] = False
+                frames.get(keys.present_key(name))[episode.start : episode.stop] = False
 
     windows, skipped = _windows(source, frames)
     windows.memmap_(directory / "windows")
@@ -264,7 +265,7 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
     last_rows = starts + int(observed[-1])
     present = {}
     for name, m in source.modalities.items():
-        frame_present = frames.get(("present", name)).as_subclass(torch.Tensor)
+        frame_present = frames.get(keys.present_key(name)).as_subclass(torch.Tensor)
         present[name] = frame_present[last_rows] if m.spec.kind == "vector" else frame_present[observed_rows].all(1)
     target_valid = frames.get("target_valid").as_subclass(torch.Tensor)
     target_ok = target_valid[starts[:, None] + future].all(1) & target_valid[last_rows]
@@ -281,7 +282,7 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
         {
             "start": starts[keep],
             "episode": frames.get("episode").as_subclass(torch.Tensor)[starts[keep]],
-            "present": {name: mask[keep] for name, mask in present.items()},
+            keys.PRESENT: {name: mask[keep] for name, mask in present.items()},
         },
         batch_size=[int(keep.sum())],
     )

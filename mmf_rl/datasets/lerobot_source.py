@@ -20,7 +20,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from mmf_rl.datasets.config import DataConfig
-from mmf_rl.keys import ModalitySpec
+from mmf_rl.keys import ModalitySpec, obs_key
 
 # Bytes of decoded frames per decode call: lerobot returns float32 frames at full resolution,
 # so a call covers many small frames (fast) but only a few HD ones (bounded memory).
@@ -508,7 +508,7 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None]:
     from lerobot.datasets.video_utils import decode_video_frames_torchcodec
     from tensordict import TensorDict
 
-    destination = TensorDict.load_memmap(job.frames_dir).get(("obs", job.modality))
+    destination = TensorDict.load_memmap(job.frames_dir).get(obs_key(job.modality))
     chunk = max(1, DECODE_CHUNK_BYTES // (4 * job.source_frame_values))
     try:
         for offset in range(0, len(job.timestamps), chunk):

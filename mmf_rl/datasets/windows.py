@@ -66,13 +66,13 @@ class WindowDataset:
         windows = TensorDict.load_memmap(self.cache_path / "windows")
         self._obs = {}
         for spec in self.specs:
-            values = _plain(frames.get(("obs", spec.name)))
+            values = _plain(frames.get(spec.obs_key))
             self._obs[spec.name] = _wide_rows(values) if spec.kind == "image" else values
         self._target = _plain(frames.get("target"))
         self.frame_episode = _plain(frames.get("episode"))
         self.window_start = _plain(windows.get("start"))
         self.window_episode = _plain(windows.get("episode"))
-        self.presence = {s.name: _plain(windows.get(("present", s.name))) for s in self.specs}
+        self.presence = {s.name: _plain(windows.get(s.present_key)) for s in self.specs}
         self._observed, self._future = window_offsets(config.history, config.horizon, config.stride)
         self._action = _plain(frames.get("action")) if self.action_shape is not None else None
         self._action_offsets = action_offsets(config.history, config.horizon, config.stride)
@@ -122,7 +122,7 @@ class WindowDataset:
         floor = self.config.std_floor
         for spec in self.specs:
             if spec.kind != "image":
-                valid = train_frames & _plain(frames.get(("present", spec.name)))
+                valid = train_frames & _plain(frames.get(spec.present_key))
                 mean, std = mean_std(self._obs[spec.name], valid, floor, f"modality {spec.name!r}")
                 stats[f"{spec.name}/mean"], stats[f"{spec.name}/std"] = mean, std
         if self.config.target.relative:
