@@ -25,6 +25,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from tensordict import TensorDictBase
+from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
 from mmf_rl.configuration import reject_unknown_keys
@@ -121,23 +122,23 @@ def make_scheduler(optimizer: torch.optim.Optimizer, config: TrainerConfig) -> t
     return torch.optim.lr_scheduler.LambdaLR(optimizer, factor)
 
 
-def average_gradients(model: torch.nn.Module, world_size: int) -> None:
-    """Average gradients over ranks (data parallelism), treating a missing gradient as zero.
+class _LossStep(torch.nn.Module):
+    """One training forward as a module: ``batch -> (summed loss_* tensor, detached loss TensorDict)``.
 
-    Done by hand rather than with ``DistributedDataParallel``: the forecaster skips the encoder of
-    a modality absent from a local batch, so ranks disagree on which parameters got gradients,
-    and DDP's ``find_unused_parameters`` cannot see through TensorDict outputs to know which.
-    One flattened all-reduce per step keeps the cost of a bucketed DDP reduce.
+    ``DistributedDataParallel`` wraps this rather than the forecaster: with
+    ``find_unused_parameters`` it learns which parameters a rank used by walking the autograd
+    graph back from the tensors it finds in the forward's output (tensors, tuples, dicts; not a
+    TensorDict's entries). The summed loss is the one tensor every gradient flows from. The model
+    is registered next to the loss so that every weight it checkpoints is reduced.
     """
-    params = [p for p in model.parameters() if p.requires_grad]
-    flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params])
-    dist.all_reduce(flat)
-    flat /= world_size
-    offset = 0
-    for p in params:
-        n = p.numel()
-        p.grad = flat[offset : offset + n].view_as(p).clone()
-        offset += n
+
+    def __init__(self, model: torch.nn.Module, loss_module: torch.nn.Module):
+        super().__init__()
+        self.model, self.loss_module = model, loss_module
+
+    def forward(self, batch: TensorDictBase) -> tuple[torch.Tensor, TensorDictBase]:
+        losses = self.loss_module(batch)
+        return sum(v for k, v in losses.items() if k.startswith("loss_")), losses.detach()
 
 
 class Trainer:
@@ -184,9 +185,13 @@ class Trainer:
         self.history: list[dict[str, float]] = []
         if config.grad_clip_norm:
             self.register_op("post_loss", self._clip_gradients)
-        if world_size > 1:  # every rank starts from rank 0's weights
-            for tensor in self.model.state_dict().values():
-                dist.broadcast(tensor, src=0)
+        self.loss_step: torch.nn.Module = _LossStep(model, loss_module)
+        if world_size > 1:
+            # DDP starts every rank from rank 0's weights and averages gradients in backward. An
+            # encoder whose modality is absent from a rank's batch gets no gradient there
+            # (find_unused_parameters): it counts as zero in the average, and keeps no gradient
+            # (no optimizer update) when absent on every rank, as in one process.
+            self.loss_step = DistributedDataParallel(self.loss_step, find_unused_parameters=True)
 
     # -- hooks ------------------------------------------------------------------------------------
 
@@ -282,12 +287,13 @@ class Trainer:
             self.batch_in_epoch = 0
 
     def _train_step(self, batch: TensorDictBase) -> dict[str, float] | None:
-        losses = self.loss_module(batch)
+        total, losses = self.loss_step(batch)
         loss_terms = {k: v for k, v in losses.items() if k.startswith("loss_")}
-        total = sum(loss_terms.values())
         total_value = float(total.detach())
         # [any non-finite loss, largest finite loss]: under DDP every rank must take the same
-        # decision (skip, stop or step), or the gradient all-reduce would wait forever.
+        # decision (skip, stop or step) before backward, or the gradient all-reduce inside
+        # backward would wait forever. (A DDP forward without backward is fine: the next forward
+        # starts a new reduction.)
         status = torch.tensor([0.0 if math.isfinite(total_value) else 1.0,
                                total_value if math.isfinite(total_value) else -math.inf])
         if self.world_size > 1:
@@ -311,15 +317,13 @@ class Trainer:
         self.nonfinite_in_a_row = 0
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
-        if self.world_size > 1:
-            average_gradients(self.model, self.world_size)
         for op in self.ops["post_loss"]:
             op(self)
         self.optimizer.step()
         self.scheduler.step()
         for op in self.ops["post_optim"]:
             op(self)
-        logs = {k: float(v.detach()) for k, v in losses.items() if v.numel() == 1}
+        logs = {k: float(v) for k, v in losses.items() if v.numel() == 1}
         logs["loss"] = total_value
         return logs
 

@@ -11,6 +11,7 @@ from safetensors.torch import load_file
 
 from mmf_rl.cli import main as cli
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
+from mmf_rl.models import load_trained_model
 from tests.conftest import push_train_overrides
 
 
@@ -131,3 +132,4 @@ def test_two_gloo_ranks_train_in_lockstep_and_agree(overrides, tmp_path):
     checkpoint = load_checkpoint(tmp_path / "ddp" / "checkpoints")
     assert checkpoint.step == 6 and checkpoint.meta["world_size"] == 2
     assert len(checkpoint.trainer_state["rng"]) == 2
+    load_trained_model(tmp_path / "ddp" / "checkpoints")  # the plain model's weights, no DDP wrapper names

@@ -1,26 +1,53 @@
+import itertools
+from datetime import timedelta
+
 import pytest
 import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
 from torchrl.record.loggers import CSVLogger
 
 from mmf_rl import keys
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
 from mmf_rl.checkpoint import load_checkpoint
-from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
-from tests.conftest import SYNTH_MODALITIES, InMemoryLoader
+from mmf_rl.trainers.trainer import (
+    Trainer,
+    TrainerConfig,
+    TrainingStopped,
+    make_optimizer,
+    make_scheduler,
+    rng_state,
+    seed_everything,
+    set_rng_state,
+)
+from tests.conftest import SYNTH_MODALITIES, InMemoryLoader, synthetic_motion_task
 
 
 class Interrupt(Exception):
     pass
 
 
-def build(synthetic_task, tmp_path, **overrides):
+def small_forecaster() -> MultimodalForecaster:
     seed_everything(0)
-    model = MultimodalForecaster(ForecasterConfig(modalities=SYNTH_MODALITIES, history=8, horizon=8, target_dim=2,
-                                                  d_model=16, d_latent=4, num_heads=2, mlp_hidden=32, head_hidden=32))
-    loss = CombinedLoss(ELBOLoss(model, kl_warmup_steps=10), MissingModalityLoss(model))
-    config = TrainerConfig(**{"total_steps": 12, "lr": 3e-3, "warmup_steps": 3, "log_every": 2, "eval_every": 6,
-                              "checkpoint_every": 6, "progress_bar": False, **overrides})
+    config = ForecasterConfig(modalities=SYNTH_MODALITIES, history=8, horizon=8, target_dim=2, d_model=16,
+                              d_latent=4, num_heads=2, mlp_hidden=32, head_hidden=32)
+    return MultimodalForecaster(config)
+
+
+def combined_loss(model):
+    return CombinedLoss(ELBOLoss(model, kl_warmup_steps=10), MissingModalityLoss(model))
+
+
+def trainer_config(**overrides) -> TrainerConfig:
+    return TrainerConfig(**{"total_steps": 12, "lr": 3e-3, "warmup_steps": 3, "log_every": 2, "eval_every": 6,
+                            "checkpoint_every": 6, "progress_bar": False, **overrides})
+
+
+def build(synthetic_task, tmp_path, **overrides):
+    model = small_forecaster()
+    loss = combined_loss(model)
+    config = trainer_config(**overrides)
     loader = InMemoryLoader(synthetic_task["train"][:320], batch_size=64, seed=0)  # 5 batches per epoch
 
     def evaluate(m):
@@ -126,3 +153,111 @@ def test_bad_config_and_hook_names(synthetic_task, tmp_path):
         TrainerConfig(lr_schedule="step")
     with pytest.raises(ValueError, match="unknown hook point 'after_loss'"):
         build(synthetic_task, tmp_path).register_op("after_loss", print)
+
+
+# --- data parallel: two gloo ranks against the definition, computed in one process ----------------
+
+DP_STEPS = 8
+DP_NAN_BATCH = 4  # rank 0's 4th batch holds a NaN: both ranks skip that step
+
+
+def dp_loader(rank: int) -> InMemoryLoader:
+    return InMemoryLoader(synthetic_motion_task(320, seed=10 + rank), batch_size=32, seed=rank)  # 10 batches
+
+
+def dp_batch(batch, number: int, rank: int):
+    """Rank 1 never sees "force" (an encoder unused on one rank); no rank sees "pos" in every third
+    batch (unused on all ranks, after steps that left it Adam momentum); one NaN on rank 0 only."""
+    batch = batch.clone()
+    if rank == 1:
+        batch[keys.present_key("force")] = torch.zeros(batch.shape[0], dtype=torch.bool)
+    if number % 3 == 0:
+        batch[keys.present_key("pos")] = torch.zeros(batch.shape[0], dtype=torch.bool)
+    if rank == 0 and number == DP_NAN_BATCH:
+        batch[keys.obs_key("vel")][0, 0, 0] = float("nan")
+    return batch
+
+
+def train_rank(rank: int, store: str, out: str) -> None:
+    torch.set_num_threads(1)
+    # A bounded timeout: a rank left waiting in a collective fails the test instead of hanging it.
+    dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=2,
+                            timeout=timedelta(seconds=120))
+    try:
+        model = small_forecaster()
+        trainer = Trainer(model, combined_loss(model), dp_loader(rank), trainer_config(total_steps=DP_STEPS),
+                          rank=rank, world_size=2)
+        seed_everything(1 + rank)  # each rank draws its own latents and dropped modalities
+        numbers = itertools.count(1)
+        trainer.register_op("batch_process", lambda batch: dp_batch(batch, next(numbers), rank))
+        trainer.train()
+        result = {"weights": {k: v.clone() for k, v in model.state_dict().items()},
+                  "nonfinite_total": trainer.nonfinite_total,
+                  "pos_grads": [p.grad for p in model.encoders["pos"].parameters()]}
+        # A loss that explodes on rank 1 only stops both ranks.
+        trainer.config.total_steps += 2
+        if rank == 1:
+            trainer.register_op("batch_process", lambda b: b.set(keys.TARGET, b[keys.TARGET] * 1e6))
+        try:
+            trainer.train()
+        except TrainingStopped as err:
+            result["stopped"] = str(err)
+        torch.save(result, f"{out}/rank{rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def data_parallel_by_definition() -> dict[str, torch.Tensor]:
+    """Each rank's loss on its own batch and RNG stream; their gradients averaged (a rank without one
+    adds zero; a parameter no rank used keeps no gradient, as in one process); clip; AdamW."""
+    model = small_forecaster()
+    losses = [combined_loss(model) for _ in range(2)]  # one KL warm-up counter per rank
+    config = trainer_config(total_steps=DP_STEPS)
+    optimizer = make_optimizer(model.parameters(), config)
+    scheduler = make_scheduler(optimizer, config)
+    params = list(model.parameters())
+    rngs = []
+    for rank in range(2):
+        seed_everything(1 + rank)
+        rngs.append(rng_state())
+    streams = [iter(dp_loader(rank)) for rank in range(2)]  # one epoch covers DP_STEPS + 1 batches
+    steps = 0
+    for number in itertools.count(1):
+        totals = []
+        for rank in range(2):
+            set_rng_state(rngs[rank])
+            out = losses[rank](dp_batch(next(streams[rank]), number, rank))
+            totals.append(sum(v for k, v in out.items() if k.startswith("loss_")))
+            rngs[rank] = rng_state()
+        if not all(torch.isfinite(t) for t in totals):
+            continue
+        grads = [torch.autograd.grad(t, params, allow_unused=True) for t in totals]
+        for p, per_rank in zip(params, zip(*grads)):
+            present = [g for g in per_rank if g is not None]
+            p.grad = sum(present) / 2 if present else None
+        torch.nn.utils.clip_grad_norm_(params, config.grad_clip_norm)
+        optimizer.step()
+        scheduler.step()
+        steps += 1
+        if steps == DP_STEPS:
+            return model.state_dict()
+
+
+def test_two_gloo_ranks_average_gradients_skip_and_stop_together(tmp_path):
+    mp.spawn(train_rank, args=(str(tmp_path / "store"), str(tmp_path)), nprocs=2)
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(2)]
+    for name, value in ranks[0]["weights"].items():
+        assert torch.equal(value, ranks[1]["weights"][name]), name
+    assert [r["nonfinite_total"] for r in ranks] == [1, 1]
+    # the last step's batches (number 9) had no "pos": its encoder got no gradient on any rank
+    assert all(g is None for r in ranks for g in r["pos_grads"])
+    assert "loss exploded" in ranks[0]["stopped"] and ranks[0]["stopped"] == ranks[1]["stopped"]
+    threads = torch.get_num_threads()
+    # The ranks' kernels: Adam turns rounding noise in near-zero gradients into whole steps.
+    torch.set_num_threads(1)
+    try:
+        expected = data_parallel_by_definition()
+    finally:
+        torch.set_num_threads(threads)
+    for name, value in expected.items():
+        torch.testing.assert_close(ranks[0]["weights"][name], value, msg=name)
