@@ -25,6 +25,7 @@ from mmf_rl.configuration import ConfigError, compose_config, load_config, save_
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.models import build_loss, build_model, saved_config
+from mmf_rl.models.encoders import check_encoder
 from mmf_rl.trainers.checkpoint import CheckpointError, list_checkpoints
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
@@ -112,6 +113,9 @@ def train(cfg) -> Path:
         save_config(cfg, run_dir / RUN_CONFIG)
 
     data_cfg = DataConfig.from_dict(to_container(cfg.data))
+    for name, modality in data_cfg.modalities.items():  # before the window cache is built
+        if modality.encoder is not None:
+            check_encoder(name, modality.encoder, modality.kind)
     if rank == 0:  # one process builds the cache, the others open it
         data = WindowDataset(data_cfg, num_workers=cfg.num_workers)
     if world_size > 1:
