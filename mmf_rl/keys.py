@@ -31,7 +31,7 @@ never changes any output; output shapes never depend on presence.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 
@@ -78,14 +78,11 @@ def drop_key(modality: str) -> tuple[str, str]:
 
 
 ModalityKind = Literal["image", "sequence", "vector"]
+MODALITY_KINDS: tuple[str, ...] = get_args(ModalityKind)
 
-# The encoder each kind gets unless the spec names another one.
+# The encoder each kind gets unless the spec names another one. The encoders themselves, and which
+# kinds each accepts, are registered in mmf_rl.models.encoders (checked when a model is built).
 DEFAULT_ENCODER: dict[str, str] = {"image": "conv", "sequence": "gru", "vector": "mlp"}
-ALLOWED_ENCODERS: dict[str, tuple[str, ...]] = {
-    "image": ("conv", "conv_gru"),
-    "sequence": ("gru", "mlp"),
-    "vector": ("mlp",),
-}
 
 
 @dataclass(frozen=True)
@@ -97,9 +94,11 @@ class ModalitySpec:
       * ``"sequence"``: a window of vectors, ``float32 [B, H, d]``; ``shape = (d,)``.
       * ``"vector"``: one vector per sample, ``float32 [B, d]``; ``shape = (d,)``.
 
-    ``encoder`` (default by kind): ``conv`` (frames stacked on channels: cheap, and motion is
-    visible to the first layer) or ``conv_gru`` (per-frame ConvNet + GRU) for images, ``gru`` or
-    ``mlp`` (flattened window) for sequences, ``mlp`` for vectors.
+    ``encoder``: the name of an encoder registered in :mod:`mmf_rl.models.encoders` for this kind
+    (checked when a model is built); default by kind (``DEFAULT_ENCODER``). Built in: ``conv``
+    (frames stacked on channels: cheap, and motion is visible to the first layer) or ``conv_gru``
+    (per-frame ConvNet + GRU) for images, ``gru`` or ``mlp`` (flattened window) for sequences,
+    ``mlp`` for vectors.
     """
 
     name: str
@@ -110,9 +109,10 @@ class ModalitySpec:
     encoder_kwargs: dict = field(default_factory=dict, hash=False, compare=False)
 
     def __post_init__(self):
-        if self.kind not in DEFAULT_ENCODER:
+        if self.kind not in MODALITY_KINDS:
             raise ValueError(
-                f"modality {self.name!r}: unknown kind {self.kind!r}; expected one of {sorted(DEFAULT_ENCODER)}"
+                f"modality {self.name!r}: unknown kind {self.kind!r}; "
+                f"expected one of {sorted(MODALITY_KINDS)}"
             )
         object.__setattr__(self, "shape", tuple(int(s) for s in self.shape))
         expected_rank = 3 if self.kind == "image" else 1
@@ -121,13 +121,7 @@ class ModalitySpec:
                 f"modality {self.name!r} ({self.kind}): shape must have {expected_rank} positive "
                 f"dims ({'(C, h, w)' if self.kind == 'image' else '(d,)'}), found {self.shape}"
             )
-        encoder = self.encoder or DEFAULT_ENCODER[self.kind]
-        if encoder not in ALLOWED_ENCODERS[self.kind]:
-            raise ValueError(
-                f"modality {self.name!r} ({self.kind}): encoder {encoder!r} is not available; "
-                f"expected one of {ALLOWED_ENCODERS[self.kind]}"
-            )
-        object.__setattr__(self, "encoder", encoder)
+        object.__setattr__(self, "encoder", self.encoder or DEFAULT_ENCODER[self.kind])
 
     @property
     def obs_key(self) -> tuple[str, str]:

@@ -19,7 +19,6 @@ def test_spec_defaults_encoder_by_kind():
         (dict(name="x", kind="audio", shape=(3,)), "unknown kind 'audio'"),
         (dict(name="x", kind="image", shape=(3, 8)), "shape must have 3 positive dims ((C, h, w)), found (3, 8)"),
         (dict(name="x", kind="sequence", shape=(0,)), "found (0,)"),
-        (dict(name="x", kind="vector", shape=(3,), encoder="gru"), "encoder 'gru' is not available"),
     ],
 )
 def test_spec_rejects_bad_definitions(kwargs, fragment):

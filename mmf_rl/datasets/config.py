@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from mmf_rl.configuration import reject_unknown_keys
-from mmf_rl.keys import DEFAULT_ENCODER
+from mmf_rl.keys import MODALITY_KINDS
 
 SPLIT_NAMES = ("train", "val", "test")
 
@@ -37,10 +37,10 @@ class ModalityConfig:
     encoder: str | None = None
 
     def __post_init__(self):
-        if self.kind is not None and self.kind not in DEFAULT_ENCODER:
+        if self.kind is not None and self.kind not in MODALITY_KINDS:
             raise ValueError(
                 f"modality feature {self.feature!r}: unknown kind {self.kind!r}; expected one of "
-                f"{sorted(DEFAULT_ENCODER)} or leave it unset to infer it from the feature dtype"
+                f"{sorted(MODALITY_KINDS)} or leave it unset to infer it from the feature dtype"
             )
         if self.dims is not None:
             self.dims = [int(i) for i in self.dims]

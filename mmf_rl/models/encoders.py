@@ -1,15 +1,72 @@
 """Unimodal encoders ``E_m``: one modality's window -> one ``d``-vector per sample.
 
+Encoders are registered by name: a new one is a class (or builder) here, or in user code,
+plus one ``@register_encoder(name, kinds)``; a :class:`~mmf_rl.keys.ModalitySpec` then names it
+in ``encoder`` (a data config's ``modalities.<m>.encoder``), and every model that encodes
+whole windows builds it through :func:`build_encoder`.
+
 No BatchNorm anywhere: the forecaster encodes only the samples where a modality is present,
 and batch statistics would make one sample's output depend on which others are present.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Callable
+
 import torch
 from torch import nn
 
-from mmf_rl.keys import ModalitySpec
+from mmf_rl.keys import DEFAULT_ENCODER, MODALITY_KINDS, ModalitySpec
+
+# build(spec, history, d_model, **spec.encoder_kwargs) -> a module mapping one modality's
+# observation [N, *spec.obs_shape(history)] to [N, d_model].
+EncoderBuilder = Callable[..., nn.Module]
+
+
+@dataclass(frozen=True)
+class EncoderEntry:
+    kinds: tuple[str, ...]
+    build: EncoderBuilder
+
+
+ENCODERS: dict[str, EncoderEntry] = {}
+
+
+def register_encoder(name: str, kinds: tuple[str, ...]) -> Callable[[EncoderBuilder], EncoderBuilder]:
+    """Register ``build(spec, history, d_model, **encoder_kwargs)`` as encoder ``name`` for ``kinds``."""
+    unknown = sorted(set(kinds) - set(MODALITY_KINDS))
+    if not kinds or unknown:
+        raise ValueError(f"encoder {name!r}: kinds must be a non-empty subset of {MODALITY_KINDS}, "
+                         f"found {kinds}")
+
+    def register(build: EncoderBuilder) -> EncoderBuilder:
+        if name in ENCODERS:
+            raise ValueError(f"encoder {name!r} is already registered (for kinds {ENCODERS[name].kinds})")
+        ENCODERS[name] = EncoderEntry(tuple(kinds), build)
+        return build
+
+    return register
+
+
+def encoders_for(kind: str) -> list[str]:
+    """The names of the encoders registered for modalities of ``kind``."""
+    return sorted(name for name, entry in ENCODERS.items() if kind in entry.kinds)
+
+
+def check_encoder(modality: str, encoder: str, kind: str | None) -> EncoderEntry:
+    """The registry entry of ``encoder`` for ``modality`` of ``kind``; a clear error if none fits.
+
+    ``kind=None`` checks the name only (a data config, before the dataset's features fix the kind).
+    """
+    entry = ENCODERS.get(encoder)
+    if entry is not None and (kind is None or kind in entry.kinds):
+        return entry
+    what = f"modality {modality!r}" + (f" ({kind})" if kind else "")
+    hint = "" if entry is not None else (
+        "; a new encoder is registered with @mmf_rl.models.encoders.register_encoder(name, kinds)")
+    expected = f"{encoders_for(kind)} (default {DEFAULT_ENCODER[kind]!r})" if kind else sorted(ENCODERS)
+    raise ValueError(f"{what}: encoder {encoder!r} is not available; expected one of {expected}{hint}")
 
 
 def mlp(in_dim: int, hidden_dim: int, out_dim: int, num_layers: int = 2) -> nn.Sequential:
@@ -72,6 +129,16 @@ class ImageWindowEncoder(nn.Module):
         return self.gru(torch.relu(feats))[1][-1]
 
 
+@register_encoder("conv", kinds=("image",))
+def conv_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> ImageWindowEncoder:
+    return ImageWindowEncoder(spec, history, d_model, temporal="stack", **kwargs)
+
+
+@register_encoder("conv_gru", kinds=("image",))
+def conv_gru_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> ImageWindowEncoder:
+    return ImageWindowEncoder(spec, history, d_model, temporal="gru", **kwargs)
+
+
 class SequenceGRUEncoder(nn.Module):
     """GRU over a window of vectors ``[N, H, d_in]`` -> last hidden state ``[N, d]``."""
 
@@ -82,6 +149,11 @@ class SequenceGRUEncoder(nn.Module):
 
     def forward(self, seq: torch.Tensor) -> torch.Tensor:
         return self.gru(torch.relu(self.embed(seq)))[1][-1]
+
+
+@register_encoder("gru", kinds=("sequence",))
+def gru_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> SequenceGRUEncoder:
+    return SequenceGRUEncoder(spec, d_model, **kwargs)
 
 
 class FlatMLPEncoder(nn.Module):
@@ -95,17 +167,17 @@ class FlatMLPEncoder(nn.Module):
         return self.net(x.flatten(1))
 
 
+@register_encoder("mlp", kinds=("sequence", "vector"))
+def mlp_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> FlatMLPEncoder:
+    in_dim = spec.shape[0] * (1 if spec.kind == "vector" else history)
+    return FlatMLPEncoder(in_dim, d_model, **kwargs)
+
+
 def build_encoder(spec: ModalitySpec, history: int, d_model: int) -> nn.Module:
-    """The encoder a spec names, with its ``encoder_kwargs``."""
+    """The registered encoder a spec names, with its ``encoder_kwargs``."""
+    entry = check_encoder(spec.name, spec.encoder, spec.kind)
     kwargs = dict(spec.encoder_kwargs)
     try:
-        if spec.encoder == "conv":
-            return ImageWindowEncoder(spec, history, d_model, temporal="stack", **kwargs)
-        if spec.encoder == "conv_gru":
-            return ImageWindowEncoder(spec, history, d_model, temporal="gru", **kwargs)
-        if spec.encoder == "gru":
-            return SequenceGRUEncoder(spec, d_model, **kwargs)
-        in_dim = spec.shape[0] * (1 if spec.kind == "vector" else history)
-        return FlatMLPEncoder(in_dim, d_model, **kwargs)
+        return entry.build(spec, history, d_model, **kwargs)
     except TypeError as err:
         raise ValueError(f"modality {spec.name!r}: bad encoder_kwargs {kwargs} for encoder {spec.encoder!r}: {err}") from None

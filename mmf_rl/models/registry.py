@@ -17,33 +17,33 @@ from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.baselines import MVAE, LateFusionLSTM, LFLSTMConfig, MulT, MulTConfig, MVAEConfig
 from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
-from mmf_rl.objectives import CombinedLoss, ELBOLoss, GaussianNLLLoss, MissingModalityLoss
+from mmf_rl.objectives import CombinedLoss, ELBOLoss, GaussianNLLLoss, LossConfig, MissingModalityLoss
 
 
 @dataclass(frozen=True)
 class ModelEntry:
     config_cls: type
     model_cls: type
-    make_loss: Callable[[nn.Module, dict], nn.Module]
+    make_loss: Callable[[nn.Module, LossConfig], nn.Module]
 
 
-def forecaster_loss(model: MultimodalForecaster, loss_cfg: dict) -> CombinedLoss:
+def forecaster_loss(model: MultimodalForecaster, loss_cfg: LossConfig) -> CombinedLoss:
     """ELBO, plus the missing-modality loss unless its weight is 0 (the paper's ablation)."""
-    losses = [ELBOLoss(model, kl_weight=loss_cfg["kl_weight"], kl_warmup_steps=loss_cfg["kl_warmup_steps"])]
-    if loss_cfg["missing_modality_weight"] > 0:
-        losses.append(MissingModalityLoss(model, weight=loss_cfg["missing_modality_weight"],
-                                          detach_teacher=loss_cfg["detach_teacher"]))
+    losses = [ELBOLoss(model, kl_weight=loss_cfg.kl_weight, kl_warmup_steps=loss_cfg.kl_warmup_steps)]
+    if loss_cfg.missing_modality_weight > 0:
+        losses.append(MissingModalityLoss(model, weight=loss_cfg.missing_modality_weight,
+                                          detach_teacher=loss_cfg.detach_teacher))
     return CombinedLoss(*losses)
 
 
-def nll_loss(model: nn.Module, loss_cfg: dict) -> GaussianNLLLoss:
+def nll_loss(model: nn.Module, loss_cfg: LossConfig) -> GaussianNLLLoss:
     """Deterministic baselines: the Gaussian NLL of the future (the loss config has no term for them)."""
     return GaussianNLLLoss(model)
 
 
-def mvae_loss(model: MVAE, loss_cfg: dict) -> ELBOLoss:
+def mvae_loss(model: MVAE, loss_cfg: LossConfig) -> ELBOLoss:
     """The MVAE's ELBO with the loss config's KL weight and warm-up; it has no missing-modality term."""
-    return ELBOLoss(model, kl_weight=loss_cfg["kl_weight"], kl_warmup_steps=loss_cfg["kl_warmup_steps"])
+    return ELBOLoss(model, kl_weight=loss_cfg.kl_weight, kl_warmup_steps=loss_cfg.kl_warmup_steps)
 
 
 MODELS: dict[str, ModelEntry] = {
@@ -106,5 +106,6 @@ def saved_config(name: str, model: nn.Module) -> dict:
     return {"name": name, **model.config.to_dict()}
 
 
-def build_loss(name: str, model: nn.Module, loss_cfg: dict) -> nn.Module:
+def build_loss(name: str, model: nn.Module, loss_cfg: LossConfig) -> nn.Module:
+    """The losses model ``name`` trains with, weighted by the loss config group."""
     return _entry(name).make_loss(model, loss_cfg)

@@ -1,5 +1,6 @@
 from mmf_rl.objectives.combined import CombinedLoss
 from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl, gaussian_kl_to_standard, gaussian_nll
+from mmf_rl.objectives.config import LossConfig
 from mmf_rl.objectives.elbo import ELBOLoss
 from mmf_rl.objectives.missing_modality import MissingModalityLoss
 from mmf_rl.objectives.nll import GaussianNLLLoss
@@ -9,6 +10,7 @@ __all__ = [
     "ELBOLoss",
     "ForecasterLossBase",
     "GaussianNLLLoss",
+    "LossConfig",
     "MissingModalityLoss",
     "gaussian_kl",
     "gaussian_kl_to_standard",

@@ -43,6 +43,13 @@ class ForecasterLossBase(LossModule):
     one forward pass, use :class:`~mmf_rl.objectives.CombinedLoss`, which calls each loss's
     :meth:`prepare` (inputs the pass needs), the forecaster once, then each
     :meth:`loss_from_outputs`.
+
+    Keys follow torchrl: each loss's ``_AcceptedKeys`` dataclass (``default_keys``) names what it
+    reads, ``tensor_keys`` holds this instance's names and ``set_keys`` renames them. Keys that
+    depend on the forecaster (its modalities' presence masks) are resolved from it when the loss
+    is built (:meth:`default_tensor_keys`). ``in_keys`` lists what ``forward`` reads: the loss's
+    own keys, then the forecaster's ``in_keys`` (observations, presence masks...), as torchrl's
+    losses list their networks' inputs.
     """
 
     REDUCTIONS = ("mean", "sum", "none")
@@ -53,14 +60,34 @@ class ForecasterLossBase(LossModule):
             raise ValueError(f"reduction must be one of {self.REDUCTIONS}, found {reduction!r}")
         self.forecaster = forecaster
         self.reduction = reduction
+        self._tensor_keys = self.default_tensor_keys()
 
     @property
     def functional(self) -> bool:
         # The forecaster is used as a plain stateful module: no target networks, no vmap.
         return False
 
+    def default_tensor_keys(self):
+        """This loss's default keys for its forecaster (what ``set_keys(name=None)`` restores)."""
+        return self._AcceptedKeys()
+
+    def set_keys(self, **kwargs) -> None:
+        # torchrl 0.13.3 restores a key set to None with `default_keys().key`, an AttributeError;
+        # pass it the default itself.
+        defaults = self.default_tensor_keys()
+        super().set_keys(**{k: getattr(defaults, k, None) if v is None else v for k, v in kwargs.items()})
+
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No value estimator: nothing to forward (required by ``set_keys``)."""
+
+    def _loss_in_keys(self) -> list:
+        """The keys of ``tensor_keys`` this loss reads."""
+        raise NotImplementedError
+
+    @property
+    def in_keys(self) -> list:
+        own = self._loss_in_keys()
+        return own + [k for k in getattr(self.forecaster, "in_keys", []) if k not in own]
 
     def prepare(self, td: TensorDictBase) -> TensorDictBase:
         """Add the inputs this loss needs from the forecaster's forward pass (none by default)."""

@@ -51,8 +51,7 @@ class ELBOLoss(ForecasterLossBase):
         self.kl_warmup_steps = kl_warmup_steps
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
 
-    @property
-    def in_keys(self):
+    def _loss_in_keys(self) -> list:
         k = self.tensor_keys
         return [k.target, k.forecast_loc, k.forecast_scale, k.posterior_loc, k.posterior_scale]
 

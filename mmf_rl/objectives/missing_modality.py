@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -33,6 +33,13 @@ class MissingModalityLoss(ForecasterLossBase):
 
     Returns ``loss_mis`` (weighted) and the detached diagnostics ``mis_kl`` (unweighted) and
     ``mis_fraction`` (share of samples that had a modality dropped).
+
+    Keys: ``present`` maps each of the forecaster's modalities to the mask :meth:`prepare` picks
+    the dropped modality from (default ``("present", m)``, resolved from the forecaster's
+    modalities). ``set_keys(present={"image": "image_may_drop"})`` points some of them elsewhere,
+    e.g. to limit ``L_mis`` to the sensors that can fail; such a mask must be False wherever the
+    modality is absent. The ``("drop", m)`` masks it writes are the forecaster's input, so their
+    names are the contract's.
     """
 
     @dataclass
@@ -41,6 +48,7 @@ class MissingModalityLoss(ForecasterLossBase):
         forecast_scale: NestedKey = keys.FORECAST_SCALE
         dropped_loc: NestedKey = keys.FORECAST_DROPPED_LOC
         dropped_scale: NestedKey = keys.FORECAST_DROPPED_SCALE
+        present: dict[str, NestedKey] = field(default_factory=dict)
 
     default_keys = _AcceptedKeys
     out_keys = ["loss_mis", "mis_kl", "mis_fraction"]
@@ -53,15 +61,27 @@ class MissingModalityLoss(ForecasterLossBase):
         self.detach_teacher = detach_teacher
         self.modality_names = [spec.name for spec in forecaster.modalities]
 
-    @property
-    def in_keys(self):
+    def default_tensor_keys(self) -> _AcceptedKeys:
+        return self.default_keys(present={spec.name: spec.present_key for spec in self.forecaster.modalities})
+
+    def set_keys(self, **kwargs) -> None:
+        present = kwargs.get("present")
+        if present is not None:
+            unknown = sorted(set(present) - set(self.modality_names))
+            if unknown:
+                raise ValueError(f"{type(self).__name__}.set_keys(present=...): {unknown} are not modalities "
+                                 f"of the forecaster; expected a subset of {self.modality_names}")
+            kwargs["present"] = {**self.tensor_keys.present, **present}
+        super().set_keys(**kwargs)
+
+    def _loss_in_keys(self) -> list:
         k = self.tensor_keys
-        return [k.forecast_loc, k.forecast_scale, k.dropped_loc, k.dropped_scale] + [
+        return [k.forecast_loc, k.forecast_scale, k.dropped_loc, k.dropped_scale, *k.present.values()] + [
             keys.drop_key(m) for m in self.modality_names
         ]
 
     def prepare(self, td: TensorDictBase) -> TensorDictBase:
-        present = torch.stack([td.get(keys.present_key(m)) for m in self.modality_names], dim=1)
+        present = torch.stack([td.get(self.tensor_keys.present[m]) for m in self.modality_names], dim=1)
         # argmax of uniform scores over the present modalities = one of them uniformly at random.
         scores = torch.rand(present.shape, device=present.device).masked_fill(~present, -1.0)
         choice = torch.nn.functional.one_hot(scores.argmax(1), len(self.modality_names)).bool()

@@ -33,8 +33,7 @@ class GaussianNLLLoss(ForecasterLossBase):
     default_keys = _AcceptedKeys
     out_keys = ["loss_nll"]
 
-    @property
-    def in_keys(self):
+    def _loss_in_keys(self) -> list:
         k = self.tensor_keys
         return [k.target, k.forecast_loc, k.forecast_scale]
 

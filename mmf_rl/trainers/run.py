@@ -27,6 +27,8 @@ from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.devices import resolve_device
 from mmf_rl.models import build_loss, build_model, saved_config
+from mmf_rl.models.encoders import check_encoder
+from mmf_rl.objectives import LossConfig
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
 RUN_CONFIG = "config.yaml"
@@ -91,6 +93,7 @@ def train(cfg) -> Path:
     device = resolve_device(cfg.device)
     rank, world_size = init_distributed(device)
     trainer_cfg = TrainerConfig.from_dict(to_container(cfg.trainer))
+    loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
     # Relative paths and '..' are the user's choice; the saved config and the messages show where
     # they really lead.
     run_dir = Path(cfg.run_dir).resolve()
@@ -104,6 +107,9 @@ def train(cfg) -> Path:
         save_config(cfg, run_dir / RUN_CONFIG)
 
     data_cfg = DataConfig.from_dict(to_container(cfg.data))
+    for name, modality in data_cfg.modalities.items():  # before the window cache is built
+        if modality.encoder is not None:
+            check_encoder(name, modality.encoder, modality.kind)
     if rank == 0:  # one process builds the cache, the others open it
         data = WindowDataset(data_cfg, num_workers=cfg.num_workers)
     if world_size > 1:
@@ -118,7 +124,7 @@ def train(cfg) -> Path:
     model = build_model(model_cfg, data.specs, data_cfg.history, data_cfg.horizon, data.target_dim,
                         action_shape=data.action_shape).to(device)
     model_name = model_cfg.get("name", "forecaster")
-    loss = build_loss(model_name, model, to_container(cfg.loss))
+    loss = build_loss(model_name, model, loss_cfg)
     seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents
     loader = data.loader("train", trainer_cfg.batch_size, seed=trainer_cfg.seed, rank=rank, world_size=world_size)
     val_loader = data.loader("val", max(trainer_cfg.batch_size, 256))

@@ -10,13 +10,14 @@ from mmf_rl.configuration import config_dir
 from mmf_rl.models import MODELS, build_loss, build_model, model_from_saved_config, saved_config
 from mmf_rl.models.baselines.common import zero_filled
 from mmf_rl.models.baselines.mvae import product_of_experts
+from mmf_rl.objectives import LossConfig
 from tests.conftest import (HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, assert_a_few_steps_reduce_the_loss,
                             make_batch, presence_patterns)
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 BASELINES = ["lf_lstm", "mvae", "mult"]
 ZERO_FILL = ["lf_lstm", "mult"]
-LOSS_CFG = {"kl_weight": 1.0, "kl_warmup_steps": 0, "missing_modality_weight": 1.0, "detach_teacher": True}
+LOSS_CFG = LossConfig()  # beta = 1 without warm-up, L_mis at weight 1
 SIZES = {"lf_lstm": {}, "mvae": {"d_latent": 4}, "mult": {"num_heads": 2, "mlp_hidden": 32}}
 
 

@@ -8,6 +8,7 @@ from tensordict.nn import TensorDictSequential
 from mmf_rl import keys
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+from mmf_rl.objectives import LossConfig
 from tests.conftest import (
     HORIZON,
     SMALL_MODALITIES,
@@ -271,8 +272,7 @@ def test_action_fields_go_together_and_a_plain_forecaster_cannot_plan(small_conf
 def test_world_model_trains_with_both_losses(world_model):
     from mmf_rl.models.registry import forecaster_loss
 
-    loss = forecaster_loss(world_model, {"kl_weight": 1.0, "kl_warmup_steps": 0, "missing_modality_weight": 1.0,
-                                         "detach_teacher": True})
+    loss = forecaster_loss(world_model, LossConfig())
     assert_a_few_steps_reduce_the_loss(world_model, loss, action_shape=ACTION_SHAPE)
 
 
@@ -306,8 +306,7 @@ def test_world_model_learns_what_the_actions_do():
                                num_heads=2, mlp_hidden=64, head_hidden=64,
                                **({} if action_shape is None else {"action_steps": 6, "action_dim": 2}))
         model = MultimodalForecaster(cfg)
-        loss = forecaster_loss(model, {"kl_weight": 1.0, "kl_warmup_steps": 0, "missing_modality_weight": 1.0,
-                                       "detach_teacher": True})
+        loss = forecaster_loss(model, LossConfig())
         optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
         g = torch.Generator().manual_seed(0)
         for _ in range(300):

@@ -8,13 +8,14 @@ from safetensors.torch import load_file, save_file
 from mmf_rl import keys
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster, build_loss, model_from_saved_config, saved_config
 from mmf_rl.models.fusion import AverageFusion, CrossAttentionFusion, LinearFusion, SumFusion
+from mmf_rl.objectives import LossConfig
 from tests.conftest import (HORIZON, SMALL_MODALITIES, TARGET_DIM, assert_a_few_steps_reduce_the_loss, make_batch,
                             presence_patterns)
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 ABLATIONS = ["linear", "average", "sum", "cross_attention"]
 OUTPUTS = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE]
-LOSS_CFG = {"kl_weight": 1.0, "kl_warmup_steps": 0, "missing_modality_weight": 1.0, "detach_teacher": True}
+LOSS_CFG = LossConfig()  # beta = 1 without warm-up, L_mis at weight 1
 
 
 def make_model(small_config, fusion: str, seed: int = 0) -> MultimodalForecaster:

@@ -53,6 +53,12 @@ def test_set_keys_reads_a_renamed_target(small_model, batch):
         loss.set_keys(nope="x")
 
 
+def test_in_keys_list_the_forecasters_inputs_after_its_own(small_model):
+    in_keys = ELBOLoss(small_model).in_keys
+    assert in_keys[0] == keys.TARGET and set(small_model.in_keys) <= set(in_keys)
+    assert keys.present_key("force") in in_keys
+
+
 def test_bad_arguments():
     with pytest.raises(ValueError, match="kl_weight and kl_warmup_steps must be >= 0"):
         ELBOLoss(torch.nn.Identity(), kl_weight=-1)

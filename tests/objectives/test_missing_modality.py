@@ -106,3 +106,22 @@ def test_combined_loss_refuses_different_forecasters(small_model, small_config):
 
     with pytest.raises(ValueError, match="same forecaster"):
         CombinedLoss(ELBOLoss(small_model), MissingModalityLoss(MultimodalForecaster(small_config)))
+
+
+def test_presence_keys_come_from_the_forecaster_and_can_be_pointed_elsewhere(small_model):
+    loss = MissingModalityLoss(small_model)
+    defaults = {n: keys.present_key(n) for n in NAMES}
+    assert loss.tensor_keys.present == defaults and set(defaults.values()) <= set(loss.in_keys)
+    loss.set_keys(present={"image": "image_may_drop"})
+    assert loss.tensor_keys.present == {**defaults, "image": "image_may_drop"}
+    assert "image_may_drop" in loss.in_keys
+    td = make_batch(64)
+    td.set("image_may_drop", torch.zeros(64, dtype=torch.bool))
+    torch.manual_seed(0)
+    loss.prepare(td)
+    assert not td.get(keys.drop_key("image")).any()
+    assert (td.get(keys.drop_key("force")) | td.get(keys.drop_key("proprio"))).all()
+    loss.set_keys(present=None)
+    assert loss.tensor_keys.present == defaults
+    with pytest.raises(ValueError, match=r"\['lidar'\] are not modalities of the forecaster"):
+        loss.set_keys(present={"lidar": ("present", "lidar")})

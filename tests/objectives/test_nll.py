@@ -64,6 +64,13 @@ def test_set_keys_reads_renamed_entries():
     torch.testing.assert_close(out["loss_nll"], torch.tensor(6 * 0.5 * math.log(2 * math.pi)))
 
 
+def test_set_keys_none_restores_the_default():
+    loss = GaussianNLLLoss(torch.nn.Identity())
+    loss.set_keys(target="future")
+    loss.set_keys(target=None)
+    assert loss.tensor_keys.target == keys.TARGET
+
+
 def test_missing_forecast_is_a_clear_error():
     loss = GaussianNLLLoss(torch.nn.Identity())
     with pytest.raises(KeyError, match="not found in the forecaster's outputs"):

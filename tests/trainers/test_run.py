@@ -54,6 +54,9 @@ def test_existing_run_is_never_overwritten_and_resume_needs_same_config(override
         (["trainer.lrr=1"], "Could not override 'trainer.lrr'"),
         (["model=transformer"], "Could not find 'model/transformer'"),
         (["data.root=/nonexistent/dataset"], "/nonexistent/dataset"),
+        (["+loss.kl_wieght=1"], "loss config: unknown keys ['kl_wieght']"),
+        (["data.modalities.force={feature: observation.force, encoder: resnet}"],
+         "modality 'force': encoder 'resnet' is not available; expected one of ['conv', 'conv_gru', 'gru',"),
         (["device=cuda"] if not torch.cuda.is_available() else ["device=tpu"], "device="),
     ],
 )

@@ -17,7 +17,7 @@ from torch import nn
 from mmf_rl import keys
 from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import ModalitySpec
-from mmf_rl.models.encoders import ImageWindowEncoder
+from mmf_rl.models.encoders import ImageWindowEncoder, check_encoder
 
 
 @dataclass
@@ -50,6 +50,9 @@ class BaselineConfig:
         names = [m.name for m in self.modalities]
         if len(set(names)) != len(names):
             raise ValueError(f"{name}.modalities: duplicate names in {names}")
+        # An unknown encoder is an error even for a baseline that tokenizes per step instead.
+        for spec in self.modalities:
+            check_encoder(spec.name, spec.encoder, spec.kind)
         for f in fields(self):
             value = getattr(self, f.name)
             if f.type in ("int", int) and value < 1:

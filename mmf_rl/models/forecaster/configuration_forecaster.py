@@ -7,6 +7,7 @@ from typing import Literal
 
 from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import ModalitySpec
+from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.fusion import FUSIONS
 
 
@@ -69,6 +70,8 @@ class ForecasterConfig:
         names = [m.name for m in self.modalities]
         if len(set(names)) != len(names):
             raise ValueError(f"ForecasterConfig.modalities: duplicate names in {names}")
+        for spec in self.modalities:
+            check_encoder(spec.name, spec.encoder, spec.kind)
         for name in ("history", "horizon", "target_dim", "d_model", "d_latent", "num_heads", "num_encoder_layers",
                      "mlp_hidden", "head_hidden"):
             if getattr(self, name) < 1:

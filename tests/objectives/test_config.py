@@ -1,0 +1,29 @@
+from dataclasses import asdict
+
+import pytest
+
+from mmf_rl.configuration import compose_config, config_dir, to_container
+from mmf_rl.objectives import LossConfig
+
+
+@pytest.mark.parametrize("option", sorted(p.stem for p in (config_dir() / "loss").glob("*.yaml")))
+def test_every_loss_yaml_sets_every_field_of_the_loss_config(option):
+    # The YAML is the source of a run's values: none may fall back to the dataclass default.
+    values = to_container(compose_config("train", [f"loss={option}"]).loss)
+    assert asdict(LossConfig.from_dict(values)) == values
+
+
+def test_an_unknown_loss_key_is_a_clear_error():
+    with pytest.raises(ValueError, match=r"loss config: unknown keys \['kl_wieght'\]; expected a subset of"):
+        LossConfig.from_dict({"kl_wieght": 1.0})
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("kl_weight", -1.0, "loss.kl_weight must be >= 0, found -1.0"),
+    ("kl_warmup_steps", -5, "loss.kl_warmup_steps must be >= 0, found -5"),
+    ("missing_modality_weight", -0.5, "loss.missing_modality_weight must be >= 0"),
+    ("detach_teacher", "yes", "loss.detach_teacher must be true or false, found 'yes'"),
+])
+def test_bad_values_name_the_key(field, value, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        LossConfig(**{field: value})
