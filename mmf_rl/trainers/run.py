@@ -25,7 +25,7 @@ from mmf_rl.configuration import ConfigError, compose_config, load_config, save_
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.models import build_loss, build_model, saved_config
-from mmf_rl.trainers.checkpoint import CheckpointError, list_checkpoints
+from mmf_rl.trainers.checkpoint import CheckpointError, list_checkpoints, remove_leftovers
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
 RUN_CONFIG = "config.yaml"
@@ -63,6 +63,19 @@ def make_logger(kind: str, run_dir: Path):
     if kind not in ("csv", "tensorboard", "wandb"):
         raise ValueError(f"logger must be one of csv, tensorboard, wandb, none; found {kind!r}")
     return get_logger(kind, logger_name=str(run_dir), experiment_name="logs")
+
+
+def truncate_csv_logs(log_dir: Path, step: int) -> None:
+    """Drop the rows logged after ``step`` from torchrl's CSV scalars (``<log_dir>/scalars/**.csv``,
+    ``step,value`` lines): a run killed after its last checkpoint logged steps that the resumed run
+    logs again. Each file is rewritten atomically (temp + rename)."""
+    for path in sorted((log_dir / "scalars").rglob("*.csv")):
+        lines = path.read_text().splitlines(keepends=True)
+        kept = [line for line in lines if line.strip() and int(float(line.split(",", 1)[0])) <= step]
+        if len(kept) != len(lines):
+            tmp = path.with_name(f".{path.name}.tmp")
+            tmp.write_text("".join(kept))
+            os.replace(tmp, path)
 
 
 def check_resumable(run_dir: Path, cfg) -> None:
@@ -104,6 +117,8 @@ def train(cfg) -> Path:
     run_dir = Path(cfg.run_dir).resolve()
     cfg.run_dir = str(run_dir)
     if rank == 0:
+        for leftover in remove_leftovers(run_dir / "checkpoints"):
+            print(f"removed {leftover}: left by a run killed while saving or pruning a checkpoint", file=sys.stderr)
         if cfg.resume:
             check_resumable(run_dir, cfg)
         elif list_checkpoints(run_dir / "checkpoints"):
@@ -147,6 +162,8 @@ def train(cfg) -> Path:
         trainer.register_op("batch_process", lambda batch: batch.to(device, non_blocking=True))
     if cfg.resume:
         trainer.resume(run_dir / "checkpoints")
+        if rank == 0 and cfg.logger == "csv":
+            truncate_csv_logs(run_dir / "logs", trainer.step)
     metrics = trainer.train()
     if rank == 0:
         summary = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
@@ -171,7 +188,7 @@ def main(argv: list[str]) -> int:
         cfg = compose_config("train", argv)
         run_dir = Path(cfg.run_dir).resolve()
         train(cfg)
-    except (ConfigError, CheckpointError, TrainingStopped, FileNotFoundError, ValueError, KeyError) as err:
+    except (ConfigError, CheckpointError, TrainingStopped, OSError, ValueError, KeyError) as err:
         if os.environ.get("MMF_RL_DEBUG"):
             raise
         message = err.args[0] if isinstance(err, KeyError) and err.args else err
