@@ -17,7 +17,7 @@ from mmf_rl.envs.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.models import build_model
 from mmf_rl.planning import PushObjective
 from tests.conftest import HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch
-from tests.envs.test_transforms import StampEnv, write_checkpoint, PUSH_SPECS
+from tests.envs.test_transforms import PUSH_SPECS, StampEnv, write_checkpoint
 
 SMALL_SIZES = {"d_model": 16, "head_hidden": 32}
 MODEL_CONFIGS = {
