@@ -11,6 +11,7 @@ weights. ``resume=true`` continues the run in ``run_dir`` exactly where its last
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import warnings
@@ -65,13 +66,25 @@ def make_logger(kind: str, run_dir: Path):
     return get_logger(kind, logger_name=str(run_dir), experiment_name="logs")
 
 
+def _logged_step(line: str) -> int | None:
+    """The step of a complete ``step,value`` row; None for a row cut short by a kill."""
+    fields = line.rstrip("\n").split(",")
+    try:
+        if not line.endswith("\n") or len(fields) != 2 or not math.isfinite(float(fields[0])):
+            return None
+        float(fields[1])
+    except ValueError:
+        return None
+    return int(float(fields[0]))
+
+
 def truncate_csv_logs(log_dir: Path, step: int) -> None:
     """Drop the rows logged after ``step`` from torchrl's CSV scalars (``<log_dir>/scalars/**.csv``,
     ``step,value`` lines): a run killed after its last checkpoint logged steps that the resumed run
-    logs again. Each file is rewritten atomically (temp + rename)."""
+    logs again (and maybe half a row). Each file is rewritten atomically (temp + rename)."""
     for path in sorted((log_dir / "scalars").rglob("*.csv")):
         lines = path.read_text().splitlines(keepends=True)
-        kept = [line for line in lines if line.strip() and int(float(line.split(",", 1)[0])) <= step]
+        kept = [line for line in lines if (logged := _logged_step(line)) is not None and logged <= step]
         if len(kept) != len(lines):
             tmp = path.with_name(f".{path.name}.tmp")
             tmp.write_text("".join(kept))

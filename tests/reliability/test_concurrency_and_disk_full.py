@@ -111,6 +111,8 @@ def test_disk_full_during_a_checkpoint_save_keeps_the_previous_one_then_resume_l
     assert load_checkpoint(run / "checkpoints").step == 3
     assert logged_steps(run) == [2, 4, 6], "steps 4 and 6 were logged before the save failed"
 
+    with open(run / "logs" / "scalars" / "train" / "loss.csv", "a") as log:
+        log.write("3,0.")  # and a row cut short by a kill mid-write
     monkeypatch.undo()
     assert cli(["train", *overrides, "resume=true"]) == 0
     assert load_checkpoint(run / "checkpoints").step == 6
