@@ -178,8 +178,8 @@ def _job_key(job: VideoJob) -> str:
     return f"{job.modality}:{job.row_start}:{job.video_path}"
 
 
-def _finished_jobs(progress: Path) -> dict[str, str | None]:
-    """Job key -> decode error (None: decoded) of the jobs a build recorded as finished."""
+def _finished_jobs(progress: Path) -> dict[str, tuple[str | None, int]]:
+    """Job key -> (decode error or None, frames decoded) of the jobs a build recorded as finished."""
     finished = {}
     if progress.is_file():
         for line in progress.read_text().splitlines():
@@ -187,13 +187,14 @@ def _finished_jobs(progress: Path) -> dict[str, str | None]:
                 record = json.loads(line)
             except json.JSONDecodeError:  # the line being written when the build was killed
                 continue
-            finished[record["job"]] = record["error"]
+            finished[record["job"]] = (record["error"], record["decoded"])
     return finished
 
 
 def _decode(jobs: list[VideoJob], num_workers: int | None, progress: Path,
-            done_frames: int = 0) -> list[tuple[VideoJob, str]]:
-    """Run the decode jobs (process pool with ``spawn`` when worth it); return the failed ones.
+            done_frames: int = 0) -> list[tuple[VideoJob, str, int]]:
+    """Run the decode jobs (process pool with ``spawn`` when worth it); return the failed ones
+    with their error and how many of their leading frames were decoded.
 
     Each finished job is appended to ``progress`` (its frames are in the memory-mapped table by
     then), so a killed build can resume after it.
@@ -205,10 +206,10 @@ def _decode(jobs: list[VideoJob], num_workers: int | None, progress: Path,
     failed = []
     with (tqdm(total=total + done_frames, initial=done_frames, desc="decoding videos into the window cache",
                unit="frame", disable=not jobs) as bar, open(progress, "a") as log):
-        def finished(job: VideoJob, error: str | None) -> None:
+        def finished(job: VideoJob, error: str | None, decoded: int) -> None:
             if error is not None:
-                failed.append((job, error))
-            log.write(json.dumps({"job": _job_key(job), "error": error}) + "\n")
+                failed.append((job, error, decoded))
+            log.write(json.dumps({"job": _job_key(job), "error": error, "decoded": decoded}) + "\n")
             log.flush()
             bar.update(len(job.timestamps))
 
@@ -244,16 +245,17 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
 
     finished = _finished_jobs(directory / PROGRESS_FILE)
     todo = [job for job in jobs if _job_key(job) not in finished]
-    failed = [(job, finished[_job_key(job)]) for job in jobs if finished.get(_job_key(job)) is not None]
+    failed = [(job, *finished[_job_key(job)]) for job in jobs
+              if _job_key(job) in finished and finished[_job_key(job)][0] is not None]
     if finished:
         print(f"resuming an interrupted window cache build in {directory}: {len(jobs) - len(todo)} of {len(jobs)} "
               "video jobs already decoded", file=sys.stderr)
     failed += _decode(todo, num_workers, directory / PROGRESS_FILE,
                       done_frames=sum(len(j.timestamps) for j in jobs) - sum(len(j.timestamps) for j in todo))
     undecodable: dict[str, dict[str, str]] = {}
-    for job, error in failed:
+    for job, error, decoded in failed:
         undecodable.setdefault(job.modality, {})[job.video_path] = error
-        frames.get(("present", job.modality))[job.row_start : job.row_start + len(job.timestamps)] = False
+        frames.get(("present", job.modality))[job.row_start + decoded : job.row_start + len(job.timestamps)] = False
     for name, paths in missing.items():
         absent = {str(p) for p in paths}
         for episode in source.episodes:

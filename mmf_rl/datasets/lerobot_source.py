@@ -603,8 +603,13 @@ def clear_decoders() -> None:
         _decoder_cache.clear()
 
 
-def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None]:
-    """Decode, resize and store a job's frames; return the error text if the video is unreadable."""
+def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
+    """Decode, resize and store a job's frames; return the error text if the video is unreadable,
+    and how many of the job's leading frames were stored.
+
+    A video shorter than its parquet rows (the rows' timestamps run past its last frame) gives its
+    frames up to its end; the error names both lengths, and the rows past the end stay undecoded.
+    """
     import torch
     import torch.nn.functional as F
     from lerobot.datasets.video_utils import decode_video_frames_torchcodec
@@ -612,9 +617,20 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None]:
 
     destination = TensorDict.load_memmap(job.frames_dir).get(("obs", job.modality))
     chunk = max(1, DECODE_CHUNK_BYTES // (4 * job.source_frame_values))
+    decoded, short = len(job.timestamps), None
     try:
-        for offset in range(0, len(job.timestamps), chunk):
-            stamps = list(job.timestamps[offset : offset + chunk])
+        metadata = _decoders().get_decoder(job.video_path).metadata
+        if metadata.num_frames is not None and metadata.average_fps:
+            # The frame index lerobot's decoder looks up for each timestamp.
+            indices = np.round(np.asarray(job.timestamps) * metadata.average_fps).astype(np.int64)
+            past_end = np.flatnonzero(indices >= metadata.num_frames)
+            if len(past_end):
+                decoded = int(past_end[0])
+                short = (f"the video has {metadata.num_frames} frames ({metadata.num_frames / metadata.average_fps:.2f} "
+                         f"s), but the parquet rows of this episode need frames up to {job.timestamps[-1]:.2f} s: "
+                         f"its last {len(job.timestamps) - decoded} rows have no frame")
+        for offset in range(0, decoded, chunk):
+            stamps = list(job.timestamps[offset : min(offset + chunk, decoded)])
             frames = decode_video_frames_torchcodec(
                 job.video_path, stamps, job.tolerance_s, decoder_cache=_decoders()
             )  # float32 [n, C, h, w] in [0, 1]
@@ -623,5 +639,5 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None]:
             start = job.row_start + offset
             destination[start : start + len(stamps)] = (frames * 255).round_().clamp_(0, 255).to(torch.uint8)
     except Exception as error:  # noqa: BLE001 - any decoder failure means "camera absent", reported by file
-        return job, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
-    return job, None
+        return job, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}", 0
+    return job, short, decoded

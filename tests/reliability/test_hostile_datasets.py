@@ -13,6 +13,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
+import torch
 
 from mmf_rl.datasets import WindowDataset
 from tests.reliability.conftest import edit_frames, push_data_config
@@ -107,7 +108,8 @@ def test_a_video_shorter_than_its_parquet_makes_the_camera_absent_past_its_end(p
 
     [video] = (push_copy / "videos").rglob("*.mp4")
     episodes = pq.read_table(next((push_copy / "meta" / "episodes").rglob("*.parquet"))).to_pandas()
-    keep = int(episodes["dataset_to_index"][2])  # frames of episodes 0-2 only
+    cut_episode, kept_frames = 3, 20
+    keep = int(episodes["dataset_from_index"][cut_episode]) + kept_frames  # the video ends inside episode 3
     shorter = video.with_name("shorter.mp4")
     with av.open(str(video)) as source, av.open(str(shorter), "w") as sink:
         stream = source.streams.video[0]
@@ -120,8 +122,15 @@ def test_a_video_shorter_than_its_parquet_makes_the_camera_absent_past_its_end(p
         sink.mux(out.encode())
     shorter.replace(video)
 
-    with pytest.warns(UserWarning, match=rf"{video.name} \(undecodable: .*must be less than {keep}"):
+    with pytest.warns(UserWarning, match=rf"{video.name} \(undecodable: the video has {keep} frames \([\d.]+ s\), "
+                                         r"but the parquet rows of this episode need frames up to [\d.]+ s"):
         dataset = open_dataset(push_copy, tmp_path / "cache")
-    camera = dataset.presence["image"]
-    assert camera[dataset.window_episode <= 2].all() and not camera[dataset.window_episode > 2].any()
+    camera, episode = dataset.presence["image"], dataset.window_episode
+    assert camera[episode < cut_episode].all() and not camera[episode > cut_episode].any()
+    # In the cut episode, a window has the camera exactly when its observed frames are all in the video.
+    history = 4
+    first = dataset.window_start - int(episodes["dataset_from_index"][cut_episode])
+    in_cut = episode == cut_episode
+    assert torch.equal(camera[in_cut], first[in_cut] + history <= kept_frames)
+    assert camera[in_cut].any() and not camera[in_cut].all()
     assert dataset.presence["force"].all(), "the other sensors of those episodes stay"
