@@ -10,11 +10,15 @@ Layout of one checkpoint (a directory)::
 
 A checkpoint is written into a temporary sibling directory, flushed, then renamed into place;
 the ``last`` file next to it is replaced atomically after that. A reader therefore sees either the
-previous checkpoint or the new one, never a partial one.
+previous checkpoint or the new one, never a partial one. A full disk (``ENOSPC``) is a
+`CheckpointError` that says the previous checkpoint is intact; what a kill during a save or a
+prune leaves (``.step_*.tmp``, ``.step_*.deleting``, ``.last.tmp``) is removed by
+:func:`remove_leftovers` when the run starts again.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import pickle
@@ -33,6 +37,8 @@ TRAINER_STATE_FILE = "trainer_state.pt"
 META_FILE = "meta.json"
 LAST_POINTER = "last"
 FORMAT_VERSION = 1
+# What a killed save or prune leaves beside the checkpoints (temp dirs of save_checkpoint).
+LEFTOVER_PATTERNS = (".step_*.tmp", ".step_*.deleting", f".{LAST_POINTER}.tmp")
 
 
 class CheckpointError(RuntimeError):
@@ -76,6 +82,28 @@ def save_checkpoint(directory: str | os.PathLike, step: int, model_state: dict[s
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
+    try:
+        final = _save(directory, step, model_state, meta, tensors, trainer_state)
+    except OSError as error:
+        if error.errno != errno.ENOSPC:
+            raise
+        previous = list_checkpoints(directory)
+        kept = f"the previous checkpoint {previous[-1]} is intact" if previous else "no earlier checkpoint exists"
+        raise CheckpointError(f"no space left on device while saving checkpoint step {step} in {directory} "
+                              f"({error}); its temporary files were removed and {kept}. Free space, then continue "
+                              "with resume=true") from None
+    if keep_last is not None:
+        for old in list_checkpoints(directory)[:-keep_last]:
+            # Out of the step_* names first (rename onto an empty temp dir), so a kill during the
+            # delete leaves a hidden leftover, never a step_* checkpoint with files missing.
+            trash = tempfile.mkdtemp(prefix=f".{old.name}.", suffix=".deleting", dir=directory)
+            os.replace(old, trash)
+            shutil.rmtree(trash, ignore_errors=True)
+    return final
+
+
+def _save(directory: Path, step: int, model_state: dict[str, torch.Tensor], meta: dict | None,
+          tensors: dict[str, torch.Tensor] | None, trainer_state: dict | None) -> Path:
     final = directory / f"step_{step:09d}"
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=directory))
     try:
@@ -97,16 +125,26 @@ def save_checkpoint(directory: str | os.PathLike, step: int, model_state: dict[s
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     pointer_tmp = directory / f".{LAST_POINTER}.tmp"
-    pointer_tmp.write_text(final.name + "\n")
-    os.replace(pointer_tmp, directory / LAST_POINTER)
-    if keep_last is not None:
-        for old in list_checkpoints(directory)[:-keep_last]:
-            # Out of the step_* names first (rename onto an empty temp dir), so a kill during the
-            # delete leaves a hidden leftover, never a step_* checkpoint with files missing.
-            trash = tempfile.mkdtemp(prefix=f".{old.name}.", suffix=".deleting", dir=directory)
-            os.replace(old, trash)
-            shutil.rmtree(trash, ignore_errors=True)
+    try:
+        pointer_tmp.write_text(final.name + "\n")
+        os.replace(pointer_tmp, directory / LAST_POINTER)
+    except BaseException:
+        pointer_tmp.unlink(missing_ok=True)
+        raise
     return final
+
+
+def remove_leftovers(directory: str | os.PathLike) -> list[Path]:
+    """Delete what a killed save or prune left in ``directory`` (never a complete checkpoint);
+    return what was removed. Call it when a run starts: no save is in progress then."""
+    directory = Path(directory)
+    removed = sorted(p for pattern in LEFTOVER_PATTERNS for p in directory.glob(pattern))
+    for path in removed:
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+    return removed
 
 
 def list_checkpoints(directory: str | os.PathLike) -> list[Path]:

@@ -25,7 +25,11 @@ key                                  shape                meaning
 ===================================  ===================  ==================================================
 
 Rules: a sample needs at least one present modality; the value stored under an absent modality
-never changes any output; output shapes never depend on presence.
+never changes any output; output shapes never depend on presence. A batch has at least one sample
+(an empty batch is a clear error, not empty outputs: a loss or metric over zero samples has no
+value, so the caller skips it). NaN or ±Inf under a *present* modality is an error naming the key
+and the samples, or, with a model's ``nonfinite="absent"``, makes that modality absent for those
+samples (:func:`validate_batch`); the RL glue always does the latter.
 """
 
 from __future__ import annotations
@@ -79,6 +83,9 @@ def drop_key(modality: str) -> tuple[str, str]:
 
 ModalityKind = Literal["image", "sequence", "vector"]
 MODALITY_KINDS: tuple[str, ...] = get_args(ModalityKind)
+# What a model does with NaN/Inf under a present modality: refuse the batch, or read it as absent.
+NonFiniteRule = Literal["raise", "absent"]
+NONFINITE_RULES = ("raise", "absent")
 
 # The encoder each kind gets unless the spec names another one. The encoders themselves, and which
 # kinds each accepts, are registered in mmf_rl.models.encoders (checked when a model is built).
@@ -160,20 +167,40 @@ def _describe(t: torch.Tensor) -> str:
     return f"{str(t.dtype).removeprefix('torch.')} {list(t.shape)}"
 
 
+def _indices(rows: torch.Tensor) -> str:
+    bad = rows.nonzero().flatten().tolist()
+    return f"{bad[:10]}{'...' if len(bad) > 10 else ''}"
+
+
+def nonfinite_rows(values: torch.Tensor) -> torch.Tensor:
+    """``[N]`` bool: the rows of ``values`` ``[N, ...]`` holding NaN or ±Inf (never for integer dtypes)."""
+    if not values.is_floating_point():
+        return torch.zeros(values.shape[0], dtype=torch.bool, device=values.device)
+    return ~torch.isfinite(values).flatten(1).all(1) if values.dim() > 1 else ~torch.isfinite(values)
+
+
 def validate_batch(td, modalities: list[ModalitySpec], history: int, horizon: int | None = None,
                    target_dim: int | None = None, require_target: bool = False,
-                   action_shape: tuple[int, int] | None = None) -> None:
+                   action_shape: tuple[int, int] | None = None, nonfinite: NonFiniteRule = "raise") -> None:
     """Check a batch against the contract; raise errors that name the key, expected and found.
 
-    Checked: every ``("obs", m)`` and ``("present", m)`` exists with the right dtype and shape,
-    every sample has at least one present modality, ``"target"`` (if present or required)
-    is ``float [B, T, D]``, and, for an action-conditioned model (``action_shape = (S, A)``),
-    ``"future_action"`` is ``float32 [B, S, A]``.
+    Checked: the batch is not empty, every ``("obs", m)`` and ``("present", m)`` exists with the
+    right dtype and shape, no present ``("obs", m)`` holds NaN or ±Inf (``nonfinite="raise"``;
+    with ``"absent"`` the ``("present", m)`` flag of those samples is set to False in ``td``
+    instead), every sample has at least one present modality, ``"target"`` (if present or
+    required) is ``float [B, T, D]``, and, for an action-conditioned model (``action_shape =
+    (S, A)``), ``"future_action"`` is finite ``float32 [B, S, A]``.
     """
+    if nonfinite not in NONFINITE_RULES:
+        raise ValueError(f"nonfinite must be one of {NONFINITE_RULES}, found {nonfinite!r}")
     if len(td.batch_size) != 1:
         raise ValueError(f"expected a TensorDict with batch size [B], found batch size {list(td.batch_size)}")
     batch = td.batch_size[0]
+    if batch == 0:
+        raise ValueError("empty batch (batch size 0): there is nothing to forecast; skip empty batches before "
+                         "calling the model (a loss or metric over zero samples has no value)")
     any_present = None
+    made_absent = []
     for spec in modalities:
         for key in (spec.obs_key, spec.present_key):
             if key not in td.keys(include_nested=True):
@@ -189,13 +216,23 @@ def validate_batch(td, modalities: list[ModalitySpec], history: int, horizon: in
         present = td.get(spec.present_key)
         if present.dtype != torch.bool or tuple(present.shape) != (batch,):
             raise ValueError(f"td[{spec.present_key}]: expected bool [{batch}], found {_describe(present)}")
+        bad = nonfinite_rows(obs) & present
+        if bool(bad.any()):
+            if nonfinite == "raise":
+                raise ValueError(
+                    f"td[{spec.obs_key}] holds NaN or Inf in {int(bad.sum())} sample(s) where {spec.present_key} is "
+                    f"True (batch indices {_indices(bad)}); mark those samples absent ({spec.present_key} = False), "
+                    "or build the model with nonfinite='absent' to read them as absent"
+                )
+            present = present & ~bad
+            td.set(spec.present_key, present)
+            made_absent.append(spec.name)
         any_present = present if any_present is None else any_present | present
     if any_present is not None and not bool(any_present.all()):
-        bad = (~any_present).nonzero().flatten().tolist()
+        because = f" (after NaN/Inf made {made_absent} absent)" if made_absent else ""
         raise ValueError(
-            f"{len(bad)} sample(s) have no present modality (batch indices {bad[:10]}"
-            f"{'...' if len(bad) > 10 else ''}); every sample needs at least one of "
-            f"{[s.name for s in modalities]}"
+            f"{int((~any_present).sum())} sample(s) have no present modality{because} (batch indices "
+            f"{_indices(~any_present)}); every sample needs at least one of {[s.name for s in modalities]}"
         )
     if TARGET in td.keys() or require_target:
         if TARGET not in td.keys():
@@ -216,3 +253,7 @@ def validate_batch(td, modalities: list[ModalitySpec], history: int, horizon: in
         expected = (batch, *action_shape)
         if action.dtype != torch.float32 or tuple(action.shape) != expected:
             raise ValueError(f"td[{FUTURE_ACTION!r}]: expected float32 {list(expected)}, found {_describe(action)}")
+        bad = nonfinite_rows(action)
+        if bool(bad.any()):
+            raise ValueError(f"td[{FUTURE_ACTION!r}] holds NaN or Inf (batch indices {_indices(bad)}); a forecast "
+                             "under a non-finite action has no meaning")

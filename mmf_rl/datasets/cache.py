@@ -12,15 +12,31 @@ Layout of one cache directory (``<cache_dir>/<dataset>-<fingerprint>/``):
   of every file in ``frames/`` and ``windows/``.
 
 The directory is written under a temporary name (``.building-<pid>-<host>-...``) and renamed into
-place as the last step, so a killed build never reads as a cache; the next open removes the temp
-directories whose build died. The key covers every dataset file's path, size and mtime plus the
-config fields that decide the content; any change gives a new directory. Opening checks the
-files against their recorded sizes and checksums: a cache changed on disk after its build is
-rebuilt, with a warning naming the file.
+place as the last step, so a killed build never reads as a cache. The key covers every dataset
+file's path, size and mtime plus the config fields that decide the content; any change gives a
+new directory. Opening checks the files against their recorded sizes and checksums: a cache
+changed on disk after its build is rebuilt, with a warning naming the file.
+
+Concurrency and failures:
+
+* Processes opening caches in one ``cache_dir`` (two ``mmf-rl train`` on the same data) take an
+  exclusive lock on the directory (``flock``, released by the kernel when a process dies) around
+  the check-and-build: one builds, the others wait, then open the finished cache. A reader never
+  sees a half-written cache (it appears by rename); a dataset change builds a new directory,
+  leaving the old one, which readers may hold, untouched.
+* A build killed midway resumes: each decoded video job is appended to ``progress.jsonl`` in the
+  temp dir, and the next open adopts a dead build's temp dir of the same key and decodes only
+  the jobs not listed. The temp dirs of other dead builds are removed.
+* Before a build, the frames' size is checked against the free space (a memory-mapped write to
+  a full disk is a SIGBUS, not an error); ``ENOSPC`` from a write removes the partial build and
+  says so. The previous caches are untouched either way.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import fcntl
 import glob
 import hashlib
 import json
@@ -29,6 +45,7 @@ import os
 import re
 import shutil
 import socket
+import sys
 import tempfile
 import time
 import warnings
@@ -48,6 +65,12 @@ from mmf_rl.datasets.lerobot_source import LeRobotSource, VideoJob, clear_decode
 CACHE_FORMAT = 3
 CACHE_META = "cache.json"
 BUILDING_PREFIX = ".building-"
+# In a build's temp dir: one JSON line per finished video job, and the marker written once the
+# frame table is allocated and its vector columns filled (what a resumed build keeps).
+PROGRESS_FILE = "progress.jsonl"
+FRAMES_READY = "frames.ready"
+# Free space a build leaves beyond the cache's own size (cache.json, filesystem slack).
+FREE_SPACE_MARGIN = 64 * 2**20
 # A temp dir of another host (a shared cache dir) or of an unknown owner is stale once nothing
 # in it has been written for this long; a live build writes frames continuously. One of this
 # host whose PID is alive is stale only after a day without writes (the PID was reused).
@@ -152,42 +175,123 @@ def _video_jobs(source: LeRobotSource, columns: dict, frames_dir: Path, missing:
     return jobs
 
 
-def _decode(jobs: list[VideoJob], num_workers: int | None) -> list[tuple[VideoJob, str]]:
-    """Run the decode jobs (process pool with ``spawn`` when worth it); return the failed ones."""
+def _job_key(job: VideoJob) -> str:
+    return f"{job.modality}:{job.row_start}:{job.video_path}"
+
+
+def _finished_jobs(progress: Path) -> dict[str, tuple[str | None, int]]:
+    """Job key -> (decode error or None, frames decoded) of the jobs a build recorded as finished."""
+    finished = {}
+    if progress.is_file():
+        for line in progress.read_text().splitlines():
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:  # the line being written when the build was killed
+                continue
+            finished[record["job"]] = (record["error"], record["decoded"])
+    return finished
+
+
+def _decode(jobs: list[VideoJob], num_workers: int | None, progress: Path,
+            done_frames: int = 0) -> list[tuple[VideoJob, str, int]]:
+    """Run the decode jobs (process pool with ``spawn`` when worth it); return the failed ones
+    with their error and how many of their leading frames were decoded.
+
+    Each finished job is appended to ``progress`` (its frames are in the memory-mapped table by
+    then), so a killed build can resume after it.
+    """
     total = sum(len(j.timestamps) for j in jobs)
     if num_workers is None:
         cores = len(os.sched_getaffinity(0))
         num_workers = min(cores, len(jobs)) if total >= POOL_MIN_FRAMES else 1
     failed = []
-    with tqdm(total=total, desc="decoding videos into the window cache", unit="frame", disable=not jobs) as bar:
+    with (tqdm(total=total + done_frames, initial=done_frames, desc="decoding videos into the window cache",
+               unit="frame", disable=not jobs) as bar, open(progress, "a") as log):
+        def finished(job: VideoJob, error: str | None, decoded: int) -> None:
+            if error is not None:
+                failed.append((job, error, decoded))
+            log.write(json.dumps({"job": _job_key(job), "error": error, "decoded": decoded}) + "\n")
+            log.flush()
+            bar.update(len(job.timestamps))
+
         if num_workers > 1 and len(jobs) > 1:
             # spawn, not fork: torchcodec decoders break in forked children; each spawned worker
             # starts with its own empty decoder cache.
             context = multiprocessing.get_context("spawn")
             with ProcessPoolExecutor(max_workers=num_workers, mp_context=context) as pool:
                 for future in as_completed([pool.submit(run_video_job, job) for job in jobs]):
-                    job, error = future.result()
-                    if error is not None:
-                        failed.append((job, error))
-                    bar.update(len(job.timestamps))
+                    finished(*future.result())
         else:
             try:
                 for job in jobs:
-                    _, error = run_video_job(job)
-                    if error is not None:
-                        failed.append((job, error))
-                    bar.update(len(job.timestamps))
+                    finished(*run_video_job(job))
             finally:
                 clear_decoders()
     return failed
 
 
 def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> dict:
-    config = source.config
+    """Build the cache's files in ``directory``; continue the build a killed process left there."""
     columns = source.read_columns()
     n = len(columns["index"])
+    unordered = source.drop_episodes_with_unordered_timestamps(columns)
     per_frame = _frame_columns(source, columns)
+    missing = source.missing_videos()
+    jobs = _video_jobs(source, columns, directory / "frames", missing)
+    if (directory / FRAMES_READY).is_file():
+        frames = TensorDict.load_memmap(directory / "frames")
+    else:
+        frames = _allocate_frames(source, per_frame, directory / "frames")
+        (directory / FRAMES_READY).touch()
 
+    finished = _finished_jobs(directory / PROGRESS_FILE)
+    todo = [job for job in jobs if _job_key(job) not in finished]
+    failed = [(job, *finished[_job_key(job)]) for job in jobs
+              if _job_key(job) in finished and finished[_job_key(job)][0] is not None]
+    if finished:
+        print(f"resuming an interrupted window cache build in {directory}: {len(jobs) - len(todo)} of {len(jobs)} "
+              "video jobs already decoded", file=sys.stderr)
+    failed += _decode(todo, num_workers, directory / PROGRESS_FILE,
+                      done_frames=sum(len(j.timestamps) for j in jobs) - sum(len(j.timestamps) for j in todo))
+    undecodable: dict[str, dict[str, str]] = {}
+    for job, error, decoded in failed:
+        undecodable.setdefault(job.modality, {})[job.video_path] = error
+        frames.get(keys.present_key(job.modality))[job.row_start + decoded : job.row_start + len(job.timestamps)] = False
+    for name, paths in missing.items():
+        absent = {str(p) for p in paths}
+        for episode in source.episodes:
+            if str(source.video_path(episode.index, source.modalities[name].feature)) in absent:
+                frames.get(keys.present_key(name))[episode.start : episode.stop] = False
+
+    windows, skipped = _windows(source, frames)
+    skipped["episodes_timestamps_not_increasing"] = unordered
+    shutil.rmtree(directory / "windows", ignore_errors=True)  # a killed build may have begun them
+    windows.memmap_(directory / "windows")
+    report = {
+        "format": CACHE_FORMAT,
+        "config": source.config.cache_fields(),
+        "dataset_root": str(source.root),
+        "n_frames": n,
+        "n_windows": int(windows.batch_size[0]),
+        "specs": [s.to_dict() for s in source.specs],
+        "target_dim": source.target_dim,
+        "action_dim": source.action_dim,
+        "episodes": [[e.index, e.start, e.stop] for e in source.episodes],
+        "missing_files": {name: [str(p) for p in paths] for name, paths in missing.items()},
+        "undecodable_files": undecodable,
+        "skipped": skipped,
+    }
+    (directory / PROGRESS_FILE).unlink()
+    (directory / FRAMES_READY).unlink()
+    report["files"] = _file_records(directory)
+    (directory / CACHE_META).write_text(json.dumps(report, indent=2))
+    return report
+
+
+def _allocate_frames(source: LeRobotSource, per_frame: dict, frames_dir: Path) -> TensorDict:
+    """The memory-mapped frame table with its vector columns filled (images come from decoding)."""
+    n = len(per_frame["episode"])
+    shutil.rmtree(frames_dir, ignore_errors=True)  # a killed build's half-allocated table
     layout = {
         keys.OBS: {
             name: torch.zeros((), dtype=m.spec.dtype).expand(n, *m.spec.shape)
@@ -202,7 +306,7 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
     if "action" in per_frame:
         vector_keys += ["action", "action_valid"]
         layout.update(action=per_frame["action"], action_valid=per_frame["action_valid"])
-    frames = TensorDict(layout, batch_size=[n]).memmap_like(directory / "frames")
+    frames = TensorDict(layout, batch_size=[n]).memmap_like(frames_dir)
     # memmap_like only allocates the files; fill the vector columns (images come from decoding).
     for key in vector_keys:
         frames.get(key).copy_(layout[key])
@@ -210,38 +314,7 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
         frames.get(keys.present_key(name)).copy_(per_frame[keys.PRESENT][name])
         if name in per_frame[keys.OBS]:
             frames.get(keys.obs_key(name)).copy_(per_frame[keys.OBS][name])
-
-    missing = source.missing_videos()
-    failed = _decode(_video_jobs(source, columns, directory / "frames", missing), num_workers)
-    undecodable: dict[str, dict[str, str]] = {}
-    for job, error in failed:
-        undecodable.setdefault(job.modality, {})[job.video_path] = error
-        frames.get(keys.present_key(job.modality))[job.row_start : job.row_start + len(job.timestamps)] = False
-    for name, paths in missing.items():
-        absent = {str(p) for p in paths}
-        for episode in source.episodes:
-            if str(source.video_path(episode.index, source.modalities[name].feature)) in absent:
-                frames.get(keys.present_key(name))[episode.start : episode.stop] = False
-
-    windows, skipped = _windows(source, frames)
-    windows.memmap_(directory / "windows")
-    report = {
-        "format": CACHE_FORMAT,
-        "config": config.cache_fields(),
-        "dataset_root": str(source.root),
-        "n_frames": n,
-        "n_windows": int(windows.batch_size[0]),
-        "specs": [s.to_dict() for s in source.specs],
-        "target_dim": source.target_dim,
-        "action_dim": source.action_dim,
-        "episodes": [[e.index, e.start, e.stop] for e in source.episodes],
-        "missing_files": {name: [str(p) for p in paths] for name, paths in missing.items()},
-        "undecodable_files": undecodable,
-        "skipped": skipped,
-    }
-    report["files"] = _file_records(directory)
-    (directory / CACHE_META).write_text(json.dumps(report, indent=2))
-    return report
+    return frames
 
 
 def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dict]:
@@ -412,28 +485,84 @@ def _discard(directory: Path) -> None:
     shutil.rmtree(trash, ignore_errors=True)
 
 
+@contextlib.contextmanager
+def _locked(cache_dir: Path):
+    """An exclusive ``flock`` on the cache directory itself: no lock file to leave behind, and the
+    kernel releases it when its holder dies (a killed build never blocks the next one)."""
+    fd = os.open(cache_dir, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            print(f"waiting for another process to finish with the window caches in {cache_dir} ...",
+                  file=sys.stderr, flush=True)
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _resumable_build(destination: Path) -> Path | None:
+    """A dead build's temp dir for ``destination`` with its frame table allocated, renamed to this
+    process's name (so no other process takes it for stale); None if there is none."""
+    pattern = f"{glob.escape(BUILDING_PREFIX)}*-{glob.escape(destination.name)}-*"
+    for directory in sorted(destination.parent.glob(pattern)):
+        if (directory / FRAMES_READY).is_file() and _is_stale(directory, BUILDING_PREFIX):
+            claimed = Path(tempfile.mkdtemp(prefix=_temp_prefix(destination.name), dir=destination.parent))
+            os.rename(directory, claimed)  # replaces the empty temp dir
+            return claimed
+    return None
+
+
+def estimated_size(source: LeRobotSource) -> int:
+    """Bytes of the frame table of ``source``'s cache (the windows add a few bytes per frame)."""
+    per_frame = 8 + 4 * source.target_dim + 1  # episode, target, target_valid
+    if source.action_dim is not None:
+        per_frame += 4 * source.action_dim + 1
+    for m in source.modalities.values():
+        per_frame += int(np.prod(m.spec.shape)) * (1 if m.is_video else 4) + 1
+    return source.meta.total_frames * per_frame
+
+
+def _check_free_space(source: LeRobotSource, cache_dir: Path) -> None:
+    needed, free = estimated_size(source), shutil.disk_usage(cache_dir).free
+    if needed + FREE_SPACE_MARGIN > free:
+        raise OSError(errno.ENOSPC, f"the window cache of {source.root} needs about {needed / 2**30:.2f} GiB "
+                                    f"({source.meta.total_frames} frames) in {cache_dir}, which has "
+                                    f"{free / 2**30:.2f} GiB free; free space there, or set data.cache_dir to a "
+                                    "disk with room (nothing was written)")
+
+
 def open_cache(source: LeRobotSource, num_workers: int | None = None) -> tuple[Path, dict, bool]:
     """The cache directory of ``source``, its report, and whether it was built by this call.
 
-    Removes stale temp dirs of killed builds first. A cache whose files no longer match what its
-    build recorded is discarded and rebuilt, with a warning naming the file.
+    Under the cache directory's lock: adopts a killed build of this cache to resume it, removes
+    stale temp dirs of other killed builds, and builds if no cache exists. A cache whose files no
+    longer match what its build recorded is discarded and rebuilt, with a warning naming the file.
     """
     destination = cache_path(source)
-    remove_stale_builds(destination.parent)
-    if destination.exists():
-        damage = cache_damage(destination)
-        if damage is None:
-            return destination, json.loads((destination / CACHE_META).read_text()), False
-        warnings.warn(f"window cache {destination} is damaged: {damage}; rebuilding it", stacklevel=3)
-        _discard(destination)
-    build_cache(source, destination, num_workers)
+    destination.parent.mkdir(parents=True, exist_ok=True)
+    with _locked(destination.parent):
+        resume = None if destination.exists() else _resumable_build(destination)
+        remove_stale_builds(destination.parent)
+        if destination.exists():
+            damage = cache_damage(destination)
+            if damage is None:
+                return destination, json.loads((destination / CACHE_META).read_text()), False
+            warnings.warn(f"window cache {destination} is damaged: {damage}; rebuilding it", stacklevel=3)
+            _discard(destination)
+        build_cache(source, destination, num_workers, resume)
     return destination, json.loads((destination / CACHE_META).read_text()), True
 
 
-def build_cache(source: LeRobotSource, destination: Path, num_workers: int | None = None) -> None:
-    """Decode ``source`` into ``destination`` atomically (temp dir, then rename)."""
+def build_cache(source: LeRobotSource, destination: Path, num_workers: int | None = None,
+                resume: Path | None = None) -> None:
+    """Decode ``source`` into ``destination`` atomically (temp dir, then rename); ``resume``: a
+    killed build's temp dir to continue (see `open_cache`)."""
     destination.parent.mkdir(parents=True, exist_ok=True)
-    building = Path(tempfile.mkdtemp(prefix=_temp_prefix(destination.name), dir=destination.parent))
+    if resume is None:
+        _check_free_space(source, destination.parent)
+    building = resume or Path(tempfile.mkdtemp(prefix=_temp_prefix(destination.name), dir=destination.parent))
     try:
         _write(source, building, num_workers)
         os.chmod(building, 0o755)  # mkdtemp makes it private; a finished cache is as readable as any
@@ -443,6 +572,14 @@ def build_cache(source: LeRobotSource, destination: Path, num_workers: int | Non
             if not (destination / CACHE_META).is_file():
                 raise
             shutil.rmtree(building)  # a concurrent build finished first; its cache is identical
+    except OSError as error:
+        shutil.rmtree(building, ignore_errors=True)
+        if error.errno == errno.ENOSPC:
+            raise OSError(errno.ENOSPC, f"no space left on device while building the window cache {destination} "
+                                        f"({error}); the partial build was removed, nothing else changed: free "
+                                        f"space in {destination.parent}, or set data.cache_dir to a disk with "
+                                        "room") from None
+        raise
     except BaseException:
         shutil.rmtree(building, ignore_errors=True)
         raise

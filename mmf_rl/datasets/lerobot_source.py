@@ -8,11 +8,14 @@ its video utilities.
 
 from __future__ import annotations
 
+import itertools
 import json
+import os
 import shlex
+import warnings
 from dataclasses import dataclass
 from importlib.metadata import version as package_version
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import packaging.version
@@ -34,6 +37,14 @@ FRAME_COLUMNS = ("index", "episode_index", "timestamp")
 BOOKKEEPING_FEATURES = (*FRAME_COLUMNS, "frame_index", "task_index")
 # lerobot's v2.1 -> v3.0 converter (in lerobot 0.4.4 the only one it ships).
 V21_CONVERTER = "lerobot.datasets.v30.convert_dataset_v21_to_v30"
+# The path templates info.json may hold; each must stay inside the dataset root.
+PATH_TEMPLATE_KEYS = ("data_path", "video_path")
+DEFAULT_TEMPLATES = {"data_path": "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet",
+                     "video_path": "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"}
+# Declared sizes beyond these are refused before anything is allocated from them: a frame of more
+# than 2^28 values (16k x 16k RGB), a vector feature of more than 2^16 dims.
+MAX_FRAME_VALUES = 2**28
+MAX_VECTOR_WIDTH = 2**16
 
 
 @dataclass(frozen=True)
@@ -179,6 +190,21 @@ def _check_info(path: Path, info: dict) -> None:
             f"{path}: missing key(s) {missing}; a LeRobot v3.0 info.json has {list(REQUIRED_INFO_KEYS)}. "
             "Restore it from the original dataset or re-record it"
         )
+    # A dataset from the hub is untrusted input: its templates must not lead out of the root.
+    for key in PATH_TEMPLATE_KEYS:
+        template = info.get(key)
+        if template is None:
+            continue
+        parts = PurePosixPath(str(template)).parts
+        if not isinstance(template, str) or PurePosixPath(template).is_absolute() or ".." in parts or "\\" in template:
+            raise ValueError(
+                f"{path}: `{key}` {template!r} leads outside the dataset root; a LeRobot path template is "
+                f"relative to the root without '..' (like {DEFAULT_TEMPLATES[key]!r}). Restore info.json from the "
+                "original dataset"
+            )
+    total = info["total_frames"]
+    if not isinstance(total, int) or isinstance(total, bool) or total < 0:
+        raise ValueError(f"{path}: `total_frames` should be a non-negative integer, found {total!r}")
     features = info["features"]
     if not isinstance(features, dict) or not features:
         raise ValueError(f"{path}: `features` should map feature names to {{dtype, shape, names}}, found {features!r}")
@@ -193,6 +219,12 @@ def _check_info(path: Path, info: dict) -> None:
         if ft["dtype"] == "video" and len(shape) != 3:
             raise ValueError(
                 f"{path}: video feature {name!r} `shape` should be [height, width, channels], found {shape}"
+            )
+        if int(np.prod(shape, dtype=object)) > MAX_FRAME_VALUES:
+            raise ValueError(
+                f"{path}: feature {name!r} declares `shape` {shape}, {int(np.prod(shape, dtype=object)):.3g} values "
+                f"per frame (more than {MAX_FRAME_VALUES}); this is not a real sensor. Restore info.json from "
+                "the original dataset"
             )
     absent = [c for c in FRAME_COLUMNS if c not in features]
     if absent:
@@ -270,8 +302,9 @@ class LeRobotSource:
             Episode(int(e["episode_index"]), int(e["dataset_from_index"]), int(e["dataset_to_index"]))
             for e in self.meta.episodes
         ]
-        self._check_window_fits()
         self._check_data_files()
+        self._check_episode_ranges()
+        self._check_window_fits()
 
     @property
     def specs(self) -> list[ModalitySpec]:
@@ -297,6 +330,12 @@ class LeRobotSource:
                 f"({self.root / INFO_FILE}), but it must be a numeric vector (a float, int or bool dtype, "
                 f"shape [d]); use one of the dataset's numeric vector features: {vectors}"
             )
+        if ft["shape"][0] > MAX_VECTOR_WIDTH:
+            raise ValueError(
+                f"{what}: feature {feature!r} declares `shape` {list(ft['shape'])} in {self.root / INFO_FILE}, "
+                f"more than {MAX_VECTOR_WIDTH} dims; a model input that wide is not a sensor. Fix info.json, "
+                "or select the dims to use (`dims`)"
+            )
         return int(ft["shape"][0])
 
     def _resolve_vector(self, feature: str, dims: list[int] | None, what: str) -> tuple[str, int]:
@@ -305,6 +344,36 @@ class LeRobotSource:
         width = self._vector_width(feature, what)
         _check_dims(dims, width, f"{what} {feature!r}")
         return feature, len(dims) if dims is not None else width
+
+    def _episodes_file(self, position: int) -> Path:
+        """The meta/episodes parquet file that lists the episode at ``position`` of ``meta.episodes``."""
+        from lerobot.datasets.utils import DEFAULT_EPISODES_PATH
+
+        row = self.meta.episodes[position]
+        return self.root / DEFAULT_EPISODES_PATH.format(chunk_index=int(row["meta/episodes/chunk_index"]),
+                                                        file_index=int(row["meta/episodes/file_index"]))
+
+    def _check_episode_ranges(self) -> None:
+        """Every episode's ``[dataset_from_index, dataset_to_index)`` lies in the data's frames, and no
+        two overlap: each frame belongs to at most one episode (checked before anything is indexed)."""
+        total = self.meta.total_frames
+        for position, episode in enumerate(self.episodes):
+            if not 0 <= episode.start <= episode.stop <= total:
+                raise ValueError(
+                    f"{self._episodes_file(position)}: episode {episode.index} has dataset_from_index="
+                    f"{episode.start}, dataset_to_index={episode.stop}; expected 0 <= from <= to <= {total} "
+                    f"(total_frames in {self.root / INFO_FILE}). Restore meta/episodes from the original dataset"
+                )
+        ordered = sorted(range(len(self.episodes)), key=lambda i: self.episodes[i].start)
+        for before, after in itertools.pairwise(ordered):
+            a, b = self.episodes[before], self.episodes[after]
+            if b.start < a.stop:
+                raise ValueError(
+                    f"{self._episodes_file(after)}: episode {b.index} (frames {b.start}..{b.stop - 1}, "
+                    f"dataset_from_index/dataset_to_index) overlaps episode {a.index} (frames {a.start}.."
+                    f"{a.stop - 1}); each frame belongs to one episode. Restore meta/episodes from the original "
+                    "dataset"
+                )
 
     def _check_window_fits(self) -> None:
         """At least one episode must hold one window, or the dataset would give no sample at all."""
@@ -349,8 +418,10 @@ class LeRobotSource:
         info_path = self.root / INFO_FILE
         # lerobot casts every declared non-video feature when it loads the data, used or not.
         stored = sorted(name for name, ft in self.features.items() if ft["dtype"] != "video")
+        rows = 0
         for path in paths:
             schema = _read_parquet_schema(path)
+            rows += pq.read_metadata(path).num_rows
             for column in stored:
                 ft = self.features[column]
                 declared = f"dtype {ft['dtype']!r} shape {list(ft['shape'])}"
@@ -379,6 +450,11 @@ class LeRobotSource:
                         f"{declared}; fix the feature's `shape`/`dtype` in info.json to match the data, or "
                         "restore the data file"
                     )
+        if rows != self.meta.total_frames:
+            raise ValueError(
+                f"{info_path}: `total_frames` is {self.meta.total_frames}, but the data files hold {rows} frames "
+                f"({len(paths)} file(s) under {self.root / 'data'}); fix total_frames, or restore the data files"
+            )
 
     def _resolve(self, name: str) -> ResolvedModality:
         cfg = self.config.modalities[name]
@@ -414,7 +490,33 @@ class LeRobotSource:
         return ResolvedModality(spec=spec, feature=feature, dims=dims, valid_feature=valid)
 
     def video_path(self, episode: int, feature: str) -> Path:
-        return self.root / self.meta.get_video_file_path(episode, feature)
+        path = self.root / self.meta.get_video_file_path(episode, feature)
+        # The template was checked; the feature name it holds ({video_key}) is checked here.
+        if os.path.commonpath([os.path.normpath(path), os.path.normpath(self.root)]) != os.path.normpath(self.root):
+            raise ValueError(f"{self.root / INFO_FILE}: the video of feature {feature!r} (episode {episode}) resolves "
+                             f"to {os.path.normpath(path)}, outside the dataset root; rename the feature")
+        return path
+
+    def data_file(self, episode: int) -> Path:
+        return self.root / self.meta.get_data_file_path(episode)
+
+    def drop_episodes_with_unordered_timestamps(self, columns: dict[str, np.ndarray]) -> list[int]:
+        """Skip (with a warning naming file and field) every episode whose ``timestamp`` does not
+        increase frame after frame: its frames cannot be matched to video frames. Returns their indices."""
+        kept, dropped = [], []
+        for episode in self.episodes:
+            steps = np.diff(columns["timestamp"][episode.start : episode.stop].astype(np.float64))
+            if (steps > 0).all():
+                kept.append(episode)
+                continue
+            frame = int(np.flatnonzero(steps <= 0)[0]) + 1
+            stamps = columns["timestamp"][episode.start + frame - 1 : episode.start + frame + 1].tolist()
+            warnings.warn(
+                f"{self.data_file(episode.index)}: `timestamp` of episode {episode.index} does not increase at frame "
+                f"{frame} ({stamps[0]} then {stamps[1]}); the episode is skipped (no window uses it)", stacklevel=2)
+            dropped.append(episode.index)
+        self.episodes = kept
+        return dropped
 
     def video_from_timestamp(self, episode: int, feature: str) -> float:
         return float(self.meta.episodes[episode][f"videos/{feature}/from_timestamp"])
@@ -501,8 +603,13 @@ def clear_decoders() -> None:
         _decoder_cache.clear()
 
 
-def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None]:
-    """Decode, resize and store a job's frames; return the error text if the video is unreadable."""
+def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
+    """Decode, resize and store a job's frames; return the error text if the video is unreadable,
+    and how many of the job's leading frames were stored.
+
+    A video shorter than its parquet rows (the rows' timestamps run past its last frame) gives its
+    frames up to its end; the error names both lengths, and the rows past the end stay undecoded.
+    """
     import torch
     import torch.nn.functional as F
     from lerobot.datasets.video_utils import decode_video_frames_torchcodec
@@ -510,9 +617,20 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None]:
 
     destination = TensorDict.load_memmap(job.frames_dir).get(obs_key(job.modality))
     chunk = max(1, DECODE_CHUNK_BYTES // (4 * job.source_frame_values))
+    decoded, short = len(job.timestamps), None
     try:
-        for offset in range(0, len(job.timestamps), chunk):
-            stamps = list(job.timestamps[offset : offset + chunk])
+        metadata = _decoders().get_decoder(job.video_path).metadata
+        if metadata.num_frames is not None and metadata.average_fps:
+            # The frame index lerobot's decoder looks up for each timestamp.
+            indices = np.round(np.asarray(job.timestamps) * metadata.average_fps).astype(np.int64)
+            past_end = np.flatnonzero(indices >= metadata.num_frames)
+            if len(past_end):
+                decoded = int(past_end[0])
+                short = (f"the video has {metadata.num_frames} frames ({metadata.num_frames / metadata.average_fps:.2f} "
+                         f"s), but the parquet rows of this episode need frames up to {job.timestamps[-1]:.2f} s: "
+                         f"its last {len(job.timestamps) - decoded} rows have no frame")
+        for offset in range(0, decoded, chunk):
+            stamps = list(job.timestamps[offset : min(offset + chunk, decoded)])
             frames = decode_video_frames_torchcodec(
                 job.video_path, stamps, job.tolerance_s, decoder_cache=_decoders()
             )  # float32 [n, C, h, w] in [0, 1]
@@ -521,5 +639,5 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None]:
             start = job.row_start + offset
             destination[start : start + len(stamps)] = (frames * 255).round_().clamp_(0, 255).to(torch.uint8)
     except Exception as error:  # noqa: BLE001 - any decoder failure means "camera absent", reported by file
-        return job, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
-    return job, None
+        return job, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}", 0
+    return job, short, decoded

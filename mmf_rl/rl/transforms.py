@@ -124,6 +124,12 @@ class _WindowTransform(Transform):
         for spec in self.specs:
             frame = self._frame(spec, tensordict, n)
             present = tensordict.get(spec.present_key).reshape(n)
+            # A sensor reading NaN/Inf is absent for every window holding it, as in the data
+            # pipeline: the model never sees it, so no forecast or action turns NaN.
+            unreadable = keys.nonfinite_rows(frame)
+            if bool(unreadable.any()):
+                frame = frame.masked_fill(unreadable.view(-1, *[1] * (frame.dim() - 1)), 0)
+                present = present & ~unreadable
             if rows is None:
                 self._frames[spec.name][:, self._newest] = frame
                 self._present[spec.name][:, self._newest] = present
@@ -208,11 +214,11 @@ class ForecastTransform(_WindowTransform):
 
     The window follows the data pipeline (`mmf_rl.datasets.windows`): vector observations are
     normalised with ``stats``; images are resized to the model's size the way the cache resizes
-    them (bilinear, antialiased); a ``"sequence"``/``"image"`` modality is present in the window
-    only if it is present at all H steps (``"vector"``: at the last step), and an absent
-    modality's vector window is zeroed. After a reset, the first observation fills the whole
-    history (its presence too), so a full window exists from the first step; it is replaced step
-    by step over the next H-1 steps. A window with no present modality cannot be forecast: its
+    them (bilinear, antialiased); a reading with NaN or ±Inf counts as absent at its step; a
+    ``"sequence"``/``"image"`` modality is present in the window only if it is present at all H
+    steps (``"vector"``: at the last step), and an absent modality's vector window is zeroed.
+    After a reset, the first observation fills the whole history (its presence too), so a full
+    window exists from the first step; it is replaced step by step over the next H-1 steps. A window with no present modality cannot be forecast: its
     row gets ``valid = False`` and the training marginal of the target (normalised mean 0,
     scale 1, i.e. ``target/mean`` and ``target/std`` in target units).
 

@@ -24,8 +24,9 @@ class WorldModel:
     :meth:`forecast` it under any number of raw action sequences. Forecasts are in the target's
     units (for the push data: the object's planar displacement from now, metres).
 
-    A window row with no present modality cannot be encoded; its forecasts are the target's
-    training mean (the marginal, as `ForecastTransform` does), whatever the actions.
+    A window row with no present modality (NaN/Inf readings count as absent) cannot be encoded;
+    its forecasts are the target's training mean (the marginal, as `ForecastTransform` does),
+    whatever the actions.
 
     Action dims the training data never varied (std at the data config's ``std_floor``, e.g.
     FetchPush's finger command) are read as their training value whatever a planner asks: the
@@ -69,6 +70,11 @@ class WorldModel:
     def encode(self, window: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Tokens ``[n, M, d]``, presence ``[n, M]`` and ``valid`` ``[n]`` of ``n`` history windows."""
         specs = self.model.modalities
+        # NaN/Inf under a present modality (a window built by hand) reads as absent, as in HistoryWindow.
+        window = window.clone(False)
+        for spec in specs:
+            readable = ~keys.nonfinite_rows(window.get(spec.obs_key))
+            window.set(spec.present_key, window.get(spec.present_key) & readable)
         present = torch.stack([window.get(s.present_key) for s in specs], dim=1).to(self.device)
         valid = present.any(1)
         no_tokens = torch.zeros(present.shape[0], len(specs), self.model.config.d_model, device=self.device)

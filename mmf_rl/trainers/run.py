@@ -11,6 +11,7 @@ weights. ``resume=true`` continues the run in ``run_dir`` exactly where its last
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 import warnings
@@ -21,7 +22,7 @@ import torch
 import torch.distributed as dist
 from omegaconf import OmegaConf
 
-from mmf_rl.checkpoint import CheckpointError, list_checkpoints
+from mmf_rl.checkpoint import CheckpointError, list_checkpoints, remove_leftovers
 from mmf_rl.configuration import ConfigError, compose_config, load_config, save_config, to_container
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
@@ -57,6 +58,31 @@ def make_logger(kind: str, run_dir: Path):
     if kind not in ("csv", "tensorboard", "wandb"):
         raise ValueError(f"logger must be one of csv, tensorboard, wandb, none; found {kind!r}")
     return get_logger(kind, logger_name=str(run_dir), experiment_name="logs")
+
+
+def _logged_step(line: str) -> int | None:
+    """The step of a complete ``step,value`` row; None for a row cut short by a kill."""
+    fields = line.rstrip("\n").split(",")
+    try:
+        if not line.endswith("\n") or len(fields) != 2 or not math.isfinite(float(fields[0])):
+            return None
+        float(fields[1])
+    except ValueError:
+        return None
+    return int(float(fields[0]))
+
+
+def truncate_csv_logs(log_dir: Path, step: int) -> None:
+    """Drop the rows logged after ``step`` from torchrl's CSV scalars (``<log_dir>/scalars/**.csv``,
+    ``step,value`` lines): a run killed after its last checkpoint logged steps that the resumed run
+    logs again (and maybe half a row). Each file is rewritten atomically (temp + rename)."""
+    for path in sorted((log_dir / "scalars").rglob("*.csv")):
+        lines = path.read_text().splitlines(keepends=True)
+        kept = [line for line in lines if (logged := _logged_step(line)) is not None and logged <= step]
+        if len(kept) != len(lines):
+            tmp = path.with_name(f".{path.name}.tmp")
+            tmp.write_text("".join(kept))
+            os.replace(tmp, path)
 
 
 def check_resumable(run_dir: Path, cfg) -> None:
@@ -99,6 +125,8 @@ def train(cfg) -> Path:
     run_dir = Path(cfg.run_dir).resolve()
     cfg.run_dir = str(run_dir)
     if rank == 0:
+        for leftover in remove_leftovers(run_dir / "checkpoints"):
+            print(f"removed {leftover}: left by a run killed while saving or pruning a checkpoint", file=sys.stderr)
         if cfg.resume:
             check_resumable(run_dir, cfg)
         elif list_checkpoints(run_dir / "checkpoints"):
@@ -145,6 +173,8 @@ def train(cfg) -> Path:
         trainer.register_op("batch_process", lambda batch: batch.to(device, non_blocking=True))
     if cfg.resume:
         trainer.resume(run_dir / "checkpoints")
+        if rank == 0 and cfg.logger == "csv":
+            truncate_csv_logs(run_dir / "logs", trainer.step)
     metrics = trainer.train()
     if rank == 0:
         summary = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
@@ -169,7 +199,7 @@ def main(argv: list[str]) -> int:
         cfg = compose_config("train", argv)
         run_dir = Path(cfg.run_dir).resolve()
         train(cfg)
-    except (ConfigError, CheckpointError, TrainingStopped, FileNotFoundError, ValueError, KeyError) as err:
+    except (ConfigError, CheckpointError, TrainingStopped, OSError, ValueError, KeyError) as err:
         if os.environ.get("MMF_RL_DEBUG"):
             raise
         message = err.args[0] if isinstance(err, KeyError) and err.args else err

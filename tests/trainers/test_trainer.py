@@ -102,7 +102,7 @@ def poison(step_numbers):
         calls["n"] += 1
         if calls["n"] in step_numbers:
             batch = batch.clone()
-            batch[keys.obs_key("vel")][0, 0, 0] = float("nan")
+            batch[keys.TARGET][0, 0, 0] = float("nan")  # a NaN input would be refused by the model
         return batch
 
     return op

@@ -16,7 +16,7 @@ from torch import nn
 
 from mmf_rl import keys
 from mmf_rl.configuration import reject_unknown_keys
-from mmf_rl.keys import ModalitySpec
+from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
 from mmf_rl.models.encoders import ImageWindowEncoder, check_encoder
 
 
@@ -32,6 +32,8 @@ class BaselineConfig:
         d_model: width of every per-modality representation.
         head_hidden: hidden width of the output head.
         min_scale: floor added to every predicted standard deviation.
+        nonfinite: NaN/Inf under a present modality: ``"raise"`` (default) or ``"absent"`` (read
+            as absent), as :func:`mmf_rl.keys.validate_batch` applies it.
     """
 
     modalities: list[ModalitySpec] = field(default_factory=list)
@@ -41,6 +43,7 @@ class BaselineConfig:
     d_model: int = 64
     head_hidden: int = 256
     min_scale: float = 1e-3
+    nonfinite: NonFiniteRule = "raise"
 
     def __post_init__(self):
         self.modalities = [m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities]
@@ -53,6 +56,8 @@ class BaselineConfig:
         # An unknown encoder is an error even for a baseline that tokenizes per step instead.
         for spec in self.modalities:
             check_encoder(spec.name, spec.encoder, spec.kind)
+        if self.nonfinite not in NONFINITE_RULES:
+            raise ValueError(f"{name}.nonfinite must be one of {NONFINITE_RULES}, found {self.nonfinite!r}")
         for f in fields(self):
             value = getattr(self, f.name)
             if f.type in ("int", int) and value < 1:
@@ -125,7 +130,8 @@ class DeterministicForecaster(TensorDictModuleBase):
         self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE]
 
     def validate(self, td: TensorDictBase) -> None:
-        keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim)
+        keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim,
+                            nonfinite=self.config.nonfinite)
 
     def forecast(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         raise NotImplementedError

@@ -75,7 +75,8 @@ class MVAE(TensorDictModuleBase):
                          keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE]
 
     def validate(self, td: TensorDictBase) -> None:
-        keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim)
+        keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim,
+                            nonfinite=self.config.nonfinite)
 
     def posterior(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """PoE posterior ``loc``, ``scale`` ``[B, d_z]``; each expert runs on its present rows only."""

@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Literal
 
 from mmf_rl.configuration import reject_unknown_keys
-from mmf_rl.keys import ModalitySpec
+from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.fusion import FUSIONS
 
@@ -44,6 +44,9 @@ class ForecasterConfig:
             model that reads ``"future_action"`` ``[B, action_steps, A]`` (the actions applied
             over the horizon). ``0`` (default): no action input, the paper's forecaster.
         action_steps: ``S``, frames of actions over the horizon (``T × stride`` in the data).
+        nonfinite: NaN/Inf under a present modality of an input batch: ``"raise"`` (default; the
+            error names the key and the samples) or ``"absent"`` (those samples' modality is
+            read as absent). See :func:`mmf_rl.keys.validate_batch`.
     """
 
     modalities: list[ModalitySpec] = field(default_factory=list)
@@ -62,6 +65,7 @@ class ForecasterConfig:
     fusion: str = "agnostic"
     action_dim: int = 0
     action_steps: int = 0
+    nonfinite: NonFiniteRule = "raise"
 
     def __post_init__(self):
         self.modalities = [m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities]
@@ -85,6 +89,8 @@ class ForecasterConfig:
                 f"ForecasterConfig: action_dim={self.action_dim} and action_steps={self.action_steps} must both be "
                 "> 0 (an action-conditioned world model) or both 0 (no action input)"
             )
+        if self.nonfinite not in NONFINITE_RULES:
+            raise ValueError(f"ForecasterConfig.nonfinite must be one of {NONFINITE_RULES}, found {self.nonfinite!r}")
         if self.fusion not in FUSIONS:
             raise ValueError(f"ForecasterConfig.fusion must be one of {FUSIONS}, found {self.fusion!r}")
 

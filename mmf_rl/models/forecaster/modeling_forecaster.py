@@ -163,7 +163,8 @@ class MultimodalForecaster(TensorDictModuleBase):
     def validate(self, td: TensorDictBase, require_target: bool = False) -> None:
         """Raise a clear error if ``td`` does not follow the key contract for this model."""
         keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim,
-                            require_target=require_target, action_shape=self.config.action_shape)
+                            require_target=require_target, action_shape=self.config.action_shape,
+                            nonfinite=self.config.nonfinite)
 
     def encode(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Unimodal encoders -> tokens ``[B, M, d]`` (zeros where absent) and presence ``[B, M]``."""
@@ -276,7 +277,7 @@ class MultimodalForecaster(TensorDictModuleBase):
         once and :meth:`decode_under_actions` per batch). Returns ``loc``, ``scale`` ``[B, N, T, D]``.
         """
         self._require_actions("forecast_under_actions")
-        keys.validate_batch(td, self.modalities, self.config.history)
+        keys.validate_batch(td, self.modalities, self.config.history, nonfinite=self.config.nonfinite)
         return self.decode_under_actions(*self.encode(td), actions)
 
     def decode_under_actions(self, tokens: torch.Tensor, present: torch.Tensor,
