@@ -17,7 +17,8 @@ from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.models import build_model
 from mmf_rl.rl import PushObjective
 from tests.conftest import HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch
-from tests.envs.test_transforms import PUSH_SPECS, StampEnv, write_checkpoint
+from tests.envs.stamp_env import StampEnv
+from tests.rl.test_transforms import PUSH_SPECS, write_checkpoint
 
 SMALL_SIZES = {"d_model": 16, "head_hidden": 32}
 MODEL_CONFIGS = {
