@@ -26,12 +26,25 @@ class ModelEntry:
     make_loss: Callable[[nn.Module, dict], nn.Module]
 
 
+# Optional loss-config entries (issue #13) and the loss argument each sets; an entry left out keeps
+# the loss's default (gsnn_weight 0, max_dropped 1, dropped_nll_weight 0, dropped_prior_weight 1).
+ELBO_OPTIONS = {"gsnn_weight": "gsnn_weight"}
+MISSING_MODALITY_OPTIONS = {"max_dropped": "max_dropped", "dropped_nll_weight": "dropped_nll_weight",
+                            "dropped_prior_weight": "prior_weight"}
+
+
+def _options(loss_cfg: dict, names: dict[str, str]) -> dict:
+    return {argument: loss_cfg[entry] for entry, argument in names.items() if entry in loss_cfg}
+
+
 def forecaster_loss(model: MultimodalForecaster, loss_cfg: dict) -> CombinedLoss:
     """ELBO, plus the missing-modality loss unless its weight is 0 (the paper's ablation)."""
-    losses = [ELBOLoss(model, kl_weight=loss_cfg["kl_weight"], kl_warmup_steps=loss_cfg["kl_warmup_steps"])]
+    losses = [ELBOLoss(model, kl_weight=loss_cfg["kl_weight"], kl_warmup_steps=loss_cfg["kl_warmup_steps"],
+                       **_options(loss_cfg, ELBO_OPTIONS))]
     if loss_cfg["missing_modality_weight"] > 0:
         losses.append(MissingModalityLoss(model, weight=loss_cfg["missing_modality_weight"],
-                                          detach_teacher=loss_cfg["detach_teacher"]))
+                                          detach_teacher=loss_cfg["detach_teacher"],
+                                          **_options(loss_cfg, MISSING_MODALITY_OPTIONS)))
     return CombinedLoss(*losses)
 
 
