@@ -153,9 +153,10 @@ def make_plots(model, data, loader, denormalize, cfg, out_dir: Path, units: str,
     if not latents:
         return paths[:2], ["no latent t-SNE: the model has no latent (a deterministic baseline)"]
     if float(torch.cat(list(latents.values())).std(0).max()) == 0:
-        return paths[:2], ["no latent t-SNE: every test-time forecast is decoded from the same latent (the "
-                           "standard prior's mean, z = 0); train with model.prior=learned for latents that "
-                           "depend on the present modalities"]
+        note = ("no latent t-SNE: every test-time forecast is decoded from the same latent (under the standard "
+                "prior its mean, z = 0); train with model.prior=learned for latents that depend on the present "
+                "modalities")
+        return paths[:2], [note]
     plot_latent_tsne(latents, paths[2], seed=cfg.seed)
     return paths, []
 

@@ -44,8 +44,8 @@ def test_learned_prior_eval_pairs_subsets_on_windows_with_failed_sensors(faulty_
                          "only_proprio"}
     assert {row["windows"] for row in rows.values()} == {float(shared.sum())}
     assert rows["all"]["windows_available"] == len(test)
-    for name in presence:
-        assert rows[f"only_{name}"]["windows_available"] == int(presence[name].sum())
+    for name, mask in presence.items():
+        assert rows[f"only_{name}"]["windows_available"] == int(mask.sum())
     for row in rows.values():
         assert 0 <= row["coverage_50"] <= row["coverage_90"] <= 1
         assert row["min_mse_k"] >= 0 and row["min_fde_k"] >= 0 and row["nll"] == row["nll"]
