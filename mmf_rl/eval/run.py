@@ -26,7 +26,7 @@ from mmf_rl import keys
 from mmf_rl.configuration import ConfigError, compose_config, to_container
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
 from mmf_rl.datasets.splits import Normalizer
-from mmf_rl.eval.metrics import evaluate_presence_subsets
+from mmf_rl.eval.metrics import evaluate_presence_subsets, scorable_windows
 from mmf_rl.eval.report import (
     markdown_table,
     plot_error_per_subset,
@@ -129,13 +129,18 @@ def make_plots(model, data, loader, denormalize, cfg, out_dir: Path, units: str,
     plot_error_per_subset(results, baseline, paths[0])
 
     device = next(model.parameters()).device
-    first = next(iter(loader))
-    picks = torch.linspace(0, first.shape[0] - 1, min(cfg.plot_windows, first.shape[0])).long()
+    subsets = [(name, subset) for name, subset in presence_subsets([s.name for s in data.specs]) if name in results]
+    # Paired like the table: the first batch's windows that every subset can score, the same in every row.
+    shared = None
+    for candidate in loader:
+        rows = torch.stack([scorable_windows(candidate, subset) for _, subset in subsets]).all(0)
+        if rows.any():
+            shared = candidate[rows]
+            break
+    picks = torch.linspace(0, shared.shape[0] - 1, min(cfg.plot_windows, shared.shape[0])).long()
     examples, latents = {}, {}
-    for name, subset in presence_subsets([s.name for s in data.specs]):
-        batch = apply_presence_subset(first[picks], subset)
-        if batch.shape[0] == 0 or name not in results:
-            continue
+    for name, subset in subsets:
+        batch = apply_presence_subset(shared[picks], subset)
         inputs = batch.exclude(keys.TARGET).to(device)
         out = model(inputs.clone())
         past = batch.get(keys.TARGET_PAST, None)
@@ -145,7 +150,7 @@ def make_plots(model, data, loader, denormalize, cfg, out_dir: Path, units: str,
                           "samples": denormalize(model.sample(inputs.clone(), num_samples=min(cfg.num_samples, 10))
                                                  .get(keys.FORECAST_SAMPLES).cpu()) if cfg.num_samples else None}
         # The latents the test-time forecasts are decoded from (no target: not the posterior).
-        latent = model(apply_presence_subset(first[: cfg.tsne_windows], subset).exclude(keys.TARGET).to(device)).get(
+        latent = model(apply_presence_subset(shared[: cfg.tsne_windows], subset).exclude(keys.TARGET).to(device)).get(
             keys.LATENT, None)
         if latent is not None:
             latents[name] = latent.cpu()

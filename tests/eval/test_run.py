@@ -27,7 +27,7 @@ def test_learned_prior_eval_pairs_subsets_on_windows_with_failed_sensors(faulty_
     overrides = [*push_train_overrides(faulty_push_root, tmp_path / "cache", run, steps=40), "model.prior=learned",
                  "loss.max_dropped=null", "loss.gsnn_weight=0.5", "loss.dropped_nll_weight=0.5"]
     assert cli(["train", *overrides]) == 0
-    assert cli(["eval", f"checkpoint={run}", "num_samples=5", "plot_windows=2"]) == 0
+    assert cli(["eval", f"checkpoint={run}", "num_samples=5", "plot_windows=4"]) == 0
     out = capsys.readouterr().out
     header = next(line for line in out.splitlines() if line.startswith("| subset |"))
     assert all(f" {column} |" in header for column in NEW_COLUMNS), header

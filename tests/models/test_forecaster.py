@@ -461,6 +461,8 @@ def test_learned_prior_model_trains_with_every_loss_option(learned_model):
                                            "detach_teacher": True, "gsnn_weight": 0.5, "max_dropped": None,
                                            "dropped_nll_weight": 0.5, "dropped_prior_weight": 1.0})
     assert {"loss_gsnn", "loss_mis_nll", "loss_mis_prior"} <= set(loss.out_keys)
+    elbo, missing = loss.losses
+    assert elbo.gsnn_weight == 0.5 and missing.max_dropped is None and missing.dropped_nll_weight == 0.5
     assert_a_few_steps_reduce_the_loss(learned_model, loss)
 
 
