@@ -55,6 +55,9 @@ def nll_loss(model: nn.Module, loss_cfg: dict) -> GaussianNLLLoss:
 
 def mvae_loss(model: MVAE, loss_cfg: dict) -> ELBOLoss:
     """The MVAE's ELBO with the loss config's KL weight and warm-up; it has no missing-modality term."""
+    if loss_cfg.get("gsnn_weight", 0) > 0:
+        raise ValueError("loss.gsnn_weight > 0 needs a model that decodes from its prior in training "
+                         "(model=forecaster); the MVAE baseline does not: set loss.gsnn_weight=0")
     return ELBOLoss(model, kl_weight=loss_cfg["kl_weight"], kl_warmup_steps=loss_cfg["kl_warmup_steps"])
 
 
