@@ -20,6 +20,11 @@ key                                  shape                meaning
 ``("forecast_dropped", ...)``        ``[B, T, D]``        forecast with the modalities in ``("drop", m)`` removed
 ``("drop", m)``                      ``[B]`` bool         modality removed for the missing-modality loss
 ``("posterior" | "prior", ...)``     ``[B, d_z]``         latent distributions (``loc``/``scale``)
+``("prior_dropped", ...)``           ``[B, d_z]``         learned prior ``p(z|X)`` of the input without the
+                                                          ``("drop", m)`` modalities
+``"decode_from_prior"``              ``[B]`` bool         request: also decode every row from ``z ~ p(z|X)``
+                                                          in training (the GSNN term of the ELBO loss)
+``("forecast_from_prior", ...)``     ``[B, T, D]``        that forecast (``loc``/``scale``)
 ``"latent"``                         ``[B, d_z]``         the latent code the forecast was decoded from
 ``"loss_*"``                         scalar               one loss term each, summed by the trainer
 ===================================  ===================  ==================================================
@@ -54,8 +59,11 @@ SAMPLES = "samples"
 
 FORECAST = "forecast"
 FORECAST_DROPPED = "forecast_dropped"
+FORECAST_FROM_PRIOR = "forecast_from_prior"
+DECODE_FROM_PRIOR = "decode_from_prior"
 POSTERIOR = "posterior"
 PRIOR = "prior"
+PRIOR_DROPPED = "prior_dropped"
 
 FORECAST_LOC = (FORECAST, LOC)
 FORECAST_SCALE = (FORECAST, SCALE)
@@ -63,10 +71,14 @@ FORECAST_SAMPLES = (FORECAST, SAMPLES)
 FORECAST_VALID = (FORECAST, "valid")
 FORECAST_DROPPED_LOC = (FORECAST_DROPPED, LOC)
 FORECAST_DROPPED_SCALE = (FORECAST_DROPPED, SCALE)
+FORECAST_FROM_PRIOR_LOC = (FORECAST_FROM_PRIOR, LOC)
+FORECAST_FROM_PRIOR_SCALE = (FORECAST_FROM_PRIOR, SCALE)
 POSTERIOR_LOC = (POSTERIOR, LOC)
 POSTERIOR_SCALE = (POSTERIOR, SCALE)
 PRIOR_LOC = (PRIOR, LOC)
 PRIOR_SCALE = (PRIOR, SCALE)
+PRIOR_DROPPED_LOC = (PRIOR_DROPPED, LOC)
+PRIOR_DROPPED_SCALE = (PRIOR_DROPPED, SCALE)
 
 
 def obs_key(modality: str) -> tuple[str, str]:

@@ -1,26 +1,42 @@
-"""Forecast metrics over a loader: MSE (normalised and in units), ADE/FDE (mean and best-of-K), NLL.
+"""Forecast metrics over a loader, per window and per presence subset (paired).
 
-* ``mse``: mean squared error of the forecast mean in the normalised target frame (MultiBench's
-  metric for the push task); ``mse_units``: the same in the target's units.
+Per window, then averaged over windows:
+
+* ``mse``: mean squared error of the point forecast (the forecast mean; for a latent model the
+  decode of the prior's mean) in the normalised target frame (MultiBench's metric for the push
+  task); ``mse_units``: the same in the target's units.
 * ``ade`` / ``fde``: average / final Euclidean distance over the target dims, in units, of the
-  deterministic forecast (``z = 0``); ``ade_best_of_k`` / ``fde_best_of_k``: of the best of
-  ``K`` prior samples per window (chosen by ADE, as is standard).
-* ``nll``: Gaussian NLL of the normalised target under the deterministic forecast, per window
+  point forecast.
+* ``min_mse_k``, ``min_ade_k``, ``min_fde_k`` (with ``num_samples = K > 0``): the smallest MSE
+  (normalised), ADE and FDE (units) over ``K`` forecasts decoded from prior samples, each minimum
+  taken independently (the sample with the best ADE need not have the best FDE).
+* ``nll``: Gaussian NLL of the normalised target under the point forecast's distribution
   (summed over ``T × D``).
-* ``constant_velocity``: the same errors for a constant-velocity extrapolation of the target's
-  own past (needs ``"target_past"`` in the batches), a reference every model should beat.
+* ``coverage_50`` / ``coverage_90``: share of the ``T × D`` target values inside the central
+  50% / 90% interval of the forecast's Gaussian: a calibrated scale gives 0.5 / 0.9.
+* ``cv_*`` (``with_baseline``): the errors of a constant-velocity extrapolation of the target's
+  own past (needs ``"target_past"``), a reference every model should beat.
+
+:func:`evaluate_presence_subsets` scores the named presence subsets **paired**: every subset row
+is averaged over the same windows, those in which each compared subset keeps a present modality.
+On data where some windows already lack a modality, unpaired rows would each average a
+different window set, and a subset that removes a sensor could even look better than all of them.
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 
 import torch
 from tensordict import TensorDictBase
 
 from mmf_rl import keys
+from mmf_rl.datasets.protocols import apply_presence_subset
 from mmf_rl.objectives.common import gaussian_nll
+
+COVERAGE_LEVELS = {"coverage_50": 0.5, "coverage_90": 0.9}
+BASELINE_PREFIX = "cv_"
 
 
 def displacement_errors(forecast: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -36,10 +52,66 @@ def constant_velocity(target_past: torch.Tensor, horizon: int) -> torch.Tensor:
     return target_past[:, -1:] + velocity[:, None] * steps[None, :, None]
 
 
+def interval_coverage(target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, level: float) -> torch.Tensor:
+    """Per window ``[B]``: the share of ``target`` values inside the central ``level`` interval of
+    ``N(loc, scale²)`` (``[B, T, D]`` each)."""
+    half_width = torch.distributions.Normal(0.0, 1.0).icdf(torch.tensor(0.5 + level / 2)).item()
+    return ((target - loc).abs() <= half_width * scale).flatten(1).float().mean(-1)
+
+
+def best_of_samples(samples: torch.Tensor, target: torch.Tensor, samples_units: torch.Tensor,
+                    target_units: torch.Tensor) -> dict[str, torch.Tensor]:
+    """``min_mse_k`` (normalised), ``min_ade_k``, ``min_fde_k`` (units) ``[B]`` of ``[B, K, T, D]``
+    samples against ``[B, T, D]`` targets, each the minimum over ``K`` on its own."""
+    mse = ((samples - target[:, None]) ** 2).mean((2, 3))
+    distance = (samples_units - target_units[:, None]).norm(dim=-1)  # [B, K, T]
+    return {"min_mse_k": mse.amin(1), "min_ade_k": distance.mean(-1).amin(1), "min_fde_k": distance[..., -1].amin(1)}
+
+
+def window_metrics(model, batch: TensorDictBase, denormalize: Callable[[torch.Tensor], torch.Tensor],
+                   num_samples: int = 0, with_baseline: bool = False) -> dict[str, torch.Tensor]:
+    """Every metric above for each window of ``batch`` (model in eval mode): ``{name: [B]}``."""
+    target = batch.get(keys.TARGET)
+    # The model sees no target: a point forecast must not depend on the future it forecasts.
+    inputs = batch.exclude(keys.TARGET)
+    out = model(inputs.clone(False))
+    loc, scale = out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
+    target_units, forecast_units = denormalize(target), denormalize(loc)
+    ade, fde = displacement_errors(forecast_units, target_units)
+    metrics = {
+        "mse": ((loc - target) ** 2).mean((1, 2)),
+        "mse_units": ((forecast_units - target_units) ** 2).mean((1, 2)),
+        "ade": ade,
+        "fde": fde,
+        "nll": gaussian_nll(target, loc, scale).flatten(1).sum(-1),
+    }
+    metrics |= {name: interval_coverage(target, loc, scale, level) for name, level in COVERAGE_LEVELS.items()}
+    if num_samples:
+        samples = model.sample(inputs.clone(False), num_samples).get(keys.FORECAST_SAMPLES)
+        metrics |= best_of_samples(samples, target, denormalize(samples), target_units)
+    if with_baseline:
+        metrics |= baseline_metrics(batch, denormalize)
+    return {name: value.detach().float().cpu() for name, value in metrics.items()}
+
+
+def baseline_metrics(batch: TensorDictBase, denormalize: Callable[[torch.Tensor], torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The constant-velocity reference's ``cv_mse``, ``cv_mse_units``, ``cv_ade``, ``cv_fde`` ``[B]``."""
+    past = batch.get(keys.TARGET_PAST, None)
+    if past is None:
+        raise KeyError(f"the constant-velocity baseline needs {keys.TARGET_PAST!r} in the batches "
+                       "(data config: include_target_past: true)")
+    target = batch.get(keys.TARGET)
+    cv = constant_velocity(past, target.shape[1])
+    cv_units, target_units = denormalize(cv), denormalize(target)
+    cv_ade, cv_fde = displacement_errors(cv_units, target_units)
+    return {"cv_mse": ((cv - target) ** 2).mean((1, 2)), "cv_mse_units": ((cv_units - target_units) ** 2).mean((1, 2)),
+            "cv_ade": cv_ade, "cv_fde": cv_fde}
+
+
 @torch.no_grad()
 def evaluate_forecasts(model, batches: Iterable[TensorDictBase], denormalize: Callable[[torch.Tensor], torch.Tensor],
                        num_samples: int = 0, with_baseline: bool = False) -> dict[str, float]:
-    """Average the metrics above over every window of ``batches`` (model in eval mode, ``z = 0``).
+    """Average the metrics above over every window of ``batches`` (model in eval mode).
 
     ``denormalize`` maps normalised targets to units (``Normalizer.denormalize_target``).
     ``num_samples > 0`` adds the best-of-K errors.
@@ -47,37 +119,81 @@ def evaluate_forecasts(model, batches: Iterable[TensorDictBase], denormalize: Ca
     totals: dict[str, float] = defaultdict(float)
     count = 0
     for batch in batches:
-        target = batch.get(keys.TARGET)
-        out = model(batch.clone(False))
-        loc, scale = out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
-        target_units = denormalize(target)
-        forecast_units = denormalize(loc)
-        ade, fde = displacement_errors(forecast_units, target_units)
-        totals["mse"] += float(((loc - target) ** 2).mean((1, 2)).sum())
-        totals["mse_units"] += float(((forecast_units - target_units) ** 2).mean((1, 2)).sum())
-        totals["ade"] += float(ade.sum())
-        totals["fde"] += float(fde.sum())
-        totals["nll"] += float(gaussian_nll(target, loc, scale).flatten(1).sum(-1).sum())
-        if num_samples:
-            samples = denormalize(model.sample(batch.clone(False), num_samples).get(keys.FORECAST_SAMPLES))
-            distance = (samples - target_units[:, None]).norm(dim=-1)  # [B, K, T]
-            best = distance.mean(-1).argmin(1)
-            rows = torch.arange(len(best))
-            totals["ade_best_of_k"] += float(distance.mean(-1)[rows, best].sum())
-            totals["fde_best_of_k"] += float(distance[rows, best, -1].sum())
-        if with_baseline:
-            past = batch.get(keys.TARGET_PAST, None)
-            if past is None:
-                raise KeyError(f"the constant-velocity baseline needs {keys.TARGET_PAST!r} in the batches "
-                               "(data config: include_target_past: true)")
-            cv = constant_velocity(past, target.shape[1])
-            cv_units = denormalize(cv)
-            cv_ade, cv_fde = displacement_errors(cv_units, target_units)
-            totals["cv_mse"] += float(((cv - target) ** 2).mean((1, 2)).sum())
-            totals["cv_mse_units"] += float(((cv_units - target_units) ** 2).mean((1, 2)).sum())
-            totals["cv_ade"] += float(cv_ade.sum())
-            totals["cv_fde"] += float(cv_fde.sum())
-        count += target.shape[0]
+        for name, values in window_metrics(model, batch, denormalize, num_samples, with_baseline).items():
+            totals[name] += float(values.sum())
+        count += batch.shape[0]
     if count == 0:
         return {}
     return {name: value / count for name, value in totals.items()} | {"windows": float(count)}
+
+
+def scorable_windows(batch: TensorDictBase, subset: Mapping[str, bool]) -> torch.Tensor:
+    """``[B]`` bool: the windows that keep at least one present modality under ``subset``."""
+    rows = torch.zeros(batch.shape[0], dtype=torch.bool)
+    for name, kept in subset.items():
+        if kept:
+            rows |= batch.get(keys.present_key(name)).cpu()
+    return rows
+
+
+@torch.no_grad()
+def evaluate_presence_subsets(model, batches: Iterable[TensorDictBase], subsets: Iterable[tuple[str, Mapping[str, bool]]],
+                              denormalize: Callable[[torch.Tensor], torch.Tensor], num_samples: int = 0,
+                              with_baseline: bool = False, device: torch.device | str = "cpu",
+                              ) -> tuple[dict[str, dict[str, float]], dict[str, float] | None]:
+    """Score each named presence subset on the **same** windows, in one pass over ``batches``.
+
+    A window belongs to a subset's row when the subset keeps one of its present modalities
+    (:func:`~mmf_rl.datasets.protocols.apply_presence_subset`). Subsets with no such window at
+    all are left out (e.g. ``only_camera`` on data without camera); every other row is averaged
+    over the windows that all of them share. Each row reports ``windows`` (the shared windows it
+    is averaged over), ``windows_available`` (the windows it could be scored on alone) and, when
+    ``"all"`` is a row, ``degradation`` (its MSE relative to ``"all"``, on the same windows).
+
+    ``batches`` are on the CPU; each subset's batch is moved to ``device``. Returns the rows and
+    the constant-velocity reference on the shared windows (``with_baseline``; else ``None``).
+    Raises ``ValueError`` if the scored subsets share no window.
+    """
+    subsets = list(subsets)
+    masks: dict[str, list[torch.Tensor]] = {name: [] for name, _ in subsets}
+    scored: dict[str, list[dict[str, torch.Tensor]]] = {name: [] for name, _ in subsets}
+    baseline: dict[str, list[torch.Tensor]] = defaultdict(list)
+    for batch in batches:
+        if batch.shape[0] == 0:
+            continue
+        for name, subset in subsets:
+            rows = scorable_windows(batch, subset)
+            masks[name].append(rows)
+            scored[name].append(window_metrics(model, apply_presence_subset(batch, subset).to(device), denormalize,
+                                               num_samples) if rows.any() else {})
+        if with_baseline:
+            for metric, per_window in baseline_metrics(batch, denormalize).items():
+                baseline[metric].append(per_window.detach().float().cpu())
+    available = {name: torch.cat(m) if m else torch.zeros(0, dtype=torch.bool) for name, m in masks.items()}
+    scored_names = [name for name, _ in subsets if available[name].any()]
+    if not scored_names:
+        return {}, None
+    shared = torch.stack([available[name] for name in scored_names]).all(0)
+    if not shared.any():
+        counts = {name: int(available[name].sum()) for name in scored_names}
+        raise ValueError(f"no window can be scored in every presence subset (windows per subset: {counts}): a "
+                         "paired comparison needs windows where each subset keeps a present modality")
+    results = {}
+    for name in scored_names:
+        metrics = next(part for part in scored[name] if part).keys()
+        row = {}
+        for metric in metrics:
+            # Back to one value per window of the pass (NaN where the subset has no present modality).
+            per_window = torch.full((len(shared),), float("nan"))
+            per_window[available[name]] = torch.cat([part[metric] for part in scored[name] if part])
+            row[metric] = float(per_window[shared].mean())
+        results[name] = row | {"windows": float(shared.sum()), "windows_available": float(available[name].sum())}
+    if "all" in results:
+        reference_mse = results["all"]["mse"]
+        for row in results.values():
+            row["degradation"] = row["mse"] / reference_mse - 1 if reference_mse > 0 else float("nan")
+    reference = None
+    if with_baseline:
+        reference = {metric.removeprefix(BASELINE_PREFIX): float(torch.cat(parts)[shared].mean())
+                     for metric, parts in baseline.items()} | {"windows": float(shared.sum())}
+    return results, reference

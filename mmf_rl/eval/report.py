@@ -14,13 +14,17 @@ import torch  # noqa: E402
 
 COLUMNS = [
     ("windows", "windows", "{:.0f}"),
+    ("windows_available", "available", "{:.0f}"),
     ("mse", "MSE (norm.)", "{:.4f}"),
     ("mse_units", "MSE", "{:.3g}"),
     ("ade", "ADE", "{:.4g}"),
     ("fde", "FDE", "{:.4g}"),
-    ("ade_best_of_k", "ADE best-of-K", "{:.4g}"),
-    ("fde_best_of_k", "FDE best-of-K", "{:.4g}"),
+    ("min_mse_k", "minMSE@K (norm.)", "{:.4f}"),
+    ("min_ade_k", "minADE@K", "{:.4g}"),
+    ("min_fde_k", "minFDE@K", "{:.4g}"),
     ("nll", "NLL", "{:.3f}"),
+    ("coverage_50", "cover 50%", "{:.2f}"),
+    ("coverage_90", "cover 90%", "{:.2f}"),
     ("degradation", "MSE vs all", "{:+.1%}"),
 ]
 
@@ -37,7 +41,7 @@ def write_json(path: Path, obj) -> None:
 
 
 def markdown_table(results: dict[str, dict[str, float]], baseline: dict[str, float] | None,
-                   units: str = "target units") -> str:
+                   units: str = "target units", num_samples: int | None = None) -> str:
     """One row per presence subset (+ the constant-velocity baseline), one column per metric."""
     columns = [c for c in COLUMNS if any(c[0] in r for r in results.values())]
     lines = ["| subset | " + " | ".join(title for _, title, _ in columns) + " |",
@@ -48,10 +52,15 @@ def markdown_table(results: dict[str, dict[str, float]], baseline: dict[str, flo
     if baseline:
         cells = [fmt.format(baseline[key]) if key in baseline else "" for key, _, fmt in columns]
         lines.append("| constant velocity | " + " | ".join(cells) + " |")
+    k = f"K = {num_samples}" if num_samples else "K"
     lines.append("")
-    lines.append(f"MSE (norm.) is on the normalised target; MSE, ADE and FDE are in {units}. Best-of-K uses K "
-                 "prior samples; the other columns the deterministic forecast (z = 0). 'MSE vs all' is the "
-                 "relative change of MSE (norm.) against all modalities present.")
+    lines.append(f"MSE (norm.) is on the normalised target; MSE, ADE and FDE are in {units}. The min@K columns "
+                 f"take each minimum on its own over {k} forecasts decoded from prior samples; the other columns "
+                 "score the point forecast (a latent model's decode of the prior's mean). 'cover p%' is the share "
+                 "of target values inside the forecast Gaussian's central p% interval (calibrated: p%). Rows "
+                 "are paired: each is averaged over the same 'windows', those where every row keeps a present "
+                 "modality; 'available' is how many windows the row alone could be scored on. 'MSE vs all' "
+                 "is the relative change of MSE (norm.) against all modalities present, on those windows.")
     return "\n".join(lines) + "\n"
 
 
@@ -82,7 +91,8 @@ def plot_forecasts(examples: dict[str, dict[str, torch.Tensor]], path: Path, uni
         ex = examples[subset]
         for col in range(num_windows):
             ax = axes[row][col]
-            target, mean, samples = ex["target"][col], ex["mean"][col], ex["samples"][col]
+            target, mean = ex["target"][col], ex["mean"][col]
+            samples = ex["samples"][col] if ex.get("samples") is not None else []
             past = ex["past"][col] if ex.get("past") is not None else None
             if target.shape[-1] == 2:
                 for s in samples:
@@ -110,7 +120,8 @@ def plot_forecasts(examples: dict[str, dict[str, torch.Tensor]], path: Path, uni
 
 
 def plot_latent_tsne(latents: dict[str, torch.Tensor], path: Path, seed: int = 0) -> None:
-    """t-SNE of posterior means, coloured by presence subset (the paper's latent-space figure)."""
+    """t-SNE of the latents the test-time forecasts were decoded from, coloured by presence subset
+    (the paper's latent-space figure; for a learned prior these are its means)."""
     from sklearn.manifold import TSNE
 
     names = [n for n, z in latents.items() if len(z)]
@@ -123,7 +134,7 @@ def plot_latent_tsne(latents: dict[str, torch.Tensor], path: Path, seed: int = 0
         mask = [label == name for label in labels]
         ax.scatter(embedded[mask, 0], embedded[mask, 1], s=6, alpha=0.6, label=name)
     ax.legend(fontsize=7, markerscale=2)
-    ax.set_title("t-SNE of posterior means by presence subset")
+    ax.set_title("t-SNE of test-time latents by presence subset")
     ax.set_xticks([])
     ax.set_yticks([])
     fig.tight_layout()

@@ -4,8 +4,11 @@
     mmf-rl eval checkpoint=runs/forecaster data_root=/data/copy num_samples=50
 
 For each subset (all modalities, each leave-one-out, each single modality) it reports MSE
-(normalised and in units), ADE/FDE of the deterministic forecast and best-of-K, NLL, and the
-relative degradation against all modalities; the constant-velocity baseline is a reference row.
+(normalised and in units), ADE/FDE of the point forecast, minMSE/minADE/minFDE over K prior
+samples, NLL, the coverage of the forecast's central 50% and 90% intervals, and the relative
+degradation against all modalities; the constant-velocity baseline is a reference row. The rows
+are paired: all are scored on the windows they share (see
+:func:`~mmf_rl.eval.metrics.evaluate_presence_subsets`), with the window counts in the table.
 Writes ``results.json``, ``results.md`` and the plots into ``out_dir`` (default ``RUN_DIR/eval``).
 An ``out_dir`` outside the run directory needs ``allow_outside_run_dir=true``: a config copied
 from elsewhere cannot make an evaluation write over unrelated files by accident.
@@ -25,7 +28,7 @@ from mmf_rl.configuration import ConfigError, compose_config, to_container
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.devices import resolve_device
-from mmf_rl.eval.metrics import evaluate_forecasts
+from mmf_rl.eval.metrics import evaluate_presence_subsets, scorable_windows
 from mmf_rl.eval.report import (
     markdown_table,
     plot_error_per_subset,
@@ -35,8 +38,6 @@ from mmf_rl.eval.report import (
     write_text,
 )
 from mmf_rl.models import model_from_saved_config
-
-BASELINE_KEYS = {"cv_mse": "mse", "cv_mse_units": "mse_units", "cv_ade": "ade", "cv_fde": "fde"}
 
 
 def checkpoint_location(path: Path) -> Path:
@@ -93,64 +94,76 @@ def run_evaluation(cfg) -> dict:
     with_baseline = data.config.include_target_past
     torch.manual_seed(cfg.seed)  # best-of-K draws are repeatable
 
-    results, baseline = {}, None
-    for name, subset in presence_subsets([s.name for s in data.specs]):
-        batches = (apply_presence_subset(b, subset).to(device) for b in loader)
-        metrics = evaluate_forecasts(model, (b for b in batches if b.shape[0]), lambda t: denormalize(t.cpu()).to(t),
-                                     num_samples=cfg.num_samples, with_baseline=with_baseline)
-        if not metrics:
-            continue  # no test window has any of this subset's modalities
-        if with_baseline and baseline is None:
-            baseline = {short: metrics[long] for long, short in BASELINE_KEYS.items()} | {"windows": metrics["windows"]}
-        results[name] = {k: v for k, v in metrics.items() if not k.startswith("cv_")}
-    reference = results.get("all")
-    for metrics in results.values():
-        if reference is not None:
-            metrics["degradation"] = metrics["mse"] / reference["mse"] - 1
+    subsets = list(presence_subsets([s.name for s in data.specs]))
+    results, baseline = evaluate_presence_subsets(model, loader, subsets, lambda t: denormalize(t.cpu()).to(t),
+                                                  num_samples=cfg.num_samples, with_baseline=with_baseline,
+                                                  device=device)
+    skipped = [name for name, _ in subsets if name not in results]
 
     out_dir.mkdir(parents=True, exist_ok=True)
     units = f"units of {data.config.target.feature}"
+    notes = [f"not scored (no {cfg.split} window has any of their modalities): {', '.join(skipped)}"] if skipped else []
     summary = {"checkpoint": str(checkpoint.path), "step": checkpoint.step, "split": cfg.split,
                "data_root": str(data.config.root), "num_samples": cfg.num_samples, "subsets": results,
                "constant_velocity": baseline}
-    write_json(out_dir / "results.json", summary)
-    table = markdown_table(results, baseline, units)
-    write_text(out_dir / "results.md", f"# {checkpoint.path} on {data.config.root} ({cfg.split} split)\n\n{table}")
     plots = []
     if cfg.plots:
-        plots = make_plots(model, data, loader, denormalize, cfg, out_dir, units, results, baseline)
+        plots, plot_notes = make_plots(model, data, loader, denormalize, cfg, out_dir, units, results, baseline)
+        notes += plot_notes
+    summary["notes"] = notes
+    write_json(out_dir / "results.json", summary)
+    table = markdown_table(results, baseline, units, cfg.num_samples)
+    table += "".join(f"\nNote: {note}\n" for note in notes)
+    write_text(out_dir / "results.md", f"# {checkpoint.path} on {data.config.root} ({cfg.split} split)\n\n{table}")
     summary["table"], summary["plots"] = table, [str(p) for p in plots]
     return summary
 
 
 @torch.no_grad()
 def make_plots(model, data, loader, denormalize, cfg, out_dir: Path, units: str, results: dict,
-               baseline: dict | None) -> list[Path]:
-    """Forecasts vs truth on a few test windows, error per subset, t-SNE of posterior means."""
+               baseline: dict | None) -> tuple[list[Path], list[str]]:
+    """Forecasts vs truth on a few test windows, error per subset, t-SNE of the test-time latents.
+
+    Returns the plots written and notes on those left out (and why)."""
     paths = [out_dir / "error_per_subset.png", out_dir / "forecasts.png", out_dir / "latent_tsne.png"]
     plot_error_per_subset(results, baseline, paths[0])
 
-    first = next(iter(loader))
-    picks = torch.linspace(0, first.shape[0] - 1, min(cfg.plot_windows, first.shape[0])).long()
+    device = next(model.parameters()).device
+    subsets = [(name, subset) for name, subset in presence_subsets([s.name for s in data.specs]) if name in results]
+    # Paired like the table: the first batch's windows that every subset can score, the same in every row.
+    shared = None
+    for candidate in loader:
+        rows = torch.stack([scorable_windows(candidate, subset) for _, subset in subsets]).all(0)
+        if rows.any():
+            shared = candidate[rows]
+            break
+    picks = torch.linspace(0, shared.shape[0] - 1, min(cfg.plot_windows, shared.shape[0])).long()
     examples, latents = {}, {}
-    for name, subset in presence_subsets([s.name for s in data.specs]):
-        batch = apply_presence_subset(first[picks], subset)
-        if batch.shape[0] == 0 or name not in results:
-            continue
-        out = model(batch.clone())
-        samples = model.sample(batch.clone(), num_samples=min(cfg.num_samples, 10)).get(keys.FORECAST_SAMPLES)
+    for name, subset in subsets:
+        batch = apply_presence_subset(shared[picks], subset)
+        inputs = batch.exclude(keys.TARGET).to(device)
+        out = model(inputs.clone())
         past = batch.get(keys.TARGET_PAST, None)
-        examples[name] = {"target": denormalize(batch.get(keys.TARGET)), "mean": denormalize(out.get(keys.FORECAST_LOC)),
-                          "samples": denormalize(samples), "past": denormalize(past) if past is not None else None}
-        # The batch carries the target, so a latent model's forward pass reports q(z | X, y).
-        posterior = model(apply_presence_subset(first[: cfg.tsne_windows], subset)).get(keys.POSTERIOR_LOC, None)
-        if posterior is not None:
-            latents[name] = posterior
+        examples[name] = {"target": denormalize(batch.get(keys.TARGET)),
+                          "mean": denormalize(out.get(keys.FORECAST_LOC).cpu()),
+                          "past": denormalize(past) if past is not None else None,
+                          "samples": denormalize(model.sample(inputs.clone(), num_samples=min(cfg.num_samples, 10))
+                                                 .get(keys.FORECAST_SAMPLES).cpu()) if cfg.num_samples else None}
+        # The latents the test-time forecasts are decoded from (no target: not the posterior).
+        latent = model(apply_presence_subset(shared[: cfg.tsne_windows], subset).exclude(keys.TARGET).to(device)).get(
+            keys.LATENT, None)
+        if latent is not None:
+            latents[name] = latent.cpu()
     plot_forecasts(examples, paths[1], units)
-    if not latents:  # a model without a latent space (a deterministic baseline)
-        return paths[:2]
+    if not latents:
+        return paths[:2], ["no latent t-SNE: the model has no latent (a deterministic baseline)"]
+    if float(torch.cat(list(latents.values())).std(0).max()) == 0:
+        note = ("no latent t-SNE: every test-time forecast is decoded from the same latent (under the standard "
+                "prior its mean, z = 0); train with model.prior=learned for latents that depend on the present "
+                "modalities")
+        return paths[:2], [note]
     plot_latent_tsne(latents, paths[2], seed=cfg.seed)
-    return paths
+    return paths, []
 
 
 def main(argv: list[str]) -> int:

@@ -29,10 +29,13 @@ class ModelEntry:
 
 def forecaster_loss(model: MultimodalForecaster, loss_cfg: LossConfig) -> CombinedLoss:
     """ELBO, plus the missing-modality loss unless its weight is 0 (the paper's ablation)."""
-    losses = [ELBOLoss(model, kl_weight=loss_cfg.kl_weight, kl_warmup_steps=loss_cfg.kl_warmup_steps)]
+    losses = [ELBOLoss(model, kl_weight=loss_cfg.kl_weight, kl_warmup_steps=loss_cfg.kl_warmup_steps,
+                       gsnn_weight=loss_cfg.gsnn_weight)]
     if loss_cfg.missing_modality_weight > 0:
         losses.append(MissingModalityLoss(model, weight=loss_cfg.missing_modality_weight,
-                                          detach_teacher=loss_cfg.detach_teacher))
+                                          detach_teacher=loss_cfg.detach_teacher, max_dropped=loss_cfg.max_dropped,
+                                          dropped_nll_weight=loss_cfg.dropped_nll_weight,
+                                          prior_weight=loss_cfg.dropped_prior_weight))
     return CombinedLoss(*losses)
 
 
@@ -43,6 +46,9 @@ def nll_loss(model: nn.Module, loss_cfg: LossConfig) -> GaussianNLLLoss:
 
 def mvae_loss(model: MVAE, loss_cfg: LossConfig) -> ELBOLoss:
     """The MVAE's ELBO with the loss config's KL weight and warm-up; it has no missing-modality term."""
+    if loss_cfg.gsnn_weight > 0:
+        raise ValueError("loss.gsnn_weight > 0 needs a model that decodes from its prior in training "
+                         "(model=forecaster); the MVAE baseline does not: set loss.gsnn_weight=0")
     return ELBOLoss(model, kl_weight=loss_cfg.kl_weight, kl_warmup_steps=loss_cfg.kl_warmup_steps)
 
 

@@ -20,15 +20,29 @@ class LossConfig:
         missing_modality_weight: weight of ``L_mis`` (:class:`~mmf_rl.objectives.MissingModalityLoss`);
             0 trains without it (the paper's ablation, ``loss=no_mis``).
         detach_teacher: stop the gradient through ``L_mis``'s full-modality side.
+        gsnn_weight: > 0 also decodes from ``z ~ p(z|X)`` in training and adds that NLL with this weight
+            (Sohn et al.'s GSNN term); models without a prior decode refuse it.
+        max_dropped: ``L_mis`` drops ``k ~ U{1..min(max_dropped, M_i - 1)}`` present modalities per
+            sample; 1 is the paper's setting, ``None`` up to ``M_i - 1`` (single-modality inputs trained).
+        dropped_nll_weight: > 0 adds the target's NLL under the degraded forecast beside ``L_mis``.
+        dropped_prior_weight: learned prior only: weight of ``KL(p(z|X) || p(z|X without the dropped))``.
     """
 
     kl_weight: float = 1.0
     kl_warmup_steps: int = 0
     missing_modality_weight: float = 1.0
     detach_teacher: bool = True
+    gsnn_weight: float = 0.0
+    max_dropped: int | None = 1
+    dropped_nll_weight: float = 0.0
+    dropped_prior_weight: float = 1.0
 
     def __post_init__(self):
-        for name in ("kl_weight", "kl_warmup_steps", "missing_modality_weight"):
+        if self.max_dropped is not None and (isinstance(self.max_dropped, bool) or not isinstance(self.max_dropped, int)
+                                             or self.max_dropped < 1):
+            raise ValueError(f"loss.max_dropped must be a whole number >= 1 or null, found {self.max_dropped!r}")
+        for name in ("kl_weight", "kl_warmup_steps", "missing_modality_weight", "gsnn_weight", "dropped_nll_weight",
+                     "dropped_prior_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"loss.{name} must be >= 0, found {getattr(self, name)}")
         if not isinstance(self.detach_teacher, bool):

@@ -1,4 +1,4 @@
-"""The CVAE evidence lower bound: Gaussian NLL of the future + KL of the posterior to ``N(0, I)``."""
+"""The CVAE evidence lower bound: Gaussian NLL of the future + KL of the posterior to the prior."""
 
 from __future__ import annotations
 
@@ -9,15 +9,27 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 
 from mmf_rl import keys
-from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl_to_standard, gaussian_nll, reduce_batch
+from mmf_rl.objectives.common import (
+    ForecasterLossBase,
+    gaussian_kl,
+    gaussian_kl_to_standard,
+    gaussian_nll,
+    reduce_batch,
+)
 
 
 class ELBOLoss(ForecasterLossBase):
-    """``-ELBO = E_q[-log p(y | X, z)] + β KL(q(z | X, y) || N(0, I))`` (paper, "Model Learning").
+    """``-ELBO = E_q[-log p(y | X, z)] + β KL(q(z | X, y) || p(z | X))`` (paper, "Model Learning").
 
-    Both terms are summed over their dims (``T × D`` for the NLL, ``d_z`` for the KL) and reduced
-    over the batch. The KL is analytic; ``z`` is drawn by the forecaster with the
-    reparameterisation trick, one sample per row.
+    The prior is the one the forecaster writes under ``("prior", "loc"/"scale")`` (a learned
+    ``p(z | X)``, or ``N(0, I)`` for the paper's standard prior); a model that writes none is
+    taken to use ``N(0, I)``. Both terms are summed over their dims (``T × D`` for the NLL,
+    ``d_z`` for the KL) and reduced over the batch. The KL is analytic; ``z`` is drawn by the
+    forecaster with the reparameterisation trick, one sample per row.
+
+    With ``gsnn_weight > 0`` the loss adds Sohn et al.'s (2015) GSNN term ``loss_gsnn = w ·
+    E_{p(z|X)}[-log p(y | X, z)]``: :meth:`prepare` asks the forecaster (``"decode_from_prior"``)
+    to also decode every row from a prior draw, so training sees the latents used at test time.
 
     Args:
         forecaster: a :class:`~mmf_rl.models.MultimodalForecaster` (or any module writing the
@@ -26,10 +38,12 @@ class ELBOLoss(ForecasterLossBase):
         kl_warmup_steps: ``β`` grows linearly from ``kl_weight / kl_warmup_steps`` to
             ``kl_weight`` over this many training updates (0: constant). The update count is a
             buffer, so it is saved and restored with the loss's ``state_dict``.
+        gsnn_weight: ``w`` of the GSNN term (0, the default: no term, no extra decode).
         reduction: ``"mean"`` | ``"sum"`` | ``"none"`` over the batch.
 
-    Returns a TensorDict with ``loss_nll``, ``loss_kl`` (already weighted by ``β``) and the
-    detached diagnostics ``kl`` (unweighted) and ``kl_weight``.
+    Returns a TensorDict with ``loss_nll``, ``loss_kl`` (already weighted by ``β``), with
+    ``gsnn_weight > 0`` ``loss_gsnn`` (weighted), and the detached diagnostics ``kl``
+    (unweighted) and ``kl_weight``.
     """
 
     @dataclass
@@ -39,21 +53,39 @@ class ELBOLoss(ForecasterLossBase):
         forecast_scale: NestedKey = keys.FORECAST_SCALE
         posterior_loc: NestedKey = keys.POSTERIOR_LOC
         posterior_scale: NestedKey = keys.POSTERIOR_SCALE
+        prior_loc: NestedKey = keys.PRIOR_LOC
+        prior_scale: NestedKey = keys.PRIOR_SCALE
+        from_prior_loc: NestedKey = keys.FORECAST_FROM_PRIOR_LOC
+        from_prior_scale: NestedKey = keys.FORECAST_FROM_PRIOR_SCALE
 
     default_keys = _AcceptedKeys
-    out_keys = ["loss_nll", "loss_kl", "kl", "kl_weight"]
 
-    def __init__(self, forecaster, *, kl_weight: float = 1.0, kl_warmup_steps: int = 0, reduction: str = "mean"):
+    def __init__(self, forecaster, *, kl_weight: float = 1.0, kl_warmup_steps: int = 0, gsnn_weight: float = 0.0,
+                 reduction: str = "mean"):
         super().__init__(forecaster, reduction)
         if kl_weight < 0 or kl_warmup_steps < 0:
             raise ValueError(f"kl_weight and kl_warmup_steps must be >= 0, found {kl_weight}, {kl_warmup_steps}")
+        if gsnn_weight < 0:
+            raise ValueError(f"gsnn_weight must be >= 0, found {gsnn_weight}")
         self.kl_weight = kl_weight
         self.kl_warmup_steps = kl_warmup_steps
+        self.gsnn_weight = gsnn_weight
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
 
     def _loss_in_keys(self) -> list:
         k = self.tensor_keys
-        return [k.target, k.forecast_loc, k.forecast_scale, k.posterior_loc, k.posterior_scale]
+        extra = [k.from_prior_loc, k.from_prior_scale] if self.gsnn_weight else []
+        return [k.target, k.forecast_loc, k.forecast_scale, k.posterior_loc, k.posterior_scale, k.prior_loc,
+                k.prior_scale, *extra]
+
+    @property
+    def out_keys(self):
+        return ["loss_nll", "loss_kl", *(["loss_gsnn"] if self.gsnn_weight else []), "kl", "kl_weight"]
+
+    def prepare(self, td: TensorDictBase) -> TensorDictBase:
+        if self.gsnn_weight:
+            td.set(keys.DECODE_FROM_PRIOR, torch.ones(td.batch_size, dtype=torch.bool, device=td.device))
+        return td
 
     def current_kl_weight(self) -> float:
         if not self.kl_warmup_steps:
@@ -64,13 +96,22 @@ class ELBOLoss(ForecasterLossBase):
         k = self.tensor_keys
         target = self._get(td, k.target)
         nll = gaussian_nll(target, self._get(td, k.forecast_loc), self._get(td, k.forecast_scale)).flatten(1).sum(-1)
-        kl = gaussian_kl_to_standard(self._get(td, k.posterior_loc), self._get(td, k.posterior_scale)).sum(-1)
+        post_loc, post_scale = self._get(td, k.posterior_loc), self._get(td, k.posterior_scale)
+        prior_loc, prior_scale = td.get(k.prior_loc, None), td.get(k.prior_scale, None)
+        if prior_loc is None or prior_scale is None:
+            kl = gaussian_kl_to_standard(post_loc, post_scale).sum(-1)
+        else:
+            kl = gaussian_kl(post_loc, post_scale, prior_loc, prior_scale).sum(-1)
         beta = self.current_kl_weight()
         if self.training and torch.is_grad_enabled():
             self.num_updates += 1
-        return TensorDict(
+        out = TensorDict(
             loss_nll=reduce_batch(nll, self.reduction),
             loss_kl=beta * reduce_batch(kl, self.reduction),
             kl=kl.mean().detach(),
             kl_weight=torch.tensor(beta),
         )
+        if self.gsnn_weight:
+            gsnn = gaussian_nll(target, self._get(td, k.from_prior_loc), self._get(td, k.from_prior_scale))
+            out.set("loss_gsnn", self.gsnn_weight * reduce_batch(gsnn.flatten(1).sum(-1), self.reduction))
+        return out

@@ -1,4 +1,4 @@
-"""The paper's missing-modality loss ``L_mis``: the forecast should not change when a modality is lost."""
+"""The paper's missing-modality loss ``L_mis``: the forecast should not change when modalities are lost."""
 
 from __future__ import annotations
 
@@ -9,30 +9,46 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 
 from mmf_rl import keys
-from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl, reduce_batch
+from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl, gaussian_nll, reduce_batch
 
 
 class MissingModalityLoss(ForecasterLossBase):
-    """``L_mis = KL(p(y | X, z) || p(y | X \\ {m}, z))`` with one present modality ``m`` dropped.
+    """``L_mis = KL(p(y | X, z) || p(y | X \\ S, z))`` with a random set ``S`` of present modalities dropped.
 
-    :meth:`prepare` picks, per sample with at least two present modalities, one of them
-    uniformly at random (global torch RNG, so seeded runs repeat) and writes the ``("drop", m)``
-    masks; the forecaster then decodes the teacher (all present modalities) and the student
-    (``m`` removed) with the same ``z`` in one batched pass. Samples with a single present
-    modality have nothing to drop and are left out of the average.
+    :meth:`prepare` picks, per sample with at least two present modalities, how many to drop
+    (``k`` uniform in ``1..min(max_dropped, M_i - 1)``, ``M_i`` the sample's present modalities),
+    then which (a uniformly random ``k``-subset of the present ones; global torch RNG, so seeded
+    runs repeat), and writes the ``("drop", m)`` masks; the forecaster then decodes the teacher
+    (all present modalities) and the student (``S`` removed) with the same ``z`` in one batched
+    pass. Samples with a single present modality have nothing to drop and are left out of the
+    average. ``max_dropped=1`` (the default) is the paper's setting: exactly one modality;
+    ``max_dropped=None`` lets any sample be reduced to a single modality, so single-modality
+    inputs are trained.
+
+    With a learned prior (``ForecasterConfig.prior="learned"``) the forecaster also computes the
+    prior of the degraded input from the fusion of the kept modalities, and ``loss_mis_prior =
+    prior_weight · KL(p(z | X) || p(z | X \\ S))`` ties it to the full input's prior (teacher
+    detached like the forecast's).
 
     Args:
         forecaster: a :class:`~mmf_rl.models.MultimodalForecaster`.
         weight: multiplies ``loss_mis``.
-        detach_teacher: stop the gradient through the teacher's Gaussian (default). The paper
-            trains both sides jointly and calls the full-modality side the teacher without saying
-            whether it is detached; detaching keeps ``L_mis`` from pulling the full-modality
-            forecast toward the degraded one, which only the ELBO should shape.
+        detach_teacher: stop the gradient through the teacher's side (the full-input forecast and,
+            with a learned prior, the full-input prior; default). The paper trains both sides
+            jointly and calls the full-modality side the teacher without saying whether it is
+            detached; detaching keeps ``L_mis`` from pulling the full-modality forecast toward the
+            degraded one, which only the ELBO should shape.
+        max_dropped: the most modalities dropped from one sample (``>= 1``), ``None``: no cap
+            (up to ``M_i - 1``).
+        dropped_nll_weight: weight of ``loss_mis_nll``, the Gaussian NLL of the target under the
+            degraded forecast (0, the default: no such term).
+        prior_weight: weight of ``loss_mis_prior`` (used only with a learned prior).
         reduction: ``"mean"`` (over eligible samples) | ``"sum"`` | ``"none"`` (per sample, 0
             where nothing was dropped).
 
-    Returns ``loss_mis`` (weighted) and the detached diagnostics ``mis_kl`` (unweighted) and
-    ``mis_fraction`` (share of samples that had a modality dropped).
+    Returns ``loss_mis`` (weighted), ``loss_mis_nll`` and ``loss_mis_prior`` when they apply, and
+    the detached diagnostics ``mis_kl`` (unweighted), ``mis_fraction`` (share of samples that had
+    a modality dropped) and ``mis_dropped`` (mean number dropped over those samples).
 
     Keys: ``present`` maps each of the forecaster's modalities to the mask :meth:`prepare` picks
     the dropped modality from (default ``("present", m)``, resolved from the forecaster's
@@ -44,21 +60,35 @@ class MissingModalityLoss(ForecasterLossBase):
 
     @dataclass
     class _AcceptedKeys:
+        target: NestedKey = keys.TARGET
         forecast_loc: NestedKey = keys.FORECAST_LOC
         forecast_scale: NestedKey = keys.FORECAST_SCALE
         dropped_loc: NestedKey = keys.FORECAST_DROPPED_LOC
         dropped_scale: NestedKey = keys.FORECAST_DROPPED_SCALE
         present: dict[str, NestedKey] = field(default_factory=dict)
+        prior_loc: NestedKey = keys.PRIOR_LOC
+        prior_scale: NestedKey = keys.PRIOR_SCALE
+        prior_dropped_loc: NestedKey = keys.PRIOR_DROPPED_LOC
+        prior_dropped_scale: NestedKey = keys.PRIOR_DROPPED_SCALE
 
     default_keys = _AcceptedKeys
-    out_keys = ["loss_mis", "mis_kl", "mis_fraction"]
 
-    def __init__(self, forecaster, *, weight: float = 1.0, detach_teacher: bool = True, reduction: str = "mean"):
+    def __init__(self, forecaster, *, weight: float = 1.0, detach_teacher: bool = True, max_dropped: int | None = 1,
+                 dropped_nll_weight: float = 0.0, prior_weight: float = 1.0, reduction: str = "mean"):
         super().__init__(forecaster, reduction)
-        if weight < 0:
-            raise ValueError(f"weight must be >= 0, found {weight}")
+        for name, value in (("weight", weight), ("dropped_nll_weight", dropped_nll_weight),
+                            ("prior_weight", prior_weight)):
+            if value < 0:
+                raise ValueError(f"{name} must be >= 0, found {value}")
+        if max_dropped is not None and max_dropped < 1:
+            raise ValueError(f"max_dropped must be >= 1 (or None: up to all but one modality), found {max_dropped}")
         self.weight = weight
         self.detach_teacher = detach_teacher
+        self.max_dropped = max_dropped
+        self.dropped_nll_weight = dropped_nll_weight
+        # Only a learned prior depends on the present modalities; N(0, I) has nothing to tie.
+        learned = getattr(getattr(forecaster, "config", None), "prior", "standard") == "learned"
+        self.prior_weight = prior_weight if learned else 0.0
         self.modality_names = [spec.name for spec in forecaster.modalities]
 
     def default_tensor_keys(self) -> _AcceptedKeys:
@@ -76,35 +106,69 @@ class MissingModalityLoss(ForecasterLossBase):
 
     def _loss_in_keys(self) -> list:
         k = self.tensor_keys
-        return [k.forecast_loc, k.forecast_scale, k.dropped_loc, k.dropped_scale, *k.present.values()] + [
+        extra = [k.target] if self.dropped_nll_weight else []
+        if self.prior_weight:
+            extra += [k.prior_loc, k.prior_scale, k.prior_dropped_loc, k.prior_dropped_scale]
+        return [k.forecast_loc, k.forecast_scale, k.dropped_loc, k.dropped_scale, *k.present.values(), *extra] + [
             keys.drop_key(m) for m in self.modality_names
         ]
 
+    @property
+    def out_keys(self):
+        terms = ["loss_mis"] + (["loss_mis_nll"] if self.dropped_nll_weight else []) + (
+            ["loss_mis_prior"] if self.prior_weight else [])
+        return terms + ["mis_kl", "mis_fraction", "mis_dropped"]
+
     def prepare(self, td: TensorDictBase) -> TensorDictBase:
         present = torch.stack([td.get(self.tensor_keys.present[m]) for m in self.modality_names], dim=1)
-        # argmax of uniform scores over the present modalities = one of them uniformly at random.
+        count = present.sum(1)
+        droppable = (count - 1).clamp_min(0)
+        if self.max_dropped is not None:
+            droppable = droppable.clamp_max(self.max_dropped)
+        # Uniform scores over the present modalities (absent ones last): the k top-ranked are a
+        # uniformly random k-subset of the present ones.
         scores = torch.rand(present.shape, device=present.device).masked_fill(~present, -1.0)
-        choice = torch.nn.functional.one_hot(scores.argmax(1), len(self.modality_names)).bool()
-        drop = choice & (present.sum(1, keepdim=True) >= 2)
+        if self.max_dropped == 1:  # k = 1 where possible; no draw for k (the paper's setting, as before)
+            number = droppable
+        else:
+            number = (torch.rand(count.shape, device=present.device) * droppable).long() + 1
+            number = number * (droppable > 0)
+        rank = scores.argsort(1, descending=True).argsort(1)
+        drop = present & (rank < number.unsqueeze(1))
         for i, name in enumerate(self.modality_names):
             td.set(keys.drop_key(name), drop[:, i])
         return td
+
+    def _per_eligible(self, per_sample: torch.Tensor, eligible: torch.Tensor) -> torch.Tensor:
+        per_sample = per_sample * eligible
+        if self.reduction == "mean":
+            return per_sample.sum() / eligible.sum().clamp_min(1)
+        return reduce_batch(per_sample, self.reduction)
 
     def loss_from_outputs(self, td: TensorDictBase) -> TensorDict:
         k = self.tensor_keys
         teacher_loc, teacher_scale = self._get(td, k.forecast_loc), self._get(td, k.forecast_scale)
         if self.detach_teacher:
             teacher_loc, teacher_scale = teacher_loc.detach(), teacher_scale.detach()
-        kl = gaussian_kl(teacher_loc, teacher_scale, self._get(td, k.dropped_loc), self._get(td, k.dropped_scale))
-        kl = kl.flatten(1).sum(-1)
-        eligible = torch.stack([self._get(td, keys.drop_key(m)) for m in self.modality_names], dim=1).any(1)
-        kl = kl * eligible
-        if self.reduction == "mean":
-            loss = kl.sum() / eligible.sum().clamp_min(1)
-        else:
-            loss = reduce_batch(kl, self.reduction)
-        return TensorDict(
-            loss_mis=self.weight * loss,
-            mis_kl=(kl.sum() / eligible.sum().clamp_min(1)).detach(),
+        student_loc, student_scale = self._get(td, k.dropped_loc), self._get(td, k.dropped_scale)
+        kl = gaussian_kl(teacher_loc, teacher_scale, student_loc, student_scale).flatten(1).sum(-1)
+        dropped = torch.stack([self._get(td, keys.drop_key(m)) for m in self.modality_names], dim=1)
+        eligible = dropped.any(1)
+        loss = self._per_eligible(kl, eligible)
+        out = TensorDict(loss_mis=self.weight * loss)
+        if self.dropped_nll_weight:
+            nll = gaussian_nll(self._get(td, k.target), student_loc, student_scale).flatten(1).sum(-1)
+            out.set("loss_mis_nll", self.dropped_nll_weight * self._per_eligible(nll, eligible))
+        if self.prior_weight:
+            prior_loc, prior_scale = self._get(td, k.prior_loc), self._get(td, k.prior_scale)
+            if self.detach_teacher:
+                prior_loc, prior_scale = prior_loc.detach(), prior_scale.detach()
+            prior_kl = gaussian_kl(prior_loc, prior_scale, self._get(td, k.prior_dropped_loc),
+                                   self._get(td, k.prior_dropped_scale)).sum(-1)
+            out.set("loss_mis_prior", self.prior_weight * self._per_eligible(prior_kl, eligible))
+        out.update(
+            mis_kl=(kl * eligible).sum().detach() / eligible.sum().clamp_min(1),
             mis_fraction=eligible.float().mean(),
+            mis_dropped=dropped.sum(1).float().sum() / eligible.sum().clamp_min(1),
         )
+        return out

@@ -1,10 +1,23 @@
+import math
+
 import pytest
 import torch
 from tensordict import TensorDict
 
 from mmf_rl import keys
-from mmf_rl.eval.metrics import constant_velocity, displacement_errors, evaluate_forecasts
+from mmf_rl.datasets import apply_presence_subset, presence_subsets
+from mmf_rl.eval.metrics import (
+    best_of_samples,
+    constant_velocity,
+    displacement_errors,
+    evaluate_forecasts,
+    evaluate_presence_subsets,
+    interval_coverage,
+)
 from mmf_rl.eval.report import markdown_table
+
+# The fake forecasters below read the future from here: the metrics hide "target" from the model.
+ORACLE = "oracle"
 
 
 class FixedForecaster(torch.nn.Module):
@@ -15,13 +28,14 @@ class FixedForecaster(torch.nn.Module):
         self.offset, self.spread = offset, spread
 
     def forward(self, td):
-        td.set(keys.FORECAST_LOC, td.get(keys.TARGET) + self.offset)
-        td.set(keys.FORECAST_SCALE, torch.ones_like(td.get(keys.TARGET)))
+        assert keys.TARGET not in td.keys(), "the model must not see the future it forecasts"
+        td.set(keys.FORECAST_LOC, td.get(ORACLE) + self.offset)
+        td.set(keys.FORECAST_SCALE, torch.ones_like(td.get(ORACLE)))
         return td
 
     def sample(self, td, num_samples):
         ks = torch.arange(num_samples, dtype=torch.float32).view(1, -1, 1, 1) * self.spread
-        td.set(keys.FORECAST_SAMPLES, td.get(keys.TARGET)[:, None] + ks)
+        td.set(keys.FORECAST_SAMPLES, td.get(ORACLE)[:, None] + ks)
         return td
 
 
@@ -31,7 +45,7 @@ def batches(n=3, b=4, t=5):
     for _ in range(n):
         target = torch.randn(b, t, 2, generator=g)
         past = torch.cumsum(torch.ones(b, 3, 2), 1)  # moves +1 per step in both dims
-        out.append(TensorDict({keys.TARGET: target, keys.TARGET_PAST: past}, batch_size=[b]))
+        out.append(TensorDict({keys.TARGET: target, ORACLE: target.clone(), keys.TARGET_PAST: past}, batch_size=[b]))
     return out
 
 
@@ -55,8 +69,11 @@ def test_metrics_in_normalised_frame_and_units():
     assert metrics["mse"] == pytest.approx(0.09, rel=1e-5)
     assert metrics["mse_units"] == pytest.approx(9.0, rel=1e-5)
     assert metrics["ade"] == pytest.approx(0.3 * 2**0.5 * scale, rel=1e-5)
-    assert metrics["ade_best_of_k"] == pytest.approx(0.0, abs=1e-5)  # sample 0 is exact
+    assert metrics["min_ade_k"] == pytest.approx(0.0, abs=1e-5)  # sample 0 is exact
+    assert metrics["min_fde_k"] == pytest.approx(0.0, abs=1e-5) and metrics["min_mse_k"] == pytest.approx(0.0, abs=1e-5)
     assert metrics["nll"] == pytest.approx(10 * (0.5 * 0.09 + 0.5 * torch.log(torch.tensor(2 * torch.pi)).item()), rel=1e-5)
+    # |error| = 0.3 < 0.674 (the 50% half-width of N(0, 1)) everywhere: both intervals cover every value.
+    assert metrics["coverage_50"] == 1.0 and metrics["coverage_90"] == 1.0
     assert metrics["cv_mse"] > 0
 
 
@@ -71,9 +88,102 @@ def test_no_windows_gives_no_metrics():
 
 
 def test_markdown_table_rows_and_degradation():
-    results = {"all": {"windows": 10, "mse": 0.1, "degradation": 0.0}, "without_image": {"windows": 10, "mse": 0.15, "degradation": 0.5}}
-    table = markdown_table(results, {"windows": 10, "mse": 0.4}, units="metres")
+    results = {"all": {"windows": 10, "windows_available": 12, "mse": 0.1, "coverage_90": 0.875, "degradation": 0.0},
+               "without_image": {"windows": 10, "windows_available": 12, "mse": 0.15, "coverage_90": 0.5,
+                                 "degradation": 0.5}}
+    table = markdown_table(results, {"windows": 10, "mse": 0.4}, units="metres", num_samples=20)
     lines = table.splitlines()
-    assert lines[0] == "| subset | windows | MSE (norm.) | MSE vs all |"
-    assert lines[3] == "| without_image | 10 | 0.1500 | +50.0% |"
-    assert lines[4] == "| constant velocity | 10 | 0.4000 |  |"
+    assert lines[0] == "| subset | windows | available | MSE (norm.) | cover 90% | MSE vs all |"
+    assert lines[3] == "| without_image | 10 | 12 | 0.1500 | 0.50 | +50.0% |"
+    assert lines[4] == "| constant velocity | 10 |  | 0.4000 |  |  |"
+    assert "K = 20" in table
+
+
+def test_interval_coverage_counts_values_inside_the_central_interval():
+    # N(0, 1): the central 50% interval is +-0.674, the 90% one +-1.645.
+    target = torch.tensor([[[0.0], [0.5], [-0.7], [1.0], [2.0]]])
+    loc, scale = torch.zeros_like(target), torch.ones_like(target)
+    assert interval_coverage(target, loc, scale, 0.5).tolist() == [pytest.approx(2 / 5)]
+    assert interval_coverage(target, loc, scale, 0.9).tolist() == [pytest.approx(4 / 5)]
+    # The scale sets the width: doubled, -0.7 and 1.0 fall inside the 50% interval too.
+    assert interval_coverage(target, loc, 2 * scale, 0.5).tolist() == [pytest.approx(4 / 5)]
+    # Calibrated Gaussian forecasts cover about the nominal share.
+    g = torch.Generator().manual_seed(0)
+    draws = torch.randn(200, 10, 2, generator=g) * 3.0 + 1.0
+    loc, scale = torch.ones_like(draws), torch.full_like(draws, 3.0)
+    assert abs(float(interval_coverage(draws, loc, scale, 0.9).mean()) - 0.9) < 0.02
+
+
+def test_min_over_samples_takes_each_minimum_on_its_own():
+    target = torch.zeros(1, 2, 2)
+    # Sample 0: small error at step 0, large at the last step; sample 1: the other way round.
+    samples = torch.tensor([[[[0.0, 0.0], [4.0, 0.0]], [[2.0, 0.0], [1.0, 0.0]]]])
+    best = best_of_samples(samples, target, samples * 10, target * 10)
+    assert best["min_ade_k"].item() == pytest.approx(10 * 1.5)  # sample 1: (20 + 10) / 2 < sample 0's 20
+    assert best["min_fde_k"].item() == pytest.approx(10 * 1.0)  # sample 1's final error
+    assert best["min_mse_k"].item() == pytest.approx(5 / 4)  # sample 1: (4 + 1) / 4 < sample 0's 16 / 4
+    samples[0, 0, 1, 0] = 0.5  # now sample 0 has the best FDE, sample 1 still the best ADE
+    best = best_of_samples(samples, target, samples, target)
+    assert best["min_fde_k"].item() == pytest.approx(0.5) and best["min_ade_k"].item() == pytest.approx(0.25)
+
+
+class PresenceForecaster(torch.nn.Module):
+    """Forecast error = the window's own difficulty + 1 for each absent modality (a, b, c)."""
+
+    def forward(self, td):
+        absent = sum((~td.get(keys.present_key(m))).float() for m in ("a", "b", "c"))
+        error = td.get("difficulty") + absent
+        td.set(keys.FORECAST_LOC, td.get(ORACLE) + error[:, None, None])
+        td.set(keys.FORECAST_SCALE, torch.ones_like(td.get(ORACLE)))
+        return td
+
+
+def presence_batch(a, b, c, difficulty):
+    n = len(difficulty)
+    target = torch.zeros(n, 1, 1)
+    return TensorDict({keys.present_key("a"): torch.tensor(a, dtype=torch.bool),
+                       keys.present_key("b"): torch.tensor(b, dtype=torch.bool),
+                       keys.present_key("c"): torch.tensor(c, dtype=torch.bool),
+                       "difficulty": torch.tensor(difficulty), keys.TARGET: target, ORACLE: target.clone()},
+                      batch_size=[n])
+
+
+def test_presence_subsets_are_scored_on_the_windows_they_share():
+    # Windows 0-2 have a and b; window 3 lacks a (and is hard); c exists nowhere.
+    batches = [presence_batch([1, 1], [1, 1], [0, 0], [0.0, 1.0]), presence_batch([1, 0], [1, 1], [0, 0], [2.0, 10.0])]
+    subsets = list(presence_subsets(["a", "b", "c"]))
+    results, _ = evaluate_presence_subsets(PresenceForecaster(), batches, subsets, denormalize=lambda t: t)
+    # only_c has no window; every other row keeps a present modality on windows 0-2 only.
+    assert set(results) == {"all", "without_a", "without_b", "without_c", "only_a", "only_b"}
+    assert {row["windows"] for row in results.values()} == {3.0}
+    assert results["all"]["windows_available"] == 4 and results["only_a"]["windows_available"] == 3
+    # On windows 0-2 (difficulty 0, 1, 2) "all" lacks c only: errors 1, 2, 3.
+    assert results["all"]["mse"] == pytest.approx((1 + 4 + 9) / 3)
+    assert results["without_a"]["mse"] == pytest.approx((4 + 9 + 16) / 3)  # a and c absent
+    assert results["without_a"]["degradation"] == pytest.approx(29 / 14 - 1) and results["all"]["degradation"] == 0
+    # Unpaired, each row would average its own windows: "all" also window 3 (a and c absent: error 12),
+    # which only_a cannot score, so removing b and c would look like an improvement.
+    unpaired_all = evaluate_forecasts(PresenceForecaster(), batches, denormalize=lambda t: t)["mse"]
+    only_a = dict(subsets)["only_a"]
+    unpaired_only_a = evaluate_forecasts(PresenceForecaster(), [apply_presence_subset(b, only_a) for b in batches],
+                                         denormalize=lambda t: t)["mse"]
+    assert unpaired_all == pytest.approx((1 + 4 + 9 + 144) / 4) and unpaired_only_a < unpaired_all
+    assert results["only_a"]["mse"] == pytest.approx(unpaired_only_a) and results["only_a"]["degradation"] > 0
+
+
+def test_subsets_sharing_no_window_are_a_clear_error():
+    batches = [presence_batch([1, 0], [0, 1], [0, 0], [0.0, 0.0])]
+    with pytest.raises(ValueError, match="no window can be scored in every presence subset"):
+        evaluate_presence_subsets(PresenceForecaster(), batches, list(presence_subsets(["a", "b", "c"])),
+                                  denormalize=lambda t: t)
+    assert evaluate_presence_subsets(PresenceForecaster(), [], list(presence_subsets(["a"])),
+                                     denormalize=lambda t: t) == ({}, None)
+
+
+def test_paired_baseline_row_uses_the_shared_windows():
+    batch = presence_batch([1, 0], [1, 1], [1, 1], [0.0, 0.0])
+    batch.set(keys.TARGET_PAST, torch.tensor([[[0.0], [1.0]], [[0.0], [3.0]]]))  # cv forecasts 2 and 6
+    _, baseline = evaluate_presence_subsets(PresenceForecaster(), [batch], list(presence_subsets(["a", "b", "c"])),
+                                            denormalize=lambda t: t, with_baseline=True)
+    assert baseline["windows"] == 1 and baseline["mse"] == pytest.approx(4.0)
+    assert not math.isnan(baseline["ade"])

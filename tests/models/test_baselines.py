@@ -169,3 +169,9 @@ def test_model_config_file_builds_the_baseline(name):
 def test_unknown_config_key_is_rejected():
     with pytest.raises(ValueError, match="unknown keys"):
         build_model({"name": "lf_lstm", "d_latent": 4}, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM)
+
+
+def test_mvae_refuses_the_gsnn_term_it_cannot_compute():
+    with pytest.raises(ValueError, match="gsnn_weight > 0 needs a model that decodes from its prior"):
+        build_loss("mvae", make_model("mvae"), LossConfig(gsnn_weight=0.5))
+    build_loss("mvae", make_model("mvae"), LossConfig(gsnn_weight=0.0))

@@ -19,7 +19,22 @@ from tests.conftest import (
 )
 
 NAMES = [s.name for s in SMALL_MODALITIES]
-OUTPUTS = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE, keys.LATENT]
+OUTPUTS = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE, keys.LATENT,
+           keys.PRIOR_LOC, keys.PRIOR_SCALE]
+PRIORS = ["standard", "learned"]
+
+
+@pytest.fixture(params=PRIORS)
+def model(request, small_config) -> MultimodalForecaster:
+    """The forecaster under each prior: the presence invariants hold for both."""
+    torch.manual_seed(0)
+    return MultimodalForecaster(dataclasses.replace(small_config, prior=request.param))
+
+
+@pytest.fixture
+def learned_model(small_config) -> MultimodalForecaster:
+    torch.manual_seed(0)
+    return MultimodalForecaster(dataclasses.replace(small_config, prior="learned"))
 
 
 def with_presence(td, pattern):
@@ -30,29 +45,31 @@ def with_presence(td, pattern):
 
 
 @pytest.mark.parametrize("train", [True, False])
-def test_output_shapes_do_not_depend_on_presence(small_model, batch, train):
-    small_model.train(train)
+def test_output_shapes_do_not_depend_on_presence(model, batch, train):
+    model.train(train)
     shapes = set()
     for pattern in presence_patterns(NAMES):
-        out = small_model(with_presence(batch, pattern))
+        out = model(with_presence(batch, pattern))
         shapes.add(tuple(tuple(out.get(k).shape) for k in OUTPUTS))
-    assert shapes == {((8, HORIZON, TARGET_DIM), (8, HORIZON, TARGET_DIM), (8, 4), (8, 4), (8, 4))}
+        assert bool((out.get(keys.PRIOR_SCALE) > 0).all() and torch.isfinite(out.get(keys.PRIOR_LOC)).all())
+    forecast, latent = (8, HORIZON, TARGET_DIM), (8, 4)
+    assert shapes == {(forecast, forecast, latent, latent, latent, latent, latent)}
 
 
-def test_mixed_batch_equals_per_sample_results(small_model, mixed_batch):
-    small_model.eval()
+def test_mixed_batch_equals_per_sample_results(model, mixed_batch):
+    model.eval()
     with torch.no_grad():
-        together = small_model(mixed_batch.clone())
+        together = model(mixed_batch.clone())
         for i in range(mixed_batch.shape[0]):
-            alone = small_model(mixed_batch[i : i + 1].clone())
+            alone = model(mixed_batch[i : i + 1].clone())
             for key in OUTPUTS:
                 torch.testing.assert_close(alone.get(key)[0], together.get(key)[i], rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.parametrize("fill", ["noise", "nan", "zeros"])
-def test_value_under_absent_modality_changes_nothing(small_model, mixed_batch, fill):
-    small_model.eval()
-    reference = small_model(mixed_batch.clone())
+def test_value_under_absent_modality_changes_nothing(model, mixed_batch, fill):
+    model.eval()
+    reference = model(mixed_batch.clone())
     corrupted = mixed_batch.clone()
     g = torch.Generator().manual_seed(3)
     for spec in SMALL_MODALITIES:
@@ -64,21 +81,32 @@ def test_value_under_absent_modality_changes_nothing(small_model, mixed_batch, f
             junk = {"noise": 1e6 * torch.randn(obs.shape, generator=g), "nan": torch.full_like(obs, float("nan")),
                     "zeros": torch.zeros_like(obs)}[fill]
         obs[absent] = junk[absent]
-    out = small_model(corrupted)
+    out = model(corrupted)
     for key in OUTPUTS:
         assert torch.equal(out.get(key), reference.get(key)), key
+    torch.manual_seed(0)
+    reference_samples = model.sample(mixed_batch.clone(), num_samples=3).get(keys.FORECAST_SAMPLES)
+    torch.manual_seed(0)
+    assert torch.equal(model.sample(corrupted, num_samples=3).get(keys.FORECAST_SAMPLES), reference_samples)
 
 
-def test_no_gradient_reaches_encoder_of_modality_absent_from_whole_batch(small_model, batch):
+def test_no_gradient_reaches_encoder_of_modality_absent_from_whole_batch(model, batch):
     td = batch.clone()
     td.set(keys.present_key("image"), torch.zeros(8, dtype=torch.bool))
     td.set(keys.obs_key("image"), torch.full_like(td.get(keys.obs_key("image")), 255))
-    small_model.train()
-    out = small_model(td)
-    (out.get(keys.FORECAST_LOC).sum() + out.get(keys.POSTERIOR_LOC).sum()).backward()
-    assert all(p.grad is None for p in small_model.encoders["image"].parameters())
+    for i, name in enumerate(NAMES):  # drop force where the batch has both vectors: the degraded passes too
+        td.set(keys.drop_key(name), torch.arange(8) % 2 == 0 if name == "force" else torch.zeros(8, dtype=torch.bool))
+    td.set(keys.DECODE_FROM_PRIOR, torch.ones(8, dtype=torch.bool))
+    model.train()
+    out = model(td)
+    total = sum(out.get(k).sum() for k in (keys.FORECAST_LOC, keys.POSTERIOR_LOC, keys.PRIOR_LOC,
+                                           keys.FORECAST_DROPPED_LOC, keys.FORECAST_FROM_PRIOR_LOC))
+    if model.config.prior == "learned":
+        total = total + out.get(keys.PRIOR_DROPPED_LOC).sum()
+    total.backward()
+    assert all(p.grad is None for p in model.encoders["image"].parameters())
     for name in ("force", "proprio"):
-        grads = [p.grad for p in small_model.encoders[name].parameters()]
+        grads = [p.grad for p in model.encoders[name].parameters()]
         assert all(g is not None for g in grads) and any(g.abs().sum() > 0 for g in grads)
 
 
@@ -110,6 +138,15 @@ def test_default_posterior_reads_only_the_inputs(small_model, batch):
     assert torch.equal(small_model(other).get(keys.POSTERIOR_LOC), with_target)
     del other[keys.TARGET]
     assert small_model.train()(other).get(keys.POSTERIOR_LOC).shape == with_target.shape  # no target needed
+
+
+def test_learned_prior_needs_the_target_in_training_only(learned_model, batch):
+    del batch[keys.TARGET]
+    with pytest.raises(KeyError, match="'target'"):
+        learned_model.train()(batch.clone())
+    out = learned_model.eval()(batch.clone())  # inference needs no target, and reports no posterior
+    assert keys.POSTERIOR_LOC not in out.keys(include_nested=True)
+    assert torch.equal(out.get(keys.LATENT), out.get(keys.PRIOR_LOC))
 
 
 def test_eval_mean_latent_is_deterministic_and_train_mode_samples(small_model, batch):
@@ -330,3 +367,111 @@ def test_forecast_from_the_prior_does_not_depend_on_the_multimodal_encoder(small
         after = small_model(batch.clone())
     torch.testing.assert_close(after.get(keys.FORECAST_LOC), before.get(keys.FORECAST_LOC))
     assert not torch.allclose(after.get(keys.POSTERIOR_LOC), before.get(keys.POSTERIOR_LOC))
+
+
+# -- learned conditional prior p(z | X) -----------------------------------------------------------
+
+def test_learned_prior_changes_eval_forecasts_through_the_fusion(learned_model, batch):
+    """With prior="learned" the multimodal encoder gives z at test time: changing it changes the forecast."""
+    learned_model.eval()
+    with torch.no_grad():
+        before = learned_model(batch.clone())
+        for parameter in learned_model.fusion.parameters():
+            parameter.add_(1.0)
+        after = learned_model(batch.clone())
+    assert torch.equal(before.get(keys.LATENT), before.get(keys.PRIOR_LOC))
+    assert not torch.allclose(after.get(keys.PRIOR_LOC), before.get(keys.PRIOR_LOC))
+    assert (after.get(keys.FORECAST_LOC) - before.get(keys.FORECAST_LOC)).abs().amax(dim=(1, 2)).min() > 1e-6
+
+
+def test_learned_prior_depends_on_the_present_modalities(learned_model, batch):
+    learned_model.eval()
+    with torch.no_grad():
+        priors = {p: learned_model(with_presence(batch, p)).get(keys.PRIOR_LOC) for p in presence_patterns(NAMES)}
+    patterns = list(priors)
+    for i, first in enumerate(patterns):
+        for second in patterns[i + 1 :]:
+            assert (priors[first] - priors[second]).abs().amax(1).min() > 1e-6, (first, second)
+    # The prior reads X only: a different target leaves it unchanged.
+    other = batch.clone()
+    other.set(keys.TARGET, torch.randn_like(other.get(keys.TARGET)))
+    with torch.no_grad():
+        torch.testing.assert_close(learned_model(other).get(keys.PRIOR_LOC), priors[tuple(NAMES)])
+
+
+def test_learned_prior_sample_draws_from_the_prior(learned_model, mixed_batch):
+    learned_model.eval()
+    b = mixed_batch.shape[0]
+    torch.manual_seed(5)
+    with torch.no_grad():
+        samples = learned_model.sample(mixed_batch.clone(), num_samples=3).get(keys.FORECAST_SAMPLES)
+    torch.manual_seed(5)
+    noise = torch.randn(3 * b, 4).view(3, b, 4)
+    with torch.no_grad():
+        tokens, present = learned_model.encode(mixed_batch)
+        prior_loc, prior_scale = learned_model.prior(tokens, present)
+        loc, _ = learned_model.decode(tokens, present, prior_loc + prior_scale * noise[1])
+    torch.testing.assert_close(samples[:, 1], loc, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(prior_loc, learned_model(mixed_batch.clone()).get(keys.PRIOR_LOC))
+
+
+def test_degraded_prior_comes_from_the_kept_modalities_in_one_fusion_pass(learned_model, mixed_batch):
+    learned_model.train()
+    td = mixed_batch.clone()
+    present = torch.stack([td.get(keys.present_key(n)) for n in NAMES], 1)
+    drop = torch.zeros_like(present)
+    multi = present.sum(1) >= 2
+    drop[multi, present[multi].float().argmax(1)] = True
+    for i, name in enumerate(NAMES):
+        td.set(keys.drop_key(name), drop[:, i])
+    td.set(keys.DECODE_FROM_PRIOR, torch.ones(td.shape[0], dtype=torch.bool))
+    fusion_rows, decoder_rows = [], []
+    hooks = [learned_model.fusion.register_forward_hook(lambda mod, args, out: fusion_rows.append(args[0].shape[0])),
+             learned_model.decoder.register_forward_hook(lambda mod, args, out: decoder_rows.append(args[0].shape[0]))]
+    out = learned_model(td)
+    for hook in hooks:
+        hook.remove()
+    b = td.shape[0]
+    assert fusion_rows == [2 * b] and decoder_rows == [3 * b]
+    tokens, _ = learned_model.encode(td)
+    full, degraded = learned_model.prior(tokens, present), learned_model.prior(tokens, present & ~drop)
+    torch.testing.assert_close(out.get(keys.PRIOR_LOC), full[0], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out.get(keys.PRIOR_DROPPED_LOC), degraded[0], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out.get(keys.PRIOR_DROPPED_SCALE), degraded[1], rtol=1e-4, atol=1e-5)
+    assert not torch.allclose(full[0][multi], degraded[0][multi])
+    assert out.get(keys.FORECAST_FROM_PRIOR_LOC).shape == (b, HORIZON, TARGET_DIM)
+
+
+def test_prior_config_choices(small_config):
+    learned = dataclasses.replace(small_config, prior="learned")
+    assert learned.posterior_reads_target and not small_config.posterior_reads_target
+    assert ForecasterConfig.from_dict(learned.to_dict()) == learned
+    with pytest.raises(ValueError, match="prior='learned' needs the posterior q\\(z\\|X, y\\)"):
+        dataclasses.replace(small_config, prior="learned", posterior_uses_target=False)
+    with pytest.raises(ValueError, match="prior must be 'standard' or 'learned', found 'fixed'"):
+        dataclasses.replace(small_config, prior="fixed")
+    assert MultimodalForecaster(small_config).prior_head is None
+
+
+def test_learned_prior_model_trains_with_every_loss_option(learned_model):
+    from mmf_rl.models.registry import forecaster_loss
+
+    loss = forecaster_loss(learned_model, LossConfig(gsnn_weight=0.5, max_dropped=None, dropped_nll_weight=0.5,
+                                                     dropped_prior_weight=1.0))
+    assert {"loss_gsnn", "loss_mis_nll", "loss_mis_prior"} <= set(loss.out_keys)
+    elbo, missing = loss.losses
+    assert elbo.gsnn_weight == 0.5 and missing.max_dropped is None and missing.dropped_nll_weight == 0.5
+    assert_a_few_steps_reduce_the_loss(learned_model, loss)
+
+
+def test_learned_prior_world_model_plans_from_the_prior_mean(small_config, mixed_batch):
+    torch.manual_seed(0)
+    model = MultimodalForecaster(dataclasses.replace(small_config, prior="learned", action_steps=ACTION_SHAPE[0],
+                                                     action_dim=ACTION_SHAPE[1])).eval()
+    actions = torch.randn(mixed_batch.shape[0], 3, *ACTION_SHAPE, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        loc, _ = model.forecast_under_actions(mixed_batch, actions)
+        for k in range(actions.shape[1]):
+            td = mixed_batch.clone()
+            td.set(keys.FUTURE_ACTION, actions[:, k])
+            torch.testing.assert_close(loc[:, k], model(td).get(keys.FORECAST_LOC), rtol=1e-4, atol=1e-5)

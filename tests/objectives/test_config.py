@@ -27,3 +27,10 @@ def test_an_unknown_loss_key_is_a_clear_error():
 def test_bad_values_name_the_key(field, value, message):
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         LossConfig(**{field: value})
+
+
+@pytest.mark.parametrize("value", [0, -1, 1.5, True, "two"])
+def test_max_dropped_must_be_a_whole_number_of_at_least_one_or_null(value):
+    with pytest.raises(ValueError, match="loss.max_dropped must be a whole number >= 1 or null"):
+        LossConfig(max_dropped=value)
+    assert LossConfig(max_dropped=None).max_dropped is None

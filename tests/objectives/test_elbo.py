@@ -1,8 +1,11 @@
+import dataclasses
+
 import pytest
 import torch
 from torch.distributions import Normal, kl_divergence
 
 from mmf_rl import keys
+from mmf_rl.models import MultimodalForecaster
 from mmf_rl.objectives import ELBOLoss
 
 
@@ -69,3 +72,48 @@ def test_bad_arguments():
 def test_reduction_none_gives_per_sample_terms(small_model, batch):
     out = ELBOLoss(small_model, reduction="none")(batch)
     assert out["loss_nll"].shape == (8,) and out["loss_kl"].shape == (8,)
+
+
+@pytest.fixture
+def learned_model(small_config):
+    torch.manual_seed(0)
+    return MultimodalForecaster(dataclasses.replace(small_config, prior="learned"))
+
+
+def test_kl_is_to_the_models_learned_prior(learned_model, batch):
+    loss = ELBOLoss(learned_model, kl_weight=0.5)
+    torch.manual_seed(0)
+    out = loss(batch)
+    torch.manual_seed(0)
+    td = learned_model(batch.clone())
+    kl = kl_divergence(Normal(td.get(keys.POSTERIOR_LOC), td.get(keys.POSTERIOR_SCALE)),
+                       Normal(td.get(keys.PRIOR_LOC), td.get(keys.PRIOR_SCALE))).sum(-1)
+    torch.testing.assert_close(out["loss_kl"], 0.5 * kl.mean())
+    assert not torch.allclose(td.get(keys.PRIOR_LOC), torch.zeros(8, 4))
+    out["loss_kl"].backward()  # the KL trains the prior head too
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in learned_model.prior_head.parameters())
+
+
+def test_a_model_without_prior_keys_is_scored_against_the_standard_normal(small_model, batch):
+    loss = ELBOLoss(small_model)
+    td = small_model(batch.clone())
+    reference = loss.loss_from_outputs(td)["loss_kl"]
+    del td[keys.PRIOR]
+    torch.testing.assert_close(loss.loss_from_outputs(td)["loss_kl"], reference)
+
+
+@pytest.mark.parametrize("prior", ["standard", "learned"])
+def test_gsnn_term_is_the_nll_of_a_forecast_decoded_from_the_prior(small_config, batch, prior):
+    torch.manual_seed(0)
+    model = MultimodalForecaster(dataclasses.replace(small_config, prior=prior))
+    loss = ELBOLoss(model, gsnn_weight=0.25)
+    assert "loss_gsnn" in loss.out_keys and keys.FORECAST_FROM_PRIOR_LOC in loss.in_keys
+    td = model(loss.prepare(batch.clone()))
+    out = loss.loss_from_outputs(td)
+    nll = -Normal(td.get(keys.FORECAST_FROM_PRIOR_LOC), td.get(keys.FORECAST_FROM_PRIOR_SCALE)).log_prob(
+        td.get(keys.TARGET)).sum((1, 2))
+    torch.testing.assert_close(out["loss_gsnn"], 0.25 * nll.mean())
+    assert not torch.allclose(td.get(keys.FORECAST_FROM_PRIOR_LOC), td.get(keys.FORECAST_LOC))
+    assert "loss_gsnn" not in ELBOLoss(model)(batch).keys()  # off by default: no extra decode
+    with pytest.raises(ValueError, match="gsnn_weight must be >= 0"):
+        ELBOLoss(model, gsnn_weight=-1.0)

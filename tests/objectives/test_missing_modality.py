@@ -1,8 +1,12 @@
+import dataclasses
+
 import pytest
 import torch
 from tensordict import TensorDict
+from torch.distributions import Normal, kl_divergence
 
 from mmf_rl import keys
+from mmf_rl.models import MultimodalForecaster
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
 from tests.conftest import SMALL_MODALITIES, make_batch
 
@@ -125,3 +129,89 @@ def test_presence_keys_come_from_the_forecaster_and_can_be_pointed_elsewhere(sma
     assert loss.tensor_keys.present == defaults
     with pytest.raises(ValueError, match=r"\['lidar'\] are not modalities of the forecaster"):
         loss.set_keys(present={"lidar": ("present", "lidar")})
+
+
+THREE_PATTERNS = {"image": torch.tensor([1, 1, 0, 1, 0] * 400).bool(),
+                  "force": torch.tensor([1, 0, 0, 1, 1] * 400).bool(),
+                  "proprio": torch.tensor([1, 0, 1, 1, 0] * 400).bool()}
+
+
+def drawn_drops(loss, seed=0):
+    td = make_batch(2000, present=THREE_PATTERNS)
+    torch.manual_seed(seed)
+    loss.prepare(td)
+    return torch.stack([td.get(keys.drop_key(n)) for n in NAMES], 1)
+
+
+@pytest.mark.parametrize("max_dropped", [None, 2])
+def test_uniform_drop_count_trains_single_modality_inputs(small_model, max_dropped):
+    drop = drawn_drops(MissingModalityLoss(small_model, max_dropped=max_dropped))
+    present = torch.stack([THREE_PATTERNS[n] for n in NAMES], 1)
+    kept = present & ~drop
+    assert not (drop & ~present).any() and bool(kept.any(1).all())  # only present ones, never all of them
+    assert torch.equal(drop.sum(1)[present.sum(1) <= 2], (present.sum(1)[present.sum(1) <= 2] - 1).clamp_min(0))
+    full = present.sum(1) == 3  # rows 0, 3, 5, 8, ...: one or two of three dropped, each count about half the time
+    counts = drop[full].sum(1)
+    assert set(counts.tolist()) == {1, 2}
+    assert abs(float((counts == 2).float().mean()) - 0.5) < 0.05
+    # Single-modality inputs occur in the rows that had all three; each modality is dropped about half the time.
+    assert (kept[full].sum(1) == 1).any()
+    torch.testing.assert_close(drop[full].float().mean(0), torch.full((3,), 0.5), atol=0.06, rtol=0)
+
+
+def test_max_dropped_one_is_the_papers_setting_and_caps_apply(small_model):
+    default = drawn_drops(MissingModalityLoss(small_model))
+    assert torch.equal(drawn_drops(MissingModalityLoss(small_model, max_dropped=1)), default)
+    assert int(default.sum(1).max()) == 1
+    with pytest.raises(ValueError, match="max_dropped must be >= 1"):
+        MissingModalityLoss(small_model, max_dropped=0)
+
+
+def test_nll_of_the_degraded_forecast_counts_dropped_samples_only(small_model):
+    loss = MissingModalityLoss(small_model, dropped_nll_weight=0.5)
+    assert "loss_mis_nll" in loss.out_keys and "loss_mis_nll" not in MissingModalityLoss(small_model).out_keys
+    loc = torch.randn(4, 5, 2)
+    td = outputs(loc, loc + 0.5)
+    td.set(keys.TARGET, torch.randn(4, 5, 2))
+    td.set(keys.drop_key(NAMES[0]), torch.tensor([True, True, False, False]))
+    nll = -Normal(loc + 0.5, torch.ones_like(loc)).log_prob(td.get(keys.TARGET)).sum((1, 2))
+    torch.testing.assert_close(loss.loss_from_outputs(td)["loss_mis_nll"], 0.5 * nll[:2].mean())
+
+
+@pytest.fixture
+def learned_model(small_config):
+    torch.manual_seed(0)
+    return MultimodalForecaster(dataclasses.replace(small_config, prior="learned"))
+
+
+def test_prior_of_the_degraded_input_is_tied_to_the_full_prior(learned_model, mixed_batch):
+    loss = MissingModalityLoss(learned_model, prior_weight=2.0, max_dropped=None)
+    assert "loss_mis_prior" in loss.out_keys
+    torch.manual_seed(0)
+    td = learned_model.train()(loss.prepare(mixed_batch.clone()))
+    out = loss.loss_from_outputs(td)
+    eligible = torch.stack([td.get(keys.drop_key(n)) for n in NAMES], 1).any(1)
+    kl = kl_divergence(Normal(td.get(keys.PRIOR_LOC), td.get(keys.PRIOR_SCALE)),
+                       Normal(td.get(keys.PRIOR_DROPPED_LOC), td.get(keys.PRIOR_DROPPED_SCALE))).sum(-1)
+    torch.testing.assert_close(out["loss_mis_prior"], 2.0 * kl[eligible].mean())
+    assert out["loss_mis_prior"] > 0
+
+
+def test_prior_tie_teacher_is_detached_by_default(learned_model):
+    prior = torch.randn(4, 3, requires_grad=True)
+    student = torch.randn(4, 3, requires_grad=True)
+    loc = torch.randn(4, 5, 2)
+    for detach, teacher_has_grad in ((True, False), (False, True)):
+        prior.grad = student.grad = None
+        td = outputs(loc, loc.clone())
+        td.update({keys.PRIOR_LOC: prior, keys.PRIOR_SCALE: torch.ones(4, 3), keys.PRIOR_DROPPED_LOC: student,
+                   keys.PRIOR_DROPPED_SCALE: torch.ones(4, 3)})
+        loss = MissingModalityLoss(learned_model, detach_teacher=detach)
+        loss.loss_from_outputs(td)["loss_mis_prior"].backward()
+        assert (prior.grad is not None) == teacher_has_grad and student.grad is not None
+
+
+def test_standard_prior_has_no_prior_tie(small_model, batch):
+    loss = MissingModalityLoss(small_model, prior_weight=1.0)
+    assert "loss_mis_prior" not in loss.out_keys
+    assert "loss_mis_prior" not in loss(batch).keys()

@@ -34,9 +34,11 @@ def test_train_then_eval_writes_checkpoint_logs_table_and_plots(overrides, tmp_p
     results = json.loads((run / "eval" / "results.json").read_text())
     assert set(results["subsets"]) >= {"all", "without_image", "without_force", "without_proprio", "only_image"}
     assert results["subsets"]["all"]["degradation"] == 0
-    assert all(v["ade_best_of_k"] <= v["ade"] * 1.5 for v in results["subsets"].values())
-    for plot in ("error_per_subset.png", "forecasts.png", "latent_tsne.png"):
+    assert all(v["min_ade_k"] <= v["ade"] * 1.5 for v in results["subsets"].values())
+    for plot in ("error_per_subset.png", "forecasts.png"):
         assert (run / "eval" / plot).stat().st_size > 1000
+    # The standard prior decodes every test forecast from z = 0: there is no latent to plot, and it says so.
+    assert not (run / "eval" / "latent_tsne.png").exists() and "no latent t-SNE" in out
 
 
 def test_existing_run_is_never_overwritten_and_resume_needs_same_config(overrides, tmp_path, capsys):

@@ -29,14 +29,21 @@ class ForecasterConfig:
         mlp_hidden: hidden width of the Transformer MLPs and the decoder's shared MLP.
         head_hidden: hidden width of the posterior and output heads.
         min_scale: floor added to every predicted standard deviation.
-        posterior_uses_target: ``False`` (default) is the paper's literal posterior ``q(z|X)``;
-            ``True`` a CVAE posterior ``q(z|X, y)`` where the future enters the posterior head in
-            training. Measured on the push benchmark (``benchmarks/accuracy.py --quick``), ``True``
-            lets ``z`` carry the future (KL ~6 nats), so forecasts decoded from the prior at test
-            time are much worse and seed-dependent; ``False`` was best in 5/7 presence subsets.
-        eval_latent: the latent used by ``forward`` in eval mode: ``"mean"`` (``z = 0``, the
-            prior's mode: a deterministic forecast) or ``"sample"`` (``z ~ N(0, I)``).
-            :meth:`MultimodalForecaster.sample` always samples.
+        prior: ``"standard"`` (default, the paper's fixed ``N(0, I)``) or ``"learned"``: a
+            conditional prior ``p(z|X)`` computed by a head on the multimodal encoder's fused
+            representation of the present modalities, so the fusion shapes every test-time
+            forecast (the latent is drawn from it at test time). ``loss_kl`` becomes
+            ``KL(q(z|X, y) || p(z|X))``.
+        posterior_uses_target: whether the future ``y`` enters the posterior head in training
+            (a CVAE's ``q(z|X, y)``). ``None`` (default): ``True`` with the learned prior (which
+            needs it: a posterior that sees only ``X`` can copy the prior), ``False`` with the
+            standard prior (the paper's literal ``q(z|X)``). With the standard prior, measured on
+            the push benchmark (``benchmarks/accuracy.py --quick``), ``True`` lets ``z`` carry the
+            future (KL ~6 nats) that the ``N(0, I)`` draws at test time do not know, so forecasts
+            got much worse and seed-dependent; ``False`` was best in 5/7 presence subsets.
+        eval_latent: the latent used by ``forward`` in eval mode: ``"mean"`` (the prior's mean: a
+            deterministic forecast; ``z = 0`` under the standard prior) or ``"sample"`` (a draw
+            from the prior). :meth:`MultimodalForecaster.sample` always samples.
         fusion: the multimodal encoder of the posterior: ``"agnostic"`` (the paper's
             modality-agnostic attention) or an ablation of :mod:`mmf_rl.models.fusion`
             (``"linear"``, ``"average"``, ``"sum"``, ``"cross_attention"``).
@@ -60,7 +67,8 @@ class ForecasterConfig:
     mlp_hidden: int = 128
     head_hidden: int = 256
     min_scale: float = 1e-3
-    posterior_uses_target: bool = False
+    prior: Literal["standard", "learned"] = "standard"
+    posterior_uses_target: bool | None = None
     eval_latent: Literal["mean", "sample"] = "mean"
     fusion: str = "agnostic"
     action_dim: int = 0
@@ -82,6 +90,11 @@ class ForecasterConfig:
                 raise ValueError(f"ForecasterConfig.{name} must be >= 1, found {getattr(self, name)}")
         if self.d_model % self.num_heads:
             raise ValueError(f"ForecasterConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}")
+        if self.prior not in ("standard", "learned"):
+            raise ValueError(f"ForecasterConfig.prior must be 'standard' or 'learned', found {self.prior!r}")
+        if self.prior == "learned" and self.posterior_uses_target is False:
+            raise ValueError("ForecasterConfig: prior='learned' needs the posterior q(z|X, y) to read the target "
+                             "(a posterior of X alone can copy the prior); set posterior_uses_target to null or true")
         if self.eval_latent not in ("mean", "sample"):
             raise ValueError(f"ForecasterConfig.eval_latent must be 'mean' or 'sample', found {self.eval_latent!r}")
         if self.action_dim < 0 or self.action_steps < 0 or (self.action_dim > 0) != (self.action_steps > 0):
@@ -97,6 +110,11 @@ class ForecasterConfig:
     @property
     def modality_names(self) -> list[str]:
         return [m.name for m in self.modalities]
+
+    @property
+    def posterior_reads_target(self) -> bool:
+        """Whether the posterior is ``q(z|X, y)`` (see ``posterior_uses_target``)."""
+        return self.prior == "learned" if self.posterior_uses_target is None else self.posterior_uses_target
 
     @property
     def action_shape(self) -> tuple[int, int] | None:

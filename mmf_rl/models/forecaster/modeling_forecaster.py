@@ -6,10 +6,12 @@ Pipeline for a batch ``[B]`` with ``M`` modalities (paper, "Model Architecture")
    once, on the rows where its modality is present (gathered); absent rows get zeros. So the
    value stored under an absent modality never reaches any computation, and an encoder whose
    modality is absent from the whole batch does not run and gets no gradient.
-2. **Multimodal encoder** (posterior): ``x̄_m + p^E_m``, ``L - 1`` pre-LN Transformer layers, then
-   modality-agnostic attention with the fixed queries ``P^E`` (always ``M`` rows), flatten, MLP
-   -> ``(μ, σ)`` of ``q(z | X, y)``. Absent modalities are padded slots masked out of every
-   attention (``key_padding_mask``): one pass for any mix of presence patterns.
+2. **Multimodal encoder** (posterior, and the learned prior): ``x̄_m + p^E_m``, ``L - 1`` pre-LN
+   Transformer layers, then modality-agnostic attention with the fixed queries ``P^E`` (always
+   ``M`` rows), flatten, MLP -> ``(μ, σ)`` of ``q(z | X, y)``; with ``prior="learned"`` a second
+   MLP on the same fused representation -> ``(μ, σ)`` of ``p(z | X)``. Absent modalities are
+   padded slots masked out of every attention (``key_padding_mask``): one pass for any mix of
+   presence patterns.
 3. **Decoder**: ``[(x̄_m + p^D_m) ⊕ z]`` -> shared MLP -> ``H0``; ``H1 = MHA(LN(P^D), LN(H0),
    LN(H0)) + P^D``; ``H2 = MHA(LN(H1), LN(H0), LN(H0)) + H1``; flatten, MLP -> ``loc``, ``scale``
    of a diagonal Gaussian over the ``T × D`` future, in the normalised frame of the target.
@@ -28,11 +30,15 @@ Open points of the paper, and what this implementation does:
   ``d``-vector concatenated to the flattened modality-agnostic output before the posterior head
   (a CVAE's ``q(z|X, y)``). On the push data that variant lets ``z`` carry the future and the
   forecast decoded from the prior at test time degrades (see ``ForecasterConfig``).
-* **Inference.** ``z ~ N(0, I)`` (prior) as in the paper. ``forward`` in eval mode uses
-  ``z = 0`` by default (deterministic forecasts for RL and metrics); :meth:`sample` draws ``K``
-  latents for best-of-K. A consequence worth knowing: the multimodal encoder feeds only the
-  posterior, so a forecast decoded from the prior does not depend on it; it shapes the model
-  through training alone (on the push benchmark its fusion ablations land within noise of it).
+* **Inference.** ``z`` from the prior: ``forward`` in eval mode uses the prior's mean by
+  default (deterministic forecasts for RL and metrics); :meth:`sample` draws ``K`` latents for
+  best-of-K. With the paper's standard prior ``N(0, I)`` (``prior="standard"``) the multimodal
+  encoder feeds only the posterior, so a forecast decoded from the prior does not depend on it:
+  it shapes the model through training alone (on the push benchmark its fusion ablations land
+  within noise of it). The paper's eq. (15) integrates over ``p(z | X)`` and says the prior can
+  be learned: ``prior="learned"`` is that conditional prior, a head on the fused representation
+  of the present modalities, so the fusion acts on every test-time forecast. Its posterior
+  reads the target (``q(z | X, y)``) and ``loss_kl = KL(q(z | X, y) || p(z | X))``.
 * **World model (action conditioning, not in the paper).** With ``action_dim > 0`` the model
   forecasts the future *under a given action sequence*: ``"future_action"`` ``[B, S, A]``
   (``S = T × stride`` actions, from the last observed frame on) is flattened and mapped by an
@@ -45,7 +51,14 @@ Open points of the paper, and what this implementation does:
   output step, and the decoder's cost stays that of ``M`` tokens.
 * **Missing-modality decode.** If the batch carries ``("drop", m)`` masks, the same ``z`` and
   tokens are decoded twice, with and without the dropped modalities, in **one** batched pass
-  of ``2B`` rows (used by :class:`~mmf_rl.objectives.MissingModalityLoss`).
+  of ``2B`` rows (used by :class:`~mmf_rl.objectives.MissingModalityLoss`). With the learned
+  prior the multimodal encoder also runs on both presence patterns in one pass of ``2B`` rows
+  and writes the prior of the degraded input, ``("prior_dropped", ...)``, which the loss ties
+  to the full-input prior.
+* **GSNN term (Sohn et al. 2015).** If the batch carries ``"decode_from_prior"`` (set by
+  :class:`~mmf_rl.objectives.ELBOLoss` with ``gsnn_weight > 0``), every row is also decoded
+  from a reparameterised ``z ~ p(z | X)`` in the same decoder pass, written to
+  ``("forecast_from_prior", ...)``: training then also sees the latents used at test time.
 """
 
 from __future__ import annotations
@@ -118,12 +131,14 @@ class MultimodalForecaster(TensorDictModuleBase):
     """Attention-based CVAE forecaster robust to missing modalities (see module docstring).
 
     Reads ``("obs", m)``, ``("present", m)`` for every modality, ``"target"`` when training
-    (and, if present, in eval, to report the posterior) and optional ``("drop", m)``; writes
-    ``("forecast", "loc"/"scale")``, ``"latent"``, ``("prior", ...)``, ``("posterior", ...)``
-    (when ``"target"`` is given) and ``("forecast_dropped", ...)`` (when ``("drop", m)`` is given).
+    (and, if present, in eval, to report the posterior), optional ``("drop", m)`` and
+    ``"decode_from_prior"``; writes ``("forecast", "loc"/"scale")``, ``"latent"``,
+    ``("prior", ...)``, ``("posterior", ...)`` (when ``"target"`` is given or not needed),
+    ``("forecast_dropped", ...)`` and, with the learned prior, ``("prior_dropped", ...)`` (when
+    ``("drop", m)`` is given), and ``("forecast_from_prior", ...)`` (when requested).
 
-    In train mode ``z`` is sampled from the posterior (reparameterised); in eval mode from the
-    prior (``z = 0`` with ``eval_latent="mean"``).
+    In train mode ``z`` is sampled from the posterior (reparameterised); in eval mode it is the
+    prior's mean (``eval_latent="mean"``; ``0`` under the standard prior) or a prior draw.
 
     Example:
         >>> cfg = ForecasterConfig(modalities=[ModalitySpec("force", "sequence", (6,))], history=10)
@@ -144,9 +159,11 @@ class MultimodalForecaster(TensorDictModuleBase):
         else:  # an ablation of the multimodal encoder (paper Table 4)
             self.fusion = build_fusion(config.fusion, len(self.modalities), d, config.num_heads, config.mlp_hidden)
         target_numel = config.horizon * config.target_dim
-        self.target_encoder = mlp(target_numel, config.head_hidden, d) if config.posterior_uses_target else None
-        posterior_in = self.fusion.out_rows * d + (d if config.posterior_uses_target else 0)
-        self.posterior_head = mlp(posterior_in, config.head_hidden, 2 * config.d_latent)
+        reads_target = config.posterior_reads_target
+        self.target_encoder = mlp(target_numel, config.head_hidden, d) if reads_target else None
+        fused = self.fusion.out_rows * d
+        self.posterior_head = mlp(fused + (d if reads_target else 0), config.head_hidden, 2 * config.d_latent)
+        self.prior_head = mlp(fused, config.head_hidden, 2 * config.d_latent) if config.prior == "learned" else None
         self.decoder = ModalitySpecificDecoder(config)
         self.action_encoder = (mlp(config.action_steps * config.action_dim, config.head_hidden, d)
                                if config.action_dim else None)
@@ -156,7 +173,9 @@ class MultimodalForecaster(TensorDictModuleBase):
             self.in_keys.append(keys.FUTURE_ACTION)
         self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.LATENT, keys.PRIOR_LOC, keys.PRIOR_SCALE,
                          keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE, keys.FORECAST_DROPPED_LOC,
-                         keys.FORECAST_DROPPED_SCALE]
+                         keys.FORECAST_DROPPED_SCALE, keys.FORECAST_FROM_PRIOR_LOC, keys.FORECAST_FROM_PRIOR_SCALE]
+        if self.prior_head is not None:
+            self.out_keys += [keys.PRIOR_DROPPED_LOC, keys.PRIOR_DROPPED_SCALE]
 
     # -- building blocks -------------------------------------------------------------------------
 
@@ -177,15 +196,36 @@ class MultimodalForecaster(TensorDictModuleBase):
                                        (absent,))
         return torch.stack(columns, dim=1), present
 
+    def fuse(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        """The multimodal encoder: the flattened fused representation ``[N, out_rows × d]`` of ``N``
+        rows of tokens ``[N, M, d]`` and presence ``[N, M]``."""
+        return self.fusion(tokens, ~present).flatten(1)
+
     def posterior(self, tokens: torch.Tensor, present: torch.Tensor, target: torch.Tensor | None):
-        """``q(z | X, y)``: ``loc``, ``scale`` ``[B, d_z]``."""
-        features = self.fusion(tokens, ~present).flatten(1)
+        """``q(z | X[, y])``: ``loc``, ``scale`` ``[B, d_z]``."""
+        return self._posterior_from(self.fuse(tokens, present), target)
+
+    def prior(self, tokens: torch.Tensor, present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``p(z | X)``: ``loc``, ``scale`` ``[N, d_z]`` (``0``, ``1`` under the standard prior, where
+        the multimodal encoder does not run)."""
+        if self.prior_head is None:
+            return self._prior_from(None, tokens.shape[0], tokens.device)
+        return self._prior_from(self.fuse(tokens, present), tokens.shape[0], tokens.device)
+
+    def _posterior_from(self, features: torch.Tensor, target: torch.Tensor | None):
         if self.target_encoder is not None:
             if target is None:
-                raise KeyError(f"the posterior q(z|X, y) needs {keys.TARGET!r} in the batch "
-                               "(or build the model with posterior_uses_target=False)")
+                raise KeyError(f"the posterior q(z|X, y) needs {keys.TARGET!r} in the batch (in eval mode the "
+                               "forecast needs no target; in training it does)")
             features = torch.cat([features, self.target_encoder(target.flatten(1))], dim=-1)
         loc, raw_scale = self.posterior_head(features).chunk(2, dim=-1)
+        return loc, F.softplus(raw_scale) + 1e-4
+
+    def _prior_from(self, features: torch.Tensor | None, rows: int, device: torch.device):
+        if self.prior_head is None:
+            loc = torch.zeros(rows, self.config.d_latent, device=device)
+            return loc, torch.ones_like(loc)
+        loc, raw_scale = self.prior_head(features).chunk(2, dim=-1)
         return loc, F.softplus(raw_scale) + 1e-4
 
     def decode(self, tokens: torch.Tensor, present: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None = None):
@@ -214,42 +254,68 @@ class MultimodalForecaster(TensorDictModuleBase):
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         self.validate(td, require_target=self.training and self.target_encoder is not None)
         tokens, present = self.encode(td)
-        batch = present.shape[0]
+        batch, device = present.shape[0], present.device
         target = td.get(keys.TARGET, None)
-        z_zeros = torch.zeros(batch, self.config.d_latent, device=present.device)
-        td.set(keys.PRIOR_LOC, z_zeros)
-        td.set(keys.PRIOR_SCALE, torch.ones_like(z_zeros))
-        if target is not None or self.target_encoder is None:
-            post_loc, post_scale = self.posterior(tokens, present, target)
+        drop = self._drop_mask(td)
+        kept = None
+        if drop is not None:
+            kept = present & ~drop
+            if not bool(kept.any(1).all()):
+                raise ValueError("('drop', m) removes every present modality of some sample; keep at least one")
+        learned = self.prior_head is not None
+        wants_posterior = target is not None or self.target_encoder is None
+        features = None
+        if learned and kept is not None:
+            # The learned prior of the degraded input: the fusion of the kept modalities, in the
+            # same pass (2B rows) as the full input's.
+            features, features_kept = self.fuse(tokens.repeat(2, 1, 1), torch.cat([present, kept])).split(batch)
+            prior_kept = self._prior_from(features_kept, batch, device)
+            td.set(keys.PRIOR_DROPPED_LOC, prior_kept[0])
+            td.set(keys.PRIOR_DROPPED_SCALE, prior_kept[1])
+        elif learned or wants_posterior:
+            features = self.fuse(tokens, present)
+        prior_loc, prior_scale = self._prior_from(features, batch, device)
+        td.set(keys.PRIOR_LOC, prior_loc)
+        td.set(keys.PRIOR_SCALE, prior_scale)
+        if wants_posterior:
+            post_loc, post_scale = self._posterior_from(features, target)
             td.set(keys.POSTERIOR_LOC, post_loc)
             td.set(keys.POSTERIOR_SCALE, post_scale)
         if self.training:
             z = post_loc + post_scale * torch.randn_like(post_scale)
         else:
-            z = self._eval_latent(batch, present.device)
+            z = self._eval_latent(prior_loc, prior_scale)
         td.set(keys.LATENT, z)
 
+        # Every decode of this pass (full input; degraded input; from the prior) in one decoder call.
+        presences, latents = [present], [z]
+        if kept is not None:  # teacher and student share tokens and z
+            presences.append(kept)
+            latents.append(z)
+        from_prior = keys.DECODE_FROM_PRIOR in td.keys()
+        if from_prior:  # the GSNN term: a reparameterised prior draw, so the prior head learns from it
+            presences.append(present)
+            latents.append(prior_loc + prior_scale * torch.randn_like(prior_scale))
         action = self.embed_actions(td)
-        drop = self._drop_mask(td)
-        if drop is None:
+        copies = len(presences)
+        if copies == 1:
             loc, scale = self.decode(tokens, present, z, action)
         else:
-            kept = present & ~drop
-            if not bool(kept.any(1).all()):
-                raise ValueError("('drop', m) removes every present modality of some sample; keep at least one")
-            # Teacher (all present) and student (dropped) decodes share tokens and z: one pass of 2B rows.
-            loc2, scale2 = self.decode(tokens.repeat(2, 1, 1), torch.cat([present, kept]), z.repeat(2, 1),
-                                       None if action is None else action.repeat(2, 1))
-            loc, loc_dropped = loc2.split(batch)
-            scale, scale_dropped = scale2.split(batch)
-            td.set(keys.FORECAST_DROPPED_LOC, loc_dropped)
-            td.set(keys.FORECAST_DROPPED_SCALE, scale_dropped)
-        td.set(keys.FORECAST_LOC, loc)
-        td.set(keys.FORECAST_SCALE, scale)
+            loc, scale = self.decode(tokens.repeat(copies, 1, 1), torch.cat(presences), torch.cat(latents),
+                                     None if action is None else action.repeat(copies, 1))
+        locs, scales = loc.split(batch), scale.split(batch)
+        td.set(keys.FORECAST_LOC, locs[0])
+        td.set(keys.FORECAST_SCALE, scales[0])
+        if kept is not None:
+            td.set(keys.FORECAST_DROPPED_LOC, locs[1])
+            td.set(keys.FORECAST_DROPPED_SCALE, scales[1])
+        if from_prior:
+            td.set(keys.FORECAST_FROM_PRIOR_LOC, locs[-1])
+            td.set(keys.FORECAST_FROM_PRIOR_SCALE, scales[-1])
         return td
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
-        """Decode ``num_samples`` latents from the prior ``N(0, I)`` in one batched pass.
+        """Decode ``num_samples`` latents drawn from the prior ``p(z | X)`` in one batched pass.
 
         Writes ``("forecast", "samples")`` ``[B, K, T, D]``: the mean of ``p(y | X, z_k)`` for each
         ``z_k``. Other outputs are left untouched. Use under ``torch.no_grad()`` for evaluation.
@@ -259,8 +325,10 @@ class MultimodalForecaster(TensorDictModuleBase):
         self.validate(td)
         tokens, present = self.encode(td)
         batch = present.shape[0]
-        z = torch.randn(num_samples * batch, self.config.d_latent, device=present.device)
+        prior_loc, prior_scale = self.prior(tokens, present)
         # Row k * B + b is sample k of batch element b.
+        noise = torch.randn(num_samples * batch, self.config.d_latent, device=present.device)
+        z = prior_loc.repeat(num_samples, 1) + prior_scale.repeat(num_samples, 1) * noise
         action = self.embed_actions(td)
         loc, _ = self.decode(tokens.repeat(num_samples, 1, 1), present.repeat(num_samples, 1), z,
                              None if action is None else action.repeat(num_samples, 1))
@@ -283,23 +351,26 @@ class MultimodalForecaster(TensorDictModuleBase):
     def decode_under_actions(self, tokens: torch.Tensor, present: torch.Tensor,
                              actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Decode encoded histories (:meth:`encode`: tokens ``[B, M, d]``, presence ``[B, M]``) under
-        ``[B, N, S, A]`` normalised action sequences, ``z`` from ``eval_latent`` (``0`` by default)."""
+        ``[B, N, S, A]`` normalised action sequences, ``z`` from the prior by ``eval_latent`` (its mean
+        by default)."""
         self._require_actions("decode_under_actions")
         expected = (tokens.shape[0], *self.config.action_shape)
         if actions.dim() != 4 or (actions.shape[0], *actions.shape[2:]) != expected:
             raise ValueError(f"actions: expected [B, N, S, A] = [{expected[0]}, N, {expected[1]}, {expected[2]}], "
                              f"found {list(actions.shape)}")
         batch, candidates = actions.shape[:2]
-        z = self._eval_latent(batch * candidates, tokens.device)
+        prior_loc, prior_scale = self.prior(tokens, present)  # once per history, not per candidate
+        z = self._eval_latent(prior_loc.repeat_interleave(candidates, 0), prior_scale.repeat_interleave(candidates, 0))
         embedded = self.action_encoder(actions.reshape(batch * candidates, -1))
         loc, scale = self.decode(tokens.repeat_interleave(candidates, 0), present.repeat_interleave(candidates, 0),
                                  z, embedded)
         return loc.view(batch, candidates, *loc.shape[1:]), scale.view(batch, candidates, *scale.shape[1:])
 
-    def _eval_latent(self, rows: int, device: torch.device) -> torch.Tensor:
-        """``z`` for an eval forecast: the prior's mode (``eval_latent="mean"``) or a prior draw."""
-        z = torch.zeros(rows, self.config.d_latent, device=device)
-        return z if self.config.eval_latent == "mean" else z.normal_()
+    def _eval_latent(self, prior_loc: torch.Tensor, prior_scale: torch.Tensor) -> torch.Tensor:
+        """``z`` for an eval forecast: the prior's mean (``eval_latent="mean"``) or a prior draw."""
+        if self.config.eval_latent == "mean":
+            return prior_loc
+        return prior_loc + prior_scale * torch.randn_like(prior_scale)
 
     def _require_actions(self, method: str) -> None:
         if self.action_encoder is None:
