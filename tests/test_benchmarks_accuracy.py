@@ -150,7 +150,7 @@ def test_projection_scales_the_measured_step_time():
     measured = {"paper": {"ms_per_step": 50.0, "other_seconds": 4.0, "runs": 1, "batch_size": 32},
                 "LF-LSTM": {"ms_per_step": 100.0, "other_seconds": 6.0, "runs": 1, "batch_size": 32}}
     seconds, missing = accuracy.projection(measured, budget)
-    # paper 3 x (50 + 4) + LF-LSTM 3 x (100 + 6) + retrained (from LF-LSTM's time) 6 subsets x 3 x 106
+    # paper 3 x (50 + 4) + LF-LSTM 3 x (100 + 6) + retrained (from LF-LSTM's time) 6 subsets x 3 x 106 s
     assert seconds == pytest.approx(3 * 54 + 3 * 106 + 18 * 106)
     assert missing == []
     seconds, missing = accuracy.projection({"paper": measured["paper"]}, budget)
@@ -168,3 +168,19 @@ def test_entries_are_labelled_once_and_retrained_ones_name_a_zero_fill_base():
             assert kinds[entry.base] == "zero-fill"
     for mode in accuracy.MODES.values():
         assert mode.entries is None or set(mode.entries) <= set(labels)
+
+
+def test_timing_separates_the_training_loop_from_the_rest_of_a_run():
+    runs = {"paper": [{"step_seconds": 0.05, "seconds": 60.0, "steps": 1000, "batch_size": 32},
+                      {"step_seconds": 0.07, "seconds": 80.0, "steps": 1000, "batch_size": 32}]}
+    measured = accuracy.timing(runs)["paper"]
+    assert measured["ms_per_step"] == pytest.approx(60.0)
+    assert measured["other_seconds"] == pytest.approx(10.0)
+    assert measured["runs"] == 2 and measured["batch_size"] == 32
+
+
+def test_training_rate_is_the_last_logged_throughput(tmp_path):
+    path = tmp_path / "logs" / "scalars" / "train" / "samples_per_s.csv"
+    path.parent.mkdir(parents=True)
+    path.write_text("25,410.5\n50,402.25\n")
+    assert accuracy.training_rate(tmp_path) == 402.25
