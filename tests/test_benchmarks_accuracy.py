@@ -184,3 +184,14 @@ def test_training_rate_is_the_last_logged_throughput(tmp_path):
     path.parent.mkdir(parents=True)
     path.write_text("25,410.5\n50,402.25\n")
     assert accuracy.training_rate(tmp_path) == 402.25
+
+
+def test_best_baseline_degradation_ignores_rows_without_every_subset():
+    table = make_table(paper=0.30, zero_fill=0.5, retrained=0.2, fusion=None)
+    for s in table.subsets[1:]:
+        table.cells["LF-LSTM (retrained)"][s] = cell(0.2, 0.19, 0.21)  # 0% degradation...
+    for s in table.subsets[3:]:
+        del table.cells["LF-LSTM (retrained)"][s]  # ...but only on the paper's subsets
+    line, summary = accuracy.summarize(table)
+    assert summary["best_baseline_mean_degradation"] == pytest.approx(0.35)
+    assert "0/3 paper subsets vs retrained" in line and line.endswith("best baseline 35%")
