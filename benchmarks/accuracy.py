@@ -1,8 +1,8 @@
 """Missing-modality accuracy benchmark on the recorded push dataset (paper Tables 3, 4, 5).
 
     .venv/bin/python benchmarks/accuracy.py --standard     # every entry, 3 seeds (see STANDARD below)
-    .venv/bin/python benchmarks/accuracy.py --quick        # the paper model, the zero-fill baselines, w/o L_mis
-    .venv/bin/python benchmarks/accuracy.py --tiny         # a smoke run of every code path (numbers mean nothing)
+    .venv/bin/python benchmarks/accuracy.py --quick        # paper model, zero-fill baselines, w/o L_mis
+    .venv/bin/python benchmarks/accuracy.py --tiny         # smoke run of the code paths (meaningless numbers)
     .venv/bin/python benchmarks/accuracy.py                # the full budget (see FULL below)
 
 Every entry is trained with the same step budget, batch size and seeds on the same recording
@@ -77,11 +77,24 @@ class Budget:
 
 # Tiny: every code path (each entry kind, seeds averaged, the bootstrap) on a small recording in a few
 # minutes; the numbers mean nothing.
-TINY = Budget(image_size=32, batch_size=8, steps=4, seeds=(0, 1), episodes=16, retrained_subsets="paper",
-              entries=("paper", "LF-LSTM", "LF-LSTM (retrained)", "paper fusion=linear", "paper w/o L_mis"))
+TINY = Budget(
+    image_size=32,
+    batch_size=8,
+    steps=4,
+    seeds=(0, 1),
+    episodes=16,
+    retrained_subsets="paper",
+    entries=("paper", "LF-LSTM", "LF-LSTM (retrained)", "paper fusion=linear", "paper w/o L_mis"),
+)
 # Quick: the paper model, the zero-fill baselines and the L_mis ablation.
-QUICK = Budget(image_size=32, batch_size=32, steps=300, seeds=(0, 1, 2), episodes=200,
-               entries=("paper", "paper w/o L_mis", "LF-LSTM", "MVAE", "MulT"))
+QUICK = Budget(
+    image_size=32,
+    batch_size=32,
+    steps=300,
+    seeds=(0, 1, 2),
+    episodes=200,
+    entries=("paper", "paper w/o L_mis", "LF-LSTM", "MVAE", "MulT"),
+)
 # Standard: every entry, 3 seeds, at the budget of issue #13's single-change runs (1000 steps of batch 32,
 # 32x32), sized for <= 75 min on 2 cores from times this benchmark measured: 1000 steps of batch 32
 # took ~57 s a training averaged over every entry (87 trainings, 83 min; issue #6's run), the paper
@@ -89,8 +102,15 @@ QUICK = Budget(image_size=32, batch_size=32, steps=300, seeds=(0, 1, 2), episode
 # issue's target compares them on): the paper model, 4 variants, 3 zero-fill baselines, 3 x 2 retrained
 # and 7 ablations = 21 trainings a seed, 63 in all, ~60 min at 57 s.
 # results.md projects this mode's time from the per-step times of the run that wrote it.
-STANDARD = Budget(image_size=32, batch_size=32, steps=1000, seeds=(0, 1, 2), episodes=200, entries=None,
-                  retrained_subsets="paper")
+STANDARD = Budget(
+    image_size=32,
+    batch_size=32,
+    steps=1000,
+    seeds=(0, 1, 2),
+    episodes=200,
+    entries=None,
+    retrained_subsets="paper",
+)
 # Full: every entry, the retrained baselines for every subset, 3 seeds, 2000 steps of batch 64 at 32x32
 # (MultiBench's gentle_push image size). Meant for a GPU (--device auto) or a long night on 2 cores
 # (~6 h from the same measurement).
@@ -110,10 +130,17 @@ ENTRIES = [
     Entry("paper", "paper", ("model=forecaster",)),
     # Issue #13's options of the paper model (the defaults stay the paper's until the evidence moves them).
     Entry("paper prior=learned", "variant", ("model=forecaster", "model.prior=learned")),
-    Entry("paper prior=learned, drop 1..M-1", "variant",
-          ("model=forecaster", "model.prior=learned", "loss.max_dropped=null")),
+    Entry(
+        "paper prior=learned, drop 1..M-1",
+        "variant",
+        ("model=forecaster", "model.prior=learned", "loss.max_dropped=null"),
+    ),
     Entry("paper drop 1..M-1", "variant", ("model=forecaster", "loss.max_dropped=null")),
-    Entry("paper prior=learned, GSNN 0.5", "variant", ("model=forecaster", "model.prior=learned", "loss.gsnn_weight=0.5")),
+    Entry(
+        "paper prior=learned, GSNN 0.5",
+        "variant",
+        ("model=forecaster", "model.prior=learned", "loss.gsnn_weight=0.5"),
+    ),
     Entry("LF-LSTM", "zero-fill", ("model=lf_lstm",)),
     Entry("MVAE", "zero-fill", ("model=mvae",)),
     Entry("MulT", "zero-fill", ("model=mult",)),
@@ -125,11 +152,16 @@ ENTRIES = [
     Entry("paper fusion=sum", "fusion", ("model=forecaster", "model.fusion=sum")),
     Entry("paper fusion=cross_attention", "fusion", ("model=forecaster", "model.fusion=cross_attention")),
     Entry("paper w/o L_mis", "ablation", ("model=forecaster", "loss=no_mis")),
-    Entry("paper, 50% image missing in training", "ablation", ("model=forecaster", "+data.missing.image=0.5")),
+    Entry(
+        "paper, 50% image missing in training", "ablation", ("model=forecaster", "+data.missing.image=0.5")
+    ),
     # Not in the paper: the image encoder MulT and LF-LSTM use (a ConvNet per frame, then a GRU)
     # instead of the default frame-stacked ConvNet, to tell the encoder from the fusion.
-    Entry("paper, per-frame image encoder", "ablation",
-          ("model=forecaster", "data.modalities.image={feature:observation.images.front,encoder:conv_gru}")),
+    Entry(
+        "paper, per-frame image encoder",
+        "ablation",
+        ("model=forecaster", "data.modalities.image={feature:observation.images.front,encoder:conv_gru}"),
+    ),
 ]
 BASELINE_KINDS = ("zero-fill", "retrained")
 
@@ -153,23 +185,36 @@ class Cell:
     samples: torch.Tensor = field(repr=False)  # [resamples] the statistic on each episode resample
 
     def to_dict(self) -> dict:
-        return {"mean": self.mean, "low": self.low, "high": self.high, "per_seed": self.per_seed,
-                "windows": self.windows}
+        return {
+            "mean": self.mean,
+            "low": self.low,
+            "high": self.high,
+            "per_seed": self.per_seed,
+            "windows": self.windows,
+        }
 
 
-def episode_totals(episodes: Sequence[int], errors: Sequence[float], order: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor]:
+def episode_totals(
+    episodes: Sequence[int], errors: Sequence[float], order: Sequence[int]
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-episode sum of ``errors`` and window count ``[E]``, episodes in ``order``."""
     index = {episode: i for i, episode in enumerate(order)}
     unknown = sorted(set(episodes) - set(index))
     if unknown:
-        raise ValueError(f"windows of episodes {unknown[:5]} are not among the test episodes {list(order)[:10]}...")
+        raise ValueError(
+            f"windows of episodes {unknown[:5]} are not among the test episodes {list(order)[:10]}..."
+        )
     positions = torch.tensor([index[e] for e in episodes], dtype=torch.long)
-    sums = torch.zeros(len(order), dtype=torch.float64).index_add_(0, positions, torch.as_tensor(errors, dtype=torch.float64))
+    sums = torch.zeros(len(order), dtype=torch.float64).index_add_(
+        0, positions, torch.as_tensor(errors, dtype=torch.float64)
+    )
     counts = torch.bincount(positions, minlength=len(order)).to(torch.float64)
     return sums, counts
 
 
-def bootstrap_weights(num_episodes: int, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED) -> torch.Tensor:
+def bootstrap_weights(
+    num_episodes: int, resamples: int = BOOTSTRAP_RESAMPLES, seed: int = BOOTSTRAP_SEED
+) -> torch.Tensor:
     """``[resamples, E]``: how many times each episode is drawn in each resample (with replacement).
 
     Drawn once from one seeded generator and applied to every cell, so all entries, seeds and
@@ -177,10 +222,13 @@ def bootstrap_weights(num_episodes: int, resamples: int = BOOTSTRAP_RESAMPLES, s
     generator = torch.Generator().manual_seed(seed)
     draws = torch.randint(num_episodes, (resamples, num_episodes), generator=generator)
     return torch.zeros(resamples, num_episodes, dtype=torch.float64).scatter_add_(
-        1, draws, torch.ones_like(draws, dtype=torch.float64))
+        1, draws, torch.ones_like(draws, dtype=torch.float64)
+    )
 
 
-def bootstrap_cell(totals: Sequence[tuple[torch.Tensor, torch.Tensor]], weights: torch.Tensor, level: float = LEVEL) -> Cell:
+def bootstrap_cell(
+    totals: Sequence[tuple[torch.Tensor, torch.Tensor]], weights: torch.Tensor, level: float = LEVEL
+) -> Cell:
     """The seed-mean MSE of one cell from each seed's ``episode_totals``, with its percentile interval.
 
     On each resample every seed's MSE is the window-weighted mean over the drawn episodes; the
@@ -188,11 +236,17 @@ def bootstrap_cell(totals: Sequence[tuple[torch.Tensor, torch.Tensor]], weights:
     sums = torch.stack([s for s, _ in totals])  # [S, E]
     counts = totals[0][1]
     if any(not torch.equal(c, counts) for _, c in totals):
-        raise ValueError("the seeds of one cell were scored on different test windows; compare like with like")
+        raise ValueError(
+            "the seeds of one cell were scored on different test windows; compare like with like"
+        )
     per_seed = sums.sum(1) / counts.sum()
     samples = ((weights @ sums.T) / (weights @ counts)[:, None]).mean(1)  # a resample without windows: nan
-    low, high = torch.nanquantile(samples, torch.tensor([(1 - level) / 2, (1 + level) / 2], dtype=samples.dtype))
-    return Cell(float(per_seed.mean()), float(low), float(high), per_seed.tolist(), int(counts.sum()), samples)
+    low, high = torch.nanquantile(
+        samples, torch.tensor([(1 - level) / 2, (1 + level) / 2], dtype=samples.dtype)
+    )
+    return Cell(
+        float(per_seed.mean()), float(low), float(high), per_seed.tolist(), int(counts.sum()), samples
+    )
 
 
 def overlap(a: Cell, b: Cell) -> bool:
@@ -231,8 +285,9 @@ class Table:
         return self.cells[label][subset].mean / self.cells[label]["all"].mean - 1
 
     def mean_degradation(self, label: str) -> float:
-        return statistics.fmean(self.degradation(label, s) for s in self.subsets
-                                if s != "all" and s in self.cells[label])
+        return statistics.fmean(
+            self.degradation(label, s) for s in self.subsets if s != "all" and s in self.cells[label]
+        )
 
     def wins(self, rival_kinds: tuple[str, ...], subsets: Sequence[str]) -> tuple[int, int]:
         """(subsets where ``paper`` is best or tied among itself and the rivals, subsets compared)."""
@@ -258,18 +313,28 @@ def summarize(table: Table) -> tuple[str, dict]:
     spread = table.fusion_spread()
     # Mean degradations compare like with like: only baselines scored on every subset (in standard mode
     # the retrained ones cover the paper's three).
-    baselines = [label for label in table.labels(*BASELINE_KINDS) if set(table.cells[label]) == set(table.subsets)]
+    baselines = [
+        label for label in table.labels(*BASELINE_KINDS) if set(table.cells[label]) == set(table.subsets)
+    ]
     paper_deg = table.mean_degradation("paper")
     best_baseline_deg = min((table.mean_degradation(label) for label in baselines), default=None)
-    line = (f"summary: paper model best or tied in {won if compared else '-'}/{compared} subsets (zero-fill baselines), "
-            f"{retrained_won if retrained_compared else '-'}/3 paper subsets vs retrained; "
-            f"fusion spread {'-' if spread is None else f'{100 * spread:.0f}%'}; "
-            f"mean degradation paper {100 * paper_deg:.0f}%, best baseline "
-            f"{'-' if best_baseline_deg is None else f'{100 * best_baseline_deg:.0f}%'}")
-    return line, {"best_or_tied_vs_zero_fill": won, "subsets_vs_zero_fill": compared,
-                  "paper_subsets_best_or_tied_vs_retrained": retrained_won,
-                  "paper_subsets_vs_retrained": retrained_compared, "fusion_spread": spread,
-                  "paper_mean_degradation": paper_deg, "best_baseline_mean_degradation": best_baseline_deg}
+    line = (
+        f"summary: paper model best or tied in {won if compared else '-'}/{compared} subsets "
+        "(zero-fill baselines), "
+        f"{retrained_won if retrained_compared else '-'}/3 paper subsets vs retrained; "
+        f"fusion spread {'-' if spread is None else f'{100 * spread:.0f}%'}; "
+        f"mean degradation paper {100 * paper_deg:.0f}%, best baseline "
+        f"{'-' if best_baseline_deg is None else f'{100 * best_baseline_deg:.0f}%'}"
+    )
+    return line, {
+        "best_or_tied_vs_zero_fill": won,
+        "subsets_vs_zero_fill": compared,
+        "paper_subsets_best_or_tied_vs_retrained": retrained_won,
+        "paper_subsets_vs_retrained": retrained_compared,
+        "fusion_spread": spread,
+        "paper_mean_degradation": paper_deg,
+        "best_baseline_mean_degradation": best_baseline_deg,
+    }
 
 
 def paired_comparisons(table: Table) -> dict[str, dict[str, dict]]:
@@ -282,8 +347,11 @@ def paired_comparisons(table: Table) -> dict[str, dict[str, dict]]:
         for label in table.labels(*BASELINE_KINDS, "fusion"):
             if s in table.cells[label]:
                 low, high = difference_interval(paper, table.cells[label][s])
-                out.setdefault(s, {})[label] = {"difference": paper.mean - table.cells[label][s].mean,
-                                                "low": low, "high": high}
+                out.setdefault(s, {})[label] = {
+                    "difference": paper.mean - table.cells[label][s].mean,
+                    "low": low,
+                    "high": high,
+                }
     return out
 
 
@@ -299,8 +367,24 @@ def slug(text: str) -> str:
 def record_dataset(root: Path, episodes: int) -> float:
     """Record the benchmark's push dataset with ``mmf-rl record``; returns the wall time."""
     start = time.perf_counter()
-    cmd = [sys.executable, "-m", "mmf_rl.cli", "record", "--out", str(root), "--episodes", str(episodes),
-           "--workers", "2", "--image-size", "64", "--steps", "50", "--seed", "0"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "mmf_rl.cli",
+        "record",
+        "--out",
+        str(root),
+        "--episodes",
+        str(episodes),
+        "--workers",
+        "2",
+        "--image-size",
+        "64",
+        "--steps",
+        "50",
+        "--seed",
+        "0",
+    ]
     print("recording:", " ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
     return time.perf_counter() - start
@@ -312,17 +396,41 @@ def subsets() -> list[tuple[str, dict[str, bool]]]:
     return list(presence_subsets(MODALITIES))
 
 
-def train_overrides(entry: Entry, seed: int, budget: Budget, args, run_dir: Path, extra: tuple[str, ...] = ()) -> list[str]:
+def train_overrides(
+    entry: Entry, seed: int, budget: Budget, args, run_dir: Path, extra: tuple[str, ...] = ()
+) -> list[str]:
     return [
-        *entry.overrides, *extra,
-        f"data.root={args.data}", f"data.cache_dir={args.out / 'cache'}",
+        *entry.overrides,
+        *extra,
+        f"data.root={args.data}",
+        f"data.cache_dir={args.out / 'cache'}",
         f"data.image_size=[{budget.image_size},{budget.image_size}]",
-        f"run_dir={run_dir}", f"trainer.total_steps={budget.steps}", f"trainer.batch_size={budget.batch_size}",
-        f"trainer.seed={seed}", f"trainer.eval_every={budget.steps}", f"trainer.checkpoint_every={budget.steps}",
-        f"trainer.warmup_steps={min(100, budget.steps // 10)}", f"loss.kl_warmup_steps={min(200, budget.steps // 5)}",
-        "trainer.keep_checkpoints=1", "trainer.progress_bar=false", "logger=csv", "num_workers=2",
+        f"run_dir={run_dir}",
+        f"trainer.total_steps={budget.steps}",
+        f"trainer.batch_size={budget.batch_size}",
+        f"trainer.seed={seed}",
+        f"trainer.eval_every={budget.steps}",
+        f"trainer.checkpoint_every={budget.steps}",
+        f"trainer.warmup_steps={min(100, budget.steps // 10)}",
+        f"loss.kl_warmup_steps={min(200, budget.steps // 5)}",
+        "trainer.keep_checkpoints=1",
+        "trainer.progress_bar=false",
+        "logger=csv",
+        "num_workers=2",
         f"device={args.device}",
     ]
+
+
+def build_cache(budget: Budget, args) -> float:
+    """Build (or open) the window cache once before the first training, so no run's time includes it;
+    returns the wall time."""
+    from mmf_rl.configuration import compose_config, to_container
+    from mmf_rl.datasets import DataConfig, WindowDataset
+
+    start = time.perf_counter()
+    cfg = compose_config("train", train_overrides(ENTRIES[0], 0, budget, args, args.out / "cache"))
+    WindowDataset(DataConfig.from_dict(to_container(cfg.data)), num_workers=2)
+    return time.perf_counter() - start
 
 
 def check_entries(entries: Sequence[Entry], budget: Budget, args) -> None:
@@ -337,8 +445,11 @@ def check_entries(entries: Sequence[Entry], budget: Budget, args) -> None:
         except ConfigError as err:
             problems.append(f"{entry.label!r} ({' '.join(entry.overrides)}): {' '.join(str(err).split())}")
     if problems:
-        raise SystemExit("accuracy benchmark: these entries do not compose with this build's configs:\n  "
-                         + "\n  ".join(problems) + "\nleave them out with --entries, or add the option they set")
+        raise SystemExit(
+            "accuracy benchmark: these entries do not compose with this build's configs:\n  "
+            + "\n  ".join(problems)
+            + "\nleave them out with --entries, or add the option they set"
+        )
 
 
 @torch.no_grad()
@@ -378,7 +489,9 @@ def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str
     return out
 
 
-def run_one(entry: Entry, seed: int, budget: Budget, args, run_dir: Path, extra: tuple[str, ...] = ()) -> dict:
+def run_one(
+    entry: Entry, seed: int, budget: Budget, args, run_dir: Path, extra: tuple[str, ...] = ()
+) -> dict:
     """Train one model, evaluate it, keep its per-window errors; returns ``window_errors.json``'s content."""
     from mmf_rl.configuration import compose_config
     from mmf_rl.eval.report import write_json
@@ -387,7 +500,9 @@ def run_one(entry: Entry, seed: int, budget: Budget, args, run_dir: Path, extra:
 
     errors_path = run_dir / "eval" / "window_errors.json"
     if errors_path.is_file():
-        if run_dir not in args.done:  # a retrained entry's "all" run, trained earlier in this invocation, is no reuse
+        if (
+            run_dir not in args.done
+        ):  # a retrained entry's "all" run, trained earlier in this invocation, is no reuse
             args.runs += 1
             args.reused += 1
             args.done.add(run_dir)
@@ -401,25 +516,47 @@ def run_one(entry: Entry, seed: int, budget: Budget, args, run_dir: Path, extra:
     start = time.perf_counter()
     train(compose_config("train", train_overrides(entry, seed, budget, args, run_dir, extra)))
     trained = time.perf_counter() - start
-    summary = run_evaluation(compose_config("eval", [f"checkpoint={run_dir}", "plots=false", "num_samples=0",
-                                                     f"device={args.device}",
-                                                     f"out_dir={run_dir / 'eval'}", f"seed={seed}"]))
+    summary = run_evaluation(
+        compose_config(
+            "eval",
+            [
+                f"checkpoint={run_dir}",
+                "plots=false",
+                "num_samples=0",
+                f"device={args.device}",
+                f"out_dir={run_dir / 'eval'}",
+                f"seed={seed}",
+            ],
+        )
+    )
     errors = window_errors(run_dir, args.device)
     for name, rows in errors.items():
         mse = statistics.fmean(rows["squared_error"])
         reported = summary["subsets"][name]["mse"]
         if abs(mse - reported) > 1e-4 * max(abs(reported), 1e-8) + 1e-7:
-            raise RuntimeError(f"{run_dir}: subset {name}: the per-window errors average {mse:.6g} but "
-                               f"run_evaluation reports MSE {reported:.6g}; the two passes disagree on windows "
-                               "or normalisation")
+            raise RuntimeError(
+                f"{run_dir}: subset {name}: the per-window errors average {mse:.6g} but "
+                f"run_evaluation reports MSE {reported:.6g}; the two passes disagree on windows "
+                "or normalisation"
+            )
     total = time.perf_counter() - start
     step_seconds = budget.batch_size / training_rate(run_dir)
-    result = {"train_seconds": trained, "seconds": total, "step_seconds": step_seconds, "steps": budget.steps,
-              "batch_size": budget.batch_size, "constant_velocity": summary.get("constant_velocity"), "subsets": errors}
+    result = {
+        "train_seconds": trained,
+        "seconds": total,
+        "step_seconds": step_seconds,
+        "steps": budget.steps,
+        "batch_size": budget.batch_size,
+        "constant_velocity": summary.get("constant_velocity"),
+        "subsets": errors,
+    }
     write_json(errors_path, result)  # last: its presence marks the run complete
-    print(f"  {entry.label} {' '.join(extra)} seed {seed}: trained {budget.steps} steps in {trained:.0f} s "
-          f"({1e3 * step_seconds:.0f} ms/step in the training loop), total with setup and evaluation {total:.0f} s",
-          flush=True)
+    print(
+        f"  {entry.label} {' '.join(extra)} seed {seed}: trained {budget.steps} steps in {trained:.0f} s "
+        f"({1e3 * step_seconds:.0f} ms/step in the training loop), "
+        f"total with setup and evaluation {total:.0f} s",
+        flush=True,
+    )
     return result
 
 
@@ -434,8 +571,11 @@ def training_rate(run_dir: Path) -> float:
 
 
 def retrained_subsets(budget: Budget) -> list[tuple[str, dict[str, bool]]]:
-    return [(name, subset) for name, subset in subsets()[1:]
-            if budget.retrained_subsets == "all" or name in PAPER_SUBSETS]
+    return [
+        (name, subset)
+        for name, subset in subsets()[1:]
+        if budget.retrained_subsets == "all" or name in PAPER_SUBSETS
+    ]
 
 
 def run_entry(entry: Entry, budget: Budget, args) -> tuple[dict[str, list[dict]], list[dict]]:
@@ -454,7 +594,9 @@ def run_entry(entry: Entry, budget: Budget, args) -> tuple[dict[str, list[dict]]
         per_subset.setdefault("all", []).append(result["subsets"]["all"])
         for name, subset in retrained_subsets(budget):
             dropped = tuple(f"+data.missing.{m}=1.0" for m, kept in subset.items() if not kept)
-            result = run_one(entry, seed, budget, args, args.out / slug(entry.label) / name / f"seed{seed}", dropped)
+            result = run_one(
+                entry, seed, budget, args, args.out / slug(entry.label) / name / f"seed{seed}", dropped
+            )
             runs.append(result)
             per_subset.setdefault(name, []).append(result["subsets"][name])
     return per_subset, runs
@@ -462,15 +604,25 @@ def run_entry(entry: Entry, budget: Budget, args) -> tuple[dict[str, list[dict]]
 
 def build_table(errors: dict[str, dict[str, list[dict]]], kinds: dict[str, str]) -> tuple[Table, list[int]]:
     """Cells with paired bootstrap intervals from every entry's per-window errors."""
-    episodes = sorted({e for per_subset in errors.values() for seeds in per_subset.values()
-                       for rows in seeds for e in rows["episode"]})
+    episodes = sorted(
+        {
+            e
+            for per_subset in errors.values()
+            for seeds in per_subset.values()
+            for rows in seeds
+            for e in rows["episode"]
+        }
+    )
     weights = bootstrap_weights(len(episodes))
     names = [name for name, _ in subsets()]
     table = Table(subsets=ordered_subsets(names), kinds=dict(kinds))
     for label, per_subset in errors.items():
         table.cells[label] = {
-            name: bootstrap_cell([episode_totals(r["episode"], r["squared_error"], episodes) for r in seeds], weights)
-            for name, seeds in per_subset.items()}
+            name: bootstrap_cell(
+                [episode_totals(r["episode"], r["squared_error"], episodes) for r in seeds], weights
+            )
+            for name, seeds in per_subset.items()
+        }
     return table, episodes
 
 
@@ -481,7 +633,9 @@ def build_table(errors: dict[str, dict[str, list[dict]]], kinds: dict[str, str])
 
 def subset_title(name: str) -> str:
     kept = dict(subsets())[name]
-    return "+".join(m for m in ("image", "force", "proprio") if kept[m]) + ("" if name == "all" else f" ({name})")
+    return "+".join(m for m in ("image", "force", "proprio") if kept[m]) + (
+        "" if name == "all" else f" ({name})"
+    )
 
 
 def cell_text(cell: Cell | None, bold: bool, tied: bool) -> str:
@@ -497,9 +651,16 @@ def mse_table(table: Table, labels: list[str], contenders: list[str]) -> str:
     for s in table.subsets:
         present = {label: table.cells[label][s] for label in contenders if s in table.cells[label]}
         best = min(present, key=lambda label: present[label].mean) if present else None
-        cells = [cell_text(table.cells[label].get(s), label == best,
-                           best is not None and s in table.cells[label] and overlap(table.cells[label][s], present[best]))
-                 for label in labels]
+        cells = [
+            cell_text(
+                table.cells[label].get(s),
+                label == best,
+                best is not None
+                and s in table.cells[label]
+                and overlap(table.cells[label][s], present[best]),
+            )
+            for label in labels
+        ]
         lines.append(f"| {subset_title(s)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -507,9 +668,17 @@ def mse_table(table: Table, labels: list[str], contenders: list[str]) -> str:
 def degradation_table(table: Table, labels: list[str]) -> str:
     lines = ["| subset | " + " | ".join(labels) + " |", "|---" * (len(labels) + 1) + "|"]
     for s in table.subsets[1:]:
-        lines.append(f"| {subset_title(s)} | " + " | ".join(
-            f"{100 * table.degradation(label, s):+.0f}%" if s in table.cells[label] else "" for label in labels) + " |")
-    lines.append("| mean | " + " | ".join(f"{100 * table.mean_degradation(label):+.0f}%" for label in labels) + " |")
+        lines.append(
+            f"| {subset_title(s)} | "
+            + " | ".join(
+                f"{100 * table.degradation(label, s):+.0f}%" if s in table.cells[label] else ""
+                for label in labels
+            )
+            + " |"
+        )
+    lines.append(
+        "| mean | " + " | ".join(f"{100 * table.mean_degradation(label):+.0f}%" for label in labels) + " |"
+    )
     return "\n".join(lines)
 
 
@@ -519,10 +688,14 @@ def timing(runs: dict[str, list[dict]]) -> dict[str, dict[str, float]]:
     out = {}
     for label, results in runs.items():
         if results:
-            out[label] = {"ms_per_step": 1e3 * statistics.fmean(r["step_seconds"] for r in results),
-                          "other_seconds": statistics.fmean(r["seconds"] - r["steps"] * r["step_seconds"]
-                                                            for r in results),
-                          "runs": len(results), "batch_size": results[0]["batch_size"]}
+            out[label] = {
+                "ms_per_step": 1e3 * statistics.fmean(r["step_seconds"] for r in results),
+                "other_seconds": statistics.fmean(
+                    r["seconds"] - r["steps"] * r["step_seconds"] for r in results
+                ),
+                "runs": len(results),
+                "batch_size": results[0]["batch_size"],
+            }
     return out
 
 
@@ -548,54 +721,102 @@ def projection(measured: dict[str, dict[str, float]], budget: Budget) -> tuple[f
 
 def markdown(table: Table, budget: Budget, mode: str, info: dict, measured: dict, comparisons: dict) -> str:
     seeds = ", ".join(map(str, budget.seeds))
-    recorded = (f" (recorded in this run in {info['record_seconds']:.0f} s)"
-                if info["record_seconds"] is not None else "")
+    recorded = (
+        f" (recorded in this run in {info['record_seconds']:.0f} s)"
+        if info["record_seconds"] is not None
+        else ""
+    )
     cv = info["constant_velocity_mse"]
-    reference = (f"Reference: constant-velocity extrapolation of the object's past position (not a model input), "
-                 f"MSE {cv:.4f}; predicting the training mean gives about 1.\n\n" if cv is not None else "")
+    reference = (
+        f"Reference: constant-velocity extrapolation of the object's past position (not a model input), "
+        f"MSE {cv:.4f}; predicting the training mean gives about 1.\n\n"
+        if cv is not None
+        else ""
+    )
     main_labels = table.labels("paper", "variant", "zero-fill", "retrained")
     contenders = table.labels("paper", "zero-fill", "retrained")
     ablation_labels = ["paper", *table.labels("fusion", "ablation")]
     text = (
         f"# Missing-modality benchmark ({mode} mode)\n\n"
-        f"Push dataset {info['data']}: {info['episodes']} episodes{recorded}, split by episode (split_seed 0), "
+        f"Push dataset {info['data']}: {info['episodes']} episodes{recorded}, "
+        "split by episode (split_seed 0), "
         f"{info['test_episodes']} test episodes; images {budget.image_size}x{budget.image_size}, H = T = 10. "
         f"Every model: {budget.steps} steps of batch {budget.batch_size}, seeds {seeds}"
         + ("" if budget.retrained_subsets == "all" else "; retrained baselines only for the paper's subsets")
         + f". Wall time {info['seconds'] / 60:.1f} min"
-        + (f" for the {info['runs'] - info['reused']} of {info['runs']} runs not reused from an earlier invocation"
-           if info["reused"] else "") + ".\n\n"
+        + (
+            f" for the {info['runs'] - info['reused']} of {info['runs']} runs not reused "
+            "from an earlier invocation"
+            if info["reused"]
+            else ""
+        )
+        + ".\n\n"
         f"## Test MSE (normalised target): mean over seeds [{LEVEL:.0%} interval]\n\n"
-        f"Intervals: percentile bootstrap over the {info['test_episodes']} test episodes ({BOOTSTRAP_RESAMPLES} "
-        f"resamples, one generator seeded {BOOTSTRAP_SEED}, the same resamples for every entry, seed and subset); "
+        f"Intervals: percentile bootstrap over the {info['test_episodes']} test episodes "
+        f"({BOOTSTRAP_RESAMPLES} resamples, one generator seeded {BOOTSTRAP_SEED}, "
+        "the same resamples for every entry, seed and subset); "
         "they cover test-set sampling, not seed variation (per-seed values in results.json). "
-        "Bold: lowest mean among the paper model and the baselines; `=`: interval overlaps the bold one (tied).\n\n"
-        + mse_table(table, main_labels, contenders) + "\n\n" + reference
+        "Bold: lowest mean among the paper model and the baselines; "
+        "`=`: interval overlaps the bold one (tied).\n\n"
+        + mse_table(table, main_labels, contenders)
+        + "\n\n"
+        + reference
     )
     if len(ablation_labels) > 1:
-        text += ("## Ablations of the paper model (Tables 4, 5)\n\nBold: lowest mean of the row; `=`: tied with it.\n\n"
-                 + mse_table(table, ablation_labels, ablation_labels) + "\n\n")
-    text += ("## Relative degradation (MSE / MSE with all modalities - 1)\n\n"
-             + degradation_table(table, [*main_labels, *ablation_labels[1:]]) + "\n\n")
+        text += (
+            "## Ablations of the paper model (Tables 4, 5)\n\n"
+            "Bold: lowest mean of the row; `=`: tied with it.\n\n"
+            + mse_table(table, ablation_labels, ablation_labels)
+            + "\n\n"
+        )
+    text += (
+        "## Relative degradation (MSE / MSE with all modalities - 1)\n\n"
+        + degradation_table(table, [*main_labels, *ablation_labels[1:]])
+        + "\n\n"
+    )
     paper_all = comparisons.get("all", {})
     fusion = {label: c for label, c in paper_all.items() if table.kinds[label] == "fusion"}
     if fusion:
         beats = all(c["high"] < 0 for c in fusion.values())
-        text += ("Paired difference paper - fusion ablation, all modalities: "
-                 + "; ".join(f"{label}: {c['difference']:+.4f} [{c['low']:+.4f}, {c['high']:+.4f}]"
-                             for label, c in fusion.items())
-                 + f". Attention better than every other fusion beyond the interval: {'yes' if beats else 'no'}.\n\n")
-    text += "## Run time\n\n| entry | runs timed | training ms/step | rest of a run (s) |\n|---|---|---|---|\n"
-    text += "\n".join(f"| {label} | {m['runs']} | {m['ms_per_step']:.0f} | {m['other_seconds']:.0f} |"
-                      for label, m in measured.items()) + "\n\n"
+        text += (
+            "Paired difference paper - fusion ablation, all modalities: "
+            + "; ".join(
+                f"{label}: {c['difference']:+.4f} [{c['low']:+.4f}, {c['high']:+.4f}]"
+                for label, c in fusion.items()
+            )
+            + ". Attention better than every other fusion beyond the interval: "
+            + f"{'yes' if beats else 'no'}.\n\n"
+        )
+    text += (
+        "## Run time\n\n"
+        f"Window cache built or opened once before the trainings in {info['cache_seconds']:.0f} s. "
+        "Per entry, measured by each run when it trained (a reused run keeps its times): the training "
+        "loop's time per step and the rest of a run (data and model setup, validation, checkpoint, "
+        "evaluation).\n\n"
+        "| entry | runs timed | training ms/step | rest of a run (s) |\n|---|---|---|---|\n"
+    )
+    text += (
+        "\n".join(
+            f"| {label} | {m['runs']} | {m['ms_per_step']:.0f} | {m['other_seconds']:.0f} |"
+            for label, m in measured.items()
+        )
+        + "\n\n"
+    )
     for name, target in (("standard", STANDARD), ("full", FULL)):
         seconds, missing = projection(measured, target)
         if len(missing) == sum(target.entries is None or e.label in target.entries for e in ENTRIES):
             continue  # nothing measured at its batch size
-        text += (f"Projected {name} mode ({target.steps} steps of batch {target.batch_size}, {len(target.seeds)} seeds, "
-                 f"recording excluded) from these times: {seconds / 60:.0f} min"
-                 + (f" for the entries measured; not measured at batch {target.batch_size}: {', '.join(missing)}"
-                    if missing else "") + ".\n\n")
+        text += (
+            f"Projected {name} mode ({target.steps} steps of batch {target.batch_size}, "
+            f"{len(target.seeds)} seeds, "
+            f"recording excluded) from these times: {seconds / 60:.0f} min"
+            + (
+                f" for the entries measured; not measured at batch {target.batch_size}: {', '.join(missing)}"
+                if missing
+                else ""
+            )
+            + ".\n\n"
+        )
     return text
 
 
@@ -603,14 +824,27 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     mode_flags = parser.add_mutually_exclusive_group()
     for name in ("tiny", "quick", "standard"):
-        mode_flags.add_argument(f"--{name}", action="store_true", help=f"the {name.upper()} budget in this file")
-    parser.add_argument("--data", type=Path, default=None,
-                        help="recorded push dataset (default data/push_bench_<episodes>ep; recorded if absent)")
-    parser.add_argument("--out", type=Path, default=None, help="runs and results (default runs/bench_accuracy_<mode>)")
+        mode_flags.add_argument(
+            f"--{name}", action="store_true", help=f"the {name.upper()} budget in this file"
+        )
+    parser.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="recorded push dataset (default data/push_bench_<episodes>ep; recorded if absent)",
+    )
+    parser.add_argument(
+        "--out", type=Path, default=None, help="runs and results (default runs/bench_accuracy_<mode>)"
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=None, help="override the mode's seeds")
     parser.add_argument("--steps", type=int, default=None, help="override the mode's training steps")
     parser.add_argument("--batch-size", type=int, default=None, help="override the mode's batch size")
-    parser.add_argument("--entries", nargs="+", default=None, help="override the mode's entries (labels; must include 'paper')")
+    parser.add_argument(
+        "--entries",
+        nargs="+",
+        default=None,
+        help="override the mode's entries (labels; must include 'paper')",
+    )
     parser.add_argument("--device", default="cpu", help="cpu | cuda | auto (passed to train and eval)")
     args = parser.parse_args(argv)
     from mmf_rl.eval.report import write_json, write_text
@@ -620,10 +854,18 @@ def main(argv: list[str] | None = None) -> int:
     if args.entries is not None:
         unknown = sorted(set(args.entries) - {e.label for e in ENTRIES})
         if unknown or "paper" not in args.entries:
-            parser.error(f"--entries: unknown {unknown} or 'paper' missing; entries are {[e.label for e in ENTRIES]}")
-    budget = Budget(budget.image_size, args.batch_size or budget.batch_size, args.steps or budget.steps,
-                    tuple(args.seeds) if args.seeds else budget.seeds,
-                    tuple(args.entries) if args.entries else budget.entries, budget.episodes, budget.retrained_subsets)
+            parser.error(
+                f"--entries: unknown {unknown} or 'paper' missing; entries are {[e.label for e in ENTRIES]}"
+            )
+    budget = Budget(
+        budget.image_size,
+        args.batch_size or budget.batch_size,
+        args.steps or budget.steps,
+        tuple(args.seeds) if args.seeds else budget.seeds,
+        tuple(args.entries) if args.entries else budget.entries,
+        budget.episodes,
+        budget.retrained_subsets,
+    )
     args.out = (args.out or REPO / "runs" / f"bench_accuracy_{mode}").resolve()
     args.data = (args.data or REPO / "data" / f"push_bench_{budget.episodes}ep").resolve()
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -634,6 +876,7 @@ def main(argv: list[str] | None = None) -> int:
     args.runs = args.reused = 0  # counted by run_one: the wall time covers only the runs not reused
     args.done = set()
     record_seconds = None if args.data.exists() else record_dataset(args.data, budget.episodes)
+    cache_seconds = build_cache(budget, args)
     errors, runs, kinds = {}, {}, {}
     for entry in entries:
         print(f"{entry.label}:", flush=True)
@@ -645,20 +888,47 @@ def main(argv: list[str] | None = None) -> int:
     line, summary = summarize(table)
     comparisons = paired_comparisons(table)
     measured = timing(runs)
-    cv = next((r["constant_velocity"]["mse"] for results in runs.values() for r in results
-               if r.get("constant_velocity")), None)
-    info = {"data": str(args.data), "episodes": _episode_count(args.data), "test_episodes": len(test_episodes),
-            "record_seconds": record_seconds, "seconds": seconds, "runs": args.runs, "reused": args.reused,
-            "constant_velocity_mse": cv}
+    cv = next(
+        (
+            r["constant_velocity"]["mse"]
+            for results in runs.values()
+            for r in results
+            if r.get("constant_velocity")
+        ),
+        None,
+    )
+    info = {
+        "data": str(args.data),
+        "episodes": _episode_count(args.data),
+        "test_episodes": len(test_episodes),
+        "record_seconds": record_seconds,
+        "cache_seconds": cache_seconds,
+        "seconds": seconds,
+        "runs": args.runs,
+        "reused": args.reused,
+        "constant_velocity_mse": cv,
+    }
     text = markdown(table, budget, mode, info, measured, comparisons) + f"{line}\n"
     args.out.mkdir(parents=True, exist_ok=True)
     write_text(args.out / "results.md", text)
-    write_json(args.out / "results.json",
-               {"mode": mode, "budget": budget.__dict__, "info": info, "kinds": kinds, "subsets": table.subsets,
-                "test_episodes": test_episodes, "bootstrap": {"resamples": BOOTSTRAP_RESAMPLES, "seed": BOOTSTRAP_SEED,
-                                                               "level": LEVEL},
-                "cells": {label: {s: c.to_dict() for s, c in cells.items()} for label, cells in table.cells.items()},
-                "paired_differences": comparisons, "timing": measured, "summary": summary})
+    write_json(
+        args.out / "results.json",
+        {
+            "mode": mode,
+            "budget": budget.__dict__,
+            "info": info,
+            "kinds": kinds,
+            "subsets": table.subsets,
+            "test_episodes": test_episodes,
+            "bootstrap": {"resamples": BOOTSTRAP_RESAMPLES, "seed": BOOTSTRAP_SEED, "level": LEVEL},
+            "cells": {
+                label: {s: c.to_dict() for s, c in cells.items()} for label, cells in table.cells.items()
+            },
+            "paired_differences": comparisons,
+            "timing": measured,
+            "summary": summary,
+        },
+    )
     print(text)
     return 0
 

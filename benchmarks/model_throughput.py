@@ -34,8 +34,8 @@ from mmf_rl.models import MODELS, build_loss, build_model
 
 
 def push_modalities(image_size: int = 64) -> list[ModalitySpec]:
-    return [ModalitySpec("image", "image", (3, image_size, image_size)), ModalitySpec("force", "sequence", (6,)),
-            ModalitySpec("proprio", "sequence", (20,))]
+    return [ModalitySpec("image", "image", (3, image_size, image_size)),
+            ModalitySpec("force", "sequence", (6,)), ModalitySpec("proprio", "sequence", (20,))]
 
 
 PUSH_MODALITIES = push_modalities()
@@ -45,8 +45,8 @@ def push_like_batch(batch_size: int, history: int = 10, horizon: int = 10, seed:
                     image_size: int = 64) -> TensorDict:
     g = torch.Generator().manual_seed(seed)
     data = {
-        keys.obs_key("image"): torch.randint(0, 256, (batch_size, history, 3, image_size, image_size), generator=g,
-                                             dtype=torch.uint8),
+        keys.obs_key("image"): torch.randint(0, 256, (batch_size, history, 3, image_size, image_size),
+                                             generator=g, dtype=torch.uint8),
         keys.obs_key("force"): torch.randn(batch_size, history, 6, generator=g),
         keys.obs_key("proprio"): torch.randn(batch_size, history, 20, generator=g),
         keys.TARGET: torch.randn(batch_size, horizon, 2, generator=g),
@@ -61,7 +61,8 @@ def push_like_batch(batch_size: int, history: int = 10, horizon: int = 10, seed:
 def build(name: str, image_size: int = 64, channels_last: bool = False):
     """The model ``name`` and its training loss, as ``mmf-rl train model=<name>`` builds them for push."""
     cfg = compose_config("train", [f"model={name}"])
-    model = build_model(to_container(cfg.model), push_modalities(image_size), history=10, horizon=10, target_dim=2)
+    model = build_model(to_container(cfg.model), push_modalities(image_size), history=10, horizon=10,
+                        target_dim=2)
     if channels_last:  # only 4-D tensors (the conv weights) change layout; values stay the same
         model = model.to(memory_format=torch.channels_last)
     return model, build_loss(name, model, to_container(cfg.loss))

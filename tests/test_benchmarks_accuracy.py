@@ -22,7 +22,15 @@ def _load():
 
 
 accuracy = _load()
-SUBSETS = ["all", "without_force", "without_image", "without_proprio", "only_force", "only_image", "only_proprio"]
+SUBSETS = [
+    "all",
+    "without_force",
+    "without_image",
+    "without_proprio",
+    "only_force",
+    "only_image",
+    "only_proprio",
+]
 
 
 def windows(num_episodes: int = 8, per_episode: int = 5, seed: int = 0, scale: float = 1.0):
@@ -70,8 +78,10 @@ def test_cell_mean_is_the_seed_mean_of_window_means_and_the_interval_holds_it():
 
 def test_constant_errors_give_a_zero_width_interval():
     episodes = [e for e in range(5) for _ in range(3)]
-    c = accuracy.bootstrap_cell([accuracy.episode_totals(episodes, [0.3] * 15, range(5))],
-                                accuracy.bootstrap_weights(5, resamples=100))
+    c = accuracy.bootstrap_cell(
+        [accuracy.episode_totals(episodes, [0.3] * 15, range(5))],
+        accuracy.bootstrap_weights(5, resamples=100),
+    )
     assert c.low == pytest.approx(0.3) and c.high == pytest.approx(0.3)
 
 
@@ -82,7 +92,9 @@ def test_the_bootstrap_is_paired_across_entries():
     weights = accuracy.bootstrap_weights(8, resamples=300)
     episodes, errors = windows()
     a = accuracy.bootstrap_cell([accuracy.episode_totals(episodes, errors, order)], weights)
-    b = accuracy.bootstrap_cell([accuracy.episode_totals(episodes, [x + 0.01 for x in errors], order)], weights)
+    b = accuracy.bootstrap_cell(
+        [accuracy.episode_totals(episodes, [x + 0.01 for x in errors], order)], weights
+    )
     assert accuracy.overlap(a, b)
     low, high = accuracy.difference_interval(b, a)
     assert low == pytest.approx(0.01) and high == pytest.approx(0.01)
@@ -91,8 +103,13 @@ def test_the_bootstrap_is_paired_across_entries():
 def test_seeds_scored_on_different_windows_are_refused():
     weights = accuracy.bootstrap_weights(2, resamples=10)
     with pytest.raises(ValueError, match="different test windows"):
-        accuracy.bootstrap_cell([accuracy.episode_totals([0, 1], [1.0, 1.0], [0, 1]),
-                                 accuracy.episode_totals([0], [1.0], [0, 1])], weights)
+        accuracy.bootstrap_cell(
+            [
+                accuracy.episode_totals([0, 1], [1.0, 1.0], [0, 1]),
+                accuracy.episode_totals([0], [1.0], [0, 1]),
+            ],
+            weights,
+        )
 
 
 def test_best_or_tied_is_decided_by_overlapping_intervals():
@@ -106,32 +123,48 @@ def test_best_or_tied_is_decided_by_overlapping_intervals():
 
 def test_paper_subsets_lead_the_table():
     assert accuracy.ordered_subsets(SUBSETS) == [
-        "all", "without_proprio", "without_force", "without_image", "only_force", "only_image", "only_proprio"]
+        "all",
+        "without_proprio",
+        "without_force",
+        "without_image",
+        "only_force",
+        "only_image",
+        "only_proprio",
+    ]
     assert accuracy.subset_title("without_proprio") == "image+force (without_proprio)"
     assert accuracy.subset_title("all") == "image+force+proprio"
 
 
 def make_table(paper: float, zero_fill: float, retrained: float, fusion: float | None) -> accuracy.Table:
     table = accuracy.Table(subsets=accuracy.ordered_subsets(SUBSETS))
-    rows = {"paper": ("paper", paper), "LF-LSTM": ("zero-fill", zero_fill),
-            "LF-LSTM (retrained)": ("retrained", retrained)}
+    rows = {
+        "paper": ("paper", paper),
+        "LF-LSTM": ("zero-fill", zero_fill),
+        "LF-LSTM (retrained)": ("retrained", retrained),
+    }
     if fusion is not None:
         rows["paper fusion=sum"] = ("fusion", fusion)
     for label, (kind, level) in rows.items():
         table.kinds[label] = kind
-        table.cells[label] = {s: cell(level * (1 + 0.1 * i), level * (1 + 0.1 * i) - 0.01, level * (1 + 0.1 * i) + 0.01)
-                              for i, s in enumerate(table.subsets)}
+        table.cells[label] = {
+            s: cell(level * (1 + 0.1 * i), level * (1 + 0.1 * i) - 0.01, level * (1 + 0.1 * i) + 0.01)
+            for i, s in enumerate(table.subsets)
+        }
     return table
 
 
 def test_summary_line_has_the_issues_format():
     line, summary = accuracy.summarize(make_table(paper=0.30, zero_fill=0.305, retrained=0.2, fusion=0.36))
-    pattern = (r"summary: paper model best or tied in (\d+)/(\d+) subsets \(zero-fill baselines\), (\d+)/3 paper "
-               r"subsets vs retrained; fusion spread (\d+)%; mean degradation paper (-?\d+)%, best baseline (-?\d+)%")
+    pattern = (
+        r"summary: paper model best or tied in (\d+)/(\d+) subsets \(zero-fill baselines\), (\d+)/3 paper "
+        r"subsets vs retrained; fusion spread (\d+)%; mean degradation paper (-?\d+)%, best baseline (-?\d+)%"
+    )
     match = re.fullmatch(pattern, line)
     assert match, line
     assert match.groups()[:4] == ("7", "7", "0", "20")
-    assert summary["best_or_tied_vs_zero_fill"] == 7 and summary["paper_subsets_best_or_tied_vs_retrained"] == 0
+    assert (
+        summary["best_or_tied_vs_zero_fill"] == 7 and summary["paper_subsets_best_or_tied_vs_retrained"] == 0
+    )
     # Each row degrades by 10% a subset step; the mean over the six subsets is 35% for every entry.
     assert match.group(5) == "35" and match.group(6) == "35"
 
@@ -140,15 +173,25 @@ def test_summary_line_says_what_the_run_lacks():
     table = make_table(paper=0.30, zero_fill=0.5, retrained=0.2, fusion=None)
     del table.kinds["LF-LSTM (retrained)"], table.cells["LF-LSTM (retrained)"]
     line, summary = accuracy.summarize(table)
-    assert "in 7/7 subsets" in line and "-/3 paper subsets vs retrained" in line and "fusion spread -;" in line
+    assert (
+        "in 7/7 subsets" in line and "-/3 paper subsets vs retrained" in line and "fusion spread -;" in line
+    )
     assert summary["fusion_spread"] is None
 
 
 def test_projection_scales_the_measured_step_time():
-    budget = accuracy.Budget(image_size=32, batch_size=32, steps=1000, seeds=(0, 1, 2), episodes=200,
-                             entries=("paper", "LF-LSTM", "LF-LSTM (retrained)"))
-    measured = {"paper": {"ms_per_step": 50.0, "other_seconds": 4.0, "runs": 1, "batch_size": 32},
-                "LF-LSTM": {"ms_per_step": 100.0, "other_seconds": 6.0, "runs": 1, "batch_size": 32}}
+    budget = accuracy.Budget(
+        image_size=32,
+        batch_size=32,
+        steps=1000,
+        seeds=(0, 1, 2),
+        episodes=200,
+        entries=("paper", "LF-LSTM", "LF-LSTM (retrained)"),
+    )
+    measured = {
+        "paper": {"ms_per_step": 50.0, "other_seconds": 4.0, "runs": 1, "batch_size": 32},
+        "LF-LSTM": {"ms_per_step": 100.0, "other_seconds": 6.0, "runs": 1, "batch_size": 32},
+    }
     seconds, missing = accuracy.projection(measured, budget)
     # paper 3 x (50 + 4) + LF-LSTM 3 x (100 + 6) + retrained (from LF-LSTM's time) 6 subsets x 3 x 106 s
     assert seconds == pytest.approx(3 * 54 + 3 * 106 + 18 * 106)
@@ -171,8 +214,12 @@ def test_entries_are_labelled_once_and_retrained_ones_name_a_zero_fill_base():
 
 
 def test_timing_separates_the_training_loop_from_the_rest_of_a_run():
-    runs = {"paper": [{"step_seconds": 0.05, "seconds": 60.0, "steps": 1000, "batch_size": 32},
-                      {"step_seconds": 0.07, "seconds": 80.0, "steps": 1000, "batch_size": 32}]}
+    runs = {
+        "paper": [
+            {"step_seconds": 0.05, "seconds": 60.0, "steps": 1000, "batch_size": 32},
+            {"step_seconds": 0.07, "seconds": 80.0, "steps": 1000, "batch_size": 32},
+        ]
+    }
     measured = accuracy.timing(runs)["paper"]
     assert measured["ms_per_step"] == pytest.approx(60.0)
     assert measured["other_seconds"] == pytest.approx(10.0)
