@@ -242,3 +242,33 @@ def test_best_baseline_degradation_ignores_rows_without_every_subset():
     line, summary = accuracy.summarize(table)
     assert summary["best_baseline_mean_degradation"] == pytest.approx(0.35)
     assert "0/3 paper subsets vs retrained" in line and line.endswith("best baseline 35%")
+
+
+def test_window_errors_average_to_the_evaluations_mse_on_recorded_push_data(recorded_push_root, tmp_path):
+    """The benchmark's own pass over the test windows (per-window errors, with their episodes) scores
+    the same windows the same way as `mmf-rl eval`, on data recorded by the project's recorder."""
+    from mmf_rl.configuration import compose_config
+    from mmf_rl.datasets import DataConfig, WindowDataset
+    from mmf_rl.eval.run import run_evaluation
+    from mmf_rl.trainers.run import train
+    from tests.conftest import push_train_overrides
+
+    run = tmp_path / "run"
+    train(compose_config("train", push_train_overrides(recorded_push_root, tmp_path / "cache", run)))
+    summary = run_evaluation(compose_config("eval", [f"checkpoint={run}", "plots=false", "num_samples=0"]))
+    errors = accuracy.window_errors(run, "cpu", batch_size=7)  # batches that do not divide the split
+    assert set(errors) == set(summary["subsets"])
+    data = WindowDataset(DataConfig.from_dict(summary_data_config(run)))
+    test_episodes = set(data.split_episodes["test"])
+    for name, rows in errors.items():
+        metrics = summary["subsets"][name]
+        assert len(rows["squared_error"]) == metrics["windows"]
+        assert sum(rows["squared_error"]) / len(rows["squared_error"]) == pytest.approx(metrics["mse"], rel=1e-5)
+        assert set(rows["episode"]) <= test_episodes
+        assert rows["episode"] == data.window_episode[torch.tensor(rows["window"])].tolist()
+
+
+def summary_data_config(run: Path) -> dict:
+    from mmf_rl.checkpoint import load_checkpoint
+
+    return load_checkpoint(run / "checkpoints", with_trainer_state=False).meta["config"]["data"]
