@@ -258,17 +258,18 @@ def test_window_errors_average_to_the_evaluations_mse_on_recorded_push_data(reco
     summary = run_evaluation(compose_config("eval", [f"checkpoint={run}", "plots=false", "num_samples=0"]))
     errors = accuracy.window_errors(run, "cpu", batch_size=7)  # batches that do not divide the split
     assert set(errors) == set(summary["subsets"])
-    data = WindowDataset(DataConfig.from_dict(summary_data_config(run)))
+    data = WindowDataset(DataConfig.from_dict(trained_data_config(run)))
     test_episodes = set(data.split_episodes["test"])
     for name, rows in errors.items():
         metrics = summary["subsets"][name]
         assert len(rows["squared_error"]) == metrics["windows"]
-        assert sum(rows["squared_error"]) / len(rows["squared_error"]) == pytest.approx(metrics["mse"], rel=1e-5)
+        mean = sum(rows["squared_error"]) / len(rows["squared_error"])
+        assert mean == pytest.approx(metrics["mse"], rel=1e-5)
         assert set(rows["episode"]) <= test_episodes
         assert rows["episode"] == data.window_episode[torch.tensor(rows["window"])].tolist()
 
 
-def summary_data_config(run: Path) -> dict:
+def trained_data_config(run: Path) -> dict:
     from mmf_rl.checkpoint import load_checkpoint
 
     return load_checkpoint(run / "checkpoints", with_trainer_state=False).meta["config"]["data"]
