@@ -492,23 +492,14 @@ def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str
 def run_one(
     entry: Entry, seed: int, budget: Budget, args, run_dir: Path, extra: tuple[str, ...] = ()
 ) -> dict:
-    """Train one model, evaluate it, keep its per-window errors; returns ``window_errors.json``'s content."""
+    """Train one model, evaluate it, keep its per-window errors in ``window_errors.json`` (written last:
+    its presence marks the run complete)."""
     from mmf_rl.configuration import compose_config
     from mmf_rl.eval.report import write_json
     from mmf_rl.eval.run import run_evaluation
     from mmf_rl.trainers.run import train
 
     errors_path = run_dir / "eval" / "window_errors.json"
-    if errors_path.is_file():
-        if (
-            run_dir not in args.done
-        ):  # a retrained entry's "all" run, trained earlier in this invocation, is no reuse
-            args.runs += 1
-            args.reused += 1
-            args.done.add(run_dir)
-        return json.loads(errors_path.read_text())
-    args.runs += 1
-    args.done.add(run_dir)
     if run_dir.exists():  # an interrupted run: start it again
         import shutil
 
@@ -578,27 +569,71 @@ def retrained_subsets(budget: Budget) -> list[tuple[str, dict[str, bool]]]:
     ]
 
 
-def run_entry(entry: Entry, budget: Budget, args) -> tuple[dict[str, list[dict]], list[dict]]:
-    """``({subset: [errors of each seed]}, [every run's window_errors.json])`` for one entry."""
-    per_subset: dict[str, list[dict]] = {}
-    runs = []
+def run_plan(entry: Entry, budget: Budget, out: Path) -> list[tuple[Entry, int, Path, tuple[str, ...], str]]:
+    """The runs behind one entry's cells: ``(entry trained, seed, run_dir, extra overrides, subset)``;
+    ``subset`` is the one a retrained run's cell comes from, ``""`` when every subset counts."""
+    plan = []
     for seed in budget.seeds:
         if entry.kind != "retrained":
-            result = run_one(entry, seed, budget, args, args.out / slug(entry.label) / f"seed{seed}")
-            runs.append(result)
-            for name, rows in result["subsets"].items():
-                per_subset.setdefault(name, []).append(rows)
+            plan.append((entry, seed, out / slug(entry.label) / f"seed{seed}", (), ""))
             continue
         base = next(e for e in ENTRIES if e.label == entry.base)
-        result = run_one(base, seed, budget, args, args.out / slug(base.label) / f"seed{seed}")
-        per_subset.setdefault("all", []).append(result["subsets"]["all"])
+        plan.append((base, seed, out / slug(base.label) / f"seed{seed}", (), "all"))
         for name, subset in retrained_subsets(budget):
             dropped = tuple(f"+data.missing.{m}=1.0" for m, kept in subset.items() if not kept)
-            result = run_one(
-                entry, seed, budget, args, args.out / slug(entry.label) / name / f"seed{seed}", dropped
-            )
+            plan.append((entry, seed, out / slug(entry.label) / name / f"seed{seed}", dropped, name))
+    return plan
+
+
+def completed(run_dir: Path) -> dict | None:
+    path = run_dir / "eval" / "window_errors.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def run_pending(entries: list[Entry], budget: Budget, args) -> tuple[int, int]:
+    """Train and score every run the entries need that no earlier invocation completed, ``--jobs`` at
+    a time; returns (runs needed, runs reused)."""
+    runs = {}
+    for entry in entries:
+        for trained, seed, run_dir, extra, _ in run_plan(entry, budget, args.out):
+            runs.setdefault(run_dir, (trained, seed, run_dir, extra))
+    pending = [task for run_dir, task in runs.items() if completed(run_dir) is None]
+    if args.jobs == 1:
+        for trained, seed, run_dir, extra in pending:
+            run_one(trained, seed, budget, args, run_dir, extra)
+    else:
+        # Small models use two threads poorly (the matmul-peak ratio of model_throughput.py): one thread
+        # a run and one run a core keeps both cores busy. Each run writes only its own run_dir.
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        threads = max(1, (os.cpu_count() or 1) // args.jobs)
+        with ProcessPoolExecutor(
+            args.jobs,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=torch.set_num_threads,
+            initargs=(threads,),
+        ) as pool:
+            futures = [
+                pool.submit(run_one, trained, seed, budget, args, run_dir, extra)
+                for trained, seed, run_dir, extra in pending
+            ]
+            for future in futures:
+                future.result()  # a failed run stops the benchmark with its error
+    return len(runs), len(runs) - len(pending)
+
+
+def entry_results(entry: Entry, budget: Budget, out: Path) -> tuple[dict[str, list[dict]], list[dict]]:
+    """``({subset: [errors of each seed]}, [the entry's own runs' window_errors.json])``."""
+    per_subset: dict[str, list[dict]] = {}
+    runs = []
+    for trained, _, run_dir, _, subset in run_plan(entry, budget, out):
+        result = completed(run_dir)
+        if trained is entry:
             runs.append(result)
-            per_subset.setdefault(name, []).append(result["subsets"][name])
+        for name, rows in result["subsets"].items():
+            if subset in ("", name):
+                per_subset.setdefault(name, []).append(rows)
     return per_subset, runs
 
 
@@ -846,9 +881,17 @@ def main(argv: list[str] | None = None) -> int:
         help="override the mode's entries (labels; must include 'paper')",
     )
     parser.add_argument("--device", default="cpu", help="cpu | cuda | auto (passed to train and eval)")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="runs trained at once, each with cores/jobs threads (2 on 2 cores: see run_pending)",
+    )
     args = parser.parse_args(argv)
     from mmf_rl.eval.report import write_json, write_text
 
+    if args.jobs < 1:
+        parser.error(f"--jobs must be >= 1, found {args.jobs}")
     mode = next((name for name in ("tiny", "quick", "standard") if getattr(args, name)), "full")
     budget = MODES[mode]
     if args.entries is not None:
@@ -873,14 +916,12 @@ def main(argv: list[str] | None = None) -> int:
     check_entries(entries, budget, args)
 
     start = time.perf_counter()
-    args.runs = args.reused = 0  # counted by run_one: the wall time covers only the runs not reused
-    args.done = set()
     record_seconds = None if args.data.exists() else record_dataset(args.data, budget.episodes)
     cache_seconds = build_cache(budget, args)
+    args.runs, args.reused = run_pending(entries, budget, args)  # the wall time covers the runs not reused
     errors, runs, kinds = {}, {}, {}
     for entry in entries:
-        print(f"{entry.label}:", flush=True)
-        errors[entry.label], runs[entry.label] = run_entry(entry, budget, args)
+        errors[entry.label], runs[entry.label] = entry_results(entry, budget, args.out)
         kinds[entry.label] = entry.kind
     seconds = time.perf_counter() - start
 
