@@ -1,6 +1,7 @@
 """Missing-modality accuracy benchmark on the recorded push dataset (paper Tables 3, 4, 5).
 
     .venv/bin/python benchmarks/accuracy.py --standard     # every entry, 3 seeds (see STANDARD below)
+    .venv/bin/python benchmarks/accuracy.py --standard --jobs 2   # two runs at once, one thread each
     .venv/bin/python benchmarks/accuracy.py --quick        # paper model, zero-fill baselines, w/o L_mis
     .venv/bin/python benchmarks/accuracy.py --tiny         # smoke run of the code paths (meaningless numbers)
     .venv/bin/python benchmarks/accuracy.py                # the full budget (see FULL below)
@@ -843,7 +844,7 @@ def markdown(table: Table, budget: Budget, mode: str, info: dict, measured: dict
             continue  # nothing measured at its batch size
         text += (
             f"Projected {name} mode ({target.steps} steps of batch {target.batch_size}, "
-            f"{len(target.seeds)} seeds, "
+            f"{len(target.seeds)} seeds, one run at a time, "
             f"recording excluded) from these times: {seconds / 60:.0f} min"
             + (
                 f" for the entries measured; not measured at batch {target.batch_size}: {', '.join(missing)}"

@@ -6,6 +6,7 @@ import importlib.util
 import re
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -273,3 +274,13 @@ def trained_data_config(run: Path) -> dict:
     from mmf_rl.checkpoint import load_checkpoint
 
     return load_checkpoint(run / "checkpoints", with_trainer_state=False).meta["config"]["data"]
+
+
+def test_entries_are_checked_against_the_configs_before_any_training(tmp_path):
+    args = SimpleNamespace(data=tmp_path / "data", out=tmp_path / "out", device="cpu")
+    budget = accuracy.STANDARD
+    # The options of issue #13's model variants land with the model changes; every other entry composes here.
+    accuracy.check_entries([e for e in accuracy.ENTRIES if e.kind != "variant"], budget, args)
+    bogus = accuracy.Entry("paper typo", "variant", ("model=forecaster", "model.fusoin=sum"))
+    with pytest.raises(SystemExit, match=r"'paper typo' \(model=forecaster model.fusoin=sum\)"):
+        accuracy.check_entries([accuracy.ENTRIES[0], bogus], budget, args)
