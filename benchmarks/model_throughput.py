@@ -31,6 +31,7 @@ from mmf_rl import keys
 from mmf_rl.configuration import compose_config, to_container
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models import MODELS, build_loss, build_model
+from mmf_rl.objectives import LossConfig
 
 
 def push_modalities(image_size: int = 64) -> list[ModalitySpec]:
@@ -65,7 +66,7 @@ def build(name: str, image_size: int = 64, channels_last: bool = False):
                         target_dim=2)
     if channels_last:  # only 4-D tensors (the conv weights) change layout; values stay the same
         model = model.to(memory_format=torch.channels_last)
-    return model, build_loss(name, model, to_container(cfg.loss))
+    return model, build_loss(name, model, LossConfig.from_dict(to_container(cfg.loss)))
 
 
 def matmul_peak_gflops(n: int = 2048, repeats: int = 20) -> float:
