@@ -36,7 +36,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mmf-rl: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     module = importlib.import_module(COMMANDS[name][0])
-    return int(module.main(rest) or 0)
+    try:
+        return int(module.main(rest) or 0)
+    except SystemExit as exit_:  # argparse's --help (0) and usage errors (2)
+        return exit_.code if isinstance(exit_.code, int) else 1
 
 
 if __name__ == "__main__":
