@@ -22,6 +22,8 @@ _TORCHRL_EXPORTS = {
     "ModalityDropout": "mmf_rl.envs.transforms",
     "UniformBursts": "mmf_rl.envs.transforms",
     "GeometricBursts": "mmf_rl.envs.transforms",
+    "outage_start_prob": "mmf_rl.envs.transforms",
+    "replay_outages": "mmf_rl.envs.transforms",
     "ForecastTransform": "mmf_rl.envs.transforms",
     "HistoryWindow": "mmf_rl.envs.transforms",
     "ForecasterWorldModelEnv": "mmf_rl.envs.world_model",
