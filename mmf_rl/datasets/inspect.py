@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from mmf_rl.configuration import save_config
+from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.lerobot_source import (
     BOOKKEEPING_FEATURES,
     _is_numeric,
@@ -135,8 +136,9 @@ def _first(episodes: list[tuple[int, int, int]], index: int) -> int:
 
 
 def suggested_data_config(report: dict, repo_id: str = "local/dataset") -> dict:
-    """A data config for the dataset: every camera and vector a modality, ``observation.state`` (else
-    the first observation vector) the target, the sensors' outages replayed in training."""
+    """A complete data config for the dataset: every camera and vector a modality,
+    ``observation.state`` (else the first observation vector) the target, the sensors' outages
+    replayed in training."""
     modalities, taken = {}, set()
     for feature in report["cameras"] + report["vectors"]:
         name = _modality_name(feature, taken)
@@ -168,7 +170,8 @@ def suggested_data_config(report: dict, repo_id: str = "local/dataset") -> dict:
     if report["cameras"]:
         first = report["features"][report["cameras"][0]]
         config["image_size"] = _image_size(first["shape"], first["names"])
-    return config
+    # Every key written out: a user's file is the whole data config, so `data.KEY=...` overrides any key.
+    return DataConfig.from_dict(config).to_dict()
 
 
 def format_report(report: dict) -> str:

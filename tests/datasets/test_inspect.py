@@ -11,6 +11,7 @@ from mmf_rl.datasets.inspect import inspect_dataset, suggested_data_config
 from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, IMAGE_VALID_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
 from tests.datasets.conftest import EPISODE_LENGTHS, INVALID_IMAGE_EPISODE, NAN_FORCE_EPISODE, SO101_ROOT, needs_so101
+from tests.test_configuration import readme_commands
 
 FRAMES = sum(EPISODE_LENGTHS)
 SPAN = 5  # the fixture's NaN force and invalid camera spans: frames 5..9 of one episode
@@ -32,8 +33,9 @@ def test_report_names_features_spans_cameras_and_outages(synthetic_root):
     assert INVALID_IMAGE_EPISODE != NAN_FORCE_EPISODE
 
     config = suggested_data_config(report)
-    assert config["modalities"] == {"front": IMAGE_FEATURE, "state": STATE_FEATURE, "force": FORCE_FEATURE,
-                                    "object_pose": POSE_FEATURE}
+    assert {name: m["feature"] for name, m in config["modalities"].items()} == {
+        "front": IMAGE_FEATURE, "state": STATE_FEATURE, "force": FORCE_FEATURE, "object_pose": POSE_FEATURE}
+    assert set(config) == set(DataConfig.from_dict(config).to_dict())  # every key: `data.KEY=...` overrides any
     assert config["target"]["feature"] == STATE_FEATURE and config["image_size"] == [32, 32]
     replayed = {"fraction": round(SPAN / FRAMES, 4), "mean_burst": float(SPAN)}
     assert config["missing"] == {"front": replayed, "force": replayed}
@@ -77,3 +79,26 @@ def test_so101_cameras_are_reported_missing():
     assert report["sensors"]["observation.state"]["outages"]["fraction"] == 0.0
     assert suggested_data_config(report)["target"]["feature"] == "observation.state"
 
+
+
+def test_the_readmes_inspect_train_eval_path(synthetic_root, tmp_path, monkeypatch, capsys):
+    """The README's own three commands, verbatim (the dataset path put in, a tiny model and run
+    appended): inspect writes a config, train takes it as `data=FILE`, eval scores the run."""
+    (inspect,) = readme_commands("inspect")
+    assert inspect[0] == "/path/to/dataset" and "--write-config" in inspect
+    config = inspect[inspect.index("--write-config") + 1]
+    (train,) = [argv for argv in readme_commands("train") if f"data={config}" in argv]
+    run_dir = next(a.split("=", 1)[1] for a in train if a.startswith("run_dir="))
+    (evaluate,) = [argv for argv in readme_commands("eval") if f"checkpoint={run_dir}" in argv]
+    monkeypatch.chdir(tmp_path)
+    assert cli(["inspect", str(synthetic_root), *inspect[1:]]) == 0
+    tiny = ["data.history=4", "data.horizon=3", f"data.cache_dir={tmp_path / 'cache'}", "data.split_seed=1",
+            "model.d_model=16", "model.d_latent=4", "model.num_heads=2", "model.mlp_hidden=32", "model.head_hidden=32",
+            "trainer.total_steps=4", "trainer.batch_size=8", "trainer.eval_every=2", "trainer.checkpoint_every=2",
+            "trainer.warmup_steps=1", "trainer.progress_bar=false", "num_workers=0"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert cli(["train", *train, *tiny]) == 0
+        capsys.readouterr()
+        assert cli(["eval", *evaluate, "num_samples=2", "plots=false"]) == 0
+    assert "| all |" in capsys.readouterr().out
