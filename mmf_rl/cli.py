@@ -16,6 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("mmf_rl.eval.run", "evaluate a checkpoint on every presence subset: table and plots"),
     "inspect": ("mmf_rl.datasets.inspect", "report a LeRobot dataset's features, cameras, NaN spans and outages; "
                 "suggest a data config"),
+    "bench": ("mmf_rl.bench", "run a benchmark of benchmarks/ (accuracy, data, model, mpc)"),
     "demo": ("mmf_rl.demo", "record a push dataset, train the default model on CPU, evaluate (make demo)"),
 }
 
