@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/data_throughput.py                 # records a small dataset
     .venv/bin/python benchmarks/data_throughput.py --root data/push
+    mmf-rl bench data --data-config mine.yaml                      # any dataset: a data config (mmf-rl inspect)
 
 The reference is ``LeRobotDataset(..., delta_timestamps=...)`` in a ``torch.utils.data.DataLoader``
 reading exactly the windows the cache serves (same history, horizon, stride and features). The
@@ -79,12 +80,16 @@ def lerobot_throughput(config: DataConfig, frame_indices: list[int], batch_size:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--root", type=Path, help="an existing LeRobot v3.0 dataset (default: record one)")
+    parser.add_argument("--root", type=Path, help="an existing LeRobot v3.0 dataset (default: record one); without "
+                        "--data-config it must have the push features")
+    parser.add_argument("--data-config", type=Path, metavar="YAML",
+                        help="a data config (e.g. written by `mmf-rl inspect --write-config`) saying which features are "
+                             "the modalities and the target; default: the push dataset's features. Its root unless --root")
     parser.add_argument("--episodes", type=int, default=16, help="episodes to record when --root is not given")
     parser.add_argument("--steps", type=int, default=60, help="frames per recorded episode")
     parser.add_argument("--image-size", type=int, default=64)
-    parser.add_argument("--history", type=int, default=10)
-    parser.add_argument("--horizon", type=int, default=10)
+    parser.add_argument("--history", type=int, default=None, help="default: the data config's, else 10")
+    parser.add_argument("--horizon", type=int, default=None, help="default: the data config's, else 10")
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--lerobot-windows", type=int, default=384, help="windows the reference loader reads")
     parser.add_argument("--seconds", type=float, default=3.0, help="how long to time the cached loader")
@@ -96,17 +101,27 @@ def main(argv: list[str] | None = None) -> None:
 
     with tempfile.TemporaryDirectory(prefix="mmf_rl_bench_") as scratch:
         scratch = Path(scratch)
-        root = args.root
-        if root is None:
-            root = scratch / "push"
-            print(f"dataset: {make_dataset(root, args.episodes, args.steps, args.image_size, args.workers)} at {root}")
-        config = DataConfig.from_dict({
-            "root": str(root), "cache_dir": str(scratch / "cache"),
-            "history": args.history, "horizon": args.horizon,
-            "image_size": [args.image_size, args.image_size], "split_fractions": [1.0, 0.0, 0.0],
-            "modalities": {"image": IMAGE_FEATURE, "force": FORCE_FEATURE, "proprio": STATE_FEATURE},
-            "target": {"feature": POSE_FEATURE, "dims": [0, 1]},
-        })
+        if args.data_config is not None:
+            from omegaconf import OmegaConf
+
+            data = OmegaConf.to_container(OmegaConf.load(args.data_config), resolve=True)
+            data.pop("defaults", None)
+            root = args.root or data.get("root")
+            if root is None:
+                raise SystemExit(f"{args.data_config} has no `root`: pass --root DATASET")
+        else:
+            root = args.root
+            if root is None:
+                root = scratch / "push"
+                print(f"dataset: {make_dataset(root, args.episodes, args.steps, args.image_size, args.workers)} "
+                      f"at {root}")
+            data = {"image_size": [args.image_size, args.image_size],
+                    "modalities": {"image": IMAGE_FEATURE, "force": FORCE_FEATURE, "proprio": STATE_FEATURE},
+                    "target": {"feature": POSE_FEATURE, "dims": [0, 1]}}
+        data.update({"root": str(root), "cache_dir": str(scratch / "cache"), "split_fractions": [1.0, 0.0, 0.0],
+                     "missing": {}})
+        data.update({k: v for k, v in [("history", args.history), ("horizon", args.horizon)] if v is not None})
+        config = DataConfig.from_dict(data)
 
         import lerobot.datasets.lerobot_dataset  # noqa: F401  (both sides need lerobot: keep its import out of the timing)
 
@@ -123,7 +138,8 @@ def main(argv: list[str] | None = None) -> None:
         lerobot_rate = lerobot_throughput(config, last_observed.tolist(), args.batch_size, args.workers)
 
     one_pass_s = len(ids) / lerobot_rate
-    print(f"windows: {len(ids)} (H={config.history}, T={config.horizon}, {args.image_size}px image + 2 vectors)")
+    modalities = ", ".join(f"{s.name} {s.kind} {list(s.shape)}" for s in dataset.specs)
+    print(f"windows: {len(ids)} (H={config.history}, T={config.horizon}; {modalities})")
     print(f"cache build: {build_s:.1f} s vs one "
           f"lerobot pass over the same windows: {one_pass_s:.1f} s -> "
           f"{'no slower' if build_s <= one_pass_s else 'SLOWER'} ({one_pass_s / build_s:.1f}x)")

@@ -14,6 +14,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "record": ("mmf_rl.record", "record a multimodal push dataset (LeRobot v3.0)"),
     "train": ("mmf_rl.trainers.run", "train a forecaster on a LeRobot dataset (Hydra overrides)"),
     "eval": ("mmf_rl.eval.run", "evaluate a checkpoint on every presence subset: table and plots"),
+    "inspect": ("mmf_rl.datasets.inspect", "report a LeRobot dataset's features, cameras, NaN spans and outages; "
+                "suggest a data config"),
+    "bench": ("mmf_rl.bench", "run a benchmark of benchmarks/ (accuracy, data, model, mpc)"),
     "demo": ("mmf_rl.demo", "record a push dataset, train the default model on CPU, evaluate (make demo)"),
 }
 
@@ -36,7 +39,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mmf-rl: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     module = importlib.import_module(COMMANDS[name][0])
-    return int(module.main(rest) or 0)
+    try:
+        return int(module.main(rest) or 0)
+    except SystemExit as exit_:  # argparse's --help (0) and usage errors (2)
+        return exit_.code if isinstance(exit_.code, int) else 1
 
 
 if __name__ == "__main__":

@@ -1,15 +1,36 @@
-"""Hydra configs: compose ``configs/<name>.yaml`` with command-line overrides, save them atomically."""
+"""Hydra configs: compose ``configs/<name>.yaml`` with command-line overrides, save them atomically.
+
+Three things are added on top of Hydra's compose API, all decided here so every command behaves
+the same:
+
+* A mapping given whole on the command line replaces the config's (``data.modalities='{cam:
+  observation.images.top}'``), where Hydra would merge it into the base config's mapping. The keys
+  are :data:`REPLACED_MAPPINGS`; a dotted key (``data.modalities.cam.required=true``) still edits
+  one entry.
+* Config files outside the package: ``config_dirs`` are added to Hydra's search path (their
+  ``<group>/<name>.yaml`` become options of ``<group>``), and a group option may be a YAML file's
+  path (``data=/path/to/mine.yaml``).
+* ``mmf-rl <command> --help`` lists the config groups and their options, ``--cfg`` prints the
+  composed config (see :func:`parse_config_command`).
+"""
 
 from __future__ import annotations
 
+import argparse
+import hashlib
 import os
-from dataclasses import fields
+import re
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-# The repository's configs/ (editable install); MMF_RL_CONFIG_DIR points elsewhere.
-DEFAULT_CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+# The configs shipped inside the package (a link to the repository's configs/ in a checkout, a
+# copy in a wheel); MMF_RL_CONFIG_DIR points elsewhere.
+DEFAULT_CONFIG_DIR = (Path(__file__).parent / "configs").resolve()
+# Mappings that a whole value on the command line replaces instead of merging into.
+REPLACED_MAPPINGS = ("data.modalities", "data.target", "data.missing", "data.action")
+YAML_SUFFIXES = (".yaml", ".yml")
 
 
 class ConfigError(ValueError):
@@ -19,8 +40,8 @@ class ConfigError(ValueError):
 def config_dir() -> Path:
     path = Path(os.environ.get("MMF_RL_CONFIG_DIR", DEFAULT_CONFIG_DIR))
     if not (path / "train.yaml").is_file():
-        raise ConfigError(f"no mmf-rl configs in {path} (train.yaml missing); set MMF_RL_CONFIG_DIR to the "
-                          "repository's configs/ directory")
+        raise ConfigError(f"no mmf-rl configs in {path} (train.yaml missing); unset MMF_RL_CONFIG_DIR to use the "
+                          f"configs installed with mmf-rl ({DEFAULT_CONFIG_DIR}), or point it at a copy of them")
     return path
 
 
@@ -32,16 +53,113 @@ def reject_unknown_keys(cls, d: dict, where: str) -> None:
         raise ValueError(f"{where}: unknown keys {unknown}; expected a subset of {sorted(known)}")
 
 
-def compose_config(name: str, overrides: list[str]) -> DictConfig:
-    """``configs/<name>.yaml`` + ``key=value`` / ``group=option`` overrides, resolved, struct mode."""
-    # Imported here: models and datasets import this module for reject_unknown_keys only.
+def config_groups(config_dirs: list[Path] = ()) -> dict[str, list[str]]:
+    """``{group: [option, ...]}`` found in the configs and in ``config_dirs``."""
+    groups: dict[str, set[str]] = {}
+    for directory in [config_dir(), *config_dirs]:
+        for path in Path(directory).glob("*/*"):
+            if path.suffix in YAML_SUFFIXES:
+                groups.setdefault(path.parent.name, set()).add(path.stem)
+    return {group: sorted(options) for group, options in sorted(groups.items())}
+
+
+def _check_config_dirs(config_dirs: list[Path]) -> list[Path]:
+    """The user's config directories, resolved; one that shadows a built-in config is an error
+    (Hydra would silently use the built-in one)."""
+    builtin = config_dir()
+    resolved = []
+    for directory in config_dirs:
+        directory = Path(directory).expanduser().resolve()
+        if not directory.is_dir():
+            raise ConfigError(f"--config-dir {directory}: no such directory; it should hold <group>/<name>.yaml files "
+                              "(e.g. data/mine.yaml, used as data=mine)")
+        for path in sorted(directory.rglob("*")):
+            relative = path.relative_to(directory)
+            if path.suffix in YAML_SUFFIXES and (builtin / relative).with_suffix(".yaml").is_file():
+                raise ConfigError(f"{path} has the name of mmf-rl's own {builtin / relative.with_suffix('.yaml')}, which "
+                                  f"Hydra would use instead; rename yours (e.g. {relative.parent / ('my_' + path.name)})")
+        resolved.append(directory)
+    return resolved
+
+
+def _config_file_option(group: str, value: str) -> str:
+    """Register the YAML file ``value`` as an option of ``group`` (Hydra's ConfigStore) and return
+    its option name: Hydra itself takes group options only by name from its search path."""
+    from hydra.core.config_store import ConfigStore
+
+    path = Path(value).expanduser().resolve()
+    if not path.is_file():
+        raise ConfigError(f"{group}={value}: no such file ({path}); give the path of a YAML config file, or an option "
+                          f"name of the `{group}` group (`mmf-rl train --help` lists them)")
+    text = path.read_text()
+    try:
+        node = OmegaConf.create(text)
+    except Exception as error:  # noqa: BLE001 - yaml and OmegaConf raise many types; name the file
+        raise ConfigError(f"{path}: not a valid YAML config ({' '.join(str(error).split())})") from None
+    if not isinstance(node, DictConfig):
+        raise ConfigError(f"{path}: a config file must hold a mapping of keys, found {type(node).__name__}")
+    header = re.search(r"^#\s*@package\s+(\S+)", text, re.MULTILINE)
+    name = f"file_{hashlib.sha1(str(path).encode()).hexdigest()[:8]}_{re.sub(r'[^A-Za-z0-9_]', '_', path.stem)}"
+    ConfigStore.instance().store(group=group, name=name, node=node, package=header[1] if header else None)
+    return name
+
+
+def _prepare_overrides(name: str, overrides: list[str], config_dirs: list[Path]) -> list[str]:
+    """Overrides as Hydra should see them: file-path options registered by name, and whole
+    mappings of :data:`REPLACED_MAPPINGS` turned into delete + add (Hydra's ``~key ++key=value``)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import OverrideType
+    from hydra.errors import HydraException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(list(overrides))
+    except HydraException as err:
+        raise ConfigError(str(err).strip()) from None
+    groups = config_groups(config_dirs)
+    prepared, replaced = [], {}
+    for override in parsed:
+        key, line = override.key_or_group, override.input_line
+        value = override.value()
+        if (override.type == OverrideType.CHANGE and key in groups and isinstance(value, str)
+                and value.endswith(YAML_SUFFIXES)):
+            line = f"{override.get_key_element()}={_config_file_option(key, value)}"
+        elif override.type == OverrideType.CHANGE and key in REPLACED_MAPPINGS:
+            replaced[len(prepared)] = key
+            line = f"++{line}"
+        prepared.append(line)
+    if not replaced:
+        return prepared
+    # Hydra deletes only what exists: compose once without the replaced keys (and the overrides
+    # under them) to see which of them the config has as a mapping.
+    under = tuple(replaced.values())
+    base = _compose(name, [o for o, p in zip(prepared, parsed) if not p.key_or_group.startswith(under)], config_dirs)
+    result = []
+    for i, line in enumerate(prepared):
+        if i in replaced and isinstance(OmegaConf.select(base, replaced[i]), DictConfig):
+            result.append(f"~{replaced[i]}")
+        result.append(line)
+    return result
+
+
+def _compose(name: str, overrides: list[str], config_dirs: list[Path]) -> DictConfig:
     from hydra import compose, initialize_config_dir
+
+    search_path = [f"hydra.searchpath=[{','.join(f'file://{d}' for d in config_dirs)}]"] if config_dirs else []
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        return compose(config_name=name, overrides=search_path + list(overrides))
+
+
+def compose_config(name: str, overrides: list[str], config_dirs: list[Path] = ()) -> DictConfig:
+    """``configs/<name>.yaml`` + ``key=value`` / ``group=option`` overrides, resolved, struct mode.
+
+    ``config_dirs``: more directories of ``<group>/<name>.yaml`` files (``--config-dir``).
+    """
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
     try:
-        with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-            cfg = compose(config_name=name, overrides=list(overrides))
+        config_dirs = _check_config_dirs(list(config_dirs))
+        cfg = _compose(name, _prepare_overrides(name, overrides, config_dirs), config_dirs)
         OmegaConf.resolve(cfg)
     except (HydraException, OmegaConfBaseException) as err:
         # Hydra's messages name the key and the options; its chained causes add only noise.
@@ -49,15 +167,84 @@ def compose_config(name: str, overrides: list[str]) -> DictConfig:
     return cfg
 
 
+@dataclass
+class ConfigCommand:
+    """A parsed ``mmf-rl <command> [--config-dir DIR] [--cfg] [overrides]`` command line."""
+
+    overrides: list[str]
+    config_dirs: list[Path]
+    print_config: bool
+
+    def compose(self, name: str) -> DictConfig:
+        return compose_config(name, self.overrides, self.config_dirs)
+
+
+def _settings_help(name: str, config_dirs: list[Path]) -> str:
+    """The config's groups with their options (defaults marked), and its own top-level keys."""
+    path = config_dir() / f"{name}.yaml"
+    own = OmegaConf.load(path)
+    defaults = {}
+    for entry in own.get("defaults", []):
+        if isinstance(entry, DictConfig):
+            defaults.update({str(k): v for k, v in entry.items()})
+    lines = []
+    groups = {g: o for g, o in config_groups(config_dirs).items() if g in defaults}
+    if groups:
+        lines += ["config groups (GROUP=OPTION, or GROUP=/path/to/file.yaml; * marks the default):"]
+        for group, options in groups.items():
+            marked = [f"{o}*" if o == defaults[group] else o for o in options]
+            lines.append(f"  {group:<11} {', '.join(marked)}")
+        lines.append("")
+    plain = OmegaConf.to_container(own, resolve=False)
+    scalars = {k: v for k, v in plain.items() if k != "defaults" and not isinstance(v, (dict, list))}
+    if scalars:
+        lines.append(f"settings (KEY=VALUE; defaults from {path}):")
+        lines += [f"  {OmegaConf.to_yaml({k: v}).strip().replace(': ', '=', 1)}" for k, v in scalars.items()]
+        lines.append("")
+    lines.append("overrides: KEY=VALUE sets a key, GROUP=OPTION picks a config, +KEY=VALUE adds a key (Hydra syntax).")
+    if "data" in groups:
+        lines += [f"A whole mapping for {', '.join(REPLACED_MAPPINGS)} replaces the config's:",
+                  "  data.modalities='{cam: observation.images.top, joints: observation.state}'"]
+    return "\n".join(lines)
+
+
+def parse_config_command(argv: list[str], name: str, prog: str, description: str,
+                         examples: list[str]) -> ConfigCommand:
+    """Parse a Hydra-config command's arguments; ``--help`` prints usage, the config groups and their
+    options, and ``examples`` (then exits, as argparse does)."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--config-dir", action="append", type=Path, default=[])
+    known, _ = pre.parse_known_args(argv)
+    try:
+        settings = _settings_help(name, _check_config_dirs(known.config_dir))
+    except ConfigError as err:
+        settings = f"(config groups unavailable: {err})\n"
+    epilog = "\n".join([
+        settings,
+        "",
+        "examples:",
+        *(f"  {example}" for example in examples),
+    ])
+    parser = argparse.ArgumentParser(prog=prog, description=description, epilog=epilog,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config-dir", action="append", type=Path, default=[], metavar="DIR",
+                        help="a directory of your own configs (<group>/<name>.yaml, e.g. data/mine.yaml -> data=mine); "
+                             "repeatable")
+    parser.add_argument("--cfg", action="store_true", help="print the composed config (YAML) and exit without running")
+    parser.add_argument("overrides", nargs="*", metavar="OVERRIDE", help="KEY=VALUE or GROUP=OPTION (Hydra syntax)")
+    args = parser.parse_intermixed_args(argv)
+    return ConfigCommand(overrides=args.overrides, config_dirs=args.config_dir, print_config=args.cfg)
+
+
 def to_container(cfg: DictConfig) -> dict:
     return OmegaConf.to_container(cfg, resolve=True)
 
 
-def save_config(cfg: DictConfig | dict, path: Path) -> None:
-    """Write YAML atomically (temp file + rename)."""
+def save_config(cfg: DictConfig | dict, path: Path, header: str = "") -> None:
+    """Write YAML atomically (temp file + rename), after ``header`` (comment lines)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(OmegaConf.to_yaml(cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)))
+    tmp.write_text(header + OmegaConf.to_yaml(cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)))
     os.replace(tmp, path)
 
 

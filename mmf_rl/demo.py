@@ -22,8 +22,12 @@ from mmf_rl.trainers.run import train
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="mmf-rl demo", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="mmf-rl demo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n"
+               "  mmf-rl demo                                   # what `make demo` runs\n"
+               "  mmf-rl demo --episodes 60 -- trainer.total_steps=300 model=lf_lstm   # smaller, another model",
+    )
     parser.add_argument("--data", type=Path, default=Path("data/push"), help="push dataset (recorded if absent)")
     parser.add_argument("--run-dir", type=Path, default=Path("runs/demo"))
     parser.add_argument("--episodes", type=int, default=150, help="episodes to record when the dataset is absent")

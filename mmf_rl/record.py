@@ -346,7 +346,13 @@ def record(config: RecordConfig) -> Path:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=PROG, description="Record scripted pushes as a LeRobot v3.0 dataset.")
+    parser = argparse.ArgumentParser(
+        prog=PROG, description="Record scripted pushes as a LeRobot v3.0 dataset.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n"
+               "  mmf-rl record --out data/push --episodes 200 --workers 2 --image-size 64 --steps 50\n"
+               "  mmf-rl record --out data/push_faults --episodes 100 --faults   # with sensor outages in the data",
+    )
     parser.add_argument("--out", type=Path, required=True, help="dataset directory to create")
     parser.add_argument("--episodes", type=int, required=True, help="number of episodes")
     parser.add_argument("--workers", type=int, default=1, help="recording processes (default 1)")

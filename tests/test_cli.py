@@ -1,6 +1,11 @@
+import re
+
 import pytest
+import yaml
+from omegaconf import OmegaConf
 
 from mmf_rl import cli
+from mmf_rl.configuration import DEFAULT_CONFIG_DIR, config_groups
 
 
 @pytest.fixture
@@ -27,3 +32,45 @@ def test_unknown_command_is_a_clear_error(commands, capsys):
     assert cli.main(["trian"]) == 2
     err = capsys.readouterr().err
     assert "unknown command 'trian'" in err and "echo" in err
+
+
+# --- every real command: --help with usage and examples, --cfg without running -----------------
+
+
+@pytest.mark.parametrize("command", sorted(cli.COMMANDS))
+def test_every_command_answers_help_with_usage_and_two_examples(command, capsys):
+    assert cli.main([command, "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: mmf-rl {command}")
+    examples = out.split("\nexamples:\n", 1)[1].splitlines()
+    assert len([line for line in examples if line.startswith(f"  mmf-rl {command}")]) >= 2, out
+
+
+@pytest.mark.parametrize("command", ["train", "eval"])
+def test_config_commands_list_their_groups_options_and_settings(command, capsys, tmp_path):
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "mine.yaml").write_text("root: /data/mine\n")
+    assert cli.main([command, "--config-dir", str(tmp_path), "--help"]) == 0
+    out = capsys.readouterr().out
+    own = OmegaConf.load(DEFAULT_CONFIG_DIR / f"{command}.yaml")
+    groups = [next(iter(entry)) for entry in own.get("defaults", []) if not isinstance(entry, str)]
+    for group, options in config_groups([tmp_path]).items():
+        if group in groups:
+            assert re.search(rf"^  {group} +.*" + ".*".join(options), out, re.MULTILINE), (group, out)
+    if command == "train":
+        assert "mine" in config_groups([tmp_path])["data"] and "push*" in out
+    for key in (k for k in own if k != "defaults" and not OmegaConf.is_dict(own[k])):
+        assert f"  {key}=" in out
+
+
+def test_train_cfg_prints_the_composed_config_and_trains_nothing(capsys, tmp_path):
+    run = tmp_path / "run"
+    assert cli.main(["train", "--cfg", f"run_dir={run}", "data.modalities={cam: observation.images.top}",
+                     "data.target=observation.state", "model=lf_lstm"]) == 0
+    cfg = yaml.safe_load(capsys.readouterr().out)
+    assert cfg["data"]["modalities"] == {"cam": "observation.images.top"} and cfg["model"]["name"] == "lf_lstm"
+    assert cfg["run_dir"] == str(run) and not run.exists()
+    assert cli.main(["eval", "checkpoint=runs/x", "num_samples=3", "--cfg"]) == 0
+    assert yaml.safe_load(capsys.readouterr().out)["num_samples"] == 3
+    assert cli.main(["train", "--cfg", "trainer.lrr=1"]) == 1
+    assert "Could not override 'trainer.lrr'" in capsys.readouterr().err

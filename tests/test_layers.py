@@ -19,7 +19,7 @@ LAYERS: list[set[str]] = [
     {"models"},
     {"trainers", "eval"},
     {"rl"},
-    {"cli", "demo"},
+    {"cli", "demo", "bench"},
 ]
 RANK = {name: rank for rank, layer in enumerate(LAYERS) for name in layer}
 

@@ -84,6 +84,25 @@ class ActionConfig:
 
 
 @dataclass
+class OutageConfig:
+    """Replayed sensor outages for one modality (``missing: {m: {fraction: f, mean_burst: L}}``):
+    simulated bursts of about ``L`` frames covering about ``f`` of the training frames, so a
+    model trains for the outages its sensor shows (``mmf-rl inspect`` measures both)."""
+
+    fraction: float
+    mean_burst: float
+
+    def __post_init__(self):
+        self.fraction, self.mean_burst = float(self.fraction), float(self.mean_burst)
+        if not 0.0 <= self.fraction < 1.0 or self.mean_burst < 1.0:
+            raise ValueError(f"data config: an outage needs 0 <= fraction < 1 and mean_burst >= 1 (frames), found "
+                             f"fraction={self.fraction}, mean_burst={self.mean_burst}")
+
+
+OBSERVED = "observed"
+
+
+@dataclass
 class DataConfig:
     """Everything the pipeline needs to turn a LeRobot dataset into forecasting windows.
 
@@ -91,7 +110,10 @@ class DataConfig:
     ``t+s .. t+Ts`` (``s = stride``), all inside one episode.
 
     ``missing`` is the training missingness protocol: ``{modality: p}`` removes modality ``m`` from
-    a fixed, ``missing_seed``-seeded fraction ``p`` of the training windows.
+    a fixed, ``missing_seed``-seeded fraction ``p`` of the training windows;
+    ``{modality: {fraction: f, mean_burst: L}}`` replays outages (:class:`OutageConfig`) on top of
+    the data's own; ``"observed"`` replays, for every modality, the outages measured in the
+    training split (``WindowDataset.observed_outages``).
 
     ``action`` (optional) adds the actions applied over the horizon to every window, for an
     action-conditioned world model (see :class:`ActionConfig`).
@@ -109,7 +131,7 @@ class DataConfig:
     split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1)
     split_seed: int = 0
     std_floor: float = 1e-3
-    missing: dict[str, float] = field(default_factory=dict)
+    missing: dict[str, float | OutageConfig] | str = field(default_factory=dict)
     missing_seed: int = 0
     tolerance_s: float = 1e-4
     cache_dir: str | None = None
@@ -135,12 +157,15 @@ class DataConfig:
                 f"data config: `split_fractions` must be 3 non-negative numbers (train, val, test) "
                 f"summing to 1, found {list(self.split_fractions)}"
             )
-        for name, p in self.missing.items():
+        if isinstance(self.missing, str) and self.missing != OBSERVED:
+            raise ValueError(f"data config: `missing` must be a mapping {{modality: fraction}} or {OBSERVED!r}, found "
+                             f"{self.missing!r}")
+        for name, p in ({} if isinstance(self.missing, str) else self.missing).items():
             if name not in self.modalities:
                 raise ValueError(
                     f"data config: `missing` names modality {name!r}, which is not one of {sorted(self.modalities)}"
                 )
-            if not 0.0 <= float(p) <= 1.0:
+            if not isinstance(p, OutageConfig) and not 0.0 <= float(p) <= 1.0:
                 raise ValueError(f"data config: `missing.{name}` must be a fraction in [0, 1], found {p}")
         if self.std_floor <= 0:
             raise ValueError(f"data config: `std_floor` must be > 0, found {self.std_floor}")
@@ -163,13 +188,28 @@ class DataConfig:
         reject_unknown_keys(TargetConfig, target, "data config: target")
         d["modalities"] = modalities
         d["target"] = TargetConfig(**target)
-        d["missing"] = {str(k): float(v) for k, v in dict(d.get("missing", {})).items()}
+        missing = d.get("missing", {})
+        if not isinstance(missing, str):
+            missing = {str(k): _missing_entry(k, v) for k, v in dict(missing).items()}
+        d["missing"] = missing
         action = d.get("action")
         if action is not None:
             action = {"feature": action} if isinstance(action, str) else dict(action)
             reject_unknown_keys(ActionConfig, action, "data config: action")
             d["action"] = ActionConfig(**action)
         return cls(**d)
+
+    @property
+    def window_dropout(self) -> dict[str, float]:
+        """The ``{modality: fraction of training windows}`` part of ``missing``."""
+        return {} if isinstance(self.missing, str) else {
+            k: v for k, v in self.missing.items() if not isinstance(v, OutageConfig)}
+
+    @property
+    def replayed_outages(self) -> dict[str, OutageConfig] | str:
+        """The outage-replay part of ``missing``: ``{modality: OutageConfig}``, or ``"observed"``."""
+        return self.missing if isinstance(self.missing, str) else {
+            k: v for k, v in self.missing.items() if isinstance(v, OutageConfig)}
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -200,3 +240,15 @@ class DataConfig:
         if self.cache_dir is not None:
             return Path(self.cache_dir)
         return Path(os.environ.get("MMF_RL_CACHE", Path.home() / ".cache" / "mmf_rl")) / "windows"
+
+
+def _missing_entry(name, value) -> float | OutageConfig:
+    """One ``missing`` entry: a fraction of windows, or an outage mapping ``{fraction, mean_burst}``."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, dict) or hasattr(value, "items"):
+        value = dict(value)
+        reject_unknown_keys(OutageConfig, value, f"data config: missing.{name}")
+        return OutageConfig(**value)
+    raise ValueError(f"data config: `missing.{name}` must be a fraction of windows or {{fraction: f, mean_burst: L}}, "
+                     f"found {value!r}")

@@ -69,6 +69,11 @@ class Episode:
 
 
 def open_metadata(config: DataConfig):
+    """``LeRobotDatasetMetadata`` for the config's dataset (see :func:`open_dataset_metadata`)."""
+    return open_dataset_metadata(config.root, config.repo_id)
+
+
+def open_dataset_metadata(root: str | Path | None, repo_id: str):
     """``LeRobotDatasetMetadata`` for a local ``root`` (never downloads) or the hub ``repo_id``.
 
     A local dataset is checked first (layout, info.json, format version, parquet footers) so a
@@ -77,15 +82,15 @@ def open_metadata(config: DataConfig):
     """
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
 
-    if config.root is None:
-        meta = LeRobotDatasetMetadata(config.repo_id)
+    if root is None:
+        meta = LeRobotDatasetMetadata(repo_id)
         # The hub path: fetch data and videos the way lerobot does; absent videos stay absent.
         meta.pull_from_repo(allow_patterns=["data/*", "videos/*"])
         return meta
-    root = Path(config.root)
+    root = Path(root)
     _check_local_dataset(root)
     try:
-        return LeRobotDatasetMetadata(config.repo_id, root=root)
+        return LeRobotDatasetMetadata(repo_id, root=root)
     except Exception as error:  # noqa: BLE001 - whatever lerobot trips on, report it by directory
         raise ValueError(
             f"{root / 'meta'}: lerobot {package_version('lerobot')} could not read the dataset metadata "
@@ -534,41 +539,49 @@ class LeRobotSource:
 
     def read_columns(self) -> dict[str, np.ndarray]:
         """The per-frame columns the pipeline needs, ordered by the global frame ``index``."""
-        from lerobot.datasets.utils import get_hf_features_from_features, load_nested_dataset
-
-        try:
-            hf = load_nested_dataset(self.root / "data", features=get_hf_features_from_features(self.features))
-            data = hf.select_columns(sorted(self._columns())).with_format("numpy")[:]
-        except Exception as error:  # noqa: BLE001 - footers and schemas were fine: a damaged page or a cast
-            raise self._data_error(error) from None
-        order = np.argsort(data["index"], kind="stable")
-        data = {k: np.asarray(v)[order] for k, v in data.items()}
-        expected = np.arange(self.meta.total_frames)
-        if len(data["index"]) != len(expected) or not np.array_equal(data["index"], expected):
-            raise ValueError(
-                f"{self.root / 'data'}: frame `index` column should be 0..{len(expected) - 1} "
-                f"(meta/info.json total_frames={len(expected)}), found {len(data['index'])} rows "
-                f"from {data['index'].min() if len(data['index']) else None} to "
-                f"{data['index'].max() if len(data['index']) else None}"
-            )
-        return data
-
-    def _data_error(self, error: BaseException) -> ValueError:
-        """The error for data that failed to load: names the file that fails on its own, if one does."""
-        for path in sorted((self.root / "data").glob("*/*.parquet")):
-            try:
-                pq.read_table(path)
-            except (pa.ArrowException, OSError) as file_error:
-                return _unreadable_parquet(path, file_error)
-        return ValueError(
-            f"{self.root / 'data'}: the parquet files do not hold what {self.root / INFO_FILE} declares "
-            f"({_one_line(error)}); fix the features' `dtype`/`shape` in info.json to match the data, or "
-            "restore data/ from the original dataset"
-        )
+        return read_frame_columns(self.meta, self._columns())
 
     def files(self) -> list[Path]:
         """Every file that makes up the dataset: what the cache fingerprint covers."""
         return sorted(p for sub in ("meta", "data", "videos") for p in (self.root / sub).rglob("*") if p.is_file())
+
+
+def read_frame_columns(meta, columns) -> dict[str, np.ndarray]:
+    """Per-frame ``columns`` of the dataset ``meta`` describes (its ``LeRobotDatasetMetadata``), read
+    through lerobot's loader and ordered by the global frame ``index``."""
+    from lerobot.datasets.utils import get_hf_features_from_features, load_nested_dataset
+
+    root = Path(meta.root)
+    try:
+        hf = load_nested_dataset(root / "data", features=get_hf_features_from_features(meta.features))
+        data = hf.select_columns(sorted({*columns, "index"})).with_format("numpy")[:]
+    except Exception as error:  # noqa: BLE001 - footers and schemas were fine: a damaged page or a cast
+        raise _data_error(root, error) from None
+    order = np.argsort(data["index"], kind="stable")
+    data = {k: np.asarray(v)[order] for k, v in data.items()}
+    expected = np.arange(meta.total_frames)
+    if len(data["index"]) != len(expected) or not np.array_equal(data["index"], expected):
+        raise ValueError(
+            f"{root / 'data'}: frame `index` column should be 0..{len(expected) - 1} "
+            f"(meta/info.json total_frames={len(expected)}), found {len(data['index'])} rows "
+            f"from {data['index'].min() if len(data['index']) else None} to "
+            f"{data['index'].max() if len(data['index']) else None}"
+        )
+    return data
+
+
+def _data_error(root: Path, error: BaseException) -> ValueError:
+    """The error for data that failed to load: names the file that fails on its own, if one does."""
+    for path in sorted((root / "data").glob("*/*.parquet")):
+        try:
+            pq.read_table(path)
+        except (pa.ArrowException, OSError) as file_error:
+            return _unreadable_parquet(path, file_error)
+    return ValueError(
+        f"{root / 'data'}: the parquet files do not hold what {root / INFO_FILE} declares "
+        f"({_one_line(error)}); fix the features' `dtype`/`shape` in info.json to match the data, or "
+        "restore data/ from the original dataset"
+    )
 
 
 @dataclass(frozen=True)

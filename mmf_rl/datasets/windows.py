@@ -10,9 +10,9 @@ import torch
 from tensordict import TensorDict
 
 from mmf_rl.datasets.cache import action_offsets, open_cache, window_offsets
-from mmf_rl.datasets.config import SPLIT_NAMES, DataConfig
+from mmf_rl.datasets.config import OBSERVED, SPLIT_NAMES, DataConfig
 from mmf_rl.datasets.lerobot_source import LeRobotSource
-from mmf_rl.datasets.protocols import training_dropout
+from mmf_rl.datasets.protocols import outage_statistics, replay_outages, training_dropout
 from mmf_rl.datasets.splits import Normalizer, mean_std, split_episodes
 from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, ModalitySpec
 
@@ -45,6 +45,8 @@ class WindowDataset:
     ``target_dim``, ``action_shape`` (``(S, A)`` of ``"future_action"`` when the config sets
     ``action``, else ``None``), ``split_episodes`` and ``split_windows`` (window ids per split),
     ``normalizer`` (training-split statistics; ``normalizer.stats`` is the plain dict to store),
+    ``observed_outages`` (per modality, its outages in the training episodes: ``fraction`` of frames
+    absent, ``outages``, ``mean_burst``, ``max_burst``; ``missing: observed`` replays them),
     ``report`` (what was missing or skipped), ``cache_path``.
 
     ``num_workers`` sets the decode processes of a build (default: one per core when there are
@@ -93,6 +95,7 @@ class WindowDataset:
             for name, episodes in self.split_episodes.items()
         }
         self.normalizer = Normalizer(self._train_stats(frames))
+        self.observed_outages = self._observed_outages(frames)
         self.train_presence = self._train_presence()
 
     def _check_presence(self, source: LeRobotSource) -> None:
@@ -149,14 +152,31 @@ class WindowDataset:
             past = past - anchor if past is not None else None
         return future, past
 
+    def _observed_outages(self, frames: TensorDict) -> dict[str, dict[str, float]]:
+        """Per modality, the outages of its per-frame presence in the training episodes
+        (:func:`outage_statistics`): what ``missing: observed`` replays."""
+        train_frames = torch.isin(self.frame_episode, torch.tensor(self.split_episodes["train"], dtype=torch.long))
+        return {spec.name: outage_statistics(_plain(frames.get(("present", spec.name)))[train_frames],
+                                             self.frame_episode[train_frames])
+                for spec in self.specs}
+
     def _train_presence(self) -> dict[str, torch.Tensor]:
-        """Window presence with the config's training missingness protocol applied to train windows."""
-        if not self.config.missing:
+        """Window presence with the config's training missingness protocol applied to train windows:
+        replayed outages first, then the fractions of windows."""
+        config = self.config
+        outages = config.replayed_outages
+        outages = self.observed_outages if outages == OBSERVED else {k: vars(v) for k, v in outages.items()}
+        if not config.window_dropout and not any(0.0 < o["fraction"] < 1.0 for o in outages.values()):
             return self.presence
         train = self.split_windows["train"]
-        dropped = training_dropout(
-            {name: mask[train] for name, mask in self.presence.items()}, self.config.missing, self.config.missing_seed
-        )
+        dropped = {name: mask[train] for name, mask in self.presence.items()}
+        if outages:
+            start = self.window_start[train]
+            rows = {spec.name: start[:, None] + (self._observed if spec.kind != "vector" else self._observed[-1:])
+                    for spec in self.specs}
+            dropped = replay_outages(dropped, rows, outages, len(self.frame_episode), config.missing_seed)
+        if config.window_dropout:
+            dropped = training_dropout(dropped, config.window_dropout, config.missing_seed)
         presence = {name: mask.clone() for name, mask in self.presence.items()}
         for name, mask in dropped.items():
             presence[name][train] = mask

@@ -22,6 +22,8 @@ _TORCHRL_EXPORTS = {
     "ModalityDropout": "mmf_rl.envs.modality_dropout",
     "UniformBursts": "mmf_rl.envs.modality_dropout",
     "GeometricBursts": "mmf_rl.envs.modality_dropout",
+    "outage_start_prob": "mmf_rl.envs.modality_dropout",
+    "replay_outages": "mmf_rl.envs.modality_dropout",
 }
 
 __all__ = ["ENV_ID", "MultimodalPushEnv", "PusherStyle", "ScriptedPusher", "rollout", *_TORCHRL_EXPORTS]

@@ -18,7 +18,7 @@ from typing import Literal
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import Composite
-from torchrl.envs.transforms import Transform
+from torchrl.envs.transforms import Compose, Transform
 
 from mmf_rl import keys
 
@@ -82,6 +82,38 @@ class GeometricBursts:
         # Inverse CDF: P(L > k) = (1 - p)^k with p = 1 / mean.
         u = 1.0 - torch.rand(shape, generator=generator, dtype=torch.float64)  # (0, 1]
         return (torch.log(u) / math.log(1.0 - 1.0 / self.mean_steps)).floor().long() + 1
+
+
+def outage_start_prob(fraction: float, mean_burst: float) -> float:
+    """The per-step outage start probability (``ModalityDropout(per="step")``'s ``outage_prob``) that
+    leaves a modality absent ``fraction`` of the steps when its outages last ``mean_burst`` steps on
+    average.
+
+    Up runs last ``1 / p`` steps on average (an outage starts with probability ``p`` at each step
+    the modality is up), outages ``mean_burst``, so the absent fraction is
+    ``mean_burst / (mean_burst + 1 / p)``. A fraction above ``mean_burst / (mean_burst + 1)`` would
+    need ``p > 1``: it is capped there (an outage after every single reading).
+    """
+    if not 0.0 <= fraction < 1.0 or mean_burst < 1:
+        raise ValueError(f"outage_start_prob needs 0 <= fraction < 1 and mean_burst >= 1, found fraction={fraction}, "
+                         f"mean_burst={mean_burst}")
+    return min(1.0, fraction / (mean_burst * (1.0 - fraction)))
+
+
+def replay_outages(outages: Mapping[str, Mapping[str, float]], seed: int = 0) -> Compose:
+    """One ``ModalityDropout`` per modality that replays measured outages: ``{modality: {"fraction":
+    f, "mean_burst": L}}`` (what ``mmf-rl inspect`` reports and ``WindowDataset.observed_outages``
+    holds) becomes outages that start with ``outage_start_prob(f, L)`` and last ``GeometricBursts(L)``.
+    Modalities never or always absent (``f`` of 0 or 1) get no transform."""
+    transforms = [
+        ModalityDropout([name], outage_prob=outage_start_prob(o["fraction"], o["mean_burst"]),
+                        bursts=GeometricBursts(o["mean_burst"]), per="step", seed=seed + i)
+        for i, (name, o) in enumerate(sorted(outages.items())) if 0.0 < o["fraction"] < 1.0
+    ]
+    if not transforms:
+        raise ValueError(f"replay_outages: no modality in {sorted(outages)} has outages to replay (every fraction is "
+                         "0 or 1)")
+    return Compose(*transforms)
 
 
 class ModalityDropout(Transform):

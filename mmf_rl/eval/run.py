@@ -21,10 +21,11 @@ import sys
 from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state
-from mmf_rl.configuration import ConfigError, compose_config, to_container
+from mmf_rl.configuration import ConfigError, parse_config_command, to_container
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.devices import resolve_device
@@ -38,6 +39,12 @@ from mmf_rl.eval.report import (
     write_text,
 )
 from mmf_rl.models import model_from_saved_config
+
+EXAMPLES = [
+    "mmf-rl eval checkpoint=runs/forecaster                  # the run's last checkpoint, its test split",
+    "mmf-rl eval checkpoint=runs/forecaster split=val num_samples=50 plots=false",
+]
+BASELINE_KEYS = {"cv_mse": "mse", "cv_mse_units": "mse_units", "cv_ade": "ade", "cv_fde": "fde"}
 
 
 def checkpoint_location(path: Path) -> Path:
@@ -167,8 +174,13 @@ def make_plots(model, data, loader, denormalize, cfg, out_dir: Path, units: str,
 
 
 def main(argv: list[str]) -> int:
+    command = parse_config_command(argv, "eval", "mmf-rl eval", "Score a trained forecaster on every presence subset "
+                                   "of its dataset's test split: table, results.json and plots.", EXAMPLES)
     try:
-        cfg = compose_config("eval", argv)
+        cfg = command.compose("eval")
+        if command.print_config:
+            print(OmegaConf.to_yaml(cfg), end="")
+            return 0
         if cfg.get("checkpoint") is None:
             raise ConfigError("checkpoint=PATH is required (a run directory, its checkpoints/ or one checkpoint)")
         summary = run_evaluation(cfg)

@@ -1,7 +1,8 @@
 """`mmf-rl train [overrides]`: a LeRobot dataset in, a trained missing-modality forecaster out.
 
     mmf-rl train data=so101 trainer.total_steps=500 run_dir=runs/so101
-    mmf-rl train data.root=/path/to/my/lerobot/dataset data.modalities.wrist=observation.images.wrist ...
+    mmf-rl train data=/path/to/mine.yaml run_dir=runs/mine     # a data config of your own (`mmf-rl inspect`)
+    mmf-rl train --cfg data=so101 model=lf_lstm                # print the composed config, do not train
     torchrun --nproc_per_node=2 -m mmf_rl.cli train ...     # data parallel (gloo on CPU, NCCL on GPU)
 
 Top to bottom: compose the config, set up devices and processes, open the window cache, build
@@ -23,7 +24,7 @@ import torch.distributed as dist
 from omegaconf import OmegaConf
 
 from mmf_rl.checkpoint import CheckpointError, list_checkpoints, remove_leftovers
-from mmf_rl.configuration import ConfigError, compose_config, load_config, save_config, to_container
+from mmf_rl.configuration import ConfigError, load_config, parse_config_command, save_config, to_container
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.devices import resolve_device
@@ -33,6 +34,12 @@ from mmf_rl.objectives import LossConfig
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
 RUN_CONFIG = "config.yaml"
+EXAMPLES = [
+    "mmf-rl train data=so101 trainer.total_steps=500 run_dir=runs/so101",
+    "mmf-rl train data=/path/to/mine.yaml run_dir=runs/mine      # your own data config (mmf-rl inspect writes one)",
+    "mmf-rl train --cfg data.root=/data/mine data.modalities='{cam: observation.images.top}' "
+    "data.target=observation.state   # print the composed config only",
+]
 # Keys that may differ between a run and its resumption (run_dir: the run may have been moved).
 RESUMABLE_CHANGES = {"resume", "trainer.progress_bar", "logger", "num_workers", "run_dir"}
 
@@ -195,8 +202,13 @@ def distributed_failure(error: RuntimeError, run_dir: Path) -> str:
 
 
 def main(argv: list[str]) -> int:
+    command = parse_config_command(argv, "train", "mmf-rl train", "Train a missing-modality forecaster on a LeRobot "
+                                   "dataset (configs/train.yaml composed with your overrides).", EXAMPLES)
     try:
-        cfg = compose_config("train", argv)
+        cfg = command.compose("train")
+        if command.print_config:
+            print(OmegaConf.to_yaml(cfg), end="")
+            return 0
         run_dir = Path(cfg.run_dir).resolve()
         train(cfg)
     except (ConfigError, CheckpointError, TrainingStopped, OSError, ValueError, KeyError) as err:

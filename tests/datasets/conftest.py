@@ -18,8 +18,11 @@ from mmf_rl.datasets.synthetic import (
     make_synthetic_dataset,
 )
 
-# The shared real recordings sit beside the repository (../shared), in CI as here.
+# The shared real recordings sit beside the repository (../shared), in CI as here; a clone on its
+# own has none, and the tests that read them skip.
 SO101_ROOT = Path(__file__).resolve().parents[3] / "shared" / "data" / "so101_record_test"
+needs_so101 = pytest.mark.skipif(not (SO101_ROOT / "meta" / "info.json").is_file(),
+                                 reason=f"the real SO-101 recording is not at {SO101_ROOT} (../shared beside the repo)")
 # Episode 4 (6 frames) is shorter than history + horizon = 7: it must be skipped.
 EPISODE_LENGTHS = [30, 25, 20, 12, 6]
 NAN_FORCE_EPISODE = 1  # force is NaN on frames [5, 10)

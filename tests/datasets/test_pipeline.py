@@ -19,6 +19,7 @@ from tests.datasets.conftest import (
     INVALID_IMAGE_EPISODE,
     NAN_FORCE_EPISODE,
     SO101_ROOT,
+    needs_so101,
     so101_config,
     synthetic_config,
 )
@@ -46,6 +47,7 @@ def all_windows(dataset: WindowDataset):
 # --- the real SO-101 recording: cameras declared, videos absent -------------------------------
 
 
+@needs_so101
 def test_so101_loads_with_cameras_absent_and_warns_naming_files(tmp_path):
     before = {p: p.stat().st_mtime_ns for p in SO101_ROOT.rglob("*")}
     with pytest.warns(UserWarning) as record:
@@ -63,6 +65,7 @@ def test_so101_loads_with_cameras_absent_and_warns_naming_files(tmp_path):
     assert {p: p.stat().st_mtime_ns for p in SO101_ROOT.rglob("*")} == before, "the fixture was written to"
 
 
+@needs_so101
 def test_so101_required_camera_is_a_clear_error(tmp_path):
     config = so101_config(tmp_path)
     config.modalities["front"].required = True
@@ -70,21 +73,22 @@ def test_so101_required_camera_is_a_clear_error(tmp_path):
         WindowDataset(config)
 
 
-def test_bad_feature_name_lists_available_features(tmp_path):
-    config = so101_config(tmp_path, modalities={"state": "observation.stat"})
+def test_bad_feature_name_lists_available_features(synthetic_root, tmp_path):
+    config = synthetic_config(synthetic_root, tmp_path, modalities={"state": "observation.stat"})
     with pytest.raises(ValueError, match=r"'observation\.stat' is not in the dataset.*'observation\.state'"):
         WindowDataset(config)
     with pytest.raises(ValueError, match=r"target.*'nope'.*available features"):
-        WindowDataset(so101_config(tmp_path, target="nope"))
+        WindowDataset(synthetic_config(synthetic_root, tmp_path, target="nope"))
     with pytest.raises(FileNotFoundError, match=r"not a LeRobot dataset.*meta/info\.json"):
-        WindowDataset(so101_config(tmp_path, root=str(tmp_path)))
-    bad_validity = {"state": {"feature": "observation.state", "valid_feature": "observation.state_ok"}}
+        WindowDataset(synthetic_config(tmp_path, tmp_path))
+    bad_validity = {"state": {"feature": STATE_FEATURE, "valid_feature": "observation.state_ok"}}
     with pytest.raises(ValueError, match=r"valid_feature.*'observation\.state_ok' is not in the dataset"):
-        WindowDataset(so101_config(tmp_path, modalities=bad_validity))
-    with pytest.raises(ValueError, match=r"dims \[6\] out of range.*width 6"):
-        WindowDataset(so101_config(tmp_path, target={"feature": "action", "dims": [6]}))
+        WindowDataset(synthetic_config(synthetic_root, tmp_path, modalities=bad_validity))
+    with pytest.raises(ValueError, match=r"dims \[4\] out of range.*width 4"):
+        WindowDataset(synthetic_config(synthetic_root, tmp_path, target={"feature": STATE_FEATURE, "dims": [4]}))
 
 
+@needs_so101
 @pytest.mark.parametrize("stride", [1, 2])
 def test_so101_action_windows_are_the_commands_over_the_horizon(tmp_path, stride):
     """A world model's ``future_action`` on the real SO-101 recording: the actions of frames
@@ -110,15 +114,15 @@ def test_so101_action_windows_are_the_commands_over_the_horizon(tmp_path, stride
     assert plain.cache_path != dataset.cache_path
 
 
-def test_action_feature_errors_name_the_feature(tmp_path):
-    with pytest.raises(ValueError, match=r"action: feature 'act' is not in the dataset.*'action'"):
-        WindowDataset(so101_config(tmp_path, action="act"))
+def test_action_feature_errors_name_the_feature(synthetic_root, tmp_path):
+    with pytest.raises(ValueError, match=r"action: feature 'act' is not in the dataset.*'observation\.state'"):
+        WindowDataset(synthetic_config(synthetic_root, tmp_path, action="act"))
     with pytest.raises(ValueError, match=r"action: feature 'observation\.images\.front' has dtype 'video'.*numeric vector"):
-        WindowDataset(so101_config(tmp_path, action="observation.images.front"))
+        WindowDataset(synthetic_config(synthetic_root, tmp_path, action="observation.images.front"))
     with pytest.raises(ValueError, match=r"dims \[9\] out of range"):
-        WindowDataset(so101_config(tmp_path, action={"feature": "action", "dims": [9]}))
+        WindowDataset(synthetic_config(synthetic_root, tmp_path, action={"feature": STATE_FEATURE, "dims": [9]}))
     with pytest.raises(ValueError, match=r"unknown key.*featur"):
-        so101_config(tmp_path, action={"featur": "action"})
+        synthetic_config(synthetic_root, tmp_path, action={"featur": STATE_FEATURE})
 
 
 def test_config_from_dict_round_trip_and_errors():
@@ -221,11 +225,15 @@ def test_missing_and_undecodable_videos_mark_camera_absent(synthetic_copy, tmp_p
         dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "a"))
     assert not dataset.presence["image"].any() and dataset.presence["state"].all()
 
-    video.unlink()
+    video.unlink()  # declared in meta/info.json, missing on disk
     with pytest.warns(UserWarning, match=rf"{video.name} \(missing\)"):
         dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "b"))
     assert not dataset.presence["image"].any()
     validate_batch(all_windows(dataset), dataset.specs, 4, 3, 2)
+    required = synthetic_config(synthetic_copy, tmp_path / "b")
+    required.modalities["image"].required = True
+    with pytest.raises(FileNotFoundError, match=rf"required modality.*'image'.*observation\.images\.front.*{video.name}"):
+        WindowDataset(required)
 
 
 def test_split_by_episode_and_stats_from_train_only(synthetic_root, tmp_path):

@@ -2,13 +2,21 @@
 
 import warnings
 
+import pytest
 import torch
 from tensordict import TensorDict
 
-from mmf_rl.datasets.protocols import apply_presence_subset, presence_subsets, training_dropout
+from mmf_rl.datasets.config import DataConfig
+from mmf_rl.datasets.protocols import (
+    apply_presence_subset,
+    outage_statistics,
+    presence_subsets,
+    replayed_outage_frames,
+    training_dropout,
+)
 from mmf_rl.datasets.windows import WindowDataset
 from mmf_rl.keys import ModalitySpec, obs_key, present_key, validate_batch
-from tests.datasets.conftest import synthetic_config
+from tests.datasets.conftest import NAN_FORCE_EPISODE, synthetic_config
 
 
 def test_training_dropout_is_seeded_and_exact():
@@ -71,3 +79,61 @@ def test_presence_subsets_names_and_application():
     assert batch.get(present_key("force")).tolist() == [True, True, False], "the input batch was modified"
     assert only_image.get(obs_key("force")).shape == (2, 2, 6)
     validate_batch(only_image, [ModalitySpec("image", "image", (3, 4, 4)), ModalitySpec("force", "sequence", (6,))], 2)
+
+
+# --- outages: measured, replayed ---------------------------------------------------------------
+
+
+def test_outage_statistics_cut_runs_at_episode_ends():
+    present = torch.tensor([1, 0, 0, 1, 0, 0, 0, 1, 0], dtype=torch.bool)
+    episode = torch.tensor([0, 0, 0, 0, 0, 1, 1, 1, 1])
+    # absent runs: [1, 2] and [4] in episode 0, [5, 6] and [8] in episode 1
+    assert outage_statistics(present, episode) == {"fraction": 6 / 9, "outages": 4, "mean_burst": 1.5, "max_burst": 2}
+    assert outage_statistics(torch.ones(4, dtype=torch.bool), torch.zeros(4))["outages"] == 0
+
+
+def test_replayed_outages_have_the_measured_statistics():
+    n, fraction, mean_burst = 100_000, 0.1, 8.0
+    absent = replayed_outage_frames(n, fraction, mean_burst, torch.Generator().manual_seed(0))
+    stats = outage_statistics(~absent, torch.zeros(n, dtype=torch.long))
+    assert abs(stats["fraction"] - fraction) < 0.01 and abs(stats["mean_burst"] - mean_burst) < 0.5
+    again = replayed_outage_frames(n, fraction, mean_burst, torch.Generator().manual_seed(0))
+    assert torch.equal(absent, again)
+
+
+def test_dataset_replays_outages_on_train_windows(synthetic_root, tmp_path):
+    def open_with(missing):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return WindowDataset(synthetic_config(synthetic_root, tmp_path, missing=missing))
+
+    plain = open_with({})
+    train = plain.split_windows["train"]
+    observed = plain.observed_outages
+    nan_force_in_train = NAN_FORCE_EPISODE in plain.split_episodes["train"]
+    assert observed["force"]["outages"] == int(nan_force_in_train) and observed["state"]["fraction"] == 0.0
+    assert observed["force"]["mean_burst"] == (5.0 if nan_force_in_train else 0.0)
+    replayed = open_with({"force": {"fraction": 0.3, "mean_burst": 3}})
+    lost = plain.presence["force"][train] & ~replayed.train_presence["force"][train]
+    assert lost.any() and not (replayed.train_presence["force"][train] & ~plain.presence["force"][train]).any()
+    for split in ("val", "test"):
+        ids = plain.split_windows[split]
+        assert torch.equal(replayed.train_presence["force"][ids], plain.presence["force"][ids])
+    assert torch.equal(replayed.train_presence["image"], plain.presence["image"])
+    assert replayed.config.to_dict()["missing"] == {"force": {"fraction": 0.3, "mean_burst": 3.0}}
+    # "observed" replays what the training split shows: here the camera's and the force's spans.
+    measured = open_with("observed")
+    assert measured.observed_outages == observed
+    changed = {name for name in plain.presence
+               if not torch.equal(measured.train_presence[name], plain.presence[name])}
+    assert changed == {name for name, o in observed.items() if 0 < o["fraction"] < 1}
+
+
+def test_missing_config_errors_name_the_key():
+    d = {"modalities": {"force": "observation.force"}, "target": "observation.state"}
+    with pytest.raises(ValueError, match=r"`missing` must be a mapping .* or 'observed', found 'seen'"):
+        DataConfig.from_dict({**d, "missing": "seen"})
+    with pytest.raises(ValueError, match=r"missing\.force: unknown keys \['mean'\]"):
+        DataConfig.from_dict({**d, "missing": {"force": {"fraction": 0.1, "mean": 3}}})
+    with pytest.raises(ValueError, match=r"0 <= fraction < 1 and mean_burst >= 1"):
+        DataConfig.from_dict({**d, "missing": {"force": {"fraction": 0.1, "mean_burst": 0.5}}})

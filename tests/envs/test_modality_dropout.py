@@ -5,7 +5,13 @@ import torch
 from torchrl.envs import TransformedEnv
 
 from mmf_rl import keys
-from mmf_rl.envs.modality_dropout import GeometricBursts, ModalityDropout, UniformBursts
+from mmf_rl.envs.modality_dropout import (
+    GeometricBursts,
+    ModalityDropout,
+    UniformBursts,
+    outage_start_prob,
+    replay_outages,
+)
 from tests.envs.stamp_env import stamp_envs
 
 
@@ -72,6 +78,23 @@ def test_dropout_bursts_have_the_configured_lengths(bursts):
     else:
         assert lengths.min() == 1 and lengths.max() > 6
         assert abs(lengths.float().mean().item() - 3.0) < 0.6
+
+
+def test_replay_outages_gives_each_modality_its_measured_fraction_and_bursts():
+    outages = {"force": {"fraction": 0.2, "mean_burst": 4.0}, "image": {"fraction": 0.05, "mean_burst": 2.0},
+               "proprio": {"fraction": 0.0, "mean_burst": 0.0}}
+    replay = replay_outages(outages, seed=3)
+    assert [t.modalities for t in replay] == [["force"], ["image"]]  # nothing to replay for proprio
+    td = dropout_rollout(replay, num_envs=4, steps=600)
+    for name in ("force", "image"):
+        present = presence_over_time(td, name)
+        assert abs((~present).float().mean().item() - outages[name]["fraction"]) < 0.04, name
+        lengths = torch.tensor(runs_of_absence(present)).float()
+        assert abs(lengths.mean().item() - outages[name]["mean_burst"]) < 0.25 * outages[name]["mean_burst"], name
+    assert presence_over_time(td, "proprio").all()
+    assert outage_start_prob(0.2, 4.0) == pytest.approx(0.0625)  # 4 / (4 + 1 / p) = 0.2
+    with pytest.raises(ValueError, match="no modality .* has outages to replay"):
+        replay_outages({"proprio": outages["proprio"]})
 
 
 def test_dropout_per_episode_holds_for_the_whole_episode():

@@ -1,0 +1,56 @@
+"""`mmf-rl bench accuracy|data|model|mpc [args]`: the scripts of benchmarks/ from the command line.
+
+Each runs ``benchmarks/<script>.py`` of the repository checkout with the arguments that follow
+(``mmf-rl bench data --help`` shows them) and ends with that script's summary line. The scripts
+ship with the repository, not with the package: a wheel install has none.
+"""
+
+from __future__ import annotations
+
+import argparse
+import runpy
+import sys
+from pathlib import Path
+
+BENCHMARKS_DIR = Path(__file__).resolve().parents[1] / "benchmarks"
+# name -> (script, what it measures)
+BENCHMARKS = {
+    "accuracy": ("accuracy.py", "the paper's table on the push data: every model and missingness protocol"),
+    "data": ("data_throughput.py", "windows/s of the window cache vs lerobot's loader, on any dataset"),
+    "model": ("model_throughput.py", "training samples/s and inference latency of the forecaster"),
+    "mpc": ("mpc_push.py", "MPC with the push world model vs the scripted pusher and a random policy"),
+}
+EXAMPLES = [
+    "mmf-rl bench model --steps 5",
+    "mmf-rl bench data --root /data/mine --data-config mine.yaml   # your dataset, your data config",
+    "mmf-rl bench accuracy --quick",
+]
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="mmf-rl bench", description=__doc__.split("\n\n")[0].split(": ", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="benchmarks:\n" + "\n".join(f"  {name:<9} {what}" for name, (_, what) in BENCHMARKS.items())
+               + "\n\nexamples:\n" + "\n".join(f"  {example}" for example in EXAMPLES),
+    )
+    parser.add_argument("benchmark", choices=sorted(BENCHMARKS), help="which benchmark")
+    parser.add_argument("args", nargs=argparse.REMAINDER, help="the benchmark's own arguments (see BENCHMARK --help)")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str]) -> int:
+    args = parse_args(argv)
+    script = BENCHMARKS_DIR / BENCHMARKS[args.benchmark][0]
+    if not script.is_file():
+        print(f"mmf-rl bench: error: {script} does not exist; the benchmarks ship with the repository, not the "
+              "package: run this from a clone of mmf-rl (git clone, then `make setup`)", file=sys.stderr)
+        return 1
+    saved = sys.argv
+    sys.argv = [str(script), *args.args]
+    try:
+        # The scripts are written for `python benchmarks/X.py`: run them exactly so.
+        runpy.run_path(str(script), run_name="__main__")
+    finally:
+        sys.argv = saved
+    return 0

@@ -1,0 +1,259 @@
+"""`mmf-rl inspect DATASET`: what a LeRobot v3.0 dataset holds, and a data config to train on it.
+
+    mmf-rl inspect /data/my_dataset                              # report + a suggested data config
+    mmf-rl inspect /data/my_dataset --write-config mine.yaml     # ... written to mine.yaml
+    mmf-rl train data=mine.yaml run_dir=runs/mine
+
+The report lists every feature (dtype, shape, names), fps, episodes and frames; for each camera,
+which of its video files exist; for each numeric vector, its NaN/Inf spans; and for every sensor
+that could be a modality, its outages: the fraction of frames it is absent (non-finite values, a
+validity flag saying so, a missing video file) and the lengths of those bursts. The suggested
+config maps cameras and vectors to modalities, forecasts ``observation.state`` (else the first
+observation vector) and, when a sensor has outages, replays them in training
+(``missing: {m: {fraction, mean_burst}}``, see ``mmf_rl.datasets.config.OutageConfig``).
+Video files are checked for existence only, not decoded: an undecodable one shows up when the
+window cache is built.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mmf_rl.configuration import save_config
+from mmf_rl.datasets.config import DataConfig
+from mmf_rl.datasets.lerobot_source import (
+    BOOKKEEPING_FEATURES,
+    _is_numeric,
+    _validity_candidates,
+    open_dataset_metadata,
+    read_frame_columns,
+)
+from mmf_rl.datasets.protocols import outage_statistics
+
+CAMERA_DTYPES = ("video", "image")
+# The suggested image size: the cameras' aspect kept, the longer side at most this, each side a
+# multiple of IMAGE_MULTIPLE (the default image encoder halves the size 4 times).
+SUGGESTED_IMAGE_SIDE = 64
+IMAGE_MULTIPLE = 16
+RESERVED_MODALITY_NAMES = ("target", "future_action")
+SPANS_SHOWN = 5
+
+
+def _is_vector(ft: dict) -> bool:
+    return _is_numeric(ft["dtype"]) and len(ft["shape"]) == 1
+
+
+def _runs(mask: np.ndarray, episode: np.ndarray) -> list[tuple[int, int]]:
+    """``[first, last]`` global frame indices of the runs of True in ``mask``, cut at episode ends."""
+    starts = mask.copy()
+    starts[1:] &= ~mask[:-1] | (episode[1:] != episode[:-1])
+    ends = mask.copy()
+    ends[:-1] &= ~mask[1:] | (episode[1:] != episode[:-1])
+    return list(zip(np.flatnonzero(starts).tolist(), np.flatnonzero(ends).tolist()))
+
+
+def _modality_name(feature: str, taken: set[str]) -> str:
+    """``observation.images.cam_high`` -> ``cam_high``; the whole name (dots as ``_``) on a clash."""
+    name = feature.rsplit(".", 1)[-1]
+    if name in taken or name in RESERVED_MODALITY_NAMES:
+        name = feature.replace(".", "_")
+    return name
+
+
+def _image_size(shape: list[int], names: list[str] | None) -> list[int]:
+    names = names or ["height", "width", "channels"]
+    height, width = (shape[names.index("height")], shape[names.index("width")]) if "height" in names else shape[:2]
+    scale = min(1.0, SUGGESTED_IMAGE_SIDE / max(height, width))
+    return [max(IMAGE_MULTIPLE, round(side * scale / IMAGE_MULTIPLE) * IMAGE_MULTIPLE) for side in (height, width)]
+
+
+def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> dict:
+    """Everything the report shows, as plain data (see the module docstring)."""
+    meta = open_dataset_metadata(root, repo_id)
+    root = Path(meta.root)
+    features = meta.features
+    episodes = [(int(e["episode_index"]), int(e["dataset_from_index"]), int(e["dataset_to_index"]))
+                for e in meta.episodes]
+    cameras = [f for f, ft in features.items() if ft["dtype"] in CAMERA_DTYPES]
+    vectors = [f for f, ft in features.items() if _is_vector(ft) and f not in BOOKKEEPING_FEATURES]
+    validity = {f: next((c for c in _validity_candidates(f) if c in features), None) for f in cameras + vectors}
+    flags = {v for v in validity.values() if v is not None}
+    vectors = [f for f in vectors if f not in flags]
+    columns = read_frame_columns(meta, {"episode_index", *vectors, *flags})
+    n = len(columns["index"])
+    episode = np.asarray(columns["episode_index"]).reshape(n)
+
+    sensors = {}
+    for feature in cameras + vectors:
+        present = np.ones(n, dtype=bool)
+        entry: dict = {"validity_feature": validity[feature]}
+        if feature in vectors:
+            finite = np.isfinite(np.asarray(columns[feature], dtype=np.float64).reshape(n, -1)).all(1)
+            spans = _runs(~finite, episode)
+            entry["nonfinite_frames"] = int((~finite).sum())
+            entry["nonfinite_spans"] = [{"episode": int(episode[a]), "frames": [a - _first(episodes, episode[a]),
+                                                                                b - _first(episodes, episode[a])]}
+                                        for a, b in spans]
+            present &= finite
+        elif features[feature]["dtype"] == "video":
+            missing = []
+            for index, start, stop in episodes:
+                path = root / meta.get_video_file_path(index, feature)
+                if not path.is_file():
+                    missing.append(str(path))
+                    present[start:stop] = False
+            entry["video_files_missing"] = sorted(set(missing))
+            entry["episodes_without_video"] = sum(
+                not (root / meta.get_video_file_path(i, feature)).is_file() for i, _, _ in episodes)
+        if validity[feature] is not None:
+            present &= np.asarray(columns[validity[feature]]).reshape(n, -1).astype(bool).all(1)
+        entry["outages"] = outage_statistics(torch.from_numpy(present), torch.from_numpy(episode))
+        sensors[feature] = entry
+
+    return {
+        "root": str(root),
+        "fps": int(meta.fps),
+        "episodes": len(episodes),
+        "frames": int(meta.total_frames),
+        "episode_frames": [stop - start for _, start, stop in episodes],
+        "features": {f: {"dtype": ft["dtype"], "shape": list(ft["shape"]), "names": ft.get("names")}
+                     for f, ft in features.items()},
+        "cameras": cameras,
+        "vectors": vectors,
+        "validity_features": sorted(flags),
+        "sensors": sensors,
+    }
+
+
+def _first(episodes: list[tuple[int, int, int]], index: int) -> int:
+    return next(start for i, start, _ in episodes if i == index)
+
+
+def suggested_data_config(report: dict, repo_id: str = "local/dataset") -> dict:
+    """A complete data config for the dataset: every camera and vector a modality,
+    ``observation.state`` (else the first observation vector) the target, the sensors' outages
+    replayed in training."""
+    modalities, taken = {}, set()
+    for feature in report["cameras"] + report["vectors"]:
+        name = _modality_name(feature, taken)
+        taken.add(name)
+        modalities[name] = feature
+    vectors = report["vectors"]
+    if not vectors:
+        raise ValueError(f"{report['root']}: the dataset has no numeric vector feature to forecast (features: "
+                         f"{sorted(report['features'])}); mmf-rl forecasts a vector such as observation.state")
+    target = "observation.state" if "observation.state" in vectors else next(
+        (f for f in vectors if f.startswith("observation.")), vectors[0])
+    missing = {}
+    for name, feature in modalities.items():
+        o = report["sensors"][feature]["outages"]
+        if 0.0 < o["fraction"] < 1.0:
+            missing[name] = {"fraction": round(o["fraction"], 4), "mean_burst": round(max(1.0, o["mean_burst"]), 2)}
+    config = {
+        "root": report["root"],
+        "repo_id": repo_id,
+        "history": 10,
+        "horizon": 10,
+        "stride": 1,
+        "modalities": modalities,
+        "target": {"feature": target, "dims": None, "relative": False},
+        "missing": missing,
+        "include_target_past": True,
+        "split_fractions": [0.8, 0.1, 0.1],
+    }
+    if report["cameras"]:
+        first = report["features"][report["cameras"][0]]
+        config["image_size"] = _image_size(first["shape"], first["names"])
+    # Every key written out: a user's file is the whole data config, so `data.KEY=...` overrides any key.
+    return DataConfig.from_dict(config).to_dict()
+
+
+def format_report(report: dict) -> str:
+    lengths = report["episode_frames"]
+    lines = [
+        f"dataset {report['root']}",
+        f"  {report['episodes']} episodes, {report['frames']} frames at {report['fps']} fps "
+        f"(episode length {min(lengths)}..{max(lengths)} frames)" if lengths else "  no episodes",
+        "",
+        "features:",
+    ]
+    for name, ft in report["features"].items():
+        names = ft["names"]
+        if isinstance(names, list) and len(names) > 6:
+            names = names[:6] + [f"... {len(names) - 6} more"]
+        lines.append(f"  {name:<34} {ft['dtype']:<8} {str(ft['shape']):<14} {names if names else ''}".rstrip())
+    lines += ["", "sensors (candidate modalities): outages = frames absent (non-finite, flagged invalid, no video)"]
+    for feature, s in report["sensors"].items():
+        o = s["outages"]
+        kind = "camera" if feature in report["cameras"] else "vector"
+        head = (f"  {feature} ({kind}): {o['fraction']:.1%} of frames absent" +
+                (f", {o['outages']} outages, mean {o['mean_burst']:.1f} / max {o['max_burst']} frames"
+                 if o["outages"] else ""))
+        lines.append(head)
+        if s["validity_feature"]:
+            lines.append(f"    validity flag: {s['validity_feature']}")
+        if kind == "camera" and report["features"][feature]["dtype"] == "image":
+            lines.append("    images stored in the data files (dtype image)")
+        elif kind == "camera":
+            missing = s["video_files_missing"]
+            lines.append(f"    video files: {'all present' if not missing else f'{len(missing)} missing'}"
+                         + (f" ({s['episodes_without_video']} of {report['episodes']} episodes without video)"
+                            if missing else ""))
+            lines += [f"      missing: {p}" for p in missing[:SPANS_SHOWN]]
+        else:
+            spans = s["nonfinite_spans"]
+            found = f"{s['nonfinite_frames']} frames in {len(spans)} spans" if spans else "none"
+            lines.append(f"    NaN/Inf: {found}")
+            lines += [f"      episode {sp['episode']}, frames {sp['frames'][0]}..{sp['frames'][1]}"
+                      for sp in spans[:SPANS_SHOWN]]
+            if len(spans) > SPANS_SHOWN:
+                lines.append(f"      ... {len(spans) - SPANS_SHOWN} more")
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="mmf-rl inspect", description="Report what a LeRobot v3.0 dataset holds (features, cameras, NaN spans, "
+        "sensor outages) and suggest a data config to train on it.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n"
+               "  mmf-rl inspect /data/my_dataset\n"
+               "  mmf-rl inspect /data/my_dataset --write-config mine.yaml && mmf-rl train data=mine.yaml",
+    )
+    parser.add_argument("dataset", type=Path, help="directory of a LeRobot v3.0 dataset (holding meta/info.json)")
+    parser.add_argument("--repo-id", default="local/dataset", help="the repo_id written into the config")
+    parser.add_argument("--write-config", type=Path, metavar="PATH",
+                        help="write the suggested data config to PATH (train with data=PATH) instead of printing it")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str]) -> int:
+    from omegaconf import OmegaConf
+
+    args = parse_args(argv)
+    try:
+        report = inspect_dataset(args.dataset.expanduser().resolve(), args.repo_id)
+        config = suggested_data_config(report, args.repo_id)
+    except (FileNotFoundError, NotADirectoryError, ValueError) as err:
+        if os.environ.get("MMF_RL_DEBUG"):
+            raise
+        print(f"mmf-rl inspect: error: {err}", file=sys.stderr)
+        return 1
+    print(format_report(report))
+    print()
+    header = ("# Data config suggested by `mmf-rl inspect`: edit the modalities, the target and the window,\n"
+              "# then `mmf-rl train data=THIS_FILE`. `missing` replays each sensor's measured outages in training.\n")
+    if args.write_config is not None:
+        path = args.write_config.expanduser().resolve()
+        save_config(config, path, header=header)
+        print(f"data config written to {path}; train with: mmf-rl train data={path}")
+    else:
+        print("suggested data config (mmf-rl inspect DATASET --write-config PATH writes it):")
+        print(header + OmegaConf.to_yaml(config), end="")
+    return 0
