@@ -13,7 +13,7 @@ from mmf_rl.datasets.cache import action_offsets, open_cache, window_offsets
 from mmf_rl.datasets.config import SPLIT_NAMES, DataConfig
 from mmf_rl.datasets.lerobot_source import LeRobotSource
 from mmf_rl.datasets.protocols import training_dropout
-from mmf_rl.datasets.splits import Normalizer, mean_std, split_episodes
+from mmf_rl.datasets.splits import Normalizer, episode_splits, mean_std
 from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, ModalitySpec
 
 
@@ -84,9 +84,7 @@ class WindowDataset:
                 usable &= self.presence[spec.name]
         self.report["skipped"]["windows_without_required_modality"] = int((~usable).sum())
 
-        self.split_episodes = split_episodes(
-            [e[0] for e in self.report["episodes"]], config.split_fractions, config.split_seed
-        )
+        self.split_episodes = episode_splits([e[0] for e in self.report["episodes"]], config)
         self.split_windows = {
             name: (usable & torch.isin(self.window_episode, torch.tensor(episodes, dtype=torch.long)))
             .nonzero().flatten()
