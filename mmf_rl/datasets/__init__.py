@@ -10,6 +10,8 @@ Names are resolved on first use, so importing a submodule (e.g. the recorder) st
 from importlib import import_module
 
 _EXPORTS = {
+    "AugmentConfig": "augment",
+    "ImageAugmentation": "augment",
     "ActionConfig": "config",
     "DataConfig": "config",
     "ModalityConfig": "config",

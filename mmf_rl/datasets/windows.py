@@ -9,6 +9,7 @@ from collections.abc import Iterator
 import torch
 from tensordict import TensorDict
 
+from mmf_rl.datasets.augment import ImageAugmentation
 from mmf_rl.datasets.cache import action_offsets, open_cache, window_offsets
 from mmf_rl.datasets.config import SPLIT_NAMES, DataConfig
 from mmf_rl.datasets.lerobot_source import LeRobotSource
@@ -191,10 +192,12 @@ class WindowDataset:
         return batch
 
     def loader(self, split: str, batch_size: int, shuffle: bool | None = None, seed: int = 0,
-               rank: int = 0, world_size: int = 1, drop_last: bool | None = None) -> WindowLoader:
-        """Batches of ``split``: shuffled (seeded, per epoch) for train by default, sequential otherwise."""
+               rank: int = 0, world_size: int = 1, drop_last: bool | None = None,
+               augment: ImageAugmentation | None = None) -> WindowLoader:
+        """Batches of ``split``: shuffled (seeded, per epoch) for train by default, sequential otherwise.
+        ``augment`` transforms the image modalities of every batch (meant for the training split)."""
         return WindowLoader(self, split, batch_size, shuffle=split == "train" if shuffle is None else shuffle,
-                            seed=seed, rank=rank, world_size=world_size, drop_last=drop_last)
+                            seed=seed, rank=rank, world_size=world_size, drop_last=drop_last, augment=augment)
 
 
 class WindowLoader:
@@ -207,7 +210,8 @@ class WindowLoader:
     """
 
     def __init__(self, dataset: WindowDataset, split: str, batch_size: int, shuffle: bool, seed: int = 0,
-                 rank: int = 0, world_size: int = 1, drop_last: bool | None = None):
+                 rank: int = 0, world_size: int = 1, drop_last: bool | None = None,
+                 augment: ImageAugmentation | None = None):
         if split not in SPLIT_NAMES:
             raise ValueError(f"unknown split {split!r}; expected one of {list(SPLIT_NAMES)}")
         if not 0 <= rank < world_size:
@@ -217,6 +221,7 @@ class WindowLoader:
         self.dataset, self.split, self.batch_size = dataset, split, batch_size
         self.shuffle, self.seed, self.rank, self.world_size = shuffle, seed, rank, world_size
         self.drop_last = shuffle if drop_last is None else drop_last
+        self.augment = augment
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -237,6 +242,9 @@ class WindowLoader:
     def __iter__(self) -> Iterator[TensorDict]:
         ids = self._ids()
         stop = len(ids) // self.batch_size * self.batch_size if self.drop_last else len(ids)
-        for first in range(0, stop, self.batch_size):
-            yield self.dataset.batch(ids[first : first + self.batch_size], self.split)
+        for index, first in enumerate(range(0, stop, self.batch_size)):
+            batch = self.dataset.batch(ids[first : first + self.batch_size], self.split)
+            if self.augment is not None:
+                batch = self.augment(batch, self.epoch, index, self.rank)
+            yield batch
         self.epoch += 1

@@ -22,7 +22,7 @@ import torch.distributed as dist
 from omegaconf import OmegaConf
 
 from mmf_rl.configuration import ConfigError, compose_config, load_config, save_config, to_container
-from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.datasets import AugmentConfig, DataConfig, ImageAugmentation, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.models import build_loss, build_model, saved_config
 from mmf_rl.trainers.checkpoint import CheckpointError, list_checkpoints
@@ -128,7 +128,10 @@ def train(cfg) -> Path:
     model_name = model_cfg.get("name", "forecaster")
     loss = build_loss(model_name, model, to_container(cfg.loss))
     seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents
-    loader = data.loader("train", trainer_cfg.batch_size, seed=trainer_cfg.seed, rank=rank, world_size=world_size)
+    augment_cfg = AugmentConfig.from_dict(to_container(cfg.augment) if "augment" in cfg else None)
+    augment = ImageAugmentation(augment_cfg, data.specs, trainer_cfg.seed) if augment_cfg.enable else None
+    loader = data.loader("train", trainer_cfg.batch_size, seed=trainer_cfg.seed, rank=rank, world_size=world_size,
+                         augment=augment)
     val_loader = data.loader("val", max(trainer_cfg.batch_size, 256))
     denormalize = data.normalizer.denormalize_target
 

@@ -78,12 +78,12 @@ def test_video_and_image_cameras_in_one_dataset(mixed_cameras_root, tmp_path):
     assert all(batch.get(present_key(n)).all() for n in ("wrist", "depth", "top", "joints"))
 
 
-def test_training_reads_every_camera_storage(mixed_cameras_root, tmp_path):
+def test_training_reads_every_camera_storage_with_augmentation(mixed_cameras_root, tmp_path):
     cfg = compose_config("train", [
         f"run_dir={tmp_path / 'run'}", "model.d_model=16", "model.d_latent=4", "model.num_heads=2",
         "model.mlp_hidden=32", "model.head_hidden=32", "trainer.total_steps=4", "trainer.batch_size=8",
         "trainer.eval_every=2", "trainer.checkpoint_every=2", "trainer.warmup_steps=1", "trainer.progress_bar=false",
-        "logger=none", "num_workers=0",
+        "logger=none", "num_workers=0", "augment=crop", f"data.image_size=[{CAMERA_HEIGHT},{CAMERA_WIDTH}]",
     ])
     data = camera_config(mixed_cameras_root, tmp_path / "cache").to_dict()
     data["modalities"]["top"] = {"feature": VIDEO_CAMERA}
