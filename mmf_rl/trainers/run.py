@@ -6,7 +6,11 @@
 
 Top to bottom: compose the config, set up devices and processes, open the window cache, build
 the model and its losses, train with checkpoints, logs and validation, then save the final
-weights. ``resume=true`` continues the run in ``run_dir`` exactly where its last checkpoint was.
+weights. ``resume=true`` continues the run in ``run_dir`` exactly where its last checkpoint was;
+``init_from=RUN_OR_CHECKPOINT`` fine-tunes: a new run starting from another run's (or a
+``save_pretrained`` directory's) weights, with a new optimizer and schedule, at step 0, and the
+normalisation statistics of this run's data. The final model is also written with
+``save_pretrained`` to ``run_dir/model`` (weights, config, statistics, data config).
 """
 
 from __future__ import annotations
@@ -24,11 +28,12 @@ from omegaconf import OmegaConf
 from mmf_rl.configuration import ConfigError, compose_config, load_config, save_config, to_container
 from mmf_rl.datasets import AugmentConfig, DataConfig, ImageAugmentation, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
-from mmf_rl.models import build_loss, build_model, saved_config
+from mmf_rl.models import build_loss, build_model, init_weights_from, saved_config
 from mmf_rl.trainers.checkpoint import CheckpointError, list_checkpoints
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
 RUN_CONFIG = "config.yaml"
+PRETRAINED_DIR = "model"  # run_dir/model: the final weights as save_pretrained writes them
 # Keys that may differ between a run and its resumption (run_dir: the run may have been moved).
 RESUMABLE_CHANGES = {"resume", "trainer.progress_bar", "logger", "num_workers", "run_dir"}
 
@@ -126,6 +131,10 @@ def train(cfg) -> Path:
     model = build_model(model_cfg, data.specs, data_cfg.history, data_cfg.horizon, data.target_dim,
                         action_shape=data.action_shape).to(device)
     model_name = model_cfg.get("name", "forecaster")
+    if cfg.get("init_from") is not None and not cfg.resume:  # resuming restores the run's own weights
+        source = init_weights_from(model, cfg.init_from)
+        if rank == 0:
+            print(f"fine-tuning from {source}: weights copied, new optimizer, step 0")
     loss = build_loss(model_name, model, to_container(cfg.loss))
     seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents
     augment_cfg = AugmentConfig.from_dict(to_container(cfg.augment) if "augment" in cfg else None)
@@ -151,7 +160,9 @@ def train(cfg) -> Path:
     if cfg.resume:
         trainer.resume(run_dir / "checkpoints")
     metrics = trainer.train()
-    if rank == 0:
+    if rank == 0:  # the trained model with what it needs to forecast, ready for from_pretrained / push_to_hub
+        model.normalization_stats, model.data_config = data.normalizer.stats, data_cfg.to_dict()
+        model.save_pretrained(run_dir / PRETRAINED_DIR)
         summary = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
         print(f"trained {trainer.step} steps -> {trainer.last_checkpoint}" + (f" ({summary})" if summary else ""))
     if world_size > 1:
