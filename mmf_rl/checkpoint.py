@@ -207,22 +207,26 @@ def load_checkpoint(path: str | os.PathLike, *, with_trainer_state: bool = True)
     return Checkpoint(path=path, meta=meta, model_state=model_state, tensors=tensors, trainer_state=trainer_state)
 
 
+def state_mismatch(own: dict[str, torch.Tensor], loaded: dict[str, torch.Tensor]) -> str | None:
+    """What differs between a model's state dict and a loaded one (missing, unexpected, shapes); None if nothing."""
+    missing = sorted(set(own) - set(loaded))
+    unexpected = sorted(set(loaded) - set(own))
+    mismatched = [f"{k}: expected {list(v.shape)}, found {list(loaded[k].shape)}"
+                  for k, v in own.items() if k in loaded and loaded[k].shape != v.shape]
+    details = []
+    if missing:
+        details.append(f"missing: {missing[:5]}{' ...' if len(missing) > 5 else ''}")
+    if unexpected:
+        details.append(f"not in the model: {unexpected[:5]}{' ...' if len(unexpected) > 5 else ''}")
+    if mismatched:
+        details.append(f"shape mismatch (model vs saved): {mismatched[:5]}{' ...' if len(mismatched) > 5 else ''}")
+    return "; ".join(details) or None
+
+
 def load_model_state(module: torch.nn.Module, checkpoint: Checkpoint) -> None:
     """Load weights strictly; a mismatch names the keys and shapes on both sides."""
-    own = module.state_dict()
-    missing = sorted(set(own) - set(checkpoint.model_state))
-    unexpected = sorted(set(checkpoint.model_state) - set(own))
-    mismatched = [f"{k}: checkpoint {list(checkpoint.model_state[k].shape)} vs model {list(v.shape)}"
-                  for k, v in own.items() if k in checkpoint.model_state and checkpoint.model_state[k].shape != v.shape]
-    if missing or unexpected or mismatched:
-        details = []
-        if missing:
-            details.append(f"missing from the checkpoint: {missing[:5]}{' ...' if len(missing) > 5 else ''}")
-        if unexpected:
-            details.append(f"not in the model: {unexpected[:5]}{' ...' if len(unexpected) > 5 else ''}")
-        if mismatched:
-            details.append(f"shape mismatch: {mismatched[:5]}{' ...' if len(mismatched) > 5 else ''}")
-        raise CheckpointError(f"{checkpoint.path} was saved from a different model configuration ("
-                              + "; ".join(details) + "); build the model from the checkpoint's own config "
-                              f"({META_FILE} 'config')")
+    mismatch = state_mismatch(module.state_dict(), checkpoint.model_state)
+    if mismatch:
+        raise CheckpointError(f"{checkpoint.path} was saved from a different model configuration ({mismatch}); "
+                              f"build the model from the checkpoint's own config ({META_FILE} 'config')")
     module.load_state_dict(checkpoint.model_state)

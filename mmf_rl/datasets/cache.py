@@ -58,7 +58,14 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 from mmf_rl import keys
-from mmf_rl.datasets.lerobot_source import LeRobotSource, VideoJob, clear_decoders, run_video_job
+from mmf_rl.datasets.lerobot_source import (
+    LeRobotSource,
+    VideoJob,
+    clear_decoders,
+    decode_images,
+    run_video_job,
+    to_cache_frames,
+)
 
 # 2: cache.json records each file's size and checksum; 3: Inf targets stored as 0, windows need a
 # finite target at their last observed frame
@@ -90,7 +97,10 @@ POOL_MIN_FRAMES = 3000
 def fingerprint(source: LeRobotSource) -> str:
     """Hash of the dataset's files (relative path, size, mtime) and the content-deciding config."""
     digest = hashlib.sha256()
-    digest.update(json.dumps({"format": CACHE_FORMAT, "config": source.config.cache_fields()}, sort_keys=True).encode())
+    key = {"format": CACHE_FORMAT, "config": source.config.cache_fields()}
+    if not source.selected_all:  # only then: caches of whole datasets keep their key
+        key["episodes"] = [e.index for e in source.episodes]
+    digest.update(json.dumps(key, sort_keys=True).encode())
     for path in source.files():
         stat = path.stat()
         digest.update(f"{path.relative_to(source.root)}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
@@ -134,7 +144,7 @@ def _frame_columns(source: LeRobotSource, columns: dict[str, np.ndarray]) -> dic
     obs, present = {}, {}
     for name, m in source.modalities.items():
         ok = torch.ones(n, dtype=torch.bool)
-        if not m.is_video:
+        if not m.is_camera:
             obs[name], finite = _vector_column(columns[m.feature], m.dims, n)
             ok &= finite
         if m.valid_feature is not None:
@@ -171,6 +181,7 @@ def _video_jobs(source: LeRobotSource, columns: dict, frames_dir: Path, missing:
                 frames_dir=str(frames_dir), image_size=tuple(source.config.image_size),
                 tolerance_s=source.config.tolerance_s,
                 source_frame_values=int(np.prod(source.features[m.feature]["shape"])),
+                channels=m.spec.shape[0],
             ))
     return jobs
 
@@ -230,6 +241,35 @@ def _decode(jobs: list[VideoJob], num_workers: int | None, progress: Path,
     return failed
 
 
+def _decode_parquet_images(source: LeRobotSource, frames: TensorDict) -> dict[str, dict[str, str]]:
+    """Decode the cameras stored as images in the parquet files into ``frames``, one episode at a time
+    (bounded memory). A frame whose image cannot be decoded is marked absent; returns, per
+    modality, ``{"<data dir> episode E frame F": error}`` for the first few of them."""
+    undecodable: dict[str, dict[str, str]] = {}
+    cameras = [(name, m) for name, m in source.modalities.items() if m.storage == "image"]
+    total = sum(e.stop - e.start for e in source.episodes) * len(cameras)
+    with tqdm(total=total, desc="decoding images into the window cache", unit="frame", disable=not cameras) as bar:
+        for name, m in cameras:
+            destination = frames.get(keys.obs_key(name))
+            present = frames.get(keys.present_key(name))
+            channels = m.spec.shape[0]
+            for episode in source.episodes:
+                rows = slice(episode.start, episode.stop)
+                decoded, errors = decode_images(source.read_images(name, rows), channels, source.root)
+                episode_frames = torch.zeros((len(decoded), *m.spec.shape), dtype=torch.uint8)
+                for offset, (frame, error) in enumerate(zip(decoded, errors)):
+                    if frame is None:
+                        present[episode.start + offset] = False
+                        failures = undecodable.setdefault(name, {})
+                        if len(failures) < 10:
+                            failures[f"{source.root / 'data'} episode {episode.index} frame {offset}"] = error
+                        continue
+                    episode_frames[offset] = to_cache_frames(frame[None], source.config.image_size, channels)[0]
+                destination[rows] = episode_frames
+                bar.update(episode.stop - episode.start)
+    return undecodable
+
+
 def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> dict:
     """Build the cache's files in ``directory``; continue the build a killed process left there."""
     columns = source.read_columns()
@@ -253,7 +293,7 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
               "video jobs already decoded", file=sys.stderr)
     failed += _decode(todo, num_workers, directory / PROGRESS_FILE,
                       done_frames=sum(len(j.timestamps) for j in jobs) - sum(len(j.timestamps) for j in todo))
-    undecodable: dict[str, dict[str, str]] = {}
+    undecodable: dict[str, dict[str, str]] = _decode_parquet_images(source, frames)
     for job, error, decoded in failed:
         undecodable.setdefault(job.modality, {})[job.video_path] = error
         frames.get(keys.present_key(job.modality))[job.row_start + decoded : job.row_start + len(job.timestamps)] = False

@@ -117,6 +117,12 @@ class DataConfig:
 
     ``action`` (optional) adds the actions applied over the horizon to every window, for an
     action-conditioned world model (see :class:`ActionConfig`).
+
+    Episodes, as lerobot selects them: ``episodes`` (a list of episode indices; default all) minus
+    ``exclude_episodes``; only those are decoded into the window cache. The split is by episode:
+    ``split_fractions`` cut the selected episodes at random (``split_seed``), or ``split`` names
+    them, ``{train: [...], val: [...], test: [...]}`` (a split left out is empty; without
+    ``episodes``, the union of the lists is the selection).
     """
 
     modalities: dict[str, ModalityConfig]
@@ -136,8 +142,12 @@ class DataConfig:
     tolerance_s: float = 1e-4
     cache_dir: str | None = None
     action: ActionConfig | None = None
+    episodes: list[int] | None = None
+    exclude_episodes: list[int] = field(default_factory=list)
+    split: dict[str, list[int]] | None = None
 
     def __post_init__(self):
+        self._check_episode_lists()
         if not self.modalities:
             raise ValueError("data config: `modalities` is empty; map at least one name to a dataset feature")
         reserved = {"target", "future_action"} & set(self.modalities)
@@ -169,6 +179,41 @@ class DataConfig:
                 raise ValueError(f"data config: `missing.{name}` must be a fraction in [0, 1], found {p}")
         if self.std_floor <= 0:
             raise ValueError(f"data config: `std_floor` must be > 0, found {self.std_floor}")
+
+    def _check_episode_lists(self) -> None:
+        def ids(value, key: str) -> list[int]:
+            if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__"):
+                raise ValueError(f"data config: `{key}` must be a list of episode indices, found {value!r}")
+            out = []
+            for e in value:
+                if isinstance(e, bool) or not isinstance(e, int) or e < 0:
+                    raise ValueError(f"data config: `{key}` must hold episode indices (integers >= 0), found {e!r}")
+                out.append(int(e))
+            repeated = sorted({e for e in out if out.count(e) > 1})
+            if repeated:
+                raise ValueError(f"data config: `{key}` lists episode(s) {repeated} more than once")
+            return out
+
+        if self.episodes is not None:
+            self.episodes = ids(self.episodes, "episodes")
+        self.exclude_episodes = ids(self.exclude_episodes or [], "exclude_episodes")
+        if self.split is None:
+            return
+        if not isinstance(self.split, dict):
+            raise ValueError(f"data config: `split` must map {list(SPLIT_NAMES)} to episode lists, found {self.split!r}")
+        unknown = sorted(set(self.split) - set(SPLIT_NAMES))
+        if unknown:
+            raise ValueError(f"data config: `split` has unknown split(s) {unknown}; expected some of {list(SPLIT_NAMES)}")
+        self.split = {str(name): ids(value or [], f"split.{name}") for name, value in self.split.items()}
+        if not self.split.get("train"):
+            raise ValueError("data config: `split.train` is empty; an explicit split needs training episodes")
+        names = list(self.split)
+        for i, a in enumerate(names):
+            for b in names[i + 1 :]:
+                both = sorted(set(self.split[a]) & set(self.split[b]))
+                if both:
+                    raise ValueError(f"data config: episode(s) {both} are in both `split.{a}` and `split.{b}`; "
+                                     "an episode belongs to one split")
 
     @classmethod
     def from_dict(cls, d: dict) -> DataConfig:

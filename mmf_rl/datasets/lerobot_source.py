@@ -1,7 +1,9 @@
 """Reading a LeRobot v3.0 dataset through lerobot's own metadata, parquet and video utilities.
 
-Only what lerobot does not provide lives here: mapping features to modalities, finding which
-video files exist, and decoding whole episodes (resized, uint8) straight into the window cache.
+Only what lerobot does not provide lives here: mapping features to modalities, selecting
+episodes, finding which video files exist, and decoding whole episodes (resized, uint8) straight
+into the window cache, from videos (``dtype: video``) or from images stored in the parquet files
+(``dtype: image``, what ``LeRobotDataset.create(use_videos=False)`` writes).
 lerobot is imported lazily: importing it costs seconds, and spawned decode workers only need
 its video utilities.
 """
@@ -23,6 +25,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from mmf_rl.datasets.config import DataConfig
+from mmf_rl.datasets.splits import select_episodes
 from mmf_rl.keys import ModalitySpec, obs_key
 
 # Bytes of decoded frames per decode call: lerobot returns float32 frames at full resolution,
@@ -55,17 +58,23 @@ class ResolvedModality:
     feature: str
     dims: list[int] | None
     valid_feature: str | None
+    storage: str  # "video" (mp4 files), "image" (encoded images in the parquet files) or "vector"
 
     @property
     def is_video(self) -> bool:
-        return self.spec.kind == "image"
+        return self.storage == "video"
+
+    @property
+    def is_camera(self) -> bool:
+        return self.storage in ("video", "image")
 
 
 @dataclass(frozen=True)
 class Episode:
     index: int
-    start: int  # first global frame index
-    stop: int  # one past the last
+    start: int  # its first row in the window cache (the global frame index when every episode is selected)
+    stop: int  # one past its last row
+    first_frame: int  # the global frame index of its first frame
 
 
 def open_metadata(config: DataConfig):
@@ -231,6 +240,11 @@ def _check_info(path: Path, info: dict) -> None:
                 f"per frame (more than {MAX_FRAME_VALUES}); this is not a real sensor. Restore info.json from "
                 "the original dataset"
             )
+        if ft["dtype"] == "image" and len(shape) not in (2, 3):
+            raise ValueError(
+                f"{path}: image feature {name!r} `shape` should be [height, width, channels] or [height, width], "
+                f"found {shape}"
+            )
     absent = [c for c in FRAME_COLUMNS if c not in features]
     if absent:
         raise ValueError(f"{path}: `features` lacks the per-frame column(s) {absent} every LeRobot dataset has")
@@ -284,6 +298,22 @@ def _validity_candidates(feature: str) -> list[str]:
     return candidates
 
 
+def _camera_channels(feature: str, ft: dict, info_path: Path) -> int:
+    """Channels of a camera feature: 3 (colour) or 1 (grey, depth). ``shape`` is ``[h, w, c]`` unless
+    ``names`` puts ``channels`` elsewhere; a 2-D ``[h, w]`` image has one channel."""
+    shape = list(ft["shape"])
+    if len(shape) == 2:
+        return 1
+    names = ft.get("names") or ["height", "width", "channels"]
+    channels = int(shape[names.index("channels")]) if "channels" in names else int(shape[-1])
+    if channels not in (1, 3):
+        raise ValueError(
+            f"{info_path}: camera feature {feature!r} has {channels} channels (shape {shape}, names {names}); "
+            "mmf-rl reads colour (3) or single-channel (1, e.g. depth) cameras"
+        )
+    return channels
+
+
 def _check_dims(dims: list[int] | None, width: int, what: str) -> None:
     if dims is not None and (not dims or min(dims) < 0 or max(dims) >= width):
         raise ValueError(f"{what}: dims {dims} out of range for a feature of width {width} (valid: 0..{width - 1})")
@@ -303,12 +333,18 @@ class LeRobotSource:
         if config.action is not None:
             self.action_feature, self.action_dim = self._resolve_vector(config.action.feature, config.action.dims,
                                                                         "action")
-        self.episodes = [
-            Episode(int(e["episode_index"]), int(e["dataset_from_index"]), int(e["dataset_to_index"]))
-            for e in self.meta.episodes
-        ]
+        # As meta/episodes declares them (start/stop: global frame indices), checked before any use.
+        declared = [Episode(int(e["episode_index"]), int(e["dataset_from_index"]), int(e["dataset_to_index"]),
+                            int(e["dataset_from_index"])) for e in self.meta.episodes]
         self._check_data_files()
-        self._check_episode_ranges()
+        self._check_episode_ranges(declared)
+        selected = set(select_episodes([e.index for e in declared], config, self.root))
+        self.selected_all = len(selected) == len(declared)
+        self.episodes, row = [], 0
+        for episode in sorted(declared, key=lambda e: e.start):  # cache rows follow the global frame index
+            if episode.index in selected:
+                self.episodes.append(Episode(episode.index, row, row + episode.stop - episode.start, episode.start))
+                row += episode.stop - episode.start
         self._check_window_fits()
 
     @property
@@ -358,20 +394,20 @@ class LeRobotSource:
         return self.root / DEFAULT_EPISODES_PATH.format(chunk_index=int(row["meta/episodes/chunk_index"]),
                                                         file_index=int(row["meta/episodes/file_index"]))
 
-    def _check_episode_ranges(self) -> None:
-        """Every episode's ``[dataset_from_index, dataset_to_index)`` lies in the data's frames, and no
-        two overlap: each frame belongs to at most one episode (checked before anything is indexed)."""
+    def _check_episode_ranges(self, episodes: list[Episode]) -> None:
+        """Every declared episode's ``[dataset_from_index, dataset_to_index)`` lies in the data's frames,
+        and no two overlap: each frame belongs to at most one episode (checked before anything is indexed)."""
         total = self.meta.total_frames
-        for position, episode in enumerate(self.episodes):
+        for position, episode in enumerate(episodes):
             if not 0 <= episode.start <= episode.stop <= total:
                 raise ValueError(
                     f"{self._episodes_file(position)}: episode {episode.index} has dataset_from_index="
                     f"{episode.start}, dataset_to_index={episode.stop}; expected 0 <= from <= to <= {total} "
                     f"(total_frames in {self.root / INFO_FILE}). Restore meta/episodes from the original dataset"
                 )
-        ordered = sorted(range(len(self.episodes)), key=lambda i: self.episodes[i].start)
+        ordered = sorted(range(len(episodes)), key=lambda i: episodes[i].start)
         for before, after in itertools.pairwise(ordered):
-            a, b = self.episodes[before], self.episodes[after]
+            a, b = episodes[before], episodes[after]
             if b.start < a.stop:
                 raise ValueError(
                     f"{self._episodes_file(after)}: episode {b.index} (frames {b.start}..{b.stop - 1}, "
@@ -402,7 +438,7 @@ class LeRobotSource:
         if self.action_feature is not None:
             columns.add(self.action_feature)
         for m in self.modalities.values():
-            if not m.is_video:
+            if not m.is_camera:
                 columns.add(m.feature)
             if m.valid_feature is not None:
                 columns.add(m.valid_feature)
@@ -466,25 +502,19 @@ class LeRobotSource:
         what = f"modality {name!r}"
         feature = self._require_feature(cfg.feature, what)
         ft = self.features[feature]
-        if ft["dtype"] == "image":
-            raise ValueError(
-                f"{what}: feature {feature!r} stores images inside the parquet files (dtype 'image'); "
-                "mmf-rl reads cameras from videos: record the dataset with use_videos=True"
-            )
-        if ft["dtype"] == "video":
+        if ft["dtype"] in ("video", "image"):
             if cfg.kind not in (None, "image"):
-                raise ValueError(f"{what}: feature {feature!r} is a video, so kind must be 'image', found {cfg.kind!r}")
-            names = ft.get("names") or ["height", "width", "channels"]
-            channels = int(ft["shape"][names.index("channels")]) if "channels" in names else 3
-            shape = (channels, *self.config.image_size)
-            kind, dims = "image", None
+                raise ValueError(f"{what}: feature {feature!r} is a camera ({ft['dtype']}), so kind must be 'image', "
+                                 f"found {cfg.kind!r}")
+            shape = (_camera_channels(feature, ft, self.root / INFO_FILE), *self.config.image_size)
+            kind, dims, storage = "image", None, ft["dtype"]
         else:
             width = self._vector_width(feature, what)
             _check_dims(cfg.dims, width, f"{what} ({feature!r})")
             kind = cfg.kind or "sequence"
             if kind == "image":
                 raise ValueError(f"{what}: feature {feature!r} is a vector, so kind cannot be 'image'")
-            dims = cfg.dims
+            dims, storage = cfg.dims, "vector"
             shape = (len(dims) if dims is not None else width,)
         valid = cfg.valid_feature
         if valid is not None:
@@ -492,7 +522,7 @@ class LeRobotSource:
         else:
             valid = next((c for c in _validity_candidates(feature) if c in self.features), None)
         spec = ModalitySpec(name=name, kind=kind, shape=shape, encoder=cfg.encoder, required=cfg.required)
-        return ResolvedModality(spec=spec, feature=feature, dims=dims, valid_feature=valid)
+        return ResolvedModality(spec=spec, feature=feature, dims=dims, valid_feature=valid, storage=storage)
 
     def video_path(self, episode: int, feature: str) -> Path:
         path = self.root / self.meta.get_video_file_path(episode, feature)
@@ -538,22 +568,64 @@ class LeRobotSource:
         return missing
 
     def read_columns(self) -> dict[str, np.ndarray]:
-        """The per-frame columns the pipeline needs, ordered by the global frame ``index``."""
-        return read_frame_columns(self.meta, self._columns())
+        """The per-frame columns the pipeline needs, rows in cache order (selected episodes by frame ``index``).
+
+        Keeps the dataset open for :meth:`read_images`.
+        """
+        try:
+            hf = load_frame_data(self.meta, None if self.selected_all else [e.index for e in self.episodes])
+            data = hf.select_columns(sorted(self._columns())).with_format("numpy")[:]
+        except Exception as error:  # noqa: BLE001 - footers and schemas were fine: a damaged page or a cast
+            raise _data_error(self.root, error) from None
+        order = np.argsort(data["index"], kind="stable")
+        data = {k: np.asarray(v)[order] for k, v in data.items()}
+        self._hf, self._row_order = hf, order
+        if self.selected_all:
+            expected = np.arange(self.meta.total_frames)
+            declared = f"meta/info.json total_frames={len(expected)}"
+        else:
+            expected = np.concatenate([np.arange(e.first_frame, e.first_frame + e.stop - e.start) for e in self.episodes])
+            declared = f"meta/episodes of the selected episodes {[e.index for e in self.episodes]}"
+        if len(data["index"]) != len(expected) or not np.array_equal(data["index"], expected):
+            raise ValueError(
+                f"{self.root / 'data'}: frame `index` column should hold {len(expected)} frames "
+                f"{expected[0] if len(expected) else None}..{expected[-1] if len(expected) else None} "
+                f"({declared}), found {len(data['index'])} rows "
+                f"from {data['index'].min() if len(data['index']) else None} to "
+                f"{data['index'].max() if len(data['index']) else None}"
+            )
+        return data
+
+    def read_images(self, name: str, rows: slice) -> list:
+        """Encoded images (``{"bytes", "path"}`` entries) of camera ``name`` for cache ``rows``
+        (after :meth:`read_columns`)."""
+        feature = self.modalities[name].feature
+        return self._hf.select_columns([feature]).select(self._row_order[rows])[feature]
 
     def files(self) -> list[Path]:
         """Every file that makes up the dataset: what the cache fingerprint covers."""
         return sorted(p for sub in ("meta", "data", "videos") for p in (self.root / sub).rglob("*") if p.is_file())
 
 
+def load_frame_data(meta, episodes: list[int] | None = None):
+    """The frames of ``episodes`` (all when ``None``) of the dataset ``meta`` describes, through lerobot's
+    loader (a memory-mapped Hugging Face dataset), with image features left encoded."""
+    import datasets
+    from lerobot.datasets.utils import get_hf_features_from_features, load_nested_dataset
+
+    features = get_hf_features_from_features(meta.features)
+    for name, ft in meta.features.items():
+        if ft["dtype"] == "image":  # decoded later, in chunks, straight into the cache (not by PIL, per row)
+            features[name] = datasets.Image(decode=False)
+    return load_nested_dataset(Path(meta.root) / "data", features=features, episodes=episodes)
+
+
 def read_frame_columns(meta, columns) -> dict[str, np.ndarray]:
     """Per-frame ``columns`` of the dataset ``meta`` describes (its ``LeRobotDatasetMetadata``), read
     through lerobot's loader and ordered by the global frame ``index``."""
-    from lerobot.datasets.utils import get_hf_features_from_features, load_nested_dataset
-
     root = Path(meta.root)
     try:
-        hf = load_nested_dataset(root / "data", features=get_hf_features_from_features(meta.features))
+        hf = load_frame_data(meta)
         data = hf.select_columns(sorted({*columns, "index"})).with_format("numpy")[:]
     except Exception as error:  # noqa: BLE001 - footers and schemas were fine: a damaged page or a cast
         raise _data_error(root, error) from None
@@ -596,6 +668,46 @@ class VideoJob:
     image_size: tuple[int, int]
     tolerance_s: float
     source_frame_values: int  # values in one decoded frame (C * H * W at the video's resolution)
+    channels: int = 3  # the modality's: 1 stores a grey (depth) video as one channel
+
+
+def to_cache_frames(frames, image_size: tuple[int, int], channels: int):
+    """Float frames ``[n, C, h, w]`` in [0, 1] -> the cache's ``uint8 [n, channels, *image_size]``."""
+    import torch
+    import torch.nn.functional as F
+    from torchvision.transforms.v2.functional import rgb_to_grayscale
+
+    if frames.shape[1] != channels:  # a video decodes to RGB even when it stores one channel
+        frames = rgb_to_grayscale(frames) if channels == 1 else frames.expand(-1, 3, -1, -1)
+    if tuple(frames.shape[-2:]) != tuple(image_size):
+        frames = F.interpolate(frames, size=image_size, mode="bilinear", antialias=True, align_corners=False)
+    return (frames * 255).round_().clamp_(0, 255).to(torch.uint8)
+
+
+def decode_images(entries: list, channels: int, root: Path) -> tuple[list, list[str | None]]:
+    """Encoded images as ``datasets.Image`` stores them (``{"bytes", "path"}``) -> float ``[C, h, w]``
+    frames in [0, 1] (``None`` where one cannot be read) and each one's error text."""
+    import torch
+    from torchvision.io import ImageReadMode, decode_image
+    from torchvision.transforms.v2.functional import to_dtype
+
+    mode = ImageReadMode.GRAY if channels == 1 else ImageReadMode.RGB
+    frames, errors = [], []
+    for entry in entries:
+        try:
+            data = (entry or {}).get("bytes")
+            if data is None:  # a dataset that references image files instead of embedding them
+                path = (entry or {}).get("path")
+                if not path:
+                    raise ValueError("no image bytes and no path")
+                data = (root / path if not Path(path).is_absolute() else Path(path)).read_bytes()
+            image = decode_image(torch.frombuffer(bytearray(data), dtype=torch.uint8), mode=mode)
+            frames.append(to_dtype(image, torch.float32, scale=True))  # 8- or 16-bit (depth) PNGs alike
+            errors.append(None)
+        except Exception as error:  # noqa: BLE001 - an unreadable frame means "camera absent" there
+            frames.append(None)
+            errors.append(f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}")
+    return frames, errors
 
 
 _decoder_cache = None
@@ -623,8 +735,6 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
     A video shorter than its parquet rows (the rows' timestamps run past its last frame) gives its
     frames up to its end; the error names both lengths, and the rows past the end stay undecoded.
     """
-    import torch
-    import torch.nn.functional as F
     from lerobot.datasets.video_utils import decode_video_frames_torchcodec
     from tensordict import TensorDict
 
@@ -646,11 +756,9 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
             stamps = list(job.timestamps[offset : min(offset + chunk, decoded)])
             frames = decode_video_frames_torchcodec(
                 job.video_path, stamps, job.tolerance_s, decoder_cache=_decoders()
-            )  # float32 [n, C, h, w] in [0, 1]
-            if tuple(frames.shape[-2:]) != job.image_size:
-                frames = F.interpolate(frames, size=job.image_size, mode="bilinear", antialias=True, align_corners=False)
+            )  # float32 [n, 3, h, w] in [0, 1]
             start = job.row_start + offset
-            destination[start : start + len(stamps)] = (frames * 255).round_().clamp_(0, 255).to(torch.uint8)
+            destination[start : start + len(stamps)] = to_cache_frames(frames, job.image_size, job.channels)
     except Exception as error:  # noqa: BLE001 - any decoder failure means "camera absent", reported by file
         return job, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}", 0
     return job, short, decoded

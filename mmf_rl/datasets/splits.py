@@ -2,9 +2,64 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 
-from mmf_rl.datasets.config import SPLIT_NAMES
+from mmf_rl.datasets.config import SPLIT_NAMES, DataConfig
+
+
+def _ranges(ids: list[int]) -> str:
+    """``[0, 1, 2, 5]`` -> ``"0..2, 5"``: how a dataset's episode ids are named in an error."""
+    parts, ids = [], sorted(ids)
+    for i, e in enumerate(ids):
+        if i and e == ids[i - 1] + 1:
+            continue
+        end = e
+        while end + 1 in ids:
+            end += 1
+        parts.append(str(e) if end == e else f"{e}..{end}")
+    return ", ".join(parts)
+
+
+def select_episodes(available: list[int], config: DataConfig, root: Path | str) -> list[int]:
+    """The episodes the config selects, checked against the dataset's ``available`` ids.
+
+    ``episodes`` (default: all, or the union of an explicit ``split``) minus ``exclude_episodes``.
+    An id the dataset lacks, a split episode left out of the selection, or an empty selection is
+    an error naming the key, the ids and what the dataset has.
+    """
+    lists = {"episodes": config.episodes or [], "exclude_episodes": config.exclude_episodes}
+    lists.update({f"split.{name}": ids for name, ids in (config.split or {}).items()})
+    for key, ids in lists.items():
+        unknown = sorted(set(ids) - set(available))
+        if unknown:
+            raise ValueError(f"data config: `{key}` lists episode(s) {unknown} that the dataset at {root} does not "
+                             f"have (its episodes: {_ranges(available)})")
+    in_split = sorted({e for ids in (config.split or {}).values() for e in ids})
+    if config.episodes is not None:
+        selected = set(config.episodes)
+    else:
+        selected = set(in_split) if config.split is not None else set(available)
+    selected -= set(config.exclude_episodes)
+    for name, ids in (config.split or {}).items():
+        left_out = sorted(set(ids) - selected)
+        if left_out:
+            why = ("excluded by `exclude_episodes`" if set(left_out) & set(config.exclude_episodes)
+                   else "not in `episodes`")
+            raise ValueError(f"data config: `split.{name}` lists episode(s) {left_out}, {why}; select them or "
+                             f"remove them from `split.{name}`")
+    if not selected:
+        raise ValueError(f"data config: the episode selection (episodes={config.episodes}, exclude_episodes="
+                         f"{config.exclude_episodes}) leaves no episode of {root} (its episodes: {_ranges(available)})")
+    return sorted(selected)
+
+
+def episode_splits(episodes: list[int], config: DataConfig) -> dict[str, list[int]]:
+    """Train/val/test episodes: the config's explicit ``split`` lists, else ``split_fractions``."""
+    if config.split is not None:
+        return {name: sorted(config.split.get(name, [])) for name in SPLIT_NAMES}
+    return split_episodes(episodes, config.split_fractions, config.split_seed)
 
 
 def split_episodes(episodes: list[int], fractions: tuple[float, float, float], seed: int) -> dict[str, list[int]]:

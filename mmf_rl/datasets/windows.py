@@ -9,11 +9,12 @@ from collections.abc import Iterator
 import torch
 from tensordict import TensorDict
 
+from mmf_rl.datasets.augment import ImageAugmentation
 from mmf_rl.datasets.cache import action_offsets, open_cache, window_offsets
 from mmf_rl.datasets.config import OBSERVED, SPLIT_NAMES, DataConfig
 from mmf_rl.datasets.lerobot_source import LeRobotSource
 from mmf_rl.datasets.protocols import outage_statistics, replay_outages, training_dropout
-from mmf_rl.datasets.splits import Normalizer, mean_std, split_episodes
+from mmf_rl.datasets.splits import Normalizer, episode_splits, mean_std
 from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, ModalitySpec
 
 
@@ -86,9 +87,7 @@ class WindowDataset:
                 usable &= self.presence[spec.name]
         self.report["skipped"]["windows_without_required_modality"] = int((~usable).sum())
 
-        self.split_episodes = split_episodes(
-            [e[0] for e in self.report["episodes"]], config.split_fractions, config.split_seed
-        )
+        self.split_episodes = episode_splits([e[0] for e in self.report["episodes"]], config)
         self.split_windows = {
             name: (usable & torch.isin(self.window_episode, torch.tensor(episodes, dtype=torch.long)))
             .nonzero().flatten()
@@ -156,7 +155,7 @@ class WindowDataset:
         """Per modality, the outages of its per-frame presence in the training episodes
         (:func:`outage_statistics`): what ``missing: observed`` replays."""
         train_frames = torch.isin(self.frame_episode, torch.tensor(self.split_episodes["train"], dtype=torch.long))
-        return {spec.name: outage_statistics(_plain(frames.get(("present", spec.name)))[train_frames],
+        return {spec.name: outage_statistics(_plain(frames.get(spec.present_key))[train_frames],
                                              self.frame_episode[train_frames])
                 for spec in self.specs}
 
@@ -213,10 +212,12 @@ class WindowDataset:
         return batch
 
     def loader(self, split: str, batch_size: int, shuffle: bool | None = None, seed: int = 0,
-               rank: int = 0, world_size: int = 1, drop_last: bool | None = None) -> WindowLoader:
-        """Batches of ``split``: shuffled (seeded, per epoch) for train by default, sequential otherwise."""
+               rank: int = 0, world_size: int = 1, drop_last: bool | None = None,
+               augment: ImageAugmentation | None = None) -> WindowLoader:
+        """Batches of ``split``: shuffled (seeded, per epoch) for train by default, sequential otherwise.
+        ``augment`` transforms the image modalities of every batch (meant for the training split)."""
         return WindowLoader(self, split, batch_size, shuffle=split == "train" if shuffle is None else shuffle,
-                            seed=seed, rank=rank, world_size=world_size, drop_last=drop_last)
+                            seed=seed, rank=rank, world_size=world_size, drop_last=drop_last, augment=augment)
 
 
 class WindowLoader:
@@ -229,7 +230,8 @@ class WindowLoader:
     """
 
     def __init__(self, dataset: WindowDataset, split: str, batch_size: int, shuffle: bool, seed: int = 0,
-                 rank: int = 0, world_size: int = 1, drop_last: bool | None = None):
+                 rank: int = 0, world_size: int = 1, drop_last: bool | None = None,
+                 augment: ImageAugmentation | None = None):
         if split not in SPLIT_NAMES:
             raise ValueError(f"unknown split {split!r}; expected one of {list(SPLIT_NAMES)}")
         if not 0 <= rank < world_size:
@@ -239,6 +241,7 @@ class WindowLoader:
         self.dataset, self.split, self.batch_size = dataset, split, batch_size
         self.shuffle, self.seed, self.rank, self.world_size = shuffle, seed, rank, world_size
         self.drop_last = shuffle if drop_last is None else drop_last
+        self.augment = augment
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
@@ -259,6 +262,9 @@ class WindowLoader:
     def __iter__(self) -> Iterator[TensorDict]:
         ids = self._ids()
         stop = len(ids) // self.batch_size * self.batch_size if self.drop_last else len(ids)
-        for first in range(0, stop, self.batch_size):
-            yield self.dataset.batch(ids[first : first + self.batch_size], self.split)
+        for index, first in enumerate(range(0, stop, self.batch_size)):
+            batch = self.dataset.batch(ids[first : first + self.batch_size], self.split)
+            if self.augment is not None:
+                batch = self.augment(batch, self.epoch, index, self.rank)
+            yield batch
         self.epoch += 1

@@ -9,13 +9,15 @@ paper's forecaster.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 from torch import nn
 
-from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state
+from mmf_rl.checkpoint import META_FILE, CheckpointError, load_checkpoint, load_model_state, state_mismatch
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.baselines import MVAE, LateFusionLSTM, LFLSTMConfig, MulT, MulTConfig, MVAEConfig
+from mmf_rl.models.hub import DATA_CONFIG_FILE, from_pretrained
 from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, GaussianNLLLoss, LossConfig, MissingModalityLoss
 
@@ -94,9 +96,43 @@ def model_from_saved_config(saved: dict) -> nn.Module:
     return entry.model_cls(entry.config_cls.from_dict(cfg))
 
 
+def model_class(name: str) -> type:
+    return _entry(name).model_cls
+
+
+def registry_name(model: nn.Module) -> str:
+    """The name ``model``'s class is registered under."""
+    for name, entry in MODELS.items():
+        if type(model) is entry.model_cls:
+            return name
+    raise ValueError(f"{type(model).__name__} is not a registered model; expected one of {sorted(MODELS)}")
+
+
+def check_state_dict(model: nn.Module, state: dict, where: str) -> None:
+    """Raise unless ``state`` fits ``model`` exactly; the error names each parameter with both shapes."""
+    mismatch = state_mismatch(model.state_dict(), state)
+    if mismatch:
+        raise CheckpointError(f"{where} does not fit this model ({mismatch})")
+
+
+def _trained_location(path: Path) -> Path:
+    """A run directory -> its ``checkpoints/``; anything else as given."""
+    return path / "checkpoints" if (path / "checkpoints").is_dir() else path
+
+
 def load_trained_model(path, map_location="cpu") -> tuple[nn.Module, dict, dict]:
-    """A trained model from a checkpoint (``path``: a checkpoint, or a run's ``checkpoints/``):
-    the model with its weights in eval mode, its normalisation stats, and the run's data config."""
+    """A trained model with its weights in eval mode, its normalisation stats and its data config.
+
+    ``path``: a run directory, its ``checkpoints/``, one checkpoint, or a directory written by
+    ``save_pretrained``. The model carries the stats and data config too (``normalization_stats``,
+    ``data_config``), so ``model.save_pretrained(dir)`` exports all it needs."""
+    path = _trained_location(Path(path))
+    if (path / "config.json").is_file() and not (path / META_FILE).is_file():
+        if not (path / DATA_CONFIG_FILE).is_file():
+            raise CheckpointError(f"{path} holds a saved model without its data config ({DATA_CONFIG_FILE}); "
+                                  "save it from a trained run (load_trained_model(run).save_pretrained(dir))")
+        model = from_pretrained(path, map_location=map_location)
+        return model, model.normalization_stats or {}, model.data_config
     checkpoint = load_checkpoint(path, with_trainer_state=False)
     if "model_config" not in checkpoint.meta:
         raise CheckpointError(f"{checkpoint.path} has no 'model_config' in its meta.json; it was not written by "
@@ -104,7 +140,42 @@ def load_trained_model(path, map_location="cpu") -> tuple[nn.Module, dict, dict]
     model = model_from_saved_config(checkpoint.meta["model_config"])
     load_model_state(model, checkpoint)
     data_config = checkpoint.meta.get("config", {}).get("data", {})
+    model.normalization_stats, model.data_config = checkpoint.tensors, data_config
     return model.to(map_location).eval(), checkpoint.tensors, data_config
+
+
+def init_weights_from(model: nn.Module, source_path) -> Path:
+    """Fine-tuning: copy the weights of a trained model (``init_from``) into ``model``, built for this run.
+
+    The source may be anything :func:`load_trained_model` reads. A different model type, a
+    modality missing on either side or of another kind or shape, or a parameter of another shape
+    is an error naming it (this run's value first, then the source's). Returns the source's path.
+    """
+    from mmf_rl.trainers.checkpoint import CheckpointError
+
+    location = _trained_location(Path(source_path))
+    source, _, _ = load_trained_model(location)
+    here, there = registry_name(model), registry_name(source)
+    if here != there:
+        raise CheckpointError(f"init_from={source_path} holds a {there!r} model, but this run builds {here!r}; "
+                              f"train model={there} or start from a {here!r} run")
+    mine = {s.name: (s.kind, tuple(s.shape)) for s in model.config.modalities}
+    theirs = {s.name: (s.kind, tuple(s.shape)) for s in source.config.modalities}
+    problems = [f"modality {n!r}: this run has {mine.get(n, 'none')}, {source_path} has {theirs.get(n, 'none')}"
+                for n in sorted(set(mine) | set(theirs)) if mine.get(n) != theirs.get(n)]
+    if problems:
+        raise CheckpointError("init_from: the modalities differ (" + "; ".join(problems) + "); map the same "
+                              "modality names to features of the same kind and shape (images: data.image_size)")
+    differing = sorted(k for k, v in model.config.to_dict().items()
+                       if k != "modalities" and source.config.to_dict().get(k) != v)
+    try:
+        check_state_dict(model, source.state_dict(), f"init_from={source_path}")
+    except CheckpointError as error:
+        hint = ", ".join(f"model.{k}: this run {getattr(model.config, k)!r}, source "
+                         f"{getattr(source.config, k)!r}" for k in differing)
+        raise CheckpointError(f"{error}{'; the configs differ in ' + hint if hint else ''}") from None
+    model.load_state_dict(source.state_dict())
+    return location
 
 
 def saved_config(name: str, model: nn.Module) -> dict:

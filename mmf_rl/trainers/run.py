@@ -7,7 +7,11 @@
 
 Top to bottom: compose the config, set up devices and processes, open the window cache, build
 the model and its losses, train with checkpoints, logs and validation, then save the final
-weights. ``resume=true`` continues the run in ``run_dir`` exactly where its last checkpoint was.
+weights. ``resume=true`` continues the run in ``run_dir`` exactly where its last checkpoint was;
+``init_from=RUN_OR_CHECKPOINT`` fine-tunes: a new run starting from another run's (or a
+``save_pretrained`` directory's) weights, with a new optimizer and schedule, at step 0, and the
+normalisation statistics of this run's data. The final model is also written with
+``save_pretrained`` to ``run_dir/model`` (weights, config, statistics, data config).
 """
 
 from __future__ import annotations
@@ -25,15 +29,16 @@ from omegaconf import OmegaConf
 
 from mmf_rl.checkpoint import CheckpointError, list_checkpoints, remove_leftovers
 from mmf_rl.configuration import ConfigError, load_config, parse_config_command, save_config, to_container
-from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.datasets import AugmentConfig, DataConfig, ImageAugmentation, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.devices import resolve_device
-from mmf_rl.models import build_loss, build_model, saved_config
+from mmf_rl.models import build_loss, build_model, init_weights_from, saved_config
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.objectives import LossConfig
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
 RUN_CONFIG = "config.yaml"
+PRETRAINED_DIR = "model"  # run_dir/model: the final weights as save_pretrained writes them
 EXAMPLES = [
     "mmf-rl train data=so101 trainer.total_steps=500 run_dir=runs/so101",
     "mmf-rl train data=/path/to/mine.yaml run_dir=runs/mine      # your own data config (mmf-rl inspect writes one)",
@@ -159,9 +164,16 @@ def train(cfg) -> Path:
     model = build_model(model_cfg, data.specs, data_cfg.history, data_cfg.horizon, data.target_dim,
                         action_shape=data.action_shape).to(device)
     model_name = model_cfg.get("name", "forecaster")
+    if cfg.get("init_from") is not None and not cfg.resume:  # resuming restores the run's own weights
+        source = init_weights_from(model, cfg.init_from)
+        if rank == 0:
+            print(f"fine-tuning from {source}: weights copied, new optimizer, step 0")
     loss = build_loss(model_name, model, loss_cfg)
     seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents
-    loader = data.loader("train", trainer_cfg.batch_size, seed=trainer_cfg.seed, rank=rank, world_size=world_size)
+    augment_cfg = AugmentConfig.from_dict(to_container(cfg.augment) if "augment" in cfg else None)
+    augment = ImageAugmentation(augment_cfg, data.specs, trainer_cfg.seed) if augment_cfg.enable else None
+    loader = data.loader("train", trainer_cfg.batch_size, seed=trainer_cfg.seed, rank=rank, world_size=world_size,
+                         augment=augment)
     val_loader = data.loader("val", max(trainer_cfg.batch_size, 256))
     denormalize = data.normalizer.denormalize_target
 
@@ -183,7 +195,9 @@ def train(cfg) -> Path:
         if rank == 0 and cfg.logger == "csv":
             truncate_csv_logs(run_dir / "logs", trainer.step)
     metrics = trainer.train()
-    if rank == 0:
+    if rank == 0:  # the trained model with what it needs to forecast, ready for from_pretrained / push_to_hub
+        model.normalization_stats, model.data_config = data.normalizer.stats, data_cfg.to_dict()
+        model.save_pretrained(run_dir / PRETRAINED_DIR)
         summary = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
         print(f"trained {trainer.step} steps -> {trainer.last_checkpoint}" + (f" ({summary})" if summary else ""))
     if world_size > 1:

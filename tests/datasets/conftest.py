@@ -7,6 +7,7 @@ from pathlib import Path
 # Before lerobot/huggingface_hub are imported: nothing in these tests may reach the hub.
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
+import numpy as np
 import pytest
 
 from mmf_rl.datasets.config import DataConfig
@@ -18,9 +19,11 @@ from mmf_rl.datasets.synthetic import (
     make_synthetic_dataset,
 )
 
-# The shared real recordings sit beside the repository (../shared), in CI as here; a clone on its
-# own has none, and the tests that read them skip.
-SO101_ROOT = Path(__file__).resolve().parents[3] / "shared" / "data" / "so101_record_test"
+# The shared real recordings sit beside the repository (../shared/data), in CI as here;
+# MMF_RL_SHARED_DATA points elsewhere (e.g. from a git worktree).
+SHARED_DATA = Path(os.environ.get("MMF_RL_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
+SO101_ROOT = SHARED_DATA / "so101_record_test"
+G1_ROOT = SHARED_DATA / "g1_pick_bottle_small"
 needs_so101 = pytest.mark.skipif(not (SO101_ROOT / "meta" / "info.json").is_file(),
                                  reason=f"the real SO-101 recording is not at {SO101_ROOT} (../shared beside the repo)")
 # Episode 4 (6 frames) is shorter than history + horizon = 7: it must be skipped.
@@ -28,6 +31,14 @@ EPISODE_LENGTHS = [30, 25, 20, 12, 6]
 NAN_FORCE_EPISODE = 1  # force is NaN on frames [5, 10)
 INVALID_IMAGE_EPISODE = 2  # camera flagged invalid on frames [5, 10)
 IMAGE_SIZE = 24
+
+
+@pytest.fixture(scope="session")
+def g1_root() -> Path:
+    """The real humanoid recording (AV1 camera, 26-D joints), read-only."""
+    if not (G1_ROOT / "meta" / "info.json").is_file():
+        pytest.skip(f"real G1 recording not found at {G1_ROOT} (set MMF_RL_SHARED_DATA to the shared data directory)")
+    return G1_ROOT
 
 
 @pytest.fixture(scope="session")
@@ -75,6 +86,85 @@ def so101_config(cache_dir, **overrides) -> DataConfig:
         "modalities": {"front": "observation.images.front", "top": "observation.images.top",
                        "state": "observation.state"},
         "target": {"feature": "observation.state", "dims": [0, 1, 2]},
+    }
+    d.update(overrides)
+    return DataConfig.from_dict(d)
+
+
+# --- a LeRobot dataset with other feature names and every camera storage -----------------------
+
+CAMERA_EPISODES = [12, 10, 11, 9]
+CAMERA_HEIGHT, CAMERA_WIDTH = 16, 32
+VIDEO_CAMERA = "observation.images.cam_high"  # dtype video (mp4)
+IMAGE_CAMERA = "observation.images.wrist"  # dtype image (PNG bytes in the parquet)
+DEPTH_CAMERA = "observation.depth"  # dtype image, one channel (lerobot's stats reserve "image" names for RGB)
+JOINTS = "observation.joints"
+
+
+def camera_frame(episode: int, frame: int, channels: int) -> np.ndarray:
+    """The ``uint8 [h, w, channels]`` image a camera recorded at (episode, frame): smooth, so a lossy
+    video keeps it close, and different for every frame and camera."""
+    rows, cols = np.mgrid[:CAMERA_HEIGHT, :CAMERA_WIDTH]
+    layers = [20 + rows * 4 + cols * 2 + (23 * frame + 61 * episode + 37 * c) % 100 for c in range(channels)]
+    return np.stack(layers, -1).astype(np.uint8)
+
+
+def joints_at(episode: int, frame: int) -> np.ndarray:
+    return np.array([episode + frame / 100, np.sin(frame / 3), np.cos(frame / 4), frame % 3], dtype=np.float32)
+
+
+def make_camera_dataset(root: Path, use_videos: bool) -> Path:
+    """Record through ``LeRobotDataset.create``: an RGB and a depth camera stored as images in the
+    parquet, with ``use_videos`` also a video camera, 4-D joints and a 4-D action."""
+    import PIL.Image
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    camera = {"shape": (CAMERA_HEIGHT, CAMERA_WIDTH, 3), "names": ["height", "width", "channels"]}
+    features = {
+        IMAGE_CAMERA: {"dtype": "image", **camera},
+        DEPTH_CAMERA: {"dtype": "image", "shape": (CAMERA_HEIGHT, CAMERA_WIDTH, 1),
+                       "names": ["height", "width", "channels"]},
+        JOINTS: {"dtype": "float32", "shape": (4,), "names": None},
+        "action": {"dtype": "float32", "shape": (4,), "names": None},
+    }
+    if use_videos:
+        features[VIDEO_CAMERA] = {"dtype": "video", **camera}
+    dataset = LeRobotDataset.create(repo_id="local/cameras", fps=10, features=features, root=root,
+                                    use_videos=use_videos, vcodec="h264")
+    for episode, length in enumerate(CAMERA_EPISODES):
+        for frame in range(length):
+            values = {
+                IMAGE_CAMERA: camera_frame(episode, frame, 3),
+                # lerobot writes a one-channel image only from a PIL image ("L": 8-bit grey)
+                DEPTH_CAMERA: PIL.Image.fromarray(camera_frame(episode, frame, 1)[..., 0], mode="L"),
+                JOINTS: joints_at(episode, frame),
+                "action": joints_at(episode, frame + 1),
+                "task": "reach",
+            }
+            if use_videos:
+                values[VIDEO_CAMERA] = camera_frame(episode, frame, 3)[::-1].copy()
+            dataset.add_frame(values)
+        dataset.save_episode()
+    dataset.finalize()
+    return root
+
+
+@pytest.fixture(scope="session")
+def image_only_root(tmp_path_factory) -> Path:
+    return make_camera_dataset(tmp_path_factory.mktemp("cameras") / "images", use_videos=False)
+
+
+@pytest.fixture(scope="session")
+def mixed_cameras_root(tmp_path_factory) -> Path:
+    return make_camera_dataset(tmp_path_factory.mktemp("cameras") / "mixed", use_videos=True)
+
+
+def camera_config(root, cache_dir, **overrides) -> DataConfig:
+    d = {
+        "root": str(root), "cache_dir": str(cache_dir), "history": 3, "horizon": 2,
+        "image_size": [CAMERA_HEIGHT, CAMERA_WIDTH], "split_fractions": [0.5, 0.25, 0.25],
+        "modalities": {"wrist": IMAGE_CAMERA, "depth": DEPTH_CAMERA, "joints": JOINTS},
+        "target": {"feature": JOINTS, "dims": [0, 1]},
     }
     d.update(overrides)
     return DataConfig.from_dict(d)

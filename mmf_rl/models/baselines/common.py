@@ -18,6 +18,7 @@ from mmf_rl import keys
 from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
 from mmf_rl.models.encoders import ImageWindowEncoder, check_encoder
+from mmf_rl.models.hub import PretrainedModel
 
 
 @dataclass
@@ -118,7 +119,7 @@ def gaussian_head_output(raw: torch.Tensor, horizon: int, target_dim: int, min_s
     return loc, F.softplus(raw_scale) + min_scale
 
 
-class DeterministicForecaster(TensorDictModuleBase):
+class DeterministicForecaster(TensorDictModuleBase, PretrainedModel):
     """Base of the baselines without a latent: ``forward`` computes ``loc``/``scale``; ``sample``
     repeats the mean ``K`` times (best-of-K of a deterministic model is its single forecast)."""
 

@@ -32,6 +32,7 @@ from torch import nn
 from mmf_rl import keys
 from mmf_rl.models.baselines.common import BaselineConfig, gaussian_head_output
 from mmf_rl.models.encoders import build_encoder, mlp
+from mmf_rl.models.hub import PretrainedModel
 
 
 @dataclass
@@ -55,7 +56,7 @@ def product_of_experts(loc: torch.Tensor, scale: torch.Tensor, present: torch.Te
     return (precision * loc).sum(1) / total, total.rsqrt()
 
 
-class MVAE(TensorDictModuleBase):
+class MVAE(TensorDictModuleBase, PretrainedModel):
     """Product-of-experts VAE forecaster (see module docstring).
 
     Writes ``("forecast", "loc"/"scale")``, ``("posterior", ...)``, ``("prior", ...)`` and

@@ -74,6 +74,7 @@ from mmf_rl.models.attention import FixedQueryAttention, PreLNTransformerLayer
 from mmf_rl.models.encoders import build_encoder, mlp
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.fusion import build_fusion
+from mmf_rl.models.hub import PretrainedModel
 from mmf_rl.models.rows import compute_on_rows
 
 
@@ -127,7 +128,7 @@ class ModalitySpecificDecoder(nn.Module):
         return loc, F.softplus(raw_scale) + self.min_scale
 
 
-class MultimodalForecaster(TensorDictModuleBase):
+class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     """Attention-based CVAE forecaster robust to missing modalities (see module docstring).
 
     Reads ``("obs", m)``, ``("present", m)`` for every modality, ``"target"`` when training

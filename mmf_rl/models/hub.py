@@ -1,0 +1,132 @@
+"""Trained models as Hugging Face hub models: ``save_pretrained`` / ``from_pretrained`` / ``push_to_hub``.
+
+Every registered model mixes in :class:`PretrainedModel` (``huggingface_hub``'s
+``PyTorchModelHubMixin``). A saved model is a directory (or a hub repository) of::
+
+    config.json                 the model's registry name and full config (what ``saved_config`` gives)
+    model.safetensors           the weights
+    normalization.safetensors   the training split's normalisation statistics (``Normalizer.stats``)
+    data_config.json            the data config it was trained with (features, window, stride)
+    README.md                   the hub's model card
+
+so a model loaded anywhere forecasts in the units it was trained in (``ForecastTransform`` and
+``load_trained_model`` read these). The statistics and data config travel as the attributes
+``normalization_stats`` and ``data_config`` of the model (``None`` until a run or a load sets them).
+
+    model, stats, data = load_trained_model("runs/g1")      # a run, its checkpoints/ or one checkpoint
+    model.save_pretrained("exports/g1")                      # stats and data config included
+    model.push_to_hub("me/g1-forecaster")                    # online users
+    model = from_pretrained("exports/g1")                    # or "me/g1-forecaster"; any registered model
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from huggingface_hub import PyTorchModelHubMixin, hf_hub_download
+from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
+
+NORMALIZATION_FILE = "normalization.safetensors"
+DATA_CONFIG_FILE = "data_config.json"
+
+
+def pretrained_file(model_id: str, filename: str, required: bool = True, **hub_kwargs) -> Path | None:
+    """``filename`` of a saved model: from the local directory ``model_id``, else from the hub."""
+    from huggingface_hub.errors import EntryNotFoundError
+
+    if os.path.isdir(model_id):
+        path = Path(model_id) / filename
+        if path.is_file():
+            return path
+        if required:
+            raise FileNotFoundError(f"{model_id} is not a saved mmf-rl model: {path} does not exist (a saved model "
+                                    f"holds {CONFIG_NAME} and {SAFETENSORS_SINGLE_FILE}, written by save_pretrained)")
+        return None
+    try:
+        return Path(hf_hub_download(repo_id=model_id, filename=filename, **hub_kwargs))
+    except EntryNotFoundError:
+        if required:
+            raise
+        return None
+
+
+class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl", "forecasting", "lerobot"]):
+    """``save_pretrained`` / ``from_pretrained`` / ``push_to_hub`` for a registered model.
+
+    The mixin's own loading is not strict (a missing weight would stay random): here every
+    weight must match, and a mismatch names the parameter with both shapes.
+    """
+
+    normalization_stats: dict | None = None
+    data_config: dict | None = None
+
+    def _save_pretrained(self, save_directory: Path) -> None:
+        from safetensors.torch import save_file
+
+        from mmf_rl.models.registry import registry_name, saved_config
+
+        super()._save_pretrained(save_directory)
+        (save_directory / CONFIG_NAME).write_text(json.dumps(saved_config(registry_name(self), self), indent=2))
+        if self.normalization_stats is not None:
+            save_file({k: v.detach().contiguous().cpu() for k, v in self.normalization_stats.items()},
+                      save_directory / NORMALIZATION_FILE)
+        if self.data_config is not None:
+            (save_directory / DATA_CONFIG_FILE).write_text(json.dumps(self.data_config, indent=2))
+
+    def save_pretrained(self, save_directory, *, config=None, repo_id=None, push_to_hub: bool = False,
+                        model_card_kwargs=None, **push_to_hub_kwargs):
+        """The mixin's ``save_pretrained``, written atomically: every file goes to a temporary
+        sibling directory first and is renamed into ``save_directory`` (``config.json`` last)."""
+        final = Path(save_directory)
+        final.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
+        try:
+            super().save_pretrained(staging, config=config, model_card_kwargs=model_card_kwargs)
+            files = sorted(staging.iterdir(), key=lambda p: p.name == CONFIG_NAME)
+            for path in files:
+                os.replace(path, final / path.name)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+        if push_to_hub:
+            return self.push_to_hub(repo_id=repo_id or final.name, model_card_kwargs=model_card_kwargs,
+                                    **push_to_hub_kwargs)
+        return None
+
+    @classmethod
+    def _from_pretrained(cls, *, model_id: str, revision, cache_dir, force_download: bool, proxies, resume_download,
+                         local_files_only: bool, token, config: dict | None = None, map_location: str = "cpu",
+                         strict: bool = True, **model_kwargs):
+        from safetensors.torch import load_file
+
+        from mmf_rl.models.registry import check_state_dict, model_from_saved_config
+
+        hub = dict(revision=revision, cache_dir=cache_dir, force_download=force_download, proxies=proxies,
+                   local_files_only=local_files_only, token=token)
+        if not config:
+            raise FileNotFoundError(f"{model_id} has no readable {CONFIG_NAME}; it was not written by save_pretrained")
+        model = model_from_saved_config(config)
+        if not isinstance(model, cls):
+            raise TypeError(f"{model_id} holds a {config.get('name')!r} model ({type(model).__name__}), not a "
+                            f"{cls.__name__}; load it with mmf_rl.models.from_pretrained")
+        weights = load_file(pretrained_file(model_id, SAFETENSORS_SINGLE_FILE, **hub))
+        if strict:
+            check_state_dict(model, weights, f"{model_id}/{SAFETENSORS_SINGLE_FILE}")
+        model.load_state_dict(weights, strict=strict)
+        stats = pretrained_file(model_id, NORMALIZATION_FILE, required=False, **hub)
+        model.normalization_stats = load_file(stats) if stats is not None else None
+        data = pretrained_file(model_id, DATA_CONFIG_FILE, required=False, **hub)
+        model.data_config = json.loads(data.read_text()) if data is not None else None
+        return model.to(map_location).eval()
+
+
+def from_pretrained(model_id: str | os.PathLike, **kwargs):
+    """Any registered model saved by ``save_pretrained``: a local directory or a hub repository id."""
+    from mmf_rl.models.registry import model_class
+
+    hub = {k: kwargs[k] for k in ("revision", "cache_dir", "force_download", "token", "local_files_only") if k in kwargs}
+    config = json.loads(pretrained_file(str(model_id), CONFIG_NAME, **hub).read_text())
+    return model_class(config.get("name", "forecaster")).from_pretrained(str(model_id), **kwargs)

@@ -1,0 +1,88 @@
+"""Image augmentation of training batches: lerobot's transforms, one draw per window, seeded."""
+
+import warnings
+
+import pytest
+import torch
+
+from mmf_rl.configuration import compose_config, to_container
+from mmf_rl.datasets import AugmentConfig, ImageAugmentation, WindowDataset
+from mmf_rl.keys import obs_key
+from tests.conftest import SMALL_MODALITIES, make_batch
+from tests.datasets.conftest import synthetic_config
+
+
+def lerobot_augmentation(seed: int = 0, **overrides) -> ImageAugmentation:
+    cfg = to_container(compose_config("train", ["augment=crop", "data.image_size=[16,16]"]).augment)
+    return ImageAugmentation(AugmentConfig.from_dict({**cfg, **overrides}), SMALL_MODALITIES, seed)
+
+
+def still_windows(seed: int):
+    """A batch whose image windows repeat one frame: a window-consistent transform keeps them equal."""
+    batch = make_batch(16, seed=seed)
+    frames = batch.get(obs_key("image"))
+    batch.set(obs_key("image"), frames[:, :1].expand_as(frames).contiguous())
+    return batch
+
+
+def test_one_draw_per_window_changes_images_only(tmp_path):
+    augment = lerobot_augmentation()
+    batch = still_windows(0)
+    before = batch.clone()
+    out = augment(batch, epoch=0, index=0)
+    images = out.get(obs_key("image"))
+    assert images.dtype == torch.uint8 and images.shape == before.get(obs_key("image")).shape
+    assert (images == images[:, :1]).all(), "every frame of a window must get the same transform"
+    changed = (images != before.get(obs_key("image"))).flatten(1).any(1)
+    assert changed.float().mean() > 0.8
+    assert torch.equal(out.get(obs_key("force")), before.get(obs_key("force")))
+
+
+def test_deterministic_under_the_seed_and_independent_of_the_global_generator():
+    first = lerobot_augmentation(seed=3)(still_windows(0), epoch=1, index=2)
+    torch.manual_seed(12345)
+    state = torch.get_rng_state()
+    again = lerobot_augmentation(seed=3)(still_windows(0), epoch=1, index=2)
+    assert torch.equal(torch.get_rng_state(), state), "augmenting must not consume the model's random draws"
+    assert torch.equal(first.get(obs_key("image")), again.get(obs_key("image")))
+    for other in ({"seed": 4}, {"epoch": 2}, {"index": 3}):
+        augment = lerobot_augmentation(seed=other.get("seed", 3))
+        out = augment(still_windows(0), epoch=other.get("epoch", 1), index=other.get("index", 2))
+        assert not torch.equal(out.get(obs_key("image")), first.get(obs_key("image"))), other
+
+
+def test_training_loader_only_and_off_by_default(synthetic_root, tmp_path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dataset = WindowDataset(synthetic_config(synthetic_root, tmp_path))
+    assert not AugmentConfig.from_dict(to_container(compose_config("train", []).augment)).enable
+    cfg = to_container(compose_config("train", ["augment=lerobot"]).augment)
+    augment = ImageAugmentation(AugmentConfig.from_dict(cfg), dataset.specs, seed=0)
+    plain = next(iter(dataset.loader("train", 8, seed=1)))
+    augmented = next(iter(dataset.loader("train", 8, seed=1, augment=augment)))
+    assert torch.equal(plain.get("target"), augmented.get("target"))
+    assert not torch.equal(plain.get(obs_key("image")), augmented.get(obs_key("image")))
+    assert torch.equal(next(iter(dataset.loader("val", 8))).get(obs_key("image")),
+                       dataset.batch(dataset.split_windows["val"][:8]).get(obs_key("image")))
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        ({"tfs": {"blur": {"type": "NoSuchTransform"}}}, r"tfs.blur \(type 'NoSuchTransform'"),
+        ({"tfs": {"jitter": {"type": "ColorJitter", "kwargs": {"brightness": -1}}}}, r"tfs.jitter"),
+        ({"tfs": {"jitter": {"kind": "ColorJitter"}}}, r"tfs.jitter: unknown keys \['kind'\]"),
+        ({"modalities": ["force"]}, r"names \['force'\], which are not image modalities"),
+        ({"strength": 2}, r"unknown keys \['strength'\]"),
+    ],
+)
+def test_bad_augment_configs_are_named(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        ImageAugmentation(AugmentConfig.from_dict({"enable": True, **overrides}), SMALL_MODALITIES, 0)
+
+
+def test_a_transform_that_resizes_is_named():
+    augment = ImageAugmentation(AugmentConfig.from_dict({"enable": True, "max_num_transforms": 1, "tfs": {
+        "crop": {"type": "RandomResizedCrop", "kwargs": {"size": [8, 8]}}}}), SMALL_MODALITIES, 0)
+    with pytest.raises(ValueError, match=r"'image' frames of \[16, 16\] into \[8, 8\].*image_size"):
+        augment(make_batch(2), epoch=0, index=0)

@@ -1,0 +1,98 @@
+"""Every way LeRobot stores a camera: videos, images in the parquet (RGB and one-channel depth).
+
+The datasets are written by lerobot's own ``LeRobotDataset.create`` with feature names the push
+recorder does not use; cached and batched values are checked against what was recorded.
+"""
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf, open_dict
+from tensordict import TensorDict
+
+from mmf_rl.configuration import compose_config
+from mmf_rl.datasets import WindowDataset
+from mmf_rl.keys import obs_key, present_key
+from mmf_rl.checkpoint import load_checkpoint
+from mmf_rl.trainers.run import train
+from tests.datasets.conftest import (
+    CAMERA_EPISODES,
+    CAMERA_HEIGHT,
+    CAMERA_WIDTH,
+    VIDEO_CAMERA,
+    camera_config,
+    camera_frame,
+)
+
+
+def recorded(channels: int, flip: bool = False) -> torch.Tensor:
+    """Every recorded frame of a camera in cache layout ``uint8 [N, C, h, w]``, episodes in order."""
+    frames = [camera_frame(e, f, channels) for e, n in enumerate(CAMERA_EPISODES) for f in range(n)]
+    frames = [f[::-1] if flip else f for f in frames]
+    return torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2)
+
+
+def cached_frames(dataset: WindowDataset, name: str) -> torch.Tensor:
+    return TensorDict.load_memmap(dataset.cache_path / "frames").get(("obs", name)).as_subclass(torch.Tensor)
+
+
+def test_images_in_the_parquet_are_cached_exactly_rgb_and_depth(image_only_root, tmp_path):
+    dataset = WindowDataset(camera_config(image_only_root, tmp_path))
+    specs = {s.name: (s.kind, s.shape) for s in dataset.specs}
+    assert specs == {"wrist": ("image", (3, CAMERA_HEIGHT, CAMERA_WIDTH)),
+                     "depth": ("image", (1, CAMERA_HEIGHT, CAMERA_WIDTH)), "joints": ("sequence", (4,))}
+    # PNG is lossless and the cache keeps the recorded size: every value equals the recorded one.
+    assert torch.equal(cached_frames(dataset, "wrist"), recorded(3))
+    assert torch.equal(cached_frames(dataset, "depth"), recorded(1))
+    assert all(mask.all() for mask in dataset.presence.values())
+    assert not dataset.report["undecodable_files"] and not dataset.report["missing_files"]
+
+    ids = torch.arange(len(dataset))
+    batch = dataset.batch(ids)
+    start = dataset.window_start[ids]
+    rows = start[:, None] + torch.arange(3)
+    assert torch.equal(batch.get(obs_key("wrist")), recorded(3)[rows])
+    assert torch.equal(batch.get(obs_key("depth")), recorded(1)[rows])
+
+
+def test_a_depth_camera_resized_stays_one_channel(image_only_root, tmp_path):
+    dataset = WindowDataset(camera_config(image_only_root, tmp_path, image_size=[8, 12]))
+    frames = cached_frames(dataset, "depth")
+    assert frames.shape == (sum(CAMERA_EPISODES), 1, 8, 12)
+    reference = torch.nn.functional.interpolate(recorded(1).float() / 255, size=(8, 12), mode="bilinear",
+                                                antialias=True, align_corners=False)
+    assert (frames.float() / 255 - reference).abs().max() <= 1 / 255
+
+
+def test_video_and_image_cameras_in_one_dataset(mixed_cameras_root, tmp_path):
+    config = camera_config(mixed_cameras_root, tmp_path)
+    config.modalities["top"] = type(config.modalities["wrist"])(feature=VIDEO_CAMERA)
+    dataset = WindowDataset(config)
+    assert {s.name for s in dataset.specs} == {"wrist", "depth", "joints", "top"}
+    assert torch.equal(cached_frames(dataset, "wrist"), recorded(3))
+    # The video went through a lossy codec: close to what was recorded, and not another frame.
+    video = cached_frames(dataset, "top").float()
+    error = (video - recorded(3, flip=True).float()).abs().mean()
+    assert error < 12, float(error)
+    assert error < (video - recorded(3).float()).abs().mean() / 3
+    batch = next(iter(dataset.loader("train", batch_size=8)))
+    assert all(batch.get(present_key(n)).all() for n in ("wrist", "depth", "top", "joints"))
+
+
+def test_training_reads_every_camera_storage_with_augmentation(mixed_cameras_root, tmp_path):
+    cfg = compose_config("train", [
+        f"run_dir={tmp_path / 'run'}", "model.d_model=16", "model.d_latent=4", "model.num_heads=2",
+        "model.mlp_hidden=32", "model.head_hidden=32", "trainer.total_steps=4", "trainer.batch_size=8",
+        "trainer.eval_every=2", "trainer.checkpoint_every=2", "trainer.warmup_steps=1", "trainer.progress_bar=false",
+        "logger=none", "num_workers=0", "augment=crop", f"data.image_size=[{CAMERA_HEIGHT},{CAMERA_WIDTH}]",
+    ])
+    data = camera_config(mixed_cameras_root, tmp_path / "cache").to_dict()
+    data["modalities"]["top"] = {"feature": VIDEO_CAMERA}
+    with open_dict(cfg):
+        cfg.data = OmegaConf.create(data)
+    train(cfg)
+    checkpoint = load_checkpoint(tmp_path / "run" / "checkpoints")
+    assert checkpoint.step == 4
+    shapes = {m["name"]: m["shape"] for m in checkpoint.meta["model_config"]["modalities"]}
+    assert shapes == {"depth": [1, CAMERA_HEIGHT, CAMERA_WIDTH], "joints": [4], "top": [3, CAMERA_HEIGHT, CAMERA_WIDTH],
+                      "wrist": [3, CAMERA_HEIGHT, CAMERA_WIDTH]}
+    assert all(torch.isfinite(v).all() for v in checkpoint.model_state.values())

@@ -1,0 +1,71 @@
+"""Fine-tuning (`init_from`): weights from a trained run, new optimizer, step 0; mismatches named."""
+
+import re
+
+import pytest
+import torch
+
+from mmf_rl import keys
+from mmf_rl.cli import main as cli
+from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.models import load_trained_model
+from mmf_rl.checkpoint import load_checkpoint
+from tests.conftest import push_train_overrides
+
+
+@pytest.fixture(scope="module")
+def trained_run(recorded_push_root, tmp_path_factory):
+    base = tmp_path_factory.mktemp("source")
+    assert cli(["train", *push_train_overrides(recorded_push_root, base / "cache", base / "run")]) == 0
+    return base
+
+
+def test_fine_tuning_starts_from_the_weights_at_step_zero(trained_run, recorded_push_root, tmp_path, capsys):
+    source = load_checkpoint(trained_run / "run" / "checkpoints")
+    overrides = push_train_overrides(recorded_push_root, trained_run / "cache", tmp_path / "tuned", steps=3)
+    # lr = 0: the weights after fine-tuning are the ones it started from
+    assert cli(["train", *overrides, f"init_from={trained_run / 'run'}", "trainer.lr=0.0"]) == 0
+    assert "fine-tuning from" in capsys.readouterr().out
+    tuned = load_checkpoint(tmp_path / "tuned" / "checkpoints")
+    assert tuned.step == 3, "a fine-tuning run counts its own steps from 0"
+    assert tuned.trainer_state["scheduler"]["last_epoch"] == 3
+    assert all(torch.equal(tuned.model_state[k], v) for k, v in source.model_state.items())
+
+    # the run's final model, as save_pretrained wrote it, is a source too, and forecasts like the checkpoint
+    assert cli(["train", *overrides, f"run_dir={tmp_path / 'again'}", f"init_from={trained_run / 'run' / 'model'}",
+                "trainer.lr=0.0"]) == 0
+    again = load_checkpoint(tmp_path / "again" / "checkpoints")
+    assert all(torch.equal(again.model_state[k], v) for k, v in source.model_state.items())
+    exported, stats, data = load_trained_model(trained_run / "run" / "model")
+    checkpointed, _, data_from_checkpoint = load_trained_model(trained_run / "run")
+    assert data["image_size"] == data_from_checkpoint["image_size"] == [32, 32]
+    assert torch.equal(stats["target/std"], source.tensors["target/std"])
+    batch = next(iter(WindowDataset(DataConfig.from_dict(data)).loader("val", 8)))
+    forecasts = [m(batch.clone()).get(keys.FORECAST_LOC) for m in (exported, checkpointed)]
+    assert torch.equal(*forecasts)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["model.d_latent=6"],
+         r"posterior_head.2.bias: expected \[12\], found \[8\].*model.d_latent: this run 6, source 4"),
+        (["data.image_size=[16,16]"],
+         r"modality 'image': this run has \('image', \(3, 16, 16\)\), .* has \('image', \(3, 32, 32\)\)"),
+        (["~data.modalities.force"], r"modality 'force': this run has none, .* has \('sequence', \(6,\)\)"),
+        (["model=lf_lstm"], r"holds a 'forecaster' model, but this run builds 'lf_lstm'"),
+    ],
+)
+def test_mismatches_are_named(trained_run, recorded_push_root, tmp_path, capsys, args, message):
+    overrides = push_train_overrides(recorded_push_root, trained_run / "cache", tmp_path / "tuned", steps=2)
+    if args == ["model=lf_lstm"]:
+        overrides = [o for o in overrides if not o.startswith(("model.d_latent", "model.num_heads", "model.mlp"))]
+    assert cli(["train", *overrides, *args, f"init_from={trained_run / 'run'}"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]  # after any cache-building progress bar
+    assert err.startswith("mmf-rl train: error:") and re.search(message, err), err
+
+
+def test_init_from_a_missing_run_is_a_one_line_error(recorded_push_root, tmp_path, capsys):
+    overrides = push_train_overrides(recorded_push_root, tmp_path / "cache", tmp_path / "tuned", steps=2)
+    assert cli(["train", *overrides, f"init_from={tmp_path / 'nowhere'}"]) == 1
+    assert "does not exist" in capsys.readouterr().err
