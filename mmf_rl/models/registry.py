@@ -151,8 +151,6 @@ def init_weights_from(model: nn.Module, source_path) -> Path:
     modality missing on either side or of another kind or shape, or a parameter of another shape
     is an error naming it (this run's value first, then the source's). Returns the source's path.
     """
-    from mmf_rl.trainers.checkpoint import CheckpointError
-
     location = _trained_location(Path(source_path))
     source, _, _ = load_trained_model(location)
     here, there = registry_name(model), registry_name(source)

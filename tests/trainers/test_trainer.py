@@ -174,7 +174,7 @@ def dp_batch(batch, number: int, rank: int):
     if number % 3 == 0:
         batch[keys.present_key("pos")] = torch.zeros(batch.shape[0], dtype=torch.bool)
     if rank == 0 and number == DP_NAN_BATCH:
-        batch[keys.obs_key("vel")][0, 0, 0] = float("nan")
+        batch[keys.TARGET][0, 0, 0] = float("nan")  # a NaN input is refused by the model; a NaN target gives a NaN loss
     return batch
 
 
