@@ -14,7 +14,7 @@ with seed ``seed + i``; success is FetchPush's: the object within 5 cm of the go
 
 * ``mpc all`` / ``mpc no-camera`` / ``mpc no-force``: `SequenceCEMPlanner` on the world model
   with `PushObjective`; the camera or the force sensor is off for the whole episode
-  (`ModalityDropout`, ``per="episode"``, probability 1), so the world model plans from the
+  (`ModalityDropout`, ``outage="episode"``, probability 1), so the world model plans from the
   remaining sensors;
 * ``mpc static model``: the same planner and objective with a "world model" that forecasts no
   object motion (all sensors): what the objective's kinematic approach term achieves alone,
@@ -65,7 +65,7 @@ class StaticObjectModel(WorldModel):
 
 
 def make_env(world_model: WorldModel, image_size: int, dropped: list[str]) -> TransformedEnv:
-    transforms = [ModalityDropout(dropped, outage_prob=1.0, per="episode")] if dropped else []
+    transforms = [ModalityDropout(dropped, outage_prob=1.0, outage="episode")] if dropped else []
     transforms += [world_model.history_window(), InitTracker()]
     return TransformedEnv(MultimodalPushTorchEnv(image_size=image_size), Compose(*transforms))
 

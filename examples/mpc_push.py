@@ -33,7 +33,7 @@ image_spec = next(s for s in world_model.model.modalities if s.name == "image")
 history = world_model.history_window()  # writes ("history", ...): the model's input window, every step
 
 # The real env: the outage (if any) happens before the history sees the sensors.
-transforms = [ModalityDropout([args.drop], outage_prob=1.0, per="episode")] if args.drop else []
+transforms = [ModalityDropout([args.drop], outage_prob=1.0, outage="episode")] if args.drop else []
 env = TransformedEnv(MultimodalPushTorchEnv(image_size=image_spec.shape[-1]),
                      Compose(*transforms, history, InitTracker()))
 

@@ -185,7 +185,7 @@ def test_forecast_window_uses_the_checkpoint_stride(tmp_path):
 def test_forecast_without_any_present_modality_is_the_target_marginal(checkpoint):
     forecast = ForecastTransform.from_checkpoint(checkpoint, num_samples=2)
     env = TransformedEnv(stamp_envs(2), Compose(
-        ModalityDropout(list(MODALITIES), outage_prob={"image": 1.0, "force": 1.0, "proprio": 0.0}, per="episode"),
+        ModalityDropout(list(MODALITIES), outage_prob={"image": 1.0, "force": 1.0, "proprio": 0.0}, outage="episode"),
         forecast,
     ))
     try:
