@@ -285,7 +285,6 @@ class ForecastTransform(_WindowTransform):
 
     # -- forecast ------------------------------------------------------------------------------
 
-    @torch.inference_mode()
     def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
         observations, presence = self._window_tensors()
         n = self._batch_size.numel()
@@ -297,12 +296,15 @@ class ForecastTransform(_WindowTransform):
         device = next(self.model.parameters()).device
 
         def predict(rows: torch.Tensor | None) -> list[torch.Tensor]:
-            inputs = [(t if rows is None else t[rows]).to(device) for t in observations + presence]
-            predicted = list(self._forecast(inputs))
-            if self.num_samples:
-                window = TensorDict(dict(zip(self._model_keys, inputs)), batch_size=inputs[0].shape[:1])
-                predicted.append(self.model.sample(window, self.num_samples).get(keys.FORECAST_SAMPLES))
-            return [p.cpu() for p in predicted]
+            with torch.inference_mode():
+                inputs = [(t if rows is None else t[rows]).to(device) for t in observations + presence]
+                predicted = list(self._forecast(inputs))
+                if self.num_samples:
+                    window = TensorDict(dict(zip(self._model_keys, inputs)), batch_size=inputs[0].shape[:1])
+                    predicted.append(self.model.sample(window, self.num_samples).get(keys.FORECAST_SAMPLES))
+            # Copied out of inference mode: a policy trained on the forecasts must be able to
+            # save them for backward.
+            return [p.to("cpu", copy=True) for p in predicted]
 
         loc, scale, *samples = compute_on_rows(valid, predict, prior)
         samples = samples[0] if samples else None

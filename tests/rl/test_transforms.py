@@ -128,6 +128,7 @@ def test_traced_forecast_equals_the_eager_forward(checkpoint, num_envs):
         try:
             env.set_seed(0)
             torch.manual_seed(0)  # the random actions
+            assert not env.reset()[keys.FORECAST_LOC].is_inference(), "a policy can train on the forecasts"
             return env.rollout(12, break_when_any_done=False), forecast
         finally:
             env.close()
