@@ -80,7 +80,13 @@ from mmf_rl.envs.modality_dropout import ModalityDropout, UniformBursts
 from mmf_rl.envs.scripted import ScriptedPusher, episode_generator
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
 from mmf_rl.eval.report import write_json, write_text
-from mmf_rl.rl import ForecasterWorldModelEnv, ImaginedPlanningPolicy, PushObjective, SequenceCEMPlanner, WorldModel
+from mmf_rl.rl import (
+    ForecasterWorldModelEnv,
+    ImaginedPlanningPolicy,
+    PushObjective,
+    SequenceCEMPlanner,
+    WorldModel,
+)
 
 SENSORS = {"no-camera": "image", "no-force": "force"}
 # How a sensor fails under each --outage type (see the module docstring).
@@ -90,7 +96,8 @@ OUTAGES = {
     "dies": {"outage": "dies", "outage_prob": 1.0, "dies_after": UniformBursts(1, 49)},
 }
 BUDGETS = {
-    "quick": {"record_episodes": 300, "train_steps": 1500, "episodes": 20, "outage": ["episode"], "stepwise_episodes": 0},
+    "quick": {"record_episodes": 300, "train_steps": 1500, "episodes": 20, "outage": ["episode"],
+              "stepwise_episodes": 0},
     "full": {"record_episodes": 300, "train_steps": None, "episodes": 50, "outage": list(OUTAGES),
              "stepwise_episodes": 10},
 }
@@ -325,8 +332,9 @@ def main() -> None:
     command = " ".join(["benchmarks/mpc_push.py", *sys.argv[1:]])
     budget = (f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, "
               f"{len(checkpoints)} world models" + ("" if args.checkpoint else
-                                                    f" (seeds {args.world_model_seeds}, {args.train_steps or 'config'} "
-                                                    f"training steps, {args.record_episodes} recorded episodes)"))
+                                                    f" (seeds {args.world_model_seeds}, "
+                                                    f"{args.train_steps or 'the config'} training steps, "
+                                                    f"{args.record_episodes} recorded episodes)"))
     text = (f"# MPC on the multimodal push task\n\n`{command}` — {minutes:.1f} min on {torch.get_num_threads()} "
             f"threads ({timing})\n\n{budget}; world models: {', '.join(f'`{c}`' for c in checkpoints)}; CEM "
             f"{args.candidates} candidates × {args.iterations} iterations, {args.elites} elites\n\n{table(rows)}\n")
