@@ -10,7 +10,10 @@ path, untrained weights (the cost does not depend on them).
 For each batch size, a `SerialEnv` of `MultimodalPushTorchEnv` is stepped with random actions
 (timed: the env step, rendering included), and the recorded tensordicts are then fed to the
 transform alone (timed: history update, normalisation, one batched forward, outputs), so the two
-costs are measured separately in the same run. Medians over the timed steps.
+costs are measured separately in the same run: with the traced forward (the default,
+``trace=True``) and with the eager TensorDict forward (``trace=False``), beside the eager model
+forward alone. Medians over the timed steps; the first (warm-up) call traces the graph.
+Run it on a quiet machine: the figures are wall-clock times.
 """
 
 from __future__ import annotations
@@ -51,8 +54,9 @@ def push_checkpoint(directory: Path) -> tuple[Path, dict]:
     return path, data
 
 
-def measure(num_envs: int, checkpoint: Path, image_size: int, steps: int, warmup: int) -> tuple[float, float, float]:
-    """Median seconds per step for ``num_envs`` envs: env step, transform call, model forward alone."""
+def measure(num_envs: int, checkpoint: Path, image_size: int, steps: int, warmup: int) -> dict[str, float]:
+    """Median seconds per step for ``num_envs`` envs: the env step, the transform (traced and eager
+    forward) and the eager model forward alone."""
     env = SerialEnv(num_envs, MultimodalPushTorchEnv, create_env_kwargs={"image_size": image_size})
     try:
         env.set_seed(0)
@@ -69,29 +73,36 @@ def measure(num_envs: int, checkpoint: Path, image_size: int, steps: int, warmup
     finally:
         env.close()
 
-    transform = ForecastTransform.from_checkpoint(checkpoint)
-    transform._reset(reset.empty(), reset.clone())  # noqa: SLF001 - the transform alone, no env around it
-    transform_times, model_times = [], []
-    for frame in frames:
-        start = time.perf_counter()
-        transform._call(frame)  # noqa: SLF001
-        transform_times.append(time.perf_counter() - start)
-        # The model alone on the same window: what is left is the transform's own bookkeeping.
-        window = transform.window()
-        with torch.no_grad():
+    times = {"env": env_times}
+    for name, trace in (("traced", True), ("eager", False)):
+        transform = ForecastTransform.from_checkpoint(checkpoint, trace=trace)
+        transform._reset(reset.empty(), reset.clone())  # noqa: SLF001 - the transform alone, no env around it
+        times[name], model_times = [], []
+        for frame in frames:  # the first (warm-up) call traces the graph
             start = time.perf_counter()
-            transform.model(window)
-            model_times.append(time.perf_counter() - start)
-    return tuple(statistics.median(times[warmup:]) for times in (env_times, transform_times, model_times))
+            transform._call(frame)  # noqa: SLF001
+            times[name].append(time.perf_counter() - start)
+            if not trace:
+                # The model alone on the same window: what is left is the transform's own bookkeeping.
+                window = transform.window()
+                with torch.inference_mode():
+                    start = time.perf_counter()
+                    transform.model(window)
+                    model_times.append(time.perf_counter() - start)
+        if model_times:
+            times["model"] = model_times
+    return {name: statistics.median(values[warmup:]) for name, values in times.items()}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=20, help="timed steps per batch size")
-    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--warmup", type=int, default=3, help="untimed first steps (the first one traces)")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 16])
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     args = parser.parse_args()
+    if args.warmup < 1:
+        parser.error("--warmup must be >= 1: the first call traces the model's graph")
     torch.set_num_threads(args.threads)
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -101,13 +112,16 @@ def main() -> None:
 
     print(f"forecaster: default config, image {image_size}x{image_size} + force 6 + proprio 17, H={data['history']}, "
           f"T={data['horizon']}; {args.threads} threads; median of {args.steps} steps")
-    for b, (env_time, transform_time, model_time) in results.items():
-        print(f"batch {b:>3}: env step {env_time * 1e3:7.2f} ms, ForecastTransform {transform_time * 1e3:7.2f} ms "
-              f"({transform_time / b * 1e3:.2f} ms/env; model forward alone {model_time * 1e3:.2f} ms), "
-              f"transform/env = {transform_time / env_time:.2f}")
+    for b, r in results.items():
+        print(f"batch {b:>3}: env step {r['env'] * 1e3:7.2f} ms, ForecastTransform {r['traced'] * 1e3:7.2f} ms "
+              f"({r['traced'] / b * 1e3:.2f} ms/env; eager forward {r['eager'] * 1e3:.2f} ms, model forward "
+              f"alone {r['model'] * 1e3:.2f} ms), transform/env = {r['traced'] / r['env']:.2f}")
     first, last = args.batches[0], args.batches[-1]
-    print(f"summary: forecast per step: batch{first} {results[first][1] * 1e3:.2f} ms, batch{last} "
-          f"{results[last][1] * 1e3:.2f} ms (env step {results[first][0] * 1e3:.2f} ms)")
+    print(f"summary: forecast per step: batch{first} {results[first]['traced'] * 1e3:.2f} ms "
+          f"(eager {results[first]['eager'] * 1e3:.2f} ms, env step {results[first]['env'] * 1e3:.2f} ms, "
+          f"transform/env {results[first]['traced'] / results[first]['env']:.2f}), batch{last} "
+          f"{results[last]['traced'] * 1e3:.2f} ms (env step {results[last]['env'] * 1e3:.2f} ms, "
+          f"transform/env {results[last]['traced'] / results[last]['env']:.2f})")
 
 
 if __name__ == "__main__":

@@ -1,41 +1,70 @@
-"""MPC with the push world model, robust to sensor outages: success over seeded episodes.
+"""MPC with the push world model, robust to sensor outages: success over seeded episodes and
+world-model seeds.
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py --checkpoint runs/world_model/checkpoints \
-        [--episodes 50] [--stepwise-episodes 10] [--out runs/bench_mpc]
+    # quick: builds what it lacks (records, trains 2 world models with a small budget), then plays
+    MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py --quick
+    # full: the committed budget (experiment=world_model), 50 episodes, every outage type
+    MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py
+    # given world models (one per training seed), nothing built
+    MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py --checkpoint runs/wm0/checkpoints runs/wm1/checkpoints
 
-The world model comes from::
+What it builds when absent (under ``--work``; a re-run reuses the recording and resumes or skips
+the trainings): the exploration recording (`mmf_rl.record`, ``--record-episodes`` episodes, seed
+1, exploration 0.1, as ``mmf-rl record --out data/push_explore --episodes 300 --seed 1
+--exploration 0.1``) and one world model per ``--world-model-seeds`` (``mmf-rl train
+experiment=world_model trainer.seed=S``, ``--train-steps`` steps).
 
-    mmf-rl record --out data/push_explore --episodes 300 --seed 1 --exploration 0.1
-    mmf-rl train experiment=world_model
+=========================  ======  =====
+budget                     quick   full
+=========================  ======  =====
+recorded episodes          300     300
+training steps per seed    1500    4000 (configs/experiment/world_model.yaml)
+world-model seeds          0 1     0 1
+episodes per condition     20      50
+outage types               episode episode bursts dies
+step-wise CEMPlanner eps.  0       10
+=========================  ======  =====
+
+Run time: the script prints the minutes of each phase (record, each training, play) and the
+total, and writes them to ``results.md``; the quick mode is sized to finish within 25 min on 2
+CPU cores. The full mode's time is obtained the same way, from one full run on a quiet machine
+(the #7 figures: recording 2.7 min, one 4000-step training 7.1 min, 7.1 min of play for one
+world model with 10 step-wise episodes), i.e. roughly 2.7 + 2 x 7.1 + 2 x (play) minutes.
 
 Every policy plays the same seeded episodes of `MultimodalPushTorchEnv` (episode ``i`` is reset
 with seed ``seed + i``; success is FetchPush's: the object within 5 cm of the goal, within the
-50-step time limit):
+50-step time limit). The outages are seeded too: every world model meets the same ones.
 
-* ``mpc all`` / ``mpc no-camera`` / ``mpc no-force``: `SequenceCEMPlanner` on the world model
-  with `PushObjective`; the camera or the force sensor is off for the whole episode
-  (`ModalityDropout`, ``per="episode"``, probability 1), so the world model plans from the
-  remaining sensors;
+* ``mpc all`` / ``mpc no-camera (<outage>)`` / ``mpc no-force (<outage>)``: `SequenceCEMPlanner`
+  on the world model with `PushObjective`, the camera or the force sensor failing the
+  ``--outage`` way (`ModalityDropout`): ``episode``: off for the whole episode; ``bursts``:
+  outages of 2-8 steps starting with probability 0.2 at each step it is up (absent about half
+  the time); ``dies``: works for 1-49 steps (uniform), then is off until the episode ends. The
+  same world model plans from the remaining sensors: no retraining per outage.
 * ``mpc static model``: the same planner and objective with a "world model" that forecasts no
-  object motion (all sensors): what the objective's kinematic approach term achieves alone,
-  i.e. how much of the success the learned dynamics earn;
+  object motion (all sensors): what the objective's kinematic approach term achieves alone.
 * ``scripted``: the pusher that recorded the training data (`ScriptedPusher`, without
   exploration), a strong hand-written controller with full state;
 * ``random``: uniform random actions.
 
+The order of the MPC conditions flips from one world-model training to the next (issue #15), so
+every MPC row is given per world-model seed and as mean with its spread (min-max) over seeds,
+beside the median decision time per step (the planner's call, measured in the same run).
+
 Step-wise vs vectorised planning (the design choice of issue #7): the first
 ``--stepwise-episodes`` episodes are also played with torchrl's `CEMPlanner` rolling out
-`ForecasterWorldModelEnv` step by step, with the same candidates, iterations and elites; the
-table gives both decision times (measured in the same run) and both success rates on those
-episodes.
+`ForecasterWorldModelEnv` step by step with the first world model, with the same candidates,
+iterations and elites.
 
-Ends with ``summary: success all A%, no-camera B%, no-force C%, scripted S%, random R%``.
+Ends with ``summary: success all A%, no-camera B%, no-force C%, scripted S%, random R%`` (MPC:
+mean over world-model seeds, the first ``--outage`` type).
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -46,12 +75,32 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.modules.planners import CEMPlanner
 
 from mmf_rl import keys
-from mmf_rl.envs import ModalityDropout, MultimodalPushTorchEnv
+from mmf_rl.checkpoint import list_checkpoints
+from mmf_rl.envs.modality_dropout import ModalityDropout, UniformBursts
 from mmf_rl.envs.scripted import ScriptedPusher, episode_generator
+from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
 from mmf_rl.eval.report import write_json, write_text
-from mmf_rl.rl import ForecasterWorldModelEnv, ImaginedPlanningPolicy, PushObjective, SequenceCEMPlanner, WorldModel
+from mmf_rl.rl import (
+    ForecasterWorldModelEnv,
+    ImaginedPlanningPolicy,
+    PushObjective,
+    SequenceCEMPlanner,
+    WorldModel,
+)
 
-CONDITIONS = {"all": [], "no-camera": ["image"], "no-force": ["force"]}
+SENSORS = {"no-camera": "image", "no-force": "force"}
+# How a sensor fails under each --outage type (see the module docstring).
+OUTAGES = {
+    "episode": {"outage": "episode", "outage_prob": 1.0},
+    "bursts": {"outage": "bursts", "outage_prob": 0.2, "bursts": UniformBursts(2, 8)},
+    "dies": {"outage": "dies", "outage_prob": 1.0, "dies_after": UniformBursts(1, 49)},
+}
+BUDGETS = {
+    "quick": {"record_episodes": 300, "train_steps": 1500, "episodes": 20, "outage": ["episode"],
+              "stepwise_episodes": 0},
+    "full": {"record_episodes": 300, "train_steps": None, "episodes": 50, "outage": list(OUTAGES),
+             "stepwise_episodes": 10},
+}
 
 
 class StaticObjectModel(WorldModel):
@@ -64,8 +113,9 @@ class StaticObjectModel(WorldModel):
         return torch.zeros(*actions.shape[:2], self.horizon, self.target_dim)
 
 
-def make_env(world_model: WorldModel, image_size: int, dropped: list[str]) -> TransformedEnv:
-    transforms = [ModalityDropout(dropped, outage_prob=1.0, per="episode")] if dropped else []
+def make_env(world_model: WorldModel, image_size: int, dropped: str | None = None, outage: str = "episode",
+             seed: int = 0) -> TransformedEnv:
+    transforms = [ModalityDropout([dropped], seed=seed, **OUTAGES[outage])] if dropped else []
     transforms += [world_model.history_window(), InitTracker()]
     return TransformedEnv(MultimodalPushTorchEnv(image_size=image_size), Compose(*transforms))
 
@@ -130,77 +180,178 @@ def summarise(results: list[dict], seconds: list[float] | None = None) -> dict:
     return row
 
 
+def over_seeds(per_seed: list[dict]) -> dict:
+    """One row from the rows of several world-model seeds: mean success with its spread."""
+    successes = [r["success"] for r in per_seed]
+    row = {"episodes": per_seed[0]["episodes"], "seeds": len(per_seed), "success": statistics.mean(successes),
+           "success_min": min(successes), "success_max": max(successes),
+           "success_per_seed": successes,
+           "final_distance_mean": statistics.mean(r["final_distance_mean"] for r in per_seed),
+           "final_distance_std": statistics.mean(r["final_distance_std"] for r in per_seed),
+           "steps_mean": statistics.mean(r["steps_mean"] for r in per_seed)}
+    if "decision_ms" in per_seed[0]:
+        row["decision_ms"] = statistics.median(r["decision_ms"] for r in per_seed)
+    return row
+
+
 def table(rows: dict[str, dict]) -> str:
-    lines = ["| policy | episodes | success % | final distance (m) | steps | decision (ms, median) |",
-             "|---|---|---|---|---|---|"]
+    lines = ["| policy | episodes | seeds | success % (mean) | spread (min-max) | per world-model seed | "
+             "final distance (m) | steps | decision (ms/step, median) |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for name, r in rows.items():
         decision = f"{r['decision_ms']:.1f}" if "decision_ms" in r else "-"
-        lines.append(f"| {name} | {r['episodes']} | {r['success']:.0f} | {r['final_distance_mean']:.3f} ± "
-                     f"{r['final_distance_std']:.3f} | {r['steps_mean']:.1f} | {decision} |")
+        seeds = r.get("seeds", "-")
+        spread = f"{r['success_min']:.0f}-{r['success_max']:.0f}" if "success_min" in r else "-"
+        per_seed = " / ".join(f"{x:.0f}" for x in r["success_per_seed"]) if "success_per_seed" in r else "-"
+        lines.append(f"| {name} | {r['episodes']} | {seeds} | {r['success']:.0f} | {spread} | {per_seed} | "
+                     f"{r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | {r['steps_mean']:.1f} | "
+                     f"{decision} |")
     return "\n".join(lines)
 
 
-def main() -> None:
+def build_world_models(args, phases: dict[str, float]) -> list[Path]:
+    """The recording and one world model per seed under ``args.work``, built where absent."""
+    from mmf_rl.configuration import compose_config
+    from mmf_rl.record import RecordConfig, record
+    from mmf_rl.trainers.run import train
+
+    data = args.work / "push_explore"
+    if not (data / "meta" / "info.json").is_file():
+        print(f"mpc_push: recording {args.record_episodes} exploration episodes into {data}")
+        start = time.perf_counter()
+        record(RecordConfig(out=data, episodes=args.record_episodes, workers=args.workers, seed=1,
+                            exploration=0.1))
+        phases["record"] = time.perf_counter() - start
+    checkpoints = []
+    for seed in args.world_model_seeds:
+        run_dir = args.work / f"world_model_seed{seed}"
+        overrides = ["experiment=world_model", f"name=world_model_seed{seed}", f"run_dir={run_dir}",
+                     f"data.root={data}", f"trainer.seed={seed}", "trainer.progress_bar=false"]
+        if args.train_steps is not None:
+            overrides.append(f"trainer.total_steps={args.train_steps}")
+        if list_checkpoints(run_dir / "checkpoints"):
+            overrides.append("resume=true")  # finishes an interrupted training; nothing to do if it had ended
+        start = time.perf_counter()
+        train(compose_config("train", overrides))
+        phases[f"train seed {seed}"] = time.perf_counter() - start
+        checkpoints.append(run_dir / "checkpoints")
+    return checkpoints
+
+
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--checkpoint", default="runs/world_model/checkpoints")
-    parser.add_argument("--episodes", type=int, default=50)
-    parser.add_argument("--stepwise-episodes", type=int, default=10,
-                        help="episodes also played with torchrl's CEMPlanner (0: skip)")
+    parser.add_argument("--quick", action="store_true", help="the small budget (see the table above)")
+    parser.add_argument("--checkpoint", type=Path, nargs="+", default=None,
+                        help="world models to use, one per training seed (default: build them under --work)")
+    parser.add_argument("--work", type=Path, default=None,
+                        help="where the recording and world models are built (default runs/bench_mpc_{quick,full})")
+    parser.add_argument("--world-model-seeds", type=int, nargs="+", default=[0, 1], help="trainer.seed of each")
+    parser.add_argument("--record-episodes", type=int, default=None)
+    parser.add_argument("--train-steps", type=int, default=None, help="default: quick 1500, full the config's")
+    parser.add_argument("--workers", type=int, default=2, help="recording processes")
+    parser.add_argument("--episodes", type=int, default=None, help="episodes per condition (quick 20, full 50)")
+    parser.add_argument("--outage", nargs="+", choices=list(OUTAGES), default=None,
+                        help="how the sensor fails (quick: episode; full: all); the summary uses the first")
+    parser.add_argument("--stepwise-episodes", type=int, default=None,
+                        help="episodes also played with torchrl's CEMPlanner (0: skip; quick 0, full 10)")
     parser.add_argument("--seed", type=int, default=1000, help="episode i is reset with seed + i")
     parser.add_argument("--candidates", type=int, default=128)
     parser.add_argument("--iterations", type=int, default=4)
     parser.add_argument("--elites", type=int, default=16)
     parser.add_argument("--reach-weight", type=float, default=0.5)
-    parser.add_argument("--out", default="runs/bench_mpc")
+    parser.add_argument("--out", type=Path, default=None, help="default runs/bench_mpc_{quick,full}")
     args = parser.parse_args()
-    torch.set_num_threads(2)
+    mode = "quick" if args.quick else "full"
+    for key, value in BUDGETS[mode].items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    args.work = args.work or Path(f"runs/bench_mpc_{mode}")
+    args.out = args.out or args.work
+    return args
 
+
+def main() -> None:
+    args = parse_args()
+    torch.set_num_threads(2)
     started = time.perf_counter()
-    world_model = WorldModel.from_checkpoint(args.checkpoint)
-    image_size = world_model.model.modalities[[s.name for s in world_model.model.modalities].index("image")].shape[-1]
+    phases: dict[str, float] = {}
+    checkpoints = args.checkpoint or build_world_models(args, phases)
+
     objective = PushObjective(reach_weight=args.reach_weight)
     sizes = {"num_candidates": args.candidates, "num_iterations": args.iterations, "num_elites": args.elites}
-    rows, raw = {}, {}
-    for name, dropped in CONDITIONS.items():
-        env = make_env(world_model, image_size, dropped)
+    conditions = [("all", None, args.outage[0])] + [
+        (f"{name} ({outage})", sensor, outage) for outage in args.outage for name, sensor in SENSORS.items()]
+    per_seed: dict[str, list[dict]] = {}
+    raw: dict[str, list] = {}
+    play_start = time.perf_counter()
+    for index, checkpoint in enumerate(checkpoints):
+        world_model = WorldModel.from_checkpoint(checkpoint)
+        image_size = next(s for s in world_model.model.modalities if s.name == "image").shape[-1]
+        tag = f"[world model {index + 1}/{len(checkpoints)}]"
+        for label, sensor, outage in conditions:
+            env = make_env(world_model, image_size, sensor, outage, seed=args.seed)
+            try:
+                planner = Timed(SequenceCEMPlanner(world_model, objective, env.action_spec, seed=args.seed, **sizes))
+                results = play(env, planner, args.episodes, args.seed, f"{tag} mpc {label}")
+            finally:
+                env.close()
+            per_seed.setdefault(f"mpc {label}", []).append(summarise(results, planner.seconds))
+            raw.setdefault(f"mpc {label}", []).append(results)
+        env = make_env(world_model, image_size)
         try:
-            planner = Timed(SequenceCEMPlanner(world_model, objective, env.action_spec, seed=args.seed, **sizes))
-            raw[f"mpc {name}"] = play(env, planner, args.episodes, args.seed, f"mpc {name}")
-            rows[f"mpc {name}"] = summarise(raw[f"mpc {name}"], planner.seconds)
+            static = Timed(SequenceCEMPlanner(StaticObjectModel(world_model), objective, env.action_spec,
+                                              seed=args.seed, **sizes))
+            results = play(env, static, args.episodes, args.seed, f"{tag} mpc static model")
+            per_seed.setdefault("mpc static model", []).append(summarise(results, static.seconds))
+            raw.setdefault("mpc static model", []).append(results)
+            if index == 0:
+                # The baselines do not depend on the world model: played once.
+                baselines = {}
+                for name, policy in [("scripted", ScriptedPolicy(args.seed)), ("random", RandomPolicy(args.seed))]:
+                    raw[name] = play(env, policy, args.episodes, args.seed, name)
+                    baselines[name] = summarise(raw[name])
+                if args.stepwise_episodes:
+                    n = min(args.stepwise_episodes, args.episodes)
+                    world_model_env = ForecasterWorldModelEnv(world_model, objective, env.action_spec,
+                                                              env.observation_spec)
+                    cem = CEMPlanner(world_model_env, planning_horizon=world_model.action_steps,
+                                     optim_steps=args.iterations, num_candidates=args.candidates, top_k=args.elites)
+                    torch.manual_seed(args.seed)
+                    stepwise = Timed(ImaginedPlanningPolicy(cem, world_model_env))
+                    raw["torchrl CEMPlanner all"] = play(env, stepwise, n, args.seed, "torchrl CEMPlanner all")
+                    baselines[f"torchrl CEMPlanner all (first {n}, world model 1)"] = summarise(
+                        raw["torchrl CEMPlanner all"], stepwise.seconds)
+                    baselines[f"mpc all (first {n}, world model 1)"] = summarise(raw["mpc all"][0][:n])
         finally:
             env.close()
-    env = make_env(world_model, image_size, [])
-    try:
-        static = SequenceCEMPlanner(StaticObjectModel(world_model), objective, env.action_spec, seed=args.seed, **sizes)
-        for name, policy in [("mpc static model", static), ("scripted", ScriptedPolicy(args.seed)),
-                             ("random", RandomPolicy(args.seed))]:
-            raw[name] = play(env, policy, args.episodes, args.seed, name)
-            rows[name] = summarise(raw[name])
-        if args.stepwise_episodes:
-            n = min(args.stepwise_episodes, args.episodes)
-            world_model_env = ForecasterWorldModelEnv(world_model, objective, env.action_spec, env.observation_spec)
-            cem = CEMPlanner(world_model_env, planning_horizon=world_model.action_steps, optim_steps=args.iterations,
-                             num_candidates=args.candidates, top_k=args.elites)
-            torch.manual_seed(args.seed)
-            stepwise = Timed(ImaginedPlanningPolicy(cem, world_model_env))
-            raw["torchrl CEMPlanner all"] = play(env, stepwise, n, args.seed, "torchrl CEMPlanner all")
-            rows[f"torchrl CEMPlanner all (first {n})"] = summarise(raw["torchrl CEMPlanner all"], stepwise.seconds)
-            rows[f"mpc all (first {n})"] = summarise(raw["mpc all"][:n], None)
-    finally:
-        env.close()
+    phases["play"] = time.perf_counter() - play_start
+    rows = {name: over_seeds(rows) for name, rows in per_seed.items()} | baselines
 
     minutes = (time.perf_counter() - started) / 60
-    command = ("benchmarks/mpc_push.py " + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items()))
+    timing = ", ".join(f"{name} {seconds / 60:.1f} min" for name, seconds in phases.items())
+    command = " ".join(["benchmarks/mpc_push.py", *sys.argv[1:]])
+    budget = (f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, "
+              f"{len(checkpoints)} world models" + ("" if args.checkpoint else
+                                                    f" (seeds {args.world_model_seeds}, "
+                                                    f"{args.train_steps or 'the config'} training steps, "
+                                                    f"{args.record_episodes} recorded episodes)"))
     text = (f"# MPC on the multimodal push task\n\n`{command}` — {minutes:.1f} min on {torch.get_num_threads()} "
-            f"threads\n\nworld model: `{args.checkpoint}`; CEM {args.candidates} candidates × {args.iterations} "
-            f"iterations, {args.elites} elites, {world_model.action_steps}-step sequences\n\n{table(rows)}\n")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_text(out / "results.md", text)
-    write_json(out / "results.json", {"rows": rows, "episodes": raw, "args": vars(args)})
+            f"threads ({timing})\n\n{budget}; world models: {', '.join(f'`{c}`' for c in checkpoints)}; CEM "
+            f"{args.candidates} candidates × {args.iterations} iterations, {args.elites} elites\n\n{table(rows)}\n")
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_text(args.out / "results.md", text)
+    write_json(args.out / "results.json", {"rows": rows, "episodes": raw, "phases_s": phases,
+                                           "args": {k: str(v) for k, v in vars(args).items()}})
     print(text)
-    print(f"summary: success all {rows['mpc all']['success']:.0f}%, no-camera {rows['mpc no-camera']['success']:.0f}%, "
-          f"no-force {rows['mpc no-force']['success']:.0f}%, scripted {rows['scripted']['success']:.0f}%, "
+    first = args.outage[0]
+    spread = ", ".join(f"{label} {rows[f'mpc {label}']['success_min']:.0f}-{rows[f'mpc {label}']['success_max']:.0f}%"
+                       for label, _, _ in conditions)
+    decision = statistics.median(rows[f"mpc {label}"]["decision_ms"] for label, _, _ in conditions)
+    print(f"spread over world-model seeds {args.world_model_seeds if not args.checkpoint else len(checkpoints)}: "
+          f"{spread}; MPC decision {decision:.1f} ms/step (median)")
+    print(f"summary: success all {rows['mpc all']['success']:.0f}%, "
+          f"no-camera {rows[f'mpc no-camera ({first})']['success']:.0f}%, "
+          f"no-force {rows[f'mpc no-force ({first})']['success']:.0f}%, scripted {rows['scripted']['success']:.0f}%, "
           f"random {rows['random']['success']:.0f}%")
 
 

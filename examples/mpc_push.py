@@ -2,13 +2,15 @@
 
     mmf-rl record --out data/push_wm --episodes 300 --seed 1
     mmf-rl train experiment=world_model data.root=data/push_wm
-    MUJOCO_GL=egl .venv/bin/python examples/mpc_push.py --checkpoint runs/world_model/checkpoints --drop image
+    MUJOCO_GL=egl .venv/bin/python examples/mpc_push.py --checkpoint runs/world_model/checkpoints --drop image \
+        --outage dies
 
 Every step, the agent encodes the last H steps of whatever sensors work, samples candidate
 action sequences, forecasts the object's motion under each with the world model (one batched
-decode), and applies the first action of the best ones (CEM). `--drop` switches a sensor off for
-whole episodes, as a failed camera or force sensor would: the same model keeps planning from the
-rest. benchmarks/mpc_push.py runs this over many episodes against the scripted pusher.
+decode), and applies the first action of the best ones (CEM). `--drop` makes a sensor fail, the
+`--outage` way: off for whole episodes (`episode`, unplugged), in bursts of a few steps
+(`bursts`), or dying at a random step and staying off until the episode ends (`dies`). The same
+model keeps planning from the rest. benchmarks/mpc_push.py runs this over many episodes against the scripted pusher.
 """
 
 import argparse
@@ -16,13 +18,15 @@ import argparse
 import torch
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 
-from mmf_rl.envs import ModalityDropout, MultimodalPushTorchEnv
+from mmf_rl.envs.modality_dropout import ModalityDropout, UniformBursts
+from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
 from mmf_rl.rl import PushObjective, SequenceCEMPlanner, WorldModel
 
 parser = argparse.ArgumentParser(description="MPC with a push world model")
 parser.add_argument("--checkpoint", default="runs/world_model/checkpoints")
 parser.add_argument("--episodes", type=int, default=5)
-parser.add_argument("--drop", choices=["image", "force"], default=None, help="sensor that is off")
+parser.add_argument("--drop", choices=["image", "force"], default=None, help="sensor that fails")
+parser.add_argument("--outage", choices=["episode", "bursts", "dies"], default="episode", help="how it fails")
 parser.add_argument("--seed", type=int, default=0)
 args = parser.parse_args()
 torch.set_num_threads(2)
@@ -33,7 +37,11 @@ image_spec = next(s for s in world_model.model.modalities if s.name == "image")
 history = world_model.history_window()  # writes ("history", ...): the model's input window, every step
 
 # The real env: the outage (if any) happens before the history sees the sensors.
-transforms = [ModalityDropout([args.drop], outage_prob=1.0, per="episode")] if args.drop else []
+outages = {"episode": {"outage_prob": 1.0},  # off all episode
+           "bursts": {"outage_prob": 0.2, "bursts": UniformBursts(2, 8)},  # 2-8 step outages, ~half the time
+           "dies": {"outage_prob": 1.0, "dies_after": UniformBursts(1, 49)}}  # dies at a uniform step
+transforms = ([ModalityDropout([args.drop], outage=args.outage, seed=args.seed, **outages[args.outage])]
+              if args.drop else [])
 env = TransformedEnv(MultimodalPushTorchEnv(image_size=image_spec.shape[-1]),
                      Compose(*transforms, history, InitTracker()))
 
@@ -51,4 +59,5 @@ for episode in range(args.episodes):
     print(f"episode {episode}: {'success' if success else 'failure'} after {rollout.shape[0]} steps, "
           f"object {100 * distance:.1f} cm from the goal")
 env.close()
-print(f"success {successes}/{args.episodes} with {'all sensors' if args.drop is None else args.drop + ' off'}")
+print(f"success {successes}/{args.episodes} with "
+      f"{'all sensors' if args.drop is None else f'{args.drop} failing ({args.outage})'}")

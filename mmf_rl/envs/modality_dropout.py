@@ -3,9 +3,13 @@
 Reads the `mmf_rl.keys` contract per env step (``("obs", m)`` single frames and ``("present", m)``
 flags, as `MultimodalPushTorchEnv` emits them) and keeps per-env state shaped by the env's batch
 size, so it works on a single env and on `SerialEnv`/`ParallelEnv` alike. Seeded outages per
-modality (bursts of steps, or whole episodes): an absent modality's data is zeroed and its
+modality: an absent modality's data is zeroed and its
 ``("present", m)`` flag cleared; specs are unchanged. It needs no model, so it sits with the
 simulator; the forecasting transforms built on the same per-env conventions are in `mmf_rl.rl`.
+
+The three ways a sensor fails (``outage=``): ``"bursts"`` (dropped readings: outages of a few
+steps that recover), ``"episode"`` (unplugged: out for a whole episode) and ``"dies"`` (breaks
+during the episode: works for a drawn number of steps, then is out until the episode ends).
 """
 
 from __future__ import annotations
@@ -23,6 +27,9 @@ from torchrl.envs.transforms import Compose, Transform
 from mmf_rl import keys
 
 RESET_KEY = "_reset"
+Outage = Literal["bursts", "episode", "dies"]
+OUTAGES: tuple[str, ...] = ("bursts", "episode", "dies")
+NEVER = torch.iinfo(torch.long).max  # the onset of an outage that does not happen this episode
 
 
 def reset_rows(tensordict: TensorDictBase, batch_size: torch.Size, known_batch_size: torch.Size | None,
@@ -85,7 +92,7 @@ class GeometricBursts:
 
 
 def outage_start_prob(fraction: float, mean_burst: float) -> float:
-    """The per-step outage start probability (``ModalityDropout(per="step")``'s ``outage_prob``) that
+    """The per-step outage start probability (``ModalityDropout(outage="bursts")``'s ``outage_prob``) that
     leaves a modality absent ``fraction`` of the steps when its outages last ``mean_burst`` steps on
     average.
 
@@ -107,7 +114,7 @@ def replay_outages(outages: Mapping[str, Mapping[str, float]], seed: int = 0) ->
     Modalities never or always absent (``f`` of 0 or 1) get no transform."""
     transforms = [
         ModalityDropout([name], outage_prob=outage_start_prob(o["fraction"], o["mean_burst"]),
-                        bursts=GeometricBursts(o["mean_burst"]), per="step", seed=seed + i)
+                        bursts=GeometricBursts(o["mean_burst"]), outage="bursts", seed=seed + i)
         for i, (name, o) in enumerate(sorted(outages.items())) if 0.0 < o["fraction"] < 1.0
     ]
     if not transforms:
@@ -122,29 +129,38 @@ class ModalityDropout(Transform):
     Args:
         modalities: names of the modalities that can fail.
         outage_prob: one probability for all, or one per modality (a mapping over ``modalities``).
-            ``per="step"``: probability that an outage starts at a step where the modality is up;
-            ``per="episode"``: probability that the modality is out for the whole episode.
-        bursts: outage length distribution for ``per="step"`` (`UniformBursts` or
+            ``outage="bursts"``: probability that an outage starts at a step where the modality is
+            up; ``"episode"``: probability that the modality is out for the whole episode;
+            ``"dies"``: probability that it dies during the episode.
+        bursts: for ``"bursts"``, the outage length distribution (`UniformBursts` or
             `GeometricBursts`); an outage lasts exactly the drawn number of steps unless the
             episode ends first.
-        per: ``"step"`` (bursts) or ``"episode"``.
-        seed: seed of the transform's own ``torch.Generator``; the same seed, env batch size and
-            sequence of resets and steps give the same outages.
+        outage: ``"bursts"``, ``"episode"`` or ``"dies"`` (see the module docstring).
+        dies_after: for ``"dies"``, the number of readings the modality delivers before it dies
+            (`UniformBursts` or `GeometricBursts`, at least 1): with ``k`` drawn, observations
+            ``0 .. k-1`` of the episode (0 is the reset observation) are present and every later
+            one is absent. The default, uniform over 1..49, spreads the death over the push env's
+            50-step episodes; a ``k`` past the episode's end means it survives that episode.
+            `GeometricBursts(mean)` gives a constant failure rate per step.
+        seed: seed of the transform's own ``torch.Generator``; the same seed, outage type, env
+            batch size and sequence of resets and steps give the same outages.
 
     Every env (every row of a batched env) draws independently. The reset observation counts as
-    a step. After an outage the modality delivers at least one reading before it can fail again,
-    so each outage is one run of absent steps of the drawn length. A reset clears the outages of
-    the envs that reset (honouring ``"_reset"`` masks) and draws afresh for them.
+    a step. With ``"bursts"``, after an outage the modality delivers at least one reading before
+    it can fail again, so each outage is one run of absent steps of the drawn length. A reset
+    clears the outages of the envs that reset (honouring ``"_reset"`` masks) and draws afresh for
+    them: an ``"episode"`` or ``"dies"`` outage is drawn once per episode, at its reset.
     """
 
     def __init__(self, modalities: Sequence[str], outage_prob: float | Mapping[str, float] = 0.05,
                  bursts: UniformBursts | GeometricBursts = UniformBursts(1, 10),
-                 per: Literal["step", "episode"] = "step", seed: int = 0):
+                 outage: Outage = "bursts", dies_after: UniformBursts | GeometricBursts = UniformBursts(1, 49),
+                 seed: int = 0):
         modalities = list(modalities)
         if not modalities:
             raise ValueError("ModalityDropout needs at least one modality name")
-        if per not in ("step", "episode"):
-            raise ValueError(f"ModalityDropout(per={per!r}): expected 'step' or 'episode'")
+        if outage not in OUTAGES:
+            raise ValueError(f"ModalityDropout(outage={outage!r}): expected one of {list(OUTAGES)}")
         if isinstance(outage_prob, Mapping):
             unknown = sorted(set(outage_prob) - set(modalities))
             missing = sorted(set(modalities) - set(outage_prob))
@@ -162,10 +178,12 @@ class ModalityDropout(Transform):
         self.modalities = modalities
         self.outage_prob = torch.tensor(probs)
         self.bursts = bursts
-        self.per = per
+        self.outage = outage
+        self.dies_after = dies_after
         self.seed = seed
         self.generator = torch.Generator().manual_seed(seed)
-        # Per env (flattened batch) and modality: steps of the current outage still to come, and
+        # Per env (flattened batch) and modality: steps of the current outage still to come (for
+        # "episode" and "dies": readings still to come before it starts, then "forever"), and
         # whether the last observation was absent.
         self._remaining: torch.Tensor | None = None
         self._absent: torch.Tensor | None = None
@@ -179,14 +197,11 @@ class ModalityDropout(Transform):
         return observation_spec
 
     def _draw(self, rows: torch.Tensor) -> None:
-        """Advance the outage state of ``rows`` by one observation."""
+        """Advance the "bursts" outage state of ``rows`` by one observation."""
         shape = self._remaining.shape
         # Draws for every row and modality each time, so the stream does not depend on outcomes.
         starts = torch.rand(shape, generator=self.generator) < self.outage_prob
-        if self.per == "step":
-            lengths = self.bursts.sample(shape, self.generator)
-        else:  # drawn at reset only: an outage that outlasts any episode
-            lengths = torch.full(shape, torch.iinfo(torch.long).max)
+        lengths = self.bursts.sample(shape, self.generator)
         starts &= ~self._absent & rows[:, None]
         remaining = torch.where(starts, lengths, self._remaining)
         absent = remaining > 0
@@ -212,14 +227,36 @@ class ModalityDropout(Transform):
             self._absent = torch.zeros(batch_size.numel(), len(self.modalities), dtype=torch.bool)
         self._remaining[rows] = 0
         self._absent[rows] = False
-        self._draw(rows)
+        if self.outage == "bursts":
+            self._draw(rows)
+        else:
+            self._draw_episode(rows)
+            self._advance_episode(rows)
         return self._apply_outages(tensordict_reset)
+
+    def _draw_episode(self, rows: torch.Tensor) -> None:
+        """Draw the "episode" or "dies" outage of the episodes ``rows`` start: the readings before it."""
+        shape = self._remaining.shape
+        fails = torch.rand(shape, generator=self.generator) < self.outage_prob
+        onset = (self.dies_after.sample(shape, self.generator) if self.outage == "dies"
+                 else torch.zeros(shape, dtype=torch.long))
+        onset = torch.where(fails, onset, NEVER)
+        self._remaining = torch.where(rows[:, None], onset, self._remaining)
+
+    def _advance_episode(self, rows: torch.Tensor) -> None:
+        """One observation of an "episode" or "dies" outage: absent once its onset is reached."""
+        self._absent = torch.where(rows[:, None], self._remaining <= 0, self._absent)
+        self._remaining = torch.where(rows[:, None] & (self._remaining > 0) & (self._remaining < NEVER),
+                                      self._remaining - 1, self._remaining)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         if self._batch_size is None:
             raise RuntimeError("ModalityDropout: the env was stepped before its first reset; call env.reset()")
-        if self.per == "step":
-            self._draw(torch.ones(self._batch_size.numel(), dtype=torch.bool))
+        every_env = torch.ones(self._batch_size.numel(), dtype=torch.bool)
+        if self.outage == "bursts":
+            self._draw(every_env)
+        else:
+            self._advance_episode(every_env)
         return self._apply_outages(next_tensordict)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

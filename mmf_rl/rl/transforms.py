@@ -19,6 +19,7 @@ Put the simulated outages (`mmf_rl.envs.ModalityDropout`) before the forecaster:
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -147,11 +148,19 @@ class _WindowTransform(Transform):
 
     def window(self) -> TensorDict:
         """The model's input for every env, ``[n]`` (flattened env batch), as the data pipeline builds it."""
-        n = self._batch_size.numel()
+        observations, presence = self._window_tensors()
+        window = TensorDict(batch_size=[self._batch_size.numel()])
+        for spec, values, present in zip(self.specs, observations, presence, strict=True):
+            window.set(spec.obs_key, values)
+            window.set(spec.present_key, present)
+        return window
+
+    def _window_tensors(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """:meth:`window` as plain tensors, one per modality: observations and presence flags."""
         # Ring slots of the H window steps, oldest first.
         steps = torch.arange(self.history - 1, -1, -1) * self.stride
         slots = (self._newest - steps) % self.buffer_length
-        window = TensorDict(batch_size=[n])
+        observations, presence = [], []
         for spec in self.specs:
             if spec.kind == "vector":
                 values = self._frames[spec.name][:, self._newest]
@@ -161,9 +170,9 @@ class _WindowTransform(Transform):
                 present = self._present[spec.name].index_select(1, slots).all(1)
             if spec.kind != "image":
                 values = values * present.view(-1, *[1] * (values.dim() - 1))
-            window.set(spec.obs_key, values)
-            window.set(spec.present_key, present)
-        return window
+            observations.append(values)
+            presence.append(present)
+        return observations, presence
 
     # -- env hooks -----------------------------------------------------------------------------
 
@@ -194,7 +203,7 @@ class ForecastTransform(_WindowTransform):
     Args:
         model: a forecaster from the model registry (``config.modalities``, ``config.history``,
             ``config.horizon``, ``config.target_dim``); it is put in eval mode and run under
-            ``torch.no_grad()``. An action-conditioned world model cannot forecast without the
+            ``torch.inference_mode()``. An action-conditioned world model cannot forecast without the
             future actions: plan with it instead (`HistoryWindow` + `mmf_rl.rl`).
         stats: the normalisation statistics of its training run (a checkpoint's ``tensors``):
             ``"<m>/mean"``, ``"<m>/std"`` for every non-image modality, ``"target/mean"``,
@@ -206,6 +215,13 @@ class ForecastTransform(_WindowTransform):
             world frame; a run trained with ``data.target.relative`` forecasts displacements from
             the current step, as the push config does), ``False`` in the normalised frame the
             model was trained in.
+        trace: ``True`` (default) runs a `torch.jit.trace` of the model's forward, one graph per
+            batch size and presence pattern (traced the first time it occurs), on plain tensors:
+            no TensorDict, validation or Python module dispatch per step. The inputs were checked
+            against the env's specs once (:meth:`transform_observation_spec`). A batch where a
+            modality is present in some envs but not others runs the eager forward, as does
+            ``trace=False`` (for a model whose forward branches on values, which no registry
+            model does: they branch on presence and shapes only).
 
     Written every step (env batch ``[*batch]``): ``("forecast", "loc")`` and ``("forecast",
     "scale")`` ``float32 [*batch, T, D]`` (the model's deterministic eval forecast, a diagonal
@@ -222,11 +238,12 @@ class ForecastTransform(_WindowTransform):
     row gets ``valid = False`` and the training marginal of the target (normalised mean 0,
     scale 1, i.e. ``target/mean`` and ``target/std`` in target units).
 
-    The history is a fixed ring buffer per env: the cost per step does not grow with time.
+    The history is a fixed ring buffer per env: the cost per step does not grow with time
+    (`benchmarks/forecast_transform_cost.py` measures it against the env step).
     """
 
     def __init__(self, model: nn.Module, stats: Mapping[str, torch.Tensor], *, stride: int = 1,
-                 num_samples: int = 0, denormalize: bool = True):
+                 num_samples: int = 0, denormalize: bool = True, trace: bool = True):
         config = model.config
         if getattr(config, "action_dim", 0):
             raise ValueError(
@@ -244,11 +261,13 @@ class ForecastTransform(_WindowTransform):
         super().__init__(config.modalities, stats, config.history, stride, out_keys)
         self.model = model.eval()
         self.horizon, self.target_dim = config.horizon, config.target_dim
-        self.num_samples, self.denormalize = num_samples, denormalize
+        self.num_samples, self.denormalize, self.trace = num_samples, denormalize, trace
+        self._model_keys = [s.obs_key for s in self.specs] + [s.present_key for s in self.specs]
+        self._graphs: dict[tuple, torch.jit.ScriptModule] = {}  # by presence pattern (_presence_pattern)
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike, *, num_samples: int = 0, denormalize: bool = True,
-                        map_location: str | torch.device = "cpu") -> ForecastTransform:
+                        trace: bool = True, map_location: str | torch.device = "cpu") -> ForecastTransform:
         """Load the model, its weights, normalisation stats and window stride from a checkpoint.
 
         ``path``: a checkpoint directory or a directory with a ``last`` pointer (a run's
@@ -256,7 +275,7 @@ class ForecastTransform(_WindowTransform):
         """
         model, stats, data_config = load_trained_model(path, map_location)
         return cls(model, stats, stride=int(data_config.get("stride", 1)), num_samples=num_samples,
-                   denormalize=denormalize)
+                   denormalize=denormalize, trace=trace)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         self._check_modalities(observation_spec)
@@ -272,11 +291,10 @@ class ForecastTransform(_WindowTransform):
 
     # -- forecast ------------------------------------------------------------------------------
 
-    @torch.no_grad()
     def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
-        window = self.window()
-        n = window.batch_size[0]
-        valid = torch.stack([window.get(s.present_key) for s in self.specs], 1).any(1)
+        observations, presence = self._window_tensors()
+        n = self._batch_size.numel()
+        valid = torch.stack(presence, 1).any(1)
         # Envs with no present sensor get the target's training prior (zero mean, unit scale).
         prior = [torch.zeros(n, self.horizon, self.target_dim), torch.ones(n, self.horizon, self.target_dim)]
         if self.num_samples:
@@ -284,12 +302,15 @@ class ForecastTransform(_WindowTransform):
         device = next(self.model.parameters()).device
 
         def predict(rows: torch.Tensor | None) -> list[torch.Tensor]:
-            inputs = (window if rows is None else window[rows]).to(device)
-            out = self.model(inputs.clone(False))
-            predicted = [out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)]
-            if self.num_samples:
-                predicted.append(self.model.sample(inputs.clone(False), self.num_samples).get(keys.FORECAST_SAMPLES))
-            return [p.cpu() for p in predicted]
+            with torch.inference_mode():
+                inputs = [(t if rows is None else t[rows]).to(device) for t in observations + presence]
+                predicted = list(self._forecast(inputs))
+                if self.num_samples:
+                    window = TensorDict(dict(zip(self._model_keys, inputs)), batch_size=inputs[0].shape[:1])
+                    predicted.append(self.model.sample(window, self.num_samples).get(keys.FORECAST_SAMPLES))
+            # Copied out of inference mode: a policy trained on the forecasts must be able to
+            # save them for backward.
+            return [p.to("cpu", copy=True) for p in predicted]
 
         loc, scale, *samples = compute_on_rows(valid, predict, prior)
         samples = samples[0] if samples else None
@@ -307,6 +328,61 @@ class ForecastTransform(_WindowTransform):
                            samples.reshape(*batch, self.num_samples, self.horizon, self.target_dim))
         return tensordict
 
+    def _forecast(self, inputs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """``loc``, ``scale`` of the model's eval forecast for window tensors (observations, then presence).
+
+        With ``trace``, a traced graph of the model's forward for this batch size and presence
+        pattern (traced on first use); eagerly through the TensorDict forward otherwise, and for a
+        batch where some modality is present in some rows only.
+        """
+        pattern = self._presence_pattern(inputs[len(self.specs):]) if self.trace else None
+        if pattern is None:
+            out = self.model(TensorDict(dict(zip(self._model_keys, inputs)), batch_size=inputs[0].shape[:1]))
+            return out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
+        graph = self._graphs.get(pattern)
+        if graph is None:
+            graph = self._graphs[pattern] = self._trace(inputs)
+        return graph(*inputs)
+
+    @staticmethod
+    def _presence_pattern(presence: list[torch.Tensor]) -> tuple | None:
+        """(batch size, each modality present in every row or in none); ``None`` for a mixed column.
+
+        The models take Python branches on presence (which encoders run, `compute_on_rows`) and
+        on shapes, never on values: a trace is exact for the pattern it was traced with.
+        """
+        columns = []
+        for present in presence:
+            everywhere = bool(present.all())
+            if not everywhere and bool(present.any()):
+                return None
+            columns.append(everywhere)
+        return (presence[0].shape[0], *columns)
+
+    def _trace(self, inputs: list[torch.Tensor]) -> torch.jit.ScriptModule:
+        # Plain tensors in, (loc, scale) out: the graph has no TensorDict, validation or Python
+        # dispatch left, and the outputs nobody reads (the posterior, in eval) are pruned from it.
+        # Why torch.jit.trace, deprecated in torch 2.x: torch.export refuses the presence branches,
+        # and torch.compile took minutes to compile on 2 CPU cores and was slower than this trace
+        # at batch 1 (graph breaks around the TensorDict forward).
+        with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
+            # The trace freezes the presence branches: expected, hence keyed by presence pattern.
+            warnings.simplefilter("ignore", torch.jit.TracerWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            example = tuple(t.clone() for t in inputs)
+            return torch.jit.trace(_ForecastOfTensors(self.model, self._model_keys), example, check_trace=False)
+
+
+class _ForecastOfTensors(nn.Module):
+    """A forecaster's eval forward as a function of plain tensors (for `torch.jit.trace`)."""
+
+    def __init__(self, model: nn.Module, in_keys: list):
+        super().__init__()
+        self.model, self.in_keys = model, in_keys
+
+    def forward(self, *tensors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.model(TensorDict(dict(zip(self.in_keys, tensors)), batch_size=tensors[0].shape[:1]))
+        return out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
 
 
 class HistoryWindow(_WindowTransform):

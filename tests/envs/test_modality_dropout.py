@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from torchrl.envs import TransformedEnv
+from torchrl.envs import SerialEnv, TransformedEnv
 
 from mmf_rl import keys
 from mmf_rl.envs.modality_dropout import (
@@ -12,6 +12,8 @@ from mmf_rl.envs.modality_dropout import (
     outage_start_prob,
     replay_outages,
 )
+from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
+from tests.envs.conftest import IMAGE_SIZE
 from tests.envs.stamp_env import stamp_envs
 
 
@@ -98,7 +100,7 @@ def test_replay_outages_gives_each_modality_its_measured_fraction_and_bursts():
 
 
 def test_dropout_per_episode_holds_for_the_whole_episode():
-    td = dropout_rollout(ModalityDropout(["image"], outage_prob=0.5, per="episode", seed=0),
+    td = dropout_rollout(ModalityDropout(["image"], outage_prob=0.5, outage="episode", seed=0),
                          num_envs=8, steps=40, max_steps=10)
     present = presence_over_time(td, "image")  # 4 episodes of 10 steps per env
     steps = torch.arange(present.shape[1])
@@ -128,3 +130,76 @@ def test_dropout_reset_clears_the_outages_of_the_envs_that_reset():
         assert [p[1] for p in present] == [False, False, True, False, False, False]
     finally:
         env.close()
+
+
+def episode_presence(present: torch.Tensor, episode_steps: int) -> torch.Tensor:
+    """``[envs, episodes, episode_steps]``: each episode's observations, from its reset observation on,
+    cut out of a rollout of whole episodes (``presence_over_time``; after its first episode a step's
+    terminal observation is replaced by the next reset's in the root td, which this reads)."""
+    envs, length = present.shape
+    episodes = (length - 1) // episode_steps
+    return present[:, : episodes * episode_steps].reshape(envs, episodes, episode_steps)
+
+
+def test_dropout_dies_stays_dead_until_the_episode_ends():
+    dropout = ModalityDropout(["force"], outage_prob=0.7, outage="dies", dies_after=UniformBursts(2, 6), seed=5)
+    td = dropout_rollout(dropout, num_envs=4, steps=80, max_steps=10)
+    # The root td holds every episode's reset observation and its steps until the last one.
+    present = td[keys.present_key("force")]  # [envs, steps]: observation t of episode t // 10
+    episodes = episode_presence(torch.cat([present, present[:, -1:]], 1), 10)
+    deaths = []
+    for row in episodes.reshape(-1, 10).tolist():
+        alive = sum(row)
+        assert row == [True] * alive + [False] * (10 - alive), "a dead sensor never comes back within its episode"
+        deaths.append(alive)
+    assert set(deaths) == {2, 3, 4, 5, 6, 10}, "it dies after 2..6 readings, or survives (p = 0.3)"
+    nxt = td["next"]
+    absent = ~nxt[keys.PRESENT, "force"]
+    assert (nxt[keys.obs_key("force")][absent] == 0).all() and (nxt[keys.obs_key("force")][~absent] != 0).all()
+
+
+def test_dropout_dies_is_seeded_and_revived_by_a_reset():
+    def deaths(seed):
+        td = dropout_rollout(ModalityDropout(["image"], outage_prob=1.0, outage="dies", seed=seed),
+                             num_envs=3, steps=150, max_steps=50)
+        return td[keys.present_key("image")].reshape(3, 3, 50).sum(-1)  # readings before death, per episode
+
+    first = deaths(0)
+    assert torch.equal(first, deaths(0)) and not torch.equal(first, deaths(1))
+    assert first.min() >= 1 and first.max() <= 49, "UniformBursts(1, 49): dies mid-episode, after the reset reading"
+    assert len(set(first.flatten().tolist())) > 3, "each env and episode draws its own death step"
+
+
+@pytest.mark.parametrize("outage", ["bursts", "episode", "dies"])
+def test_every_outage_type_on_the_push_env(outage):
+    """The real MuJoCo env: outages zero the sensor's data and clear its flag; the type shapes when."""
+    dropout = ModalityDropout(["image", "force"], outage_prob={"image": 0.5, "force": 0.5}, outage=outage,
+                              bursts=UniformBursts(2, 3), dies_after=UniformBursts(3, 8), seed=1)
+    env = TransformedEnv(SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE, max_episode_steps=12)),
+                         dropout)
+    try:
+        env.set_seed(0)
+        torch.manual_seed(0)
+        td = env.rollout(36, break_when_any_done=False)
+    finally:
+        env.close()
+    for name in ("image", "force"):
+        present = td[keys.present_key(name)]  # [2, 36]: 3 episodes of 12 observations from the reset on
+        absent = ~td["next", keys.PRESENT, name]
+        data = td["next", keys.obs_key(name)].flatten(2)
+        assert (data[absent] == 0).all()
+        if name == "image":  # the force is zero without contact; a frame never is
+            assert (data[~absent].abs().sum(-1) > 0).all()
+        assert 0 < present.float().mean() < 1
+        for row in present.reshape(-1, 12).tolist():
+            alive = sum(row)
+            if outage == "episode":
+                assert alive in (0, 12)
+            elif outage == "dies":
+                assert row == [True] * alive + [False] * (12 - alive) and (alive == 12 or 3 <= alive <= 8)
+    assert td["next", keys.PRESENT, "proprio"].all()
+
+
+def test_unknown_outage_type_is_refused():
+    with pytest.raises(ValueError, match=r"outage='mid'.*\['bursts', 'episode', 'dies'\]"):
+        ModalityDropout(["image"], outage="mid")

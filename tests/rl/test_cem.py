@@ -63,7 +63,7 @@ def test_planner_drives_the_real_env_batched_with_outages(push_world_model):
     from mmf_rl.envs import ModalityDropout
 
     env = TransformedEnv(SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)), Compose(
-        ModalityDropout(["image", "force"], outage_prob=0.5, per="episode", seed=0),
+        ModalityDropout(["image", "force"], outage_prob=0.5, outage="episode", seed=0),
         push_world_model.history_window(), InitTracker()))
     try:
         env.set_seed(0)

@@ -116,6 +116,32 @@ def test_forecast_equals_the_model_on_the_window_built_by_hand(checkpoint):
     assert td["next", FORECAST_VALID].all()
 
 
+@pytest.mark.parametrize("num_envs", [1, 3])
+def test_traced_forecast_equals_the_eager_forward(checkpoint, num_envs):
+    """The lean path (one trace per batch size and presence pattern) writes the eager forward's forecasts."""
+    def rollout(trace: bool):
+        forecast = ForecastTransform.from_checkpoint(checkpoint, trace=trace)
+        base = (MultimodalPushTorchEnv(image_size=IMAGE_SIZE) if num_envs == 1
+                else SerialEnv(num_envs, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)))
+        env = TransformedEnv(base, Compose(
+            ModalityDropout(["image", "force"], outage_prob=0.3, bursts=UniformBursts(1, 3), seed=4), forecast))
+        try:
+            env.set_seed(0)
+            torch.manual_seed(0)  # the random actions
+            assert not env.reset()[keys.FORECAST_LOC].is_inference(), "a policy can train on the forecasts"
+            return env.rollout(12, break_when_any_done=False), forecast
+        finally:
+            env.close()
+
+    traced, forecast = rollout(trace=True)
+    eager, _ = rollout(trace=False)
+    patterns = {pattern[1:] for pattern in forecast._graphs}  # noqa: SLF001
+    # Batch 1: every step is traced; a batch of 3 mixes presence across envs, so the eager path runs too.
+    assert len(patterns) >= (2 if num_envs == 1 else 1), "the rollout should exercise traced presence patterns"
+    for key in (keys.FORECAST_LOC, keys.FORECAST_SCALE):
+        torch.testing.assert_close(traced["next", *key], eager["next", *key])
+
+
 def test_forecast_history_resets_with_the_envs_that_reset(checkpoint):
     forecast = ForecastTransform.from_checkpoint(checkpoint)
     env = TransformedEnv(stamp_envs(3), forecast)
@@ -160,7 +186,7 @@ def test_forecast_window_uses_the_checkpoint_stride(tmp_path):
 def test_forecast_without_any_present_modality_is_the_target_marginal(checkpoint):
     forecast = ForecastTransform.from_checkpoint(checkpoint, num_samples=2)
     env = TransformedEnv(stamp_envs(2), Compose(
-        ModalityDropout(list(MODALITIES), outage_prob={"image": 1.0, "force": 1.0, "proprio": 0.0}, per="episode"),
+        ModalityDropout(list(MODALITIES), outage_prob={"image": 1.0, "force": 1.0, "proprio": 0.0}, outage="episode"),
         forecast,
     ))
     try:
