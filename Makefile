@@ -8,6 +8,8 @@ setup:
 	@bash scripts/setup.sh
 
 test: setup
+	.venv/bin/ruff check .
+	.venv/bin/ruff format --check .
 	$(VENV_PY) -m pytest -q tests
 
 demo: setup

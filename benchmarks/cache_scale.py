@@ -49,12 +49,18 @@ def data_config(root: Path, cache_dir: Path):
     from mmf_rl.datasets.config import DataConfig
     from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 
-    return DataConfig.from_dict({
-        "root": str(root), "cache_dir": str(cache_dir), "history": 10, "horizon": 10,
-        "image_size": [IMAGE_SIZE, IMAGE_SIZE], "split_fractions": [0.8, 0.1, 0.1],
-        "modalities": {"image": IMAGE_FEATURE, "state": STATE_FEATURE, "force": FORCE_FEATURE},
-        "target": {"feature": POSE_FEATURE, "dims": [0, 1]},
-    })
+    return DataConfig.from_dict(
+        {
+            "root": str(root),
+            "cache_dir": str(cache_dir),
+            "history": 10,
+            "horizon": 10,
+            "image_size": [IMAGE_SIZE, IMAGE_SIZE],
+            "split_fractions": [0.8, 0.1, 0.1],
+            "modalities": {"image": IMAGE_FEATURE, "state": STATE_FEATURE, "force": FORCE_FEATURE},
+            "target": {"feature": POSE_FEATURE, "dims": [0, 1]},
+        }
+    )
 
 
 def dataset(work_dir: Path, frames: int) -> Path:
@@ -68,9 +74,13 @@ def dataset(work_dir: Path, frames: int) -> Path:
         episodes = [EPISODE_FRAMES] * (frames // EPISODE_FRAMES)
         episodes += [frames % EPISODE_FRAMES] if frames % EPISODE_FRAMES else []
         started = time.perf_counter()
-        make_synthetic_dataset(root, episodes, image_size=IMAGE_SIZE, nan_force_episodes=(), invalid_image_episodes=())
-        print(f"wrote {root} ({frames} frames, {len(episodes)} episodes) in {time.perf_counter() - started:.0f} s",
-              flush=True)
+        make_synthetic_dataset(
+            root, episodes, image_size=IMAGE_SIZE, nan_force_episodes=(), invalid_image_episodes=()
+        )
+        print(
+            f"wrote {root} ({frames} frames, {len(episodes)} episodes) in {time.perf_counter() - started:.0f} s",
+            flush=True,
+        )
         done.touch()
     return root
 
@@ -89,9 +99,15 @@ def build_in_this_process(root: Path, cache_dir: Path) -> None:
         WindowDataset(data_config(root, cache_dir))
     elapsed = time.perf_counter() - started
     kib = 1024  # ru_maxrss is in KiB on Linux
-    print(json.dumps({"build_s": elapsed,
-                      "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / kib,
-                      "workers_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / kib}))
+    print(
+        json.dumps(
+            {
+                "build_s": elapsed,
+                "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / kib,
+                "workers_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / kib,
+            }
+        )
+    )
 
 
 def subprocess_env() -> dict[str, str]:
@@ -101,8 +117,9 @@ def subprocess_env() -> dict[str, str]:
 
 
 def measure_build(root: Path, cache_dir: Path) -> tuple[dict, str]:
-    result = subprocess.run(build_command(root, cache_dir), env=subprocess_env(), capture_output=True, text=True,
-                            check=False)
+    result = subprocess.run(
+        build_command(root, cache_dir), env=subprocess_env(), capture_output=True, text=True, check=False
+    )
     if result.returncode != 0:
         sys.exit(f"cache build failed ({result.returncode}):\n{result.stderr[-3000:]}")
     return json.loads(result.stdout.strip().splitlines()[-1]), result.stderr
@@ -128,8 +145,13 @@ def measure_throughput(root: Path, cache_dir: Path) -> float:
 def interrupted_build(root: Path, cache_dir: Path, episodes: int) -> str:
     """Kill a build at ~90% of its video jobs, build again; describe what the second build did."""
     shutil.rmtree(cache_dir, ignore_errors=True)
-    process = subprocess.Popen(build_command(root, cache_dir), env=subprocess_env(), stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, start_new_session=True)
+    process = subprocess.Popen(
+        build_command(root, cache_dir),
+        env=subprocess_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
 
     def recorded() -> int:
         return sum(len(p.read_text().splitlines()) for p in cache_dir.glob(".building-*/progress.jsonl"))
@@ -145,8 +167,10 @@ def interrupted_build(root: Path, cache_dir: Path, episodes: int) -> str:
     resumed = re.search(r"resuming an interrupted window cache build .*: (\d+) of (\d+) video jobs", stderr)
     if resumed is None:
         return f"killed at {killed_at}/{episodes} jobs; the next build started over (no resume) in {stats['build_s']:.1f} s"
-    return (f"killed at {killed_at}/{episodes} jobs; the next build resumed with {resumed[1]} of {resumed[2]} done "
-            f"and decoded the other {int(resumed[2]) - int(resumed[1])} in {stats['build_s']:.1f} s")
+    return (
+        f"killed at {killed_at}/{episodes} jobs; the next build resumed with {resumed[1]} of {resumed[2]} done "
+        f"and decoded the other {int(resumed[2]) - int(resumed[1])} in {stats['build_s']:.1f} s"
+    )
 
 
 def main() -> None:
@@ -170,23 +194,33 @@ def main() -> None:
         rows.append({"frames": frames, **stats, "windows_s": measure_throughput(root, cache_dir)})
         shutil.rmtree(cache_dir, ignore_errors=True)
         r = rows[-1]
-        print(f"N={frames}: build {r['build_s']:.1f} s, peak RSS {r['rss_mb']:.0f} MB (decode workers "
-              f"{r['workers_rss_mb']:.0f} MB), {r['windows_s']:.0f} windows/s", flush=True)
+        print(
+            f"N={frames}: build {r['build_s']:.1f} s, peak RSS {r['rss_mb']:.0f} MB (decode workers "
+            f"{r['workers_rss_mb']:.0f} MB), {r['windows_s']:.0f} windows/s",
+            flush=True,
+        )
 
     print(f"\n{'frames':>8} {'build s':>9} {'ms/1k fr':>9} {'RSS MB':>8} {'wkr MB':>8} {'windows/s':>10}")
     for r in rows:
-        print(f"{r['frames']:>8} {r['build_s']:>9.1f} {1e6 * r['build_s'] / r['frames']:>9.1f} {r['rss_mb']:>8.0f} "
-              f"{r['workers_rss_mb']:>8.0f} {r['windows_s']:>10.0f}")
+        print(
+            f"{r['frames']:>8} {r['build_s']:>9.1f} {1e6 * r['build_s'] / r['frames']:>9.1f} {r['rss_mb']:>8.0f} "
+            f"{r['workers_rss_mb']:>8.0f} {r['windows_s']:>10.0f}"
+        )
     largest = sizes[-1]
-    resume = interrupted_build(dataset(args.work_dir, largest), args.work_dir / f"cache-{largest}-resume",
-                               episodes=-(-largest // EPISODE_FRAMES))
+    resume = interrupted_build(
+        dataset(args.work_dir, largest),
+        args.work_dir / f"cache-{largest}-resume",
+        episodes=-(-largest // EPISODE_FRAMES),
+    )
     shutil.rmtree(args.work_dir / f"cache-{largest}-resume", ignore_errors=True)
     first, last = rows[0], rows[-1]
     per_frame = (last["build_s"] / last["frames"]) / (first["build_s"] / first["frames"])
     peak = max(last["rss_mb"], last["workers_rss_mb"])
-    print(f"summary: build s/frame at N={last['frames']} is {per_frame:.2f}x that at N={first['frames']} "
-          f"(linear: ~1); peak RSS at N={last['frames']} {peak:.0f} MB ({'<' if peak < 2048 else '>='} 2 GB target); "
-          f"throughput {last['windows_s'] / first['windows_s']:.2f}x (flat: ~1); resume: {resume}")
+    print(
+        f"summary: build s/frame at N={last['frames']} is {per_frame:.2f}x that at N={first['frames']} "
+        f"(linear: ~1); peak RSS at N={last['frames']} {peak:.0f} MB ({'<' if peak < 2048 else '>='} 2 GB target); "
+        f"throughput {last['windows_s'] / first['windows_s']:.2f}x (flat: ~1); resume: {resume}"
+    )
 
 
 if __name__ == "__main__":  # spawned decode workers import this file as __mp_main__: nothing runs

@@ -64,8 +64,11 @@ def lerobot_throughput(config: DataConfig, frame_indices: list[int], batch_size:
     delta_timestamps[config.target.feature] = future
     dataset = LeRobotDataset(config.repo_id, root=config.root, delta_timestamps=delta_timestamps)
     loader = torch.utils.data.DataLoader(
-        torch.utils.data.Subset(dataset, frame_indices), batch_size=batch_size, shuffle=True,
-        num_workers=workers, persistent_workers=False,
+        torch.utils.data.Subset(dataset, frame_indices),
+        batch_size=batch_size,
+        shuffle=True,
+        num_workers=workers,
+        persistent_workers=False,
     )
     batches = iter(loader)
     first = next(batches)  # worker start-up and first decoders excluded, as for the cache
@@ -79,13 +82,25 @@ def lerobot_throughput(config: DataConfig, frame_indices: list[int], batch_size:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--root", type=Path, help="an existing LeRobot v3.0 dataset (default: record one); without "
-                        "--data-config it must have the push features")
-    parser.add_argument("--data-config", type=Path, metavar="YAML",
-                        help="a data config (e.g. written by `mmf-rl inspect --write-config`) saying which features are "
-                             "the modalities and the target; default: the push dataset's features. Its root unless --root")
-    parser.add_argument("--episodes", type=int, default=16, help="episodes to record when --root is not given")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--root",
+        type=Path,
+        help="an existing LeRobot v3.0 dataset (default: record one); without "
+        "--data-config it must have the push features",
+    )
+    parser.add_argument(
+        "--data-config",
+        type=Path,
+        metavar="YAML",
+        help="a data config (e.g. written by `mmf-rl inspect --write-config`) saying which features are "
+        "the modalities and the target; default: the push dataset's features. Its root unless --root",
+    )
+    parser.add_argument(
+        "--episodes", type=int, default=16, help="episodes to record when --root is not given"
+    )
     parser.add_argument("--steps", type=int, default=60, help="frames per recorded episode")
     parser.add_argument("--image-size", type=int, default=64)
     parser.add_argument("--history", type=int, default=None, help="default: the data config's, else 10")
@@ -93,10 +108,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--lerobot-windows", type=int, default=384, help="windows the reference loader reads")
     parser.add_argument("--seconds", type=float, default=3.0, help="how long to time the cached loader")
-    parser.add_argument("--workers", type=int, default=min(2, len(os.sched_getaffinity(0))),
-                        help="recording processes and lerobot DataLoader workers")
-    parser.add_argument("--decode-workers", type=int, default=None,
-                        help="cache build decode processes (default: a pool only for large datasets)")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=min(2, len(os.sched_getaffinity(0))),
+        help="recording processes and lerobot DataLoader workers",
+    )
+    parser.add_argument(
+        "--decode-workers",
+        type=int,
+        default=None,
+        help="cache build decode processes (default: a pool only for large datasets)",
+    )
     args = parser.parse_args(argv)
 
     with tempfile.TemporaryDirectory(prefix="mmf_rl_bench_") as scratch:
@@ -113,14 +136,26 @@ def main(argv: list[str] | None = None) -> None:
             root = args.root
             if root is None:
                 root = scratch / "push"
-                print(f"dataset: {make_dataset(root, args.episodes, args.steps, args.image_size, args.workers)} "
-                      f"at {root}")
-            data = {"image_size": [args.image_size, args.image_size],
-                    "modalities": {"image": IMAGE_FEATURE, "force": FORCE_FEATURE, "proprio": STATE_FEATURE},
-                    "target": {"feature": POSE_FEATURE, "dims": [0, 1]}}
-        data.update({"root": str(root), "cache_dir": str(scratch / "cache"), "split_fractions": [1.0, 0.0, 0.0],
-                     "missing": {}})
-        data.update({k: v for k, v in [("history", args.history), ("horizon", args.horizon)] if v is not None})
+                print(
+                    f"dataset: {make_dataset(root, args.episodes, args.steps, args.image_size, args.workers)} "
+                    f"at {root}"
+                )
+            data = {
+                "image_size": [args.image_size, args.image_size],
+                "modalities": {"image": IMAGE_FEATURE, "force": FORCE_FEATURE, "proprio": STATE_FEATURE},
+                "target": {"feature": POSE_FEATURE, "dims": [0, 1]},
+            }
+        data.update(
+            {
+                "root": str(root),
+                "cache_dir": str(scratch / "cache"),
+                "split_fractions": [1.0, 0.0, 0.0],
+                "missing": {},
+            }
+        )
+        data.update(
+            {k: v for k, v in [("history", args.history), ("horizon", args.horizon)] if v is not None}
+        )
         config = DataConfig.from_dict(data)
 
         import lerobot.datasets.lerobot_dataset  # noqa: F401  (both sides need lerobot: keep its import out of the timing)
@@ -133,17 +168,23 @@ def main(argv: list[str] | None = None) -> None:
         cache_rate = cache_throughput(dataset, args.batch_size, args.seconds)
 
         ids = dataset.split_windows["train"]
-        subset = ids[torch.randperm(len(ids), generator=torch.Generator().manual_seed(0))[: args.lerobot_windows]]
+        subset = ids[
+            torch.randperm(len(ids), generator=torch.Generator().manual_seed(0))[: args.lerobot_windows]
+        ]
         last_observed = dataset.window_start[subset] + (config.history - 1) * config.stride
         lerobot_rate = lerobot_throughput(config, last_observed.tolist(), args.batch_size, args.workers)
 
     one_pass_s = len(ids) / lerobot_rate
     modalities = ", ".join(f"{s.name} {s.kind} {list(s.shape)}" for s in dataset.specs)
     print(f"windows: {len(ids)} (H={config.history}, T={config.horizon}; {modalities})")
-    print(f"cache build: {build_s:.1f} s vs one "
-          f"lerobot pass over the same windows: {one_pass_s:.1f} s -> "
-          f"{'no slower' if build_s <= one_pass_s else 'SLOWER'} ({one_pass_s / build_s:.1f}x)")
-    print(f"ratio: {cache_rate / lerobot_rate:.1f}x (cache {cache_rate:.0f} windows/s vs lerobot {lerobot_rate:.0f} windows/s)")
+    print(
+        f"cache build: {build_s:.1f} s vs one "
+        f"lerobot pass over the same windows: {one_pass_s:.1f} s -> "
+        f"{'no slower' if build_s <= one_pass_s else 'SLOWER'} ({one_pass_s / build_s:.1f}x)"
+    )
+    print(
+        f"ratio: {cache_rate / lerobot_rate:.1f}x (cache {cache_rate:.0f} windows/s vs lerobot {lerobot_rate:.0f} windows/s)"
+    )
 
 
 if __name__ == "__main__":

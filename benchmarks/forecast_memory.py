@@ -25,15 +25,18 @@ import torch
 from tensordict import TensorDict
 
 from mmf_rl import keys
-from mmf_rl.rl.transforms import ForecastTransform
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models import build_model
+from mmf_rl.rl.transforms import ForecastTransform
 
 PAGE_BYTES = os.sysconf("SC_PAGE_SIZE")
 FRAME_SIZE = 48
 VECTOR_DIMS = {"force": 6, "proprio": 17}
-SPECS = [ModalitySpec("image", "image", (3, 32, 32)), ModalitySpec("force", "sequence", (6,)),
-         ModalitySpec("proprio", "sequence", (17,))]
+SPECS = [
+    ModalitySpec("image", "image", (3, 32, 32)),
+    ModalitySpec("force", "sequence", (6,)),
+    ModalitySpec("proprio", "sequence", (17,)),
+]
 RESET_EVERY = 50
 
 
@@ -45,8 +48,20 @@ def rss_bytes() -> int:
 
 def small_transform(seed: int = 0) -> ForecastTransform:
     torch.manual_seed(seed)
-    model = build_model({"name": "forecaster", "d_model": 32, "d_latent": 8, "num_heads": 2, "mlp_hidden": 64,
-                         "head_hidden": 64}, SPECS, history=10, horizon=10, target_dim=2)
+    model = build_model(
+        {
+            "name": "forecaster",
+            "d_model": 32,
+            "d_latent": 8,
+            "num_heads": 2,
+            "mlp_hidden": 64,
+            "head_hidden": 64,
+        },
+        SPECS,
+        history=10,
+        horizon=10,
+        target_dim=2,
+    )
     stats = {"target/mean": torch.zeros(2), "target/std": torch.ones(2)}
     for name, dim in VECTOR_DIMS.items():
         stats[f"{name}/mean"], stats[f"{name}/std"] = torch.zeros(dim), torch.ones(dim)
@@ -55,22 +70,28 @@ def small_transform(seed: int = 0) -> ForecastTransform:
 
 def observation(num_envs: int, generator: torch.Generator) -> TensorDict:
     """One step of ``num_envs`` envs: fresh tensors, each modality absent in ~20% of the envs."""
-    obs = {"image": torch.randint(0, 256, (num_envs, 3, FRAME_SIZE, FRAME_SIZE), dtype=torch.uint8,
-                                  generator=generator)}
+    obs = {
+        "image": torch.randint(
+            0, 256, (num_envs, 3, FRAME_SIZE, FRAME_SIZE), dtype=torch.uint8, generator=generator
+        )
+    }
     obs |= {name: torch.randn(num_envs, dim, generator=generator) for name, dim in VECTOR_DIMS.items()}
     present = {name: torch.rand(num_envs, generator=generator) > 0.2 for name in obs}
     return TensorDict({keys.OBS: obs, keys.PRESENT: present}, batch_size=[num_envs])
 
 
-def drive(transform: ForecastTransform, num_envs: int, steps: int, seed: int = 0,
-          on_step=lambda step: None) -> None:
+def drive(
+    transform: ForecastTransform, num_envs: int, steps: int, seed: int = 0, on_step=lambda step: None
+) -> None:
     """Reset every env, then ``steps`` steps with a random partial reset every `RESET_EVERY` steps."""
     generator = torch.Generator().manual_seed(seed)
     first = observation(num_envs, generator)
     transform._reset(first.empty(), first)  # noqa: SLF001 - the transform alone, no env around it
     for step in range(1, steps + 1):
         if step % RESET_EVERY == 0:
-            reset = TensorDict({"_reset": torch.rand(num_envs, 1, generator=generator) < 0.3}, batch_size=[num_envs])
+            reset = TensorDict(
+                {"_reset": torch.rand(num_envs, 1, generator=generator) < 0.3}, batch_size=[num_envs]
+            )
             out = transform._reset(reset, observation(num_envs, generator))  # noqa: SLF001
         else:
             out = transform._call(observation(num_envs, generator))  # noqa: SLF001
@@ -103,7 +124,9 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=10_000, help="steps measured after the warm-up")
     parser.add_argument("--warmup", type=int, default=200)
     parser.add_argument("--envs", type=int, default=16)
-    parser.add_argument("--limit-mb", type=float, default=8.0, help="largest RSS growth after warm-up that passes")
+    parser.add_argument(
+        "--limit-mb", type=float, default=8.0, help="largest RSS growth after warm-up that passes"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     started = time.perf_counter()
@@ -111,10 +134,14 @@ def main() -> int:
     elapsed = time.perf_counter() - started
     mib = {k: v / 2**20 for k, v in rss.items()}
     growth = mib["end"] - mib["warm"]
-    print(f"{args.envs} envs, {args.warmup} warm-up + {args.steps} steps in {elapsed:.0f} s "
-          f"({1000 * elapsed / (args.warmup + args.steps):.1f} ms/step)")
-    print(f"RSS start {mib['start']:.1f} MiB, after warm-up {mib['warm']:.1f} MiB, end {mib['end']:.1f} MiB, "
-          f"peak {mib['peak']:.1f} MiB; growth after warm-up {growth:+.2f} MiB")
+    print(
+        f"{args.envs} envs, {args.warmup} warm-up + {args.steps} steps in {elapsed:.0f} s "
+        f"({1000 * elapsed / (args.warmup + args.steps):.1f} ms/step)"
+    )
+    print(
+        f"RSS start {mib['start']:.1f} MiB, after warm-up {mib['warm']:.1f} MiB, end {mib['end']:.1f} MiB, "
+        f"peak {mib['peak']:.1f} MiB; growth after warm-up {growth:+.2f} MiB"
+    )
     ok = growth < args.limit_mb
     print(f"verdict: {'PASS' if ok else 'FAIL'}, growth {'<' if ok else '>='} {args.limit_mb} MiB")
     return 0 if ok else 1

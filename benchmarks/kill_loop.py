@@ -60,15 +60,19 @@ def checkpoint_steps(checkpoints: Path) -> list[int]:
 
 def kill_when_checkpointed(overrides: list[str], checkpoints: Path, step: int, timeout_s: float = 600) -> int:
     """Run `mmf-rl train` until it has checkpointed ``step`` or later, SIGKILL it; return the newest step."""
-    log = tempfile.TemporaryFile("w+")  # a file, not a pipe: a full pipe would block the run
-    process = subprocess.Popen(train_command(overrides), env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=log)
+    log = tempfile.TemporaryFile("w+")  # noqa: SIM115 - a file, not a pipe (a full pipe would block the run)
+    process = subprocess.Popen(
+        train_command(overrides), env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=log
+    )
     try:
         deadline = time.monotonic() + timeout_s
         while not any(int(p.name.split("_")[1]) >= step for p in checkpoints.glob("step_*")):
             if process.poll() is not None:
                 log.seek(0)
-                raise AssertionError(f"training ended (exit {process.returncode}) before step {step} could be "
-                                     f"killed:\n{log.read()[-3000:]}")
+                raise AssertionError(
+                    f"training ended (exit {process.returncode}) before step {step} could be "
+                    f"killed:\n{log.read()[-3000:]}"
+                )
             if time.monotonic() > deadline:
                 raise AssertionError(f"no checkpoint of step {step} after {timeout_s} s")
             time.sleep(POLL_S)
@@ -81,8 +85,9 @@ def kill_when_checkpointed(overrides: list[str], checkpoints: Path, step: int, t
     return max(checkpoint_steps(checkpoints))
 
 
-def kill_repeatedly(overrides: list[str], checkpoints: Path, kills: int, total_steps: int,
-                    rng: random.Random) -> list[int]:
+def kill_repeatedly(
+    overrides: list[str], checkpoints: Path, kills: int, total_steps: int, rng: random.Random
+) -> list[int]:
     """Start the run, then kill it ``kills`` times at random steps, resuming after each kill.
 
     Returns the newest checkpointed step after each kill. The run must checkpoint every step.
@@ -95,7 +100,9 @@ def kill_repeatedly(overrides: list[str], checkpoints: Path, kills: int, total_s
         step = rng.randint(newest + 1, newest + max(1, (total_steps - 1 - newest) // remaining))
         newest = kill_when_checkpointed([*overrides, *(["resume=true"] if kill else [])], checkpoints, step)
         if newest >= total_steps:
-            raise AssertionError(f"kill {kill + 1} came after the run finished (step {newest}); use more steps")
+            raise AssertionError(
+                f"kill {kill + 1} came after the run finished (step {newest}); use more steps"
+            )
         killed_at.append(newest)
     return killed_at
 
@@ -114,19 +121,36 @@ def weights_match(reference: dict[str, torch.Tensor], other: dict[str, torch.Ten
 def run_overrides(data: Path, cache_dir: Path, run_dir: Path, total_steps: int) -> list[str]:
     """A tiny forecaster on a small push recording, checkpointed every step, never validated."""
     return [
-        f"data.root={data}", f"data.cache_dir={cache_dir}", f"run_dir={run_dir}", "data.image_size=[32,32]",
-        "data.history=4", "data.horizon=3", "data.split_fractions=[0.5,0.25,0.25]",
-        "model.d_model=16", "model.d_latent=4", "model.num_heads=2", "model.mlp_hidden=32", "model.head_hidden=32",
-        f"trainer.total_steps={total_steps}", "trainer.batch_size=16", "trainer.log_every=2",
-        "trainer.checkpoint_every=1", "trainer.eval_every=100000", "trainer.warmup_steps=2",
-        "trainer.progress_bar=false", "logger=csv", "num_workers=0",
+        f"data.root={data}",
+        f"data.cache_dir={cache_dir}",
+        f"run_dir={run_dir}",
+        "data.image_size=[32,32]",
+        "data.history=4",
+        "data.horizon=3",
+        "data.split_fractions=[0.5,0.25,0.25]",
+        "model.d_model=16",
+        "model.d_latent=4",
+        "model.num_heads=2",
+        "model.mlp_hidden=32",
+        "model.head_hidden=32",
+        f"trainer.total_steps={total_steps}",
+        "trainer.batch_size=16",
+        "trainer.log_every=2",
+        "trainer.checkpoint_every=1",
+        "trainer.eval_every=100000",
+        "trainer.warmup_steps=2",
+        "trainer.progress_bar=false",
+        "logger=csv",
+        "num_workers=0",
     ]
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--kills", type=int, default=6)
-    parser.add_argument("--steps", type=int, default=60, help="total training steps (one checkpoint per step)")
+    parser.add_argument(
+        "--steps", type=int, default=60, help="total training steps (one checkpoint per step)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seeds the kill steps")
     parser.add_argument("--data", type=Path, help="a push dataset; default: record a small one")
     args = parser.parse_args()
@@ -146,14 +170,23 @@ def main() -> int:
         killed_at = kill_repeatedly(killed, killed_dir / "checkpoints", args.kills, args.steps, rng)
         for number, step in enumerate(killed_at, 1):
             print(f"kill {number}: SIGKILL after checkpoint step {step}; every step_* checkpoint loads")
-        subprocess.run(train_command([*killed, "resume=true"]), env=subprocess_env(), check=True,
-                       stdout=subprocess.DEVNULL)
+        subprocess.run(
+            train_command([*killed, "resume=true"]),
+            env=subprocess_env(),
+            check=True,
+            stdout=subprocess.DEVNULL,
+        )
         ok, gap = weights_match(final_weights(tmp / "reference"), final_weights(killed_dir))
         leftovers = list((killed_dir / "checkpoints").glob(".step_*"))
-        print(f"{args.kills} kills, {args.steps} steps, {time.perf_counter() - started:.0f} s; "
-              f"max |w_resumed - w_reference| = {gap:.3g}; temp dirs left by kills: {len(leftovers)}")
-        print("verdict: PASS, resumed weights equal the uninterrupted run's" if ok
-              else "verdict: FAIL, resumed weights differ from the uninterrupted run's")
+        print(
+            f"{args.kills} kills, {args.steps} steps, {time.perf_counter() - started:.0f} s; "
+            f"max |w_resumed - w_reference| = {gap:.3g}; temp dirs left by kills: {len(leftovers)}"
+        )
+        print(
+            "verdict: PASS, resumed weights equal the uninterrupted run's"
+            if ok
+            else "verdict: FAIL, resumed weights differ from the uninterrupted run's"
+        )
         return 0 if ok else 1
 
 

@@ -35,19 +35,24 @@ from mmf_rl.objectives import LossConfig
 
 
 def push_modalities(image_size: int = 64) -> list[ModalitySpec]:
-    return [ModalitySpec("image", "image", (3, image_size, image_size)),
-            ModalitySpec("force", "sequence", (6,)), ModalitySpec("proprio", "sequence", (20,))]
+    return [
+        ModalitySpec("image", "image", (3, image_size, image_size)),
+        ModalitySpec("force", "sequence", (6,)),
+        ModalitySpec("proprio", "sequence", (20,)),
+    ]
 
 
 PUSH_MODALITIES = push_modalities()
 
 
-def push_like_batch(batch_size: int, history: int = 10, horizon: int = 10, seed: int = 0,
-                    image_size: int = 64) -> TensorDict:
+def push_like_batch(
+    batch_size: int, history: int = 10, horizon: int = 10, seed: int = 0, image_size: int = 64
+) -> TensorDict:
     g = torch.Generator().manual_seed(seed)
     data = {
-        keys.obs_key("image"): torch.randint(0, 256, (batch_size, history, 3, image_size, image_size),
-                                             generator=g, dtype=torch.uint8),
+        keys.obs_key("image"): torch.randint(
+            0, 256, (batch_size, history, 3, image_size, image_size), generator=g, dtype=torch.uint8
+        ),
         keys.obs_key("force"): torch.randn(batch_size, history, 6, generator=g),
         keys.obs_key("proprio"): torch.randn(batch_size, history, 20, generator=g),
         keys.TARGET: torch.randn(batch_size, horizon, 2, generator=g),
@@ -62,8 +67,9 @@ def push_like_batch(batch_size: int, history: int = 10, horizon: int = 10, seed:
 def build(name: str, image_size: int = 64, channels_last: bool = False):
     """The model ``name`` and its training loss, as ``mmf-rl train model=<name>`` builds them for push."""
     cfg = compose_config("train", [f"model={name}"])
-    model = build_model(to_container(cfg.model), push_modalities(image_size), history=10, horizon=10,
-                        target_dim=2)
+    model = build_model(
+        to_container(cfg.model), push_modalities(image_size), history=10, horizon=10, target_dim=2
+    )
     if channels_last:  # only 4-D tensors (the conv weights) change layout; values stay the same
         model = model.to(memory_format=torch.channels_last)
     return model, build_loss(name, model, LossConfig.from_dict(to_container(cfg.loss)))
@@ -91,7 +97,9 @@ def timed(fn, repeats: int) -> list[float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--batch-size", type=int, default=256)
     parser.add_argument("--steps", type=int, default=10, help="timed training steps")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
@@ -139,7 +147,7 @@ def main() -> None:
         with torch.no_grad():
             for _ in range(3):
                 model(td.clone())
-            latency[b] = statistics.median(timed(lambda: model(td.clone()), 30 if b == 1 else 5))
+            latency[b] = statistics.median(timed(lambda td=td: model(td.clone()), 30 if b == 1 else 5))
     # Counted with autograd on (forward only, nothing is backpropagated): FlopCounterMode's module
     # tracker fails on views of parameters made under no_grad.
     with FlopCounterMode(display=False) as counter:
@@ -150,17 +158,23 @@ def main() -> None:
     peak = max(peak_before, matmul_peak_gflops())
     params = sum(p.numel() for p in model.parameters())
     size = args.image_size
-    print(f"model: {args.model}, {params / 1e6:.2f} M parameters; batch: image 3x{size}x{size} + force 6 + "
-          f"proprio 20, H=10, T=10; {args.threads} threads"
-          + "".join(f"; {flag}" for flag in ("channels_last", "compile") if getattr(args, flag)))
+    print(
+        f"model: {args.model}, {params / 1e6:.2f} M parameters; batch: image 3x{size}x{size} + force 6 + "
+        f"proprio 20, H=10, T=10; {args.threads} threads"
+        + "".join(f"; {flag}" for flag in ("channels_last", "compile") if getattr(args, flag))
+    )
     print(f"matmul peak (fp32, 2048^3): {peak:.1f} GFLOP/s")
-    print(f"training  batch {args.batch_size}: {args.batch_size / step_time:.1f} samples/s, "
-          f"{step_time * 1e3:.0f} ms/step, {train_flops / 1e9:.1f} GFLOP/step, {train_gflops:.1f} GFLOP/s "
-          f"= {train_gflops / peak:.1%} of peak")
+    print(
+        f"training  batch {args.batch_size}: {args.batch_size / step_time:.1f} samples/s, "
+        f"{step_time * 1e3:.0f} ms/step, {train_flops / 1e9:.1f} GFLOP/step, {train_gflops:.1f} GFLOP/s "
+        f"= {train_gflops / peak:.1%} of peak"
+    )
     print(f"inference batch 1: {latency[1] * 1e3:.2f} ms")
-    print(f"inference batch {args.batch_size}: {latency[args.batch_size] * 1e3:.1f} ms "
-          f"({args.batch_size / latency[args.batch_size]:.0f} samples/s, {infer_gflops:.1f} GFLOP/s "
-          f"= {infer_gflops / peak:.1%} of peak)")
+    print(
+        f"inference batch {args.batch_size}: {latency[args.batch_size] * 1e3:.1f} ms "
+        f"({args.batch_size / latency[args.batch_size]:.0f} samples/s, {infer_gflops:.1f} GFLOP/s "
+        f"= {infer_gflops / peak:.1%} of peak)"
+    )
 
 
 if __name__ == "__main__":

@@ -96,10 +96,20 @@ OUTAGES = {
     "dies": {"outage": "dies", "outage_prob": 1.0, "dies_after": UniformBursts(1, 49)},
 }
 BUDGETS = {
-    "quick": {"record_episodes": 300, "train_steps": 1500, "episodes": 20, "outage": ["episode"],
-              "stepwise_episodes": 0},
-    "full": {"record_episodes": 300, "train_steps": None, "episodes": 50, "outage": list(OUTAGES),
-             "stepwise_episodes": 10},
+    "quick": {
+        "record_episodes": 300,
+        "train_steps": 1500,
+        "episodes": 20,
+        "outage": ["episode"],
+        "stepwise_episodes": 0,
+    },
+    "full": {
+        "record_episodes": 300,
+        "train_steps": None,
+        "episodes": 50,
+        "outage": list(OUTAGES),
+        "stepwise_episodes": 10,
+    },
 }
 
 
@@ -113,8 +123,13 @@ class StaticObjectModel(WorldModel):
         return torch.zeros(*actions.shape[:2], self.horizon, self.target_dim)
 
 
-def make_env(world_model: WorldModel, image_size: int, dropped: str | None = None, outage: str = "episode",
-             seed: int = 0) -> TransformedEnv:
+def make_env(
+    world_model: WorldModel,
+    image_size: int,
+    dropped: str | None = None,
+    outage: str = "episode",
+    seed: int = 0,
+) -> TransformedEnv:
     transforms = [ModalityDropout([dropped], seed=seed, **OUTAGES[outage])] if dropped else []
     transforms += [world_model.history_window(), InitTracker()]
     return TransformedEnv(MultimodalPushTorchEnv(image_size=image_size), Compose(*transforms))
@@ -143,8 +158,11 @@ class ScriptedPolicy:
         if bool(tensordict.get("is_init").any()):
             self.episode += 1
             self.pusher.reset(episode_generator(self.seed, self.episode))
-        obs = {"proprio": tensordict.get(keys.obs_key("proprio")).numpy(),
-               "object_pose": tensordict.get("object_pose").numpy(), "desired_goal": tensordict.get("goal").numpy()}
+        obs = {
+            "proprio": tensordict.get(keys.obs_key("proprio")).numpy(),
+            "object_pose": tensordict.get("object_pose").numpy(),
+            "desired_goal": tensordict.get("goal").numpy(),
+        }
         return tensordict.set("action", torch.as_tensor(self.pusher.act(obs), dtype=torch.float32))
 
 
@@ -161,8 +179,13 @@ def play(env: TransformedEnv, policy, episodes: int, seed: int, label: str) -> l
     for i in range(episodes):
         env.set_seed(seed + i)  # applied at the next reset: the same start for every policy
         rollout = env.rollout(env.base_env._env.spec.max_episode_steps, policy, break_when_any_done=True)
-        results.append({"success": bool(rollout.get(("next", "terminated")).any()),
-                        "final_distance": float(-rollout.get(("next", "reward"))[-1]), "steps": rollout.shape[0]})
+        results.append(
+            {
+                "success": bool(rollout.get(("next", "terminated")).any()),
+                "final_distance": float(-rollout.get(("next", "reward"))[-1]),
+                "steps": rollout.shape[0],
+            }
+        )
         done = sum(r["success"] for r in results)
         print(f"\r{label}: episode {i + 1}/{episodes}, success so far {done}/{i + 1}", end="", flush=True)
     print()
@@ -171,10 +194,13 @@ def play(env: TransformedEnv, policy, episodes: int, seed: int, label: str) -> l
 
 def summarise(results: list[dict], seconds: list[float] | None = None) -> dict:
     distances = [r["final_distance"] for r in results]
-    row = {"episodes": len(results), "success": 100.0 * sum(r["success"] for r in results) / len(results),
-           "final_distance_mean": statistics.mean(distances),
-           "final_distance_std": statistics.pstdev(distances),
-           "steps_mean": statistics.mean(r["steps"] for r in results)}
+    row = {
+        "episodes": len(results),
+        "success": 100.0 * sum(r["success"] for r in results) / len(results),
+        "final_distance_mean": statistics.mean(distances),
+        "final_distance_std": statistics.pstdev(distances),
+        "steps_mean": statistics.mean(r["steps"] for r in results),
+    }
     if seconds:
         row["decision_ms"] = 1000 * statistics.median(seconds)
     return row
@@ -183,29 +209,38 @@ def summarise(results: list[dict], seconds: list[float] | None = None) -> dict:
 def over_seeds(per_seed: list[dict]) -> dict:
     """One row from the rows of several world-model seeds: mean success with its spread."""
     successes = [r["success"] for r in per_seed]
-    row = {"episodes": per_seed[0]["episodes"], "seeds": len(per_seed), "success": statistics.mean(successes),
-           "success_min": min(successes), "success_max": max(successes),
-           "success_per_seed": successes,
-           "final_distance_mean": statistics.mean(r["final_distance_mean"] for r in per_seed),
-           "final_distance_std": statistics.mean(r["final_distance_std"] for r in per_seed),
-           "steps_mean": statistics.mean(r["steps_mean"] for r in per_seed)}
+    row = {
+        "episodes": per_seed[0]["episodes"],
+        "seeds": len(per_seed),
+        "success": statistics.mean(successes),
+        "success_min": min(successes),
+        "success_max": max(successes),
+        "success_per_seed": successes,
+        "final_distance_mean": statistics.mean(r["final_distance_mean"] for r in per_seed),
+        "final_distance_std": statistics.mean(r["final_distance_std"] for r in per_seed),
+        "steps_mean": statistics.mean(r["steps_mean"] for r in per_seed),
+    }
     if "decision_ms" in per_seed[0]:
         row["decision_ms"] = statistics.median(r["decision_ms"] for r in per_seed)
     return row
 
 
 def table(rows: dict[str, dict]) -> str:
-    lines = ["| policy | episodes | seeds | success % (mean) | spread (min-max) | per world-model seed | "
-             "final distance (m) | steps | decision (ms/step, median) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| policy | episodes | seeds | success % (mean) | spread (min-max) | per world-model seed | "
+        "final distance (m) | steps | decision (ms/step, median) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, r in rows.items():
         decision = f"{r['decision_ms']:.1f}" if "decision_ms" in r else "-"
         seeds = r.get("seeds", "-")
         spread = f"{r['success_min']:.0f}-{r['success_max']:.0f}" if "success_min" in r else "-"
         per_seed = " / ".join(f"{x:.0f}" for x in r["success_per_seed"]) if "success_per_seed" in r else "-"
-        lines.append(f"| {name} | {r['episodes']} | {seeds} | {r['success']:.0f} | {spread} | {per_seed} | "
-                     f"{r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | {r['steps_mean']:.1f} | "
-                     f"{decision} |")
+        lines.append(
+            f"| {name} | {r['episodes']} | {seeds} | {r['success']:.0f} | {spread} | {per_seed} | "
+            f"{r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | {r['steps_mean']:.1f} | "
+            f"{decision} |"
+        )
     return "\n".join(lines)
 
 
@@ -219,14 +254,23 @@ def build_world_models(args, phases: dict[str, float]) -> list[Path]:
     if not (data / "meta" / "info.json").is_file():
         print(f"mpc_push: recording {args.record_episodes} exploration episodes into {data}")
         start = time.perf_counter()
-        record(RecordConfig(out=data, episodes=args.record_episodes, workers=args.workers, seed=1,
-                            exploration=0.1))
+        record(
+            RecordConfig(
+                out=data, episodes=args.record_episodes, workers=args.workers, seed=1, exploration=0.1
+            )
+        )
         phases["record"] = time.perf_counter() - start
     checkpoints = []
     for seed in args.world_model_seeds:
         run_dir = args.work / f"world_model_seed{seed}"
-        overrides = ["experiment=world_model", f"name=world_model_seed{seed}", f"run_dir={run_dir}",
-                     f"data.root={data}", f"trainer.seed={seed}", "trainer.progress_bar=false"]
+        overrides = [
+            "experiment=world_model",
+            f"name=world_model_seed{seed}",
+            f"run_dir={run_dir}",
+            f"data.root={data}",
+            f"trainer.seed={seed}",
+            "trainer.progress_bar=false",
+        ]
         if args.train_steps is not None:
             overrides.append(f"trainer.total_steps={args.train_steps}")
         if list_checkpoints(run_dir / "checkpoints"):
@@ -241,19 +285,43 @@ def build_world_models(args, phases: dict[str, float]) -> list[Path]:
 def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="the small budget (see the table above)")
-    parser.add_argument("--checkpoint", type=Path, nargs="+", default=None,
-                        help="world models to use, one per training seed (default: build them under --work)")
-    parser.add_argument("--work", type=Path, default=None,
-                        help="where the recording and world models are built (default runs/bench_mpc_{quick,full})")
-    parser.add_argument("--world-model-seeds", type=int, nargs="+", default=[0, 1], help="trainer.seed of each")
+    parser.add_argument(
+        "--checkpoint",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="world models to use, one per training seed (default: build them under --work)",
+    )
+    parser.add_argument(
+        "--work",
+        type=Path,
+        default=None,
+        help="where the recording and world models are built (default runs/bench_mpc_{quick,full})",
+    )
+    parser.add_argument(
+        "--world-model-seeds", type=int, nargs="+", default=[0, 1], help="trainer.seed of each"
+    )
     parser.add_argument("--record-episodes", type=int, default=None)
-    parser.add_argument("--train-steps", type=int, default=None, help="default: quick 1500, full the config's")
+    parser.add_argument(
+        "--train-steps", type=int, default=None, help="default: quick 1500, full the config's"
+    )
     parser.add_argument("--workers", type=int, default=2, help="recording processes")
-    parser.add_argument("--episodes", type=int, default=None, help="episodes per condition (quick 20, full 50)")
-    parser.add_argument("--outage", nargs="+", choices=list(OUTAGES), default=None,
-                        help="how the sensor fails (quick: episode; full: all); the summary uses the first")
-    parser.add_argument("--stepwise-episodes", type=int, default=None,
-                        help="episodes also played with torchrl's CEMPlanner (0: skip; quick 0, full 10)")
+    parser.add_argument(
+        "--episodes", type=int, default=None, help="episodes per condition (quick 20, full 50)"
+    )
+    parser.add_argument(
+        "--outage",
+        nargs="+",
+        choices=list(OUTAGES),
+        default=None,
+        help="how the sensor fails (quick: episode; full: all); the summary uses the first",
+    )
+    parser.add_argument(
+        "--stepwise-episodes",
+        type=int,
+        default=None,
+        help="episodes also played with torchrl's CEMPlanner (0: skip; quick 0, full 10)",
+    )
     parser.add_argument("--seed", type=int, default=1000, help="episode i is reset with seed + i")
     parser.add_argument("--candidates", type=int, default=128)
     parser.add_argument("--iterations", type=int, default=4)
@@ -280,7 +348,8 @@ def main() -> None:
     objective = PushObjective(reach_weight=args.reach_weight)
     sizes = {"num_candidates": args.candidates, "num_iterations": args.iterations, "num_elites": args.elites}
     conditions = [("all", None, args.outage[0])] + [
-        (f"{name} ({outage})", sensor, outage) for outage in args.outage for name, sensor in SENSORS.items()]
+        (f"{name} ({outage})", sensor, outage) for outage in args.outage for name, sensor in SENSORS.items()
+    ]
     per_seed: dict[str, list[dict]] = {}
     raw: dict[str, list] = {}
     play_start = time.perf_counter()
@@ -291,7 +360,9 @@ def main() -> None:
         for label, sensor, outage in conditions:
             env = make_env(world_model, image_size, sensor, outage, seed=args.seed)
             try:
-                planner = Timed(SequenceCEMPlanner(world_model, objective, env.action_spec, seed=args.seed, **sizes))
+                planner = Timed(
+                    SequenceCEMPlanner(world_model, objective, env.action_spec, seed=args.seed, **sizes)
+                )
                 results = play(env, planner, args.episodes, args.seed, f"{tag} mpc {label}")
             finally:
                 env.close()
@@ -299,28 +370,43 @@ def main() -> None:
             raw.setdefault(f"mpc {label}", []).append(results)
         env = make_env(world_model, image_size)
         try:
-            static = Timed(SequenceCEMPlanner(StaticObjectModel(world_model), objective, env.action_spec,
-                                              seed=args.seed, **sizes))
+            static = Timed(
+                SequenceCEMPlanner(
+                    StaticObjectModel(world_model), objective, env.action_spec, seed=args.seed, **sizes
+                )
+            )
             results = play(env, static, args.episodes, args.seed, f"{tag} mpc static model")
             per_seed.setdefault("mpc static model", []).append(summarise(results, static.seconds))
             raw.setdefault("mpc static model", []).append(results)
             if index == 0:
                 # The baselines do not depend on the world model: played once.
                 baselines = {}
-                for name, policy in [("scripted", ScriptedPolicy(args.seed)), ("random", RandomPolicy(args.seed))]:
+                for name, policy in [
+                    ("scripted", ScriptedPolicy(args.seed)),
+                    ("random", RandomPolicy(args.seed)),
+                ]:
                     raw[name] = play(env, policy, args.episodes, args.seed, name)
                     baselines[name] = summarise(raw[name])
                 if args.stepwise_episodes:
                     n = min(args.stepwise_episodes, args.episodes)
-                    world_model_env = ForecasterWorldModelEnv(world_model, objective, env.action_spec,
-                                                              env.observation_spec)
-                    cem = CEMPlanner(world_model_env, planning_horizon=world_model.action_steps,
-                                     optim_steps=args.iterations, num_candidates=args.candidates, top_k=args.elites)
+                    world_model_env = ForecasterWorldModelEnv(
+                        world_model, objective, env.action_spec, env.observation_spec
+                    )
+                    cem = CEMPlanner(
+                        world_model_env,
+                        planning_horizon=world_model.action_steps,
+                        optim_steps=args.iterations,
+                        num_candidates=args.candidates,
+                        top_k=args.elites,
+                    )
                     torch.manual_seed(args.seed)
                     stepwise = Timed(ImaginedPlanningPolicy(cem, world_model_env))
-                    raw["torchrl CEMPlanner all"] = play(env, stepwise, n, args.seed, "torchrl CEMPlanner all")
+                    raw["torchrl CEMPlanner all"] = play(
+                        env, stepwise, n, args.seed, "torchrl CEMPlanner all"
+                    )
                     baselines[f"torchrl CEMPlanner all (first {n}, world model 1)"] = summarise(
-                        raw["torchrl CEMPlanner all"], stepwise.seconds)
+                        raw["torchrl CEMPlanner all"], stepwise.seconds
+                    )
                     baselines[f"mpc all (first {n}, world model 1)"] = summarise(raw["mpc all"][0][:n])
         finally:
             env.close()
@@ -330,29 +416,50 @@ def main() -> None:
     minutes = (time.perf_counter() - started) / 60
     timing = ", ".join(f"{name} {seconds / 60:.1f} min" for name, seconds in phases.items())
     command = " ".join(["benchmarks/mpc_push.py", *sys.argv[1:]])
-    budget = (f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, "
-              f"{len(checkpoints)} world models" + ("" if args.checkpoint else
-                                                    f" (seeds {args.world_model_seeds}, "
-                                                    f"{args.train_steps or 'the config'} training steps, "
-                                                    f"{args.record_episodes} recorded episodes)"))
-    text = (f"# MPC on the multimodal push task\n\n`{command}` — {minutes:.1f} min on {torch.get_num_threads()} "
-            f"threads ({timing})\n\n{budget}; world models: {', '.join(f'`{c}`' for c in checkpoints)}; CEM "
-            f"{args.candidates} candidates × {args.iterations} iterations, {args.elites} elites\n\n{table(rows)}\n")
+    budget = (
+        f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, "
+        f"{len(checkpoints)} world models"
+        + (
+            ""
+            if args.checkpoint
+            else f" (seeds {args.world_model_seeds}, "
+            f"{args.train_steps or 'the config'} training steps, "
+            f"{args.record_episodes} recorded episodes)"
+        )
+    )
+    text = (
+        f"# MPC on the multimodal push task\n\n`{command}` — {minutes:.1f} min on {torch.get_num_threads()} "
+        f"threads ({timing})\n\n{budget}; world models: {', '.join(f'`{c}`' for c in checkpoints)}; CEM "
+        f"{args.candidates} candidates × {args.iterations} iterations, {args.elites} elites\n\n{table(rows)}\n"
+    )
     args.out.mkdir(parents=True, exist_ok=True)
     write_text(args.out / "results.md", text)
-    write_json(args.out / "results.json", {"rows": rows, "episodes": raw, "phases_s": phases,
-                                           "args": {k: str(v) for k, v in vars(args).items()}})
+    write_json(
+        args.out / "results.json",
+        {
+            "rows": rows,
+            "episodes": raw,
+            "phases_s": phases,
+            "args": {k: str(v) for k, v in vars(args).items()},
+        },
+    )
     print(text)
     first = args.outage[0]
-    spread = ", ".join(f"{label} {rows[f'mpc {label}']['success_min']:.0f}-{rows[f'mpc {label}']['success_max']:.0f}%"
-                       for label, _, _ in conditions)
+    spread = ", ".join(
+        f"{label} {rows[f'mpc {label}']['success_min']:.0f}-{rows[f'mpc {label}']['success_max']:.0f}%"
+        for label, _, _ in conditions
+    )
     decision = statistics.median(rows[f"mpc {label}"]["decision_ms"] for label, _, _ in conditions)
-    print(f"spread over world-model seeds {args.world_model_seeds if not args.checkpoint else len(checkpoints)}: "
-          f"{spread}; MPC decision {decision:.1f} ms/step (median)")
-    print(f"summary: success all {rows['mpc all']['success']:.0f}%, "
-          f"no-camera {rows[f'mpc no-camera ({first})']['success']:.0f}%, "
-          f"no-force {rows[f'mpc no-force ({first})']['success']:.0f}%, scripted {rows['scripted']['success']:.0f}%, "
-          f"random {rows['random']['success']:.0f}%")
+    print(
+        f"spread over world-model seeds {args.world_model_seeds if not args.checkpoint else len(checkpoints)}: "
+        f"{spread}; MPC decision {decision:.1f} ms/step (median)"
+    )
+    print(
+        f"summary: success all {rows['mpc all']['success']:.0f}%, "
+        f"no-camera {rows[f'mpc no-camera ({first})']['success']:.0f}%, "
+        f"no-force {rows[f'mpc no-force ({first})']['success']:.0f}%, scripted {rows['scripted']['success']:.0f}%, "
+        f"random {rows['random']['success']:.0f}%"
+    )
 
 
 if __name__ == "__main__":

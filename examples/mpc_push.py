@@ -37,17 +37,30 @@ image_spec = next(s for s in world_model.model.modalities if s.name == "image")
 history = world_model.history_window()  # writes ("history", ...): the model's input window, every step
 
 # The real env: the outage (if any) happens before the history sees the sensors.
-outages = {"episode": {"outage_prob": 1.0},  # off all episode
-           "bursts": {"outage_prob": 0.2, "bursts": UniformBursts(2, 8)},  # 2-8 step outages, ~half the time
-           "dies": {"outage_prob": 1.0, "dies_after": UniformBursts(1, 49)}}  # dies at a uniform step
-transforms = ([ModalityDropout([args.drop], outage=args.outage, seed=args.seed, **outages[args.outage])]
-              if args.drop else [])
-env = TransformedEnv(MultimodalPushTorchEnv(image_size=image_spec.shape[-1]),
-                     Compose(*transforms, history, InitTracker()))
+outages = {
+    "episode": {"outage_prob": 1.0},  # off all episode
+    "bursts": {"outage_prob": 0.2, "bursts": UniformBursts(2, 8)},  # 2-8 step outages, ~half the time
+    "dies": {"outage_prob": 1.0, "dies_after": UniformBursts(1, 49)},
+}  # dies at a uniform step
+transforms = (
+    [ModalityDropout([args.drop], outage=args.outage, seed=args.seed, **outages[args.outage])]
+    if args.drop
+    else []
+)
+env = TransformedEnv(
+    MultimodalPushTorchEnv(image_size=image_spec.shape[-1]), Compose(*transforms, history, InitTracker())
+)
 
 # The policy: CEM over whole action sequences, scored by the push objective.
-planner = SequenceCEMPlanner(world_model, PushObjective(), env.action_spec, num_candidates=128,
-                             num_iterations=4, num_elites=16, seed=args.seed)
+planner = SequenceCEMPlanner(
+    world_model,
+    PushObjective(),
+    env.action_spec,
+    num_candidates=128,
+    num_iterations=4,
+    num_elites=16,
+    seed=args.seed,
+)
 
 successes = 0
 for episode in range(args.episodes):
@@ -56,8 +69,12 @@ for episode in range(args.episodes):
     success = bool(rollout["next", "terminated"].any())
     successes += success
     distance = float(-rollout["next", "reward"][-1])
-    print(f"episode {episode}: {'success' if success else 'failure'} after {rollout.shape[0]} steps, "
-          f"object {100 * distance:.1f} cm from the goal")
+    print(
+        f"episode {episode}: {'success' if success else 'failure'} after {rollout.shape[0]} steps, "
+        f"object {100 * distance:.1f} cm from the goal"
+    )
 env.close()
-print(f"success {successes}/{args.episodes} with "
-      f"{'all sensors' if args.drop is None else f'{args.drop} failing ({args.outage})'}")
+print(
+    f"success {successes}/{args.episodes} with "
+    f"{'all sensors' if args.drop is None else f'{args.drop} failing ({args.outage})'}"
+)

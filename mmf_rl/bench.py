@@ -29,13 +29,18 @@ EXAMPLES = [
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        prog="mmf-rl bench", description=__doc__.split("\n\n")[0].split(": ", 1)[1],
+        prog="mmf-rl bench",
+        description=__doc__.split("\n\n")[0].split(": ", 1)[1],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="benchmarks:\n" + "\n".join(f"  {name:<9} {what}" for name, (_, what) in BENCHMARKS.items())
-               + "\n\nexamples:\n" + "\n".join(f"  {example}" for example in EXAMPLES),
+        epilog="benchmarks:\n"
+        + "\n".join(f"  {name:<9} {what}" for name, (_, what) in BENCHMARKS.items())
+        + "\n\nexamples:\n"
+        + "\n".join(f"  {example}" for example in EXAMPLES),
     )
     parser.add_argument("benchmark", choices=sorted(BENCHMARKS), help="which benchmark")
-    parser.add_argument("args", nargs=argparse.REMAINDER, help="the benchmark's own arguments (see BENCHMARK --help)")
+    parser.add_argument(
+        "args", nargs=argparse.REMAINDER, help="the benchmark's own arguments (see BENCHMARK --help)"
+    )
     return parser.parse_args(argv)
 
 
@@ -43,8 +48,11 @@ def main(argv: list[str]) -> int:
     args = parse_args(argv)
     script = BENCHMARKS_DIR / BENCHMARKS[args.benchmark][0]
     if not script.is_file():
-        print(f"mmf-rl bench: error: {script} does not exist; the benchmarks ship with the repository, not the "
-              "package: run this from a clone of mmf-rl (git clone, then `make setup`)", file=sys.stderr)
+        print(
+            f"mmf-rl bench: error: {script} does not exist; the benchmarks ship with the repository, not the "
+            "package: run this from a clone of mmf-rl (git clone, then `make setup`)",
+            file=sys.stderr,
+        )
         return 1
     saved = sys.argv
     sys.argv = [str(script), *args.args]

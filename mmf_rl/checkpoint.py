@@ -73,9 +73,16 @@ def _write_json(path: Path, obj) -> None:
         os.fsync(f.fileno())
 
 
-def save_checkpoint(directory: str | os.PathLike, step: int, model_state: dict[str, torch.Tensor], *,
-                    meta: dict | None = None, tensors: dict[str, torch.Tensor] | None = None,
-                    trainer_state: dict | None = None, keep_last: int | None = None) -> Path:
+def save_checkpoint(
+    directory: str | os.PathLike,
+    step: int,
+    model_state: dict[str, torch.Tensor],
+    *,
+    meta: dict | None = None,
+    tensors: dict[str, torch.Tensor] | None = None,
+    trainer_state: dict | None = None,
+    keep_last: int | None = None,
+) -> Path:
     """Write checkpoint ``step`` under ``directory`` atomically and point ``last`` at it.
 
     ``keep_last``: delete all but the newest ``keep_last`` checkpoints afterwards.
@@ -88,10 +95,16 @@ def save_checkpoint(directory: str | os.PathLike, step: int, model_state: dict[s
         if error.errno != errno.ENOSPC:
             raise
         previous = list_checkpoints(directory)
-        kept = f"the previous checkpoint {previous[-1]} is intact" if previous else "no earlier checkpoint exists"
-        raise CheckpointError(f"no space left on device while saving checkpoint step {step} in {directory} "
-                              f"({error}); its temporary files were removed and {kept}. Free space, then continue "
-                              "with resume=true") from None
+        kept = (
+            f"the previous checkpoint {previous[-1]} is intact"
+            if previous
+            else "no earlier checkpoint exists"
+        )
+        raise CheckpointError(
+            f"no space left on device while saving checkpoint step {step} in {directory} "
+            f"({error}); its temporary files were removed and {kept}. Free space, then continue "
+            "with resume=true"
+        ) from None
     if keep_last is not None:
         for old in list_checkpoints(directory)[:-keep_last]:
             # Out of the step_* names first (rename onto an empty temp dir), so a kill during the
@@ -102,14 +115,22 @@ def save_checkpoint(directory: str | os.PathLike, step: int, model_state: dict[s
     return final
 
 
-def _save(directory: Path, step: int, model_state: dict[str, torch.Tensor], meta: dict | None,
-          tensors: dict[str, torch.Tensor] | None, trainer_state: dict | None) -> Path:
+def _save(
+    directory: Path,
+    step: int,
+    model_state: dict[str, torch.Tensor],
+    meta: dict | None,
+    tensors: dict[str, torch.Tensor] | None,
+    trainer_state: dict | None,
+) -> Path:
     final = directory / f"step_{step:09d}"
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=directory))
     try:
         # safetensors refuses shared or non-contiguous storage; a state dict may have both.
         save_file({k: v.detach().contiguous().clone() for k, v in model_state.items()}, tmp / MODEL_FILE)
-        save_file({k: v.detach().contiguous().clone() for k, v in (tensors or {}).items()}, tmp / TENSORS_FILE)
+        save_file(
+            {k: v.detach().contiguous().clone() for k, v in (tensors or {}).items()}, tmp / TENSORS_FILE
+        )
         if trainer_state is not None:
             torch.save(trainer_state, tmp / TRAINER_STATE_FILE)
         _write_json(tmp / META_FILE, {"format_version": FORMAT_VERSION, "step": int(step), **(meta or {})})
@@ -165,19 +186,24 @@ def resolve_checkpoint(path: str | os.PathLike) -> Path:
         target = path / pointer.read_text().strip()
         if (target / META_FILE).is_file():
             return target
-        raise CheckpointError(f"{pointer} names {target.name}, which is not a complete checkpoint; "
-                              f"pass one of {[p.name for p in list_checkpoints(path)]} explicitly")
+        raise CheckpointError(
+            f"{pointer} names {target.name}, which is not a complete checkpoint; "
+            f"pass one of {[p.name for p in list_checkpoints(path)]} explicitly"
+        )
     if not path.exists():
         raise CheckpointError(f"checkpoint not found: {path} does not exist")
-    raise CheckpointError(f"{path} is neither a checkpoint (no {META_FILE}) nor a directory with a '{LAST_POINTER}' pointer")
+    raise CheckpointError(
+        f"{path} is neither a checkpoint (no {META_FILE}) nor a directory with a '{LAST_POINTER}' pointer"
+    )
 
 
 def _load_safetensors(path: Path) -> dict[str, torch.Tensor]:
     try:
         return load_file(path)
     except (SafetensorError, OSError, ValueError) as err:
-        raise CheckpointError(f"cannot read {path}: {err}; the file is corrupted or truncated — "
-                              "use an earlier checkpoint") from None
+        raise CheckpointError(
+            f"cannot read {path}: {err}; the file is corrupted or truncated — use an earlier checkpoint"
+        ) from None
 
 
 def load_checkpoint(path: str | os.PathLike, *, with_trainer_state: bool = True) -> Checkpoint:
@@ -190,8 +216,10 @@ def load_checkpoint(path: str | os.PathLike, *, with_trainer_state: bool = True)
     if not isinstance(meta, dict) or "step" not in meta:
         raise CheckpointError(f"{path / META_FILE} is not an mmf-rl checkpoint description (no 'step')")
     if meta.get("format_version", 0) > FORMAT_VERSION:
-        raise CheckpointError(f"{path} has checkpoint format {meta['format_version']}, newer than this mmf-rl "
-                              f"reads ({FORMAT_VERSION}); upgrade mmf-rl")
+        raise CheckpointError(
+            f"{path} has checkpoint format {meta['format_version']}, newer than this mmf-rl "
+            f"reads ({FORMAT_VERSION}); upgrade mmf-rl"
+        )
     model_state = _load_safetensors(path / MODEL_FILE)
     tensors = _load_safetensors(path / TENSORS_FILE) if (path / TENSORS_FILE).exists() else {}
     trainer_state = None
@@ -200,26 +228,37 @@ def load_checkpoint(path: str | os.PathLike, *, with_trainer_state: bool = True)
         try:
             trainer_state = torch.load(state_file, map_location="cpu", weights_only=True)
         except pickle.UnpicklingError as err:
-            raise CheckpointError(f"refusing to load {state_file}: it holds objects other than tensors and plain "
-                                  f"containers ({str(err).splitlines()[0]}); only trusted, plain state is loaded") from None
+            raise CheckpointError(
+                f"refusing to load {state_file}: it holds objects other than tensors and plain "
+                f"containers ({str(err).splitlines()[0]}); only trusted, plain state is loaded"
+            ) from None
         except (RuntimeError, EOFError, OSError) as err:
-            raise CheckpointError(f"cannot read {state_file}: {err}; the file is corrupted or truncated") from None
-    return Checkpoint(path=path, meta=meta, model_state=model_state, tensors=tensors, trainer_state=trainer_state)
+            raise CheckpointError(
+                f"cannot read {state_file}: {err}; the file is corrupted or truncated"
+            ) from None
+    return Checkpoint(
+        path=path, meta=meta, model_state=model_state, tensors=tensors, trainer_state=trainer_state
+    )
 
 
 def state_mismatch(own: dict[str, torch.Tensor], loaded: dict[str, torch.Tensor]) -> str | None:
     """What differs between a model's state dict and a loaded one (missing, unexpected, shapes); None if nothing."""
     missing = sorted(set(own) - set(loaded))
     unexpected = sorted(set(loaded) - set(own))
-    mismatched = [f"{k}: expected {list(v.shape)}, found {list(loaded[k].shape)}"
-                  for k, v in own.items() if k in loaded and loaded[k].shape != v.shape]
+    mismatched = [
+        f"{k}: expected {list(v.shape)}, found {list(loaded[k].shape)}"
+        for k, v in own.items()
+        if k in loaded and loaded[k].shape != v.shape
+    ]
     details = []
     if missing:
         details.append(f"missing: {missing[:5]}{' ...' if len(missing) > 5 else ''}")
     if unexpected:
         details.append(f"not in the model: {unexpected[:5]}{' ...' if len(unexpected) > 5 else ''}")
     if mismatched:
-        details.append(f"shape mismatch (model vs saved): {mismatched[:5]}{' ...' if len(mismatched) > 5 else ''}")
+        details.append(
+            f"shape mismatch (model vs saved): {mismatched[:5]}{' ...' if len(mismatched) > 5 else ''}"
+        )
     return "; ".join(details) or None
 
 
@@ -227,6 +266,8 @@ def load_model_state(module: torch.nn.Module, checkpoint: Checkpoint) -> None:
     """Load weights strictly; a mismatch names the keys and shapes on both sides."""
     mismatch = state_mismatch(module.state_dict(), checkpoint.model_state)
     if mismatch:
-        raise CheckpointError(f"{checkpoint.path} was saved from a different model configuration ({mismatch}); "
-                              f"build the model from the checkpoint's own config ({META_FILE} 'config')")
+        raise CheckpointError(
+            f"{checkpoint.path} was saved from a different model configuration ({mismatch}); "
+            f"build the model from the checkpoint's own config ({META_FILE} 'config')"
+        )
     module.load_state_dict(checkpoint.model_state)

@@ -14,8 +14,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "record": ("mmf_rl.record", "record a multimodal push dataset (LeRobot v3.0)"),
     "train": ("mmf_rl.trainers.run", "train a forecaster on a LeRobot dataset (Hydra overrides)"),
     "eval": ("mmf_rl.eval.run", "evaluate a checkpoint on every presence subset: table and plots"),
-    "inspect": ("mmf_rl.datasets.inspect", "report a LeRobot dataset's features, cameras, NaN spans and outages; "
-                "suggest a data config"),
+    "inspect": (
+        "mmf_rl.datasets.inspect",
+        "report a LeRobot dataset's features, cameras, NaN spans and outages; suggest a data config",
+    ),
     "bench": ("mmf_rl.bench", "run a benchmark of benchmarks/ (accuracy, data, model, mpc)"),
     "demo": ("mmf_rl.demo", "record a push dataset, train the default model on CPU, evaluate (make demo)"),
 }

@@ -40,8 +40,10 @@ class ConfigError(ValueError):
 def config_dir() -> Path:
     path = Path(os.environ.get("MMF_RL_CONFIG_DIR", DEFAULT_CONFIG_DIR))
     if not (path / "train.yaml").is_file():
-        raise ConfigError(f"no mmf-rl configs in {path} (train.yaml missing); unset MMF_RL_CONFIG_DIR to use the "
-                          f"configs installed with mmf-rl ({DEFAULT_CONFIG_DIR}), or point it at a copy of them")
+        raise ConfigError(
+            f"no mmf-rl configs in {path} (train.yaml missing); unset MMF_RL_CONFIG_DIR to use the "
+            f"configs installed with mmf-rl ({DEFAULT_CONFIG_DIR}), or point it at a copy of them"
+        )
     return path
 
 
@@ -71,13 +73,17 @@ def _check_config_dirs(config_dirs: list[Path]) -> list[Path]:
     for directory in config_dirs:
         directory = Path(directory).expanduser().resolve()
         if not directory.is_dir():
-            raise ConfigError(f"--config-dir {directory}: no such directory; it should hold <group>/<name>.yaml files "
-                              "(e.g. data/mine.yaml, used as data=mine)")
+            raise ConfigError(
+                f"--config-dir {directory}: no such directory; it should hold <group>/<name>.yaml files "
+                "(e.g. data/mine.yaml, used as data=mine)"
+            )
         for path in sorted(directory.rglob("*")):
             relative = path.relative_to(directory)
             if path.suffix in YAML_SUFFIXES and (builtin / relative).with_suffix(".yaml").is_file():
-                raise ConfigError(f"{path} has the name of mmf-rl's own {builtin / relative.with_suffix('.yaml')}, which "
-                                  f"Hydra would use instead; rename yours (e.g. {relative.parent / ('my_' + path.name)})")
+                raise ConfigError(
+                    f"{path} has the name of mmf-rl's own {builtin / relative.with_suffix('.yaml')}, which "
+                    f"Hydra would use instead; rename yours (e.g. {relative.parent / ('my_' + path.name)})"
+                )
         resolved.append(directory)
     return resolved
 
@@ -89,8 +95,10 @@ def _config_file_option(group: str, value: str) -> str:
 
     path = Path(value).expanduser().resolve()
     if not path.is_file():
-        raise ConfigError(f"{group}={value}: no such file ({path}); give the path of a YAML config file, or an option "
-                          f"name of the `{group}` group (`mmf-rl train --help` lists them)")
+        raise ConfigError(
+            f"{group}={value}: no such file ({path}); give the path of a YAML config file, or an option "
+            f"name of the `{group}` group (`mmf-rl train --help` lists them)"
+        )
     text = path.read_text()
     try:
         node = OmegaConf.create(text)
@@ -99,7 +107,9 @@ def _config_file_option(group: str, value: str) -> str:
     if not isinstance(node, DictConfig):
         raise ConfigError(f"{path}: a config file must hold a mapping of keys, found {type(node).__name__}")
     header = re.search(r"^#\s*@package\s+(\S+)", text, re.MULTILINE)
-    name = f"file_{hashlib.sha1(str(path).encode()).hexdigest()[:8]}_{re.sub(r'[^A-Za-z0-9_]', '_', path.stem)}"
+    name = (
+        f"file_{hashlib.sha1(str(path).encode()).hexdigest()[:8]}_{re.sub(r'[^A-Za-z0-9_]', '_', path.stem)}"
+    )
     ConfigStore.instance().store(group=group, name=name, node=node, package=header[1] if header else None)
     return name
 
@@ -120,8 +130,12 @@ def _prepare_overrides(name: str, overrides: list[str], config_dirs: list[Path])
     for override in parsed:
         key, line = override.key_or_group, override.input_line
         value = override.value()
-        if (override.type == OverrideType.CHANGE and key in groups and isinstance(value, str)
-                and value.endswith(YAML_SUFFIXES)):
+        if (
+            override.type == OverrideType.CHANGE
+            and key in groups
+            and isinstance(value, str)
+            and value.endswith(YAML_SUFFIXES)
+        ):
             line = f"{override.get_key_element()}={_config_file_option(key, value)}"
         elif override.type == OverrideType.CHANGE and key in REPLACED_MAPPINGS:
             replaced[len(prepared)] = key
@@ -132,7 +146,11 @@ def _prepare_overrides(name: str, overrides: list[str], config_dirs: list[Path])
     # Hydra deletes only what exists: compose once without the replaced keys (and the overrides
     # under them) to see which of them the config has as a mapping.
     under = tuple(replaced.values())
-    base = _compose(name, [o for o, p in zip(prepared, parsed) if not p.key_or_group.startswith(under)], config_dirs)
+    base = _compose(
+        name,
+        [o for o, p in zip(prepared, parsed, strict=True) if not p.key_or_group.startswith(under)],
+        config_dirs,
+    )
     result = []
     for i, line in enumerate(prepared):
         if i in replaced and isinstance(OmegaConf.select(base, replaced[i]), DictConfig):
@@ -144,7 +162,9 @@ def _prepare_overrides(name: str, overrides: list[str], config_dirs: list[Path])
 def _compose(name: str, overrides: list[str], config_dirs: list[Path]) -> DictConfig:
     from hydra import compose, initialize_config_dir
 
-    search_path = [f"hydra.searchpath=[{','.join(f'file://{d}' for d in config_dirs)}]"] if config_dirs else []
+    search_path = (
+        [f"hydra.searchpath=[{','.join(f'file://{d}' for d in config_dirs)}]"] if config_dirs else []
+    )
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         return compose(config_name=name, overrides=search_path + list(overrides))
 
@@ -201,15 +221,20 @@ def _settings_help(name: str, config_dirs: list[Path]) -> str:
         lines.append(f"settings (KEY=VALUE; defaults from {path}):")
         lines += [f"  {OmegaConf.to_yaml({k: v}).strip().replace(': ', '=', 1)}" for k, v in scalars.items()]
         lines.append("")
-    lines.append("overrides: KEY=VALUE sets a key, GROUP=OPTION picks a config, +KEY=VALUE adds a key (Hydra syntax).")
+    lines.append(
+        "overrides: KEY=VALUE sets a key, GROUP=OPTION picks a config, +KEY=VALUE adds a key (Hydra syntax)."
+    )
     if "data" in groups:
-        lines += [f"A whole mapping for {', '.join(REPLACED_MAPPINGS)} replaces the config's:",
-                  "  data.modalities='{cam: observation.images.top, joints: observation.state}'"]
+        lines += [
+            f"A whole mapping for {', '.join(REPLACED_MAPPINGS)} replaces the config's:",
+            "  data.modalities='{cam: observation.images.top, joints: observation.state}'",
+        ]
     return "\n".join(lines)
 
 
-def parse_config_command(argv: list[str], name: str, prog: str, description: str,
-                         examples: list[str]) -> ConfigCommand:
+def parse_config_command(
+    argv: list[str], name: str, prog: str, description: str, examples: list[str]
+) -> ConfigCommand:
     """Parse a Hydra-config command's arguments; ``--help`` prints usage, the config groups and their
     options, and ``examples`` (then exits, as argparse does)."""
     pre = argparse.ArgumentParser(add_help=False)
@@ -219,19 +244,35 @@ def parse_config_command(argv: list[str], name: str, prog: str, description: str
         settings = _settings_help(name, _check_config_dirs(known.config_dir))
     except ConfigError as err:
         settings = f"(config groups unavailable: {err})\n"
-    epilog = "\n".join([
-        settings,
-        "",
-        "examples:",
-        *(f"  {example}" for example in examples),
-    ])
-    parser = argparse.ArgumentParser(prog=prog, description=description, epilog=epilog,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config-dir", action="append", type=Path, default=[], metavar="DIR",
-                        help="a directory of your own configs (<group>/<name>.yaml, e.g. data/mine.yaml -> data=mine); "
-                             "repeatable")
-    parser.add_argument("--cfg", action="store_true", help="print the composed config (YAML) and exit without running")
-    parser.add_argument("overrides", nargs="*", metavar="OVERRIDE", help="KEY=VALUE or GROUP=OPTION (Hydra syntax)")
+    epilog = "\n".join(
+        [
+            settings,
+            "",
+            "examples:",
+            *(f"  {example}" for example in examples),
+        ]
+    )
+    parser = argparse.ArgumentParser(
+        prog=prog,
+        description=description,
+        epilog=epilog,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--config-dir",
+        action="append",
+        type=Path,
+        default=[],
+        metavar="DIR",
+        help="a directory of your own configs (<group>/<name>.yaml, e.g. data/mine.yaml -> data=mine); "
+        "repeatable",
+    )
+    parser.add_argument(
+        "--cfg", action="store_true", help="print the composed config (YAML) and exit without running"
+    )
+    parser.add_argument(
+        "overrides", nargs="*", metavar="OVERRIDE", help="KEY=VALUE or GROUP=OPTION (Hydra syntax)"
+    )
     args = parser.parse_intermixed_args(argv)
     return ConfigCommand(overrides=args.overrides, config_dirs=args.config_dir, print_config=args.cfg)
 

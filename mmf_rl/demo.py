@@ -14,8 +14,8 @@ import sys
 import time
 from pathlib import Path
 
-from mmf_rl.configuration import ConfigError, compose_config
 from mmf_rl.checkpoint import CheckpointError, list_checkpoints
+from mmf_rl.configuration import ConfigError, compose_config
 from mmf_rl.eval.run import run_evaluation
 from mmf_rl.record import RecordConfig, record
 from mmf_rl.trainers.run import train
@@ -23,14 +23,20 @@ from mmf_rl.trainers.run import train
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        prog="mmf-rl demo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        prog="mmf-rl demo",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="examples:\n"
-               "  mmf-rl demo                                   # what `make demo` runs\n"
-               "  mmf-rl demo --episodes 60 -- trainer.total_steps=300 model=lf_lstm   # smaller, another model",
+        "  mmf-rl demo                                   # what `make demo` runs\n"
+        "  mmf-rl demo --episodes 60 -- trainer.total_steps=300 model=lf_lstm   # smaller, another model",
     )
-    parser.add_argument("--data", type=Path, default=Path("data/push"), help="push dataset (recorded if absent)")
+    parser.add_argument(
+        "--data", type=Path, default=Path("data/push"), help="push dataset (recorded if absent)"
+    )
     parser.add_argument("--run-dir", type=Path, default=Path("runs/demo"))
-    parser.add_argument("--episodes", type=int, default=150, help="episodes to record when the dataset is absent")
+    parser.add_argument(
+        "--episodes", type=int, default=150, help="episodes to record when the dataset is absent"
+    )
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("overrides", nargs="*", help="extra `mmf-rl train` overrides (after --)")
     return parser.parse_args(argv)
@@ -42,7 +48,11 @@ def main(argv: list[str]) -> int:
     try:
         if not (args.data / "meta" / "info.json").is_file():
             print(f"demo: recording {args.episodes} push episodes into {args.data}")
-            record(RecordConfig(out=args.data, episodes=args.episodes, workers=args.workers, image_size=64, steps=50))
+            record(
+                RecordConfig(
+                    out=args.data, episodes=args.episodes, workers=args.workers, image_size=64, steps=50
+                )
+            )
         else:
             print(f"demo: using the recording in {args.data}")
         overrides = ["experiment=demo", f"data.root={args.data}", f"run_dir={args.run_dir}", *args.overrides]
@@ -65,8 +75,12 @@ def main(argv: list[str]) -> int:
         print(f"plot: {path}")
     model, baseline = summary["subsets"]["all"], summary["constant_velocity"]
     if baseline:
-        print(f"all modalities: MSE {model['mse']:.4f} vs constant velocity {baseline['mse']:.4f} "
-              f"({model['mse'] / baseline['mse'] - 1:+.0%}); ADE {model['ade']:.4f} vs {baseline['ade']:.4f}")
-    print(f"demo: {finished - started:.0f} s (record {recorded - started:.0f} s, train {trained - recorded:.0f} s, "
-          f"evaluate {finished - trained:.0f} s)")
+        print(
+            f"all modalities: MSE {model['mse']:.4f} vs constant velocity {baseline['mse']:.4f} "
+            f"({model['mse'] / baseline['mse'] - 1:+.0%}); ADE {model['ade']:.4f} vs {baseline['ade']:.4f}"
+        )
+    print(
+        f"demo: {finished - started:.0f} s (record {recorded - started:.0f} s, train {trained - recorded:.0f} s, "
+        f"evaluate {finished - trained:.0f} s)"
+    )
     return 0

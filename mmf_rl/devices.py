@@ -11,5 +11,7 @@ def resolve_device(name: str) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device = torch.device(name)
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device={name} was requested but CUDA is not available here; use device=cpu or device=auto")
+        raise ValueError(
+            f"device={name} was requested but CUDA is not available here; use device=cpu or device=auto"
+        )
     return device

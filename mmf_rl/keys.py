@@ -191,9 +191,16 @@ def nonfinite_rows(values: torch.Tensor) -> torch.Tensor:
     return ~torch.isfinite(values).flatten(1).all(1) if values.dim() > 1 else ~torch.isfinite(values)
 
 
-def validate_batch(td, modalities: list[ModalitySpec], history: int, horizon: int | None = None,
-                   target_dim: int | None = None, require_target: bool = False,
-                   action_shape: tuple[int, int] | None = None, nonfinite: NonFiniteRule = "raise") -> None:
+def validate_batch(
+    td,
+    modalities: list[ModalitySpec],
+    history: int,
+    horizon: int | None = None,
+    target_dim: int | None = None,
+    require_target: bool = False,
+    action_shape: tuple[int, int] | None = None,
+    nonfinite: NonFiniteRule = "raise",
+) -> None:
     """Check a batch against the contract; raise errors that name the key, expected and found.
 
     Checked: the batch is not empty, every ``("obs", m)`` and ``("present", m)`` exists with the
@@ -209,8 +216,10 @@ def validate_batch(td, modalities: list[ModalitySpec], history: int, horizon: in
         raise ValueError(f"expected a TensorDict with batch size [B], found batch size {list(td.batch_size)}")
     batch = td.batch_size[0]
     if batch == 0:
-        raise ValueError("empty batch (batch size 0): there is nothing to forecast; skip empty batches before "
-                         "calling the model (a loss or metric over zero samples has no value)")
+        raise ValueError(
+            "empty batch (batch size 0): there is nothing to forecast; skip empty batches before "
+            "calling the model (a loss or metric over zero samples has no value)"
+        )
     any_present = None
     made_absent = []
     for spec in modalities:
@@ -250,8 +259,11 @@ def validate_batch(td, modalities: list[ModalitySpec], history: int, horizon: in
         if TARGET not in td.keys():
             raise KeyError(f"batch is missing key {TARGET!r} (the future to forecast, [B, T, D])")
         target = td.get(TARGET)
-        expected = (batch, horizon if horizon is not None else target.shape[1],
-                    target_dim if target_dim is not None else target.shape[-1])
+        expected = (
+            batch,
+            horizon if horizon is not None else target.shape[1],
+            target_dim if target_dim is not None else target.shape[-1],
+        )
         if not target.is_floating_point() or tuple(target.shape) != expected:
             raise ValueError(f"td[{TARGET!r}]: expected float {list(expected)}, found {_describe(target)}")
     if action_shape is not None:
@@ -264,8 +276,12 @@ def validate_batch(td, modalities: list[ModalitySpec], history: int, horizon: in
         action = td.get(FUTURE_ACTION)
         expected = (batch, *action_shape)
         if action.dtype != torch.float32 or tuple(action.shape) != expected:
-            raise ValueError(f"td[{FUTURE_ACTION!r}]: expected float32 {list(expected)}, found {_describe(action)}")
+            raise ValueError(
+                f"td[{FUTURE_ACTION!r}]: expected float32 {list(expected)}, found {_describe(action)}"
+            )
         bad = nonfinite_rows(action)
         if bool(bad.any()):
-            raise ValueError(f"td[{FUTURE_ACTION!r}] holds NaN or Inf (batch indices {_indices(bad)}); a forecast "
-                             "under a non-finite action has no meaning")
+            raise ValueError(
+                f"td[{FUTURE_ACTION!r}] holds NaN or Inf (batch indices {_indices(bad)}); a forecast "
+                "under a non-finite action has no meaning"
+            )

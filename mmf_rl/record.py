@@ -172,7 +172,6 @@ def record_shard(
 
     disable_progress_bar()  # lerobot's per-episode "Map" bars would drown the episodes bar
 
-
     env = MultimodalPushEnv(image_size=config.image_size, camera=config.camera)
     try:
         dataset = LeRobotDataset.create(
@@ -253,12 +252,14 @@ def _validate(config: RecordConfig) -> None:
     from lerobot.datasets.video_utils import VALID_VIDEO_CODECS
 
     if config.vcodec not in VALID_VIDEO_CODECS:
-        raise RecordError(f"--vcodec {config.vcodec!r} is unknown; choose one of {sorted(VALID_VIDEO_CODECS)}.")
+        raise RecordError(
+            f"--vcodec {config.vcodec!r} is unknown; choose one of {sorted(VALID_VIDEO_CODECS)}."
+        )
 
 
 def _shard_ranges(episodes: int, workers: int) -> list[range]:
     bounds = np.linspace(0, episodes, workers + 1).round().astype(int)
-    return [range(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    return [range(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
 
 
 def _run_workers(config: RecordConfig, shard_roots: list[Path], ranges: list[range], bar) -> None:
@@ -267,7 +268,7 @@ def _run_workers(config: RecordConfig, shard_roots: list[Path], ranges: list[ran
     progress = context.Queue()
     processes = [
         context.Process(target=_worker, args=(config, root, indices, progress), daemon=True)
-        for root, indices in zip(shard_roots, ranges)
+        for root, indices in zip(shard_roots, ranges, strict=True)
     ]
     for process in processes:
         process.start()
@@ -309,7 +310,9 @@ def record(config: RecordConfig) -> Path:
         out.parent.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix=owned_temp_prefix(partial_prefix(out)), dir=out.parent))
     except OSError as error:
-        raise RecordError(f"cannot write next to --out {out} ({error.strerror}); choose a writable --out.") from None
+        raise RecordError(
+            f"cannot write next to --out {out} ({error.strerror}); choose a writable --out."
+        ) from None
     try:
         ranges = _shard_ranges(config.episodes, config.workers)
         shard_roots = [work / f"shard-{k}" for k in range(len(ranges))]
@@ -347,11 +350,12 @@ def record(config: RecordConfig) -> Path:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog=PROG, description="Record scripted pushes as a LeRobot v3.0 dataset.",
+        prog=PROG,
+        description="Record scripted pushes as a LeRobot v3.0 dataset.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="examples:\n"
-               "  mmf-rl record --out data/push --episodes 200 --workers 2 --image-size 64 --steps 50\n"
-               "  mmf-rl record --out data/push_faults --episodes 100 --faults   # with sensor outages in the data",
+        "  mmf-rl record --out data/push --episodes 200 --workers 2 --image-size 64 --steps 50\n"
+        "  mmf-rl record --out data/push_faults --episodes 100 --faults   # with sensor outages in the data",
     )
     parser.add_argument("--out", type=Path, required=True, help="dataset directory to create")
     parser.add_argument("--episodes", type=int, required=True, help="number of episodes")
@@ -361,10 +365,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--steps", type=int, default=50, help="steps per episode, at 25 Hz")
     parser.add_argument("--camera", default="front", help="'front', 'top', or a camera of the model XML")
     parser.add_argument("--faults", action="store_true", help="write seeded sensor outages into the data")
-    parser.add_argument("--exploration", type=float, default=0.0,
-                        help="per-step probability of a random-move burst (data for world models; default 0)")
+    parser.add_argument(
+        "--exploration",
+        type=float,
+        default=0.0,
+        help="per-step probability of a random-move burst (data for world models; default 0)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    parser.add_argument("--repo-id", default=RecordConfig.repo_id, help="LeRobot repo_id stored in the metadata")
+    parser.add_argument(
+        "--repo-id", default=RecordConfig.repo_id, help="LeRobot repo_id stored in the metadata"
+    )
     parser.add_argument(
         "--vcodec",
         default=RecordConfig.vcodec,

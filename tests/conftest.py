@@ -33,8 +33,15 @@ def presence_patterns(names: list[str]) -> list[tuple[str, ...]]:
     return [c for r in range(1, len(names) + 1) for c in itertools.combinations(names, r)]
 
 
-def make_batch(batch_size: int, modalities=SMALL_MODALITIES, present: dict[str, torch.Tensor] | None = None,
-               seed: int = 0, history: int = HISTORY, horizon: int = HORIZON, target_dim: int = TARGET_DIM) -> TensorDict:
+def make_batch(
+    batch_size: int,
+    modalities=SMALL_MODALITIES,
+    present: dict[str, torch.Tensor] | None = None,
+    seed: int = 0,
+    history: int = HISTORY,
+    horizon: int = HORIZON,
+    target_dim: int = TARGET_DIM,
+) -> TensorDict:
     """A batch following ``mmf_rl.keys`` with random content; all modalities present by default."""
     g = torch.Generator().manual_seed(seed)
     data = {}
@@ -50,7 +57,9 @@ def make_batch(batch_size: int, modalities=SMALL_MODALITIES, present: dict[str, 
     return TensorDict(data, batch_size=[batch_size])
 
 
-def assert_a_few_steps_reduce_the_loss(model, loss_module, action_shape: tuple[int, int] | None = None) -> None:
+def assert_a_few_steps_reduce_the_loss(
+    model, loss_module, action_shape: tuple[int, int] | None = None
+) -> None:
     """15 Adam steps on a fixed mixed-presence batch cut the summed ``loss_*`` by at least 20%.
 
     ``action_shape = (S, A)`` adds random ``"future_action"`` for a world model."""
@@ -58,7 +67,9 @@ def assert_a_few_steps_reduce_the_loss(model, loss_module, action_shape: tuple[i
     pattern = torch.arange(8) % 4
     batch = make_batch(8, present={n: (pattern != i) for i, n in enumerate(names)}, seed=2)
     if action_shape is not None:
-        batch.set(keys.FUTURE_ACTION, torch.randn(8, *action_shape, generator=torch.Generator().manual_seed(3)))
+        batch.set(
+            keys.FUTURE_ACTION, torch.randn(8, *action_shape, generator=torch.Generator().manual_seed(3))
+        )
     optimizer = torch.optim.Adam(model.parameters(), lr=5e-3)
 
     def total():
@@ -76,9 +87,17 @@ def assert_a_few_steps_reduce_the_loss(model, loss_module, action_shape: tuple[i
 
 @pytest.fixture
 def small_config() -> ForecasterConfig:
-    return ForecasterConfig(modalities=list(SMALL_MODALITIES), history=HISTORY, horizon=HORIZON,
-                            target_dim=TARGET_DIM, d_model=16, d_latent=4, num_heads=2, mlp_hidden=32,
-                            head_hidden=32)
+    return ForecasterConfig(
+        modalities=list(SMALL_MODALITIES),
+        history=HISTORY,
+        horizon=HORIZON,
+        target_dim=TARGET_DIM,
+        d_model=16,
+        d_latent=4,
+        num_heads=2,
+        mlp_hidden=32,
+        head_hidden=32,
+    )
 
 
 @pytest.fixture
@@ -175,7 +194,9 @@ class InMemoryLoader:
         return self.data.shape[0] // self.batch_size
 
     def __iter__(self):
-        order = torch.randperm(self.data.shape[0], generator=torch.Generator().manual_seed(self.seed * 1000 + self.epoch))
+        order = torch.randperm(
+            self.data.shape[0], generator=torch.Generator().manual_seed(self.seed * 1000 + self.epoch)
+        )
         for i in range(len(self)):
             yield self.data[order[i * self.batch_size : (i + 1) * self.batch_size]]
 
@@ -192,11 +213,26 @@ def recorded_push_root(tmp_path_factory):
 def push_train_overrides(root, cache_dir, run_dir, steps: int = 6) -> list[str]:
     """`mmf-rl train` overrides for a tiny, fast run on ``recorded_push_root``."""
     return [
-        f"data.root={root}", f"data.cache_dir={cache_dir}", f"run_dir={run_dir}", "data.image_size=[32,32]",
-        "data.history=4", "data.horizon=3", "data.split_fractions=[0.5,0.25,0.25]",
-        "model.d_model=16", "model.d_latent=4", "model.num_heads=2", "model.mlp_hidden=32", "model.head_hidden=32",
-        f"trainer.total_steps={steps}", "trainer.batch_size=16", "trainer.log_every=2", "trainer.eval_every=3",
-        "trainer.checkpoint_every=3", "trainer.warmup_steps=2", "trainer.progress_bar=false", "logger=csv",
+        f"data.root={root}",
+        f"data.cache_dir={cache_dir}",
+        f"run_dir={run_dir}",
+        "data.image_size=[32,32]",
+        "data.history=4",
+        "data.horizon=3",
+        "data.split_fractions=[0.5,0.25,0.25]",
+        "model.d_model=16",
+        "model.d_latent=4",
+        "model.num_heads=2",
+        "model.mlp_hidden=32",
+        "model.head_hidden=32",
+        f"trainer.total_steps={steps}",
+        "trainer.batch_size=16",
+        "trainer.log_every=2",
+        "trainer.eval_every=3",
+        "trainer.checkpoint_every=3",
+        "trainer.warmup_steps=2",
+        "trainer.progress_bar=false",
+        "logger=csv",
         "num_workers=0",
     ]
 
@@ -209,8 +245,16 @@ def push_world_model_run(recorded_push_root, tmp_path_factory):
 
     base = tmp_path_factory.mktemp("world_model")
     run = base / "run"
-    assert cli(["train", "data=push_world_model",
-                *push_train_overrides(recorded_push_root, base / "cache", run, steps=6)]) == 0
+    assert (
+        cli(
+            [
+                "train",
+                "data=push_world_model",
+                *push_train_overrides(recorded_push_root, base / "cache", run, steps=6),
+            ]
+        )
+        == 0
+    )
     return run
 
 
@@ -230,8 +274,9 @@ def push_history_env(push_world_model):
 
     from mmf_rl.envs import MultimodalPushTorchEnv
 
-    env = TransformedEnv(MultimodalPushTorchEnv(image_size=32), Compose(
-        push_world_model.history_window(), InitTracker()))
+    env = TransformedEnv(
+        MultimodalPushTorchEnv(image_size=32), Compose(push_world_model.history_window(), InitTracker())
+    )
     env.set_seed(0)
     yield env
     env.close()

@@ -12,12 +12,35 @@ from mmf_rl.datasets.synthetic import make_synthetic_dataset
 def test_bench_data_runs_on_any_dataset_with_its_data_config(tmp_path, capsys):
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     root = tmp_path / "other"  # not the push features: the benchmark takes them from the data config
-    make_synthetic_dataset(root, [24, 24, 24], image_size=32, nan_force_episodes=(), invalid_image_episodes=())
+    make_synthetic_dataset(
+        root, [24, 24, 24], image_size=32, nan_force_episodes=(), invalid_image_episodes=()
+    )
     config = tmp_path / "mine.yaml"
     assert cli(["inspect", str(root), "--write-config", str(config)]) == 0
     capsys.readouterr()
-    assert cli(["bench", "data", "--data-config", str(config), "--history", "4", "--horizon", "3", "--seconds", "0.2",
-                "--batch-size", "8", "--lerobot-windows", "24", "--workers", "0"]) == 0
+    assert (
+        cli(
+            [
+                "bench",
+                "data",
+                "--data-config",
+                str(config),
+                "--history",
+                "4",
+                "--horizon",
+                "3",
+                "--seconds",
+                "0.2",
+                "--batch-size",
+                "8",
+                "--lerobot-windows",
+                "24",
+                "--workers",
+                "0",
+            ]
+        )
+        == 0
+    )
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[-1].startswith("ratio: ") and "windows/s" in lines[-1]
     assert "front image [3, 32, 32]" in lines[-3] and "state sequence [4]" in lines[-3]

@@ -5,14 +5,26 @@ import pickle
 import pytest
 import torch
 
+from mmf_rl.checkpoint import (
+    CheckpointError,
+    list_checkpoints,
+    load_checkpoint,
+    load_model_state,
+    save_checkpoint,
+)
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster
-from mmf_rl.checkpoint import CheckpointError, list_checkpoints, load_checkpoint, load_model_state, save_checkpoint
 
 
 def test_roundtrip_restores_weights_tensors_and_state(tmp_path, small_model, small_config):
     stats = {"target.mean": torch.randn(2), "target.std": torch.rand(2) + 0.1}
-    saved = save_checkpoint(tmp_path, 100, small_model.state_dict(), meta={"config": small_config.to_dict()},
-                            tensors=stats, trainer_state={"epoch": 3, "rng": torch.get_rng_state()})
+    saved = save_checkpoint(
+        tmp_path,
+        100,
+        small_model.state_dict(),
+        meta={"config": small_config.to_dict()},
+        tensors=stats,
+        trainer_state={"epoch": 3, "rng": torch.get_rng_state()},
+    )
     assert saved.name == "step_000000100"
     ckpt = load_checkpoint(tmp_path)  # through the `last` pointer
     assert ckpt.step == 100 and ckpt.trainer_state["epoch"] == 3
@@ -68,7 +80,9 @@ def test_pickled_code_in_trainer_state_is_refused(tmp_path, small_model):
 def test_checkpoint_of_another_model_config_names_the_mismatch(tmp_path, small_model, small_config):
     path = save_checkpoint(tmp_path, 5, small_model.state_dict())
     other = MultimodalForecaster(ForecasterConfig.from_dict({**small_config.to_dict(), "d_latent": 6}))
-    with pytest.raises(CheckpointError, match=r"different model configuration.*shape mismatch.*expected \[.*\], found \["):
+    with pytest.raises(
+        CheckpointError, match=r"different model configuration.*shape mismatch.*expected \[.*\], found \["
+    ):
         load_model_state(other, load_checkpoint(path))
 
 

@@ -65,10 +65,23 @@ def test_config_commands_list_their_groups_options_and_settings(command, capsys,
 
 def test_train_cfg_prints_the_composed_config_and_trains_nothing(capsys, tmp_path):
     run = tmp_path / "run"
-    assert cli.main(["train", "--cfg", f"run_dir={run}", "data.modalities={cam: observation.images.top}",
-                     "data.target=observation.state", "model=lf_lstm"]) == 0
+    assert (
+        cli.main(
+            [
+                "train",
+                "--cfg",
+                f"run_dir={run}",
+                "data.modalities={cam: observation.images.top}",
+                "data.target=observation.state",
+                "model=lf_lstm",
+            ]
+        )
+        == 0
+    )
     cfg = yaml.safe_load(capsys.readouterr().out)
-    assert cfg["data"]["modalities"] == {"cam": "observation.images.top"} and cfg["model"]["name"] == "lf_lstm"
+    assert (
+        cfg["data"]["modalities"] == {"cam": "observation.images.top"} and cfg["model"]["name"] == "lf_lstm"
+    )
     assert cfg["run_dir"] == str(run) and not run.exists()
     assert cli.main(["eval", "checkpoint=runs/x", "num_samples=3", "--cfg"]) == 0
     assert yaml.safe_load(capsys.readouterr().out)["num_samples"] == 3

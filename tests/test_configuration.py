@@ -11,7 +11,7 @@ import pytest
 import yaml
 from omegaconf import OmegaConf
 
-from mmf_rl.configuration import ConfigError, DEFAULT_CONFIG_DIR, compose_config, config_groups
+from mmf_rl.configuration import DEFAULT_CONFIG_DIR, ConfigError, compose_config, config_groups
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -21,14 +21,26 @@ def data_of(overrides, **kwargs) -> dict:
 
 
 def test_a_whole_mapping_replaces_the_base_configs():
-    data = data_of(["data.modalities={cam: observation.images.top, joints: observation.state}",
-                    "data.target=observation.state", "data.missing={cam: 0.5}", "data.action={feature: action}"])
+    data = data_of(
+        [
+            "data.modalities={cam: observation.images.top, joints: observation.state}",
+            "data.target=observation.state",
+            "data.missing={cam: 0.5}",
+            "data.action={feature: action}",
+        ]
+    )
     assert data["modalities"] == {"cam": "observation.images.top", "joints": "observation.state"}
     assert data["target"] == "observation.state"  # not merged with push's dims [0, 1] and relative: true
     assert data["missing"] == {"cam": 0.5} and data["action"] == {"feature": "action"}
     # Replaced, then edited and extended by the overrides that follow it, in order.
-    data = data_of(["data.modalities={cam: observation.images.top}", "data.modalities.cam={feature: x, required: true}",
-                    "+data.modalities.joints=observation.state", "data.missing=observed"])
+    data = data_of(
+        [
+            "data.modalities={cam: observation.images.top}",
+            "data.modalities.cam={feature: x, required: true}",
+            "+data.modalities.joints=observation.state",
+            "data.missing=observed",
+        ]
+    )
     assert data["modalities"] == {"cam": {"feature": "x", "required": True}, "joints": "observation.state"}
     assert data["missing"] == "observed"
     # A dotted key still edits one entry of the base config's mapping.
@@ -39,7 +51,11 @@ def test_a_whole_mapping_replaces_the_base_configs():
 
 
 def test_configs_outside_the_package(tmp_path):
-    mine = {"root": "/data/mine", "modalities": {"cam": "observation.images.top"}, "target": "observation.state"}
+    mine = {
+        "root": "/data/mine",
+        "modalities": {"cam": "observation.images.top"},
+        "target": "observation.state",
+    }
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "mine.yaml").write_text(yaml.safe_dump(mine))
     assert data_of(["data=mine"], config_dirs=[tmp_path]) == mine
@@ -47,7 +63,10 @@ def test_configs_outside_the_package(tmp_path):
     assert "mine" in config_groups([tmp_path])["data"]
     (tmp_path / "experiment").mkdir()
     (tmp_path / "experiment" / "quick.yaml").write_text("# @package _global_\ntrainer:\n  total_steps: 7\n")
-    assert compose_config("train", [f"experiment={tmp_path / 'experiment' / 'quick.yaml'}"]).trainer.total_steps == 7
+    assert (
+        compose_config("train", [f"experiment={tmp_path / 'experiment' / 'quick.yaml'}"]).trainer.total_steps
+        == 7
+    )
 
     with pytest.raises(ConfigError, match=r"data=/nonexistent/mine\.yaml: no such file"):
         compose_config("train", ["data=/nonexistent/mine.yaml"])
@@ -67,7 +86,9 @@ def readme_commands(command: str) -> list[list[str]]:
 
 
 def test_the_readmes_override_command_composes_what_it_says():
-    commands = [argv for argv in readme_commands("train") if any(a.startswith("data.modalities=") for a in argv)]
+    commands = [
+        argv for argv in readme_commands("train") if any(a.startswith("data.modalities=") for a in argv)
+    ]
     assert commands, "the README shows no `mmf-rl train data.modalities=...` command"
     for argv in commands:
         given = {a.split("=", 1)[0]: a.split("=", 1)[1] for a in argv}
@@ -85,10 +106,16 @@ def test_the_configs_ship_in_the_wheel(tmp_path):
         (source / name).write_bytes((REPO / name).read_bytes())
     subprocess.run(["cp", "-a", str(REPO / "mmf_rl"), str(REPO / "configs"), str(source)], check=True)
     out = tmp_path / "wheel"
-    build = subprocess.run([sys.executable, "-c", f"from setuptools import build_meta; build_meta.build_wheel({str(out)!r})"],
-                           cwd=source, capture_output=True, text=True)
+    build = subprocess.run(
+        [sys.executable, "-c", f"from setuptools import build_meta; build_meta.build_wheel({str(out)!r})"],
+        cwd=source,
+        capture_output=True,
+        text=True,
+    )
     assert build.returncode == 0, build.stderr[-2000:]
     (wheel,) = out.glob("*.whl")
     shipped = {n for n in zipfile.ZipFile(wheel).namelist() if n.startswith("mmf_rl/configs/")}
-    expected = {f"mmf_rl/configs/{p.relative_to(DEFAULT_CONFIG_DIR)}" for p in DEFAULT_CONFIG_DIR.rglob("*.yaml")}
+    expected = {
+        f"mmf_rl/configs/{p.relative_to(DEFAULT_CONFIG_DIR)}" for p in DEFAULT_CONFIG_DIR.rglob("*.yaml")
+    }
     assert "mmf_rl/configs/train.yaml" in expected and shipped == expected

@@ -4,13 +4,23 @@ from tests.conftest import push_train_overrides
 
 def small_overrides(root, tmp_path):
     # The demo sets data.root and run_dir itself.
-    return [o for o in push_train_overrides(root, tmp_path / "cache", tmp_path / "unused")
-            if not o.startswith(("data.root=", "run_dir="))]
+    return [
+        o
+        for o in push_train_overrides(root, tmp_path / "cache", tmp_path / "unused")
+        if not o.startswith(("data.root=", "run_dir="))
+    ]
 
 
 def test_demo_trains_evaluates_and_reruns_without_starting_over(recorded_push_root, tmp_path, capsys):
-    args = ["demo", "--data", str(recorded_push_root), "--run-dir", str(tmp_path / "demo"), "--",
-            *small_overrides(recorded_push_root, tmp_path)]
+    args = [
+        "demo",
+        "--data",
+        str(recorded_push_root),
+        "--run-dir",
+        str(tmp_path / "demo"),
+        "--",
+        *small_overrides(recorded_push_root, tmp_path),
+    ]
     assert cli(args) == 0
     out = capsys.readouterr().out
     assert f"using the recording in {recorded_push_root}" in out
@@ -22,8 +32,21 @@ def test_demo_trains_evaluates_and_reruns_without_starting_over(recorded_push_ro
 
 def test_demo_records_when_the_dataset_is_absent(tmp_path, capsys):
     data = tmp_path / "push"
-    args = ["demo", "--data", str(data), "--episodes", "3", "--workers", "1", "--run-dir", str(tmp_path / "demo"),
-            "--", *small_overrides(data, tmp_path), "data.image_size=[64,64]", "data.split_fractions=[0.34,0.33,0.33]"]
+    args = [
+        "demo",
+        "--data",
+        str(data),
+        "--episodes",
+        "3",
+        "--workers",
+        "1",
+        "--run-dir",
+        str(tmp_path / "demo"),
+        "--",
+        *small_overrides(data, tmp_path),
+        "data.image_size=[64,64]",
+        "data.split_fractions=[0.34,0.33,0.33]",
+    ]
     assert cli(args) == 0
     assert "recording 3 push episodes" in capsys.readouterr().out
     assert (data / "meta" / "info.json").is_file()

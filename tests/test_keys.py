@@ -3,7 +3,6 @@ import torch
 
 from mmf_rl import keys
 from mmf_rl.keys import ModalitySpec, validate_batch
-
 from tests.conftest import HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch
 
 
@@ -17,7 +16,10 @@ def test_spec_defaults_encoder_by_kind():
     "kwargs, fragment",
     [
         (dict(name="x", kind="audio", shape=(3,)), "unknown kind 'audio'"),
-        (dict(name="x", kind="image", shape=(3, 8)), "shape must have 3 positive dims ((C, h, w)), found (3, 8)"),
+        (
+            dict(name="x", kind="image", shape=(3, 8)),
+            "shape must have 3 positive dims ((C, h, w)), found (3, 8)",
+        ),
         (dict(name="x", kind="sequence", shape=(0,)), "found (0,)"),
     ],
 )
@@ -28,7 +30,9 @@ def test_spec_rejects_bad_definitions(kwargs, fragment):
 
 
 def test_spec_roundtrips_through_dict():
-    spec = ModalitySpec("cam", "image", (3, 16, 16), encoder="conv_gru", required=True, encoder_kwargs={"channels": [8]})
+    spec = ModalitySpec(
+        "cam", "image", (3, 16, 16), encoder="conv_gru", required=True, encoder_kwargs={"channels": [8]}
+    )
     assert ModalitySpec.from_dict(spec.to_dict()) == spec
 
 
@@ -45,9 +49,19 @@ def test_validate_names_missing_key(batch):
 @pytest.mark.parametrize(
     "key, value, expected, found",
     [
-        (keys.obs_key("image"), torch.zeros(8, HISTORY, 3, 16, 16), "uint8 [8, 4, 3, 16, 16]", "float32 [8, 4, 3, 16, 16]"),
+        (
+            keys.obs_key("image"),
+            torch.zeros(8, HISTORY, 3, 16, 16),
+            "uint8 [8, 4, 3, 16, 16]",
+            "float32 [8, 4, 3, 16, 16]",
+        ),
         (keys.obs_key("force"), torch.zeros(8, HISTORY + 1, 6), "float32 [8, 4, 6]", "float32 [8, 5, 6]"),
-        (keys.obs_key("force"), torch.zeros(8, HISTORY, 6, dtype=torch.float64), "float32 [8, 4, 6]", "float64 [8, 4, 6]"),
+        (
+            keys.obs_key("force"),
+            torch.zeros(8, HISTORY, 6, dtype=torch.float64),
+            "float32 [8, 4, 6]",
+            "float64 [8, 4, 6]",
+        ),
         (keys.present_key("proprio"), torch.ones(8), "bool [8]", "float32 [8]"),
         (keys.TARGET, torch.zeros(8, HORIZON, 3), "float [8, 5, 2]", "float32 [8, 5, 3]"),
     ],

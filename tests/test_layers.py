@@ -32,7 +32,11 @@ def import_edges(package: Path) -> set[tuple[str, str, str]]:
         unit = path.relative_to(package).parts[0].removesuffix(".py")
         for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
             if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                names = [f"{node.module}.{a.name}" for a in node.names] if node.module == "mmf_rl" else [node.module]
+                names = (
+                    [f"{node.module}.{a.name}" for a in node.names]
+                    if node.module == "mmf_rl"
+                    else [node.module]
+                )
             elif isinstance(node, ast.Import):
                 names = [a.name for a in node.names]
             else:
@@ -63,12 +67,18 @@ def test_imports_only_point_down():
     assert layer_violations(PACKAGE) == []
 
 
-@pytest.mark.parametrize("source, expected", [
-    ("from mmf_rl.models import build_model\n", "datasets imports models, a higher layer"),
-    ("def f():\n    from mmf_rl.rl.transforms import HistoryWindow\n", "datasets imports rl, a higher layer"),
-    ("import mmf_rl.trainers.trainer\n", "datasets imports trainers, a higher layer"),
-    ("from mmf_rl import eval\n", "datasets imports eval, a higher layer"),
-])
+@pytest.mark.parametrize(
+    "source, expected",
+    [
+        ("from mmf_rl.models import build_model\n", "datasets imports models, a higher layer"),
+        (
+            "def f():\n    from mmf_rl.rl.transforms import HistoryWindow\n",
+            "datasets imports rl, a higher layer",
+        ),
+        ("import mmf_rl.trainers.trainer\n", "datasets imports trainers, a higher layer"),
+        ("from mmf_rl import eval\n", "datasets imports eval, a higher layer"),
+    ],
+)
 def test_an_upward_import_is_reported(tmp_path, source, expected):
     package = tmp_path / "mmf_rl"
     (package / "datasets").mkdir(parents=True)

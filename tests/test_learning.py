@@ -14,8 +14,17 @@ BATCH = 128
 
 def train(task, use_missing_modality_loss: bool):
     torch.manual_seed(0)
-    config = ForecasterConfig(modalities=SYNTH_MODALITIES, history=8, horizon=8, target_dim=2, d_model=32,
-                              d_latent=4, num_heads=2, mlp_hidden=64, head_hidden=64)
+    config = ForecasterConfig(
+        modalities=SYNTH_MODALITIES,
+        history=8,
+        horizon=8,
+        target_dim=2,
+        d_model=32,
+        d_latent=4,
+        num_heads=2,
+        mlp_hidden=64,
+        head_hidden=64,
+    )
     model = MultimodalForecaster(config)
     losses = [ELBOLoss(model)] + ([MissingModalityLoss(model)] if use_missing_modality_loss else [])
     loss = CombinedLoss(*losses)

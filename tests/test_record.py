@@ -103,8 +103,14 @@ def test_dataset_holds_the_seeded_rollouts(recorded, config, push_env):
     for episode in range(EPISODES):
         expected = record_episode(push_env, config, episode)
         stored = columns(dataset, episode)
-        for key, name in ((FORCE_KEY, "force"), (STATE_KEY, "proprio"), (OBJECT_POSE_KEY, "object_pose"),
-                          (GOAL_KEY, "goal"), (ACTION_KEY, "action"), (CAMERA_VALID_KEY, "image_valid")):
+        for key, name in (
+            (FORCE_KEY, "force"),
+            (STATE_KEY, "proprio"),
+            (OBJECT_POSE_KEY, "object_pose"),
+            (GOAL_KEY, "goal"),
+            (ACTION_KEY, "action"),
+            (CAMERA_VALID_KEY, "image_valid"),
+        ):
             np.testing.assert_array_equal(stored[key], expected[name], err_msg=key)
         start = int(dataset.meta.episodes["dataset_from_index"][episode])
         for t in (0, STEPS // 2, STEPS - 1):
@@ -160,7 +166,8 @@ def test_sensor_faults_are_seeded_spans():
     steps = 60
     episode = {
         "force": np.ones((steps, 6), np.float32),
-        "image": np.arange(steps, dtype=np.uint8)[:, None, None, None].repeat(4, 1).repeat(4, 2).repeat(3, 3) + 1,
+        "image": np.arange(steps, dtype=np.uint8)[:, None, None, None].repeat(4, 1).repeat(4, 2).repeat(3, 3)
+        + 1,
         "image_valid": np.ones((steps, 1), bool),
     }
     faults = SensorFaults(force_dropouts=3, camera_freezes=2, black_frames=2)

@@ -20,8 +20,8 @@ from dataclasses import asdict, dataclass, field
 import torch
 from tensordict import TensorDictBase
 
-from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl import keys
+from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import ModalitySpec
 
 
@@ -53,21 +53,35 @@ class AugmentConfig:
         for name, tf in config.tfs.items():
             reject_unknown_keys(_transform_config_cls(), dict(tf), f"augment config: tfs.{name}")
         if config.max_num_transforms < 1:
-            raise ValueError(f"augment config: `max_num_transforms` must be >= 1, found {config.max_num_transforms}")
+            raise ValueError(
+                f"augment config: `max_num_transforms` must be >= 1, found {config.max_num_transforms}"
+            )
         return config
 
     def build(self):
         """lerobot's ``ImageTransforms`` for this config; a bad transform is named by its key."""
-        from lerobot.datasets.transforms import ImageTransforms, ImageTransformsConfig, make_transform_from_config
+        from lerobot.datasets.transforms import (
+            ImageTransforms,
+            ImageTransformsConfig,
+            make_transform_from_config,
+        )
 
         tfs = {name: _transform_config_cls()(**tf) for name, tf in self.tfs.items()}
         for name, tf in tfs.items():
             try:
                 make_transform_from_config(tf)
             except (TypeError, ValueError) as error:
-                raise ValueError(f"augment config: tfs.{name} (type {tf.type!r}, kwargs {tf.kwargs}): {error}") from None
-        return ImageTransforms(ImageTransformsConfig(enable=self.enable, max_num_transforms=self.max_num_transforms,
-                                                     random_order=self.random_order, tfs=tfs))
+                raise ValueError(
+                    f"augment config: tfs.{name} (type {tf.type!r}, kwargs {tf.kwargs}): {error}"
+                ) from None
+        return ImageTransforms(
+            ImageTransformsConfig(
+                enable=self.enable,
+                max_num_transforms=self.max_num_transforms,
+                random_order=self.random_order,
+                tfs=tfs,
+            )
+        )
 
 
 def _transform_config_cls():
@@ -83,8 +97,10 @@ class ImageAugmentation:
         images = [s.name for s in specs if s.kind == "image"]
         unknown = sorted(set(config.modalities or []) - set(images))
         if unknown:
-            raise ValueError(f"augment config: `modalities` names {unknown}, which are not image modalities "
-                             f"of the data config (its image modalities: {images})")
+            raise ValueError(
+                f"augment config: `modalities` names {unknown}, which are not image modalities "
+                f"of the data config (its image modalities: {images})"
+            )
         self.names = list(config.modalities) if config.modalities is not None else images
         self.transform = config.build()
         self.seed = seed

@@ -160,11 +160,14 @@ def _frame_columns(source: LeRobotSource, columns: dict[str, np.ndarray]) -> dic
     }
     if source.action_feature is not None:
         per_frame["action"], per_frame["action_valid"] = _vector_column(
-            columns[source.action_feature], source.config.action.dims, n)
+            columns[source.action_feature], source.config.action.dims, n
+        )
     return per_frame
 
 
-def _video_jobs(source: LeRobotSource, columns: dict, frames_dir: Path, missing: dict[str, list[Path]]) -> list[VideoJob]:
+def _video_jobs(
+    source: LeRobotSource, columns: dict, frames_dir: Path, missing: dict[str, list[Path]]
+) -> list[VideoJob]:
     jobs = []
     for name, m in source.modalities.items():
         if not m.is_video:
@@ -176,13 +179,19 @@ def _video_jobs(source: LeRobotSource, columns: dict, frames_dir: Path, missing:
                 continue
             offset = source.video_from_timestamp(episode.index, m.feature)
             stamps = columns["timestamp"][episode.start : episode.stop].astype(np.float64) + offset
-            jobs.append(VideoJob(
-                modality=name, video_path=str(path), timestamps=tuple(stamps.tolist()), row_start=episode.start,
-                frames_dir=str(frames_dir), image_size=tuple(source.config.image_size),
-                tolerance_s=source.config.tolerance_s,
-                source_frame_values=int(np.prod(source.features[m.feature]["shape"])),
-                channels=m.spec.shape[0],
-            ))
+            jobs.append(
+                VideoJob(
+                    modality=name,
+                    video_path=str(path),
+                    timestamps=tuple(stamps.tolist()),
+                    row_start=episode.start,
+                    frames_dir=str(frames_dir),
+                    image_size=tuple(source.config.image_size),
+                    tolerance_s=source.config.tolerance_s,
+                    source_frame_values=int(np.prod(source.features[m.feature]["shape"])),
+                    channels=m.spec.shape[0],
+                )
+            )
     return jobs
 
 
@@ -203,8 +212,9 @@ def _finished_jobs(progress: Path) -> dict[str, tuple[str | None, int]]:
     return finished
 
 
-def _decode(jobs: list[VideoJob], num_workers: int | None, progress: Path,
-            done_frames: int = 0) -> list[tuple[VideoJob, str, int]]:
+def _decode(
+    jobs: list[VideoJob], num_workers: int | None, progress: Path, done_frames: int = 0
+) -> list[tuple[VideoJob, str, int]]:
     """Run the decode jobs (process pool with ``spawn`` when worth it); return the failed ones
     with their error and how many of their leading frames were decoded.
 
@@ -216,8 +226,17 @@ def _decode(jobs: list[VideoJob], num_workers: int | None, progress: Path,
         cores = len(os.sched_getaffinity(0))
         num_workers = min(cores, len(jobs)) if total >= POOL_MIN_FRAMES else 1
     failed = []
-    with (tqdm(total=total + done_frames, initial=done_frames, desc="decoding videos into the window cache",
-               unit="frame", disable=not jobs) as bar, open(progress, "a") as log):
+    with (
+        tqdm(
+            total=total + done_frames,
+            initial=done_frames,
+            desc="decoding videos into the window cache",
+            unit="frame",
+            disable=not jobs,
+        ) as bar,
+        open(progress, "a") as log,
+    ):
+
         def finished(job: VideoJob, error: str | None, decoded: int) -> None:
             if error is not None:
                 failed.append((job, error, decoded))
@@ -248,7 +267,9 @@ def _decode_parquet_images(source: LeRobotSource, frames: TensorDict) -> dict[st
     undecodable: dict[str, dict[str, str]] = {}
     cameras = [(name, m) for name, m in source.modalities.items() if m.storage == "image"]
     total = sum(e.stop - e.start for e in source.episodes) * len(cameras)
-    with tqdm(total=total, desc="decoding images into the window cache", unit="frame", disable=not cameras) as bar:
+    with tqdm(
+        total=total, desc="decoding images into the window cache", unit="frame", disable=not cameras
+    ) as bar:
         for name, m in cameras:
             destination = frames.get(keys.obs_key(name))
             present = frames.get(keys.present_key(name))
@@ -257,14 +278,16 @@ def _decode_parquet_images(source: LeRobotSource, frames: TensorDict) -> dict[st
                 rows = slice(episode.start, episode.stop)
                 decoded, errors = decode_images(source.read_images(name, rows), channels, source.root)
                 episode_frames = torch.zeros((len(decoded), *m.spec.shape), dtype=torch.uint8)
-                for offset, (frame, error) in enumerate(zip(decoded, errors)):
+                for offset, (frame, error) in enumerate(zip(decoded, errors, strict=True)):
                     if frame is None:
                         present[episode.start + offset] = False
                         failures = undecodable.setdefault(name, {})
                         if len(failures) < 10:
                             failures[f"{source.root / 'data'} episode {episode.index} frame {offset}"] = error
                         continue
-                    episode_frames[offset] = to_cache_frames(frame[None], source.config.image_size, channels)[0]
+                    episode_frames[offset] = to_cache_frames(frame[None], source.config.image_size, channels)[
+                        0
+                    ]
                 destination[rows] = episode_frames
                 bar.update(episode.stop - episode.start)
     return undecodable
@@ -286,17 +309,29 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
 
     finished = _finished_jobs(directory / PROGRESS_FILE)
     todo = [job for job in jobs if _job_key(job) not in finished]
-    failed = [(job, *finished[_job_key(job)]) for job in jobs
-              if _job_key(job) in finished and finished[_job_key(job)][0] is not None]
+    failed = [
+        (job, *finished[_job_key(job)])
+        for job in jobs
+        if _job_key(job) in finished and finished[_job_key(job)][0] is not None
+    ]
     if finished:
-        print(f"resuming an interrupted window cache build in {directory}: {len(jobs) - len(todo)} of {len(jobs)} "
-              "video jobs already decoded", file=sys.stderr)
-    failed += _decode(todo, num_workers, directory / PROGRESS_FILE,
-                      done_frames=sum(len(j.timestamps) for j in jobs) - sum(len(j.timestamps) for j in todo))
+        print(
+            f"resuming an interrupted window cache build in {directory}: {len(jobs) - len(todo)} of {len(jobs)} "
+            "video jobs already decoded",
+            file=sys.stderr,
+        )
+    failed += _decode(
+        todo,
+        num_workers,
+        directory / PROGRESS_FILE,
+        done_frames=sum(len(j.timestamps) for j in jobs) - sum(len(j.timestamps) for j in todo),
+    )
     undecodable: dict[str, dict[str, str]] = _decode_parquet_images(source, frames)
     for job, error, decoded in failed:
         undecodable.setdefault(job.modality, {})[job.video_path] = error
-        frames.get(keys.present_key(job.modality))[job.row_start + decoded : job.row_start + len(job.timestamps)] = False
+        frames.get(keys.present_key(job.modality))[
+            job.row_start + decoded : job.row_start + len(job.timestamps)
+        ] = False
     for name, paths in missing.items():
         absent = {str(p) for p in paths}
         for episode in source.episodes:
@@ -379,14 +414,18 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
     present = {}
     for name, m in source.modalities.items():
         frame_present = frames.get(keys.present_key(name)).as_subclass(torch.Tensor)
-        present[name] = frame_present[last_rows] if m.spec.kind == "vector" else frame_present[observed_rows].all(1)
+        present[name] = (
+            frame_present[last_rows] if m.spec.kind == "vector" else frame_present[observed_rows].all(1)
+        )
     target_valid = frames.get("target_valid").as_subclass(torch.Tensor)
     target_ok = target_valid[starts[:, None] + future].all(1) & target_valid[last_rows]
     if config.include_target_past:
         target_ok &= target_valid[observed_rows].all(1)
     if source.action_feature is not None:
         action_valid = frames.get("action_valid").as_subclass(torch.Tensor)
-        action_ok = action_valid[starts[:, None] + action_offsets(config.history, config.horizon, config.stride)].all(1)
+        action_ok = action_valid[
+            starts[:, None] + action_offsets(config.history, config.horizon, config.stride)
+        ].all(1)
     else:
         action_ok = torch.ones_like(target_ok)
     any_present = torch.stack(list(present.values())).any(0)
@@ -518,10 +557,8 @@ def remove_stale_builds(cache_dir: Path) -> None:
 def _discard(directory: Path) -> None:
     """Remove a damaged cache: renamed to a temp dir first, so no reader ever sees it half-deleted."""
     trash = Path(tempfile.mkdtemp(prefix=_temp_prefix(directory.name), dir=directory.parent))
-    try:
+    with contextlib.suppress(FileNotFoundError):  # another process discarded it first
         os.rename(directory, trash)  # replaces the empty temp dir
-    except FileNotFoundError:
-        pass  # another process discarded it first
     shutil.rmtree(trash, ignore_errors=True)
 
 
@@ -534,8 +571,11 @@ def _locked(cache_dir: Path):
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            print(f"waiting for another process to finish with the window caches in {cache_dir} ...",
-                  file=sys.stderr, flush=True)
+            print(
+                f"waiting for another process to finish with the window caches in {cache_dir} ...",
+                file=sys.stderr,
+                flush=True,
+            )
             fcntl.flock(fd, fcntl.LOCK_EX)
         yield
     finally:
@@ -567,10 +607,13 @@ def estimated_size(source: LeRobotSource) -> int:
 def _check_free_space(source: LeRobotSource, cache_dir: Path) -> None:
     needed, free = estimated_size(source), shutil.disk_usage(cache_dir).free
     if needed + FREE_SPACE_MARGIN > free:
-        raise OSError(errno.ENOSPC, f"the window cache of {source.root} needs about {needed / 2**30:.2f} GiB "
-                                    f"({source.meta.total_frames} frames) in {cache_dir}, which has "
-                                    f"{free / 2**30:.2f} GiB free; free space there, or set data.cache_dir to a "
-                                    "disk with room (nothing was written)")
+        raise OSError(
+            errno.ENOSPC,
+            f"the window cache of {source.root} needs about {needed / 2**30:.2f} GiB "
+            f"({source.meta.total_frames} frames) in {cache_dir}, which has "
+            f"{free / 2**30:.2f} GiB free; free space there, or set data.cache_dir to a "
+            "disk with room (nothing was written)",
+        )
 
 
 def open_cache(source: LeRobotSource, num_workers: int | None = None) -> tuple[Path, dict, bool]:
@@ -595,8 +638,9 @@ def open_cache(source: LeRobotSource, num_workers: int | None = None) -> tuple[P
     return destination, json.loads((destination / CACHE_META).read_text()), True
 
 
-def build_cache(source: LeRobotSource, destination: Path, num_workers: int | None = None,
-                resume: Path | None = None) -> None:
+def build_cache(
+    source: LeRobotSource, destination: Path, num_workers: int | None = None, resume: Path | None = None
+) -> None:
     """Decode ``source`` into ``destination`` atomically (temp dir, then rename); ``resume``: a
     killed build's temp dir to continue (see `open_cache`)."""
     destination.parent.mkdir(parents=True, exist_ok=True)
@@ -615,10 +659,13 @@ def build_cache(source: LeRobotSource, destination: Path, num_workers: int | Non
     except OSError as error:
         shutil.rmtree(building, ignore_errors=True)
         if error.errno == errno.ENOSPC:
-            raise OSError(errno.ENOSPC, f"no space left on device while building the window cache {destination} "
-                                        f"({error}); the partial build was removed, nothing else changed: free "
-                                        f"space in {destination.parent}, or set data.cache_dir to a disk with "
-                                        "room") from None
+            raise OSError(
+                errno.ENOSPC,
+                f"no space left on device while building the window cache {destination} "
+                f"({error}); the partial build was removed, nothing else changed: free "
+                f"space in {destination.parent}, or set data.cache_dir to a disk with "
+                "room",
+            ) from None
         raise
     except BaseException:
         shutil.rmtree(building, ignore_errors=True)

@@ -95,8 +95,10 @@ class OutageConfig:
     def __post_init__(self):
         self.fraction, self.mean_burst = float(self.fraction), float(self.mean_burst)
         if not 0.0 <= self.fraction < 1.0 or self.mean_burst < 1.0:
-            raise ValueError(f"data config: an outage needs 0 <= fraction < 1 and mean_burst >= 1 (frames), found "
-                             f"fraction={self.fraction}, mean_burst={self.mean_burst}")
+            raise ValueError(
+                f"data config: an outage needs 0 <= fraction < 1 and mean_burst >= 1 (frames), found "
+                f"fraction={self.fraction}, mean_burst={self.mean_burst}"
+            )
 
 
 OBSERVED = "observed"
@@ -152,24 +154,33 @@ class DataConfig:
             raise ValueError("data config: `modalities` is empty; map at least one name to a dataset feature")
         reserved = {"target", "future_action"} & set(self.modalities)
         if reserved:
-            raise ValueError(f"data config: modality name(s) {sorted(reserved)} are reserved (normalisation "
-                             "statistics use them); rename the modality")
+            raise ValueError(
+                f"data config: modality name(s) {sorted(reserved)} are reserved (normalisation "
+                "statistics use them); rename the modality"
+            )
         for name, value in [("history", self.history), ("horizon", self.horizon), ("stride", self.stride)]:
             if int(value) < 1:
                 raise ValueError(f"data config: `{name}` must be >= 1, found {value}")
         self.image_size = tuple(int(s) for s in self.image_size)
         if len(self.image_size) != 2 or min(self.image_size) < 1:
-            raise ValueError(f"data config: `image_size` must be [height, width], found {list(self.image_size)}")
+            raise ValueError(
+                f"data config: `image_size` must be [height, width], found {list(self.image_size)}"
+            )
         self.split_fractions = tuple(float(f) for f in self.split_fractions)
-        if (len(self.split_fractions) != len(SPLIT_NAMES) or min(self.split_fractions) < 0
-                or abs(sum(self.split_fractions) - 1.0) > 1e-6):
+        if (
+            len(self.split_fractions) != len(SPLIT_NAMES)
+            or min(self.split_fractions) < 0
+            or abs(sum(self.split_fractions) - 1.0) > 1e-6
+        ):
             raise ValueError(
                 f"data config: `split_fractions` must be 3 non-negative numbers (train, val, test) "
                 f"summing to 1, found {list(self.split_fractions)}"
             )
         if isinstance(self.missing, str) and self.missing != OBSERVED:
-            raise ValueError(f"data config: `missing` must be a mapping {{modality: fraction}} or {OBSERVED!r}, found "
-                             f"{self.missing!r}")
+            raise ValueError(
+                f"data config: `missing` must be a mapping {{modality: fraction}} or {OBSERVED!r}, found "
+                f"{self.missing!r}"
+            )
         for name, p in ({} if isinstance(self.missing, str) else self.missing).items():
             if name not in self.modalities:
                 raise ValueError(
@@ -187,7 +198,9 @@ class DataConfig:
             out = []
             for e in value:
                 if isinstance(e, bool) or not isinstance(e, int) or e < 0:
-                    raise ValueError(f"data config: `{key}` must hold episode indices (integers >= 0), found {e!r}")
+                    raise ValueError(
+                        f"data config: `{key}` must hold episode indices (integers >= 0), found {e!r}"
+                    )
                 out.append(int(e))
             repeated = sorted({e for e in out if out.count(e) > 1})
             if repeated:
@@ -200,10 +213,14 @@ class DataConfig:
         if self.split is None:
             return
         if not isinstance(self.split, dict):
-            raise ValueError(f"data config: `split` must map {list(SPLIT_NAMES)} to episode lists, found {self.split!r}")
+            raise ValueError(
+                f"data config: `split` must map {list(SPLIT_NAMES)} to episode lists, found {self.split!r}"
+            )
         unknown = sorted(set(self.split) - set(SPLIT_NAMES))
         if unknown:
-            raise ValueError(f"data config: `split` has unknown split(s) {unknown}; expected some of {list(SPLIT_NAMES)}")
+            raise ValueError(
+                f"data config: `split` has unknown split(s) {unknown}; expected some of {list(SPLIT_NAMES)}"
+            )
         self.split = {str(name): ids(value or [], f"split.{name}") for name, value in self.split.items()}
         if not self.split.get("train"):
             raise ValueError("data config: `split.train` is empty; an explicit split needs training episodes")
@@ -212,8 +229,10 @@ class DataConfig:
             for b in names[i + 1 :]:
                 both = sorted(set(self.split[a]) & set(self.split[b]))
                 if both:
-                    raise ValueError(f"data config: episode(s) {both} are in both `split.{a}` and `split.{b}`; "
-                                     "an episode belongs to one split")
+                    raise ValueError(
+                        f"data config: episode(s) {both} are in both `split.{a}` and `split.{b}`; "
+                        "an episode belongs to one split"
+                    )
 
     @classmethod
     def from_dict(cls, d: dict) -> DataConfig:
@@ -247,14 +266,20 @@ class DataConfig:
     @property
     def window_dropout(self) -> dict[str, float]:
         """The ``{modality: fraction of training windows}`` part of ``missing``."""
-        return {} if isinstance(self.missing, str) else {
-            k: v for k, v in self.missing.items() if not isinstance(v, OutageConfig)}
+        return (
+            {}
+            if isinstance(self.missing, str)
+            else {k: v for k, v in self.missing.items() if not isinstance(v, OutageConfig)}
+        )
 
     @property
     def replayed_outages(self) -> dict[str, OutageConfig] | str:
         """The outage-replay part of ``missing``: ``{modality: OutageConfig}``, or ``"observed"``."""
-        return self.missing if isinstance(self.missing, str) else {
-            k: v for k, v in self.missing.items() if isinstance(v, OutageConfig)}
+        return (
+            self.missing
+            if isinstance(self.missing, str)
+            else {k: v for k, v in self.missing.items() if isinstance(v, OutageConfig)}
+        )
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -269,7 +294,10 @@ class DataConfig:
                 name: {"feature": m.feature, "kind": m.kind, "dims": m.dims, "valid_feature": m.valid_feature}
                 for name, m in sorted(self.modalities.items())
             },
-            "target": {"feature": self.target.feature, "dims": self.target.dims},  # `relative` is applied at batch time
+            "target": {
+                "feature": self.target.feature,
+                "dims": self.target.dims,
+            },  # `relative` is applied at batch time
             "history": self.history,
             "horizon": self.horizon,
             "stride": self.stride,
@@ -295,5 +323,7 @@ def _missing_entry(name, value) -> float | OutageConfig:
         value = dict(value)
         reject_unknown_keys(OutageConfig, value, f"data config: missing.{name}")
         return OutageConfig(**value)
-    raise ValueError(f"data config: `missing.{name}` must be a fraction of windows or {{fraction: f, mean_burst: L}}, "
-                     f"found {value!r}")
+    raise ValueError(
+        f"data config: `missing.{name}` must be a fraction of windows or {{fraction: f, mean_burst: L}}, "
+        f"found {value!r}"
+    )

@@ -55,7 +55,7 @@ def _runs(mask: np.ndarray, episode: np.ndarray) -> list[tuple[int, int]]:
     starts[1:] &= ~mask[:-1] | (episode[1:] != episode[:-1])
     ends = mask.copy()
     ends[:-1] &= ~mask[1:] | (episode[1:] != episode[:-1])
-    return list(zip(np.flatnonzero(starts).tolist(), np.flatnonzero(ends).tolist()))
+    return list(zip(np.flatnonzero(starts).tolist(), np.flatnonzero(ends).tolist(), strict=True))
 
 
 def _modality_name(feature: str, taken: set[str]) -> str:
@@ -68,9 +68,13 @@ def _modality_name(feature: str, taken: set[str]) -> str:
 
 def _image_size(shape: list[int], names: list[str] | None) -> list[int]:
     names = names or ["height", "width", "channels"]
-    height, width = (shape[names.index("height")], shape[names.index("width")]) if "height" in names else shape[:2]
+    height, width = (
+        (shape[names.index("height")], shape[names.index("width")]) if "height" in names else shape[:2]
+    )
     scale = min(1.0, SUGGESTED_IMAGE_SIDE / max(height, width))
-    return [max(IMAGE_MULTIPLE, round(side * scale / IMAGE_MULTIPLE) * IMAGE_MULTIPLE) for side in (height, width)]
+    return [
+        max(IMAGE_MULTIPLE, round(side * scale / IMAGE_MULTIPLE) * IMAGE_MULTIPLE) for side in (height, width)
+    ]
 
 
 def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> dict:
@@ -78,11 +82,15 @@ def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> 
     meta = open_dataset_metadata(root, repo_id)
     root = Path(meta.root)
     features = meta.features
-    episodes = [(int(e["episode_index"]), int(e["dataset_from_index"]), int(e["dataset_to_index"]))
-                for e in meta.episodes]
+    episodes = [
+        (int(e["episode_index"]), int(e["dataset_from_index"]), int(e["dataset_to_index"]))
+        for e in meta.episodes
+    ]
     cameras = [f for f, ft in features.items() if ft["dtype"] in CAMERA_DTYPES]
     vectors = [f for f, ft in features.items() if _is_vector(ft) and f not in BOOKKEEPING_FEATURES]
-    validity = {f: next((c for c in _validity_candidates(f) if c in features), None) for f in cameras + vectors}
+    validity = {
+        f: next((c for c in _validity_candidates(f) if c in features), None) for f in cameras + vectors
+    }
     flags = {v for v in validity.values() if v is not None}
     vectors = [f for f in vectors if f not in flags]
     columns = read_frame_columns(meta, {"episode_index", *vectors, *flags})
@@ -97,9 +105,13 @@ def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> 
             finite = np.isfinite(np.asarray(columns[feature], dtype=np.float64).reshape(n, -1)).all(1)
             spans = _runs(~finite, episode)
             entry["nonfinite_frames"] = int((~finite).sum())
-            entry["nonfinite_spans"] = [{"episode": int(episode[a]), "frames": [a - _first(episodes, episode[a]),
-                                                                                b - _first(episodes, episode[a])]}
-                                        for a, b in spans]
+            entry["nonfinite_spans"] = [
+                {
+                    "episode": int(episode[a]),
+                    "frames": [a - _first(episodes, episode[a]), b - _first(episodes, episode[a])],
+                }
+                for a, b in spans
+            ]
             present &= finite
         elif features[feature]["dtype"] == "video":
             missing = []
@@ -110,7 +122,8 @@ def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> 
                     present[start:stop] = False
             entry["video_files_missing"] = sorted(set(missing))
             entry["episodes_without_video"] = sum(
-                not (root / meta.get_video_file_path(i, feature)).is_file() for i, _, _ in episodes)
+                not (root / meta.get_video_file_path(i, feature)).is_file() for i, _, _ in episodes
+            )
         if validity[feature] is not None:
             present &= np.asarray(columns[validity[feature]]).reshape(n, -1).astype(bool).all(1)
         entry["outages"] = outage_statistics(torch.from_numpy(present), torch.from_numpy(episode))
@@ -122,8 +135,10 @@ def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> 
         "episodes": len(episodes),
         "frames": int(meta.total_frames),
         "episode_frames": [stop - start for _, start, stop in episodes],
-        "features": {f: {"dtype": ft["dtype"], "shape": list(ft["shape"]), "names": ft.get("names")}
-                     for f, ft in features.items()},
+        "features": {
+            f: {"dtype": ft["dtype"], "shape": list(ft["shape"]), "names": ft.get("names")}
+            for f, ft in features.items()
+        },
         "cameras": cameras,
         "vectors": vectors,
         "validity_features": sorted(flags),
@@ -146,15 +161,23 @@ def suggested_data_config(report: dict, repo_id: str = "local/dataset") -> dict:
         modalities[name] = feature
     vectors = report["vectors"]
     if not vectors:
-        raise ValueError(f"{report['root']}: the dataset has no numeric vector feature to forecast (features: "
-                         f"{sorted(report['features'])}); mmf-rl forecasts a vector such as observation.state")
-    target = "observation.state" if "observation.state" in vectors else next(
-        (f for f in vectors if f.startswith("observation.")), vectors[0])
+        raise ValueError(
+            f"{report['root']}: the dataset has no numeric vector feature to forecast (features: "
+            f"{sorted(report['features'])}); mmf-rl forecasts a vector such as observation.state"
+        )
+    target = (
+        "observation.state"
+        if "observation.state" in vectors
+        else next((f for f in vectors if f.startswith("observation.")), vectors[0])
+    )
     missing = {}
     for name, feature in modalities.items():
         o = report["sensors"][feature]["outages"]
         if 0.0 < o["fraction"] < 1.0:
-            missing[name] = {"fraction": round(o["fraction"], 4), "mean_burst": round(max(1.0, o["mean_burst"]), 2)}
+            missing[name] = {
+                "fraction": round(o["fraction"], 4),
+                "mean_burst": round(max(1.0, o["mean_burst"]), 2),
+            }
     config = {
         "root": report["root"],
         "repo_id": repo_id,
@@ -179,7 +202,9 @@ def format_report(report: dict) -> str:
     lines = [
         f"dataset {report['root']}",
         f"  {report['episodes']} episodes, {report['frames']} frames at {report['fps']} fps "
-        f"(episode length {min(lengths)}..{max(lengths)} frames)" if lengths else "  no episodes",
+        f"(episode length {min(lengths)}..{max(lengths)} frames)"
+        if lengths
+        else "  no episodes",
         "",
         "features:",
     ]
@@ -187,14 +212,21 @@ def format_report(report: dict) -> str:
         names = ft["names"]
         if isinstance(names, list) and len(names) > 6:
             names = names[:6] + [f"... {len(names) - 6} more"]
-        lines.append(f"  {name:<34} {ft['dtype']:<8} {str(ft['shape']):<14} {names if names else ''}".rstrip())
-    lines += ["", "sensors (candidate modalities): outages = frames absent (non-finite, flagged invalid, no video)"]
+        lines.append(
+            f"  {name:<34} {ft['dtype']:<8} {str(ft['shape']):<14} {names if names else ''}".rstrip()
+        )
+    lines += [
+        "",
+        "sensors (candidate modalities): outages = frames absent (non-finite, flagged invalid, no video)",
+    ]
     for feature, s in report["sensors"].items():
         o = s["outages"]
         kind = "camera" if feature in report["cameras"] else "vector"
-        head = (f"  {feature} ({kind}): {o['fraction']:.1%} of frames absent" +
-                (f", {o['outages']} outages, mean {o['mean_burst']:.1f} / max {o['max_burst']} frames"
-                 if o["outages"] else ""))
+        head = f"  {feature} ({kind}): {o['fraction']:.1%} of frames absent" + (
+            f", {o['outages']} outages, mean {o['mean_burst']:.1f} / max {o['max_burst']} frames"
+            if o["outages"]
+            else ""
+        )
         lines.append(head)
         if s["validity_feature"]:
             lines.append(f"    validity flag: {s['validity_feature']}")
@@ -202,16 +234,23 @@ def format_report(report: dict) -> str:
             lines.append("    images stored in the data files (dtype image)")
         elif kind == "camera":
             missing = s["video_files_missing"]
-            lines.append(f"    video files: {'all present' if not missing else f'{len(missing)} missing'}"
-                         + (f" ({s['episodes_without_video']} of {report['episodes']} episodes without video)"
-                            if missing else ""))
+            lines.append(
+                f"    video files: {'all present' if not missing else f'{len(missing)} missing'}"
+                + (
+                    f" ({s['episodes_without_video']} of {report['episodes']} episodes without video)"
+                    if missing
+                    else ""
+                )
+            )
             lines += [f"      missing: {p}" for p in missing[:SPANS_SHOWN]]
         else:
             spans = s["nonfinite_spans"]
             found = f"{s['nonfinite_frames']} frames in {len(spans)} spans" if spans else "none"
             lines.append(f"    NaN/Inf: {found}")
-            lines += [f"      episode {sp['episode']}, frames {sp['frames'][0]}..{sp['frames'][1]}"
-                      for sp in spans[:SPANS_SHOWN]]
+            lines += [
+                f"      episode {sp['episode']}, frames {sp['frames'][0]}..{sp['frames'][1]}"
+                for sp in spans[:SPANS_SHOWN]
+            ]
             if len(spans) > SPANS_SHOWN:
                 lines.append(f"      ... {len(spans) - SPANS_SHOWN} more")
     return "\n".join(lines)
@@ -219,17 +258,24 @@ def format_report(report: dict) -> str:
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        prog="mmf-rl inspect", description="Report what a LeRobot v3.0 dataset holds (features, cameras, NaN spans, "
+        prog="mmf-rl inspect",
+        description="Report what a LeRobot v3.0 dataset holds (features, cameras, NaN spans, "
         "sensor outages) and suggest a data config to train on it.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="examples:\n"
-               "  mmf-rl inspect /data/my_dataset\n"
-               "  mmf-rl inspect /data/my_dataset --write-config mine.yaml && mmf-rl train data=mine.yaml",
+        "  mmf-rl inspect /data/my_dataset\n"
+        "  mmf-rl inspect /data/my_dataset --write-config mine.yaml && mmf-rl train data=mine.yaml",
     )
-    parser.add_argument("dataset", type=Path, help="directory of a LeRobot v3.0 dataset (holding meta/info.json)")
+    parser.add_argument(
+        "dataset", type=Path, help="directory of a LeRobot v3.0 dataset (holding meta/info.json)"
+    )
     parser.add_argument("--repo-id", default="local/dataset", help="the repo_id written into the config")
-    parser.add_argument("--write-config", type=Path, metavar="PATH",
-                        help="write the suggested data config to PATH (train with data=PATH) instead of printing it")
+    parser.add_argument(
+        "--write-config",
+        type=Path,
+        metavar="PATH",
+        help="write the suggested data config to PATH (train with data=PATH) instead of printing it",
+    )
     return parser.parse_args(argv)
 
 
@@ -247,8 +293,10 @@ def main(argv: list[str]) -> int:
         return 1
     print(format_report(report))
     print()
-    header = ("# Data config suggested by `mmf-rl inspect`: edit the modalities, the target and the window,\n"
-              "# then `mmf-rl train data=THIS_FILE`. `missing` replays each sensor's measured outages in training.\n")
+    header = (
+        "# Data config suggested by `mmf-rl inspect`: edit the modalities, the target and the window,\n"
+        "# then `mmf-rl train data=THIS_FILE`. `missing` replays each sensor's measured outages in training.\n"
+    )
     if args.write_config is not None:
         path = args.write_config.expanduser().resolve()
         save_config(config, path, header=header)

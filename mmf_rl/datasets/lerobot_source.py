@@ -42,8 +42,10 @@ BOOKKEEPING_FEATURES = (*FRAME_COLUMNS, "frame_index", "task_index")
 V21_CONVERTER = "lerobot.datasets.v30.convert_dataset_v21_to_v30"
 # The path templates info.json may hold; each must stay inside the dataset root.
 PATH_TEMPLATE_KEYS = ("data_path", "video_path")
-DEFAULT_TEMPLATES = {"data_path": "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet",
-                     "video_path": "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"}
+DEFAULT_TEMPLATES = {
+    "data_path": "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet",
+    "video_path": "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4",
+}
 # Declared sizes beyond these are refused before anything is allocated from them: a frame of more
 # than 2^28 values (16k x 16k RGB), a vector feature of more than 2^16 dims.
 MAX_FRAME_VALUES = 2**28
@@ -123,7 +125,9 @@ def _check_local_dataset(root: Path) -> None:
             "from the Hugging Face hub"
         )
     if not root.is_dir():
-        raise NotADirectoryError(f"dataset root {root} is a file, not a directory: set `root` to a dataset directory")
+        raise NotADirectoryError(
+            f"dataset root {root} is a file, not a directory: set `root` to a dataset directory"
+        )
     info_path = root / INFO_FILE
     if not info_path.is_file():
         found = sorted(p.name + ("/" if p.is_dir() else "") for p in root.iterdir())
@@ -177,11 +181,14 @@ def _check_version(root: Path, info: dict) -> None:
     # A v2 layout keeps its episodes in meta/episodes.jsonl (v3.0: meta/episodes/*/*.parquet).
     v2_layout = (root / "meta" / "episodes.jsonl").is_file() and not (root / "meta" / "episodes").is_dir()
     if version.major < supported.major or v2_layout:
-        command = (f"python -m {V21_CONVERTER} --repo-id={shlex.quote(root.name)} "
-                   f"--root={shlex.quote(str(root.parent))} --push-to-hub=false")
+        command = (
+            f"python -m {V21_CONVERTER} --repo-id={shlex.quote(root.name)} "
+            f"--root={shlex.quote(str(root.parent))} --push-to-hub=false"
+        )
         older = (
-            "" if version >= packaging.version.parse("v2.1") else
-            f" That converter takes only v2.1: first bring this {found} dataset to v2.1 with the "
+            ""
+            if version >= packaging.version.parse("v2.1")
+            else f" That converter takes only v2.1: first bring this {found} dataset to v2.1 with the "
             "convert_dataset_v20_to_v21 script of an older lerobot release, then run it."
         )
         raise ValueError(
@@ -210,7 +217,12 @@ def _check_info(path: Path, info: dict) -> None:
         if template is None:
             continue
         parts = PurePosixPath(str(template)).parts
-        if not isinstance(template, str) or PurePosixPath(template).is_absolute() or ".." in parts or "\\" in template:
+        if (
+            not isinstance(template, str)
+            or PurePosixPath(template).is_absolute()
+            or ".." in parts
+            or "\\" in template
+        ):
             raise ValueError(
                 f"{path}: `{key}` {template!r} leads outside the dataset root; a LeRobot path template is "
                 f"relative to the root without '..' (like {DEFAULT_TEMPLATES[key]!r}). Restore info.json from the "
@@ -221,15 +233,22 @@ def _check_info(path: Path, info: dict) -> None:
         raise ValueError(f"{path}: `total_frames` should be a non-negative integer, found {total!r}")
     features = info["features"]
     if not isinstance(features, dict) or not features:
-        raise ValueError(f"{path}: `features` should map feature names to {{dtype, shape, names}}, found {features!r}")
+        raise ValueError(
+            f"{path}: `features` should map feature names to {{dtype, shape, names}}, found {features!r}"
+        )
     for name, ft in features.items():
         if not isinstance(ft, dict) or "dtype" not in ft or "shape" not in ft:
             found = sorted(ft) if isinstance(ft, dict) else repr(ft)
             raise ValueError(f"{path}: feature {name!r} needs `dtype` and `shape`, found {found}")
         shape = ft["shape"]
-        if (not isinstance(shape, list) or not shape
-                or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in shape)):
-            raise ValueError(f"{path}: feature {name!r} `shape` should be a list of positive integers, found {shape!r}")
+        if (
+            not isinstance(shape, list)
+            or not shape
+            or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in shape)
+        ):
+            raise ValueError(
+                f"{path}: feature {name!r} `shape` should be a list of positive integers, found {shape!r}"
+            )
         if ft["dtype"] == "video" and len(shape) != 3:
             raise ValueError(
                 f"{path}: video feature {name!r} `shape` should be [height, width, channels], found {shape}"
@@ -247,7 +266,9 @@ def _check_info(path: Path, info: dict) -> None:
             )
     absent = [c for c in FRAME_COLUMNS if c not in features]
     if absent:
-        raise ValueError(f"{path}: `features` lacks the per-frame column(s) {absent} every LeRobot dataset has")
+        raise ValueError(
+            f"{path}: `features` lacks the per-frame column(s) {absent} every LeRobot dataset has"
+        )
     if any(ft["dtype"] == "video" for ft in features.values()) and not info.get("video_path"):
         raise ValueError(f"{path}: the dataset has video features but no `video_path` pattern")
 
@@ -316,7 +337,9 @@ def _camera_channels(feature: str, ft: dict, info_path: Path) -> int:
 
 def _check_dims(dims: list[int] | None, width: int, what: str) -> None:
     if dims is not None and (not dims or min(dims) < 0 or max(dims) >= width):
-        raise ValueError(f"{what}: dims {dims} out of range for a feature of width {width} (valid: 0..{width - 1})")
+        raise ValueError(
+            f"{what}: dims {dims} out of range for a feature of width {width} (valid: 0..{width - 1})"
+        )
 
 
 class LeRobotSource:
@@ -328,14 +351,24 @@ class LeRobotSource:
         self.root = Path(self.meta.root)
         self.features: dict[str, dict] = self.meta.features
         self.modalities = {name: self._resolve(name) for name, _ in sorted(config.modalities.items())}
-        self.target_feature, self.target_dim = self._resolve_vector(config.target.feature, config.target.dims, "target")
+        self.target_feature, self.target_dim = self._resolve_vector(
+            config.target.feature, config.target.dims, "target"
+        )
         self.action_feature, self.action_dim = None, None
         if config.action is not None:
-            self.action_feature, self.action_dim = self._resolve_vector(config.action.feature, config.action.dims,
-                                                                        "action")
+            self.action_feature, self.action_dim = self._resolve_vector(
+                config.action.feature, config.action.dims, "action"
+            )
         # As meta/episodes declares them (start/stop: global frame indices), checked before any use.
-        declared = [Episode(int(e["episode_index"]), int(e["dataset_from_index"]), int(e["dataset_to_index"]),
-                            int(e["dataset_from_index"])) for e in self.meta.episodes]
+        declared = [
+            Episode(
+                int(e["episode_index"]),
+                int(e["dataset_from_index"]),
+                int(e["dataset_to_index"]),
+                int(e["dataset_from_index"]),
+            )
+            for e in self.meta.episodes
+        ]
         self._check_data_files()
         self._check_episode_ranges(declared)
         selected = set(select_episodes([e.index for e in declared], config, self.root))
@@ -343,7 +376,9 @@ class LeRobotSource:
         self.episodes, row = [], 0
         for episode in sorted(declared, key=lambda e: e.start):  # cache rows follow the global frame index
             if episode.index in selected:
-                self.episodes.append(Episode(episode.index, row, row + episode.stop - episode.start, episode.start))
+                self.episodes.append(
+                    Episode(episode.index, row, row + episode.stop - episode.start, episode.start)
+                )
                 row += episode.stop - episode.start
         self._check_window_fits()
 
@@ -363,7 +398,8 @@ class LeRobotSource:
         ft = self.features[feature]
         if not _is_numeric(ft["dtype"]) or len(ft["shape"]) != 1:
             vectors = sorted(
-                name for name, f in self.features.items()
+                name
+                for name, f in self.features.items()
                 if _is_numeric(f["dtype"]) and len(f["shape"]) == 1 and name not in BOOKKEEPING_FEATURES
             )
             raise ValueError(
@@ -391,8 +427,9 @@ class LeRobotSource:
         from lerobot.datasets.utils import DEFAULT_EPISODES_PATH
 
         row = self.meta.episodes[position]
-        return self.root / DEFAULT_EPISODES_PATH.format(chunk_index=int(row["meta/episodes/chunk_index"]),
-                                                        file_index=int(row["meta/episodes/file_index"]))
+        return self.root / DEFAULT_EPISODES_PATH.format(
+            chunk_index=int(row["meta/episodes/chunk_index"]), file_index=int(row["meta/episodes/file_index"])
+        )
 
     def _check_episode_ranges(self, episodes: list[Episode]) -> None:
         """Every declared episode's ``[dataset_from_index, dataset_to_index)`` lies in the data's frames,
@@ -421,7 +458,9 @@ class LeRobotSource:
         config = self.config
         needed = (config.history + config.horizon - 1) * config.stride + 1
         if not self.episodes:
-            raise ValueError(f"{self.root}: the dataset has no episodes (meta/episodes lists none); record some")
+            raise ValueError(
+                f"{self.root}: the dataset has no episodes (meta/episodes lists none); record some"
+            )
         longest = max(self.episodes, key=lambda e: e.stop - e.start)
         if longest.stop - longest.start < needed:
             raise ValueError(
@@ -482,10 +521,16 @@ class LeRobotSource:
                     fits_shape = is_list and per_frame in (None, shape[0])
                 else:  # arrays: never read by the pipeline, left to lerobot
                     fits_shape = True
-                numeric = any(check(value_type) for check in (pa.types.is_integer, pa.types.is_floating,
-                                                               pa.types.is_boolean))
+                numeric = any(
+                    check(value_type)
+                    for check in (pa.types.is_integer, pa.types.is_floating, pa.types.is_boolean)
+                )
                 if not fits_shape or not numeric:
-                    found = f"{per_frame} value(s) per frame" if per_frame is not None else "a variable-length list"
+                    found = (
+                        f"{per_frame} value(s) per frame"
+                        if per_frame is not None
+                        else "a variable-length list"
+                    )
                     raise ValueError(
                         f"{path}: column {column!r} holds {arrow_type} ({found}), but {info_path} declares "
                         f"{declared}; fix the feature's `shape`/`dtype` in info.json to match the data, or "
@@ -504,8 +549,10 @@ class LeRobotSource:
         ft = self.features[feature]
         if ft["dtype"] in ("video", "image"):
             if cfg.kind not in (None, "image"):
-                raise ValueError(f"{what}: feature {feature!r} is a camera ({ft['dtype']}), so kind must be 'image', "
-                                 f"found {cfg.kind!r}")
+                raise ValueError(
+                    f"{what}: feature {feature!r} is a camera ({ft['dtype']}), so kind must be 'image', "
+                    f"found {cfg.kind!r}"
+                )
             shape = (_camera_channels(feature, ft, self.root / INFO_FILE), *self.config.image_size)
             kind, dims, storage = "image", None, ft["dtype"]
         else:
@@ -527,9 +574,13 @@ class LeRobotSource:
     def video_path(self, episode: int, feature: str) -> Path:
         path = self.root / self.meta.get_video_file_path(episode, feature)
         # The template was checked; the feature name it holds ({video_key}) is checked here.
-        if os.path.commonpath([os.path.normpath(path), os.path.normpath(self.root)]) != os.path.normpath(self.root):
-            raise ValueError(f"{self.root / INFO_FILE}: the video of feature {feature!r} (episode {episode}) resolves "
-                             f"to {os.path.normpath(path)}, outside the dataset root; rename the feature")
+        if os.path.commonpath([os.path.normpath(path), os.path.normpath(self.root)]) != os.path.normpath(
+            self.root
+        ):
+            raise ValueError(
+                f"{self.root / INFO_FILE}: the video of feature {feature!r} (episode {episode}) resolves "
+                f"to {os.path.normpath(path)}, outside the dataset root; rename the feature"
+            )
         return path
 
     def data_file(self, episode: int) -> Path:
@@ -548,7 +599,9 @@ class LeRobotSource:
             stamps = columns["timestamp"][episode.start + frame - 1 : episode.start + frame + 1].tolist()
             warnings.warn(
                 f"{self.data_file(episode.index)}: `timestamp` of episode {episode.index} does not increase at frame "
-                f"{frame} ({stamps[0]} then {stamps[1]}); the episode is skipped (no window uses it)", stacklevel=2)
+                f"{frame} ({stamps[0]} then {stamps[1]}); the episode is skipped (no window uses it)",
+                stacklevel=2,
+            )
             dropped.append(episode.index)
         self.episodes = kept
         return dropped
@@ -584,7 +637,9 @@ class LeRobotSource:
             expected = np.arange(self.meta.total_frames)
             declared = f"meta/info.json total_frames={len(expected)}"
         else:
-            expected = np.concatenate([np.arange(e.first_frame, e.first_frame + e.stop - e.start) for e in self.episodes])
+            expected = np.concatenate(
+                [np.arange(e.first_frame, e.first_frame + e.stop - e.start) for e in self.episodes]
+            )
             declared = f"meta/episodes of the selected episodes {[e.index for e in self.episodes]}"
         if len(data["index"]) != len(expected) or not np.array_equal(data["index"], expected):
             raise ValueError(
@@ -604,7 +659,9 @@ class LeRobotSource:
 
     def files(self) -> list[Path]:
         """Every file that makes up the dataset: what the cache fingerprint covers."""
-        return sorted(p for sub in ("meta", "data", "videos") for p in (self.root / sub).rglob("*") if p.is_file())
+        return sorted(
+            p for sub in ("meta", "data", "videos") for p in (self.root / sub).rglob("*") if p.is_file()
+        )
 
 
 def load_frame_data(meta, episodes: list[int] | None = None):
@@ -749,9 +806,11 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
             past_end = np.flatnonzero(indices >= metadata.num_frames)
             if len(past_end):
                 decoded = int(past_end[0])
-                short = (f"the video has {metadata.num_frames} frames ({metadata.num_frames / metadata.average_fps:.2f} "
-                         f"s), but the parquet rows of this episode need frames up to {job.timestamps[-1]:.2f} s: "
-                         f"its last {len(job.timestamps) - decoded} rows have no frame")
+                short = (
+                    f"the video has {metadata.num_frames} frames ({metadata.num_frames / metadata.average_fps:.2f} "
+                    f"s), but the parquet rows of this episode need frames up to {job.timestamps[-1]:.2f} s: "
+                    f"its last {len(job.timestamps) - decoded} rows have no frame"
+                )
         for offset in range(0, decoded, chunk):
             stamps = list(job.timestamps[offset : min(offset + chunk, decoded)])
             frames = decode_video_frames_torchcodec(

@@ -44,10 +44,14 @@ def _generator(seed: int, name: str) -> torch.Generator:
     return torch.Generator().manual_seed(seed * 1_000_003 + zlib.crc32(name.encode()))
 
 
-def remove_modalities(present: dict[str, torch.Tensor], dropped: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def remove_modalities(
+    present: dict[str, torch.Tensor], dropped: dict[str, torch.Tensor]
+) -> dict[str, torch.Tensor]:
     """Presence with ``dropped[m]`` samples of each ``m`` removed, except where that would leave a
     sample with no modality at all (it could not be forecast)."""
-    result = {name: mask & ~dropped[name] if name in dropped else mask.clone() for name, mask in present.items()}
+    result = {
+        name: mask & ~dropped[name] if name in dropped else mask.clone() for name, mask in present.items()
+    }
     nothing_left = ~torch.stack(list(result.values())).any(0)
     for name, chosen in dropped.items():
         result[name] |= present[name] & chosen & nothing_left
@@ -72,7 +76,9 @@ def outage_statistics(present: torch.Tensor, episode: torch.Tensor) -> dict[str,
     }
 
 
-def replayed_outage_frames(n: int, fraction: float, mean_burst: float, generator: torch.Generator) -> torch.Tensor:
+def replayed_outage_frames(
+    n: int, fraction: float, mean_burst: float, generator: torch.Generator
+) -> torch.Tensor:
     """``[n]`` bool, True on simulated outage frames: up runs and outages alternate, outages of
     ``GeometricBursts(mean_burst)`` frames starting with ``outage_start_prob(fraction, mean_burst)``
     per frame up, so about ``fraction`` of the frames are out, in bursts like the measured ones."""
@@ -92,8 +98,13 @@ def replayed_outage_frames(n: int, fraction: float, mean_burst: float, generator
     return absent[:n]
 
 
-def replay_outages(present: dict[str, torch.Tensor], observed_rows: dict[str, torch.Tensor],
-                   outages: dict[str, dict[str, float]], n_frames: int, seed: int) -> dict[str, torch.Tensor]:
+def replay_outages(
+    present: dict[str, torch.Tensor],
+    observed_rows: dict[str, torch.Tensor],
+    outages: dict[str, dict[str, float]],
+    n_frames: int,
+    seed: int,
+) -> dict[str, torch.Tensor]:
     """Window presence after simulated outages: ``outages[m] = {"fraction": f, "mean_burst": L}``
     drives :func:`replayed_outage_frames` over the ``n_frames`` frames, and a window whose
     ``observed_rows[m]`` (``[W, k]`` frame indices it reads for ``m``) meet an outage frame loses

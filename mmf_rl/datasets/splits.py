@@ -34,8 +34,10 @@ def select_episodes(available: list[int], config: DataConfig, root: Path | str) 
     for key, ids in lists.items():
         unknown = sorted(set(ids) - set(available))
         if unknown:
-            raise ValueError(f"data config: `{key}` lists episode(s) {unknown} that the dataset at {root} does not "
-                             f"have (its episodes: {_ranges(available)})")
+            raise ValueError(
+                f"data config: `{key}` lists episode(s) {unknown} that the dataset at {root} does not "
+                f"have (its episodes: {_ranges(available)})"
+            )
     in_split = sorted({e for ids in (config.split or {}).values() for e in ids})
     if config.episodes is not None:
         selected = set(config.episodes)
@@ -45,13 +47,20 @@ def select_episodes(available: list[int], config: DataConfig, root: Path | str) 
     for name, ids in (config.split or {}).items():
         left_out = sorted(set(ids) - selected)
         if left_out:
-            why = ("excluded by `exclude_episodes`" if set(left_out) & set(config.exclude_episodes)
-                   else "not in `episodes`")
-            raise ValueError(f"data config: `split.{name}` lists episode(s) {left_out}, {why}; select them or "
-                             f"remove them from `split.{name}`")
+            why = (
+                "excluded by `exclude_episodes`"
+                if set(left_out) & set(config.exclude_episodes)
+                else "not in `episodes`"
+            )
+            raise ValueError(
+                f"data config: `split.{name}` lists episode(s) {left_out}, {why}; select them or "
+                f"remove them from `split.{name}`"
+            )
     if not selected:
-        raise ValueError(f"data config: the episode selection (episodes={config.episodes}, exclude_episodes="
-                         f"{config.exclude_episodes}) leaves no episode of {root} (its episodes: {_ranges(available)})")
+        raise ValueError(
+            f"data config: the episode selection (episodes={config.episodes}, exclude_episodes="
+            f"{config.exclude_episodes}) leaves no episode of {root} (its episodes: {_ranges(available)})"
+        )
     return sorted(selected)
 
 
@@ -62,7 +71,9 @@ def episode_splits(episodes: list[int], config: DataConfig) -> dict[str, list[in
     return split_episodes(episodes, config.split_fractions, config.split_seed)
 
 
-def split_episodes(episodes: list[int], fractions: tuple[float, float, float], seed: int) -> dict[str, list[int]]:
+def split_episodes(
+    episodes: list[int], fractions: tuple[float, float, float], seed: int
+) -> dict[str, list[int]]:
     """Shuffle episodes with ``seed`` and cut them into train/val/test by ``fractions``.
 
     Every split with a positive fraction gets at least one episode (so a 4-episode dataset still
@@ -70,7 +81,7 @@ def split_episodes(episodes: list[int], fractions: tuple[float, float, float], s
     """
     n = len(episodes)
     counts = {name: 0 for name in SPLIT_NAMES}
-    for name, fraction in zip(SPLIT_NAMES[1:], fractions[1:]):
+    for name, fraction in zip(SPLIT_NAMES[1:], fractions[1:], strict=True):
         counts[name] = max(1, round(fraction * n)) if fraction > 0 else 0
     counts["train"] = n - counts["val"] - counts["test"]
     if counts["train"] < 1:
@@ -87,7 +98,9 @@ def split_episodes(episodes: list[int], fractions: tuple[float, float, float], s
     return splits
 
 
-def mean_std(values: torch.Tensor, valid: torch.Tensor, std_floor: float, what: str) -> tuple[torch.Tensor, torch.Tensor]:
+def mean_std(
+    values: torch.Tensor, valid: torch.Tensor, std_floor: float, what: str
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-dim mean/std of ``values[valid]`` (float64 accumulation); std floored at ``std_floor``."""
     rows = values[valid].double()
     if rows.shape[0] == 0:

@@ -62,7 +62,8 @@ class WindowDataset:
         self.specs: list[ModalitySpec] = source.specs
         self.target_dim: int = source.target_dim
         self.action_shape: tuple[int, int] | None = (
-            None if source.action_dim is None else (config.horizon * config.stride, source.action_dim))
+            None if source.action_dim is None else (config.horizon * config.stride, source.action_dim)
+        )
         self._check_presence(source)
 
         frames = TensorDict.load_memmap(self.cache_path / "frames")
@@ -90,7 +91,8 @@ class WindowDataset:
         self.split_episodes = episode_splits([e[0] for e in self.report["episodes"]], config)
         self.split_windows = {
             name: (usable & torch.isin(self.window_episode, torch.tensor(episodes, dtype=torch.long)))
-            .nonzero().flatten()
+            .nonzero()
+            .flatten()
             for name, episodes in self.split_episodes.items()
         }
         self.normalizer = Normalizer(self._train_stats(frames))
@@ -111,7 +113,9 @@ class WindowDataset:
                 f"`required: false` for it to train with the modality marked absent"
             )
         if problems:
-            lines = "; ".join(f"{n!r} ({source.modalities[n].feature}): {', '.join(p)}" for n, p in problems.items())
+            lines = "; ".join(
+                f"{n!r} ({source.modalities[n].feature}): {', '.join(p)}" for n, p in problems.items()
+            )
             warnings.warn(
                 f"dataset {source.root}: modality absent for the episodes of these video files, marked "
                 f"present=False there: {lines}",
@@ -119,7 +123,9 @@ class WindowDataset:
             )
 
     def _train_stats(self, frames: TensorDict) -> dict[str, torch.Tensor]:
-        train_frames = torch.isin(self.frame_episode, torch.tensor(self.split_episodes["train"], dtype=torch.long))
+        train_frames = torch.isin(
+            self.frame_episode, torch.tensor(self.split_episodes["train"], dtype=torch.long)
+        )
         stats = {}
         floor = self.config.std_floor
         for spec in self.specs:
@@ -137,7 +143,8 @@ class WindowDataset:
         if self._action is not None:
             valid = train_frames & _plain(frames.get("action_valid"))
             stats[f"{FUTURE_ACTION}/mean"], stats[f"{FUTURE_ACTION}/std"] = mean_std(
-                self._action, valid, floor, f"the action ({self.config.action.feature!r})")
+                self._action, valid, floor, f"the action ({self.config.action.feature!r})"
+            )
         return stats
 
     def _targets(self, start: torch.Tensor, with_past: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -154,10 +161,15 @@ class WindowDataset:
     def _observed_outages(self, frames: TensorDict) -> dict[str, dict[str, float]]:
         """Per modality, the outages of its per-frame presence in the training episodes
         (:func:`outage_statistics`): what ``missing: observed`` replays."""
-        train_frames = torch.isin(self.frame_episode, torch.tensor(self.split_episodes["train"], dtype=torch.long))
-        return {spec.name: outage_statistics(_plain(frames.get(spec.present_key))[train_frames],
-                                             self.frame_episode[train_frames])
-                for spec in self.specs}
+        train_frames = torch.isin(
+            self.frame_episode, torch.tensor(self.split_episodes["train"], dtype=torch.long)
+        )
+        return {
+            spec.name: outage_statistics(
+                _plain(frames.get(spec.present_key))[train_frames], self.frame_episode[train_frames]
+            )
+            for spec in self.specs
+        }
 
     def _train_presence(self) -> dict[str, torch.Tensor]:
         """Window presence with the config's training missingness protocol applied to train windows:
@@ -171,8 +183,10 @@ class WindowDataset:
         dropped = {name: mask[train] for name, mask in self.presence.items()}
         if outages:
             start = self.window_start[train]
-            rows = {spec.name: start[:, None] + (self._observed if spec.kind != "vector" else self._observed[-1:])
-                    for spec in self.specs}
+            rows = {
+                spec.name: start[:, None] + (self._observed if spec.kind != "vector" else self._observed[-1:])
+                for spec in self.specs
+            }
             dropped = replay_outages(dropped, rows, outages, len(self.frame_episode), config.missing_seed)
         if config.window_dropout:
             dropped = training_dropout(dropped, config.window_dropout, config.missing_seed)
@@ -211,13 +225,30 @@ class WindowDataset:
             batch.set(FUTURE_ACTION, self.normalizer.normalize(FUTURE_ACTION, actions))
         return batch
 
-    def loader(self, split: str, batch_size: int, shuffle: bool | None = None, seed: int = 0,
-               rank: int = 0, world_size: int = 1, drop_last: bool | None = None,
-               augment: ImageAugmentation | None = None) -> WindowLoader:
+    def loader(
+        self,
+        split: str,
+        batch_size: int,
+        shuffle: bool | None = None,
+        seed: int = 0,
+        rank: int = 0,
+        world_size: int = 1,
+        drop_last: bool | None = None,
+        augment: ImageAugmentation | None = None,
+    ) -> WindowLoader:
         """Batches of ``split``: shuffled (seeded, per epoch) for train by default, sequential otherwise.
         ``augment`` transforms the image modalities of every batch (meant for the training split)."""
-        return WindowLoader(self, split, batch_size, shuffle=split == "train" if shuffle is None else shuffle,
-                            seed=seed, rank=rank, world_size=world_size, drop_last=drop_last, augment=augment)
+        return WindowLoader(
+            self,
+            split,
+            batch_size,
+            shuffle=split == "train" if shuffle is None else shuffle,
+            seed=seed,
+            rank=rank,
+            world_size=world_size,
+            drop_last=drop_last,
+            augment=augment,
+        )
 
 
 class WindowLoader:
@@ -229,9 +260,18 @@ class WindowLoader:
     ranks step together. Sequential loaders cover every window exactly once across ranks.
     """
 
-    def __init__(self, dataset: WindowDataset, split: str, batch_size: int, shuffle: bool, seed: int = 0,
-                 rank: int = 0, world_size: int = 1, drop_last: bool | None = None,
-                 augment: ImageAugmentation | None = None):
+    def __init__(
+        self,
+        dataset: WindowDataset,
+        split: str,
+        batch_size: int,
+        shuffle: bool,
+        seed: int = 0,
+        rank: int = 0,
+        world_size: int = 1,
+        drop_last: bool | None = None,
+        augment: ImageAugmentation | None = None,
+    ):
         if split not in SPLIT_NAMES:
             raise ValueError(f"unknown split {split!r}; expected one of {list(SPLIT_NAMES)}")
         if not 0 <= rank < world_size:

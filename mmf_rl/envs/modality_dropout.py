@@ -32,8 +32,9 @@ OUTAGES: tuple[str, ...] = ("bursts", "episode", "dies")
 NEVER = torch.iinfo(torch.long).max  # the onset of an outage that does not happen this episode
 
 
-def reset_rows(tensordict: TensorDictBase, batch_size: torch.Size, known_batch_size: torch.Size | None,
-               owner: str) -> torch.Tensor:
+def reset_rows(
+    tensordict: TensorDictBase, batch_size: torch.Size, known_batch_size: torch.Size | None, owner: str
+) -> torch.Tensor:
     """The envs a reset applies to, flattened to ``[n]``: ``"_reset"`` if given, else all.
 
     A transform allocates its per-env state on the first reset of a batch shape, so a batch it
@@ -44,14 +45,18 @@ def reset_rows(tensordict: TensorDictBase, batch_size: torch.Size, known_batch_s
     # "_reset" carries the done spec's trailing dim ([*batch, 1]).
     rows = torch.ones(n, dtype=torch.bool) if reset is None else reset.reshape(n, -1).any(-1).cpu()
     if known_batch_size != batch_size and not rows.all():
-        raise RuntimeError(f"{owner}: partial reset of an env batch {list(batch_size)} it has not seen; "
-                           "reset every env first")
+        raise RuntimeError(
+            f"{owner}: partial reset of an env batch {list(batch_size)} it has not seen; "
+            "reset every env first"
+        )
     return rows
 
 
 def not_standalone(name: str) -> RuntimeError:
-    return RuntimeError(f"{name} keeps per-env state across steps and only runs inside a TransformedEnv "
-                        "(env.reset / env.step); it cannot be applied to a stored tensordict")
+    return RuntimeError(
+        f"{name} keeps per-env state across steps and only runs inside a TransformedEnv "
+        "(env.reset / env.step); it cannot be applied to a stored tensordict"
+    )
 
 
 # -- ModalityDropout ---------------------------------------------------------------------------
@@ -66,8 +71,10 @@ class UniformBursts:
 
     def __post_init__(self):
         if not 1 <= self.min_steps <= self.max_steps:
-            raise ValueError(f"UniformBursts needs 1 <= min_steps <= max_steps, found "
-                             f"min_steps={self.min_steps}, max_steps={self.max_steps}")
+            raise ValueError(
+                f"UniformBursts needs 1 <= min_steps <= max_steps, found "
+                f"min_steps={self.min_steps}, max_steps={self.max_steps}"
+            )
 
     def sample(self, shape: torch.Size, generator: torch.Generator) -> torch.Tensor:
         return torch.randint(self.min_steps, self.max_steps + 1, shape, generator=generator)
@@ -102,8 +109,10 @@ def outage_start_prob(fraction: float, mean_burst: float) -> float:
     need ``p > 1``: it is capped there (an outage after every single reading).
     """
     if not 0.0 <= fraction < 1.0 or mean_burst < 1:
-        raise ValueError(f"outage_start_prob needs 0 <= fraction < 1 and mean_burst >= 1, found fraction={fraction}, "
-                         f"mean_burst={mean_burst}")
+        raise ValueError(
+            f"outage_start_prob needs 0 <= fraction < 1 and mean_burst >= 1, found fraction={fraction}, "
+            f"mean_burst={mean_burst}"
+        )
     return min(1.0, fraction / (mean_burst * (1.0 - fraction)))
 
 
@@ -113,13 +122,21 @@ def replay_outages(outages: Mapping[str, Mapping[str, float]], seed: int = 0) ->
     holds) becomes outages that start with ``outage_start_prob(f, L)`` and last ``GeometricBursts(L)``.
     Modalities never or always absent (``f`` of 0 or 1) get no transform."""
     transforms = [
-        ModalityDropout([name], outage_prob=outage_start_prob(o["fraction"], o["mean_burst"]),
-                        bursts=GeometricBursts(o["mean_burst"]), outage="bursts", seed=seed + i)
-        for i, (name, o) in enumerate(sorted(outages.items())) if 0.0 < o["fraction"] < 1.0
+        ModalityDropout(
+            [name],
+            outage_prob=outage_start_prob(o["fraction"], o["mean_burst"]),
+            bursts=GeometricBursts(o["mean_burst"]),
+            outage="bursts",
+            seed=seed + i,
+        )
+        for i, (name, o) in enumerate(sorted(outages.items()))
+        if 0.0 < o["fraction"] < 1.0
     ]
     if not transforms:
-        raise ValueError(f"replay_outages: no modality in {sorted(outages)} has outages to replay (every fraction is "
-                         "0 or 1)")
+        raise ValueError(
+            f"replay_outages: no modality in {sorted(outages)} has outages to replay (every fraction is "
+            "0 or 1)"
+        )
     return Compose(*transforms)
 
 
@@ -152,10 +169,15 @@ class ModalityDropout(Transform):
     them: an ``"episode"`` or ``"dies"`` outage is drawn once per episode, at its reset.
     """
 
-    def __init__(self, modalities: Sequence[str], outage_prob: float | Mapping[str, float] = 0.05,
-                 bursts: UniformBursts | GeometricBursts = UniformBursts(1, 10),
-                 outage: Outage = "bursts", dies_after: UniformBursts | GeometricBursts = UniformBursts(1, 49),
-                 seed: int = 0):
+    def __init__(
+        self,
+        modalities: Sequence[str],
+        outage_prob: float | Mapping[str, float] = 0.05,
+        bursts: UniformBursts | GeometricBursts = UniformBursts(1, 10),
+        outage: Outage = "bursts",
+        dies_after: UniformBursts | GeometricBursts = UniformBursts(1, 49),
+        seed: int = 0,
+    ):
         modalities = list(modalities)
         if not modalities:
             raise ValueError("ModalityDropout needs at least one modality name")
@@ -165,8 +187,10 @@ class ModalityDropout(Transform):
             unknown = sorted(set(outage_prob) - set(modalities))
             missing = sorted(set(modalities) - set(outage_prob))
             if unknown or missing:
-                raise ValueError(f"ModalityDropout: outage_prob names {sorted(outage_prob)} but modalities are "
-                                 f"{modalities}; give one probability per modality")
+                raise ValueError(
+                    f"ModalityDropout: outage_prob names {sorted(outage_prob)} but modalities are "
+                    f"{modalities}; give one probability per modality"
+                )
             probs = [float(outage_prob[m]) for m in modalities]
         else:
             probs = [float(outage_prob)] * len(modalities)
@@ -190,7 +214,9 @@ class ModalityDropout(Transform):
         self._batch_size: torch.Size | None = None
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        available = sorted(k[1] for k in observation_spec.keys(True, True) if isinstance(k, tuple) and k[0] == keys.OBS)
+        available = sorted(
+            k[1] for k in observation_spec.keys(True, True) if isinstance(k, tuple) and k[0] == keys.OBS
+        )
         missing = [k for k in self.in_keys if k not in observation_spec.keys(True, True)]
         if missing:
             raise KeyError(f"ModalityDropout: the env has no {missing}; its modalities are {available}")
@@ -238,20 +264,28 @@ class ModalityDropout(Transform):
         """Draw the "episode" or "dies" outage of the episodes ``rows`` start: the readings before it."""
         shape = self._remaining.shape
         fails = torch.rand(shape, generator=self.generator) < self.outage_prob
-        onset = (self.dies_after.sample(shape, self.generator) if self.outage == "dies"
-                 else torch.zeros(shape, dtype=torch.long))
+        onset = (
+            self.dies_after.sample(shape, self.generator)
+            if self.outage == "dies"
+            else torch.zeros(shape, dtype=torch.long)
+        )
         onset = torch.where(fails, onset, NEVER)
         self._remaining = torch.where(rows[:, None], onset, self._remaining)
 
     def _advance_episode(self, rows: torch.Tensor) -> None:
         """One observation of an "episode" or "dies" outage: absent once its onset is reached."""
         self._absent = torch.where(rows[:, None], self._remaining <= 0, self._absent)
-        self._remaining = torch.where(rows[:, None] & (self._remaining > 0) & (self._remaining < NEVER),
-                                      self._remaining - 1, self._remaining)
+        self._remaining = torch.where(
+            rows[:, None] & (self._remaining > 0) & (self._remaining < NEVER),
+            self._remaining - 1,
+            self._remaining,
+        )
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         if self._batch_size is None:
-            raise RuntimeError("ModalityDropout: the env was stepped before its first reset; call env.reset()")
+            raise RuntimeError(
+                "ModalityDropout: the env was stepped before its first reset; call env.reset()"
+            )
         every_env = torch.ones(self._batch_size.numel(), dtype=torch.bool)
         if self.outage == "bursts":
             self._draw(every_env)

@@ -91,7 +91,9 @@ ACTION_NAMES = ["dx", "dy", "dz", "gripper"]
 def camera_names() -> list[str]:
     """Cameras `MultimodalPushEnv` accepts: the free ones, then those of the FetchPush model."""
     # Resolved the way gymnasium-robotics' RobotEnv resolves a relative model path.
-    model = mujoco.MjModel.from_xml_path(os.path.join(os.path.dirname(robot_env.__file__), "assets", MODEL_XML_PATH))
+    model = mujoco.MjModel.from_xml_path(
+        os.path.join(os.path.dirname(robot_env.__file__), "assets", MODEL_XML_PATH)
+    )
     return sorted(FREE_CAMERAS) + [model.camera(i).name for i in range(model.ncam)]
 
 

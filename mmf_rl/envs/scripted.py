@@ -180,8 +180,9 @@ def reset_for_push(env: MultimodalPushEnv, rng: np.random.Generator):
             return obs, info
 
 
-def rollout(env: MultimodalPushEnv, seed: int, episode_index: int, steps: int,
-            exploration: float = 0.0) -> dict[str, np.ndarray]:
+def rollout(
+    env: MultimodalPushEnv, seed: int, episode_index: int, steps: int, exploration: float = 0.0
+) -> dict[str, np.ndarray]:
     """Run one scripted episode (``exploration``: see `ScriptedPusher`) and return its per-step arrays.
 
     Frame ``t`` holds the observation before action ``t``. Keys: ``image`` ``[steps, h, w, 3]``

@@ -65,8 +65,13 @@ class MultimodalPushTorchEnv(EnvBase):
         >>> env.close()
     """
 
-    def __init__(self, image_size: int = 64, camera: str = "front", max_episode_steps: int | None = None,
-                 min_start_distance: float = MIN_START_DISTANCE):
+    def __init__(
+        self,
+        image_size: int = 64,
+        camera: str = "front",
+        max_episode_steps: int | None = None,
+        min_start_distance: float = MIN_START_DISTANCE,
+    ):
         super().__init__(device="cpu", batch_size=torch.Size([]))
         make_kwargs = {} if max_episode_steps is None else {"max_episode_steps": max_episode_steps}
         self._env = gymnasium.make(ENV_ID, image_size=image_size, camera=camera, **make_kwargs)

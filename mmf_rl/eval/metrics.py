@@ -52,24 +52,36 @@ def constant_velocity(target_past: torch.Tensor, horizon: int) -> torch.Tensor:
     return target_past[:, -1:] + velocity[:, None] * steps[None, :, None]
 
 
-def interval_coverage(target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, level: float) -> torch.Tensor:
+def interval_coverage(
+    target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, level: float
+) -> torch.Tensor:
     """Per window ``[B]``: the share of ``target`` values inside the central ``level`` interval of
     ``N(loc, scale²)`` (``[B, T, D]`` each)."""
     half_width = torch.distributions.Normal(0.0, 1.0).icdf(torch.tensor(0.5 + level / 2)).item()
     return ((target - loc).abs() <= half_width * scale).flatten(1).float().mean(-1)
 
 
-def best_of_samples(samples: torch.Tensor, target: torch.Tensor, samples_units: torch.Tensor,
-                    target_units: torch.Tensor) -> dict[str, torch.Tensor]:
+def best_of_samples(
+    samples: torch.Tensor, target: torch.Tensor, samples_units: torch.Tensor, target_units: torch.Tensor
+) -> dict[str, torch.Tensor]:
     """``min_mse_k`` (normalised), ``min_ade_k``, ``min_fde_k`` (units) ``[B]`` of ``[B, K, T, D]``
     samples against ``[B, T, D]`` targets, each the minimum over ``K`` on its own."""
     mse = ((samples - target[:, None]) ** 2).mean((2, 3))
     distance = (samples_units - target_units[:, None]).norm(dim=-1)  # [B, K, T]
-    return {"min_mse_k": mse.amin(1), "min_ade_k": distance.mean(-1).amin(1), "min_fde_k": distance[..., -1].amin(1)}
+    return {
+        "min_mse_k": mse.amin(1),
+        "min_ade_k": distance.mean(-1).amin(1),
+        "min_fde_k": distance[..., -1].amin(1),
+    }
 
 
-def window_metrics(model, batch: TensorDictBase, denormalize: Callable[[torch.Tensor], torch.Tensor],
-                   num_samples: int = 0, with_baseline: bool = False) -> dict[str, torch.Tensor]:
+def window_metrics(
+    model,
+    batch: TensorDictBase,
+    denormalize: Callable[[torch.Tensor], torch.Tensor],
+    num_samples: int = 0,
+    with_baseline: bool = False,
+) -> dict[str, torch.Tensor]:
     """Every metric above for each window of ``batch`` (model in eval mode): ``{name: [B]}``."""
     target = batch.get(keys.TARGET)
     # The model sees no target: a point forecast must not depend on the future it forecasts.
@@ -94,23 +106,36 @@ def window_metrics(model, batch: TensorDictBase, denormalize: Callable[[torch.Te
     return {name: value.detach().float().cpu() for name, value in metrics.items()}
 
 
-def baseline_metrics(batch: TensorDictBase, denormalize: Callable[[torch.Tensor], torch.Tensor]) -> dict[str, torch.Tensor]:
+def baseline_metrics(
+    batch: TensorDictBase, denormalize: Callable[[torch.Tensor], torch.Tensor]
+) -> dict[str, torch.Tensor]:
     """The constant-velocity reference's ``cv_mse``, ``cv_mse_units``, ``cv_ade``, ``cv_fde`` ``[B]``."""
     past = batch.get(keys.TARGET_PAST, None)
     if past is None:
-        raise KeyError(f"the constant-velocity baseline needs {keys.TARGET_PAST!r} in the batches "
-                       "(data config: include_target_past: true)")
+        raise KeyError(
+            f"the constant-velocity baseline needs {keys.TARGET_PAST!r} in the batches "
+            "(data config: include_target_past: true)"
+        )
     target = batch.get(keys.TARGET)
     cv = constant_velocity(past, target.shape[1])
     cv_units, target_units = denormalize(cv), denormalize(target)
     cv_ade, cv_fde = displacement_errors(cv_units, target_units)
-    return {"cv_mse": ((cv - target) ** 2).mean((1, 2)), "cv_mse_units": ((cv_units - target_units) ** 2).mean((1, 2)),
-            "cv_ade": cv_ade, "cv_fde": cv_fde}
+    return {
+        "cv_mse": ((cv - target) ** 2).mean((1, 2)),
+        "cv_mse_units": ((cv_units - target_units) ** 2).mean((1, 2)),
+        "cv_ade": cv_ade,
+        "cv_fde": cv_fde,
+    }
 
 
 @torch.no_grad()
-def evaluate_forecasts(model, batches: Iterable[TensorDictBase], denormalize: Callable[[torch.Tensor], torch.Tensor],
-                       num_samples: int = 0, with_baseline: bool = False) -> dict[str, float]:
+def evaluate_forecasts(
+    model,
+    batches: Iterable[TensorDictBase],
+    denormalize: Callable[[torch.Tensor], torch.Tensor],
+    num_samples: int = 0,
+    with_baseline: bool = False,
+) -> dict[str, float]:
     """Average the metrics above over every window of ``batches`` (model in eval mode).
 
     ``denormalize`` maps normalised targets to units (``Normalizer.denormalize_target``).
@@ -137,10 +162,15 @@ def scorable_windows(batch: TensorDictBase, subset: Mapping[str, bool]) -> torch
 
 
 @torch.no_grad()
-def evaluate_presence_subsets(model, batches: Iterable[TensorDictBase], subsets: Iterable[tuple[str, Mapping[str, bool]]],
-                              denormalize: Callable[[torch.Tensor], torch.Tensor], num_samples: int = 0,
-                              with_baseline: bool = False, device: torch.device | str = "cpu",
-                              ) -> tuple[dict[str, dict[str, float]], dict[str, float] | None]:
+def evaluate_presence_subsets(
+    model,
+    batches: Iterable[TensorDictBase],
+    subsets: Iterable[tuple[str, Mapping[str, bool]]],
+    denormalize: Callable[[torch.Tensor], torch.Tensor],
+    num_samples: int = 0,
+    with_baseline: bool = False,
+    device: torch.device | str = "cpu",
+) -> tuple[dict[str, dict[str, float]], dict[str, float] | None]:
     """Score each named presence subset on the **same** windows, in one pass over ``batches``.
 
     A window belongs to a subset's row when the subset keeps one of its present modalities
@@ -164,8 +194,13 @@ def evaluate_presence_subsets(model, batches: Iterable[TensorDictBase], subsets:
         for name, subset in subsets:
             rows = scorable_windows(batch, subset)
             masks[name].append(rows)
-            scored[name].append(window_metrics(model, apply_presence_subset(batch, subset).to(device), denormalize,
-                                               num_samples) if rows.any() else {})
+            scored[name].append(
+                window_metrics(
+                    model, apply_presence_subset(batch, subset).to(device), denormalize, num_samples
+                )
+                if rows.any()
+                else {}
+            )
         if with_baseline:
             for metric, per_window in baseline_metrics(batch, denormalize).items():
                 baseline[metric].append(per_window.detach().float().cpu())
@@ -176,8 +211,10 @@ def evaluate_presence_subsets(model, batches: Iterable[TensorDictBase], subsets:
     shared = torch.stack([available[name] for name in scored_names]).all(0)
     if not shared.any():
         counts = {name: int(available[name].sum()) for name in scored_names}
-        raise ValueError(f"no window can be scored in every presence subset (windows per subset: {counts}): a "
-                         "paired comparison needs windows where each subset keeps a present modality")
+        raise ValueError(
+            f"no window can be scored in every presence subset (windows per subset: {counts}): a "
+            "paired comparison needs windows where each subset keeps a present modality"
+        )
     results = {}
     for name in scored_names:
         metrics = next(part for part in scored[name] if part).keys()
@@ -187,13 +224,18 @@ def evaluate_presence_subsets(model, batches: Iterable[TensorDictBase], subsets:
             per_window = torch.full((len(shared),), float("nan"))
             per_window[available[name]] = torch.cat([part[metric] for part in scored[name] if part])
             row[metric] = float(per_window[shared].mean())
-        results[name] = row | {"windows": float(shared.sum()), "windows_available": float(available[name].sum())}
+        results[name] = row | {
+            "windows": float(shared.sum()),
+            "windows_available": float(available[name].sum()),
+        }
     if "all" in results:
         reference_mse = results["all"]["mse"]
         for row in results.values():
             row["degradation"] = row["mse"] / reference_mse - 1 if reference_mse > 0 else float("nan")
     reference = None
     if with_baseline:
-        reference = {metric.removeprefix(BASELINE_PREFIX): float(torch.cat(parts)[shared].mean())
-                     for metric, parts in baseline.items()} | {"windows": float(shared.sum())}
+        reference = {
+            metric.removeprefix(BASELINE_PREFIX): float(torch.cat(parts)[shared].mean())
+            for metric, parts in baseline.items()
+        } | {"windows": float(shared.sum())}
     return results, reference

@@ -40,12 +40,18 @@ def write_json(path: Path, obj) -> None:
     write_text(path, json.dumps(obj, indent=2, sort_keys=True))
 
 
-def markdown_table(results: dict[str, dict[str, float]], baseline: dict[str, float] | None,
-                   units: str = "target units", num_samples: int | None = None) -> str:
+def markdown_table(
+    results: dict[str, dict[str, float]],
+    baseline: dict[str, float] | None,
+    units: str = "target units",
+    num_samples: int | None = None,
+) -> str:
     """One row per presence subset (+ the constant-velocity baseline), one column per metric."""
     columns = [c for c in COLUMNS if any(c[0] in r for r in results.values())]
-    lines = ["| subset | " + " | ".join(title for _, title, _ in columns) + " |",
-             "|---" * (len(columns) + 1) + "|"]
+    lines = [
+        "| subset | " + " | ".join(title for _, title, _ in columns) + " |",
+        "|---" * (len(columns) + 1) + "|",
+    ]
     for subset, metrics in results.items():
         cells = [fmt.format(metrics[key]) if key in metrics else "" for key, _, fmt in columns]
         lines.append(f"| {subset} | " + " | ".join(cells) + " |")
@@ -54,17 +60,21 @@ def markdown_table(results: dict[str, dict[str, float]], baseline: dict[str, flo
         lines.append("| constant velocity | " + " | ".join(cells) + " |")
     k = f"K = {num_samples}" if num_samples else "K"
     lines.append("")
-    lines.append(f"MSE (norm.) is on the normalised target; MSE, ADE and FDE are in {units}. The min@K columns "
-                 f"take each minimum on its own over {k} forecasts decoded from prior samples; the other columns "
-                 "score the point forecast (a latent model's decode of the prior's mean). 'cover p%' is the share "
-                 "of target values inside the forecast Gaussian's central p% interval (calibrated: p%). Rows "
-                 "are paired: each is averaged over the same 'windows', those where every row keeps a present "
-                 "modality; 'available' is how many windows the row alone could be scored on. 'MSE vs all' "
-                 "is the relative change of MSE (norm.) against all modalities present, on those windows.")
+    lines.append(
+        f"MSE (norm.) is on the normalised target; MSE, ADE and FDE are in {units}. The min@K columns "
+        f"take each minimum on its own over {k} forecasts decoded from prior samples; the other columns "
+        "score the point forecast (a latent model's decode of the prior's mean). 'cover p%' is the share "
+        "of target values inside the forecast Gaussian's central p% interval (calibrated: p%). Rows "
+        "are paired: each is averaged over the same 'windows', those where every row keeps a present "
+        "modality; 'available' is how many windows the row alone could be scored on. 'MSE vs all' "
+        "is the relative change of MSE (norm.) against all modalities present, on those windows."
+    )
     return "\n".join(lines) + "\n"
 
 
-def plot_error_per_subset(results: dict[str, dict[str, float]], baseline: dict[str, float] | None, path: Path) -> None:
+def plot_error_per_subset(
+    results: dict[str, dict[str, float]], baseline: dict[str, float] | None, path: Path
+) -> None:
     names = list(results)
     fig, ax = plt.subplots(figsize=(max(5, 1.1 * len(names)), 3.5))
     ax.bar(names, [results[n]["mse"] for n in names], color="tab:blue")
@@ -86,7 +96,9 @@ def plot_forecasts(examples: dict[str, dict[str, torch.Tensor]], path: Path, uni
     """
     subsets = list(examples)
     num_windows = examples[subsets[0]]["target"].shape[0]
-    fig, axes = plt.subplots(len(subsets), num_windows, figsize=(3.2 * num_windows, 2.8 * len(subsets)), squeeze=False)
+    fig, axes = plt.subplots(
+        len(subsets), num_windows, figsize=(3.2 * num_windows, 2.8 * len(subsets)), squeeze=False
+    )
     for row, subset in enumerate(subsets):
         ex = examples[subset]
         for col in range(num_windows):
@@ -128,7 +140,9 @@ def plot_latent_tsne(latents: dict[str, torch.Tensor], path: Path, seed: int = 0
     stacked = torch.cat([latents[n] for n in names]).numpy()
     labels = [n for n in names for _ in range(len(latents[n]))]
     perplexity = max(2.0, min(30.0, (len(stacked) - 1) / 3))
-    embedded = TSNE(n_components=2, perplexity=perplexity, random_state=seed, init="pca").fit_transform(stacked)
+    embedded = TSNE(n_components=2, perplexity=perplexity, random_state=seed, init="pca").fit_transform(
+        stacked
+    )
     fig, ax = plt.subplots(figsize=(5.5, 4.5))
     for name in names:
         mask = [label == name for label in labels]

@@ -25,7 +25,7 @@ from omegaconf import OmegaConf
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state
-from mmf_rl.configuration import ConfigError, parse_config_command, to_container
+from mmf_rl.configuration import ConfigError, parse_config_command
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.devices import resolve_device
@@ -58,8 +58,10 @@ def check_modalities_match(model_specs, data_specs, checkpoint_path: Path, data_
 
     model_side, data_side = describe(model_specs), describe(data_specs)
     if model_side != data_side:
-        raise CheckpointError(f"the checkpoint {checkpoint_path} was trained on modalities {model_side} but the data "
-                              f"at {data_root} gives {data_side}; evaluate on a dataset with the same features")
+        raise CheckpointError(
+            f"the checkpoint {checkpoint_path} was trained on modalities {model_side} but the data "
+            f"at {data_root} gives {data_side}; evaluate on a dataset with the same features"
+        )
 
 
 def output_directory(cfg, run_dir: Path) -> Path:
@@ -69,8 +71,10 @@ def output_directory(cfg, run_dir: Path) -> Path:
         return run_dir / "eval"
     out_dir = Path(cfg.out_dir).resolve()
     if not out_dir.is_relative_to(run_dir) and not cfg.allow_outside_run_dir:
-        raise ConfigError(f"out_dir={cfg.out_dir} resolves to {out_dir}, outside the run directory {run_dir}; "
-                          "pass allow_outside_run_dir=true to write there, or choose an out_dir inside the run")
+        raise ConfigError(
+            f"out_dir={cfg.out_dir} resolves to {out_dir}, outside the run directory {run_dir}; "
+            "pass allow_outside_run_dir=true to write there, or choose an out_dir inside the run"
+        )
     return out_dir
 
 
@@ -81,7 +85,9 @@ def run_evaluation(cfg) -> dict:
     out_dir = output_directory(cfg, checkpoint.path.parent.parent)
     train_cfg = checkpoint.meta.get("config")
     if not train_cfg or "model_config" not in checkpoint.meta:
-        raise CheckpointError(f"{checkpoint.path}/meta.json lacks the run config; it was not written by `mmf-rl train`")
+        raise CheckpointError(
+            f"{checkpoint.path}/meta.json lacks the run config; it was not written by `mmf-rl train`"
+        )
     data_dict = dict(train_cfg["data"])
     if cfg.data_root is not None:
         data_dict["root"] = str(cfg.data_root)
@@ -94,41 +100,64 @@ def run_evaluation(cfg) -> dict:
     model.to(device).eval()
 
     if len(data.split_windows[cfg.split]) == 0:
-        raise ValueError(f"the {cfg.split!r} split of {data.config.root} has no window; evaluate another split "
-                         "(split=val|train) or record more episodes")
+        raise ValueError(
+            f"the {cfg.split!r} split of {data.config.root} has no window; evaluate another split "
+            "(split=val|train) or record more episodes"
+        )
     loader = data.loader(cfg.split, cfg.batch_size)
     denormalize = data.normalizer.denormalize_target
     with_baseline = data.config.include_target_past
     torch.manual_seed(cfg.seed)  # best-of-K draws are repeatable
 
     subsets = list(presence_subsets([s.name for s in data.specs]))
-    results, baseline = evaluate_presence_subsets(model, loader, subsets, lambda t: denormalize(t.cpu()).to(t),
-                                                  num_samples=cfg.num_samples, with_baseline=with_baseline,
-                                                  device=device)
+    results, baseline = evaluate_presence_subsets(
+        model,
+        loader,
+        subsets,
+        lambda t: denormalize(t.cpu()).to(t),
+        num_samples=cfg.num_samples,
+        with_baseline=with_baseline,
+        device=device,
+    )
     skipped = [name for name, _ in subsets if name not in results]
 
     out_dir.mkdir(parents=True, exist_ok=True)
     units = f"units of {data.config.target.feature}"
-    notes = [f"not scored (no {cfg.split} window has any of their modalities): {', '.join(skipped)}"] if skipped else []
-    summary = {"checkpoint": str(checkpoint.path), "step": checkpoint.step, "split": cfg.split,
-               "data_root": str(data.config.root), "num_samples": cfg.num_samples, "subsets": results,
-               "constant_velocity": baseline}
+    notes = (
+        [f"not scored (no {cfg.split} window has any of their modalities): {', '.join(skipped)}"]
+        if skipped
+        else []
+    )
+    summary = {
+        "checkpoint": str(checkpoint.path),
+        "step": checkpoint.step,
+        "split": cfg.split,
+        "data_root": str(data.config.root),
+        "num_samples": cfg.num_samples,
+        "subsets": results,
+        "constant_velocity": baseline,
+    }
     plots = []
     if cfg.plots:
-        plots, plot_notes = make_plots(model, data, loader, denormalize, cfg, out_dir, units, results, baseline)
+        plots, plot_notes = make_plots(
+            model, data, loader, denormalize, cfg, out_dir, units, results, baseline
+        )
         notes += plot_notes
     summary["notes"] = notes
     write_json(out_dir / "results.json", summary)
     table = markdown_table(results, baseline, units, cfg.num_samples)
     table += "".join(f"\nNote: {note}\n" for note in notes)
-    write_text(out_dir / "results.md", f"# {checkpoint.path} on {data.config.root} ({cfg.split} split)\n\n{table}")
+    write_text(
+        out_dir / "results.md", f"# {checkpoint.path} on {data.config.root} ({cfg.split} split)\n\n{table}"
+    )
     summary["table"], summary["plots"] = table, [str(p) for p in plots]
     return summary
 
 
 @torch.no_grad()
-def make_plots(model, data, loader, denormalize, cfg, out_dir: Path, units: str, results: dict,
-               baseline: dict | None) -> tuple[list[Path], list[str]]:
+def make_plots(
+    model, data, loader, denormalize, cfg, out_dir: Path, units: str, results: dict, baseline: dict | None
+) -> tuple[list[Path], list[str]]:
     """Forecasts vs truth on a few test windows, error per subset, t-SNE of the test-time latents.
 
     Returns the plots written and notes on those left out (and why)."""
@@ -136,7 +165,9 @@ def make_plots(model, data, loader, denormalize, cfg, out_dir: Path, units: str,
     plot_error_per_subset(results, baseline, paths[0])
 
     device = next(model.parameters()).device
-    subsets = [(name, subset) for name, subset in presence_subsets([s.name for s in data.specs]) if name in results]
+    subsets = [
+        (name, subset) for name, subset in presence_subsets([s.name for s in data.specs]) if name in results
+    ]
     # Paired like the table: the first batch's windows that every subset can score, the same in every row.
     shared = None
     for candidate in loader:
@@ -151,43 +182,64 @@ def make_plots(model, data, loader, denormalize, cfg, out_dir: Path, units: str,
         inputs = batch.exclude(keys.TARGET).to(device)
         out = model(inputs.clone())
         past = batch.get(keys.TARGET_PAST, None)
-        examples[name] = {"target": denormalize(batch.get(keys.TARGET)),
-                          "mean": denormalize(out.get(keys.FORECAST_LOC).cpu()),
-                          "past": denormalize(past) if past is not None else None,
-                          "samples": denormalize(model.sample(inputs.clone(), num_samples=min(cfg.num_samples, 10))
-                                                 .get(keys.FORECAST_SAMPLES).cpu()) if cfg.num_samples else None}
+        examples[name] = {
+            "target": denormalize(batch.get(keys.TARGET)),
+            "mean": denormalize(out.get(keys.FORECAST_LOC).cpu()),
+            "past": denormalize(past) if past is not None else None,
+            "samples": denormalize(
+                model.sample(inputs.clone(), num_samples=min(cfg.num_samples, 10))
+                .get(keys.FORECAST_SAMPLES)
+                .cpu()
+            )
+            if cfg.num_samples
+            else None,
+        }
         # The latents the test-time forecasts are decoded from (no target: not the posterior).
-        latent = model(apply_presence_subset(shared[: cfg.tsne_windows], subset).exclude(keys.TARGET).to(device)).get(
-            keys.LATENT, None)
+        latent = model(
+            apply_presence_subset(shared[: cfg.tsne_windows], subset).exclude(keys.TARGET).to(device)
+        ).get(keys.LATENT, None)
         if latent is not None:
             latents[name] = latent.cpu()
     plot_forecasts(examples, paths[1], units)
     if not latents:
         return paths[:2], ["no latent t-SNE: the model has no latent (a deterministic baseline)"]
     if float(torch.cat(list(latents.values())).std(0).max()) == 0:
-        note = ("no latent t-SNE: every test-time forecast is decoded from the same latent (under the standard "
-                "prior its mean, z = 0); train with model.prior=learned for latents that depend on the present "
-                "modalities")
+        note = (
+            "no latent t-SNE: every test-time forecast is decoded from the same latent (under the standard "
+            "prior its mean, z = 0); train with model.prior=learned for latents that depend on the present "
+            "modalities"
+        )
         return paths[:2], [note]
     plot_latent_tsne(latents, paths[2], seed=cfg.seed)
     return paths, []
 
 
 def main(argv: list[str]) -> int:
-    command = parse_config_command(argv, "eval", "mmf-rl eval", "Score a trained forecaster on every presence subset "
-                                   "of its dataset's test split: table, results.json and plots.", EXAMPLES)
+    command = parse_config_command(
+        argv,
+        "eval",
+        "mmf-rl eval",
+        "Score a trained forecaster on every presence subset "
+        "of its dataset's test split: table, results.json and plots.",
+        EXAMPLES,
+    )
     try:
         cfg = command.compose("eval")
         if command.print_config:
             print(OmegaConf.to_yaml(cfg), end="")
             return 0
         if cfg.get("checkpoint") is None:
-            raise ConfigError("checkpoint=PATH is required (a run directory, its checkpoints/ or one checkpoint)")
+            raise ConfigError(
+                "checkpoint=PATH is required (a run directory, its checkpoints/ or one checkpoint)"
+            )
         summary = run_evaluation(cfg)
     except (ConfigError, CheckpointError, FileNotFoundError, ValueError, KeyError) as err:
         if os.environ.get("MMF_RL_DEBUG"):
             raise
-        print(f"mmf-rl eval: error: {err.args[0] if isinstance(err, KeyError) and err.args else err}", file=sys.stderr)
+        print(
+            f"mmf-rl eval: error: {err.args[0] if isinstance(err, KeyError) and err.args else err}",
+            file=sys.stderr,
+        )
         return 1
     print(summary["table"])
     for path in summary["plots"]:

@@ -10,5 +10,16 @@ from mmf_rl.models.registry import (
     saved_config,
 )
 
-__all__ = ["MODELS", "ForecasterConfig", "MultimodalForecaster", "PretrainedModel", "build_loss", "build_model",
-           "from_pretrained", "init_weights_from", "load_trained_model", "model_from_saved_config", "saved_config"]
+__all__ = [
+    "MODELS",
+    "ForecasterConfig",
+    "MultimodalForecaster",
+    "PretrainedModel",
+    "build_loss",
+    "build_model",
+    "from_pretrained",
+    "init_weights_from",
+    "load_trained_model",
+    "model_from_saved_config",
+    "saved_config",
+]

@@ -44,8 +44,15 @@ class FixedQueryAttention(nn.Module):
         self.norm_kv = nn.LayerNorm(d_model)
         self.attn = nn.MultiheadAttention(d_model, num_heads, batch_first=True)
 
-    def forward(self, query: torch.Tensor, tokens: torch.Tensor, key_padding_mask: torch.Tensor,
-                residual: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self,
+        query: torch.Tensor,
+        tokens: torch.Tensor,
+        key_padding_mask: torch.Tensor,
+        residual: torch.Tensor,
+    ) -> torch.Tensor:
         kv = self.norm_kv(tokens)
-        out = self.attn(self.norm_query(query), kv, kv, key_padding_mask=key_padding_mask, need_weights=False)[0]
+        out = self.attn(
+            self.norm_query(query), kv, kv, key_padding_mask=key_padding_mask, need_weights=False
+        )[0]
         return out + residual

@@ -11,8 +11,8 @@ and batch statistics would make one sample's output depend on which others are p
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from torch import nn
@@ -37,8 +37,9 @@ def register_encoder(name: str, kinds: tuple[str, ...]) -> Callable[[EncoderBuil
     """Register ``build(spec, history, d_model, **encoder_kwargs)`` as encoder ``name`` for ``kinds``."""
     unknown = sorted(set(kinds) - set(MODALITY_KINDS))
     if not kinds or unknown:
-        raise ValueError(f"encoder {name!r}: kinds must be a non-empty subset of {MODALITY_KINDS}, "
-                         f"found {kinds}")
+        raise ValueError(
+            f"encoder {name!r}: kinds must be a non-empty subset of {MODALITY_KINDS}, found {kinds}"
+        )
 
     def register(build: EncoderBuilder) -> EncoderBuilder:
         if name in ENCODERS:
@@ -63,8 +64,11 @@ def check_encoder(modality: str, encoder: str, kind: str | None) -> EncoderEntry
     if entry is not None and (kind is None or kind in entry.kinds):
         return entry
     what = f"modality {modality!r}" + (f" ({kind})" if kind else "")
-    hint = "" if entry is not None else (
-        "; a new encoder is registered with @mmf_rl.models.encoders.register_encoder(name, kinds)")
+    hint = (
+        ""
+        if entry is not None
+        else ("; a new encoder is registered with @mmf_rl.models.encoders.register_encoder(name, kinds)")
+    )
     expected = f"{encoders_for(kind)} (default {DEFAULT_ENCODER[kind]!r})" if kind else sorted(ENCODERS)
     raise ValueError(f"{what}: encoder {encoder!r} is not available; expected one of {expected}{hint}")
 
@@ -73,7 +77,7 @@ def mlp(in_dim: int, hidden_dim: int, out_dim: int, num_layers: int = 2) -> nn.S
     """``num_layers`` linear layers with ReLU between them (the paper's MLP blocks)."""
     dims = [in_dim] + [hidden_dim] * (num_layers - 1) + [out_dim]
     layers: list[nn.Module] = []
-    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:])):
+    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:], strict=True)):
         layers.append(nn.Linear(a, b))
         if i < num_layers - 1:
             layers.append(nn.ReLU())
@@ -85,7 +89,11 @@ def _conv_trunk(in_channels: int, channels: tuple[int, ...]) -> nn.Sequential:
     # stable without batch statistics.
     layers: list[nn.Module] = []
     for out in channels:
-        layers += [nn.Conv2d(in_channels, out, 4, stride=2, padding=1), nn.GroupNorm(min(8, out), out), nn.ReLU()]
+        layers += [
+            nn.Conv2d(in_channels, out, 4, stride=2, padding=1),
+            nn.GroupNorm(min(8, out), out),
+            nn.ReLU(),
+        ]
         in_channels = out
     return nn.Sequential(*layers)
 
@@ -99,12 +107,20 @@ class ImageWindowEncoder(nn.Module):
     features (``H`` times the convolution cost).
     """
 
-    def __init__(self, spec: ModalitySpec, history: int, d_model: int, channels: tuple[int, ...] = (32, 64, 64, 64),
-                 temporal: str = "stack"):
+    def __init__(
+        self,
+        spec: ModalitySpec,
+        history: int,
+        d_model: int,
+        channels: tuple[int, ...] = (32, 64, 64, 64),
+        temporal: str = "stack",
+    ):
         super().__init__()
         c, h, w = spec.shape
         if temporal not in ("stack", "gru"):
-            raise ValueError(f"image encoder for {spec.name!r}: temporal must be 'stack' or 'gru', found {temporal!r}")
+            raise ValueError(
+                f"image encoder for {spec.name!r}: temporal must be 'stack' or 'gru', found {temporal!r}"
+            )
         self.temporal = temporal
         in_channels = c * history if temporal == "stack" else c
         self.trunk = _conv_trunk(in_channels, tuple(channels))
@@ -180,4 +196,6 @@ def build_encoder(spec: ModalitySpec, history: int, d_model: int) -> nn.Module:
     try:
         return entry.build(spec, history, d_model, **kwargs)
     except TypeError as err:
-        raise ValueError(f"modality {spec.name!r}: bad encoder_kwargs {kwargs} for encoder {spec.encoder!r}: {err}") from None
+        raise ValueError(
+            f"modality {spec.name!r}: bad encoder_kwargs {kwargs} for encoder {spec.encoder!r}: {err}"
+        ) from None

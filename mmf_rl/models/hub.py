@@ -43,8 +43,10 @@ def pretrained_file(model_id: str, filename: str, required: bool = True, **hub_k
         if path.is_file():
             return path
         if required:
-            raise FileNotFoundError(f"{model_id} is not a saved mmf-rl model: {path} does not exist (a saved model "
-                                    f"holds {CONFIG_NAME} and {SAFETENSORS_SINGLE_FILE}, written by save_pretrained)")
+            raise FileNotFoundError(
+                f"{model_id} is not a saved mmf-rl model: {path} does not exist (a saved model "
+                f"holds {CONFIG_NAME} and {SAFETENSORS_SINGLE_FILE}, written by save_pretrained)"
+            )
         return None
     try:
         return Path(hf_hub_download(repo_id=model_id, filename=filename, **hub_kwargs))
@@ -70,15 +72,27 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
         from mmf_rl.models.registry import registry_name, saved_config
 
         super()._save_pretrained(save_directory)
-        (save_directory / CONFIG_NAME).write_text(json.dumps(saved_config(registry_name(self), self), indent=2))
+        (save_directory / CONFIG_NAME).write_text(
+            json.dumps(saved_config(registry_name(self), self), indent=2)
+        )
         if self.normalization_stats is not None:
-            save_file({k: v.detach().contiguous().cpu() for k, v in self.normalization_stats.items()},
-                      save_directory / NORMALIZATION_FILE)
+            save_file(
+                {k: v.detach().contiguous().cpu() for k, v in self.normalization_stats.items()},
+                save_directory / NORMALIZATION_FILE,
+            )
         if self.data_config is not None:
             (save_directory / DATA_CONFIG_FILE).write_text(json.dumps(self.data_config, indent=2))
 
-    def save_pretrained(self, save_directory, *, config=None, repo_id=None, push_to_hub: bool = False,
-                        model_card_kwargs=None, **push_to_hub_kwargs):
+    def save_pretrained(
+        self,
+        save_directory,
+        *,
+        config=None,
+        repo_id=None,
+        push_to_hub: bool = False,
+        model_card_kwargs=None,
+        **push_to_hub_kwargs,
+    ):
         """The mixin's ``save_pretrained``, written atomically: every file goes to a temporary
         sibling directory first and is renamed into ``save_directory`` (``config.json`` last)."""
         final = Path(save_directory)
@@ -92,26 +106,50 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
         finally:
             shutil.rmtree(staging, ignore_errors=True)
         if push_to_hub:
-            return self.push_to_hub(repo_id=repo_id or final.name, model_card_kwargs=model_card_kwargs,
-                                    **push_to_hub_kwargs)
+            return self.push_to_hub(
+                repo_id=repo_id or final.name, model_card_kwargs=model_card_kwargs, **push_to_hub_kwargs
+            )
         return None
 
     @classmethod
-    def _from_pretrained(cls, *, model_id: str, revision, cache_dir, force_download: bool, proxies, resume_download,
-                         local_files_only: bool, token, config: dict | None = None, map_location: str = "cpu",
-                         strict: bool = True, **model_kwargs):
+    def _from_pretrained(
+        cls,
+        *,
+        model_id: str,
+        revision,
+        cache_dir,
+        force_download: bool,
+        proxies,
+        resume_download,
+        local_files_only: bool,
+        token,
+        config: dict | None = None,
+        map_location: str = "cpu",
+        strict: bool = True,
+        **model_kwargs,
+    ):
         from safetensors.torch import load_file
 
         from mmf_rl.models.registry import check_state_dict, model_from_saved_config
 
-        hub = dict(revision=revision, cache_dir=cache_dir, force_download=force_download, proxies=proxies,
-                   local_files_only=local_files_only, token=token)
+        hub = dict(
+            revision=revision,
+            cache_dir=cache_dir,
+            force_download=force_download,
+            proxies=proxies,
+            local_files_only=local_files_only,
+            token=token,
+        )
         if not config:
-            raise FileNotFoundError(f"{model_id} has no readable {CONFIG_NAME}; it was not written by save_pretrained")
+            raise FileNotFoundError(
+                f"{model_id} has no readable {CONFIG_NAME}; it was not written by save_pretrained"
+            )
         model = model_from_saved_config(config)
         if not isinstance(model, cls):
-            raise TypeError(f"{model_id} holds a {config.get('name')!r} model ({type(model).__name__}), not a "
-                            f"{cls.__name__}; load it with mmf_rl.models.from_pretrained")
+            raise TypeError(
+                f"{model_id} holds a {config.get('name')!r} model ({type(model).__name__}), not a "
+                f"{cls.__name__}; load it with mmf_rl.models.from_pretrained"
+            )
         weights = load_file(pretrained_file(model_id, SAFETENSORS_SINGLE_FILE, **hub))
         if strict:
             check_state_dict(model, weights, f"{model_id}/{SAFETENSORS_SINGLE_FILE}")
@@ -127,6 +165,10 @@ def from_pretrained(model_id: str | os.PathLike, **kwargs):
     """Any registered model saved by ``save_pretrained``: a local directory or a hub repository id."""
     from mmf_rl.models.registry import model_class
 
-    hub = {k: kwargs[k] for k in ("revision", "cache_dir", "force_download", "token", "local_files_only") if k in kwargs}
+    hub = {
+        k: kwargs[k]
+        for k in ("revision", "cache_dir", "force_download", "token", "local_files_only")
+        if k in kwargs
+    }
     config = json.loads(pretrained_file(str(model_id), CONFIG_NAME, **hub).read_text())
     return model_class(config.get("name", "forecaster")).from_pretrained(str(model_id), **kwargs)

@@ -8,17 +8,17 @@ paper's forecaster.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from torch import nn
 
 from mmf_rl.checkpoint import META_FILE, CheckpointError, load_checkpoint, load_model_state, state_mismatch
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.baselines import MVAE, LateFusionLSTM, LFLSTMConfig, MulT, MulTConfig, MVAEConfig
-from mmf_rl.models.hub import DATA_CONFIG_FILE, from_pretrained
 from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
+from mmf_rl.models.hub import DATA_CONFIG_FILE, from_pretrained
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, GaussianNLLLoss, LossConfig, MissingModalityLoss
 
 
@@ -31,13 +31,25 @@ class ModelEntry:
 
 def forecaster_loss(model: MultimodalForecaster, loss_cfg: LossConfig) -> CombinedLoss:
     """ELBO, plus the missing-modality loss unless its weight is 0 (the paper's ablation)."""
-    losses = [ELBOLoss(model, kl_weight=loss_cfg.kl_weight, kl_warmup_steps=loss_cfg.kl_warmup_steps,
-                       gsnn_weight=loss_cfg.gsnn_weight)]
+    losses = [
+        ELBOLoss(
+            model,
+            kl_weight=loss_cfg.kl_weight,
+            kl_warmup_steps=loss_cfg.kl_warmup_steps,
+            gsnn_weight=loss_cfg.gsnn_weight,
+        )
+    ]
     if loss_cfg.missing_modality_weight > 0:
-        losses.append(MissingModalityLoss(model, weight=loss_cfg.missing_modality_weight,
-                                          detach_teacher=loss_cfg.detach_teacher, max_dropped=loss_cfg.max_dropped,
-                                          dropped_nll_weight=loss_cfg.dropped_nll_weight,
-                                          prior_weight=loss_cfg.dropped_prior_weight))
+        losses.append(
+            MissingModalityLoss(
+                model,
+                weight=loss_cfg.missing_modality_weight,
+                detach_teacher=loss_cfg.detach_teacher,
+                max_dropped=loss_cfg.max_dropped,
+                dropped_nll_weight=loss_cfg.dropped_nll_weight,
+                prior_weight=loss_cfg.dropped_prior_weight,
+            )
+        )
     return CombinedLoss(*losses)
 
 
@@ -49,8 +61,10 @@ def nll_loss(model: nn.Module, loss_cfg: LossConfig) -> GaussianNLLLoss:
 def mvae_loss(model: MVAE, loss_cfg: LossConfig) -> ELBOLoss:
     """The MVAE's ELBO with the loss config's KL weight and warm-up; it has no missing-modality term."""
     if loss_cfg.gsnn_weight > 0:
-        raise ValueError("loss.gsnn_weight > 0 needs a model that decodes from its prior in training "
-                         "(model=forecaster); the MVAE baseline does not: set loss.gsnn_weight=0")
+        raise ValueError(
+            "loss.gsnn_weight > 0 needs a model that decodes from its prior in training "
+            "(model=forecaster); the MVAE baseline does not: set loss.gsnn_weight=0"
+        )
     return ELBOLoss(model, kl_weight=loss_cfg.kl_weight, kl_warmup_steps=loss_cfg.kl_warmup_steps)
 
 
@@ -68,8 +82,14 @@ def _entry(name: str) -> ModelEntry:
     return MODELS[name]
 
 
-def build_model(model_cfg: dict, modalities: list[ModalitySpec], history: int, horizon: int,
-                target_dim: int, action_shape: tuple[int, int] | None = None) -> nn.Module:
+def build_model(
+    model_cfg: dict,
+    modalities: list[ModalitySpec],
+    history: int,
+    horizon: int,
+    target_dim: int,
+    action_shape: tuple[int, int] | None = None,
+) -> nn.Module:
     """``model_cfg`` is the model config group (its ``name`` picks the entry); the data fixes the rest.
 
     ``action_shape = (S, A)`` (the data config sets ``action``) builds an action-conditioned world
@@ -78,7 +98,13 @@ def build_model(model_cfg: dict, modalities: list[ModalitySpec], history: int, h
     cfg = dict(model_cfg)
     name = cfg.pop("name", "forecaster")
     entry = _entry(name)
-    fields = {**cfg, "modalities": modalities, "history": history, "horizon": horizon, "target_dim": target_dim}
+    fields = {
+        **cfg,
+        "modalities": modalities,
+        "history": history,
+        "horizon": horizon,
+        "target_dim": target_dim,
+    }
     if action_shape is not None:
         if entry.config_cls is not ForecasterConfig:
             raise ValueError(
@@ -129,14 +155,18 @@ def load_trained_model(path, map_location="cpu") -> tuple[nn.Module, dict, dict]
     path = _trained_location(Path(path))
     if (path / "config.json").is_file() and not (path / META_FILE).is_file():
         if not (path / DATA_CONFIG_FILE).is_file():
-            raise CheckpointError(f"{path} holds a saved model without its data config ({DATA_CONFIG_FILE}); "
-                                  "save it from a trained run (load_trained_model(run).save_pretrained(dir))")
+            raise CheckpointError(
+                f"{path} holds a saved model without its data config ({DATA_CONFIG_FILE}); "
+                "save it from a trained run (load_trained_model(run).save_pretrained(dir))"
+            )
         model = from_pretrained(path, map_location=map_location)
         return model, model.normalization_stats or {}, model.data_config
     checkpoint = load_checkpoint(path, with_trainer_state=False)
     if "model_config" not in checkpoint.meta:
-        raise CheckpointError(f"{checkpoint.path} has no 'model_config' in its meta.json; it was not written by "
-                              "`mmf-rl train` (or save_checkpoint(meta={'model_config': saved_config(...)}))")
+        raise CheckpointError(
+            f"{checkpoint.path} has no 'model_config' in its meta.json; it was not written by "
+            "`mmf-rl train` (or save_checkpoint(meta={'model_config': saved_config(...)}))"
+        )
     model = model_from_saved_config(checkpoint.meta["model_config"])
     load_model_state(model, checkpoint)
     data_config = checkpoint.meta.get("config", {}).get("data", {})
@@ -155,22 +185,34 @@ def init_weights_from(model: nn.Module, source_path) -> Path:
     source, _, _ = load_trained_model(location)
     here, there = registry_name(model), registry_name(source)
     if here != there:
-        raise CheckpointError(f"init_from={source_path} holds a {there!r} model, but this run builds {here!r}; "
-                              f"train model={there} or start from a {here!r} run")
+        raise CheckpointError(
+            f"init_from={source_path} holds a {there!r} model, but this run builds {here!r}; "
+            f"train model={there} or start from a {here!r} run"
+        )
     mine = {s.name: (s.kind, tuple(s.shape)) for s in model.config.modalities}
     theirs = {s.name: (s.kind, tuple(s.shape)) for s in source.config.modalities}
-    problems = [f"modality {n!r}: this run has {mine.get(n, 'none')}, {source_path} has {theirs.get(n, 'none')}"
-                for n in sorted(set(mine) | set(theirs)) if mine.get(n) != theirs.get(n)]
+    problems = [
+        f"modality {n!r}: this run has {mine.get(n, 'none')}, {source_path} has {theirs.get(n, 'none')}"
+        for n in sorted(set(mine) | set(theirs))
+        if mine.get(n) != theirs.get(n)
+    ]
     if problems:
-        raise CheckpointError("init_from: the modalities differ (" + "; ".join(problems) + "); map the same "
-                              "modality names to features of the same kind and shape (images: data.image_size)")
-    differing = sorted(k for k, v in model.config.to_dict().items()
-                       if k != "modalities" and source.config.to_dict().get(k) != v)
+        raise CheckpointError(
+            "init_from: the modalities differ (" + "; ".join(problems) + "); map the same "
+            "modality names to features of the same kind and shape (images: data.image_size)"
+        )
+    differing = sorted(
+        k
+        for k, v in model.config.to_dict().items()
+        if k != "modalities" and source.config.to_dict().get(k) != v
+    )
     try:
         check_state_dict(model, source.state_dict(), f"init_from={source_path}")
     except CheckpointError as error:
-        hint = ", ".join(f"model.{k}: this run {getattr(model.config, k)!r}, source "
-                         f"{getattr(source.config, k)!r}" for k in differing)
+        hint = ", ".join(
+            f"model.{k}: this run {getattr(model.config, k)!r}, source {getattr(source.config, k)!r}"
+            for k in differing
+        )
         raise CheckpointError(f"{error}{'; the configs differ in ' + hint if hint else ''}") from None
     model.load_state_dict(source.state_dict())
     return location

@@ -12,8 +12,11 @@ from collections.abc import Callable, Sequence
 import torch
 
 
-def compute_on_rows(mask: torch.Tensor, compute: Callable[[torch.Tensor | None], Sequence[torch.Tensor]],
-                    defaults: Sequence[torch.Tensor]) -> tuple[torch.Tensor, ...]:
+def compute_on_rows(
+    mask: torch.Tensor,
+    compute: Callable[[torch.Tensor | None], Sequence[torch.Tensor]],
+    defaults: Sequence[torch.Tensor],
+) -> tuple[torch.Tensor, ...]:
     """``compute`` on the rows where ``mask`` (``[B]`` bool) is True; ``defaults`` (each ``[B, ...]``) elsewhere.
 
     ``compute(rows)`` returns one tensor per default, for the selected rows: ``rows`` is an index
@@ -27,5 +30,7 @@ def compute_on_rows(mask: torch.Tensor, compute: Callable[[torch.Tensor | None],
         return tuple(defaults)
     rows = mask.nonzero().squeeze(1)
     values = compute(rows)
-    return tuple(default.index_copy(0, rows.to(default.device), value.to(default.device))
-                 for default, value in zip(defaults, values, strict=True))
+    return tuple(
+        default.index_copy(0, rows.to(default.device), value.to(default.device))
+        for default, value in zip(defaults, values, strict=True)
+    )

@@ -16,7 +16,9 @@ def gaussian_nll(value: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) ->
     return 0.5 * (((value - loc) / scale) ** 2 + _LOG_2PI) + scale.log()
 
 
-def gaussian_kl(loc_p: torch.Tensor, scale_p: torch.Tensor, loc_q: torch.Tensor, scale_q: torch.Tensor) -> torch.Tensor:
+def gaussian_kl(
+    loc_p: torch.Tensor, scale_p: torch.Tensor, loc_q: torch.Tensor, scale_q: torch.Tensor
+) -> torch.Tensor:
     """Elementwise ``KL(N(loc_p, scale_p²) || N(loc_q, scale_q²))``."""
     var_ratio = (scale_p / scale_q) ** 2
     return 0.5 * (var_ratio + ((loc_p - loc_q) / scale_q) ** 2 - 1 - var_ratio.log())
@@ -102,6 +104,8 @@ class ForecasterLossBase(LossModule):
     def _get(self, td: TensorDictBase, key):
         value = td.get(key, None)
         if value is None:
-            raise KeyError(f"{type(self).__name__}: key {key} not found in the forecaster's outputs; "
-                           f"was the forecaster run on this batch (and with this loss's prepare())?")
+            raise KeyError(
+                f"{type(self).__name__}: key {key} not found in the forecaster's outputs; "
+                f"was the forecaster run on this batch (and with this loss's prepare())?"
+            )
         return value

@@ -38,11 +38,22 @@ class LossConfig:
     dropped_prior_weight: float = 1.0
 
     def __post_init__(self):
-        if self.max_dropped is not None and (isinstance(self.max_dropped, bool) or not isinstance(self.max_dropped, int)
-                                             or self.max_dropped < 1):
-            raise ValueError(f"loss.max_dropped must be a whole number >= 1 or null, found {self.max_dropped!r}")
-        for name in ("kl_weight", "kl_warmup_steps", "missing_modality_weight", "gsnn_weight", "dropped_nll_weight",
-                     "dropped_prior_weight"):
+        if self.max_dropped is not None and (
+            isinstance(self.max_dropped, bool)
+            or not isinstance(self.max_dropped, int)
+            or self.max_dropped < 1
+        ):
+            raise ValueError(
+                f"loss.max_dropped must be a whole number >= 1 or null, found {self.max_dropped!r}"
+            )
+        for name in (
+            "kl_weight",
+            "kl_warmup_steps",
+            "missing_modality_weight",
+            "gsnn_weight",
+            "dropped_nll_weight",
+            "dropped_prior_weight",
+        ):
             if getattr(self, name) < 0:
                 raise ValueError(f"loss.{name} must be >= 0, found {getattr(self, name)}")
         if not isinstance(self.detach_teacher, bool):

@@ -60,11 +60,20 @@ class ELBOLoss(ForecasterLossBase):
 
     default_keys = _AcceptedKeys
 
-    def __init__(self, forecaster, *, kl_weight: float = 1.0, kl_warmup_steps: int = 0, gsnn_weight: float = 0.0,
-                 reduction: str = "mean"):
+    def __init__(
+        self,
+        forecaster,
+        *,
+        kl_weight: float = 1.0,
+        kl_warmup_steps: int = 0,
+        gsnn_weight: float = 0.0,
+        reduction: str = "mean",
+    ):
         super().__init__(forecaster, reduction)
         if kl_weight < 0 or kl_warmup_steps < 0:
-            raise ValueError(f"kl_weight and kl_warmup_steps must be >= 0, found {kl_weight}, {kl_warmup_steps}")
+            raise ValueError(
+                f"kl_weight and kl_warmup_steps must be >= 0, found {kl_weight}, {kl_warmup_steps}"
+            )
         if gsnn_weight < 0:
             raise ValueError(f"gsnn_weight must be >= 0, found {gsnn_weight}")
         self.kl_weight = kl_weight
@@ -75,8 +84,16 @@ class ELBOLoss(ForecasterLossBase):
     def _loss_in_keys(self) -> list:
         k = self.tensor_keys
         extra = [k.from_prior_loc, k.from_prior_scale] if self.gsnn_weight else []
-        return [k.target, k.forecast_loc, k.forecast_scale, k.posterior_loc, k.posterior_scale, k.prior_loc,
-                k.prior_scale, *extra]
+        return [
+            k.target,
+            k.forecast_loc,
+            k.forecast_scale,
+            k.posterior_loc,
+            k.posterior_scale,
+            k.prior_loc,
+            k.prior_scale,
+            *extra,
+        ]
 
     @property
     def out_keys(self):
@@ -95,7 +112,11 @@ class ELBOLoss(ForecasterLossBase):
     def loss_from_outputs(self, td: TensorDictBase) -> TensorDict:
         k = self.tensor_keys
         target = self._get(td, k.target)
-        nll = gaussian_nll(target, self._get(td, k.forecast_loc), self._get(td, k.forecast_scale)).flatten(1).sum(-1)
+        nll = (
+            gaussian_nll(target, self._get(td, k.forecast_loc), self._get(td, k.forecast_scale))
+            .flatten(1)
+            .sum(-1)
+        )
         post_loc, post_scale = self._get(td, k.posterior_loc), self._get(td, k.posterior_scale)
         prior_loc, prior_scale = td.get(k.prior_loc, None), td.get(k.prior_scale, None)
         if prior_loc is None or prior_scale is None:

@@ -73,15 +73,29 @@ class MissingModalityLoss(ForecasterLossBase):
 
     default_keys = _AcceptedKeys
 
-    def __init__(self, forecaster, *, weight: float = 1.0, detach_teacher: bool = True, max_dropped: int | None = 1,
-                 dropped_nll_weight: float = 0.0, prior_weight: float = 1.0, reduction: str = "mean"):
+    def __init__(
+        self,
+        forecaster,
+        *,
+        weight: float = 1.0,
+        detach_teacher: bool = True,
+        max_dropped: int | None = 1,
+        dropped_nll_weight: float = 0.0,
+        prior_weight: float = 1.0,
+        reduction: str = "mean",
+    ):
         super().__init__(forecaster, reduction)
-        for name, value in (("weight", weight), ("dropped_nll_weight", dropped_nll_weight),
-                            ("prior_weight", prior_weight)):
+        for name, value in (
+            ("weight", weight),
+            ("dropped_nll_weight", dropped_nll_weight),
+            ("prior_weight", prior_weight),
+        ):
             if value < 0:
                 raise ValueError(f"{name} must be >= 0, found {value}")
         if max_dropped is not None and max_dropped < 1:
-            raise ValueError(f"max_dropped must be >= 1 (or None: up to all but one modality), found {max_dropped}")
+            raise ValueError(
+                f"max_dropped must be >= 1 (or None: up to all but one modality), found {max_dropped}"
+            )
         self.weight = weight
         self.detach_teacher = detach_teacher
         self.max_dropped = max_dropped
@@ -99,8 +113,10 @@ class MissingModalityLoss(ForecasterLossBase):
         if present is not None:
             unknown = sorted(set(present) - set(self.modality_names))
             if unknown:
-                raise ValueError(f"{type(self).__name__}.set_keys(present=...): {unknown} are not modalities "
-                                 f"of the forecaster; expected a subset of {self.modality_names}")
+                raise ValueError(
+                    f"{type(self).__name__}.set_keys(present=...): {unknown} are not modalities "
+                    f"of the forecaster; expected a subset of {self.modality_names}"
+                )
             kwargs["present"] = {**self.tensor_keys.present, **present}
         super().set_keys(**kwargs)
 
@@ -109,14 +125,22 @@ class MissingModalityLoss(ForecasterLossBase):
         extra = [k.target] if self.dropped_nll_weight else []
         if self.prior_weight:
             extra += [k.prior_loc, k.prior_scale, k.prior_dropped_loc, k.prior_dropped_scale]
-        return [k.forecast_loc, k.forecast_scale, k.dropped_loc, k.dropped_scale, *k.present.values(), *extra] + [
-            keys.drop_key(m) for m in self.modality_names
-        ]
+        return [
+            k.forecast_loc,
+            k.forecast_scale,
+            k.dropped_loc,
+            k.dropped_scale,
+            *k.present.values(),
+            *extra,
+        ] + [keys.drop_key(m) for m in self.modality_names]
 
     @property
     def out_keys(self):
-        terms = ["loss_mis"] + (["loss_mis_nll"] if self.dropped_nll_weight else []) + (
-            ["loss_mis_prior"] if self.prior_weight else [])
+        terms = (
+            ["loss_mis"]
+            + (["loss_mis_nll"] if self.dropped_nll_weight else [])
+            + (["loss_mis_prior"] if self.prior_weight else [])
+        )
         return terms + ["mis_kl", "mis_fraction", "mis_dropped"]
 
     def prepare(self, td: TensorDictBase) -> TensorDictBase:
@@ -163,8 +187,12 @@ class MissingModalityLoss(ForecasterLossBase):
             prior_loc, prior_scale = self._get(td, k.prior_loc), self._get(td, k.prior_scale)
             if self.detach_teacher:
                 prior_loc, prior_scale = prior_loc.detach(), prior_scale.detach()
-            prior_kl = gaussian_kl(prior_loc, prior_scale, self._get(td, k.prior_dropped_loc),
-                                   self._get(td, k.prior_dropped_scale)).sum(-1)
+            prior_kl = gaussian_kl(
+                prior_loc,
+                prior_scale,
+                self._get(td, k.prior_dropped_loc),
+                self._get(td, k.prior_dropped_scale),
+            ).sum(-1)
             out.set("loss_mis_prior", self.prior_weight * self._per_eligible(prior_kl, eligible))
         out.update(
             mis_kl=(kl * eligible).sum().detach() / eligible.sum().clamp_min(1),

@@ -39,5 +39,7 @@ class GaussianNLLLoss(ForecasterLossBase):
 
     def loss_from_outputs(self, td: TensorDictBase) -> TensorDict:
         k = self.tensor_keys
-        nll = gaussian_nll(self._get(td, k.target), self._get(td, k.forecast_loc), self._get(td, k.forecast_scale))
+        nll = gaussian_nll(
+            self._get(td, k.target), self._get(td, k.forecast_loc), self._get(td, k.forecast_scale)
+        )
         return TensorDict(loss_nll=reduce_batch(nll.flatten(1).sum(-1), self.reduction))

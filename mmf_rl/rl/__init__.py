@@ -7,5 +7,12 @@ from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.rl.world_model import WorldModel
 from mmf_rl.rl.world_model_env import ForecasterWorldModelEnv, ImaginedPlanningPolicy
 
-__all__ = ["ForecastTransform", "ForecasterWorldModelEnv", "HistoryWindow", "ImaginedPlanningPolicy",
-           "PushObjective", "SequenceCEMPlanner", "WorldModel"]
+__all__ = [
+    "ForecastTransform",
+    "ForecasterWorldModelEnv",
+    "HistoryWindow",
+    "ImaginedPlanningPolicy",
+    "PushObjective",
+    "SequenceCEMPlanner",
+    "WorldModel",
+]

@@ -58,18 +58,32 @@ class SequenceCEMPlanner(TensorDictModuleBase):
         seed: seed of the planner's own generator.
     """
 
-    def __init__(self, world_model: WorldModel, objective: Objective, action_spec: Bounded, *,
-                 num_candidates: int = 128, num_iterations: int = 4, num_elites: int = 16, init_std: float = 1.0,
-                 min_std: float = 0.05, seed: int = 0):
+    def __init__(
+        self,
+        world_model: WorldModel,
+        objective: Objective,
+        action_spec: Bounded,
+        *,
+        num_candidates: int = 128,
+        num_iterations: int = 4,
+        num_elites: int = 16,
+        init_std: float = 1.0,
+        min_std: float = 0.05,
+        seed: int = 0,
+    ):
         super().__init__()
         if not 1 <= num_elites <= num_candidates:
-            raise ValueError(f"SequenceCEMPlanner: need 1 <= num_elites ({num_elites}) <= num_candidates "
-                             f"({num_candidates})")
+            raise ValueError(
+                f"SequenceCEMPlanner: need 1 <= num_elites ({num_elites}) <= num_candidates "
+                f"({num_candidates})"
+            )
         if num_iterations < 1:
             raise ValueError(f"SequenceCEMPlanner: num_iterations must be >= 1, found {num_iterations}")
         if not action_spec.shape or action_spec.shape[-1] != world_model.action_dim:
-            raise ValueError(f"SequenceCEMPlanner: the env's action spec has shape {list(action_spec.shape)} but the "
-                             f"world model was trained on actions of {world_model.action_dim} dims")
+            raise ValueError(
+                f"SequenceCEMPlanner: the env's action spec has shape {list(action_spec.shape)} but the "
+                f"world model was trained on actions of {world_model.action_dim} dims"
+            )
         self.world_model, self.objective = world_model, objective
         # A batched env's spec repeats one env's bounds per row.
         dim = world_model.action_dim

@@ -56,10 +56,14 @@ class PushObjective:
     def __init__(self, reach_weight: float = 0.5, height_weight: float = 2.0):
         self.reach_weight, self.height_weight = reach_weight, height_weight
 
-    def __call__(self, forecast: torch.Tensor, actions: torch.Tensor, context: TensorDictBase) -> torch.Tensor:
+    def __call__(
+        self, forecast: torch.Tensor, actions: torch.Tensor, context: TensorDictBase
+    ) -> torch.Tensor:
         horizon, steps = forecast.shape[-2], actions.shape[-2]
         if steps % horizon:
-            raise ValueError(f"PushObjective: {steps} action steps do not split into {horizon} forecast steps")
+            raise ValueError(
+                f"PushObjective: {steps} action steps do not split into {horizon} forecast steps"
+            )
         pose = context.get(OBJECT_POSE)[:, None, None]  # [n, 1, 1, 7]
         goal = context.get(GOAL)[:, None, None, :2]
         gripper_now = context.get(keys.obs_key("proprio"))[:, None, None, :3]

@@ -34,19 +34,30 @@ class WorldModel:
     change up into an input thousands of stds away.
     """
 
-    def __init__(self, model: MultimodalForecaster, stats: Mapping[str, torch.Tensor], stride: int = 1,
-                 std_floor: float = 1e-3):
+    def __init__(
+        self,
+        model: MultimodalForecaster,
+        stats: Mapping[str, torch.Tensor],
+        stride: int = 1,
+        std_floor: float = 1e-3,
+    ):
         if not getattr(model.config, "action_dim", 0):
-            raise ValueError("WorldModel needs an action-conditioned forecaster (action_dim > 0): train one with "
-                             "`action` in the data config (mmf-rl train experiment=world_model)")
+            raise ValueError(
+                "WorldModel needs an action-conditioned forecaster (action_dim > 0): train one with "
+                "`action` in the data config (mmf-rl train experiment=world_model)"
+            )
         required = [f"{keys.FUTURE_ACTION}/mean", f"{keys.FUTURE_ACTION}/std"]
         missing = [k for k in required if k not in stats]
         if missing:
-            raise KeyError(f"WorldModel: normalisation stats lack {missing} (found {sorted(stats)}); pass the stats "
-                           "of the run that trained the model (checkpoint.tensors)")
+            raise KeyError(
+                f"WorldModel: normalisation stats lack {missing} (found {sorted(stats)}); pass the stats "
+                "of the run that trained the model (checkpoint.tensors)"
+            )
         self.model = model.eval()
         self.normalizer = Normalizer({k: v.to(self.device) for k, v in stats.items()})
-        self.constant_action_dims = self.normalizer.stats[f"{keys.FUTURE_ACTION}/std"] <= std_floor * (1 + 1e-4)
+        self.constant_action_dims = self.normalizer.stats[f"{keys.FUTURE_ACTION}/std"] <= std_floor * (
+            1 + 1e-4
+        )
         self.stride = stride
         self.action_steps, self.action_dim = model.config.action_shape
         self.horizon, self.target_dim = model.config.horizon, model.config.target_dim
@@ -54,8 +65,12 @@ class WorldModel:
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike, map_location: str | torch.device = "cpu") -> WorldModel:
         model, stats, data_config = load_trained_model(path, map_location)
-        return cls(model, stats, stride=int(data_config.get("stride", 1)),
-                   std_floor=float(data_config.get("std_floor", 1e-3)))
+        return cls(
+            model,
+            stats,
+            stride=int(data_config.get("stride", 1)),
+            std_floor=float(data_config.get("std_floor", 1e-3)),
+        )
 
     def history_window(self) -> HistoryWindow:
         """The env transform that writes the ``"history"`` window this model reads (its modalities,
@@ -79,13 +94,16 @@ class WorldModel:
         valid = present.any(1)
         no_tokens = torch.zeros(present.shape[0], len(specs), self.model.config.d_model, device=self.device)
         tokens, present = compute_on_rows(
-            valid, lambda rows: self.model.encode((window if rows is None else window[rows.cpu()]).to(self.device)),
-            (no_tokens, present))
+            valid,
+            lambda rows: self.model.encode((window if rows is None else window[rows.cpu()]).to(self.device)),
+            (no_tokens, present),
+        )
         return tokens, present, valid
 
     @torch.no_grad()
-    def forecast(self, tokens: torch.Tensor, present: torch.Tensor, valid: torch.Tensor,
-                 actions: torch.Tensor) -> torch.Tensor:
+    def forecast(
+        self, tokens: torch.Tensor, present: torch.Tensor, valid: torch.Tensor, actions: torch.Tensor
+    ) -> torch.Tensor:
         """Forecast ``[n, N, T, D]`` (target units) for raw action sequences ``[n, N, S, A]``."""
         n, candidates = actions.shape[:2]
         prior = torch.zeros(n, candidates, self.horizon, self.target_dim, device=self.device)

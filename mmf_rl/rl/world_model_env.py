@@ -56,10 +56,14 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         >>> # or, as the real env's policy: real_env.rollout(50, ImaginedPlanningPolicy(planner, wm_env))
     """
 
-    def __init__(self, world_model: WorldModel, objective: Objective, action_spec: Bounded, context_spec: Composite):
+    def __init__(
+        self, world_model: WorldModel, objective: Objective, action_spec: Bounded, context_spec: Composite
+    ):
         if action_spec.shape != (world_model.action_dim,):
-            raise ValueError(f"ForecasterWorldModelEnv: action_spec must be one env's, shape [{world_model.action_dim}] "
-                             f"(what the world model was trained on); found {list(action_spec.shape)}")
+            raise ValueError(
+                f"ForecasterWorldModelEnv: action_spec must be one env's, shape [{world_model.action_dim}] "
+                f"(what the world model was trained on); found {list(action_spec.shape)}"
+            )
         super().__init__(world_model.model, device=world_model.device, batch_size=torch.Size([]))
         self.dynamics, self.objective = world_model, objective
         model = world_model.model
@@ -69,25 +73,41 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         # The imagined state is observed (as Dreamer's model-based env observes its latent state),
         # so every step carries it forward.
         self.observation_spec = Composite(
-            {FORECAST: Unbounded((world_model.target_dim,), dtype=torch.float32),
-             TOKENS: Unbounded((m, d), dtype=torch.float32), TOKEN_PRESENT: Categorical(2, (m,), dtype=torch.bool),
-             VALID: Categorical(2, (), dtype=torch.bool), ACTIONS: Unbounded((steps, dim), dtype=torch.float32),
-             STEP: Unbounded((1,), dtype=torch.int64), **{k: context_spec[k] for k in objective.in_keys}})
+            {
+                FORECAST: Unbounded((world_model.target_dim,), dtype=torch.float32),
+                TOKENS: Unbounded((m, d), dtype=torch.float32),
+                TOKEN_PRESENT: Categorical(2, (m,), dtype=torch.bool),
+                VALID: Categorical(2, (), dtype=torch.bool),
+                ACTIONS: Unbounded((steps, dim), dtype=torch.float32),
+                STEP: Unbounded((1,), dtype=torch.int64),
+                **{k: context_spec[k] for k in objective.in_keys},
+            }
+        )
         self.reward_spec = Unbounded((1,), dtype=torch.float32)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         if tensordict is None or keys.HISTORY not in tensordict.keys():
-            raise KeyError(f"ForecasterWorldModelEnv.reset needs a real env's tensordict with {keys.HISTORY!r} (add "
-                           f"HistoryWindow to the real env) and the objective's keys {self.objective.in_keys}")
+            raise KeyError(
+                f"ForecasterWorldModelEnv.reset needs a real env's tensordict with {keys.HISTORY!r} (add "
+                f"HistoryWindow to the real env) and the objective's keys {self.objective.in_keys}"
+            )
         batch = tensordict.batch_size
         n = batch.numel()
         tokens, present, valid = self.dynamics.encode(tensordict.get(keys.HISTORY).reshape(n))
         steps, dim = self.dynamics.action_steps, self.dynamics.action_dim
         state = TensorDict(
-            {TOKENS: tokens, TOKEN_PRESENT: present, VALID: valid, ACTIONS: torch.zeros(n, steps, dim),
-             STEP: torch.zeros(n, 1, dtype=torch.int64), FORECAST: torch.zeros(n, self.dynamics.target_dim),
-             "done": torch.zeros(n, 1, dtype=torch.bool), "terminated": torch.zeros(n, 1, dtype=torch.bool)},
-            batch_size=[n]).reshape(batch)
+            {
+                TOKENS: tokens,
+                TOKEN_PRESENT: present,
+                VALID: valid,
+                ACTIONS: torch.zeros(n, steps, dim),
+                STEP: torch.zeros(n, 1, dtype=torch.int64),
+                FORECAST: torch.zeros(n, self.dynamics.target_dim),
+                "done": torch.zeros(n, 1, dtype=torch.bool),
+                "terminated": torch.zeros(n, 1, dtype=torch.bool),
+            },
+            batch_size=[n],
+        ).reshape(batch)
         return state.update(tensordict.select(*self.objective.in_keys))
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -97,12 +117,16 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         step = flat.get(STEP)  # [n, 1]
         steps = self.dynamics.action_steps
         if bool((step >= steps).any()):
-            raise RuntimeError(f"ForecasterWorldModelEnv: imagined past the model's horizon ({steps} steps); reset "
-                               "from real history")
+            raise RuntimeError(
+                f"ForecasterWorldModelEnv: imagined past the model's horizon ({steps} steps); reset "
+                "from real history"
+            )
         # The new action replaces this step's and, until chosen, every later step's.
         later = torch.arange(steps)[None, :, None] >= step[:, :, None]
         actions = torch.where(later, flat.get("action")[:, None, :], flat.get(ACTIONS))
-        forecast = self.dynamics.forecast(flat.get(TOKENS), flat.get(TOKEN_PRESENT), flat.get(VALID), actions[:, None]).cpu()
+        forecast = self.dynamics.forecast(
+            flat.get(TOKENS), flat.get(TOKEN_PRESENT), flat.get(VALID), actions[:, None]
+        ).cpu()
         context = flat.select(*self.objective.in_keys)
         rewards = self.objective(forecast, actions[:, None], context)[:, 0]  # [n, T]
         index = step // (steps // self.dynamics.horizon)  # the forecast step of this action's frame
@@ -110,9 +134,19 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         predicted = forecast[:, 0].gather(1, index[:, :, None].expand(-1, -1, forecast.shape[-1]))[:, 0]
         done = step + 1 >= steps
         out = TensorDict(
-            {TOKENS: flat.get(TOKENS), TOKEN_PRESENT: flat.get(TOKEN_PRESENT), VALID: flat.get(VALID), ACTIONS: actions,
-             STEP: step + 1, FORECAST: predicted, "reward": reward, "done": done, "terminated": done.clone()},
-            batch_size=[n])
+            {
+                TOKENS: flat.get(TOKENS),
+                TOKEN_PRESENT: flat.get(TOKEN_PRESENT),
+                VALID: flat.get(VALID),
+                ACTIONS: actions,
+                STEP: step + 1,
+                FORECAST: predicted,
+                "reward": reward,
+                "done": done,
+                "terminated": done.clone(),
+            },
+            batch_size=[n],
+        )
         return out.update(context).reshape(batch)
 
 

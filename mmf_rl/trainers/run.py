@@ -30,8 +30,8 @@ from omegaconf import OmegaConf
 from mmf_rl.checkpoint import CheckpointError, list_checkpoints, remove_leftovers
 from mmf_rl.configuration import ConfigError, load_config, parse_config_command, save_config, to_container
 from mmf_rl.datasets import AugmentConfig, DataConfig, ImageAugmentation, WindowDataset
-from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.devices import resolve_device
+from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.models import build_loss, build_model, init_weights_from, saved_config
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.objectives import LossConfig
@@ -56,7 +56,9 @@ def init_distributed(device: torch.device) -> tuple[int, int]:
         return 0, 1
     backend = "nccl" if device.type == "cuda" else "gloo"
     # A bounded timeout: if a rank dies, the others fail in a collective instead of hanging forever.
-    dist.init_process_group(backend, timeout=timedelta(seconds=int(os.environ.get("MMF_RL_DIST_TIMEOUT", "300"))))
+    dist.init_process_group(
+        backend, timeout=timedelta(seconds=int(os.environ.get("MMF_RL_DIST_TIMEOUT", "300")))
+    )
     if device.type == "cuda":
         torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
     return dist.get_rank(), world_size
@@ -115,15 +117,19 @@ def check_resumable(run_dir: Path, cfg) -> None:
     changed = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
     if changed:
         details = ", ".join(f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in changed[:8])
-        raise CheckpointError(f"resume=true with a config that differs from {saved_path} ({details}); resume with "
-                              "the same config, or train into a new run_dir")
+        raise CheckpointError(
+            f"resume=true with a config that differs from {saved_path} ({details}); resume with "
+            "the same config, or train into a new run_dir"
+        )
 
 
 def check_name(name: str) -> None:
     """``name`` becomes a directory name (``run_dir: runs/${name}``): one path component, no traversal."""
     if any(sep in name for sep in (os.sep, os.altsep) if sep) or name in ("", ".", ".."):
-        raise ConfigError(f"name={name!r} must be a plain name without path separators (it names the run "
-                          "directory runs/<name>); to train elsewhere set run_dir=PATH instead")
+        raise ConfigError(
+            f"name={name!r} must be a plain name without path separators (it names the run "
+            "directory runs/<name>); to train elsewhere set run_dir=PATH instead"
+        )
 
 
 def train(cfg) -> Path:
@@ -138,12 +144,17 @@ def train(cfg) -> Path:
     cfg.run_dir = str(run_dir)
     if rank == 0:
         for leftover in remove_leftovers(run_dir / "checkpoints"):
-            print(f"removed {leftover}: left by a run killed while saving or pruning a checkpoint", file=sys.stderr)
+            print(
+                f"removed {leftover}: left by a run killed while saving or pruning a checkpoint",
+                file=sys.stderr,
+            )
         if cfg.resume:
             check_resumable(run_dir, cfg)
         elif list_checkpoints(run_dir / "checkpoints"):
-            raise CheckpointError(f"{run_dir} already holds a trained run; pass resume=true to continue it, or "
-                                  "choose another run_dir (nothing was overwritten)")
+            raise CheckpointError(
+                f"{run_dir} already holds a trained run; pass resume=true to continue it, or "
+                "choose another run_dir (nothing was overwritten)"
+            )
         save_config(cfg, run_dir / RUN_CONFIG)
 
     data_cfg = DataConfig.from_dict(to_container(cfg.data))
@@ -161,8 +172,14 @@ def train(cfg) -> Path:
 
     seed_everything(trainer_cfg.seed)  # same initial weights on every rank
     model_cfg = to_container(cfg.model)
-    model = build_model(model_cfg, data.specs, data_cfg.history, data_cfg.horizon, data.target_dim,
-                        action_shape=data.action_shape).to(device)
+    model = build_model(
+        model_cfg,
+        data.specs,
+        data_cfg.history,
+        data_cfg.horizon,
+        data.target_dim,
+        action_shape=data.action_shape,
+    ).to(device)
     model_name = model_cfg.get("name", "forecaster")
     if cfg.get("init_from") is not None and not cfg.resume:  # resuming restores the run's own weights
         source = init_weights_from(model, cfg.init_from)
@@ -172,21 +189,40 @@ def train(cfg) -> Path:
     seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents
     augment_cfg = AugmentConfig.from_dict(to_container(cfg.augment) if "augment" in cfg else None)
     augment = ImageAugmentation(augment_cfg, data.specs, trainer_cfg.seed) if augment_cfg.enable else None
-    loader = data.loader("train", trainer_cfg.batch_size, seed=trainer_cfg.seed, rank=rank, world_size=world_size,
-                         augment=augment)
+    loader = data.loader(
+        "train",
+        trainer_cfg.batch_size,
+        seed=trainer_cfg.seed,
+        rank=rank,
+        world_size=world_size,
+        augment=augment,
+    )
     val_loader = data.loader("val", max(trainer_cfg.batch_size, 256))
     denormalize = data.normalizer.denormalize_target
 
     def validate(m):
-        metrics = evaluate_forecasts(m, (b.to(device) for b in val_loader), lambda t: denormalize(t.cpu()).to(t))
+        metrics = evaluate_forecasts(
+            m, (b.to(device) for b in val_loader), lambda t: denormalize(t.cpu()).to(t)
+        )
         return {f"val/{k}": v for k, v in metrics.items() if k != "windows"}
 
     trainer = Trainer(
-        model, loss, loader, trainer_cfg, run_dir=run_dir, logger=make_logger(cfg.logger, run_dir) if rank == 0 else None,
+        model,
+        loss,
+        loader,
+        trainer_cfg,
+        run_dir=run_dir,
+        logger=make_logger(cfg.logger, run_dir) if rank == 0 else None,
         evaluate=validate if len(data.split_windows["val"]) else None,
-        checkpoint_meta={"config": to_container(cfg), "model_config": saved_config(model_name, model),
-                         "data_fingerprint": data.cache_path.name, "world_size": world_size},
-        checkpoint_tensors=data.normalizer.stats, rank=rank, world_size=world_size,
+        checkpoint_meta={
+            "config": to_container(cfg),
+            "model_config": saved_config(model_name, model),
+            "data_fingerprint": data.cache_path.name,
+            "world_size": world_size,
+        },
+        checkpoint_tensors=data.normalizer.stats,
+        rank=rank,
+        world_size=world_size,
     )
     if device.type != "cpu":
         trainer.register_op("batch_process", lambda batch: batch.to(device, non_blocking=True))
@@ -199,7 +235,10 @@ def train(cfg) -> Path:
         model.normalization_stats, model.data_config = data.normalizer.stats, data_cfg.to_dict()
         model.save_pretrained(run_dir / PRETRAINED_DIR)
         summary = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
-        print(f"trained {trainer.step} steps -> {trainer.last_checkpoint}" + (f" ({summary})" if summary else ""))
+        print(
+            f"trained {trainer.step} steps -> {trainer.last_checkpoint}"
+            + (f" ({summary})" if summary else "")
+        )
     if world_size > 1:
         dist.destroy_process_group()
     return run_dir
@@ -208,16 +247,27 @@ def train(cfg) -> Path:
 def distributed_failure(error: RuntimeError, run_dir: Path) -> str:
     """One line for a rank whose training broke under DDP: usually a peer died or hung."""
     checkpoints = list_checkpoints(run_dir / "checkpoints")
-    resume = (f"continue from {checkpoints[-1]} with resume=true" if checkpoints
-              else "nothing was checkpointed yet; start again")
+    resume = (
+        f"continue from {checkpoints[-1]} with resume=true"
+        if checkpoints
+        else "nothing was checkpointed yet; start again"
+    )
     cause = " ".join(str(error).split())[:300]
-    return (f"rank {os.environ.get('RANK', '?')} of {os.environ['WORLD_SIZE']} stopped ({type(error).__name__}: "
-            f"{cause}); if another rank died or hung, torchrun's report names it; {resume}")
+    return (
+        f"rank {os.environ.get('RANK', '?')} of {os.environ['WORLD_SIZE']} stopped ({type(error).__name__}: "
+        f"{cause}); if another rank died or hung, torchrun's report names it; {resume}"
+    )
 
 
 def main(argv: list[str]) -> int:
-    command = parse_config_command(argv, "train", "mmf-rl train", "Train a missing-modality forecaster on a LeRobot "
-                                   "dataset (configs/train.yaml composed with your overrides).", EXAMPLES)
+    command = parse_config_command(
+        argv,
+        "train",
+        "mmf-rl train",
+        "Train a missing-modality forecaster on a LeRobot "
+        "dataset (configs/train.yaml composed with your overrides).",
+        EXAMPLES,
+    )
     try:
         cfg = command.compose("train")
         if command.print_config:

@@ -17,9 +17,9 @@ import math
 import random
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -28,8 +28,8 @@ from tensordict import TensorDictBase
 from torch.nn.parallel import DistributedDataParallel
 from tqdm.auto import tqdm
 
-from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.checkpoint import load_checkpoint, load_model_state, save_checkpoint
+from mmf_rl.configuration import reject_unknown_keys
 
 OPS = ("batch_process", "post_loss", "post_optim", "post_steps", "post_steps_log")
 
@@ -68,8 +68,17 @@ class TrainerConfig:
 
     def __post_init__(self):
         if self.lr_schedule not in ("constant", "cosine"):
-            raise ValueError(f"trainer.lr_schedule must be 'constant' or 'cosine', found {self.lr_schedule!r}")
-        for name in ("total_steps", "batch_size", "log_every", "eval_every", "checkpoint_every", "keep_checkpoints"):
+            raise ValueError(
+                f"trainer.lr_schedule must be 'constant' or 'cosine', found {self.lr_schedule!r}"
+            )
+        for name in (
+            "total_steps",
+            "batch_size",
+            "log_every",
+            "eval_every",
+            "checkpoint_every",
+            "keep_checkpoints",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"trainer.{name} must be >= 1, found {getattr(self, name)}")
 
@@ -89,8 +98,12 @@ def rng_state() -> dict:
     mt, keys_, pos, has_gauss, cached = np.random.get_state()
     return {
         "torch": torch.get_rng_state(),
-        "numpy": {"keys": torch.from_numpy(keys_.astype(np.int64)), "pos": pos, "has_gauss": has_gauss,
-                  "cached": cached},
+        "numpy": {
+            "keys": torch.from_numpy(keys_.astype(np.int64)),
+            "pos": pos,
+            "has_gauss": has_gauss,
+            "cached": cached,
+        },
         "python": random.getstate(),
     }
 
@@ -98,7 +111,9 @@ def rng_state() -> dict:
 def set_rng_state(state: dict) -> None:
     torch.set_rng_state(state["torch"])
     n = state["numpy"]
-    np.random.set_state(("MT19937", n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"]))
+    np.random.set_state(
+        ("MT19937", n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"])
+    )
     python = state["python"]
     random.setstate((python[0], tuple(python[1]), python[2]))
 
@@ -107,7 +122,9 @@ def make_optimizer(params, config: TrainerConfig) -> torch.optim.Optimizer:
     return torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay)
 
 
-def make_scheduler(optimizer: torch.optim.Optimizer, config: TrainerConfig) -> torch.optim.lr_scheduler.LRScheduler:
+def make_scheduler(
+    optimizer: torch.optim.Optimizer, config: TrainerConfig
+) -> torch.optim.lr_scheduler.LRScheduler:
     """Linear warm-up, then constant or cosine decay to 0 at ``total_steps``."""
     warmup, total, cosine = config.warmup_steps, config.total_steps, config.lr_schedule == "cosine"
 
@@ -159,11 +176,21 @@ class Trainer:
             when ``world_size > 1``).
     """
 
-    def __init__(self, model: torch.nn.Module, loss_module: torch.nn.Module, loader, config: TrainerConfig, *,
-                 run_dir: str | Path | None = None, logger=None,
-                 evaluate: Callable[[torch.nn.Module], dict[str, float]] | None = None,
-                 checkpoint_meta: dict | None = None, checkpoint_tensors: dict[str, torch.Tensor] | None = None,
-                 rank: int = 0, world_size: int = 1):
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        loss_module: torch.nn.Module,
+        loader,
+        config: TrainerConfig,
+        *,
+        run_dir: str | Path | None = None,
+        logger=None,
+        evaluate: Callable[[torch.nn.Module], dict[str, float]] | None = None,
+        checkpoint_meta: dict | None = None,
+        checkpoint_tensors: dict[str, torch.Tensor] | None = None,
+        rank: int = 0,
+        world_size: int = 1,
+    ):
         self.model, self.loss_module, self.loader, self.config = model, loss_module, loader, config
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.logger = logger if rank == 0 else None
@@ -210,17 +237,24 @@ class Trainer:
     def _loss_buffers(self) -> dict[str, torch.Tensor]:
         # The loss module's own state (e.g. the KL warm-up counter), not the model weights it wraps.
         model_tensors = {id(t) for t in self.model.state_dict(keep_vars=True).values()}
-        return {k: v for k, v in self.loss_module.state_dict(keep_vars=True).items() if id(v) not in model_tensors}
+        return {
+            k: v for k, v in self.loss_module.state_dict(keep_vars=True).items() if id(v) not in model_tensors
+        }
 
     def state_dict(self) -> dict:
         epoch, batch_in_epoch = self.epoch, self.batch_in_epoch
         if batch_in_epoch >= len(self.loader):  # the epoch is finished: resume at the next one
             epoch, batch_in_epoch = epoch + 1, 0
         return {
-            "step": self.step, "epoch": epoch, "batch_in_epoch": batch_in_epoch,
-            "optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
+            "step": self.step,
+            "epoch": epoch,
+            "batch_in_epoch": batch_in_epoch,
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
             "loss_buffers": {k: v.detach().clone() for k, v in self._loss_buffers().items()},
-            "rng": self._rng_states(), "nonfinite_total": self.nonfinite_total, "best_metric": self.best_metric,
+            "rng": self._rng_states(),
+            "nonfinite_total": self.nonfinite_total,
+            "best_metric": self.best_metric,
             "evals_without_improvement": self.evals_without_improvement,
         }
 
@@ -239,8 +273,10 @@ class Trainer:
         self.loss_module.load_state_dict(state["loss_buffers"], strict=False)
         rngs = state["rng"]
         if len(rngs) != self.world_size:
-            raise RuntimeError(f"the checkpoint was written by {len(rngs)} rank(s) and this run has "
-                               f"{self.world_size}; resume with the same number of processes")
+            raise RuntimeError(
+                f"the checkpoint was written by {len(rngs)} rank(s) and this run has "
+                f"{self.world_size}; resume with the same number of processes"
+            )
         set_rng_state(rngs[self.rank])
         self.nonfinite_total = state["nonfinite_total"]
         self.best_metric = state["best_metric"]
@@ -253,9 +289,13 @@ class Trainer:
         state = self.state_dict()
         if self.rank == 0:
             self.last_checkpoint = save_checkpoint(
-                self.run_dir / "checkpoints", self.step, self.model.state_dict(),
+                self.run_dir / "checkpoints",
+                self.step,
+                self.model.state_dict(),
                 meta={**self.checkpoint_meta, "trainer": asdict(self.config)},
-                tensors=self.checkpoint_tensors, trainer_state=state, keep_last=self.config.keep_checkpoints,
+                tensors=self.checkpoint_tensors,
+                trainer_state=state,
+                keep_last=self.config.keep_checkpoints,
             )
         if self.world_size > 1:
             dist.barrier()  # no rank runs ahead of a checkpoint it may be asked to resume from
@@ -266,7 +306,9 @@ class Trainer:
         checkpoint = load_checkpoint(path)
         load_model_state(self.model, checkpoint)
         if checkpoint.trainer_state is None:
-            raise RuntimeError(f"{checkpoint.path} holds weights only (no trainer state); it cannot be resumed")
+            raise RuntimeError(
+                f"{checkpoint.path} holds weights only (no trainer state); it cannot be resumed"
+            )
         self.load_state_dict(checkpoint.trainer_state)
         self.last_checkpoint = checkpoint.path
 
@@ -274,8 +316,10 @@ class Trainer:
 
     def _batches(self):
         if len(self.loader) == 0:
-            raise ValueError("the training loader yields no batch: the training split has fewer windows than "
-                             "one batch per rank; lower the batch size or record more episodes")
+            raise ValueError(
+                "the training loader yields no batch: the training split has fewer windows than "
+                "one batch per rank; lower the batch size or record more episodes"
+            )
         while True:
             self.loader.set_epoch(self.epoch)
             for index, batch in enumerate(self.loader):
@@ -294,8 +338,12 @@ class Trainer:
         # decision (skip, stop or step) before backward, or the gradient all-reduce inside
         # backward would wait forever. (A DDP forward without backward is fine: the next forward
         # starts a new reduction.)
-        status = torch.tensor([0.0 if math.isfinite(total_value) else 1.0,
-                               total_value if math.isfinite(total_value) else -math.inf])
+        status = torch.tensor(
+            [
+                0.0 if math.isfinite(total_value) else 1.0,
+                total_value if math.isfinite(total_value) else -math.inf,
+            ]
+        )
         if self.world_size > 1:
             dist.all_reduce(status, op=dist.ReduceOp.MAX)
         if status[0] > 0:
@@ -306,14 +354,16 @@ class Trainer:
                 raise TrainingStopped(
                     f"{self.nonfinite_in_a_row} steps in a row had a non-finite loss ({bad or 'on another rank'}); "
                     f"last at step {self.step}, epoch {self.epoch}, batch {self.batch_in_epoch - 1}. Check that batch "
-                    f"for NaN/Inf inputs, or lower trainer.lr. Last good checkpoint: {self.last_checkpoint}")
+                    f"for NaN/Inf inputs, or lower trainer.lr. Last good checkpoint: {self.last_checkpoint}"
+                )
             return None
         worst = float(status[1])
         if worst > self.config.loss_explosion_threshold:
             raise TrainingStopped(
                 f"loss exploded to {worst:.3g} at step {self.step} (threshold "
                 f"trainer.loss_explosion_threshold={self.config.loss_explosion_threshold:g}); lower trainer.lr or "
-                f"enable gradient clipping. Last good checkpoint: {self.last_checkpoint}")
+                f"enable gradient clipping. Last good checkpoint: {self.last_checkpoint}"
+            )
         self.nonfinite_in_a_row = 0
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
@@ -356,8 +406,14 @@ class Trainer:
         batches = self._batches()
         window: dict[str, list[float]] = defaultdict(list)
         samples, started = 0, time.perf_counter()
-        bar = tqdm(total=cfg.total_steps, initial=self.step, disable=not cfg.progress_bar or self.rank != 0,
-                   desc="train", unit="step", dynamic_ncols=True)
+        bar = tqdm(
+            total=cfg.total_steps,
+            initial=self.step,
+            disable=not cfg.progress_bar or self.rank != 0,
+            desc="train",
+            unit="step",
+            dynamic_ncols=True,
+        )
         metrics: dict[str, float] = {}
         try:
             while self.step < cfg.total_steps:
@@ -390,10 +446,14 @@ class Trainer:
                 if self.step % cfg.eval_every == 0 or last:
                     metrics = self._evaluate()
                     self._log(metrics)
-                    if (cfg.early_stopping_patience is not None
-                            and self.evals_without_improvement > cfg.early_stopping_patience):
-                        tqdm.write(f"early stopping at step {self.step}: {cfg.early_stopping_metric} has not improved "
-                                   f"for {self.evals_without_improvement} evaluations (best {self.best_metric:.4g})")
+                    if (
+                        cfg.early_stopping_patience is not None
+                        and self.evals_without_improvement > cfg.early_stopping_patience
+                    ):
+                        tqdm.write(
+                            f"early stopping at step {self.step}: {cfg.early_stopping_metric} has not improved "
+                            f"for {self.evals_without_improvement} evaluations (best {self.best_metric:.4g})"
+                        )
                         self.save()
                         break
                 if self.step % cfg.checkpoint_every == 0 or last:
@@ -412,9 +472,13 @@ class Trainer:
         gap = (flat - reference).abs().max()
         dist.all_reduce(gap, op=dist.ReduceOp.MAX)
         if gap > tolerance:
-            raise RuntimeError(f"data-parallel ranks diverged: max weight difference {float(gap):.3g} after "
-                               f"{self.step} steps")
+            raise RuntimeError(
+                f"data-parallel ranks diverged: max weight difference {float(gap):.3g} after "
+                f"{self.step} steps"
+            )
         if self.rank == 0:
-            print(f"data parallel: {self.world_size} ranks agree after {self.step} steps "
-                  f"(max weight difference {float(gap):.1e})")
+            print(
+                f"data parallel: {self.world_size} ranks agree after {self.step} steps "
+                f"(max weight difference {float(gap):.1e})"
+            )
         return float(gap)

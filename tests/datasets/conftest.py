@@ -21,11 +21,15 @@ from mmf_rl.datasets.synthetic import (
 
 # The shared real recordings sit beside the repository (../shared/data), in CI as here;
 # MMF_RL_SHARED_DATA points elsewhere (e.g. from a git worktree).
-SHARED_DATA = Path(os.environ.get("MMF_RL_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data"))
+SHARED_DATA = Path(
+    os.environ.get("MMF_RL_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data")
+)
 SO101_ROOT = SHARED_DATA / "so101_record_test"
 G1_ROOT = SHARED_DATA / "g1_pick_bottle_small"
-needs_so101 = pytest.mark.skipif(not (SO101_ROOT / "meta" / "info.json").is_file(),
-                                 reason=f"the real SO-101 recording is not at {SO101_ROOT} (../shared beside the repo)")
+needs_so101 = pytest.mark.skipif(
+    not (SO101_ROOT / "meta" / "info.json").is_file(),
+    reason=f"the real SO-101 recording is not at {SO101_ROOT} (../shared beside the repo)",
+)
 # Episode 4 (6 frames) is shorter than history + horizon = 7: it must be skipped.
 EPISODE_LENGTHS = [30, 25, 20, 12, 6]
 NAN_FORCE_EPISODE = 1  # force is NaN on frames [5, 10)
@@ -37,7 +41,9 @@ IMAGE_SIZE = 24
 def g1_root() -> Path:
     """The real humanoid recording (AV1 camera, 26-D joints), read-only."""
     if not (G1_ROOT / "meta" / "info.json").is_file():
-        pytest.skip(f"real G1 recording not found at {G1_ROOT} (set MMF_RL_SHARED_DATA to the shared data directory)")
+        pytest.skip(
+            f"real G1 recording not found at {G1_ROOT} (set MMF_RL_SHARED_DATA to the shared data directory)"
+        )
     return G1_ROOT
 
 
@@ -45,7 +51,10 @@ def g1_root() -> Path:
 def synthetic_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("synthetic") / "push"
     make_synthetic_dataset(
-        root, EPISODE_LENGTHS, image_size=32, nan_force_episodes=(NAN_FORCE_EPISODE,),
+        root,
+        EPISODE_LENGTHS,
+        image_size=32,
+        nan_force_episodes=(NAN_FORCE_EPISODE,),
         invalid_image_episodes=(INVALID_IMAGE_EPISODE,),
     )
     return root
@@ -83,8 +92,11 @@ def so101_config(cache_dir, **overrides) -> DataConfig:
         "history": 5,
         "horizon": 5,
         "image_size": [16, 16],
-        "modalities": {"front": "observation.images.front", "top": "observation.images.top",
-                       "state": "observation.state"},
+        "modalities": {
+            "front": "observation.images.front",
+            "top": "observation.images.top",
+            "state": "observation.state",
+        },
         "target": {"feature": "observation.state", "dims": [0, 1, 2]},
     }
     d.update(overrides)
@@ -110,7 +122,9 @@ def camera_frame(episode: int, frame: int, channels: int) -> np.ndarray:
 
 
 def joints_at(episode: int, frame: int) -> np.ndarray:
-    return np.array([episode + frame / 100, np.sin(frame / 3), np.cos(frame / 4), frame % 3], dtype=np.float32)
+    return np.array(
+        [episode + frame / 100, np.sin(frame / 3), np.cos(frame / 4), frame % 3], dtype=np.float32
+    )
 
 
 def make_camera_dataset(root: Path, use_videos: bool) -> Path:
@@ -122,15 +136,19 @@ def make_camera_dataset(root: Path, use_videos: bool) -> Path:
     camera = {"shape": (CAMERA_HEIGHT, CAMERA_WIDTH, 3), "names": ["height", "width", "channels"]}
     features = {
         IMAGE_CAMERA: {"dtype": "image", **camera},
-        DEPTH_CAMERA: {"dtype": "image", "shape": (CAMERA_HEIGHT, CAMERA_WIDTH, 1),
-                       "names": ["height", "width", "channels"]},
+        DEPTH_CAMERA: {
+            "dtype": "image",
+            "shape": (CAMERA_HEIGHT, CAMERA_WIDTH, 1),
+            "names": ["height", "width", "channels"],
+        },
         JOINTS: {"dtype": "float32", "shape": (4,), "names": None},
         "action": {"dtype": "float32", "shape": (4,), "names": None},
     }
     if use_videos:
         features[VIDEO_CAMERA] = {"dtype": "video", **camera}
-    dataset = LeRobotDataset.create(repo_id="local/cameras", fps=10, features=features, root=root,
-                                    use_videos=use_videos, vcodec="h264")
+    dataset = LeRobotDataset.create(
+        repo_id="local/cameras", fps=10, features=features, root=root, use_videos=use_videos, vcodec="h264"
+    )
     for episode, length in enumerate(CAMERA_EPISODES):
         for frame in range(length):
             values = {
@@ -161,8 +179,12 @@ def mixed_cameras_root(tmp_path_factory) -> Path:
 
 def camera_config(root, cache_dir, **overrides) -> DataConfig:
     d = {
-        "root": str(root), "cache_dir": str(cache_dir), "history": 3, "horizon": 2,
-        "image_size": [CAMERA_HEIGHT, CAMERA_WIDTH], "split_fractions": [0.5, 0.25, 0.25],
+        "root": str(root),
+        "cache_dir": str(cache_dir),
+        "history": 3,
+        "horizon": 2,
+        "image_size": [CAMERA_HEIGHT, CAMERA_WIDTH],
+        "split_fractions": [0.5, 0.25, 0.25],
         "modalities": {"wrist": IMAGE_CAMERA, "depth": DEPTH_CAMERA, "joints": JOINTS},
         "target": {"feature": JOINTS, "dims": [0, 1]},
     }

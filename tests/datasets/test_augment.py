@@ -62,8 +62,10 @@ def test_training_loader_only_and_off_by_default(synthetic_root, tmp_path):
     augmented = next(iter(dataset.loader("train", 8, seed=1, augment=augment)))
     assert torch.equal(plain.get("target"), augmented.get("target"))
     assert not torch.equal(plain.get(obs_key("image")), augmented.get(obs_key("image")))
-    assert torch.equal(next(iter(dataset.loader("val", 8))).get(obs_key("image")),
-                       dataset.batch(dataset.split_windows["val"][:8]).get(obs_key("image")))
+    assert torch.equal(
+        next(iter(dataset.loader("val", 8))).get(obs_key("image")),
+        dataset.batch(dataset.split_windows["val"][:8]).get(obs_key("image")),
+    )
 
 
 @pytest.mark.parametrize(
@@ -82,7 +84,16 @@ def test_bad_augment_configs_are_named(overrides, message):
 
 
 def test_a_transform_that_resizes_is_named():
-    augment = ImageAugmentation(AugmentConfig.from_dict({"enable": True, "max_num_transforms": 1, "tfs": {
-        "crop": {"type": "RandomResizedCrop", "kwargs": {"size": [8, 8]}}}}), SMALL_MODALITIES, 0)
+    augment = ImageAugmentation(
+        AugmentConfig.from_dict(
+            {
+                "enable": True,
+                "max_num_transforms": 1,
+                "tfs": {"crop": {"type": "RandomResizedCrop", "kwargs": {"size": [8, 8]}}},
+            }
+        ),
+        SMALL_MODALITIES,
+        0,
+    )
     with pytest.raises(ValueError, match=r"'image' frames of \[16, 16\] into \[8, 8\].*image_size"):
         augment(make_batch(2), epoch=0, index=0)

@@ -9,10 +9,10 @@ import torch
 from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict
 
+from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.configuration import compose_config
 from mmf_rl.datasets import WindowDataset
 from mmf_rl.keys import obs_key, present_key
-from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.trainers.run import train
 from tests.datasets.conftest import (
     CAMERA_EPISODES,
@@ -38,8 +38,11 @@ def cached_frames(dataset: WindowDataset, name: str) -> torch.Tensor:
 def test_images_in_the_parquet_are_cached_exactly_rgb_and_depth(image_only_root, tmp_path):
     dataset = WindowDataset(camera_config(image_only_root, tmp_path))
     specs = {s.name: (s.kind, s.shape) for s in dataset.specs}
-    assert specs == {"wrist": ("image", (3, CAMERA_HEIGHT, CAMERA_WIDTH)),
-                     "depth": ("image", (1, CAMERA_HEIGHT, CAMERA_WIDTH)), "joints": ("sequence", (4,))}
+    assert specs == {
+        "wrist": ("image", (3, CAMERA_HEIGHT, CAMERA_WIDTH)),
+        "depth": ("image", (1, CAMERA_HEIGHT, CAMERA_WIDTH)),
+        "joints": ("sequence", (4,)),
+    }
     # PNG is lossless and the cache keeps the recorded size: every value equals the recorded one.
     assert torch.equal(cached_frames(dataset, "wrist"), recorded(3))
     assert torch.equal(cached_frames(dataset, "depth"), recorded(1))
@@ -58,8 +61,9 @@ def test_a_depth_camera_resized_stays_one_channel(image_only_root, tmp_path):
     dataset = WindowDataset(camera_config(image_only_root, tmp_path, image_size=[8, 12]))
     frames = cached_frames(dataset, "depth")
     assert frames.shape == (sum(CAMERA_EPISODES), 1, 8, 12)
-    reference = torch.nn.functional.interpolate(recorded(1).float() / 255, size=(8, 12), mode="bilinear",
-                                                antialias=True, align_corners=False)
+    reference = torch.nn.functional.interpolate(
+        recorded(1).float() / 255, size=(8, 12), mode="bilinear", antialias=True, align_corners=False
+    )
     assert (frames.float() / 255 - reference).abs().max() <= 1 / 255
 
 
@@ -79,12 +83,27 @@ def test_video_and_image_cameras_in_one_dataset(mixed_cameras_root, tmp_path):
 
 
 def test_training_reads_every_camera_storage_with_augmentation(mixed_cameras_root, tmp_path):
-    cfg = compose_config("train", [
-        f"run_dir={tmp_path / 'run'}", "model.d_model=16", "model.d_latent=4", "model.num_heads=2",
-        "model.mlp_hidden=32", "model.head_hidden=32", "trainer.total_steps=4", "trainer.batch_size=8",
-        "trainer.eval_every=2", "trainer.checkpoint_every=2", "trainer.warmup_steps=1", "trainer.progress_bar=false",
-        "logger=none", "num_workers=0", "augment=crop", f"data.image_size=[{CAMERA_HEIGHT},{CAMERA_WIDTH}]",
-    ])
+    cfg = compose_config(
+        "train",
+        [
+            f"run_dir={tmp_path / 'run'}",
+            "model.d_model=16",
+            "model.d_latent=4",
+            "model.num_heads=2",
+            "model.mlp_hidden=32",
+            "model.head_hidden=32",
+            "trainer.total_steps=4",
+            "trainer.batch_size=8",
+            "trainer.eval_every=2",
+            "trainer.checkpoint_every=2",
+            "trainer.warmup_steps=1",
+            "trainer.progress_bar=false",
+            "logger=none",
+            "num_workers=0",
+            "augment=crop",
+            f"data.image_size=[{CAMERA_HEIGHT},{CAMERA_WIDTH}]",
+        ],
+    )
     data = camera_config(mixed_cameras_root, tmp_path / "cache").to_dict()
     data["modalities"]["top"] = {"feature": VIDEO_CAMERA}
     with open_dict(cfg):
@@ -93,6 +112,10 @@ def test_training_reads_every_camera_storage_with_augmentation(mixed_cameras_roo
     checkpoint = load_checkpoint(tmp_path / "run" / "checkpoints")
     assert checkpoint.step == 4
     shapes = {m["name"]: m["shape"] for m in checkpoint.meta["model_config"]["modalities"]}
-    assert shapes == {"depth": [1, CAMERA_HEIGHT, CAMERA_WIDTH], "joints": [4], "top": [3, CAMERA_HEIGHT, CAMERA_WIDTH],
-                      "wrist": [3, CAMERA_HEIGHT, CAMERA_WIDTH]}
+    assert shapes == {
+        "depth": [1, CAMERA_HEIGHT, CAMERA_WIDTH],
+        "joints": [4],
+        "top": [3, CAMERA_HEIGHT, CAMERA_WIDTH],
+        "wrist": [3, CAMERA_HEIGHT, CAMERA_WIDTH],
+    }
     assert all(torch.isfinite(v).all() for v in checkpoint.model_state.values())

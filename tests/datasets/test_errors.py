@@ -49,41 +49,59 @@ def edit_info(root: Path, edit) -> None:
 
 def test_missing_root_and_a_directory_that_is_not_a_dataset(synthetic_root, tmp_path):
     absent = tmp_path / "no_such_dataset"
-    raises_clearly(FileNotFoundError, rf"dataset root {absent} does not exist: set `root`",
-                   synthetic_config(absent, tmp_path / "cache"))
+    raises_clearly(
+        FileNotFoundError,
+        rf"dataset root {absent} does not exist: set `root`",
+        synthetic_config(absent, tmp_path / "cache"),
+    )
     assert not absent.exists(), "nothing may be created at a missing root"
 
     plain = tmp_path / "plain"
     plain.mkdir()
     (plain / "notes.txt").write_text("not a dataset")
-    raises_clearly(FileNotFoundError,
-                   r"not a LeRobot dataset: .*meta/info\.json does not exist \(found \['notes\.txt'\]\)",
-                   synthetic_config(plain, tmp_path / "cache"))
+    raises_clearly(
+        FileNotFoundError,
+        r"not a LeRobot dataset: .*meta/info\.json does not exist \(found \['notes\.txt'\]\)",
+        synthetic_config(plain, tmp_path / "cache"),
+    )
     assert sorted(p.name for p in plain.iterdir()) == ["notes.txt"], "lerobot wrote into a non-dataset root"
 
     # One level too high: the dataset is a subdirectory.
-    raises_clearly(FileNotFoundError, rf"did you mean `root: {synthetic_root}`\?",
-                   synthetic_config(synthetic_root.parent, tmp_path / "cache"))
+    raises_clearly(
+        FileNotFoundError,
+        rf"did you mean `root: {synthetic_root}`\?",
+        synthetic_config(synthetic_root.parent, tmp_path / "cache"),
+    )
 
 
 def test_non_numeric_target_names_the_feature_and_its_dtype(synthetic_copy, tmp_path):
     message = raises_clearly(
-        ValueError, rf"target: feature '{re.escape(IMAGE_FEATURE)}' has dtype 'video' and shape \[32, 32, 3\]",
+        ValueError,
+        rf"target: feature '{re.escape(IMAGE_FEATURE)}' has dtype 'video' and shape \[32, 32, 3\]",
         synthetic_config(synthetic_copy, tmp_path, target=IMAGE_FEATURE),
     )
     assert "numeric vector" in message and f"'{POSE_FEATURE}'" in message and "'index'" not in message
 
-    edit_info(synthetic_copy, lambda info: info["features"].update(
-        {"language_instruction": {"dtype": "string", "shape": [1], "names": None}}))
-    raises_clearly(ValueError, r"target: feature 'language_instruction' has dtype 'string'",
-                   synthetic_config(synthetic_copy, tmp_path, target="language_instruction"))
+    edit_info(
+        synthetic_copy,
+        lambda info: info["features"].update(
+            {"language_instruction": {"dtype": "string", "shape": [1], "names": None}}
+        ),
+    )
+    raises_clearly(
+        ValueError,
+        r"target: feature 'language_instruction' has dtype 'string'",
+        synthetic_config(synthetic_copy, tmp_path, target="language_instruction"),
+    )
 
 
 @pytest.mark.parametrize("stride", [1, 2])
 def test_window_longer_than_every_episode(synthetic_root, tmp_path, stride):
     longest = max(EPISODE_LENGTHS)
     horizon = 5
-    history = (longest - 1) // stride - horizon + 1  # the longest window that fits: (H + T - 1) * s + 1 frames
+    history = (
+        (longest - 1) // stride - horizon + 1
+    )  # the longest window that fits: (H + T - 1) * s + 1 frames
     needed = (history + horizon) * stride + 1
     raises_clearly(
         ValueError,
@@ -91,7 +109,9 @@ def test_window_longer_than_every_episode(synthetic_root, tmp_path, stride):
         rf"longest episode \(episode 0\) has {longest} frames\. Lower `history`, `horizon` or `stride`",
         synthetic_config(synthetic_root, tmp_path, history=history + 1, horizon=horizon, stride=stride),
     )
-    fits = open_quietly(synthetic_config(synthetic_root, tmp_path, history=history, horizon=horizon, stride=stride))
+    fits = open_quietly(
+        synthetic_config(synthetic_root, tmp_path, history=history, horizon=horizon, stride=stride)
+    )
     assert len(fits) == (longest - 1) % stride + 1  # every start that still leaves a whole window
 
 
@@ -106,9 +126,13 @@ def test_v2_dataset_names_lerobots_converter(tmp_path, layout):
         (root / "meta" / "episodes.jsonl").write_text('{"episode_index": 0, "length": 10}\n')
     (root / "meta" / "info.json").write_text(json.dumps({"codebase_version": version, "features": {}}))
     command = f"python -m {V21_CONVERTER} --repo-id=old_dataset --root={tmp_path} --push-to-hub=false"
-    message = raises_clearly(ValueError, r"is a LeRobot v2\.x dataset", synthetic_config(root, tmp_path / "cache"))
+    message = raises_clearly(
+        ValueError, r"is a LeRobot v2\.x dataset", synthetic_config(root, tmp_path / "cache")
+    )
     assert f"codebase_version '{version}'" in message and command in message
-    assert importlib.util.find_spec(V21_CONVERTER) is not None, "the converter named in the message does not exist"
+    assert importlib.util.find_spec(V21_CONVERTER) is not None, (
+        "the converter named in the message does not exist"
+    )
 
 
 def test_info_json_missing_keys_and_shapes_disagreeing_with_the_data(synthetic_copy, tmp_path):
@@ -142,8 +166,11 @@ def test_truncated_parquet_names_the_file(synthetic_copy, tmp_path, damaged):
     path = next((synthetic_copy / damaged).rglob("*.parquet"))
     content = path.read_bytes()
     path.write_bytes(content[: len(content) // 2])
-    raises_clearly(ValueError, rf"{path}: not a readable parquet file \({len(content) // 2} bytes; .*truncated",
-                   synthetic_config(synthetic_copy, tmp_path / "cache"))
+    raises_clearly(
+        ValueError,
+        rf"{path}: not a readable parquet file \({len(content) // 2} bytes; .*truncated",
+        synthetic_config(synthetic_copy, tmp_path / "cache"),
+    )
     assert not (tmp_path / "cache").exists()
 
 
@@ -153,8 +180,11 @@ def test_corrupted_parquet_page_names_the_file(synthetic_copy, tmp_path):
     content = bytearray(path.read_bytes())
     content[200:2000] = bytes(b ^ 0x5A for b in content[200:2000])
     path.write_bytes(bytes(content))
-    raises_clearly(ValueError, rf"{path}: not a readable parquet file",
-                   synthetic_config(synthetic_copy, tmp_path / "cache"))
+    raises_clearly(
+        ValueError,
+        rf"{path}: not a readable parquet file",
+        synthetic_config(synthetic_copy, tmp_path / "cache"),
+    )
     assert list((tmp_path / "cache").iterdir()) == [], "the failed build left files behind"
 
 
@@ -196,7 +226,9 @@ def test_stale_build_dirs_are_removed_live_ones_kept(synthetic_root, tmp_path, m
     live = make_temp_dir(tmp_path, seen[0] + "x")  # this process: a build in progress
     reused_pid = make_temp_dir(tmp_path, seen[0] + "y", age_s=2 * cache.STALE_REUSED_PID_AGE_S)
     other_host_recent = make_temp_dir(tmp_path, ".building-123-otherhost-push-abc")
-    other_host_old = make_temp_dir(tmp_path, ".building-123-otherhost-push-def", age_s=2 * cache.STALE_BUILD_AGE_S)
+    other_host_old = make_temp_dir(
+        tmp_path, ".building-123-otherhost-push-def", age_s=2 * cache.STALE_BUILD_AGE_S
+    )
     unnamed_old = make_temp_dir(tmp_path, ".building-push-0123abcd-ghi", age_s=2 * cache.STALE_BUILD_AGE_S)
 
     dataset = open_quietly(config)

@@ -8,9 +8,21 @@ import yaml
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.inspect import inspect_dataset, suggested_data_config
-from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, IMAGE_VALID_FEATURE, POSE_FEATURE, STATE_FEATURE
+from mmf_rl.datasets.synthetic import (
+    FORCE_FEATURE,
+    IMAGE_FEATURE,
+    IMAGE_VALID_FEATURE,
+    POSE_FEATURE,
+    STATE_FEATURE,
+)
 from mmf_rl.datasets.windows import WindowDataset
-from tests.datasets.conftest import EPISODE_LENGTHS, INVALID_IMAGE_EPISODE, NAN_FORCE_EPISODE, SO101_ROOT, needs_so101
+from tests.datasets.conftest import (
+    EPISODE_LENGTHS,
+    INVALID_IMAGE_EPISODE,
+    NAN_FORCE_EPISODE,
+    SO101_ROOT,
+    needs_so101,
+)
 from tests.test_configuration import readme_commands
 
 FRAMES = sum(EPISODE_LENGTHS)
@@ -21,21 +33,40 @@ def test_report_names_features_spans_cameras_and_outages(synthetic_root):
     report = inspect_dataset(synthetic_root)
     assert (report["episodes"], report["frames"], report["fps"]) == (len(EPISODE_LENGTHS), FRAMES, 25)
     assert report["episode_frames"] == EPISODE_LENGTHS
-    assert report["features"][FORCE_FEATURE]["shape"] == [3] and report["features"][IMAGE_FEATURE]["dtype"] == "video"
+    assert (
+        report["features"][FORCE_FEATURE]["shape"] == [3]
+        and report["features"][IMAGE_FEATURE]["dtype"] == "video"
+    )
     assert report["cameras"] == [IMAGE_FEATURE] and IMAGE_VALID_FEATURE not in report["vectors"]
     force = report["sensors"][FORCE_FEATURE]
     assert force["nonfinite_spans"] == [{"episode": NAN_FORCE_EPISODE, "frames": [5, 9]}]
-    assert force["outages"] == {"fraction": SPAN / FRAMES, "outages": 1, "mean_burst": SPAN, "max_burst": SPAN}
+    assert force["outages"] == {
+        "fraction": SPAN / FRAMES,
+        "outages": 1,
+        "mean_burst": SPAN,
+        "max_burst": SPAN,
+    }
     camera = report["sensors"][IMAGE_FEATURE]
     assert camera["validity_feature"] == IMAGE_VALID_FEATURE and camera["video_files_missing"] == []
-    assert camera["outages"] == {"fraction": SPAN / FRAMES, "outages": 1, "mean_burst": SPAN, "max_burst": SPAN}
+    assert camera["outages"] == {
+        "fraction": SPAN / FRAMES,
+        "outages": 1,
+        "mean_burst": SPAN,
+        "max_burst": SPAN,
+    }
     assert report["sensors"][STATE_FEATURE]["outages"]["fraction"] == 0
     assert INVALID_IMAGE_EPISODE != NAN_FORCE_EPISODE
 
     config = suggested_data_config(report)
     assert {name: m["feature"] for name, m in config["modalities"].items()} == {
-        "front": IMAGE_FEATURE, "state": STATE_FEATURE, "force": FORCE_FEATURE, "object_pose": POSE_FEATURE}
-    assert set(config) == set(DataConfig.from_dict(config).to_dict())  # every key: `data.KEY=...` overrides any
+        "front": IMAGE_FEATURE,
+        "state": STATE_FEATURE,
+        "force": FORCE_FEATURE,
+        "object_pose": POSE_FEATURE,
+    }
+    assert set(config) == set(
+        DataConfig.from_dict(config).to_dict()
+    )  # every key: `data.KEY=...` overrides any
     assert config["target"]["feature"] == STATE_FEATURE and config["image_size"] == [32, 32]
     replayed = {"fraction": round(SPAN / FRAMES, 4), "mean_burst": float(SPAN)}
     assert config["missing"] == {"front": replayed, "force": replayed}
@@ -60,8 +91,9 @@ def test_cli_writes_a_config_that_trains(synthetic_root, tmp_path, capsys):
     assert path.read_text().startswith("# Data config suggested by `mmf-rl inspect`")
     assert yaml.safe_load(path.read_text()) == suggested_data_config(inspect_dataset(synthetic_root))
     assert not list(path.parent.glob(".*.tmp"))
-    config = DataConfig.from_dict({**yaml.safe_load(path.read_text()), "history": 4, "horizon": 3,
-                                   "cache_dir": str(tmp_path / "cache")})
+    config = DataConfig.from_dict(
+        {**yaml.safe_load(path.read_text()), "history": 4, "horizon": 3, "cache_dir": str(tmp_path / "cache")}
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         dataset = WindowDataset(config)
@@ -80,7 +112,6 @@ def test_so101_cameras_are_reported_missing():
     assert suggested_data_config(report)["target"]["feature"] == "observation.state"
 
 
-
 def test_the_readmes_inspect_train_eval_path(synthetic_root, tmp_path, monkeypatch, capsys):
     """The README's own three commands, verbatim (the dataset path put in, a tiny model and run
     appended): inspect writes a config, train takes it as `data=FILE`, eval scores the run."""
@@ -92,10 +123,24 @@ def test_the_readmes_inspect_train_eval_path(synthetic_root, tmp_path, monkeypat
     (evaluate,) = [argv for argv in readme_commands("eval") if f"checkpoint={run_dir}" in argv]
     monkeypatch.chdir(tmp_path)
     assert cli(["inspect", str(synthetic_root), *inspect[1:]]) == 0
-    tiny = ["data.history=4", "data.horizon=3", f"data.cache_dir={tmp_path / 'cache'}", "data.split_seed=1",
-            "model.d_model=16", "model.d_latent=4", "model.num_heads=2", "model.mlp_hidden=32", "model.head_hidden=32",
-            "trainer.total_steps=4", "trainer.batch_size=8", "trainer.eval_every=2", "trainer.checkpoint_every=2",
-            "trainer.warmup_steps=1", "trainer.progress_bar=false", "num_workers=0"]
+    tiny = [
+        "data.history=4",
+        "data.horizon=3",
+        f"data.cache_dir={tmp_path / 'cache'}",
+        "data.split_seed=1",
+        "model.d_model=16",
+        "model.d_latent=4",
+        "model.num_heads=2",
+        "model.mlp_hidden=32",
+        "model.head_hidden=32",
+        "trainer.total_steps=4",
+        "trainer.batch_size=8",
+        "trainer.eval_every=2",
+        "trainer.checkpoint_every=2",
+        "trainer.warmup_steps=1",
+        "trainer.progress_bar=false",
+        "num_workers=0",
+    ]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         assert cli(["train", *train, *tiny]) == 0

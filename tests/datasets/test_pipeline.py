@@ -69,7 +69,9 @@ def test_so101_loads_with_cameras_absent_and_warns_naming_files(tmp_path):
 def test_so101_required_camera_is_a_clear_error(tmp_path):
     config = so101_config(tmp_path)
     config.modalities["front"].required = True
-    with pytest.raises(FileNotFoundError, match=r"required modality.*'front'.*observation\.images\.front.*file-000\.mp4"):
+    with pytest.raises(
+        FileNotFoundError, match=r"required modality.*'front'.*observation\.images\.front.*file-000\.mp4"
+    ):
         WindowDataset(config)
 
 
@@ -85,7 +87,9 @@ def test_bad_feature_name_lists_available_features(synthetic_root, tmp_path):
     with pytest.raises(ValueError, match=r"valid_feature.*'observation\.state_ok' is not in the dataset"):
         WindowDataset(synthetic_config(synthetic_root, tmp_path, modalities=bad_validity))
     with pytest.raises(ValueError, match=r"dims \[4\] out of range.*width 4"):
-        WindowDataset(synthetic_config(synthetic_root, tmp_path, target={"feature": STATE_FEATURE, "dims": [4]}))
+        WindowDataset(
+            synthetic_config(synthetic_root, tmp_path, target={"feature": STATE_FEATURE, "dims": [4]})
+        )
 
 
 @needs_so101
@@ -97,17 +101,32 @@ def test_so101_action_windows_are_the_commands_over_the_horizon(tmp_path, stride
     dataset = open_quietly(so101_config(tmp_path, stride=stride, action="action"))
     assert dataset.action_shape == (horizon * stride, 6)
     batch = all_windows(dataset)
-    validate_batch(batch, dataset.specs, history, horizon, target_dim=3, require_target=True,
-                   action_shape=dataset.action_shape)
+    validate_batch(
+        batch,
+        dataset.specs,
+        history,
+        horizon,
+        target_dim=3,
+        require_target=True,
+        action_shape=dataset.action_shape,
+    )
     actions = torch.from_numpy(column(raw_frames(SO101_ROOT), "action"))
     stats = dataset.normalizer.stats
     t = dataset.window_start + (history - 1) * stride
     expected = actions[t[:, None] + torch.arange(horizon * stride)]
-    torch.testing.assert_close(batch.get(FUTURE_ACTION) * stats["future_action/std"] + stats["future_action/mean"],
-                               expected, rtol=1e-5, atol=1e-4)
-    train_frames = torch.isin(torch.tensor(raw_frames(SO101_ROOT)["episode_index"].to_numpy()),
-                              torch.tensor(dataset.split_episodes["train"]))
-    torch.testing.assert_close(stats["future_action/mean"], actions[train_frames].mean(0), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(
+        batch.get(FUTURE_ACTION) * stats["future_action/std"] + stats["future_action/mean"],
+        expected,
+        rtol=1e-5,
+        atol=1e-4,
+    )
+    train_frames = torch.isin(
+        torch.tensor(raw_frames(SO101_ROOT)["episode_index"].to_numpy()),
+        torch.tensor(dataset.split_episodes["train"]),
+    )
+    torch.testing.assert_close(
+        stats["future_action/mean"], actions[train_frames].mean(0), rtol=1e-4, atol=1e-4
+    )
     # Without `action` the same frames serve a plain forecaster: no action key, and its own cache.
     plain = open_quietly(so101_config(tmp_path, stride=stride))
     assert plain.action_shape is None and FUTURE_ACTION not in plain.batch(torch.arange(4)).keys()
@@ -115,21 +134,34 @@ def test_so101_action_windows_are_the_commands_over_the_horizon(tmp_path, stride
 
 
 def test_action_feature_errors_name_the_feature(synthetic_root, tmp_path):
-    with pytest.raises(ValueError, match=r"action: feature 'act' is not in the dataset.*'observation\.state'"):
+    with pytest.raises(
+        ValueError, match=r"action: feature 'act' is not in the dataset.*'observation\.state'"
+    ):
         WindowDataset(synthetic_config(synthetic_root, tmp_path, action="act"))
-    with pytest.raises(ValueError, match=r"action: feature 'observation\.images\.front' has dtype 'video'.*numeric vector"):
+    with pytest.raises(
+        ValueError, match=r"action: feature 'observation\.images\.front' has dtype 'video'.*numeric vector"
+    ):
         WindowDataset(synthetic_config(synthetic_root, tmp_path, action="observation.images.front"))
     with pytest.raises(ValueError, match=r"dims \[9\] out of range"):
-        WindowDataset(synthetic_config(synthetic_root, tmp_path, action={"feature": STATE_FEATURE, "dims": [9]}))
+        WindowDataset(
+            synthetic_config(synthetic_root, tmp_path, action={"feature": STATE_FEATURE, "dims": [9]})
+        )
     with pytest.raises(ValueError, match=r"unknown key.*featur"):
         synthetic_config(synthetic_root, tmp_path, action={"featur": STATE_FEATURE})
 
 
 def test_config_from_dict_round_trip_and_errors():
-    d = {"root": "/data", "modalities": {"image": "observation.images.front",
-                                         "force": {"feature": "observation.force", "required": True}},
-         "target": {"feature": "observation.object_pose", "dims": [0, 1]}, "stride": 2,
-         "missing": {"force": 0.25}, "missing_seed": 7}
+    d = {
+        "root": "/data",
+        "modalities": {
+            "image": "observation.images.front",
+            "force": {"feature": "observation.force", "required": True},
+        },
+        "target": {"feature": "observation.object_pose", "dims": [0, 1]},
+        "stride": 2,
+        "missing": {"force": 0.25},
+        "missing_seed": 7,
+    }
     config = DataConfig.from_dict(d)
     assert config.modalities["image"].feature == "observation.images.front"
     assert config.modalities["force"].required and config.stride == 2
@@ -148,14 +180,18 @@ def test_config_from_dict_round_trip_and_errors():
 @pytest.mark.parametrize("stride", [1, 2])
 def test_windows_match_raw_parquet_and_stay_in_episodes(synthetic_root, tmp_path, stride):
     history, horizon = 4, 3
-    dataset = open_quietly(synthetic_config(synthetic_root, tmp_path, stride=stride, include_target_past=True))
+    dataset = open_quietly(
+        synthetic_config(synthetic_root, tmp_path, stride=stride, include_target_past=True)
+    )
     frames = raw_frames(synthetic_root)
     pose, state = column(frames, POSE_FEATURE)[:, :2], column(frames, STATE_FEATURE)
     span = (history + horizon - 1) * stride
 
     expected = sum(max(0, n - span) for n in EPISODE_LENGTHS)
     assert len(dataset) == expected
-    assert dataset.report["skipped"]["episodes_too_short"] == [i for i, n in enumerate(EPISODE_LENGTHS) if n <= span]
+    assert dataset.report["skipped"]["episodes_too_short"] == [
+        i for i, n in enumerate(EPISODE_LENGTHS) if n <= span
+    ]
 
     batch = all_windows(dataset)
     validate_batch(batch, dataset.specs, history, horizon, target_dim=2, require_target=True)
@@ -166,7 +202,10 @@ def test_windows_match_raw_parquet_and_stay_in_episodes(synthetic_root, tmp_path
     past = dataset.normalizer.denormalize_target(batch.get(TARGET_PAST))
     observed = t[:, None] - torch.arange(history - 1, -1, -1) * stride
     torch.testing.assert_close(past, torch.from_numpy(pose)[observed])
-    state_obs = batch.get(obs_key("state")) * dataset.normalizer.stats["state/std"] + dataset.normalizer.stats["state/mean"]
+    state_obs = (
+        batch.get(obs_key("state")) * dataset.normalizer.stats["state/std"]
+        + dataset.normalizer.stats["state/mean"]
+    )
     torch.testing.assert_close(state_obs, torch.from_numpy(state)[observed], rtol=1e-5, atol=1e-4)
     # pose[0] = episode + frame / 1000: every observed and future frame of a window is one episode.
     episode_of = torch.floor(torch.cat([past[..., 0], target[..., 0]], 1) + 1e-4)
@@ -174,10 +213,15 @@ def test_windows_match_raw_parquet_and_stay_in_episodes(synthetic_root, tmp_path
 
 
 def test_relative_target_is_the_change_from_the_last_observed_frame(synthetic_root, tmp_path):
-    history, horizon = 4, 3
     absolute = open_quietly(synthetic_config(synthetic_root, tmp_path, include_target_past=True))
-    relative = open_quietly(synthetic_config(synthetic_root, tmp_path, include_target_past=True,
-                                             target={"feature": POSE_FEATURE, "dims": [0, 1], "relative": True}))
+    relative = open_quietly(
+        synthetic_config(
+            synthetic_root,
+            tmp_path,
+            include_target_past=True,
+            target={"feature": POSE_FEATURE, "dims": [0, 1], "relative": True},
+        )
+    )
     assert relative.cache_path == absolute.cache_path  # same frames: the cache is shared
     ids = torch.arange(len(absolute))
     a, r = absolute.batch(ids), relative.batch(ids)
@@ -191,9 +235,15 @@ def test_relative_target_is_the_change_from_the_last_observed_frame(synthetic_ro
     # Statistics describe the training windows' displacements, not positions.
     train = relative.split_windows["train"]
     displacement = (future_abs - anchor)[train].reshape(-1, 2)
-    torch.testing.assert_close(relative.normalizer.stats["target/mean"], displacement.mean(0), rtol=1e-4, atol=1e-6)
-    torch.testing.assert_close(relative.normalizer.stats["target/std"],
-                               displacement.std(0, correction=0).clamp_min(1e-3), rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(
+        relative.normalizer.stats["target/mean"], displacement.mean(0), rtol=1e-4, atol=1e-6
+    )
+    torch.testing.assert_close(
+        relative.normalizer.stats["target/std"],
+        displacement.std(0, correction=0).clamp_min(1e-3),
+        rtol=1e-4,
+        atol=1e-6,
+    )
 
 
 def test_presence_masks_follow_nan_spans_and_validity(synthetic_root, tmp_path):
@@ -232,7 +282,9 @@ def test_missing_and_undecodable_videos_mark_camera_absent(synthetic_copy, tmp_p
     validate_batch(all_windows(dataset), dataset.specs, 4, 3, 2)
     required = synthetic_config(synthetic_copy, tmp_path / "b")
     required.modalities["image"].required = True
-    with pytest.raises(FileNotFoundError, match=rf"required modality.*'image'.*observation\.images\.front.*{video.name}"):
+    with pytest.raises(
+        FileNotFoundError, match=rf"required modality.*'image'.*observation\.images\.front.*{video.name}"
+    ):
         WindowDataset(required)
 
 
@@ -261,7 +313,9 @@ def test_split_by_episode_and_stats_from_train_only(synthetic_root, tmp_path):
     save_file(stats, tmp_path / "stats.safetensors")  # stored with a run, restored for metrics
     restored = Normalizer(load_file(tmp_path / "stats.safetensors"))
     target = dataset.batch(dataset.split_windows["test"]).get(TARGET)
-    torch.testing.assert_close(restored.denormalize_target(target), dataset.normalizer.denormalize_target(target))
+    torch.testing.assert_close(
+        restored.denormalize_target(target), dataset.normalizer.denormalize_target(target)
+    )
 
 
 def test_constant_dims_get_the_std_floor(synthetic_root, tmp_path):
@@ -350,7 +404,9 @@ def test_parquet_nulls_read_as_absent_like_nan(synthetic_copy, tmp_path):
     nan_presence = open_quietly(synthetic_config(synthetic_copy, tmp_path / "nan")).presence["force"]
     data_file = next((synthetic_copy / "data").rglob("*.parquet"))
     frames = pd.read_parquet(data_file)
-    frames[FORCE_FEATURE] = [[None if np.isnan(v) else float(v) for v in row] for row in frames[FORCE_FEATURE]]
+    frames[FORCE_FEATURE] = [
+        [None if np.isnan(v) else float(v) for v in row] for row in frames[FORCE_FEATURE]
+    ]
     frames.to_parquet(data_file)
     dataset = open_quietly(synthetic_config(synthetic_copy, tmp_path / "null"))
     assert torch.equal(dataset.presence["force"], nan_presence) and not nan_presence.all()
@@ -358,8 +414,10 @@ def test_parquet_nulls_read_as_absent_like_nan(synthetic_copy, tmp_path):
 
 
 def test_vector_kind_and_required_vector_modality(synthetic_root, tmp_path):
-    modalities = {"state": {"feature": STATE_FEATURE, "kind": "vector"},
-                  "force": {"feature": FORCE_FEATURE, "required": True}}
+    modalities = {
+        "state": {"feature": STATE_FEATURE, "kind": "vector"},
+        "force": {"feature": FORCE_FEATURE, "required": True},
+    }
     dataset = open_quietly(synthetic_config(synthetic_root, tmp_path, modalities=modalities))
     batch = all_windows(dataset)
     validate_batch(batch, dataset.specs, 4, 3, 2)

@@ -33,7 +33,10 @@ def test_training_dropout_is_seeded_and_exact():
 
 
 def test_training_dropout_never_leaves_a_sample_empty():
-    present = {"image": torch.tensor([True, True, True, True]), "force": torch.tensor([False, True, False, True])}
+    present = {
+        "image": torch.tensor([True, True, True, True]),
+        "force": torch.tensor([False, True, False, True]),
+    }
     out = training_dropout(present, {"image": 1.0}, seed=0)
     assert torch.equal(out["image"], torch.tensor([True, False, True, False]))
     assert (out["image"] | out["force"]).all()
@@ -55,30 +58,49 @@ def test_dataset_applies_protocol_to_train_windows_only(synthetic_root, tmp_path
     for split in ("val", "test"):
         ids = dataset.split_windows[split]
         assert torch.equal(dataset.train_presence["image"][ids], dataset.presence["image"][ids])
-        assert torch.equal(dataset.batch(ids, split).get(present_key("image")), dataset.presence["image"][ids])
-    assert torch.equal(dataset.batch(train, "train").get(present_key("image")), dataset.train_presence["image"][train])
+        assert torch.equal(
+            dataset.batch(ids, split).get(present_key("image")), dataset.presence["image"][ids]
+        )
+    assert torch.equal(
+        dataset.batch(train, "train").get(present_key("image")), dataset.train_presence["image"][train]
+    )
     assert dataset.config.to_dict()["missing"] == {"image": 0.5}
 
 
 def test_presence_subsets_names_and_application():
     subsets = dict(presence_subsets(["image", "force", "proprio"]))
-    assert list(subsets) == ["all", "without_image", "without_force", "without_proprio",
-                             "only_image", "only_force", "only_proprio"]
+    assert list(subsets) == [
+        "all",
+        "without_image",
+        "without_force",
+        "without_proprio",
+        "only_image",
+        "only_force",
+        "only_proprio",
+    ]
     assert subsets["without_force"] == {"image": True, "force": False, "proprio": True}
     assert list(dict(presence_subsets(["a", "b"]))) == ["all", "without_a", "without_b"]
     assert list(dict(presence_subsets(["a"]))) == ["all"]
 
-    batch = TensorDict({
-        "obs": {"image": torch.zeros(3, 2, 3, 4, 4, dtype=torch.uint8), "force": torch.ones(3, 2, 6)},
-        "present": {"image": torch.tensor([True, False, True]), "force": torch.tensor([True, True, False])},
-        "target": torch.zeros(3, 5, 2),
-    }, batch_size=[3])
+    batch = TensorDict(
+        {
+            "obs": {"image": torch.zeros(3, 2, 3, 4, 4, dtype=torch.uint8), "force": torch.ones(3, 2, 6)},
+            "present": {
+                "image": torch.tensor([True, False, True]),
+                "force": torch.tensor([True, True, False]),
+            },
+            "target": torch.zeros(3, 5, 2),
+        },
+        batch_size=[3],
+    )
     only_image = apply_presence_subset(batch, {"image": True, "force": False})
     assert only_image.batch_size[0] == 2  # the sample whose camera was missing has nothing left
     assert not only_image.get(present_key("force")).any()
     assert batch.get(present_key("force")).tolist() == [True, True, False], "the input batch was modified"
     assert only_image.get(obs_key("force")).shape == (2, 2, 6)
-    validate_batch(only_image, [ModalitySpec("image", "image", (3, 4, 4)), ModalitySpec("force", "sequence", (6,))], 2)
+    validate_batch(
+        only_image, [ModalitySpec("image", "image", (3, 4, 4)), ModalitySpec("force", "sequence", (6,))], 2
+    )
 
 
 # --- outages: measured, replayed ---------------------------------------------------------------
@@ -88,7 +110,12 @@ def test_outage_statistics_cut_runs_at_episode_ends():
     present = torch.tensor([1, 0, 0, 1, 0, 0, 0, 1, 0], dtype=torch.bool)
     episode = torch.tensor([0, 0, 0, 0, 0, 1, 1, 1, 1])
     # absent runs: [1, 2] and [4] in episode 0, [5, 6] and [8] in episode 1
-    assert outage_statistics(present, episode) == {"fraction": 6 / 9, "outages": 4, "mean_burst": 1.5, "max_burst": 2}
+    assert outage_statistics(present, episode) == {
+        "fraction": 6 / 9,
+        "outages": 4,
+        "mean_burst": 1.5,
+        "max_burst": 2,
+    }
     assert outage_statistics(torch.ones(4, dtype=torch.bool), torch.zeros(4))["outages"] == 0
 
 
@@ -115,7 +142,9 @@ def test_dataset_replays_outages_on_train_windows(synthetic_root, tmp_path):
     assert observed["force"]["mean_burst"] == (5.0 if nan_force_in_train else 0.0)
     replayed = open_with({"force": {"fraction": 0.3, "mean_burst": 3}})
     lost = plain.presence["force"][train] & ~replayed.train_presence["force"][train]
-    assert lost.any() and not (replayed.train_presence["force"][train] & ~plain.presence["force"][train]).any()
+    assert (
+        lost.any() and not (replayed.train_presence["force"][train] & ~plain.presence["force"][train]).any()
+    )
     for split in ("val", "test"):
         ids = plain.split_windows[split]
         assert torch.equal(replayed.train_presence["force"][ids], plain.presence["force"][ids])
@@ -124,8 +153,11 @@ def test_dataset_replays_outages_on_train_windows(synthetic_root, tmp_path):
     # "observed" replays what the training split shows: here the camera's and the force's spans.
     measured = open_with("observed")
     assert measured.observed_outages == observed
-    changed = {name for name in plain.presence
-               if not torch.equal(measured.train_presence[name], plain.presence[name])}
+    changed = {
+        name
+        for name in plain.presence
+        if not torch.equal(measured.train_presence[name], plain.presence[name])
+    }
     assert changed == {name for name, o in observed.items() if 0 < o["fraction"] < 1}
 
 

@@ -10,6 +10,7 @@ from tensordict import TensorDict
 from mmf_rl.datasets import DataConfig, WindowDataset
 from tests.datasets.conftest import EPISODE_LENGTHS, synthetic_config
 
+
 def open_quietly(config) -> WindowDataset:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -36,8 +37,13 @@ def test_episodes_and_exclusions_select_what_is_cached(synthetic_root, tmp_path)
         assert torch.equal(target[:, 0, 0].floor().long(), chosen.window_episode[ids])
 
     excluded = open_quietly(synthetic_config(synthetic_root, tmp_path, exclude_episodes=[1]))
-    assert cached_episodes(excluded) == [0, 2, 3, 4] and excluded.cache_path not in (full.cache_path, chosen.cache_path)
-    assert json.loads((excluded.cache_path / "cache.json").read_text())["n_frames"] == sum(EPISODE_LENGTHS) - 25
+    assert cached_episodes(excluded) == [0, 2, 3, 4] and excluded.cache_path not in (
+        full.cache_path,
+        chosen.cache_path,
+    )
+    assert (
+        json.loads((excluded.cache_path / "cache.json").read_text())["n_frames"] == sum(EPISODE_LENGTHS) - 25
+    )
 
 
 def test_an_explicit_split_by_episode_lists(synthetic_root, tmp_path):
@@ -54,13 +60,24 @@ def test_an_explicit_split_by_episode_lists(synthetic_root, tmp_path):
 @pytest.mark.parametrize(
     "overrides, message",
     [
-        ({"episodes": [0, 9]}, r"`episodes` lists episode\(s\) \[9\] that the dataset .* does not have \(its episodes: 0\.\.4\)"),
+        (
+            {"episodes": [0, 9]},
+            r"`episodes` lists episode\(s\) \[9\] that the dataset .* does not have \(its episodes: 0\.\.4\)",
+        ),
         ({"exclude_episodes": [7]}, r"`exclude_episodes` lists episode\(s\) \[7\]"),
         ({"split": {"train": [0, 1], "test": [8]}}, r"`split.test` lists episode\(s\) \[8\]"),
-        ({"split": {"train": [0, 1], "val": [1, 2]}}, r"episode\(s\) \[1\] are in both `split.train` and `split.val`"),
-        ({"split": {"train": [0, 1], "val": [2]}, "exclude_episodes": [2]},
-         r"`split.val` lists episode\(s\) \[2\], excluded by `exclude_episodes`"),
-        ({"split": {"train": [0, 1], "val": [2]}, "episodes": [0, 1]}, r"`split.val` lists episode\(s\) \[2\], not in `episodes`"),
+        (
+            {"split": {"train": [0, 1], "val": [1, 2]}},
+            r"episode\(s\) \[1\] are in both `split.train` and `split.val`",
+        ),
+        (
+            {"split": {"train": [0, 1], "val": [2]}, "exclude_episodes": [2]},
+            r"`split.val` lists episode\(s\) \[2\], excluded by `exclude_episodes`",
+        ),
+        (
+            {"split": {"train": [0, 1], "val": [2]}, "episodes": [0, 1]},
+            r"`split.val` lists episode\(s\) \[2\], not in `episodes`",
+        ),
         ({"split": {"train": [0], "holdout": [1]}}, r"unknown split\(s\) \['holdout'\]"),
         ({"split": {"val": [1]}}, r"`split.train` is empty"),
         ({"episodes": [0, 0]}, r"`episodes` lists episode\(s\) \[0\] more than once"),
@@ -76,13 +93,19 @@ def test_bad_selections_are_named(synthetic_root, tmp_path, overrides, message):
 def test_g1_recording_split_by_episode_lists(g1_root, tmp_path):
     """The real humanoid recording: only the selected episodes are decoded; the split is the one asked."""
     root = g1_root
-    config = DataConfig.from_dict({
-        "root": str(root), "cache_dir": str(tmp_path), "history": 4, "horizon": 4, "stride": 3,
-        "image_size": [32, 32],
-        "modalities": {"cam": "observation.images.cam_high", "joints": "observation.state"},
-        "target": {"feature": "observation.state", "dims": [0, 1, 2]},
-        "split": {"train": [0, 3], "val": [5]},
-    })
+    config = DataConfig.from_dict(
+        {
+            "root": str(root),
+            "cache_dir": str(tmp_path),
+            "history": 4,
+            "horizon": 4,
+            "stride": 3,
+            "image_size": [32, 32],
+            "modalities": {"cam": "observation.images.cam_high", "joints": "observation.state"},
+            "target": {"feature": "observation.state", "dims": [0, 1, 2]},
+            "split": {"train": [0, 3], "val": [5]},
+        }
+    )
     dataset = open_quietly(config)
     assert cached_episodes(dataset) == [0, 3, 5]
     assert dataset.split_episodes == {"train": [0, 3], "val": [5], "test": []}

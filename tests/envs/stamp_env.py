@@ -28,11 +28,15 @@ class StampEnv(EnvBase):
         super().__init__(batch_size=torch.Size([]))
         self.env_index, self.max_steps = env_index, max_steps
         self.episode, self.t = -1, 0
-        self.observation_spec = Composite({
-            keys.OBS: Composite(image=Bounded(0, 255, (3, IMAGE_SIZE, IMAGE_SIZE), dtype=torch.uint8),
-                                **{m: Unbounded((d,)) for m, d in VECTOR_DIMS.items()}),
-            keys.PRESENT: Composite({m: Categorical(2, (), dtype=torch.bool) for m in MODALITIES}),
-        })
+        self.observation_spec = Composite(
+            {
+                keys.OBS: Composite(
+                    image=Bounded(0, 255, (3, IMAGE_SIZE, IMAGE_SIZE), dtype=torch.uint8),
+                    **{m: Unbounded((d,)) for m, d in VECTOR_DIMS.items()},
+                ),
+                keys.PRESENT: Composite({m: Categorical(2, (), dtype=torch.bool) for m in MODALITIES}),
+            }
+        )
         self.action_spec = Bounded(-1.0, 1.0, (1,))
         self.reward_spec = Unbounded((1,))
 
@@ -41,20 +45,29 @@ class StampEnv(EnvBase):
 
     def _observation(self) -> TensorDict:
         stamp = self.stamp()
-        return TensorDict({
-            keys.OBS: {"image": torch.full((3, IMAGE_SIZE, IMAGE_SIZE), stamp % 256, dtype=torch.uint8),
-                       **{m: torch.full((d,), float(stamp)) for m, d in VECTOR_DIMS.items()}},
-            keys.PRESENT: {m: torch.tensor(True) for m in MODALITIES},
-        }, batch_size=[])
+        return TensorDict(
+            {
+                keys.OBS: {
+                    "image": torch.full((3, IMAGE_SIZE, IMAGE_SIZE), stamp % 256, dtype=torch.uint8),
+                    **{m: torch.full((d,), float(stamp)) for m, d in VECTOR_DIMS.items()},
+                },
+                keys.PRESENT: {m: torch.tensor(True) for m in MODALITIES},
+            },
+            batch_size=[],
+        )
 
     def _reset(self, tensordict=None, **kwargs):
         self.episode, self.t = self.episode + 1, 0
-        return self._observation().update({"done": torch.tensor([False]), "terminated": torch.tensor([False])})
+        return self._observation().update(
+            {"done": torch.tensor([False]), "terminated": torch.tensor([False])}
+        )
 
     def _step(self, tensordict):
         self.t += 1
         done = torch.tensor([self.t >= self.max_steps])
-        return self._observation().update({"reward": torch.zeros(1), "done": done, "terminated": done.clone()})
+        return self._observation().update(
+            {"reward": torch.zeros(1), "done": done, "terminated": done.clone()}
+        )
 
     def _set_seed(self, seed):
         pass

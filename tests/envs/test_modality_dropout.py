@@ -48,7 +48,9 @@ def runs_of_absence(present: torch.Tensor) -> list[int]:
 
 
 def test_dropout_zeroes_data_and_clears_presence():
-    td = dropout_rollout(ModalityDropout(["image", "force"], outage_prob=0.2, bursts=UniformBursts(1, 4), seed=0))
+    td = dropout_rollout(
+        ModalityDropout(["image", "force"], outage_prob=0.2, bursts=UniformBursts(1, 4), seed=0)
+    )
     nxt = td["next"]
     for name in ("image", "force"):
         absent = ~nxt[keys.PRESENT, name]
@@ -72,7 +74,9 @@ def test_dropout_is_reproducible_from_its_seed_and_independent_per_env():
 
 @pytest.mark.parametrize("bursts", [UniformBursts(2, 4), GeometricBursts(3.0)])
 def test_dropout_bursts_have_the_configured_lengths(bursts):
-    td = dropout_rollout(ModalityDropout(["force"], outage_prob=0.15, bursts=bursts, seed=1), num_envs=4, steps=300)
+    td = dropout_rollout(
+        ModalityDropout(["force"], outage_prob=0.15, bursts=bursts, seed=1), num_envs=4, steps=300
+    )
     lengths = torch.tensor(runs_of_absence(presence_over_time(td, "force")))
     assert len(lengths) > 40
     if isinstance(bursts, UniformBursts):
@@ -83,8 +87,11 @@ def test_dropout_bursts_have_the_configured_lengths(bursts):
 
 
 def test_replay_outages_gives_each_modality_its_measured_fraction_and_bursts():
-    outages = {"force": {"fraction": 0.2, "mean_burst": 4.0}, "image": {"fraction": 0.05, "mean_burst": 2.0},
-               "proprio": {"fraction": 0.0, "mean_burst": 0.0}}
+    outages = {
+        "force": {"fraction": 0.2, "mean_burst": 4.0},
+        "image": {"fraction": 0.05, "mean_burst": 2.0},
+        "proprio": {"fraction": 0.0, "mean_burst": 0.0},
+    }
     replay = replay_outages(outages, seed=3)
     assert [t.modalities for t in replay] == [["force"], ["image"]]  # nothing to replay for proprio
     td = dropout_rollout(replay, num_envs=4, steps=600)
@@ -92,7 +99,9 @@ def test_replay_outages_gives_each_modality_its_measured_fraction_and_bursts():
         present = presence_over_time(td, name)
         assert abs((~present).float().mean().item() - outages[name]["fraction"]) < 0.04, name
         lengths = torch.tensor(runs_of_absence(present)).float()
-        assert abs(lengths.mean().item() - outages[name]["mean_burst"]) < 0.25 * outages[name]["mean_burst"], name
+        assert (
+            abs(lengths.mean().item() - outages[name]["mean_burst"]) < 0.25 * outages[name]["mean_burst"]
+        ), name
     assert presence_over_time(td, "proprio").all()
     assert outage_start_prob(0.2, 4.0) == pytest.approx(0.0625)  # 4 / (4 + 1 / p) = 0.2
     with pytest.raises(ValueError, match="no modality .* has outages to replay"):
@@ -100,8 +109,12 @@ def test_replay_outages_gives_each_modality_its_measured_fraction_and_bursts():
 
 
 def test_dropout_per_episode_holds_for_the_whole_episode():
-    td = dropout_rollout(ModalityDropout(["image"], outage_prob=0.5, outage="episode", seed=0),
-                         num_envs=8, steps=40, max_steps=10)
+    td = dropout_rollout(
+        ModalityDropout(["image"], outage_prob=0.5, outage="episode", seed=0),
+        num_envs=8,
+        steps=40,
+        max_steps=10,
+    )
     present = presence_over_time(td, "image")  # 4 episodes of 10 steps per env
     steps = torch.arange(present.shape[1])
     for env in range(present.shape[0]):
@@ -113,7 +126,9 @@ def test_dropout_per_episode_holds_for_the_whole_episode():
 
 
 def test_dropout_reset_clears_the_outages_of_the_envs_that_reset():
-    env = TransformedEnv(stamp_envs(2), ModalityDropout(["force"], outage_prob=1.0, bursts=UniformBursts(5, 5)))
+    env = TransformedEnv(
+        stamp_envs(2), ModalityDropout(["force"], outage_prob=1.0, bursts=UniformBursts(5, 5))
+    )
     try:
         td = env.reset()
         # An outage starts at the reset observation: 5 absent observations, then one present.
@@ -142,7 +157,9 @@ def episode_presence(present: torch.Tensor, episode_steps: int) -> torch.Tensor:
 
 
 def test_dropout_dies_stays_dead_until_the_episode_ends():
-    dropout = ModalityDropout(["force"], outage_prob=0.7, outage="dies", dies_after=UniformBursts(2, 6), seed=5)
+    dropout = ModalityDropout(
+        ["force"], outage_prob=0.7, outage="dies", dies_after=UniformBursts(2, 6), seed=5
+    )
     td = dropout_rollout(dropout, num_envs=4, steps=80, max_steps=10)
     # The root td holds every episode's reset observation and its steps until the last one.
     present = td[keys.present_key("force")]  # [envs, steps]: observation t of episode t // 10
@@ -150,33 +167,50 @@ def test_dropout_dies_stays_dead_until_the_episode_ends():
     deaths = []
     for row in episodes.reshape(-1, 10).tolist():
         alive = sum(row)
-        assert row == [True] * alive + [False] * (10 - alive), "a dead sensor never comes back within its episode"
+        assert row == [True] * alive + [False] * (10 - alive), (
+            "a dead sensor never comes back within its episode"
+        )
         deaths.append(alive)
     assert set(deaths) == {2, 3, 4, 5, 6, 10}, "it dies after 2..6 readings, or survives (p = 0.3)"
     nxt = td["next"]
     absent = ~nxt[keys.PRESENT, "force"]
-    assert (nxt[keys.obs_key("force")][absent] == 0).all() and (nxt[keys.obs_key("force")][~absent] != 0).all()
+    assert (nxt[keys.obs_key("force")][absent] == 0).all() and (
+        nxt[keys.obs_key("force")][~absent] != 0
+    ).all()
 
 
 def test_dropout_dies_is_seeded_and_revived_by_a_reset():
     def deaths(seed):
-        td = dropout_rollout(ModalityDropout(["image"], outage_prob=1.0, outage="dies", seed=seed),
-                             num_envs=3, steps=150, max_steps=50)
+        td = dropout_rollout(
+            ModalityDropout(["image"], outage_prob=1.0, outage="dies", seed=seed),
+            num_envs=3,
+            steps=150,
+            max_steps=50,
+        )
         return td[keys.present_key("image")].reshape(3, 3, 50).sum(-1)  # readings before death, per episode
 
     first = deaths(0)
     assert torch.equal(first, deaths(0)) and not torch.equal(first, deaths(1))
-    assert first.min() >= 1 and first.max() <= 49, "UniformBursts(1, 49): dies mid-episode, after the reset reading"
+    assert first.min() >= 1 and first.max() <= 49, (
+        "UniformBursts(1, 49): dies mid-episode, after the reset reading"
+    )
     assert len(set(first.flatten().tolist())) > 3, "each env and episode draws its own death step"
 
 
 @pytest.mark.parametrize("outage", ["bursts", "episode", "dies"])
 def test_every_outage_type_on_the_push_env(outage):
     """The real MuJoCo env: outages zero the sensor's data and clear its flag; the type shapes when."""
-    dropout = ModalityDropout(["image", "force"], outage_prob={"image": 0.5, "force": 0.5}, outage=outage,
-                              bursts=UniformBursts(2, 3), dies_after=UniformBursts(3, 8), seed=1)
-    env = TransformedEnv(SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE, max_episode_steps=12)),
-                         dropout)
+    dropout = ModalityDropout(
+        ["image", "force"],
+        outage_prob={"image": 0.5, "force": 0.5},
+        outage=outage,
+        bursts=UniformBursts(2, 3),
+        dies_after=UniformBursts(3, 8),
+        seed=1,
+    )
+    env = TransformedEnv(
+        SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE, max_episode_steps=12)), dropout
+    )
     try:
         env.set_seed(0)
         torch.manual_seed(0)

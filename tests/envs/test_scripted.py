@@ -56,7 +56,9 @@ def test_exploration_adds_seeded_random_bursts_and_zero_changes_nothing(push_env
             runs.append(length + 1)
             length = 0
     assert runs and all(2 <= r <= 7 for r in runs[:-1]), runs
-    assert not np.any(np.all(plain["action"][1:] == plain["action"][:-1], axis=1) & (plain["action"][1:, :3] != 0).any(1))
+    assert not np.any(
+        np.all(plain["action"][1:] == plain["action"][:-1], axis=1) & (plain["action"][1:, :3] != 0).any(1)
+    )
 
 
 def test_exploration_must_be_a_probability():

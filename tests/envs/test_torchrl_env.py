@@ -39,7 +39,9 @@ def test_serial_env_passes_check_env_specs():
         td = env.rollout(3, break_when_any_done=False)
         assert td[keys.PRESENT, "image"].shape == (2, 3)
         assert td["next", keys.OBS, "image"].shape == (2, 3, 3, IMAGE_SIZE, IMAGE_SIZE)
-        assert not torch.equal(td["object_pose"][0, 0], td["object_pose"][1, 0]), "envs start in different states"
+        assert not torch.equal(td["object_pose"][0, 0], td["object_pose"][1, 0]), (
+            "envs start in different states"
+        )
     finally:
         env.close()
 
@@ -84,10 +86,14 @@ def test_seed_makes_resets_reproducible(env):
     assert torch.equal(env.reset()["object_pose"], first)
 
 
-@pytest.mark.skipif(not os.environ.get("MMF_RL_PARALLEL_TESTS"),
-                    reason="spawns 2 processes that each import torch and MuJoCo (~20-70 s); set MMF_RL_PARALLEL_TESTS=1")
+@pytest.mark.skipif(
+    not os.environ.get("MMF_RL_PARALLEL_TESTS"),
+    reason="spawns 2 processes that each import torch and MuJoCo (~20-70 s); set MMF_RL_PARALLEL_TESTS=1",
+)
 def test_parallel_env_with_spawn():
-    env = ParallelEnv(2, MultimodalPushTorchEnv, create_env_kwargs={"image_size": IMAGE_SIZE}, mp_start_method="spawn")
+    env = ParallelEnv(
+        2, MultimodalPushTorchEnv, create_env_kwargs={"image_size": IMAGE_SIZE}, mp_start_method="spawn"
+    )
     try:
         env.set_seed(0)
         td = env.rollout(3, break_when_any_done=False)

@@ -45,7 +45,9 @@ def batches(n=3, b=4, t=5):
     for _ in range(n):
         target = torch.randn(b, t, 2, generator=g)
         past = torch.cumsum(torch.ones(b, 3, 2), 1)  # moves +1 per step in both dims
-        out.append(TensorDict({keys.TARGET: target, ORACLE: target.clone(), keys.TARGET_PAST: past}, batch_size=[b]))
+        out.append(
+            TensorDict({keys.TARGET: target, ORACLE: target.clone(), keys.TARGET_PAST: past}, batch_size=[b])
+        )
     return out
 
 
@@ -58,20 +60,31 @@ def test_displacement_errors_are_euclidean():
 
 def test_constant_velocity_extrapolates_the_last_step():
     past = torch.tensor([[[0.0, 0.0], [1.0, 2.0]]])
-    torch.testing.assert_close(constant_velocity(past, 3), torch.tensor([[[2.0, 4.0], [3.0, 6.0], [4.0, 8.0]]]))
+    torch.testing.assert_close(
+        constant_velocity(past, 3), torch.tensor([[[2.0, 4.0], [3.0, 6.0], [4.0, 8.0]]])
+    )
 
 
 def test_metrics_in_normalised_frame_and_units():
     scale = 10.0
-    metrics = evaluate_forecasts(FixedForecaster(offset=0.3), batches(), denormalize=lambda t: t * scale,
-                                 num_samples=4, with_baseline=True)
+    metrics = evaluate_forecasts(
+        FixedForecaster(offset=0.3),
+        batches(),
+        denormalize=lambda t: t * scale,
+        num_samples=4,
+        with_baseline=True,
+    )
     assert metrics["windows"] == 12
     assert metrics["mse"] == pytest.approx(0.09, rel=1e-5)
     assert metrics["mse_units"] == pytest.approx(9.0, rel=1e-5)
     assert metrics["ade"] == pytest.approx(0.3 * 2**0.5 * scale, rel=1e-5)
     assert metrics["min_ade_k"] == pytest.approx(0.0, abs=1e-5)  # sample 0 is exact
-    assert metrics["min_fde_k"] == pytest.approx(0.0, abs=1e-5) and metrics["min_mse_k"] == pytest.approx(0.0, abs=1e-5)
-    assert metrics["nll"] == pytest.approx(10 * (0.5 * 0.09 + 0.5 * torch.log(torch.tensor(2 * torch.pi)).item()), rel=1e-5)
+    assert metrics["min_fde_k"] == pytest.approx(0.0, abs=1e-5) and metrics["min_mse_k"] == pytest.approx(
+        0.0, abs=1e-5
+    )
+    assert metrics["nll"] == pytest.approx(
+        10 * (0.5 * 0.09 + 0.5 * torch.log(torch.tensor(2 * torch.pi)).item()), rel=1e-5
+    )
     # |error| = 0.3 < 0.674 (the 50% half-width of N(0, 1)) everywhere: both intervals cover every value.
     assert metrics["coverage_50"] == 1.0 and metrics["coverage_90"] == 1.0
     assert metrics["cv_mse"] > 0
@@ -88,9 +101,16 @@ def test_no_windows_gives_no_metrics():
 
 
 def test_markdown_table_rows_and_degradation():
-    results = {"all": {"windows": 10, "windows_available": 12, "mse": 0.1, "coverage_90": 0.875, "degradation": 0.0},
-               "without_image": {"windows": 10, "windows_available": 12, "mse": 0.15, "coverage_90": 0.5,
-                                 "degradation": 0.5}}
+    results = {
+        "all": {"windows": 10, "windows_available": 12, "mse": 0.1, "coverage_90": 0.875, "degradation": 0.0},
+        "without_image": {
+            "windows": 10,
+            "windows_available": 12,
+            "mse": 0.15,
+            "coverage_90": 0.5,
+            "degradation": 0.5,
+        },
+    }
     table = markdown_table(results, {"windows": 10, "mse": 0.4}, units="metres", num_samples=20)
     lines = table.splitlines()
     assert lines[0] == "| subset | windows | available | MSE (norm.) | cover 90% | MSE vs all |"
@@ -141,16 +161,25 @@ class PresenceForecaster(torch.nn.Module):
 def presence_batch(a, b, c, difficulty):
     n = len(difficulty)
     target = torch.zeros(n, 1, 1)
-    return TensorDict({keys.present_key("a"): torch.tensor(a, dtype=torch.bool),
-                       keys.present_key("b"): torch.tensor(b, dtype=torch.bool),
-                       keys.present_key("c"): torch.tensor(c, dtype=torch.bool),
-                       "difficulty": torch.tensor(difficulty), keys.TARGET: target, ORACLE: target.clone()},
-                      batch_size=[n])
+    return TensorDict(
+        {
+            keys.present_key("a"): torch.tensor(a, dtype=torch.bool),
+            keys.present_key("b"): torch.tensor(b, dtype=torch.bool),
+            keys.present_key("c"): torch.tensor(c, dtype=torch.bool),
+            "difficulty": torch.tensor(difficulty),
+            keys.TARGET: target,
+            ORACLE: target.clone(),
+        },
+        batch_size=[n],
+    )
 
 
 def test_presence_subsets_are_scored_on_the_windows_they_share():
     # Windows 0-2 have a and b; window 3 lacks a (and is hard); c exists nowhere.
-    batches = [presence_batch([1, 1], [1, 1], [0, 0], [0.0, 1.0]), presence_batch([1, 0], [1, 1], [0, 0], [2.0, 10.0])]
+    batches = [
+        presence_batch([1, 1], [1, 1], [0, 0], [0.0, 1.0]),
+        presence_batch([1, 0], [1, 1], [0, 0], [2.0, 10.0]),
+    ]
     subsets = list(presence_subsets(["a", "b", "c"]))
     results, _ = evaluate_presence_subsets(PresenceForecaster(), batches, subsets, denormalize=lambda t: t)
     # only_c has no window; every other row keeps a present modality on windows 0-2 only.
@@ -160,13 +189,17 @@ def test_presence_subsets_are_scored_on_the_windows_they_share():
     # On windows 0-2 (difficulty 0, 1, 2) "all" lacks c only: errors 1, 2, 3.
     assert results["all"]["mse"] == pytest.approx((1 + 4 + 9) / 3)
     assert results["without_a"]["mse"] == pytest.approx((4 + 9 + 16) / 3)  # a and c absent
-    assert results["without_a"]["degradation"] == pytest.approx(29 / 14 - 1) and results["all"]["degradation"] == 0
+    assert (
+        results["without_a"]["degradation"] == pytest.approx(29 / 14 - 1)
+        and results["all"]["degradation"] == 0
+    )
     # Unpaired, each row would average its own windows: "all" also window 3 (a and c absent: error 12),
     # which only_a cannot score, so removing b and c would look like an improvement.
     unpaired_all = evaluate_forecasts(PresenceForecaster(), batches, denormalize=lambda t: t)["mse"]
     only_a = dict(subsets)["only_a"]
-    unpaired_only_a = evaluate_forecasts(PresenceForecaster(), [apply_presence_subset(b, only_a) for b in batches],
-                                         denormalize=lambda t: t)["mse"]
+    unpaired_only_a = evaluate_forecasts(
+        PresenceForecaster(), [apply_presence_subset(b, only_a) for b in batches], denormalize=lambda t: t
+    )["mse"]
     assert unpaired_all == pytest.approx((1 + 4 + 9 + 144) / 4) and unpaired_only_a < unpaired_all
     assert results["only_a"]["mse"] == pytest.approx(unpaired_only_a) and results["only_a"]["degradation"] > 0
 
@@ -174,16 +207,23 @@ def test_presence_subsets_are_scored_on_the_windows_they_share():
 def test_subsets_sharing_no_window_are_a_clear_error():
     batches = [presence_batch([1, 0], [0, 1], [0, 0], [0.0, 0.0])]
     with pytest.raises(ValueError, match="no window can be scored in every presence subset"):
-        evaluate_presence_subsets(PresenceForecaster(), batches, list(presence_subsets(["a", "b", "c"])),
-                                  denormalize=lambda t: t)
-    assert evaluate_presence_subsets(PresenceForecaster(), [], list(presence_subsets(["a"])),
-                                     denormalize=lambda t: t) == ({}, None)
+        evaluate_presence_subsets(
+            PresenceForecaster(), batches, list(presence_subsets(["a", "b", "c"])), denormalize=lambda t: t
+        )
+    assert evaluate_presence_subsets(
+        PresenceForecaster(), [], list(presence_subsets(["a"])), denormalize=lambda t: t
+    ) == ({}, None)
 
 
 def test_paired_baseline_row_uses_the_shared_windows():
     batch = presence_batch([1, 0], [1, 1], [1, 1], [0.0, 0.0])
     batch.set(keys.TARGET_PAST, torch.tensor([[[0.0], [1.0]], [[0.0], [3.0]]]))  # cv forecasts 2 and 6
-    _, baseline = evaluate_presence_subsets(PresenceForecaster(), [batch], list(presence_subsets(["a", "b", "c"])),
-                                            denormalize=lambda t: t, with_baseline=True)
+    _, baseline = evaluate_presence_subsets(
+        PresenceForecaster(),
+        [batch],
+        list(presence_subsets(["a", "b", "c"])),
+        denormalize=lambda t: t,
+        with_baseline=True,
+    )
     assert baseline["windows"] == 1 and baseline["mse"] == pytest.approx(4.0)
     assert not math.isnan(baseline["ade"])

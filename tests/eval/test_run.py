@@ -5,9 +5,9 @@ import json
 import pytest
 import torch
 
+from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import DataConfig, WindowDataset
-from mmf_rl.checkpoint import load_checkpoint
 from tests.conftest import push_train_overrides
 
 NEW_COLUMNS = ("available", "minMSE@K (norm.)", "minADE@K", "minFDE@K", "NLL", "cover 50%", "cover 90%")
@@ -24,8 +24,13 @@ def faulty_push_root(tmp_path_factory):
 
 def test_learned_prior_eval_pairs_subsets_on_windows_with_failed_sensors(faulty_push_root, tmp_path, capsys):
     run = tmp_path / "run"
-    overrides = [*push_train_overrides(faulty_push_root, tmp_path / "cache", run, steps=40), "model.prior=learned",
-                 "loss.max_dropped=null", "loss.gsnn_weight=0.5", "loss.dropped_nll_weight=0.5"]
+    overrides = [
+        *push_train_overrides(faulty_push_root, tmp_path / "cache", run, steps=40),
+        "model.prior=learned",
+        "loss.max_dropped=null",
+        "loss.gsnn_weight=0.5",
+        "loss.dropped_nll_weight=0.5",
+    ]
     assert cli(["train", *overrides]) == 0
     assert cli(["eval", f"checkpoint={run}", "num_samples=5", "plot_windows=4"]) == 0
     out = capsys.readouterr().out
@@ -40,8 +45,15 @@ def test_learned_prior_eval_pairs_subsets_on_windows_with_failed_sensors(faulty_
     assert 0 < int(shared.sum()) < len(test), "the faults should remove a sensor from some test windows"
 
     rows = json.loads((run / "eval" / "results.json").read_text())["subsets"]
-    assert set(rows) == {"all", "without_image", "without_force", "without_proprio", "only_image", "only_force",
-                         "only_proprio"}
+    assert set(rows) == {
+        "all",
+        "without_image",
+        "without_force",
+        "without_proprio",
+        "only_image",
+        "only_force",
+        "only_proprio",
+    }
     assert {row["windows"] for row in rows.values()} == {float(shared.sum())}
     assert rows["all"]["windows_available"] == len(test)
     for name, mask in presence.items():

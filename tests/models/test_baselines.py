@@ -11,8 +11,15 @@ from mmf_rl.models import MODELS, build_loss, build_model, model_from_saved_conf
 from mmf_rl.models.baselines.common import zero_filled
 from mmf_rl.models.baselines.mvae import product_of_experts
 from mmf_rl.objectives import LossConfig
-from tests.conftest import (HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, assert_a_few_steps_reduce_the_loss,
-                            make_batch, presence_patterns)
+from tests.conftest import (
+    HISTORY,
+    HORIZON,
+    SMALL_MODALITIES,
+    TARGET_DIM,
+    assert_a_few_steps_reduce_the_loss,
+    make_batch,
+    presence_patterns,
+)
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 BASELINES = ["lf_lstm", "mvae", "mult"]
@@ -23,8 +30,13 @@ SIZES = {"lf_lstm": {}, "mvae": {"d_latent": 4}, "mult": {"num_heads": 2, "mlp_h
 
 def make_model(name: str, seed: int = 0):
     torch.manual_seed(seed)
-    return build_model({"name": name, "d_model": 16, "head_hidden": 32, **SIZES[name]}, list(SMALL_MODALITIES),
-                       HISTORY, HORIZON, TARGET_DIM)
+    return build_model(
+        {"name": name, "d_model": 16, "head_hidden": 32, **SIZES[name]},
+        list(SMALL_MODALITIES),
+        HISTORY,
+        HORIZON,
+        TARGET_DIM,
+    )
 
 
 def with_presence(td, pattern):
@@ -97,13 +109,23 @@ def test_zero_fill_baseline_sees_absent_modality_as_zeros(name, mixed_batch):
         zeroed.set(spec.obs_key, zero_filled(mixed_batch, spec))
         zeroed.set(spec.present_key, torch.ones(mixed_batch.shape[0], dtype=torch.bool))
     with torch.no_grad():
-        torch.testing.assert_close(model(corrupt_absent(mixed_batch, "noise")).get(keys.FORECAST_LOC),
-                                   model(zeroed).get(keys.FORECAST_LOC))
+        torch.testing.assert_close(
+            model(corrupt_absent(mixed_batch, "noise")).get(keys.FORECAST_LOC),
+            model(zeroed).get(keys.FORECAST_LOC),
+        )
 
 
 def test_zero_filled_replaces_absent_rows_only():
-    batch = corrupt_absent(make_batch(4, present={"image": torch.tensor([True, False, True, False]),
-                                                  "force": torch.tensor([False, True, True, False])}), "nan")
+    batch = corrupt_absent(
+        make_batch(
+            4,
+            present={
+                "image": torch.tensor([True, False, True, False]),
+                "force": torch.tensor([False, True, True, False]),
+            },
+        ),
+        "nan",
+    )
     for spec in SMALL_MODALITIES[:2]:
         filled = zero_filled(batch, spec)
         present = batch.get(spec.present_key)
@@ -155,7 +177,9 @@ def test_registry_build_and_checkpoint_round_trip(name, tmp_path):
     rebuilt.eval()
     batch = make_batch(4)
     with torch.no_grad():
-        torch.testing.assert_close(rebuilt(batch.clone()).get(keys.FORECAST_LOC), model(batch.clone()).get(keys.FORECAST_LOC))
+        torch.testing.assert_close(
+            rebuilt(batch.clone()).get(keys.FORECAST_LOC), model(batch.clone()).get(keys.FORECAST_LOC)
+        )
 
 
 @pytest.mark.parametrize("name", BASELINES)

@@ -62,10 +62,24 @@ def test_one_registration_makes_a_new_encoder_usable_end_to_end(monkeypatch):
         return LastStepEncoder(spec.shape[0], d_model)
 
     assert "last_step" in encoders_for("sequence") and "last_step" not in encoders_for("image")
-    specs = [s if s.name != "force" else ModalitySpec("force", "sequence", (6,), encoder="last_step")
-             for s in SMALL_MODALITIES]
-    model = build_model({"name": "forecaster", "d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32,
-                         "head_hidden": 32}, specs, HISTORY, HORIZON, TARGET_DIM)
+    specs = [
+        s if s.name != "force" else ModalitySpec("force", "sequence", (6,), encoder="last_step")
+        for s in SMALL_MODALITIES
+    ]
+    model = build_model(
+        {
+            "name": "forecaster",
+            "d_model": 16,
+            "d_latent": 4,
+            "num_heads": 2,
+            "mlp_hidden": 32,
+            "head_hidden": 32,
+        },
+        specs,
+        HISTORY,
+        HORIZON,
+        TARGET_DIM,
+    )
     assert isinstance(model.encoders["force"], LastStepEncoder)
     out = model.train()(make_batch(8, modalities=specs))
     assert out.get(keys.FORECAST_LOC).shape == (8, HORIZON, TARGET_DIM)

@@ -19,8 +19,15 @@ from tests.conftest import (
 )
 
 NAMES = [s.name for s in SMALL_MODALITIES]
-OUTPUTS = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE, keys.LATENT,
-           keys.PRIOR_LOC, keys.PRIOR_SCALE]
+OUTPUTS = [
+    keys.FORECAST_LOC,
+    keys.FORECAST_SCALE,
+    keys.POSTERIOR_LOC,
+    keys.POSTERIOR_SCALE,
+    keys.LATENT,
+    keys.PRIOR_LOC,
+    keys.PRIOR_SCALE,
+]
 PRIORS = ["standard", "learned"]
 
 
@@ -76,10 +83,17 @@ def test_value_under_absent_modality_changes_nothing(model, mixed_batch, fill):
         absent = ~corrupted.get(spec.present_key)
         obs = corrupted.get(spec.obs_key)
         if spec.kind == "image":
-            junk = torch.randint(0, 256, obs.shape, generator=g, dtype=torch.uint8) if fill == "noise" else torch.zeros_like(obs)
+            junk = (
+                torch.randint(0, 256, obs.shape, generator=g, dtype=torch.uint8)
+                if fill == "noise"
+                else torch.zeros_like(obs)
+            )
         else:
-            junk = {"noise": 1e6 * torch.randn(obs.shape, generator=g), "nan": torch.full_like(obs, float("nan")),
-                    "zeros": torch.zeros_like(obs)}[fill]
+            junk = {
+                "noise": 1e6 * torch.randn(obs.shape, generator=g),
+                "nan": torch.full_like(obs, float("nan")),
+                "zeros": torch.zeros_like(obs),
+            }[fill]
         obs[absent] = junk[absent]
     out = model(corrupted)
     for key in OUTPUTS:
@@ -94,13 +108,24 @@ def test_no_gradient_reaches_encoder_of_modality_absent_from_whole_batch(model, 
     td = batch.clone()
     td.set(keys.present_key("image"), torch.zeros(8, dtype=torch.bool))
     td.set(keys.obs_key("image"), torch.full_like(td.get(keys.obs_key("image")), 255))
-    for i, name in enumerate(NAMES):  # drop force where the batch has both vectors: the degraded passes too
-        td.set(keys.drop_key(name), torch.arange(8) % 2 == 0 if name == "force" else torch.zeros(8, dtype=torch.bool))
+    for name in NAMES:  # drop force where the batch has both vectors: the degraded passes too
+        td.set(
+            keys.drop_key(name),
+            torch.arange(8) % 2 == 0 if name == "force" else torch.zeros(8, dtype=torch.bool),
+        )
     td.set(keys.DECODE_FROM_PRIOR, torch.ones(8, dtype=torch.bool))
     model.train()
     out = model(td)
-    total = sum(out.get(k).sum() for k in (keys.FORECAST_LOC, keys.POSTERIOR_LOC, keys.PRIOR_LOC,
-                                           keys.FORECAST_DROPPED_LOC, keys.FORECAST_FROM_PRIOR_LOC))
+    total = sum(
+        out.get(k).sum()
+        for k in (
+            keys.FORECAST_LOC,
+            keys.POSTERIOR_LOC,
+            keys.PRIOR_LOC,
+            keys.FORECAST_DROPPED_LOC,
+            keys.FORECAST_FROM_PRIOR_LOC,
+        )
+    )
     if model.config.prior == "learned":
         total = total + out.get(keys.PRIOR_DROPPED_LOC).sum()
     total.backward()
@@ -118,12 +143,16 @@ def test_zero_present_modalities_is_a_value_error(small_model):
 
 def test_wrong_dtype_names_key_expected_and_found(small_model, batch):
     batch.set(keys.obs_key("force"), batch.get(keys.obs_key("force")).double())
-    with pytest.raises(ValueError, match=r"td\[\('obs', 'force'\)\]: expected float32 \[8, 4, 6\], found float64 \[8, 4, 6\]"):
+    with pytest.raises(
+        ValueError, match=r"td\[\('obs', 'force'\)\]: expected float32 \[8, 4, 6\], found float64 \[8, 4, 6\]"
+    ):
         small_model(batch)
 
 
 def test_cvae_posterior_needs_the_target_in_training_only(small_config, batch):
-    model = MultimodalForecaster(ForecasterConfig.from_dict({**small_config.to_dict(), "posterior_uses_target": True}))
+    model = MultimodalForecaster(
+        ForecasterConfig.from_dict({**small_config.to_dict(), "posterior_uses_target": True})
+    )
     del batch[keys.TARGET]
     with pytest.raises(KeyError, match="'target'"):
         model.train()(batch.clone())
@@ -214,10 +243,23 @@ def test_dropping_every_present_modality_is_refused(small_model, batch):
 
 @pytest.mark.parametrize("encoder", ["conv", "conv_gru"])
 def test_image_encoders_and_vector_modality(encoder):
-    specs = [ModalitySpec("cam", "image", (3, 16, 16), encoder=encoder, encoder_kwargs={"channels": (4, 8)}),
-             ModalitySpec("goal", "vector", (3,))]
-    model = MultimodalForecaster(ForecasterConfig(modalities=specs, history=3, horizon=2, target_dim=3, d_model=8,
-                                                  d_latent=2, num_heads=2, mlp_hidden=8, head_hidden=8))
+    specs = [
+        ModalitySpec("cam", "image", (3, 16, 16), encoder=encoder, encoder_kwargs={"channels": (4, 8)}),
+        ModalitySpec("goal", "vector", (3,)),
+    ]
+    model = MultimodalForecaster(
+        ForecasterConfig(
+            modalities=specs,
+            history=3,
+            horizon=2,
+            target_dim=3,
+            d_model=8,
+            d_latent=2,
+            num_heads=2,
+            mlp_hidden=8,
+            head_hidden=8,
+        )
+    )
     td = make_batch(5, modalities=specs, history=3, horizon=2, target_dim=3)
     out = model(td)
     assert out.get(keys.FORECAST_LOC).shape == (5, 2, 3)
@@ -254,15 +296,19 @@ ACTION_SHAPE = (HORIZON, 3)
 
 def with_actions(td, seed: int):
     td = td.clone()
-    td.set(keys.FUTURE_ACTION, torch.randn(td.shape[0], *ACTION_SHAPE, generator=torch.Generator().manual_seed(seed)))
+    td.set(
+        keys.FUTURE_ACTION,
+        torch.randn(td.shape[0], *ACTION_SHAPE, generator=torch.Generator().manual_seed(seed)),
+    )
     return td
 
 
 @pytest.fixture
 def world_model(small_config) -> MultimodalForecaster:
     torch.manual_seed(0)
-    return MultimodalForecaster(dataclasses.replace(small_config, action_steps=ACTION_SHAPE[0],
-                                                    action_dim=ACTION_SHAPE[1]))
+    return MultimodalForecaster(
+        dataclasses.replace(small_config, action_steps=ACTION_SHAPE[0], action_dim=ACTION_SHAPE[1])
+    )
 
 
 def test_world_model_forecast_depends_on_the_actions_only_through_them(world_model, batch):
@@ -293,7 +339,9 @@ def test_world_model_names_missing_or_malformed_actions(world_model, batch):
         world_model(batch.clone())
     td = batch.clone()
     td.set(keys.FUTURE_ACTION, torch.zeros(8, 4, 3))
-    with pytest.raises(ValueError, match=r"td\['future_action'\]: expected float32 \[8, 5, 3\], found float32 \[8, 4, 3\]"):
+    with pytest.raises(
+        ValueError, match=r"td\['future_action'\]: expected float32 \[8, 5, 3\], found float32 \[8, 4, 3\]"
+    ):
         world_model(td)
     with pytest.raises(ValueError, match=r"actions: expected \[B, N, S, A\] = \[8, N, 5, 3\]"):
         world_model.forecast_under_actions(batch, torch.zeros(8, 2, 5, 4))
@@ -322,11 +370,18 @@ def action_task(num_samples: int, seed: int, history: int = 6, horizon: int = 6)
     steps = torch.arange(1, horizon + 1, dtype=torch.float32)[None, :, None]
     target = 0.1 * velocity * steps + 0.1 * actions.cumsum(1)
     ones = torch.ones(num_samples, dtype=torch.bool)
-    return TensorDict({keys.obs_key("vel"): velocity.expand(-1, history, -1) + 0.05 * torch.randn(
-                           num_samples, history, 2, generator=g),
-                       keys.obs_key("noise"): torch.randn(num_samples, history, 2, generator=g),
-                       keys.present_key("vel"): ones, keys.present_key("noise"): ones.clone(),
-                       keys.TARGET: target, keys.FUTURE_ACTION: actions}, batch_size=[num_samples])
+    return TensorDict(
+        {
+            keys.obs_key("vel"): velocity.expand(-1, history, -1)
+            + 0.05 * torch.randn(num_samples, history, 2, generator=g),
+            keys.obs_key("noise"): torch.randn(num_samples, history, 2, generator=g),
+            keys.present_key("vel"): ones,
+            keys.present_key("noise"): ones.clone(),
+            keys.TARGET: target,
+            keys.FUTURE_ACTION: actions,
+        },
+        batch_size=[num_samples],
+    )
 
 
 def test_world_model_learns_what_the_actions_do():
@@ -339,9 +394,18 @@ def test_world_model_learns_what_the_actions_do():
     errors = {}
     for name, action_shape in [("plain", None), ("world", (6, 2))]:
         torch.manual_seed(0)
-        cfg = ForecasterConfig(modalities=specs, history=6, horizon=6, target_dim=2, d_model=32, d_latent=4,
-                               num_heads=2, mlp_hidden=64, head_hidden=64,
-                               **({} if action_shape is None else {"action_steps": 6, "action_dim": 2}))
+        cfg = ForecasterConfig(
+            modalities=specs,
+            history=6,
+            horizon=6,
+            target_dim=2,
+            d_model=32,
+            d_latent=4,
+            num_heads=2,
+            mlp_hidden=64,
+            head_hidden=64,
+            **({} if action_shape is None else {"action_steps": 6, "action_dim": 2}),
+        )
         model = MultimodalForecaster(cfg)
         loss = forecaster_loss(model, LossConfig())
         optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
@@ -353,7 +417,9 @@ def test_world_model_learns_what_the_actions_do():
             optimizer.step()
         model.eval()
         with torch.no_grad():
-            errors[name] = float((model(test.clone()).get(keys.FORECAST_LOC) - test.get(keys.TARGET)).square().mean())
+            errors[name] = float(
+                (model(test.clone()).get(keys.FORECAST_LOC) - test.get(keys.TARGET)).square().mean()
+            )
     assert errors["world"] < 0.25 * errors["plain"], errors
 
 
@@ -371,6 +437,7 @@ def test_forecast_from_the_prior_does_not_depend_on_the_multimodal_encoder(small
 
 # -- learned conditional prior p(z | X) -----------------------------------------------------------
 
+
 def test_learned_prior_changes_eval_forecasts_through_the_fusion(learned_model, batch):
     """With prior="learned" the multimodal encoder gives z at test time: changing it changes the forecast."""
     learned_model.eval()
@@ -387,7 +454,9 @@ def test_learned_prior_changes_eval_forecasts_through_the_fusion(learned_model, 
 def test_learned_prior_depends_on_the_present_modalities(learned_model, batch):
     learned_model.eval()
     with torch.no_grad():
-        priors = {p: learned_model(with_presence(batch, p)).get(keys.PRIOR_LOC) for p in presence_patterns(NAMES)}
+        priors = {
+            p: learned_model(with_presence(batch, p)).get(keys.PRIOR_LOC) for p in presence_patterns(NAMES)
+        }
     patterns = list(priors)
     for i, first in enumerate(patterns):
         for second in patterns[i + 1 :]:
@@ -426,8 +495,14 @@ def test_degraded_prior_comes_from_the_kept_modalities_in_one_fusion_pass(learne
         td.set(keys.drop_key(name), drop[:, i])
     td.set(keys.DECODE_FROM_PRIOR, torch.ones(td.shape[0], dtype=torch.bool))
     fusion_rows, decoder_rows = [], []
-    hooks = [learned_model.fusion.register_forward_hook(lambda mod, args, out: fusion_rows.append(args[0].shape[0])),
-             learned_model.decoder.register_forward_hook(lambda mod, args, out: decoder_rows.append(args[0].shape[0]))]
+    hooks = [
+        learned_model.fusion.register_forward_hook(
+            lambda mod, args, out: fusion_rows.append(args[0].shape[0])
+        ),
+        learned_model.decoder.register_forward_hook(
+            lambda mod, args, out: decoder_rows.append(args[0].shape[0])
+        ),
+    ]
     out = learned_model(td)
     for hook in hooks:
         hook.remove()
@@ -456,8 +531,10 @@ def test_prior_config_choices(small_config):
 def test_learned_prior_model_trains_with_every_loss_option(learned_model):
     from mmf_rl.models.registry import forecaster_loss
 
-    loss = forecaster_loss(learned_model, LossConfig(gsnn_weight=0.5, max_dropped=None, dropped_nll_weight=0.5,
-                                                     dropped_prior_weight=1.0))
+    loss = forecaster_loss(
+        learned_model,
+        LossConfig(gsnn_weight=0.5, max_dropped=None, dropped_nll_weight=0.5, dropped_prior_weight=1.0),
+    )
     assert {"loss_gsnn", "loss_mis_nll", "loss_mis_prior"} <= set(loss.out_keys)
     elbo, missing = loss.losses
     assert elbo.gsnn_weight == 0.5 and missing.max_dropped is None and missing.dropped_nll_weight == 0.5
@@ -466,8 +543,11 @@ def test_learned_prior_model_trains_with_every_loss_option(learned_model):
 
 def test_learned_prior_world_model_plans_from_the_prior_mean(small_config, mixed_batch):
     torch.manual_seed(0)
-    model = MultimodalForecaster(dataclasses.replace(small_config, prior="learned", action_steps=ACTION_SHAPE[0],
-                                                     action_dim=ACTION_SHAPE[1])).eval()
+    model = MultimodalForecaster(
+        dataclasses.replace(
+            small_config, prior="learned", action_steps=ACTION_SHAPE[0], action_dim=ACTION_SHAPE[1]
+        )
+    ).eval()
     actions = torch.randn(mixed_batch.shape[0], 3, *ACTION_SHAPE, generator=torch.Generator().manual_seed(5))
     with torch.no_grad():
         loc, _ = model.forecast_under_actions(mixed_batch, actions)

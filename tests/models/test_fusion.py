@@ -6,11 +6,23 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from mmf_rl import keys
-from mmf_rl.models import ForecasterConfig, MultimodalForecaster, build_loss, model_from_saved_config, saved_config
+from mmf_rl.models import (
+    ForecasterConfig,
+    MultimodalForecaster,
+    build_loss,
+    model_from_saved_config,
+    saved_config,
+)
 from mmf_rl.models.fusion import AverageFusion, CrossAttentionFusion, LinearFusion, SumFusion
 from mmf_rl.objectives import LossConfig
-from tests.conftest import (HORIZON, SMALL_MODALITIES, TARGET_DIM, assert_a_few_steps_reduce_the_loss, make_batch,
-                            presence_patterns)
+from tests.conftest import (
+    HORIZON,
+    SMALL_MODALITIES,
+    TARGET_DIM,
+    assert_a_few_steps_reduce_the_loss,
+    make_batch,
+    presence_patterns,
+)
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 ABLATIONS = ["linear", "average", "sum", "cross_attention"]
@@ -64,12 +76,18 @@ def test_mixed_batch_equals_per_sample_results(small_config, mixed_batch, fusion
 def test_tokens_of_absent_modalities_change_nothing(fusion):
     """The fusion masks absent tokens itself, whatever the encode step left in them."""
     torch.manual_seed(0)
-    module = {"linear": LinearFusion(3, 8), "average": AverageFusion(), "sum": SumFusion(),
-              "cross_attention": CrossAttentionFusion(3, 8, 2, 16)}[fusion]
+    module = {
+        "linear": LinearFusion(3, 8),
+        "average": AverageFusion(),
+        "sum": SumFusion(),
+        "cross_attention": CrossAttentionFusion(3, 8, 2, 16),
+    }[fusion]
     tokens = torch.randn(7, 3, 8)
     absent = ~torch.tensor([[n in p for n in NAMES] for p in presence_patterns(NAMES)])
     garbage = tokens.masked_fill(absent.unsqueeze(-1), 1e6)
-    torch.testing.assert_close(module(garbage, absent), module(tokens.masked_fill(absent.unsqueeze(-1), 0), absent))
+    torch.testing.assert_close(
+        module(garbage, absent), module(tokens.masked_fill(absent.unsqueeze(-1), 0), absent)
+    )
 
 
 @pytest.mark.parametrize("fusion", ABLATIONS)
@@ -85,7 +103,11 @@ def test_value_under_absent_modality_changes_nothing(small_config, mixed_batch, 
         if spec.kind == "image":
             junk = torch.randint(0, 256, obs.shape, generator=g, dtype=torch.uint8)
         else:
-            junk = torch.full_like(obs, float("nan")) if fill == "nan" else 1e6 * torch.randn(obs.shape, generator=g)
+            junk = (
+                torch.full_like(obs, float("nan"))
+                if fill == "nan"
+                else 1e6 * torch.randn(obs.shape, generator=g)
+            )
         obs[absent] = junk[absent]
     out = model(corrupted)
     for key in OUTPUTS:

@@ -6,29 +6,43 @@ import pytest
 import torch
 
 from mmf_rl import keys
+from mmf_rl.checkpoint import CheckpointError
 from mmf_rl.models import MODELS, build_model, from_pretrained
 from mmf_rl.models.baselines import LateFusionLSTM
-from mmf_rl.checkpoint import CheckpointError
 from tests.conftest import HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch
 
-SIZES = {"forecaster": {"d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32, "head_hidden": 32},
-         "lf_lstm": {"d_model": 16, "head_hidden": 32}, "mvae": {"d_model": 16, "d_latent": 4, "head_hidden": 32},
-         "mult": {"d_model": 16, "head_hidden": 32}}
+SIZES = {
+    "forecaster": {"d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32, "head_hidden": 32},
+    "lf_lstm": {"d_model": 16, "head_hidden": 32},
+    "mvae": {"d_model": 16, "d_latent": 4, "head_hidden": 32},
+    "mult": {"d_model": 16, "head_hidden": 32},
+}
 
 
 def small(name: str):
     torch.manual_seed(0)
-    return build_model({"name": name, **SIZES[name]}, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM).eval()
+    return build_model(
+        {"name": name, **SIZES[name]}, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM
+    ).eval()
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
 def test_local_round_trip_gives_the_same_forecasts(name, tmp_path):
     model = small(name)
-    model.normalization_stats = {"target/mean": torch.tensor([1.0, 2.0]), "target/std": torch.tensor([0.5, 3.0])}
+    model.normalization_stats = {
+        "target/mean": torch.tensor([1.0, 2.0]),
+        "target/std": torch.tensor([0.5, 3.0]),
+    }
     model.data_config = {"history": HISTORY, "horizon": HORIZON, "stride": 2}
     model.save_pretrained(tmp_path / "saved")
     files = {p.name for p in (tmp_path / "saved").iterdir()}
-    assert files == {"config.json", "model.safetensors", "normalization.safetensors", "data_config.json", "README.md"}
+    assert files == {
+        "config.json",
+        "model.safetensors",
+        "normalization.safetensors",
+        "data_config.json",
+        "README.md",
+    }
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], "no temporary directory left behind"
     assert json.loads((tmp_path / "saved" / "config.json").read_text())["name"] == name
 
@@ -54,5 +68,7 @@ def test_loading_is_strict_and_names_what_does_not_fit(tmp_path):
     with pytest.raises(CheckpointError, match=fit):
         from_pretrained(tmp_path / "saved")
     (tmp_path / "saved" / "model.safetensors").unlink()
-    with pytest.raises(FileNotFoundError, match=r"not a saved mmf-rl model: .*model.safetensors does not exist"):
+    with pytest.raises(
+        FileNotFoundError, match=r"not a saved mmf-rl model: .*model.safetensors does not exist"
+    ):
         from_pretrained(tmp_path / "saved")

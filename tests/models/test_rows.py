@@ -20,11 +20,13 @@ def test_selected_rows_are_computed_and_the_others_keep_their_default():
 def test_all_rows_pass_the_inputs_whole_and_no_row_computes_nothing():
     x = torch.arange(3.0)
     calls = []
-    (out,) = compute_on_rows(torch.ones(3, dtype=torch.bool), lambda rows: calls.append(rows) or (x + 1,),
-                             (torch.zeros(3),))
+    (out,) = compute_on_rows(
+        torch.ones(3, dtype=torch.bool), lambda rows: calls.append(rows) or (x + 1,), (torch.zeros(3),)
+    )
     assert calls == [None] and out.tolist() == [1.0, 2.0, 3.0]
-    (out,) = compute_on_rows(torch.zeros(3, dtype=torch.bool), lambda rows: calls.append(rows) or (x,),
-                             (torch.zeros(3),))
+    (out,) = compute_on_rows(
+        torch.zeros(3, dtype=torch.bool), lambda rows: calls.append(rows) or (x,), (torch.zeros(3),)
+    )
     assert calls == [None] and out.tolist() == [0.0, 0.0, 0.0]
 
 

@@ -18,12 +18,15 @@ def test_an_unknown_loss_key_is_a_clear_error():
         LossConfig.from_dict({"kl_wieght": 1.0})
 
 
-@pytest.mark.parametrize("field, value, message", [
-    ("kl_weight", -1.0, "loss.kl_weight must be >= 0, found -1.0"),
-    ("kl_warmup_steps", -5, "loss.kl_warmup_steps must be >= 0, found -5"),
-    ("missing_modality_weight", -0.5, "loss.missing_modality_weight must be >= 0"),
-    ("detach_teacher", "yes", "loss.detach_teacher must be true or false, found 'yes'"),
-])
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("kl_weight", -1.0, "loss.kl_weight must be >= 0, found -1.0"),
+        ("kl_warmup_steps", -5, "loss.kl_warmup_steps must be >= 0, found -5"),
+        ("missing_modality_weight", -0.5, "loss.missing_modality_weight must be >= 0"),
+        ("detach_teacher", "yes", "loss.detach_teacher must be true or false, found 'yes'"),
+    ],
+)
 def test_bad_values_name_the_key(field, value, message):
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         LossConfig(**{field: value})

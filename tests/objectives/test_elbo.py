@@ -15,9 +15,15 @@ def test_terms_equal_the_distributions_of_the_forward_pass(small_model, batch):
     out = loss(batch)
     torch.manual_seed(0)
     td = small_model(batch.clone())
-    nll = -Normal(td.get(keys.FORECAST_LOC), td.get(keys.FORECAST_SCALE)).log_prob(td.get(keys.TARGET)).sum((1, 2))
-    kl = kl_divergence(Normal(td.get(keys.POSTERIOR_LOC), td.get(keys.POSTERIOR_SCALE)),
-                       Normal(torch.zeros(4), torch.ones(4))).sum(-1)
+    nll = (
+        -Normal(td.get(keys.FORECAST_LOC), td.get(keys.FORECAST_SCALE))
+        .log_prob(td.get(keys.TARGET))
+        .sum((1, 2))
+    )
+    kl = kl_divergence(
+        Normal(td.get(keys.POSTERIOR_LOC), td.get(keys.POSTERIOR_SCALE)),
+        Normal(torch.zeros(4), torch.ones(4)),
+    ).sum(-1)
     torch.testing.assert_close(out["loss_nll"], nll.mean())
     torch.testing.assert_close(out["loss_kl"], 0.5 * kl.mean())
     torch.testing.assert_close(out["kl"], kl.mean())
@@ -86,8 +92,10 @@ def test_kl_is_to_the_models_learned_prior(learned_model, batch):
     out = loss(batch)
     torch.manual_seed(0)
     td = learned_model(batch.clone())
-    kl = kl_divergence(Normal(td.get(keys.POSTERIOR_LOC), td.get(keys.POSTERIOR_SCALE)),
-                       Normal(td.get(keys.PRIOR_LOC), td.get(keys.PRIOR_SCALE))).sum(-1)
+    kl = kl_divergence(
+        Normal(td.get(keys.POSTERIOR_LOC), td.get(keys.POSTERIOR_SCALE)),
+        Normal(td.get(keys.PRIOR_LOC), td.get(keys.PRIOR_SCALE)),
+    ).sum(-1)
     torch.testing.assert_close(out["loss_kl"], 0.5 * kl.mean())
     assert not torch.allclose(td.get(keys.PRIOR_LOC), torch.zeros(8, 4))
     out["loss_kl"].backward()  # the KL trains the prior head too
@@ -110,8 +118,11 @@ def test_gsnn_term_is_the_nll_of_a_forecast_decoded_from_the_prior(small_config,
     assert "loss_gsnn" in loss.out_keys and keys.FORECAST_FROM_PRIOR_LOC in loss.in_keys
     td = model(loss.prepare(batch.clone()))
     out = loss.loss_from_outputs(td)
-    nll = -Normal(td.get(keys.FORECAST_FROM_PRIOR_LOC), td.get(keys.FORECAST_FROM_PRIOR_SCALE)).log_prob(
-        td.get(keys.TARGET)).sum((1, 2))
+    nll = (
+        -Normal(td.get(keys.FORECAST_FROM_PRIOR_LOC), td.get(keys.FORECAST_FROM_PRIOR_SCALE))
+        .log_prob(td.get(keys.TARGET))
+        .sum((1, 2))
+    )
     torch.testing.assert_close(out["loss_gsnn"], 0.25 * nll.mean())
     assert not torch.allclose(td.get(keys.FORECAST_FROM_PRIOR_LOC), td.get(keys.FORECAST_LOC))
     assert "loss_gsnn" not in ELBOLoss(model)(batch).keys()  # off by default: no extra decode

@@ -15,9 +15,15 @@ NAMES = [s.name for s in SMALL_MODALITIES]
 
 def outputs(teacher_loc, student_loc, drop_first=True):
     b = teacher_loc.shape[0]
-    td = TensorDict({keys.FORECAST_LOC: teacher_loc, keys.FORECAST_SCALE: torch.ones_like(teacher_loc),
-                     keys.FORECAST_DROPPED_LOC: student_loc, keys.FORECAST_DROPPED_SCALE: torch.ones_like(student_loc)},
-                    batch_size=[b])
+    td = TensorDict(
+        {
+            keys.FORECAST_LOC: teacher_loc,
+            keys.FORECAST_SCALE: torch.ones_like(teacher_loc),
+            keys.FORECAST_DROPPED_LOC: student_loc,
+            keys.FORECAST_DROPPED_SCALE: torch.ones_like(student_loc),
+        },
+        batch_size=[b],
+    )
     for i, name in enumerate(NAMES):
         td.set(keys.drop_key(name), torch.full((b,), drop_first and i == 0))
     return td
@@ -40,9 +46,11 @@ def test_samples_with_nothing_dropped_do_not_count(small_model):
 
 
 def test_prepare_drops_exactly_one_present_modality_where_two_or_more(small_model):
-    present = {"image": torch.tensor([1, 1, 0, 1, 0] * 400).bool(),
-               "force": torch.tensor([1, 0, 0, 1, 1] * 400).bool(),
-               "proprio": torch.tensor([1, 0, 1, 1, 0] * 400).bool()}
+    present = {
+        "image": torch.tensor([1, 1, 0, 1, 0] * 400).bool(),
+        "force": torch.tensor([1, 0, 0, 1, 1] * 400).bool(),
+        "proprio": torch.tensor([1, 0, 1, 1, 0] * 400).bool(),
+    }
     td = make_batch(2000, present=present)
     loss = MissingModalityLoss(small_model)
     torch.manual_seed(0)
@@ -75,7 +83,9 @@ def test_detached_teacher_gets_no_gradient_from_loss_mis(small_model):
     student = torch.randn(4, 5, 2, requires_grad=True)
     for detach, teacher_has_grad in ((True, False), (False, True)):
         loc.grad = None
-        MissingModalityLoss(small_model, detach_teacher=detach).loss_from_outputs(outputs(loc, student))["loss_mis"].backward()
+        MissingModalityLoss(small_model, detach_teacher=detach).loss_from_outputs(outputs(loc, student))[
+            "loss_mis"
+        ].backward()
         assert (loc.grad is not None) == teacher_has_grad
         assert student.grad is not None
 
@@ -131,9 +141,11 @@ def test_presence_keys_come_from_the_forecaster_and_can_be_pointed_elsewhere(sma
         loss.set_keys(present={"lidar": ("present", "lidar")})
 
 
-THREE_PATTERNS = {"image": torch.tensor([1, 1, 0, 1, 0] * 400).bool(),
-                  "force": torch.tensor([1, 0, 0, 1, 1] * 400).bool(),
-                  "proprio": torch.tensor([1, 0, 1, 1, 0] * 400).bool()}
+THREE_PATTERNS = {
+    "image": torch.tensor([1, 1, 0, 1, 0] * 400).bool(),
+    "force": torch.tensor([1, 0, 0, 1, 1] * 400).bool(),
+    "proprio": torch.tensor([1, 0, 1, 1, 0] * 400).bool(),
+}
 
 
 def drawn_drops(loss, seed=0):
@@ -149,8 +161,12 @@ def test_uniform_drop_count_trains_single_modality_inputs(small_model, max_dropp
     present = torch.stack([THREE_PATTERNS[n] for n in NAMES], 1)
     kept = present & ~drop
     assert not (drop & ~present).any() and bool(kept.any(1).all())  # only present ones, never all of them
-    assert torch.equal(drop.sum(1)[present.sum(1) <= 2], (present.sum(1)[present.sum(1) <= 2] - 1).clamp_min(0))
-    full = present.sum(1) == 3  # rows 0, 3, 5, 8, ...: one or two of three dropped, each count about half the time
+    assert torch.equal(
+        drop.sum(1)[present.sum(1) <= 2], (present.sum(1)[present.sum(1) <= 2] - 1).clamp_min(0)
+    )
+    full = (
+        present.sum(1) == 3
+    )  # rows 0, 3, 5, 8, ...: one or two of three dropped, each count about half the time
     counts = drop[full].sum(1)
     assert set(counts.tolist()) == {1, 2}
     assert abs(float((counts == 2).float().mean()) - 0.5) < 0.05
@@ -191,8 +207,10 @@ def test_prior_of_the_degraded_input_is_tied_to_the_full_prior(learned_model, mi
     td = learned_model.train()(loss.prepare(mixed_batch.clone()))
     out = loss.loss_from_outputs(td)
     eligible = torch.stack([td.get(keys.drop_key(n)) for n in NAMES], 1).any(1)
-    kl = kl_divergence(Normal(td.get(keys.PRIOR_LOC), td.get(keys.PRIOR_SCALE)),
-                       Normal(td.get(keys.PRIOR_DROPPED_LOC), td.get(keys.PRIOR_DROPPED_SCALE))).sum(-1)
+    kl = kl_divergence(
+        Normal(td.get(keys.PRIOR_LOC), td.get(keys.PRIOR_SCALE)),
+        Normal(td.get(keys.PRIOR_DROPPED_LOC), td.get(keys.PRIOR_DROPPED_SCALE)),
+    ).sum(-1)
     torch.testing.assert_close(out["loss_mis_prior"], 2.0 * kl[eligible].mean())
     assert out["loss_mis_prior"] > 0
 
@@ -204,8 +222,14 @@ def test_prior_tie_teacher_is_detached_by_default(learned_model):
     for detach, teacher_has_grad in ((True, False), (False, True)):
         prior.grad = student.grad = None
         td = outputs(loc, loc.clone())
-        td.update({keys.PRIOR_LOC: prior, keys.PRIOR_SCALE: torch.ones(4, 3), keys.PRIOR_DROPPED_LOC: student,
-                   keys.PRIOR_DROPPED_SCALE: torch.ones(4, 3)})
+        td.update(
+            {
+                keys.PRIOR_LOC: prior,
+                keys.PRIOR_SCALE: torch.ones(4, 3),
+                keys.PRIOR_DROPPED_LOC: student,
+                keys.PRIOR_DROPPED_SCALE: torch.ones(4, 3),
+            }
+        )
         loss = MissingModalityLoss(learned_model, detach_teacher=detach)
         loss.loss_from_outputs(td)["loss_mis_prior"].backward()
         assert (prior.grad is not None) == teacher_has_grad and student.grad is not None

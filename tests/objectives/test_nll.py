@@ -44,7 +44,9 @@ def test_unit_gaussian_at_its_mean():
 @pytest.mark.parametrize("reduction,shape", [("none", (3,)), ("sum", ()), ("mean", ())])
 def test_reductions(reduction, shape):
     target = torch.randn(3, 2, 2)
-    loss = GaussianNLLLoss(FixedForecast(torch.zeros_like(target), torch.ones_like(target)), reduction=reduction)
+    loss = GaussianNLLLoss(
+        FixedForecast(torch.zeros_like(target), torch.ones_like(target)), reduction=reduction
+    )
     assert loss(batch(target))["loss_nll"].shape == shape
 
 

@@ -52,8 +52,13 @@ def background(command: list[str], **env):
     `output(process)` reads what it wrote, during the block and after it.
     """
     with tempfile.TemporaryFile("w+") as log:
-        process = subprocess.Popen(command, env={**subprocess_env(), **env}, stdout=log, stderr=subprocess.STDOUT,
-                                   start_new_session=True)
+        process = subprocess.Popen(
+            command,
+            env={**subprocess_env(), **env},
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
         process.log = log
         try:
             yield process
@@ -77,7 +82,9 @@ def wait_for(condition, process, timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not condition():
         if process.poll() is not None:
-            pytest.fail(f"the process ended (exit {process.returncode}) before {what}:\n{output(process)[-3000:]}")
+            pytest.fail(
+                f"the process ended (exit {process.returncode}) before {what}:\n{output(process)[-3000:]}"
+            )
         if time.monotonic() > deadline:
             pytest.fail(f"no {what} after {timeout_s} s:\n{output(process)[-3000:]}")
         time.sleep(POLL_S)
@@ -110,11 +117,21 @@ def edit_frames(root: Path, edit) -> None:
 
 def push_data_config(root: Path, cache_dir: Path, **overrides) -> DataConfig:
     """The push data config of `tests.conftest.push_train_overrides`, as a `DataConfig`."""
-    return DataConfig.from_dict({
-        "root": str(root), "cache_dir": str(cache_dir), "history": 4, "horizon": 3, "image_size": [32, 32],
-        "include_target_past": True, "split_fractions": [0.5, 0.25, 0.25],
-        "modalities": {"image": "observation.images.front", "force": "observation.force",
-                       "proprio": "observation.state"},
-        "target": {"feature": "observation.object_pose", "dims": [0, 1], "relative": True},
-        **overrides,
-    })
+    return DataConfig.from_dict(
+        {
+            "root": str(root),
+            "cache_dir": str(cache_dir),
+            "history": 4,
+            "horizon": 3,
+            "image_size": [32, 32],
+            "include_target_past": True,
+            "split_fractions": [0.5, 0.25, 0.25],
+            "modalities": {
+                "image": "observation.images.front",
+                "force": "observation.force",
+                "proprio": "observation.state",
+            },
+            "target": {"feature": "observation.object_pose", "dims": [0, 1], "relative": True},
+            **overrides,
+        }
+    )

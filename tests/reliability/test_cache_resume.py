@@ -48,11 +48,15 @@ def test_a_killed_cache_build_resumes_and_matches_a_full_build(push_copy, tmp_pa
     decode, decoded = cache.run_video_job, []
     monkeypatch.setattr(cache, "run_video_job", lambda job: decoded.append(job) or decode(job))
     resumed = WindowDataset(push_data_config(push_copy, cache_dir), num_workers=1)
-    assert resumed.built and len(decoded) == EPISODES - DECODED_BEFORE_KILL, "only the jobs not done were decoded"
+    assert resumed.built and len(decoded) == EPISODES - DECODED_BEFORE_KILL, (
+        "only the jobs not done were decoded"
+    )
     err = capsys.readouterr().err
     assert f"resuming an interrupted window cache build in {cache_dir}/.building-" in err
     assert f"{DECODED_BEFORE_KILL} of {EPISODES} video jobs already decoded" in err
-    assert [p.name for p in cache_dir.iterdir()] == [resumed.cache_path.name], "the adopted temp dir became the cache"
+    assert [p.name for p in cache_dir.iterdir()] == [resumed.cache_path.name], (
+        "the adopted temp dir became the cache"
+    )
     assert not {cache.PROGRESS_FILE, cache.FRAMES_READY} & {p.name for p in resumed.cache_path.iterdir()}
     assert cache.cache_damage(resumed.cache_path) is None
 

@@ -5,11 +5,10 @@ import errno
 import pytest
 import torch
 
+from mmf_rl import checkpoint as checkpoint_module
+from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import WindowDataset, cache
-from mmf_rl import checkpoint as checkpoint_module
-from mmf_rl.checkpoint import load_checkpoint
-from mmf_rl.checkpoint import list_checkpoints
 from tests.conftest import push_train_overrides
 from tests.reliability.conftest import (
     background,
@@ -26,8 +25,14 @@ DECODING = "decoding videos into the window cache"
 def test_two_trainers_on_one_dataset_build_the_cache_once_and_both_train(recorded_push_root, tmp_path):
     cache_dir = tmp_path / "cache"
     runs = [tmp_path / "a", tmp_path / "b"]
-    with background(cli_command("train", *push_train_overrides(recorded_push_root, cache_dir, runs[0], steps=2))) as a, \
-            background(cli_command("train", *push_train_overrides(recorded_push_root, cache_dir, runs[1], steps=2))) as b:
+    with (
+        background(
+            cli_command("train", *push_train_overrides(recorded_push_root, cache_dir, runs[0], steps=2))
+        ) as a,
+        background(
+            cli_command("train", *push_train_overrides(recorded_push_root, cache_dir, runs[1], steps=2))
+        ) as b,
+    ):
         for process in (a, b):
             wait_for(lambda p=process: p.poll() is not None, process, 600, "the end of training")
     outputs = [output(a), output(b)]
@@ -46,8 +51,10 @@ def test_a_reader_during_a_rebuild_after_a_dataset_change_waits_for_the_complete
     old = WindowDataset(push_data_config(push_copy, cache_dir))
     before = old.batch(torch.arange(len(old)))
     edit_frames(push_copy, change_one_force_value)  # a new fingerprint: a new cache directory
-    script = ("import sys; from mmf_rl.datasets import WindowDataset; from tests.reliability.conftest import "
-              f"push_data_config; WindowDataset(push_data_config({str(push_copy)!r}, {str(cache_dir)!r}), num_workers=1)")
+    script = (
+        "import sys; from mmf_rl.datasets import WindowDataset; from tests.reliability.conftest import "
+        f"push_data_config; WindowDataset(push_data_config({str(push_copy)!r}, {str(cache_dir)!r}), num_workers=1)"
+    )
     with background([cli_command()[0], "-c", script]) as builder:
         wait_for(lambda: any(cache_dir.glob(".building-*")), builder, 300, "a build in progress")
         reader = WindowDataset(push_data_config(push_copy, cache_dir))  # blocks until the build is complete
@@ -64,12 +71,17 @@ def enospc(*args, **kwargs):
     raise OSError(errno.ENOSPC, "No space left on device")
 
 
-def test_disk_full_during_a_cache_build_removes_the_partial_build_and_says_so(push_copy, tmp_path, monkeypatch):
+def test_disk_full_during_a_cache_build_removes_the_partial_build_and_says_so(
+    push_copy, tmp_path, monkeypatch
+):
     cache_dir = tmp_path / "cache"
     previous = WindowDataset(push_data_config(push_copy, cache_dir, history=3)).cache_path
     monkeypatch.setattr(cache, "_file_records", enospc)  # the last files of the build
-    with pytest.raises(OSError, match=r"no space left on device while building the window cache .*the partial "
-                                      r"build was removed, nothing else changed: free space in .*data.cache_dir"):
+    with pytest.raises(
+        OSError,
+        match=r"no space left on device while building the window cache .*the partial "
+        r"build was removed, nothing else changed: free space in .*data.cache_dir",
+    ):
         WindowDataset(push_data_config(push_copy, cache_dir))
     assert [p.name for p in cache_dir.iterdir()] == [previous.name] and cache.cache_damage(previous) is None
 
@@ -78,20 +90,29 @@ def test_a_cache_larger_than_the_free_space_is_refused_before_writing(push_copy,
     cache_dir = tmp_path / "cache"
     cache_dir.mkdir()
     monkeypatch.setattr(cache.shutil, "disk_usage", lambda path: type("Usage", (), {"free": 2**20})())
-    with pytest.raises(OSError, match=r"the window cache of .* needs about [\d.]+ GiB \(\d+ frames\) in .*, which "
-                                      r"has 0.00 GiB free; .*\(nothing was written\)"):
+    with pytest.raises(
+        OSError,
+        match=r"the window cache of .* needs about [\d.]+ GiB \(\d+ frames\) in .*, which "
+        r"has 0.00 GiB free; .*\(nothing was written\)",
+    ):
         WindowDataset(push_data_config(push_copy, cache_dir))
     assert list(cache_dir.iterdir()) == []
 
 
 def logged_steps(run, name="train/loss") -> list[int]:
-    return [int(line.split(",")[0]) for line in (run / "logs" / "scalars" / f"{name}.csv").read_text().splitlines()]
+    return [
+        int(line.split(",")[0])
+        for line in (run / "logs" / "scalars" / f"{name}.csv").read_text().splitlines()
+    ]
 
 
 def test_disk_full_during_a_checkpoint_save_keeps_the_previous_one_then_resume_logs_each_step_once(
-        recorded_push_root, push_cache_dir, tmp_path, monkeypatch, capsys):
+    recorded_push_root, push_cache_dir, tmp_path, monkeypatch, capsys
+):
     run = tmp_path / "run"
-    overrides = push_train_overrides(recorded_push_root, push_cache_dir, run, steps=6)  # checkpoints at 3 and 6
+    overrides = push_train_overrides(
+        recorded_push_root, push_cache_dir, run, steps=6
+    )  # checkpoints at 3 and 6
     real_save_file, calls = checkpoint_module.save_file, []
 
     def fills_the_disk_at_step_6(tensors, path):
@@ -107,7 +128,9 @@ def test_disk_full_during_a_checkpoint_save_keeps_the_previous_one_then_resume_l
     assert f"the previous checkpoint {run / 'checkpoints' / 'step_000000003'} is intact" in err
     assert "resume=true" in err
     assert [p.name for p in list_checkpoints(run / "checkpoints")] == ["step_000000003"]
-    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["last", "step_000000003"], "no temp files"
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["last", "step_000000003"], (
+        "no temp files"
+    )
     assert load_checkpoint(run / "checkpoints").step == 3
     assert logged_steps(run) == [2, 4, 6], "steps 4 and 6 were logged before the save failed"
 
@@ -121,8 +144,9 @@ def test_disk_full_during_a_checkpoint_save_keeps_the_previous_one_then_resume_l
     assert logged_steps(run, "train/lr") == [2, 4, 6]
 
 
-def test_leftovers_of_a_killed_save_or_prune_are_removed_on_the_next_start(recorded_push_root, push_cache_dir,
-                                                                           tmp_path, capsys):
+def test_leftovers_of_a_killed_save_or_prune_are_removed_on_the_next_start(
+    recorded_push_root, push_cache_dir, tmp_path, capsys
+):
     run = tmp_path / "run"
     overrides = push_train_overrides(recorded_push_root, push_cache_dir, run, steps=3)
     assert cli(["train", *overrides]) == 0

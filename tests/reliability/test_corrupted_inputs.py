@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
+from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import WindowDataset
-from mmf_rl.checkpoint import load_checkpoint
 from tests.conftest import push_train_overrides
 from tests.reliability.conftest import edit_frames, push_data_config
 
@@ -47,16 +47,32 @@ def test_stats_json_with_nan_and_zero_std_still_trains_with_finite_normalisation
     edit_frames(push_copy, constant_first_proprio)
 
     run = tmp_path / "run"
-    assert cli(["train", *push_train_overrides(push_copy, tmp_path / "cache", run, steps=3),
-                "data.std_floor=0.01"]) == 0
+    assert (
+        cli(
+            [
+                "train",
+                *push_train_overrides(push_copy, tmp_path / "cache", run, steps=3),
+                "data.std_floor=0.01",
+            ]
+        )
+        == 0
+    )
     checkpoint = load_checkpoint(run / "checkpoints")
     assert all(torch.isfinite(v).all() for v in checkpoint.tensors.values()), checkpoint.tensors
-    assert checkpoint.tensors["proprio/std"][0] == pytest.approx(0.01), "a constant feature gets the std floor"
-    assert (checkpoint.tensors["proprio/std"][1:] > 0.01).any() and (checkpoint.tensors["force/std"] > 0).all()
+    assert checkpoint.tensors["proprio/std"][0] == pytest.approx(0.01), (
+        "a constant feature gets the std floor"
+    )
+    assert (checkpoint.tensors["proprio/std"][1:] > 0.01).any() and (
+        checkpoint.tensors["force/std"] > 0
+    ).all()
     assert checkpoint.trainer_state["nonfinite_total"] == 0
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         dataset = WindowDataset(push_data_config(push_copy, tmp_path / "cache"))
     batch = dataset.batch(dataset.split_windows["train"])
-    assert all(torch.isfinite(batch.get(key)).all() for key in batch.keys(True, True) if batch.get(key).is_floating_point())
+    assert all(
+        torch.isfinite(batch.get(key)).all()
+        for key in batch.keys(True, True)
+        if batch.get(key).is_floating_point()
+    )

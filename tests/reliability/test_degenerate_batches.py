@@ -40,7 +40,10 @@ def test_a_single_sample_trains_and_forecasts(name):
         samples = model.sample(make_batch(1), 3)
     assert out.get(keys.FORECAST_LOC).shape == (1, HORIZON, TARGET_DIM)
     assert samples.get(keys.FORECAST_SAMPLES).shape == (1, 3, HORIZON, TARGET_DIM)
-    assert torch.isfinite(out.get(keys.FORECAST_LOC)).all() and torch.isfinite(samples.get(keys.FORECAST_SAMPLES)).all()
+    assert (
+        torch.isfinite(out.get(keys.FORECAST_LOC)).all()
+        and torch.isfinite(samples.get(keys.FORECAST_SAMPLES)).all()
+    )
 
 
 @pytest.mark.parametrize("name", sorted(MODEL_CONFIGS))

@@ -16,17 +16,29 @@ def worker_pids(launcher_pid: int) -> dict[int, int]:
     """rank -> pid of torchrun's worker processes (read from their environment)."""
     ranks = {}
     for pid in Path(f"/proc/{launcher_pid}/task/{launcher_pid}/children").read_text().split():
-        environ = dict(line.split("=", 1) for line in Path(f"/proc/{pid}/environ").read_text().split("\0") if "=" in line)
+        environ = dict(
+            line.split("=", 1) for line in Path(f"/proc/{pid}/environ").read_text().split("\0") if "=" in line
+        )
         ranks[int(environ["RANK"])] = int(pid)
     return ranks
 
 
-def test_a_killed_rank_ends_the_run_with_a_clear_error_well_within_the_timeout(recorded_push_root, push_cache_dir,
-                                                                              tmp_path):
+def test_a_killed_rank_ends_the_run_with_a_clear_error_well_within_the_timeout(
+    recorded_push_root, push_cache_dir, tmp_path
+):
     checkpoints = tmp_path / "ddp" / "checkpoints"
-    command = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", f"--master_port={free_port()}",
-               "--master_addr=127.0.0.1", "-m", "mmf_rl.cli", "train",
-               *run_overrides(recorded_push_root, push_cache_dir, tmp_path / "ddp", total_steps=100_000)]
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node=2",
+        f"--master_port={free_port()}",
+        "--master_addr=127.0.0.1",
+        "-m",
+        "mmf_rl.cli",
+        "train",
+        *run_overrides(recorded_push_root, push_cache_dir, tmp_path / "ddp", total_steps=100_000),
+    ]
     with background(command, MMF_RL_DIST_TIMEOUT=str(DIST_TIMEOUT_S)) as launcher:
         wait_for(lambda: any(checkpoints.glob("step_*")), launcher, 300, "a checkpoint")
         workers = worker_pids(launcher.pid)

@@ -40,11 +40,14 @@ def open_dataset(root, cache_dir):
     return WindowDataset(push_data_config(root, cache_dir))
 
 
-@pytest.mark.parametrize("key, template", [
-    ("video_path", "/etc/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"),
-    ("video_path", "videos/../../../{video_key}/file-{file_index:03d}.mp4"),
-    ("data_path", "../outside/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"),
-])
+@pytest.mark.parametrize(
+    "key, template",
+    [
+        ("video_path", "/etc/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"),
+        ("video_path", "videos/../../../{video_key}/file-{file_index:03d}.mp4"),
+        ("data_path", "../outside/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"),
+    ],
+)
 def test_a_path_template_escaping_the_root_is_refused(push_copy, tmp_path, key, template):
     edit_info(push_copy, lambda info: info.__setitem__(key, template))
     with pytest.raises(ValueError, match=rf"meta/info.json: `{key}` .* leads outside the dataset root"):
@@ -52,14 +55,23 @@ def test_a_path_template_escaping_the_root_is_refused(push_copy, tmp_path, key, 
     assert not (tmp_path / "cache").exists(), "refused before any cache is written"
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda info: info.__setitem__("total_frames", 10**13),
-     r"info.json: `total_frames` is 10000000000000, but the data files hold \d+ frames"),
-    (lambda info: info["features"][CAMERA].__setitem__("shape", [10**6, 10**6, 3]),
-     rf"info.json: feature '{CAMERA}' declares `shape` \[1000000, 1000000, 3\], 3e\+12 values per frame"),
-    (lambda info: info["features"]["observation.force"].__setitem__("shape", [10**12]),
-     r"info.json: feature 'observation.force' declares `shape` \[1000000000000\]"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (
+            lambda info: info.__setitem__("total_frames", 10**13),
+            r"info.json: `total_frames` is 10000000000000, but the data files hold \d+ frames",
+        ),
+        (
+            lambda info: info["features"][CAMERA].__setitem__("shape", [10**6, 10**6, 3]),
+            rf"info.json: feature '{CAMERA}' declares `shape` \[1000000, 1000000, 3\], 3e\+12 values per frame",
+        ),
+        (
+            lambda info: info["features"]["observation.force"].__setitem__("shape", [10**12]),
+            r"info.json: feature 'observation.force' declares `shape` \[1000000000000\]",
+        ),
+    ],
+)
 def test_absurd_declared_sizes_are_refused_before_any_allocation(push_copy, tmp_path, edit, message):
     # Allocating any of these would be terabytes (a MemoryError or an OOM kill, not this message).
     edit_info(push_copy, edit)
@@ -70,17 +82,28 @@ def test_absurd_declared_sizes_are_refused_before_any_allocation(push_copy, tmp_
 def shift_stop(episode: int, by: int):
     def edit(episodes):
         episodes.loc[episode, "dataset_to_index"] += by
+
     return edit
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda e: e.__setitem__("dataset_from_index", e["dataset_from_index"] - 100),
-     r"episode 0 has dataset_from_index=-100, dataset_to_index=\d+; expected 0 <= from <= to <= \d+"),
-    (lambda e: e.__setitem__("dataset_to_index", e["dataset_from_index"] - 1),
-     r"episode 0 has dataset_from_index=0, dataset_to_index=-1"),
-    (shift_stop(0, 5), r"episode 1 \(frames \d+\.\.\d+, dataset_from_index/dataset_to_index\) overlaps episode 0"),
-    (shift_stop(5, 5), r"episode 5 has .*expected 0 <= from <= to <= \d+"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (
+            lambda e: e.__setitem__("dataset_from_index", e["dataset_from_index"] - 100),
+            r"episode 0 has dataset_from_index=-100, dataset_to_index=\d+; expected 0 <= from <= to <= \d+",
+        ),
+        (
+            lambda e: e.__setitem__("dataset_to_index", e["dataset_from_index"] - 1),
+            r"episode 0 has dataset_from_index=0, dataset_to_index=-1",
+        ),
+        (
+            shift_stop(0, 5),
+            r"episode 1 \(frames \d+\.\.\d+, dataset_from_index/dataset_to_index\) overlaps episode 0",
+        ),
+        (shift_stop(5, 5), r"episode 5 has .*expected 0 <= from <= to <= \d+"),
+    ],
+)
 def test_negative_inverted_or_overlapping_episode_ranges_are_refused(push_copy, tmp_path, edit, message):
     edit_episodes(push_copy, edit)
     with pytest.raises(ValueError, match=r"meta/episodes/chunk-000/file-000.parquet: " + message):
@@ -97,8 +120,11 @@ def test_timestamps_going_backwards_skip_the_episode_with_a_warning(push_copy, t
         warnings.simplefilter("always")
         dataset = open_dataset(push_copy, tmp_path / "cache")
     messages = [str(w.message) for w in caught]
-    assert any("data/chunk-000/file-000.parquet: `timestamp` of episode 2 does not increase at frame 10" in m
-               and "the episode is skipped" in m for m in messages), messages
+    assert any(
+        "data/chunk-000/file-000.parquet: `timestamp` of episode 2 does not increase at frame 10" in m
+        and "the episode is skipped" in m
+        for m in messages
+    ), messages
     assert 2 not in dataset.window_episode.tolist() and {0, 1, 3} <= set(dataset.window_episode.tolist())
     assert dataset.report["skipped"]["episodes_timestamps_not_increasing"] == [2]
 
@@ -122,8 +148,11 @@ def test_a_video_shorter_than_its_parquet_makes_the_camera_absent_past_its_end(p
         sink.mux(out.encode())
     shorter.replace(video)
 
-    with pytest.warns(UserWarning, match=rf"{video.name} \(undecodable: the video has {keep} frames \([\d.]+ s\), "
-                                         r"but the parquet rows of this episode need frames up to [\d.]+ s"):
+    with pytest.warns(
+        UserWarning,
+        match=rf"{video.name} \(undecodable: the video has {keep} frames \([\d.]+ s\), "
+        r"but the parquet rows of this episode need frames up to [\d.]+ s",
+    ):
         dataset = open_dataset(push_copy, tmp_path / "cache")
     camera, episode = dataset.presence["image"], dataset.window_episode
     assert camera[episode < cut_episode].all() and not camera[episode > cut_episode].any()

@@ -39,23 +39,31 @@ def test_eval_writes_outside_its_run_directory_only_when_allowed(trained_run, tm
     assert json.loads((elsewhere / "results.json").read_text())["checkpoint"].startswith(str(trained_run))
 
 
-def test_relative_run_dir_with_dotdot_is_resolved_and_saved_resolved(recorded_push_root, push_cache_dir, tmp_path,
-                                                                     monkeypatch, capsys):
+def test_relative_run_dir_with_dotdot_is_resolved_and_saved_resolved(
+    recorded_push_root, push_cache_dir, tmp_path, monkeypatch, capsys
+):
     cwd = tmp_path / "a" / "b"
     cwd.mkdir(parents=True)
     monkeypatch.chdir(cwd)
-    assert cli(["train", *push_train_overrides(recorded_push_root, push_cache_dir, "../../runs/x", steps=2)]) == 0
+    assert (
+        cli(["train", *push_train_overrides(recorded_push_root, push_cache_dir, "../../runs/x", steps=2)])
+        == 0
+    )
     resolved = (tmp_path / "runs" / "x").resolve()
     assert yaml.safe_load((resolved / "config.yaml").read_text())["run_dir"] == str(resolved)
     assert f"-> {resolved}" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("name", ["../../etc", "a/b", ".."])
-def test_a_run_name_with_path_separators_is_refused(recorded_push_root, push_cache_dir, tmp_path, monkeypatch, capsys,
-                                                   name):
+def test_a_run_name_with_path_separators_is_refused(
+    recorded_push_root, push_cache_dir, tmp_path, monkeypatch, capsys, name
+):
     monkeypatch.chdir(tmp_path)
-    overrides = [o for o in push_train_overrides(recorded_push_root, push_cache_dir, "unused") if
-                 not o.startswith("run_dir=")]
+    overrides = [
+        o
+        for o in push_train_overrides(recorded_push_root, push_cache_dir, "unused")
+        if not o.startswith("run_dir=")
+    ]
     assert cli(["train", *overrides, f"name={name}"]) == 1
     err = capsys.readouterr().err
     assert f"name={name!r} must be a plain name without path separators" in err and "run_dir=PATH" in err

@@ -12,16 +12,22 @@ from tests.reliability.conftest import single_thread
 TOTAL_STEPS = 16
 
 
-def test_two_sigkills_then_resume_end_with_the_weights_of_an_uninterrupted_run(recorded_push_root, push_cache_dir,
-                                                                               tmp_path):
+def test_two_sigkills_then_resume_end_with_the_weights_of_an_uninterrupted_run(
+    recorded_push_root, push_cache_dir, tmp_path
+):
     def overrides(run):
         return run_overrides(recorded_push_root, push_cache_dir, tmp_path / run, TOTAL_STEPS)
 
     with single_thread():
         assert cli(["train", *overrides("reference")]) == 0
     # Every step_* checkpoint is loaded after each kill (kill_when_checkpointed).
-    killed_at = kill_repeatedly(overrides("killed"), tmp_path / "killed" / "checkpoints", kills=2,
-                                total_steps=TOTAL_STEPS, rng=random.Random(0))
+    killed_at = kill_repeatedly(
+        overrides("killed"),
+        tmp_path / "killed" / "checkpoints",
+        kills=2,
+        total_steps=TOTAL_STEPS,
+        rng=random.Random(0),
+    )
     assert killed_at[0] < killed_at[1] < TOTAL_STEPS
     with single_thread():
         assert cli(["train", *overrides("killed"), "resume=true"]) == 0

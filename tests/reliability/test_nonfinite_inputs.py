@@ -12,10 +12,9 @@ from torchrl.envs import TransformedEnv
 from torchrl.modules.planners import CEMPlanner
 
 from mmf_rl import keys
-from mmf_rl.rl import ForecasterWorldModelEnv
-from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.models import build_model
-from mmf_rl.rl import PushObjective
+from mmf_rl.rl import ForecasterWorldModelEnv, PushObjective
+from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from tests.conftest import HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch
 from tests.envs.stamp_env import StampEnv
 from tests.rl.test_transforms import PUSH_SPECS, write_checkpoint
@@ -32,8 +31,9 @@ BAD_ROWS = [1, 3]
 
 def small_model(name: str, **options):
     torch.manual_seed(0)
-    model = build_model({"name": name, **MODEL_CONFIGS[name], **options}, SMALL_MODALITIES, HISTORY, HORIZON,
-                        TARGET_DIM)
+    model = build_model(
+        {"name": name, **MODEL_CONFIGS[name], **options}, SMALL_MODALITIES, HISTORY, HORIZON, TARGET_DIM
+    )
     return model.eval()
 
 
@@ -48,9 +48,12 @@ def poisoned_batch(value: float):
 def test_the_model_api_refuses_nonfinite_present_values_naming_key_and_samples(name, value):
     model = small_model(name)
     for call in (model, lambda td: model.sample(td, 2)):
-        with pytest.raises(ValueError, match=r"td\[\('obs', 'force'\)\] holds NaN or Inf in 2 sample\(s\) where "
-                                             r"\('present', 'force'\) is True \(batch indices \[1, 3\]\).*"
-                                             r"nonfinite='absent'"):
+        with pytest.raises(
+            ValueError,
+            match=r"td\[\('obs', 'force'\)\] holds NaN or Inf in 2 sample\(s\) where "
+            r"\('present', 'force'\) is True \(batch indices \[1, 3\]\).*"
+            r"nonfinite='absent'",
+        ):
             call(poisoned_batch(value))
 
 
@@ -65,8 +68,9 @@ def test_nonfinite_absent_reads_those_samples_as_absent(name):
         expected = model(absent)
     assert torch.isfinite(out.get(keys.FORECAST_LOC)).all()
     torch.testing.assert_close(out.get(keys.FORECAST_LOC), expected.get(keys.FORECAST_LOC))
-    assert out.get(keys.present_key("force")).tolist() == [i not in BAD_ROWS for i in range(6)], \
+    assert out.get(keys.present_key("force")).tolist() == [i not in BAD_ROWS for i in range(6)], (
         "the batch says which samples were read as absent"
+    )
     # The untouched modalities and a clean batch are unaffected.
     assert out.get(keys.present_key("image")).all() and out.get(keys.present_key("proprio")).all()
 
@@ -76,8 +80,11 @@ def test_nonfinite_absent_with_nothing_left_says_why():
     batch = make_batch(4, present={"image": torch.tensor([True, True, False, True])})
     for name in ("force", "proprio"):
         batch.get(keys.obs_key(name))[2] = float("nan")
-    with pytest.raises(ValueError, match=r"1 sample\(s\) have no present modality \(after NaN/Inf made "
-                                         r"\['force', 'proprio'\] absent\) \(batch indices \[2\]\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"1 sample\(s\) have no present modality \(after NaN/Inf made "
+        r"\['force', 'proprio'\] absent\) \(batch indices \[2\]\)",
+    ):
         model(batch)
 
 
@@ -89,8 +96,14 @@ def test_an_unknown_nonfinite_option_is_refused():
 
 
 def test_a_nonfinite_future_action_is_refused_by_a_world_model():
-    model = build_model({"name": "forecaster", **MODEL_CONFIGS["forecaster"]}, SMALL_MODALITIES, HISTORY, HORIZON,
-                        TARGET_DIM, action_shape=(HORIZON, 3)).eval()
+    model = build_model(
+        {"name": "forecaster", **MODEL_CONFIGS["forecaster"]},
+        SMALL_MODALITIES,
+        HISTORY,
+        HORIZON,
+        TARGET_DIM,
+        action_shape=(HORIZON, 3),
+    ).eval()
     batch = make_batch(3)
     batch.set(keys.FUTURE_ACTION, torch.zeros(3, HORIZON, 3))
     batch.get(keys.FUTURE_ACTION)[2, 0, 0] = float("nan")
@@ -133,7 +146,9 @@ def test_forecast_transform_reads_a_nonfinite_sensor_as_absent(checkpoint_dir):
 
 def test_history_window_never_holds_a_nonfinite_value(checkpoint_dir):
     forecast = ForecastTransform.from_checkpoint(checkpoint_dir)
-    env = TransformedEnv(GarbledForceEnv(), HistoryWindow.for_model(forecast.model, forecast.normalizer.stats))
+    env = TransformedEnv(
+        GarbledForceEnv(), HistoryWindow.for_model(forecast.model, forecast.normalizer.stats)
+    )
     td = env.rollout(7, break_when_any_done=False)
     force = td.get(("next", keys.HISTORY, *keys.obs_key("force")))
     assert torch.isfinite(force).all()
@@ -157,13 +172,17 @@ def test_world_model_and_planner_read_a_nonfinite_history_as_absent(push_world_m
     actions = torch.zeros(1, 2, push_world_model.action_steps, push_world_model.action_dim)
     forecast = push_world_model.forecast(*push_world_model.encode(garbled), actions)
     assert torch.isfinite(forecast).all()
-    torch.testing.assert_close(forecast, push_world_model.forecast(*push_world_model.encode(flagged), actions))
+    torch.testing.assert_close(
+        forecast, push_world_model.forecast(*push_world_model.encode(flagged), actions)
+    )
 
     objective = PushObjective()
-    env = ForecasterWorldModelEnv(push_world_model, objective, push_history_env.action_spec,
-                                  push_history_env.observation_spec)
+    env = ForecasterWorldModelEnv(
+        push_world_model, objective, push_history_env.action_spec, push_history_env.observation_spec
+    )
     state = real.select(*objective.in_keys).set(keys.HISTORY, garbled[0])
-    planner = CEMPlanner(env, planning_horizon=push_world_model.action_steps, optim_steps=2, num_candidates=8,
-                         top_k=2)
+    planner = CEMPlanner(
+        env, planning_horizon=push_world_model.action_steps, optim_steps=2, num_candidates=8, top_k=2
+    )
     action = planner.planning(env.reset(state))
     assert torch.isfinite(action).all()

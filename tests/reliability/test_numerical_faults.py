@@ -10,9 +10,9 @@ import warnings
 import numpy as np
 import torch
 
+from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import WindowDataset
-from mmf_rl.checkpoint import load_checkpoint
 from tests.conftest import push_train_overrides
 from tests.reliability.conftest import edit_frames, push_data_config
 

@@ -29,10 +29,19 @@ class TargetSequence:
 
 def test_cem_finds_the_best_sequence_of_a_known_objective(push_world_model, push_history_env):
     td = push_history_env.reset()
-    target = torch.linspace(-0.8, 0.8, push_world_model.action_steps * 4).view(push_world_model.action_steps, 4)
+    target = torch.linspace(-0.8, 0.8, push_world_model.action_steps * 4).view(
+        push_world_model.action_steps, 4
+    )
     target[:, 3] = 0.0  # the finger command: constant in the data, so the planner never moves it
-    planner = SequenceCEMPlanner(push_world_model, TargetSequence(target), ACTIONS, num_candidates=256,
-                                 num_iterations=8, num_elites=16, seed=0)
+    planner = SequenceCEMPlanner(
+        push_world_model,
+        TargetSequence(target),
+        ACTIONS,
+        num_candidates=256,
+        num_iterations=8,
+        num_elites=16,
+        seed=0,
+    )
     plan = planner.plan(td)
     assert (plan - target).abs().max() < 0.1
     # The action taken is the plan's first step.
@@ -40,18 +49,40 @@ def test_cem_finds_the_best_sequence_of_a_known_objective(push_world_model, push
     assert torch.equal(action, planner._raw(planner._mean)[0, 0])
 
 
-def test_planner_is_reproducible_from_its_seed_and_restarts_on_new_episodes(push_world_model, push_history_env):
+def test_planner_is_reproducible_from_its_seed_and_restarts_on_new_episodes(
+    push_world_model, push_history_env
+):
     td = push_history_env.reset()
-    first = [SequenceCEMPlanner(push_world_model, PushObjective(), ACTIONS, num_candidates=32, num_iterations=2,
-                                num_elites=4, seed=3).plan(td) for _ in range(2)]
+    first = [
+        SequenceCEMPlanner(
+            push_world_model,
+            PushObjective(),
+            ACTIONS,
+            num_candidates=32,
+            num_iterations=2,
+            num_elites=4,
+            seed=3,
+        ).plan(td)
+        for _ in range(2)
+    ]
     torch.testing.assert_close(first[0], first[1])
-    planner = SequenceCEMPlanner(push_world_model, PushObjective(), ACTIONS, num_candidates=32, num_iterations=1,
-                                 num_elites=4, init_std=1e-6, min_std=1e-6)
+    planner = SequenceCEMPlanner(
+        push_world_model,
+        PushObjective(),
+        ACTIONS,
+        num_candidates=32,
+        num_iterations=1,
+        num_elites=4,
+        init_std=1e-6,
+        min_std=1e-6,
+    )
     previous = torch.randn(1, push_world_model.action_steps, 4, generator=torch.Generator().manual_seed(0))
     shifted = torch.cat([previous[:, 1:], previous[:, -1:]], 1)
     planner._mean = previous.clone()
     continuing = td.clone().set("is_init", torch.zeros(1, dtype=torch.bool))
-    torch.testing.assert_close(planner.plan(continuing), planner._raw(shifted)[0], atol=1e-4, rtol=0)  # warm start
+    torch.testing.assert_close(
+        planner.plan(continuing), planner._raw(shifted)[0], atol=1e-4, rtol=0
+    )  # warm start
     planner._mean = previous.clone()
     fresh = planner._raw(torch.zeros_like(previous))[0]  # is_init: start again from the data's mean action
     torch.testing.assert_close(planner.plan(td), fresh, atol=1e-4, rtol=0)
@@ -62,32 +93,54 @@ def test_planner_drives_the_real_env_batched_with_outages(push_world_model):
 
     from mmf_rl.envs import ModalityDropout
 
-    env = TransformedEnv(SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)), Compose(
-        ModalityDropout(["image", "force"], outage_prob=0.5, outage="episode", seed=0),
-        push_world_model.history_window(), InitTracker()))
+    env = TransformedEnv(
+        SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)),
+        Compose(
+            ModalityDropout(["image", "force"], outage_prob=0.5, outage="episode", seed=0),
+            push_world_model.history_window(),
+            InitTracker(),
+        ),
+    )
     try:
         env.set_seed(0)
-        planner = SequenceCEMPlanner(push_world_model, PushObjective(), env.action_spec, num_candidates=16,
-                                     num_iterations=2, num_elites=4)
+        planner = SequenceCEMPlanner(
+            push_world_model,
+            PushObjective(),
+            env.action_spec,
+            num_candidates=16,
+            num_iterations=2,
+            num_elites=4,
+        )
         rollout = env.rollout(4, planner, break_when_any_done=False)
     finally:
         env.close()
     assert rollout.shape == (2, 4)
     assert torch.isfinite(rollout.get("action")).all() and rollout.get("action").abs().max() <= 1.0
-    assert rollout.get(("next", "history", "obs", "image")).shape[-4:] == (push_world_model.model.config.history, 3,
-                                                                            IMAGE_SIZE, IMAGE_SIZE)
+    assert rollout.get(("next", "history", "obs", "image")).shape[-4:] == (
+        push_world_model.model.config.history,
+        3,
+        IMAGE_SIZE,
+        IMAGE_SIZE,
+    )
 
 
 def test_push_objective_prefers_pushing_toward_the_goal_and_approaching_from_behind():
     objective = PushObjective()
     object_xy, goal_xy = torch.tensor([1.30, 0.75]), torch.tensor([1.40, 0.75])
     grip = torch.tensor([1.30 - CONTACT_DISTANCE, 0.75, 0.425])  # behind the object, at pushing height
-    context = TensorDict({"object_pose": torch.cat([object_xy, torch.tensor([0.425, 1, 0, 0, 0])])[None],
-                          "goal": torch.cat([goal_xy, torch.tensor([0.425])])[None],
-                          ("obs", "proprio"): torch.cat([grip, torch.zeros(14)])[None]}, batch_size=[1])
+    context = TensorDict(
+        {
+            "object_pose": torch.cat([object_xy, torch.tensor([0.425, 1, 0, 0, 0])])[None],
+            "goal": torch.cat([goal_xy, torch.tensor([0.425])])[None],
+            ("obs", "proprio"): torch.cat([grip, torch.zeros(14)])[None],
+        },
+        batch_size=[1],
+    )
     steps = 3
     push = torch.zeros(1, 2, steps, 4)
-    push[0, 0, :, 0] = 1.0  # both candidates drive +x; only the first forecast moves the object with the gripper
+    push[0, 0, :, 0] = (
+        1.0  # both candidates drive +x; only the first forecast moves the object with the gripper
+    )
     moved = ACTION_SCALE / TRACKING_GAIN * torch.arange(1, steps + 1)
     forecast = torch.zeros(1, 2, steps, 2)
     forecast[0, 0, :, 0] = moved
@@ -106,7 +159,9 @@ def test_planner_refuses_an_action_spec_the_model_was_not_trained_on(push_world_
 def test_world_model_ignores_action_dims_the_data_never_varied(push_world_model, push_history_env):
     assert push_world_model.constant_action_dims.tolist() == [False, False, False, True]  # the finger command
     tokens, present, valid = push_world_model.encode(push_history_env.reset().get(keys.HISTORY).unsqueeze(0))
-    actions = torch.rand(1, 1, push_world_model.action_steps, 4, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    actions = (
+        torch.rand(1, 1, push_world_model.action_steps, 4, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    )
     actions = actions.repeat(1, 2, 1, 1)
     actions[0, 1, :, 3] = -actions[0, 0, :, 3]  # the same moves, another finger command
     forecast = push_world_model.forecast(tokens, present, valid, actions)

@@ -33,11 +33,30 @@ def make_stats(seed: int = 0) -> dict[str, torch.Tensor]:
 
 def write_checkpoint(directory, specs, stride: int = 1):
     torch.manual_seed(0)
-    model = build_model({"name": "forecaster", "d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32,
-                         "head_hidden": 32}, specs, HISTORY, HORIZON, TARGET_DIM)
-    save_checkpoint(directory, 1, model.state_dict(), tensors=make_stats(),
-                    meta={"model_config": saved_config("forecaster", model),
-                          "config": {"data": {"history": HISTORY, "horizon": HORIZON, "stride": stride}}})
+    model = build_model(
+        {
+            "name": "forecaster",
+            "d_model": 16,
+            "d_latent": 4,
+            "num_heads": 2,
+            "mlp_hidden": 32,
+            "head_hidden": 32,
+        },
+        specs,
+        HISTORY,
+        HORIZON,
+        TARGET_DIM,
+    )
+    save_checkpoint(
+        directory,
+        1,
+        model.state_dict(),
+        tensors=make_stats(),
+        meta={
+            "model_config": saved_config("forecaster", model),
+            "config": {"data": {"history": HISTORY, "horizon": HORIZON, "stride": stride}},
+        },
+    )
     return directory
 
 
@@ -53,13 +72,14 @@ def checkpoint(tmp_path_factory):
     return write_checkpoint(tmp_path_factory.mktemp("ckpt"), PUSH_SPECS)
 
 
-
-
 def test_forecast_env_passes_check_env_specs(checkpoint):
-    env = TransformedEnv(SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)), Compose(
-        ModalityDropout(["image", "force"], outage_prob=0.3, seed=0),
-        ForecastTransform.from_checkpoint(checkpoint, num_samples=3),
-    ))
+    env = TransformedEnv(
+        SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)),
+        Compose(
+            ModalityDropout(["image", "force"], outage_prob=0.3, seed=0),
+            ForecastTransform.from_checkpoint(checkpoint, num_samples=3),
+        ),
+    )
     try:
         check_env_specs(env, seed=0)
         spec = env.observation_spec
@@ -79,8 +99,13 @@ def hand_built_window(frames: list, normalizer: Normalizer, t: int) -> TensorDic
         present = torch.stack([frames[s].get(spec.present_key) for s in steps], dim=1).all(1)
         if spec.kind == "image":
             size = spec.shape[-2:]
-            flat = F.interpolate(values.flatten(0, 1).float() / 255, size=size, mode="bilinear", antialias=True,
-                                 align_corners=False)
+            flat = F.interpolate(
+                values.flatten(0, 1).float() / 255,
+                size=size,
+                mode="bilinear",
+                antialias=True,
+                align_corners=False,
+            )
             values = (flat * 255).round().clamp(0, 255).to(torch.uint8).view(*values.shape[:3], *size)
         else:
             values = normalizer.normalize(spec.name, values) * present[:, None, None]
@@ -92,10 +117,13 @@ def hand_built_window(frames: list, normalizer: Normalizer, t: int) -> TensorDic
 def test_forecast_equals_the_model_on_the_window_built_by_hand(checkpoint):
     forecast = ForecastTransform.from_checkpoint(checkpoint)
     model, normalizer = forecast.model, forecast.normalizer
-    env = TransformedEnv(SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)), Compose(
-        ModalityDropout(["image", "force"], outage_prob=0.25, bursts=UniformBursts(1, 3), seed=2),
-        forecast,
-    ))
+    env = TransformedEnv(
+        SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)),
+        Compose(
+            ModalityDropout(["image", "force"], outage_prob=0.25, bursts=UniformBursts(1, 3), seed=2),
+            forecast,
+        ),
+    )
     try:
         env.set_seed(0)
         td = env.rollout(6, break_when_any_done=False)
@@ -108,10 +136,13 @@ def test_forecast_equals_the_model_on_the_window_built_by_hand(checkpoint):
         saw_absent |= not all(window.get(s.present_key).all() for s in PUSH_SPECS)
         with torch.no_grad():
             out = model(window)
-        torch.testing.assert_close(td["next", keys.FORECAST, "loc"][:, t - 1],
-                                   normalizer.denormalize_target(out[keys.FORECAST_LOC]))
-        torch.testing.assert_close(td["next", keys.FORECAST, "scale"][:, t - 1],
-                                   normalizer.denormalize_target_scale(out[keys.FORECAST_SCALE]))
+        torch.testing.assert_close(
+            td["next", keys.FORECAST, "loc"][:, t - 1], normalizer.denormalize_target(out[keys.FORECAST_LOC])
+        )
+        torch.testing.assert_close(
+            td["next", keys.FORECAST, "scale"][:, t - 1],
+            normalizer.denormalize_target_scale(out[keys.FORECAST_SCALE]),
+        )
     assert saw_absent, "the rollout should exercise windows with a missing modality"
     assert td["next", FORECAST_VALID].all()
 
@@ -119,12 +150,21 @@ def test_forecast_equals_the_model_on_the_window_built_by_hand(checkpoint):
 @pytest.mark.parametrize("num_envs", [1, 3])
 def test_traced_forecast_equals_the_eager_forward(checkpoint, num_envs):
     """The lean path (one trace per batch size and presence pattern) writes the eager forward's forecasts."""
+
     def rollout(trace: bool):
         forecast = ForecastTransform.from_checkpoint(checkpoint, trace=trace)
-        base = (MultimodalPushTorchEnv(image_size=IMAGE_SIZE) if num_envs == 1
-                else SerialEnv(num_envs, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)))
-        env = TransformedEnv(base, Compose(
-            ModalityDropout(["image", "force"], outage_prob=0.3, bursts=UniformBursts(1, 3), seed=4), forecast))
+        base = (
+            MultimodalPushTorchEnv(image_size=IMAGE_SIZE)
+            if num_envs == 1
+            else SerialEnv(num_envs, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE))
+        )
+        env = TransformedEnv(
+            base,
+            Compose(
+                ModalityDropout(["image", "force"], outage_prob=0.3, bursts=UniformBursts(1, 3), seed=4),
+                forecast,
+            ),
+        )
         try:
             env.set_seed(0)
             torch.manual_seed(0)  # the random actions
@@ -137,7 +177,9 @@ def test_traced_forecast_equals_the_eager_forward(checkpoint, num_envs):
     eager, _ = rollout(trace=False)
     patterns = {pattern[1:] for pattern in forecast._graphs}  # noqa: SLF001
     # Batch 1: every step is traced; a batch of 3 mixes presence across envs, so the eager path runs too.
-    assert len(patterns) >= (2 if num_envs == 1 else 1), "the rollout should exercise traced presence patterns"
+    assert len(patterns) >= (2 if num_envs == 1 else 1), (
+        "the rollout should exercise traced presence patterns"
+    )
     for key in (keys.FORECAST_LOC, keys.FORECAST_SCALE):
         torch.testing.assert_close(traced["next", *key], eager["next", *key])
 
@@ -185,10 +227,15 @@ def test_forecast_window_uses_the_checkpoint_stride(tmp_path):
 
 def test_forecast_without_any_present_modality_is_the_target_marginal(checkpoint):
     forecast = ForecastTransform.from_checkpoint(checkpoint, num_samples=2)
-    env = TransformedEnv(stamp_envs(2), Compose(
-        ModalityDropout(list(MODALITIES), outage_prob={"image": 1.0, "force": 1.0, "proprio": 0.0}, outage="episode"),
-        forecast,
-    ))
+    env = TransformedEnv(
+        stamp_envs(2),
+        Compose(
+            ModalityDropout(
+                list(MODALITIES), outage_prob={"image": 1.0, "force": 1.0, "proprio": 0.0}, outage="episode"
+            ),
+            forecast,
+        ),
+    )
     try:
         td = env.reset()
         td = env.step(env.rand_action(td))["next"]
@@ -204,11 +251,20 @@ def test_forecast_without_any_present_modality_is_the_target_marginal(checkpoint
     assert torch.isfinite(td[keys.FORECAST_SAMPLES]).all()
 
 
-@pytest.mark.parametrize("specs,problem", [
-    ([ModalitySpec("wrist", "image", (3, 16, 16), encoder_kwargs={"channels": (8, 16)})], "'wrist' is not emitted"),
-    ([ModalitySpec("proprio", "sequence", (20,))], "'proprio' is float32 [17], expected float [20]"),
-    ([ModalitySpec("image", "image", (1, 16, 16), encoder_kwargs={"channels": (8, 16)})], "expected uint8 [1, h, w]"),
-])
+@pytest.mark.parametrize(
+    "specs,problem",
+    [
+        (
+            [ModalitySpec("wrist", "image", (3, 16, 16), encoder_kwargs={"channels": (8, 16)})],
+            "'wrist' is not emitted",
+        ),
+        ([ModalitySpec("proprio", "sequence", (20,))], "'proprio' is float32 [17], expected float [20]"),
+        (
+            [ModalitySpec("image", "image", (1, 16, 16), encoder_kwargs={"channels": (8, 16)})],
+            "expected uint8 [1, h, w]",
+        ),
+    ],
+)
 def test_checkpoint_that_does_not_match_the_env_is_refused(tmp_path, specs, problem):
     env = TransformedEnv(stamp_envs(2), ForecastTransform.from_checkpoint(write_checkpoint(tmp_path, specs)))
     try:
@@ -236,11 +292,21 @@ def test_stats_without_a_modality_are_refused(checkpoint):
 def test_history_window_is_the_model_batch_built_by_hand(checkpoint):
     forecast = ForecastTransform.from_checkpoint(checkpoint)
     history = HistoryWindow.for_model(forecast.model, forecast.normalizer.stats)
-    env = TransformedEnv(SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)), Compose(
-        ModalityDropout(["image", "force"], outage_prob=0.25, bursts=UniformBursts(1, 3), seed=2), history))
+    env = TransformedEnv(
+        SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)),
+        Compose(
+            ModalityDropout(["image", "force"], outage_prob=0.25, bursts=UniformBursts(1, 3), seed=2), history
+        ),
+    )
     try:
         check_env_specs(env, seed=0)
-        assert env.observation_spec[keys.HISTORY, keys.OBS, "image"].shape == (2, HISTORY, 3, MODEL_IMAGE, MODEL_IMAGE)
+        assert env.observation_spec[keys.HISTORY, keys.OBS, "image"].shape == (
+            2,
+            HISTORY,
+            3,
+            MODEL_IMAGE,
+            MODEL_IMAGE,
+        )
         env.set_seed(0)
         td = env.rollout(6, break_when_any_done=False)
     finally:
@@ -257,7 +323,20 @@ def test_history_window_is_the_model_batch_built_by_hand(checkpoint):
 
 def test_forecast_transform_refuses_a_world_model_and_names_the_way_to_plan(tmp_path):
     torch.manual_seed(0)
-    model = build_model({"name": "forecaster", "d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32,
-                         "head_hidden": 32}, PUSH_SPECS, HISTORY, HORIZON, TARGET_DIM, action_shape=(HORIZON, 4))
+    model = build_model(
+        {
+            "name": "forecaster",
+            "d_model": 16,
+            "d_latent": 4,
+            "num_heads": 2,
+            "mlp_hidden": 32,
+            "head_hidden": 32,
+        },
+        PUSH_SPECS,
+        HISTORY,
+        HORIZON,
+        TARGET_DIM,
+        action_shape=(HORIZON, 4),
+    )
     with pytest.raises(ValueError, match="action-conditioned world model.*HistoryWindow.*SequenceCEMPlanner"):
         ForecastTransform(model, make_stats())

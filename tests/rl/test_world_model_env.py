@@ -12,8 +12,9 @@ from mmf_rl.rl.world_model_env import ACTIONS, FORECAST, STEP
 @pytest.fixture
 def imagined(push_world_model, push_history_env):
     objective = PushObjective()
-    env = ForecasterWorldModelEnv(push_world_model, objective, push_history_env.action_spec,
-                                  push_history_env.observation_spec)
+    env = ForecasterWorldModelEnv(
+        push_world_model, objective, push_history_env.action_spec, push_history_env.observation_spec
+    )
     real = push_history_env.rollout(3, break_when_any_done=False)[-1].get("next")
     return env, objective, real
 
@@ -22,8 +23,12 @@ def test_imagined_rollout_equals_the_world_model_under_the_held_actions(push_wor
     env, objective, real = imagined
     state = env.reset(real.select(keys.HISTORY, *objective.in_keys))
     actions = torch.rand(push_world_model.action_steps, 4, generator=torch.Generator().manual_seed(0)) * 2 - 1
-    rollout = env.rollout(push_world_model.action_steps, policy=lambda td: td.set("action", actions[int(td.get(STEP))]),
-                          auto_reset=False, tensordict=state.clone())
+    rollout = env.rollout(
+        push_world_model.action_steps,
+        policy=lambda td: td.set("action", actions[int(td.get(STEP))]),
+        auto_reset=False,
+        tensordict=state.clone(),
+    )
     assert rollout.shape == (push_world_model.action_steps,)
     assert rollout.get(("next", "done"))[-1].item() and not rollout.get(("next", "done"))[:-1].any()
     assert (rollout.get(("next", *ACTIONS))[-1] == actions).all()
@@ -33,7 +38,9 @@ def test_imagined_rollout_equals_the_world_model_under_the_held_actions(push_wor
     tokens, present, valid = push_world_model.encode(window)
     context = real.select(*objective.in_keys).unsqueeze(0)
     for k in range(push_world_model.action_steps):
-        held = torch.cat([actions[: k + 1], actions[k : k + 1].expand(push_world_model.action_steps - k - 1, -1)])
+        held = torch.cat(
+            [actions[: k + 1], actions[k : k + 1].expand(push_world_model.action_steps - k - 1, -1)]
+        )
         forecast = push_world_model.forecast(tokens, present, valid, held[None, None])
         torch.testing.assert_close(rollout.get(("next", *FORECAST))[k], forecast[0, 0, k])
         reward = objective(forecast, held[None, None], context)[0, 0, k]
@@ -45,11 +52,19 @@ def test_torchrl_planners_plan_in_the_world_model_env(push_world_model, imagined
     env, objective, real = imagined
     state = env.reset(real.select(keys.HISTORY, *objective.in_keys))
     if planner_cls is CEMPlanner:
-        planner = CEMPlanner(env, planning_horizon=push_world_model.action_steps, optim_steps=2, num_candidates=16, top_k=4)
+        planner = CEMPlanner(
+            env, planning_horizon=push_world_model.action_steps, optim_steps=2, num_candidates=16, top_k=4
+        )
     else:
-        planner = MPPIPlanner(env, advantage_module=lambda td: td.set("advantage", td.get(("next", "reward"))),
-                              temperature=1.0, planning_horizon=push_world_model.action_steps, optim_steps=2,
-                              num_candidates=16, top_k=4)
+        planner = MPPIPlanner(
+            env,
+            advantage_module=lambda td: td.set("advantage", td.get(("next", "reward"))),
+            temperature=1.0,
+            planning_horizon=push_world_model.action_steps,
+            optim_steps=2,
+            num_candidates=16,
+            top_k=4,
+        )
     action = planner.planning(state)
     assert action.shape == (4,) and torch.isfinite(action).all()
 

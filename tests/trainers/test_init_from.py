@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from mmf_rl import keys
+from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.models import load_trained_model
-from mmf_rl.checkpoint import load_checkpoint
 from tests.conftest import push_train_overrides
 
 
@@ -32,8 +32,18 @@ def test_fine_tuning_starts_from_the_weights_at_step_zero(trained_run, recorded_
     assert all(torch.equal(tuned.model_state[k], v) for k, v in source.model_state.items())
 
     # the run's final model, as save_pretrained wrote it, is a source too, and forecasts like the checkpoint
-    assert cli(["train", *overrides, f"run_dir={tmp_path / 'again'}", f"init_from={trained_run / 'run' / 'model'}",
-                "trainer.lr=0.0"]) == 0
+    assert (
+        cli(
+            [
+                "train",
+                *overrides,
+                f"run_dir={tmp_path / 'again'}",
+                f"init_from={trained_run / 'run' / 'model'}",
+                "trainer.lr=0.0",
+            ]
+        )
+        == 0
+    )
     again = load_checkpoint(tmp_path / "again" / "checkpoints")
     assert all(torch.equal(again.model_state[k], v) for k, v in source.model_state.items())
     exported, stats, data = load_trained_model(trained_run / "run" / "model")
@@ -48,10 +58,14 @@ def test_fine_tuning_starts_from_the_weights_at_step_zero(trained_run, recorded_
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["model.d_latent=6"],
-         r"posterior_head.2.bias: expected \[12\], found \[8\].*model.d_latent: this run 6, source 4"),
-        (["data.image_size=[16,16]"],
-         r"modality 'image': this run has \('image', \(3, 16, 16\)\), .* has \('image', \(3, 32, 32\)\)"),
+        (
+            ["model.d_latent=6"],
+            r"posterior_head.2.bias: expected \[12\], found \[8\].*model.d_latent: this run 6, source 4",
+        ),
+        (
+            ["data.image_size=[16,16]"],
+            r"modality 'image': this run has \('image', \(3, 16, 16\)\), .* has \('image', \(3, 32, 32\)\)",
+        ),
         (["~data.modalities.force"], r"modality 'force': this run has none, .* has \('sequence', \(6,\)\)"),
         (["model=lf_lstm"], r"holds a 'forecaster' model, but this run builds 'lf_lstm'"),
     ],
@@ -59,7 +73,9 @@ def test_fine_tuning_starts_from_the_weights_at_step_zero(trained_run, recorded_
 def test_mismatches_are_named(trained_run, recorded_push_root, tmp_path, capsys, args, message):
     overrides = push_train_overrides(recorded_push_root, trained_run / "cache", tmp_path / "tuned", steps=2)
     if args == ["model=lf_lstm"]:
-        overrides = [o for o in overrides if not o.startswith(("model.d_latent", "model.num_heads", "model.mlp"))]
+        overrides = [
+            o for o in overrides if not o.startswith(("model.d_latent", "model.num_heads", "model.mlp"))
+        ]
     assert cli(["train", *overrides, *args, f"init_from={trained_run / 'run'}"]) == 1
     err = capsys.readouterr().err.strip().splitlines()[-1]  # after any cache-building progress bar
     assert err.startswith("mmf-rl train: error:") and re.search(message, err), err

@@ -9,15 +9,17 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from mmf_rl.cli import main as cli
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
+from mmf_rl.cli import main as cli
 from mmf_rl.models import load_trained_model
 from tests.conftest import push_train_overrides
 
 
 @pytest.fixture
 def overrides(recorded_push_root, tmp_path):
-    return lambda run, **kw: push_train_overrides(recorded_push_root, tmp_path / "cache", tmp_path / run, **kw)
+    return lambda run, **kw: push_train_overrides(
+        recorded_push_root, tmp_path / "cache", tmp_path / run, **kw
+    )
 
 
 def test_train_then_eval_writes_checkpoint_logs_table_and_plots(overrides, tmp_path, capsys):
@@ -32,7 +34,13 @@ def test_train_then_eval_writes_checkpoint_logs_table_and_plots(overrides, tmp_p
     out = capsys.readouterr().out
     assert "| all |" in out and "| without_image |" in out and "| constant velocity |" in out
     results = json.loads((run / "eval" / "results.json").read_text())
-    assert set(results["subsets"]) >= {"all", "without_image", "without_force", "without_proprio", "only_image"}
+    assert set(results["subsets"]) >= {
+        "all",
+        "without_image",
+        "without_force",
+        "without_proprio",
+        "only_image",
+    }
     assert results["subsets"]["all"]["degradation"] == 0
     assert all(v["min_ade_k"] <= v["ade"] * 1.5 for v in results["subsets"].values())
     for plot in ("error_per_subset.png", "forecasts.png"):
@@ -57,8 +65,10 @@ def test_existing_run_is_never_overwritten_and_resume_needs_same_config(override
         (["model=transformer"], "Could not find 'model/transformer'"),
         (["data.root=/nonexistent/dataset"], "/nonexistent/dataset"),
         (["+loss.kl_wieght=1"], "loss config: unknown keys ['kl_wieght']"),
-        (["data.modalities.force={feature: observation.force, encoder: resnet}"],
-         "modality 'force': encoder 'resnet' is not available; expected one of ['conv', 'conv_gru', 'gru',"),
+        (
+            ["data.modalities.force={feature: observation.force, encoder: resnet}"],
+            "modality 'force': encoder 'resnet' is not available; expected one of ['conv', 'conv_gru', 'gru',",
+        ),
         (["device=cuda"] if not torch.cuda.is_available() else ["device=tpu"], "device="),
     ],
 )
@@ -100,7 +110,9 @@ def test_killed_training_resumes_to_the_weights_of_an_uninterrupted_run(override
         torch.set_num_threads(min(2, os.cpu_count() or 1))
     killed = tmp_path / "killed"
     command = [sys.executable, "-m", "mmf_rl.cli", "train", *overrides("killed"), *steps]
-    process = subprocess.Popen(command, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    process = subprocess.Popen(
+        command, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     try:
         deadline = time.monotonic() + 300
         while not any(int(p.name.split("_")[1]) >= 3 for p in list_checkpoints(killed / "checkpoints")):
@@ -129,8 +141,18 @@ def free_port() -> int:
 
 
 def test_two_gloo_ranks_train_in_lockstep_and_agree(overrides, tmp_path):
-    command = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", f"--master_port={free_port()}",
-               "--master_addr=127.0.0.1", "-m", "mmf_rl.cli", "train", *overrides("ddp")]
+    command = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node=2",
+        f"--master_port={free_port()}",
+        "--master_addr=127.0.0.1",
+        "-m",
+        "mmf_rl.cli",
+        "train",
+        *overrides("ddp"),
+    ]
     result = subprocess.run(command, env=subprocess_env(), capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "data parallel: 2 ranks agree after 6 steps" in result.stdout

@@ -8,9 +8,9 @@ import torch.multiprocessing as mp
 from torchrl.record.loggers import CSVLogger
 
 from mmf_rl import keys
+from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
-from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.trainers.trainer import (
     Trainer,
     TrainerConfig,
@@ -30,8 +30,17 @@ class Interrupt(Exception):
 
 def small_forecaster() -> MultimodalForecaster:
     seed_everything(0)
-    config = ForecasterConfig(modalities=SYNTH_MODALITIES, history=8, horizon=8, target_dim=2, d_model=16,
-                              d_latent=4, num_heads=2, mlp_hidden=32, head_hidden=32)
+    config = ForecasterConfig(
+        modalities=SYNTH_MODALITIES,
+        history=8,
+        horizon=8,
+        target_dim=2,
+        d_model=16,
+        d_latent=4,
+        num_heads=2,
+        mlp_hidden=32,
+        head_hidden=32,
+    )
     return MultimodalForecaster(config)
 
 
@@ -40,8 +49,18 @@ def combined_loss(model):
 
 
 def trainer_config(**overrides) -> TrainerConfig:
-    return TrainerConfig(**{"total_steps": 12, "lr": 3e-3, "warmup_steps": 3, "log_every": 2, "eval_every": 6,
-                            "checkpoint_every": 6, "progress_bar": False, **overrides})
+    return TrainerConfig(
+        **{
+            "total_steps": 12,
+            "lr": 3e-3,
+            "warmup_steps": 3,
+            "log_every": 2,
+            "eval_every": 6,
+            "checkpoint_every": 6,
+            "progress_bar": False,
+            **overrides,
+        }
+    )
 
 
 def build(synthetic_task, tmp_path, **overrides):
@@ -54,8 +73,15 @@ def build(synthetic_task, tmp_path, **overrides):
         out = m(synthetic_task["test"][:256].clone())
         return {"val/mse": float(((out[keys.FORECAST_LOC] - out[keys.TARGET]) ** 2).mean())}
 
-    return Trainer(model, loss, loader, config, run_dir=tmp_path, evaluate=evaluate,
-                   checkpoint_meta={"config": model.config.to_dict()})
+    return Trainer(
+        model,
+        loss,
+        loader,
+        config,
+        run_dir=tmp_path,
+        evaluate=evaluate,
+        checkpoint_meta={"config": model.config.to_dict()},
+    )
 
 
 def test_trains_logs_evaluates_and_checkpoints(synthetic_task, tmp_path):
@@ -90,7 +116,9 @@ def test_resume_after_interrupt_equals_uninterrupted_run(synthetic_task, tmp_pat
     resumed.resume(tmp_path / "b" / "checkpoints")
     assert resumed.step == 6 and resumed.epoch == 1 and resumed.batch_in_epoch == 1
     resumed.train()
-    for (name, a), b in zip(reference.model.state_dict().items(), resumed.model.state_dict().values()):
+    for (name, a), b in zip(
+        reference.model.state_dict().items(), resumed.model.state_dict().values(), strict=True
+    ):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=name)
     assert int(resumed.loss_module.losses[0].num_updates) == 12
 
@@ -119,7 +147,9 @@ def test_nonfinite_batch_is_skipped_and_counted(synthetic_task, tmp_path):
 def test_repeated_nonfinite_batches_stop_with_a_message_naming_the_batch(synthetic_task, tmp_path):
     trainer = build(synthetic_task, tmp_path, max_nonfinite_steps=2)
     trainer.register_op("batch_process", poison({2, 3, 4}))
-    with pytest.raises(TrainingStopped, match=r"3 steps in a row had a non-finite loss.*step 1, epoch 0, batch 3"):
+    with pytest.raises(
+        TrainingStopped, match=r"3 steps in a row had a non-finite loss.*step 1, epoch 0, batch 3"
+    ):
         trainer.train()
 
 
@@ -138,8 +168,14 @@ def test_exploding_loss_stops_and_names_last_good_checkpoint(synthetic_task, tmp
 
 
 def test_early_stopping(synthetic_task, tmp_path):
-    trainer = build(synthetic_task, tmp_path, total_steps=40, eval_every=2, early_stopping_patience=1,
-                    early_stopping_metric="val/constant")
+    trainer = build(
+        synthetic_task,
+        tmp_path,
+        total_steps=40,
+        eval_every=2,
+        early_stopping_patience=1,
+        early_stopping_metric="val/constant",
+    )
     trainer.evaluate = lambda m: {"val/constant": 1.0}
     trainer.train()
     assert trainer.step == 6  # best at 2, no improvement at 4 and 6 -> stop
@@ -174,26 +210,37 @@ def dp_batch(batch, number: int, rank: int):
     if number % 3 == 0:
         batch[keys.present_key("pos")] = torch.zeros(batch.shape[0], dtype=torch.bool)
     if rank == 0 and number == DP_NAN_BATCH:
-        batch[keys.TARGET][0, 0, 0] = float("nan")  # a NaN input is refused by the model; a NaN target gives a NaN loss
+        batch[keys.TARGET][0, 0, 0] = float(
+            "nan"
+        )  # a NaN input is refused by the model; a NaN target gives a NaN loss
     return batch
 
 
 def train_rank(rank: int, store: str, out: str) -> None:
     torch.set_num_threads(1)
     # A bounded timeout: a rank left waiting in a collective fails the test instead of hanging it.
-    dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=2,
-                            timeout=timedelta(seconds=120))
+    dist.init_process_group(
+        "gloo", init_method=f"file://{store}", rank=rank, world_size=2, timeout=timedelta(seconds=120)
+    )
     try:
         model = small_forecaster()
-        trainer = Trainer(model, combined_loss(model), dp_loader(rank), trainer_config(total_steps=DP_STEPS),
-                          rank=rank, world_size=2)
+        trainer = Trainer(
+            model,
+            combined_loss(model),
+            dp_loader(rank),
+            trainer_config(total_steps=DP_STEPS),
+            rank=rank,
+            world_size=2,
+        )
         seed_everything(1 + rank)  # each rank draws its own latents and dropped modalities
         numbers = itertools.count(1)
         trainer.register_op("batch_process", lambda batch: dp_batch(batch, next(numbers), rank))
         trainer.train()
-        result = {"weights": {k: v.clone() for k, v in model.state_dict().items()},
-                  "nonfinite_total": trainer.nonfinite_total,
-                  "pos_grads": [p.grad for p in model.encoders["pos"].parameters()]}
+        result = {
+            "weights": {k: v.clone() for k, v in model.state_dict().items()},
+            "nonfinite_total": trainer.nonfinite_total,
+            "pos_grads": [p.grad for p in model.encoders["pos"].parameters()],
+        }
         # A loss that explodes on rank 1 only stops both ranks.
         trainer.config.total_steps += 2
         if rank == 1:
@@ -232,7 +279,7 @@ def data_parallel_by_definition() -> dict[str, torch.Tensor]:
         if not all(torch.isfinite(t) for t in totals):
             continue
         grads = [torch.autograd.grad(t, params, allow_unused=True) for t in totals]
-        for p, per_rank in zip(params, zip(*grads)):
+        for p, per_rank in zip(params, zip(*grads, strict=True), strict=True):
             present = [g for g in per_rank if g is not None]
             p.grad = sum(present) / 2 if present else None
         torch.nn.utils.clip_grad_norm_(params, config.grad_clip_norm)

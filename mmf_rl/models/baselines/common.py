@@ -47,7 +47,9 @@ class BaselineConfig:
     nonfinite: NonFiniteRule = "raise"
 
     def __post_init__(self):
-        self.modalities = [m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities]
+        self.modalities = [
+            m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities
+        ]
         name = type(self).__name__
         if not self.modalities:
             raise ValueError(f"{name}.modalities is empty: the model needs at least one modality")
@@ -131,8 +133,14 @@ class DeterministicForecaster(TensorDictModuleBase, PretrainedModel):
         self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE]
 
     def validate(self, td: TensorDictBase) -> None:
-        keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim,
-                            nonfinite=self.config.nonfinite)
+        keys.validate_batch(
+            td,
+            self.modalities,
+            self.config.history,
+            self.config.horizon,
+            self.config.target_dim,
+            nonfinite=self.config.nonfinite,
+        )
 
     def forecast(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         raise NotImplementedError

@@ -13,8 +13,13 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from mmf_rl.models.baselines.common import BaselineConfig, DeterministicForecaster, StepTokenizer, \
-    gaussian_head_output, zero_filled
+from mmf_rl.models.baselines.common import (
+    BaselineConfig,
+    DeterministicForecaster,
+    StepTokenizer,
+    gaussian_head_output,
+    zero_filled,
+)
 from mmf_rl.models.encoders import mlp
 
 
@@ -39,4 +44,6 @@ class LateFusionLSTM(DeterministicForecaster):
             tokens = self.tokenizers[spec.name](zero_filled(td, spec))
             states.append(self.lstms[spec.name](tokens)[1][0][-1])
         cfg = self.config
-        return gaussian_head_output(self.head(torch.cat(states, dim=-1)), cfg.horizon, cfg.target_dim, cfg.min_scale)
+        return gaussian_head_output(
+            self.head(torch.cat(states, dim=-1)), cfg.horizon, cfg.target_dim, cfg.min_scale
+        )

@@ -16,8 +16,13 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from mmf_rl.models.baselines.common import BaselineConfig, DeterministicForecaster, StepTokenizer, \
-    gaussian_head_output, zero_filled
+from mmf_rl.models.baselines.common import (
+    BaselineConfig,
+    DeterministicForecaster,
+    StepTokenizer,
+    gaussian_head_output,
+    zero_filled,
+)
 from mmf_rl.models.encoders import mlp
 
 
@@ -33,7 +38,9 @@ class MulTConfig(BaselineConfig):
     def __post_init__(self):
         super().__post_init__()
         if self.d_model % self.num_heads:
-            raise ValueError(f"MulTConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}")
+            raise ValueError(
+                f"MulTConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}"
+            )
 
 
 class CrossModalLayer(nn.Module):
@@ -56,7 +63,9 @@ class CrossModalLayer(nn.Module):
 class CrossModalTransformer(nn.Module):
     def __init__(self, d_model: int, num_heads: int, mlp_hidden: int, num_layers: int):
         super().__init__()
-        self.layers = nn.ModuleList(CrossModalLayer(d_model, num_heads, mlp_hidden) for _ in range(num_layers))
+        self.layers = nn.ModuleList(
+            CrossModalLayer(d_model, num_heads, mlp_hidden) for _ in range(num_layers)
+        )
 
     def forward(self, query: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
         for layer in self.layers:
@@ -74,17 +83,21 @@ class MulT(DeterministicForecaster):
         self.tokenizers = nn.ModuleDict({s.name: StepTokenizer(s, d) for s in self.modalities})
         self.step_embedding = nn.Parameter(torch.randn(config.history, d) * 0.02)
         self.pairs = [(i, j) for i in names for j in names if i != j] or [(names[0], names[0])]
-        self.streams = nn.ModuleDict({
-            f"{i}<-{j}": CrossModalTransformer(d, config.num_heads, config.mlp_hidden, config.num_layers)
-            for i, j in self.pairs
-        })
+        self.streams = nn.ModuleDict(
+            {
+                f"{i}<-{j}": CrossModalTransformer(d, config.num_heads, config.mlp_hidden, config.num_layers)
+                for i, j in self.pairs
+            }
+        )
         self.head = mlp(len(self.pairs) * d, config.head_hidden, 2 * config.horizon * config.target_dim)
 
     def forecast(self, td):
         tokens = {}
         for spec in self.modalities:
             seq = self.tokenizers[spec.name](zero_filled(td, spec))
-            tokens[spec.name] = seq + self.step_embedding[-seq.shape[1]:]  # a single vector is the last step
+            tokens[spec.name] = seq + self.step_embedding[-seq.shape[1] :]  # a single vector is the last step
         readouts = [self.streams[f"{i}<-{j}"](tokens[i], tokens[j])[:, -1] for i, j in self.pairs]
         cfg = self.config
-        return gaussian_head_output(self.head(torch.cat(readouts, dim=-1)), cfg.horizon, cfg.target_dim, cfg.min_scale)
+        return gaussian_head_output(
+            self.head(torch.cat(readouts, dim=-1)), cfg.horizon, cfg.target_dim, cfg.min_scale
+        )

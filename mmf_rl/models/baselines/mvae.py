@@ -72,12 +72,25 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
         self.experts = nn.ModuleDict({s.name: nn.Linear(d, 2 * dz) for s in self.modalities})
         self.decoder = mlp(dz, config.head_hidden, 2 * config.horizon * config.target_dim)
         self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
-        self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.LATENT, keys.PRIOR_LOC, keys.PRIOR_SCALE,
-                         keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE]
+        self.out_keys = [
+            keys.FORECAST_LOC,
+            keys.FORECAST_SCALE,
+            keys.LATENT,
+            keys.PRIOR_LOC,
+            keys.PRIOR_SCALE,
+            keys.POSTERIOR_LOC,
+            keys.POSTERIOR_SCALE,
+        ]
 
     def validate(self, td: TensorDictBase) -> None:
-        keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim,
-                            nonfinite=self.config.nonfinite)
+        keys.validate_batch(
+            td,
+            self.modalities,
+            self.config.history,
+            self.config.horizon,
+            self.config.target_dim,
+            nonfinite=self.config.nonfinite,
+        )
 
     def posterior(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """PoE posterior ``loc``, ``scale`` ``[B, d_z]``; each expert runs on its present rows only."""
@@ -123,8 +136,9 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
             raise ValueError(f"num_samples must be >= 1, found {num_samples}")
         self.validate(td)
         loc, scale = self.posterior(td)
-        z = loc.unsqueeze(1) + scale.unsqueeze(1) * torch.randn(loc.shape[0], num_samples, loc.shape[1],
-                                                                 device=loc.device)
+        z = loc.unsqueeze(1) + scale.unsqueeze(1) * torch.randn(
+            loc.shape[0], num_samples, loc.shape[1], device=loc.device
+        )
         forecast_loc, _ = self.decode(z.flatten(0, 1))
         td.set(keys.FORECAST_SAMPLES, forecast_loc.view(loc.shape[0], num_samples, *forecast_loc.shape[1:]))
         return td

@@ -76,34 +76,55 @@ class ForecasterConfig:
     nonfinite: NonFiniteRule = "raise"
 
     def __post_init__(self):
-        self.modalities = [m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities]
+        self.modalities = [
+            m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities
+        ]
         if not self.modalities:
-            raise ValueError("ForecasterConfig.modalities is empty: the forecaster needs at least one modality")
+            raise ValueError(
+                "ForecasterConfig.modalities is empty: the forecaster needs at least one modality"
+            )
         names = [m.name for m in self.modalities]
         if len(set(names)) != len(names):
             raise ValueError(f"ForecasterConfig.modalities: duplicate names in {names}")
         for spec in self.modalities:
             check_encoder(spec.name, spec.encoder, spec.kind)
-        for name in ("history", "horizon", "target_dim", "d_model", "d_latent", "num_heads", "num_encoder_layers",
-                     "mlp_hidden", "head_hidden"):
+        for name in (
+            "history",
+            "horizon",
+            "target_dim",
+            "d_model",
+            "d_latent",
+            "num_heads",
+            "num_encoder_layers",
+            "mlp_hidden",
+            "head_hidden",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"ForecasterConfig.{name} must be >= 1, found {getattr(self, name)}")
         if self.d_model % self.num_heads:
-            raise ValueError(f"ForecasterConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}")
+            raise ValueError(
+                f"ForecasterConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}"
+            )
         if self.prior not in ("standard", "learned"):
             raise ValueError(f"ForecasterConfig.prior must be 'standard' or 'learned', found {self.prior!r}")
         if self.prior == "learned" and self.posterior_uses_target is False:
-            raise ValueError("ForecasterConfig: prior='learned' needs the posterior q(z|X, y) to read the target "
-                             "(a posterior of X alone can copy the prior); set posterior_uses_target to null or true")
+            raise ValueError(
+                "ForecasterConfig: prior='learned' needs the posterior q(z|X, y) to read the target "
+                "(a posterior of X alone can copy the prior); set posterior_uses_target to null or true"
+            )
         if self.eval_latent not in ("mean", "sample"):
-            raise ValueError(f"ForecasterConfig.eval_latent must be 'mean' or 'sample', found {self.eval_latent!r}")
+            raise ValueError(
+                f"ForecasterConfig.eval_latent must be 'mean' or 'sample', found {self.eval_latent!r}"
+            )
         if self.action_dim < 0 or self.action_steps < 0 or (self.action_dim > 0) != (self.action_steps > 0):
             raise ValueError(
                 f"ForecasterConfig: action_dim={self.action_dim} and action_steps={self.action_steps} must both be "
                 "> 0 (an action-conditioned world model) or both 0 (no action input)"
             )
         if self.nonfinite not in NONFINITE_RULES:
-            raise ValueError(f"ForecasterConfig.nonfinite must be one of {NONFINITE_RULES}, found {self.nonfinite!r}")
+            raise ValueError(
+                f"ForecasterConfig.nonfinite must be one of {NONFINITE_RULES}, found {self.nonfinite!r}"
+            )
         if self.fusion not in FUSIONS:
             raise ValueError(f"ForecasterConfig.fusion must be one of {FUSIONS}, found {self.fusion!r}")
 

@@ -115,11 +115,14 @@ class ModalitySpecificDecoder(nn.Module):
         self.out_shape = (cfg.horizon, cfg.target_dim)
         self.min_scale = cfg.min_scale
 
-    def forward(self, tokens: torch.Tensor, absent: torch.Tensor, z: torch.Tensor,
-                action: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, tokens: torch.Tensor, absent: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         n, m, _ = tokens.shape
         conditions = z if action is None else torch.cat([z, action], dim=-1)
-        joint = torch.cat([tokens + self.modality_embedding, conditions.unsqueeze(1).expand(n, m, -1)], dim=-1)
+        joint = torch.cat(
+            [tokens + self.modality_embedding, conditions.unsqueeze(1).expand(n, m, -1)], dim=-1
+        )
         h0 = self.joint(joint)
         queries = self.modality_embedding.expand(n, -1, -1)
         h1 = self.aggregate(queries, h0, absent, residual=queries)
@@ -155,26 +158,42 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         d = config.d_model
         self.encoders = nn.ModuleDict({s.name: build_encoder(s, config.history, d) for s in self.modalities})
         if config.fusion == "agnostic":
-            self.fusion = ModalityAgnosticEncoder(len(self.modalities), d, config.num_heads,
-                                                  config.num_encoder_layers, config.mlp_hidden)
+            self.fusion = ModalityAgnosticEncoder(
+                len(self.modalities), d, config.num_heads, config.num_encoder_layers, config.mlp_hidden
+            )
         else:  # an ablation of the multimodal encoder (paper Table 4)
-            self.fusion = build_fusion(config.fusion, len(self.modalities), d, config.num_heads, config.mlp_hidden)
+            self.fusion = build_fusion(
+                config.fusion, len(self.modalities), d, config.num_heads, config.mlp_hidden
+            )
         target_numel = config.horizon * config.target_dim
         reads_target = config.posterior_reads_target
         self.target_encoder = mlp(target_numel, config.head_hidden, d) if reads_target else None
         fused = self.fusion.out_rows * d
         self.posterior_head = mlp(fused + (d if reads_target else 0), config.head_hidden, 2 * config.d_latent)
-        self.prior_head = mlp(fused, config.head_hidden, 2 * config.d_latent) if config.prior == "learned" else None
+        self.prior_head = (
+            mlp(fused, config.head_hidden, 2 * config.d_latent) if config.prior == "learned" else None
+        )
         self.decoder = ModalitySpecificDecoder(config)
-        self.action_encoder = (mlp(config.action_steps * config.action_dim, config.head_hidden, d)
-                               if config.action_dim else None)
+        self.action_encoder = (
+            mlp(config.action_steps * config.action_dim, config.head_hidden, d) if config.action_dim else None
+        )
 
         self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
         if config.action_dim:
             self.in_keys.append(keys.FUTURE_ACTION)
-        self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.LATENT, keys.PRIOR_LOC, keys.PRIOR_SCALE,
-                         keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE, keys.FORECAST_DROPPED_LOC,
-                         keys.FORECAST_DROPPED_SCALE, keys.FORECAST_FROM_PRIOR_LOC, keys.FORECAST_FROM_PRIOR_SCALE]
+        self.out_keys = [
+            keys.FORECAST_LOC,
+            keys.FORECAST_SCALE,
+            keys.LATENT,
+            keys.PRIOR_LOC,
+            keys.PRIOR_SCALE,
+            keys.POSTERIOR_LOC,
+            keys.POSTERIOR_SCALE,
+            keys.FORECAST_DROPPED_LOC,
+            keys.FORECAST_DROPPED_SCALE,
+            keys.FORECAST_FROM_PRIOR_LOC,
+            keys.FORECAST_FROM_PRIOR_SCALE,
+        ]
         if self.prior_head is not None:
             self.out_keys += [keys.PRIOR_DROPPED_LOC, keys.PRIOR_DROPPED_SCALE]
 
@@ -182,9 +201,16 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
 
     def validate(self, td: TensorDictBase, require_target: bool = False) -> None:
         """Raise a clear error if ``td`` does not follow the key contract for this model."""
-        keys.validate_batch(td, self.modalities, self.config.history, self.config.horizon, self.config.target_dim,
-                            require_target=require_target, action_shape=self.config.action_shape,
-                            nonfinite=self.config.nonfinite)
+        keys.validate_batch(
+            td,
+            self.modalities,
+            self.config.history,
+            self.config.horizon,
+            self.config.target_dim,
+            require_target=require_target,
+            action_shape=self.config.action_shape,
+            nonfinite=self.config.nonfinite,
+        )
 
     def encode(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Unimodal encoders -> tokens ``[B, M, d]`` (zeros where absent) and presence ``[B, M]``."""
@@ -193,8 +219,11 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         columns = []
         for i, spec in enumerate(self.modalities):
             obs, encoder = td.get(spec.obs_key), self.encoders[spec.name]
-            columns += compute_on_rows(present[:, i], lambda rows: (encoder(obs if rows is None else obs[rows]),),
-                                       (absent,))
+            columns += compute_on_rows(
+                present[:, i],
+                lambda rows, obs=obs, encoder=encoder: (encoder(obs if rows is None else obs[rows]),),
+                (absent,),
+            )
         return torch.stack(columns, dim=1), present
 
     def fuse(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
@@ -216,8 +245,10 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     def _posterior_from(self, features: torch.Tensor, target: torch.Tensor | None):
         if self.target_encoder is not None:
             if target is None:
-                raise KeyError(f"the posterior q(z|X, y) needs {keys.TARGET!r} in the batch (in eval mode the "
-                               "forecast needs no target; in training it does)")
+                raise KeyError(
+                    f"the posterior q(z|X, y) needs {keys.TARGET!r} in the batch (in eval mode the "
+                    "forecast needs no target; in training it does)"
+                )
             features = torch.cat([features, self.target_encoder(target.flatten(1))], dim=-1)
         loc, raw_scale = self.posterior_head(features).chunk(2, dim=-1)
         return loc, F.softplus(raw_scale) + 1e-4
@@ -229,7 +260,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         loc, raw_scale = self.prior_head(features).chunk(2, dim=-1)
         return loc, F.softplus(raw_scale) + 1e-4
 
-    def decode(self, tokens: torch.Tensor, present: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None = None):
+    def decode(
+        self, tokens: torch.Tensor, present: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None = None
+    ):
         """``p(y | X, z[, a])``: ``loc``, ``scale`` ``[N, T, D]`` for ``N`` rows of tokens, presence, ``z``
         and, for a world model, the embedded action sequence (:meth:`embed_actions`)."""
         return self.decoder(tokens, ~present, z, action)
@@ -246,7 +279,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         if not any(found):
             return None
         if not all(found):
-            missing = [k for k, f in zip(drop_keys, found) if not f]
+            missing = [k for k, f in zip(drop_keys, found, strict=True) if not f]
             raise KeyError(f"batch has some ('drop', m) masks but not {missing}; give one for every modality")
         return torch.stack([td.get(k) for k in drop_keys], dim=1)
 
@@ -262,14 +295,18 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         if drop is not None:
             kept = present & ~drop
             if not bool(kept.any(1).all()):
-                raise ValueError("('drop', m) removes every present modality of some sample; keep at least one")
+                raise ValueError(
+                    "('drop', m) removes every present modality of some sample; keep at least one"
+                )
         learned = self.prior_head is not None
         wants_posterior = target is not None or self.target_encoder is None
         features = None
         if learned and kept is not None:
             # The learned prior of the degraded input: the fusion of the kept modalities, in the
             # same pass (2B rows) as the full input's.
-            features, features_kept = self.fuse(tokens.repeat(2, 1, 1), torch.cat([present, kept])).split(batch)
+            features, features_kept = self.fuse(tokens.repeat(2, 1, 1), torch.cat([present, kept])).split(
+                batch
+            )
             prior_kept = self._prior_from(features_kept, batch, device)
             td.set(keys.PRIOR_DROPPED_LOC, prior_kept[0])
             td.set(keys.PRIOR_DROPPED_SCALE, prior_kept[1])
@@ -302,8 +339,12 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         if copies == 1:
             loc, scale = self.decode(tokens, present, z, action)
         else:
-            loc, scale = self.decode(tokens.repeat(copies, 1, 1), torch.cat(presences), torch.cat(latents),
-                                     None if action is None else action.repeat(copies, 1))
+            loc, scale = self.decode(
+                tokens.repeat(copies, 1, 1),
+                torch.cat(presences),
+                torch.cat(latents),
+                None if action is None else action.repeat(copies, 1),
+            )
         locs, scales = loc.split(batch), scale.split(batch)
         td.set(keys.FORECAST_LOC, locs[0])
         td.set(keys.FORECAST_SCALE, scales[0])
@@ -331,12 +372,18 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         noise = torch.randn(num_samples * batch, self.config.d_latent, device=present.device)
         z = prior_loc.repeat(num_samples, 1) + prior_scale.repeat(num_samples, 1) * noise
         action = self.embed_actions(td)
-        loc, _ = self.decode(tokens.repeat(num_samples, 1, 1), present.repeat(num_samples, 1), z,
-                             None if action is None else action.repeat(num_samples, 1))
+        loc, _ = self.decode(
+            tokens.repeat(num_samples, 1, 1),
+            present.repeat(num_samples, 1),
+            z,
+            None if action is None else action.repeat(num_samples, 1),
+        )
         td.set(keys.FORECAST_SAMPLES, loc.view(num_samples, batch, *loc.shape[1:]).transpose(0, 1))
         return td
 
-    def forecast_under_actions(self, td: TensorDictBase, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forecast_under_actions(
+        self, td: TensorDictBase, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """A world model's forecasts for ``N`` candidate action sequences per history.
 
         ``td`` holds ``B`` history windows (its ``"future_action"``, if any, is ignored);
@@ -349,22 +396,28 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         keys.validate_batch(td, self.modalities, self.config.history, nonfinite=self.config.nonfinite)
         return self.decode_under_actions(*self.encode(td), actions)
 
-    def decode_under_actions(self, tokens: torch.Tensor, present: torch.Tensor,
-                             actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def decode_under_actions(
+        self, tokens: torch.Tensor, present: torch.Tensor, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Decode encoded histories (:meth:`encode`: tokens ``[B, M, d]``, presence ``[B, M]``) under
         ``[B, N, S, A]`` normalised action sequences, ``z`` from the prior by ``eval_latent`` (its mean
         by default)."""
         self._require_actions("decode_under_actions")
         expected = (tokens.shape[0], *self.config.action_shape)
         if actions.dim() != 4 or (actions.shape[0], *actions.shape[2:]) != expected:
-            raise ValueError(f"actions: expected [B, N, S, A] = [{expected[0]}, N, {expected[1]}, {expected[2]}], "
-                             f"found {list(actions.shape)}")
+            raise ValueError(
+                f"actions: expected [B, N, S, A] = [{expected[0]}, N, {expected[1]}, {expected[2]}], "
+                f"found {list(actions.shape)}"
+            )
         batch, candidates = actions.shape[:2]
         prior_loc, prior_scale = self.prior(tokens, present)  # once per history, not per candidate
-        z = self._eval_latent(prior_loc.repeat_interleave(candidates, 0), prior_scale.repeat_interleave(candidates, 0))
+        z = self._eval_latent(
+            prior_loc.repeat_interleave(candidates, 0), prior_scale.repeat_interleave(candidates, 0)
+        )
         embedded = self.action_encoder(actions.reshape(batch * candidates, -1))
-        loc, scale = self.decode(tokens.repeat_interleave(candidates, 0), present.repeat_interleave(candidates, 0),
-                                 z, embedded)
+        loc, scale = self.decode(
+            tokens.repeat_interleave(candidates, 0), present.repeat_interleave(candidates, 0), z, embedded
+        )
         return loc.view(batch, candidates, *loc.shape[1:]), scale.view(batch, candidates, *scale.shape[1:])
 
     def _eval_latent(self, prior_loc: torch.Tensor, prior_scale: torch.Tensor) -> torch.Tensor:
@@ -375,5 +428,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
 
     def _require_actions(self, method: str) -> None:
         if self.action_encoder is None:
-            raise ValueError(f"{method} needs an action-conditioned model: this forecaster was built without "
-                             "action_dim (train it with `action` set in the data config)")
+            raise ValueError(
+                f"{method} needs an action-conditioned model: this forecaster was built without "
+                "action_dim (train it with `action` set in the data config)"
+            )
