@@ -10,8 +10,8 @@ path, untrained weights (the cost does not depend on them).
 For each batch size, a `SerialEnv` of `MultimodalPushTorchEnv` is stepped with random actions
 (timed: the env step, rendering included), and the recorded tensordicts are then fed to the
 transform alone (timed: history update, normalisation, one batched forward, outputs), so the two
-costs are measured separately in the same run: with the traced forward (the default,
-``trace=True``) and with the eager TensorDict forward (``trace=False``), beside the eager model
+costs are measured separately in the same run: with the traced forward (opt-in,
+``trace=True``) and with the eager TensorDict forward (the default), beside the eager model
 forward alone. Medians over the timed steps; the first (warm-up) call traces the graph.
 Run it on a quiet machine: the figures are wall-clock times.
 """
@@ -28,11 +28,11 @@ import torch
 import yaml
 from torchrl.envs import SerialEnv
 
+from mmf_rl.checkpoint import save_checkpoint
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
-from mmf_rl.rl.transforms import ForecastTransform
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models import build_model, saved_config
-from mmf_rl.checkpoint import save_checkpoint
+from mmf_rl.rl.transforms import ForecastTransform
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
@@ -41,16 +41,32 @@ def push_checkpoint(directory: Path) -> tuple[Path, dict]:
     data = yaml.safe_load((CONFIGS / "data" / "push.yaml").read_text())
     model_cfg = yaml.safe_load((CONFIGS / "model" / "forecaster.yaml").read_text())
     h, w = data["image_size"]
-    specs = [ModalitySpec("image", "image", (3, h, w)), ModalitySpec("force", "sequence", (6,)),
-             ModalitySpec("proprio", "sequence", (17,))]
+    specs = [
+        ModalitySpec("image", "image", (3, h, w)),
+        ModalitySpec("force", "sequence", (6,)),
+        ModalitySpec("proprio", "sequence", (17,)),
+    ]
     target_dim = len(data["target"]["dims"])
     torch.manual_seed(0)
     model = build_model(model_cfg, specs, data["history"], data["horizon"], target_dim)
-    stats = {"force/mean": torch.zeros(6), "force/std": torch.ones(6), "proprio/mean": torch.zeros(17),
-             "proprio/std": torch.ones(17), "target/mean": torch.zeros(target_dim), "target/std": torch.ones(target_dim)}
-    path = save_checkpoint(directory, 0, model.state_dict(), tensors=stats,
-                           meta={"model_config": saved_config(model_cfg.get("name", "forecaster"), model),
-                                 "config": {"data": data}})
+    stats = {
+        "force/mean": torch.zeros(6),
+        "force/std": torch.ones(6),
+        "proprio/mean": torch.zeros(17),
+        "proprio/std": torch.ones(17),
+        "target/mean": torch.zeros(target_dim),
+        "target/std": torch.ones(target_dim),
+    }
+    path = save_checkpoint(
+        directory,
+        0,
+        model.state_dict(),
+        tensors=stats,
+        meta={
+            "model_config": saved_config(model_cfg.get("name", "forecaster"), model),
+            "config": {"data": data},
+        },
+    )
     return path, data
 
 
@@ -95,7 +111,9 @@ def measure(num_envs: int, checkpoint: Path, image_size: int, steps: int, warmup
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--steps", type=int, default=20, help="timed steps per batch size")
     parser.add_argument("--warmup", type=int, default=3, help="untimed first steps (the first one traces)")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 16])
@@ -110,18 +128,24 @@ def main() -> None:
         image_size = data["image_size"][0]
         results = {b: measure(b, checkpoint, image_size, args.steps, args.warmup) for b in args.batches}
 
-    print(f"forecaster: default config, image {image_size}x{image_size} + force 6 + proprio 17, H={data['history']}, "
-          f"T={data['horizon']}; {args.threads} threads; median of {args.steps} steps")
+    print(
+        f"forecaster: default config, image {image_size}x{image_size} + force 6 + proprio 17, H={data['history']}, "
+        f"T={data['horizon']}; {args.threads} threads; median of {args.steps} steps"
+    )
     for b, r in results.items():
-        print(f"batch {b:>3}: env step {r['env'] * 1e3:7.2f} ms, ForecastTransform {r['traced'] * 1e3:7.2f} ms "
-              f"({r['traced'] / b * 1e3:.2f} ms/env; eager forward {r['eager'] * 1e3:.2f} ms, model forward "
-              f"alone {r['model'] * 1e3:.2f} ms), transform/env = {r['traced'] / r['env']:.2f}")
+        print(
+            f"batch {b:>3}: env step {r['env'] * 1e3:7.2f} ms, ForecastTransform {r['traced'] * 1e3:7.2f} ms "
+            f"({r['traced'] / b * 1e3:.2f} ms/env; eager forward {r['eager'] * 1e3:.2f} ms, model forward "
+            f"alone {r['model'] * 1e3:.2f} ms), transform/env = {r['traced'] / r['env']:.2f}"
+        )
     first, last = args.batches[0], args.batches[-1]
-    print(f"summary: forecast per step: batch{first} {results[first]['traced'] * 1e3:.2f} ms "
-          f"(eager {results[first]['eager'] * 1e3:.2f} ms, env step {results[first]['env'] * 1e3:.2f} ms, "
-          f"transform/env {results[first]['traced'] / results[first]['env']:.2f}), batch{last} "
-          f"{results[last]['traced'] * 1e3:.2f} ms (env step {results[last]['env'] * 1e3:.2f} ms, "
-          f"transform/env {results[last]['traced'] / results[last]['env']:.2f})")
+    print(
+        f"summary: forecast per step: batch{first} {results[first]['traced'] * 1e3:.2f} ms "
+        f"(eager {results[first]['eager'] * 1e3:.2f} ms, env step {results[first]['env'] * 1e3:.2f} ms, "
+        f"transform/env {results[first]['traced'] / results[first]['env']:.2f}), batch{last} "
+        f"{results[last]['traced'] * 1e3:.2f} ms (env step {results[last]['env'] * 1e3:.2f} ms, "
+        f"transform/env {results[last]['traced'] / results[last]['env']:.2f})"
+    )
 
 
 if __name__ == "__main__":

@@ -48,16 +48,24 @@ class _WindowTransform(Transform):
     for the rules). Subclasses say what to write each step (:meth:`_emit`) and add its specs.
     """
 
-    def __init__(self, specs: Sequence[ModalitySpec], stats: Mapping[str, torch.Tensor], history: int,
-                 stride: int, out_keys: list):
+    def __init__(
+        self,
+        specs: Sequence[ModalitySpec],
+        stats: Mapping[str, torch.Tensor],
+        history: int,
+        stride: int,
+        out_keys: list,
+    ):
         self.specs: list[ModalitySpec] = list(specs)
         if stride < 1:
             raise ValueError(f"{type(self).__name__}: stride must be >= 1, found {stride}")
         required = [f"{s.name}/{stat}" for s in self.specs if s.kind != "image" for stat in ("mean", "std")]
         missing = [k for k in required + ["target/mean", "target/std"] if k not in stats]
         if missing:
-            raise KeyError(f"{type(self).__name__}: normalisation stats lack {missing} (found {sorted(stats)}); "
-                           "pass the stats of the run that trained the model (checkpoint.tensors)")
+            raise KeyError(
+                f"{type(self).__name__}: normalisation stats lack {missing} (found {sorted(stats)}); "
+                "pass the stats of the run that trained the model (checkpoint.tensors)"
+            )
         in_keys = [s.obs_key for s in self.specs] + [s.present_key for s in self.specs]
         super().__init__(in_keys=in_keys, out_keys=out_keys)
         self.normalizer = Normalizer(dict(stats))
@@ -72,8 +80,11 @@ class _WindowTransform(Transform):
 
     def _check_modalities(self, observation_spec: Composite) -> None:
         """The env must emit every model modality with a compatible kind and shape."""
-        env_side = {k[1]: observation_spec[k] for k in observation_spec.keys(True, True)
-                    if isinstance(k, tuple) and len(k) == 2 and k[0] == keys.OBS}
+        env_side = {
+            k[1]: observation_spec[k]
+            for k in observation_spec.keys(True, True)
+            if isinstance(k, tuple) and len(k) == 2 and k[0] == keys.OBS
+        }
         batch_dims = len(observation_spec.shape)
         problems = []
         for spec in self.specs:
@@ -84,13 +95,19 @@ class _WindowTransform(Transform):
                 problems.append(f"{spec.name!r} has no {spec.present_key} flag")
             elif spec.kind == "image":
                 if found.dtype != torch.uint8 or len(found.shape) < 3 or found.shape[-3] != spec.shape[0]:
-                    problems.append(f"{spec.name!r} is {_describe_spec(found, batch_dims)}, expected uint8 "
-                                    f"[{spec.shape[0]}, h, w]")
+                    problems.append(
+                        f"{spec.name!r} is {_describe_spec(found, batch_dims)}, expected uint8 "
+                        f"[{spec.shape[0]}, h, w]"
+                    )
             elif not found.dtype.is_floating_point or tuple(found.shape[-1:]) != spec.shape:
-                problems.append(f"{spec.name!r} is {_describe_spec(found, batch_dims)}, expected float {list(spec.shape)}")
+                problems.append(
+                    f"{spec.name!r} is {_describe_spec(found, batch_dims)}, expected float {list(spec.shape)}"
+                )
         if problems:
             model_side = ", ".join(f"{s.name} ({s.kind} {list(s.shape)})" for s in self.specs)
-            env_listing = ", ".join(f"{name} ({_describe_spec(s, batch_dims)})" for name, s in sorted(env_side.items()))
+            env_listing = ", ".join(
+                f"{name} ({_describe_spec(s, batch_dims)})" for name, s in sorted(env_side.items())
+            )
             raise ValueError(
                 f"{type(self).__name__}: the checkpoint's modalities do not match the env's observations "
                 f"({'; '.join(problems)}). Checkpoint modalities: [{model_side}]; env ('obs', m) keys: "
@@ -105,14 +122,21 @@ class _WindowTransform(Transform):
         try:
             value = tensordict.get(spec.obs_key)
         except KeyError:
-            raise KeyError(f"{type(self).__name__}: the env output has no {spec.obs_key}; the model reads "
-                           f"{[s.obs_key for s in self.specs]}") from None
+            raise KeyError(
+                f"{type(self).__name__}: the env output has no {spec.obs_key}; the model reads "
+                f"{[s.obs_key for s in self.specs]}"
+            ) from None
         if spec.kind == "image":
             value = value.reshape(n, *value.shape[-3:])
             if tuple(value.shape[-2:]) != spec.shape[-2:]:
                 # As the window cache resizes decoded frames (mmf_rl.datasets.lerobot_source).
-                value = F.interpolate(value.float() / 255, size=spec.shape[-2:], mode="bilinear", antialias=True,
-                                      align_corners=False)
+                value = F.interpolate(
+                    value.float() / 255,
+                    size=spec.shape[-2:],
+                    mode="bilinear",
+                    antialias=True,
+                    align_corners=False,
+                )
                 value = (value * 255).round_().clamp_(0, 255).to(torch.uint8)
             return value
         return self.normalizer.normalize(spec.name, value.reshape(n, *spec.shape).float())
@@ -189,7 +213,9 @@ class _WindowTransform(Transform):
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         if self._batch_size is None:
-            raise RuntimeError(f"{type(self).__name__}: the env was stepped before its first reset; call env.reset()")
+            raise RuntimeError(
+                f"{type(self).__name__}: the env was stepped before its first reset; call env.reset()"
+            )
         self._push(next_tensordict, None)
         return self._emit(next_tensordict)
 
@@ -215,13 +241,16 @@ class ForecastTransform(_WindowTransform):
             world frame; a run trained with ``data.target.relative`` forecasts displacements from
             the current step, as the push config does), ``False`` in the normalised frame the
             model was trained in.
-        trace: ``True`` (default) runs a `torch.jit.trace` of the model's forward, one graph per
+        trace: ``True`` runs a `torch.jit.trace` of the model's forward, one graph per
             batch size and presence pattern (traced the first time it occurs), on plain tensors:
             no TensorDict, validation or Python module dispatch per step. The inputs were checked
             against the env's specs once (:meth:`transform_observation_spec`). A batch where a
             modality is present in some envs but not others runs the eager forward, as does
             ``trace=False`` (for a model whose forward branches on values, which no registry
-            model does: they branch on presence and shapes only).
+            model does: they branch on presence and shapes only). Off by default: with it, the
+            resident memory of 16 envs under outages kept growing after warm-up (+56 MiB over 500
+            steps, +68 MiB over 1000; flat without it), and its speed-up is not yet measured on a
+            quiet machine.
 
     Written every step (env batch ``[*batch]``): ``("forecast", "loc")`` and ``("forecast",
     "scale")`` ``float32 [*batch, T, D]`` (the model's deterministic eval forecast, a diagonal
@@ -242,8 +271,16 @@ class ForecastTransform(_WindowTransform):
     (`benchmarks/forecast_transform_cost.py` measures it against the env step).
     """
 
-    def __init__(self, model: nn.Module, stats: Mapping[str, torch.Tensor], *, stride: int = 1,
-                 num_samples: int = 0, denormalize: bool = True, trace: bool = True):
+    def __init__(
+        self,
+        model: nn.Module,
+        stats: Mapping[str, torch.Tensor],
+        *,
+        stride: int = 1,
+        num_samples: int = 0,
+        denormalize: bool = True,
+        trace: bool = False,
+    ):
         config = model.config
         if getattr(config, "action_dim", 0):
             raise ValueError(
@@ -254,7 +291,9 @@ class ForecastTransform(_WindowTransform):
         if num_samples < 0:
             raise ValueError(f"ForecastTransform: num_samples must be >= 0, found {num_samples}")
         if num_samples and not hasattr(model, "sample"):
-            raise ValueError(f"ForecastTransform: {type(model).__name__} has no latent to sample; use num_samples=0")
+            raise ValueError(
+                f"ForecastTransform: {type(model).__name__} has no latent to sample; use num_samples=0"
+            )
         out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.FORECAST_VALID]
         if num_samples:
             out_keys.append(keys.FORECAST_SAMPLES)
@@ -266,26 +305,44 @@ class ForecastTransform(_WindowTransform):
         self._graphs: dict[tuple, torch.jit.ScriptModule] = {}  # by presence pattern (_presence_pattern)
 
     @classmethod
-    def from_checkpoint(cls, path: str | os.PathLike, *, num_samples: int = 0, denormalize: bool = True,
-                        trace: bool = True, map_location: str | torch.device = "cpu") -> ForecastTransform:
+    def from_checkpoint(
+        cls,
+        path: str | os.PathLike,
+        *,
+        num_samples: int = 0,
+        denormalize: bool = True,
+        trace: bool = False,
+        map_location: str | torch.device = "cpu",
+    ) -> ForecastTransform:
         """Load the model, its weights, normalisation stats and window stride from a checkpoint.
 
         ``path``: a checkpoint directory or a directory with a ``last`` pointer (a run's
         ``checkpoints/``).
         """
         model, stats, data_config = load_trained_model(path, map_location)
-        return cls(model, stats, stride=int(data_config.get("stride", 1)), num_samples=num_samples,
-                   denormalize=denormalize, trace=trace)
+        return cls(
+            model,
+            stats,
+            stride=int(data_config.get("stride", 1)),
+            num_samples=num_samples,
+            denormalize=denormalize,
+            trace=trace,
+        )
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         self._check_modalities(observation_spec)
         batch = observation_spec.shape
         out = (*batch, self.horizon, self.target_dim)
-        forecast = Composite(loc=Unbounded(out, dtype=torch.float32), scale=Unbounded(out, dtype=torch.float32),
-                             valid=Categorical(2, batch, dtype=torch.bool), shape=batch)
+        forecast = Composite(
+            loc=Unbounded(out, dtype=torch.float32),
+            scale=Unbounded(out, dtype=torch.float32),
+            valid=Categorical(2, batch, dtype=torch.bool),
+            shape=batch,
+        )
         if self.num_samples:
-            forecast[keys.SAMPLES] = Unbounded((*batch, self.num_samples, self.horizon, self.target_dim),
-                                               dtype=torch.float32)
+            forecast[keys.SAMPLES] = Unbounded(
+                (*batch, self.num_samples, self.horizon, self.target_dim), dtype=torch.float32
+            )
         observation_spec[keys.FORECAST] = forecast
         return observation_spec
 
@@ -306,7 +363,9 @@ class ForecastTransform(_WindowTransform):
                 inputs = [(t if rows is None else t[rows]).to(device) for t in observations + presence]
                 predicted = list(self._forecast(inputs))
                 if self.num_samples:
-                    window = TensorDict(dict(zip(self._model_keys, inputs)), batch_size=inputs[0].shape[:1])
+                    window = TensorDict(
+                        dict(zip(self._model_keys, inputs, strict=True)), batch_size=inputs[0].shape[:1]
+                    )
                     predicted.append(self.model.sample(window, self.num_samples).get(keys.FORECAST_SAMPLES))
             # Copied out of inference mode: a policy trained on the forecasts must be able to
             # save them for backward.
@@ -324,8 +383,10 @@ class ForecastTransform(_WindowTransform):
         tensordict.set(keys.FORECAST_SCALE, scale.reshape(*batch, self.horizon, self.target_dim))
         tensordict.set(keys.FORECAST_VALID, valid.reshape(batch))
         if self.num_samples:
-            tensordict.set(keys.FORECAST_SAMPLES,
-                           samples.reshape(*batch, self.num_samples, self.horizon, self.target_dim))
+            tensordict.set(
+                keys.FORECAST_SAMPLES,
+                samples.reshape(*batch, self.num_samples, self.horizon, self.target_dim),
+            )
         return tensordict
 
     def _forecast(self, inputs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -335,9 +396,11 @@ class ForecastTransform(_WindowTransform):
         pattern (traced on first use); eagerly through the TensorDict forward otherwise, and for a
         batch where some modality is present in some rows only.
         """
-        pattern = self._presence_pattern(inputs[len(self.specs):]) if self.trace else None
+        pattern = self._presence_pattern(inputs[len(self.specs) :]) if self.trace else None
         if pattern is None:
-            out = self.model(TensorDict(dict(zip(self._model_keys, inputs)), batch_size=inputs[0].shape[:1]))
+            out = self.model(
+                TensorDict(dict(zip(self._model_keys, inputs, strict=True)), batch_size=inputs[0].shape[:1])
+            )
             return out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
         graph = self._graphs.get(pattern)
         if graph is None:
@@ -370,7 +433,9 @@ class ForecastTransform(_WindowTransform):
             warnings.simplefilter("ignore", torch.jit.TracerWarning)
             warnings.simplefilter("ignore", DeprecationWarning)
             example = tuple(t.clone() for t in inputs)
-            return torch.jit.trace(_ForecastOfTensors(self.model, self._model_keys), example, check_trace=False)
+            return torch.jit.trace(
+                _ForecastOfTensors(self.model, self._model_keys), example, check_trace=False
+            )
 
 
 class _ForecastOfTensors(nn.Module):
@@ -381,7 +446,9 @@ class _ForecastOfTensors(nn.Module):
         self.model, self.in_keys = model, in_keys
 
     def forward(self, *tensors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.model(TensorDict(dict(zip(self.in_keys, tensors)), batch_size=tensors[0].shape[:1]))
+        out = self.model(
+            TensorDict(dict(zip(self.in_keys, tensors, strict=True)), batch_size=tensors[0].shape[:1])
+        )
         return out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
 
 
@@ -401,10 +468,13 @@ class HistoryWindow(_WindowTransform):
         stride: frames between two window steps.
     """
 
-    def __init__(self, specs: Sequence[ModalitySpec], stats: Mapping[str, torch.Tensor], history: int,
-                 stride: int = 1):
+    def __init__(
+        self, specs: Sequence[ModalitySpec], stats: Mapping[str, torch.Tensor], history: int, stride: int = 1
+    ):
         specs = list(specs)
-        out_keys = [(keys.HISTORY, *s.obs_key) for s in specs] + [(keys.HISTORY, *s.present_key) for s in specs]
+        out_keys = [(keys.HISTORY, *s.obs_key) for s in specs] + [
+            (keys.HISTORY, *s.present_key) for s in specs
+        ]
         super().__init__(specs, stats, history, stride, out_keys)
 
     @classmethod
@@ -419,10 +489,15 @@ class HistoryWindow(_WindowTransform):
         presence = Composite(shape=batch)
         for spec in self.specs:
             shape = (*batch, *spec.obs_shape(self.history))
-            observations[spec.name] = (Bounded(0, 255, shape, dtype=torch.uint8) if spec.kind == "image"
-                                       else Unbounded(shape, dtype=torch.float32))
+            observations[spec.name] = (
+                Bounded(0, 255, shape, dtype=torch.uint8)
+                if spec.kind == "image"
+                else Unbounded(shape, dtype=torch.float32)
+            )
             presence[spec.name] = Categorical(2, batch, dtype=torch.bool)
-        observation_spec[keys.HISTORY] = Composite({keys.OBS: observations, keys.PRESENT: presence}, shape=batch)
+        observation_spec[keys.HISTORY] = Composite(
+            {keys.OBS: observations, keys.PRESENT: presence}, shape=batch
+        )
         return observation_spec
 
     def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
