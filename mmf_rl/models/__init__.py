@@ -1,9 +1,10 @@
 from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
-from mmf_rl.models.hub import PretrainedModel, from_pretrained
+from mmf_rl.models.hub import PretrainedModel
 from mmf_rl.models.registry import (
     MODELS,
     build_loss,
     build_model,
+    from_pretrained,
     init_weights_from,
     load_trained_model,
     model_from_saved_config,

@@ -16,7 +16,7 @@ so a model loaded anywhere forecasts in the units it was trained in (``ForecastT
     model, stats, data = load_trained_model("runs/g1")      # a run, its checkpoints/ or one checkpoint
     model.save_pretrained("exports/g1")                      # stats and data config included
     model.push_to_hub("me/g1-forecaster")                    # online users
-    model = from_pretrained("exports/g1")                    # or "me/g1-forecaster"; any registered model
+    model = from_pretrained("exports/g1")                    # registry's: "me/g1-forecaster" too; any model
 """
 
 from __future__ import annotations
@@ -29,6 +29,8 @@ from pathlib import Path
 
 from huggingface_hub import PyTorchModelHubMixin, hf_hub_download
 from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
+
+from mmf_rl.checkpoint import CheckpointError, state_mismatch
 
 NORMALIZATION_FILE = "normalization.safetensors"
 DATA_CONFIG_FILE = "data_config.json"
@@ -69,12 +71,9 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
     def _save_pretrained(self, save_directory: Path) -> None:
         from safetensors.torch import save_file
 
-        from mmf_rl.models.registry import registry_name, saved_config
-
         super()._save_pretrained(save_directory)
-        (save_directory / CONFIG_NAME).write_text(
-            json.dumps(saved_config(registry_name(self), self), indent=2)
-        )
+        saved = {"name": self.model_name, **self.config.to_dict()}  # what registry.saved_config gives
+        (save_directory / CONFIG_NAME).write_text(json.dumps(saved, indent=2))
         if self.normalization_stats is not None:
             save_file(
                 {k: v.detach().contiguous().cpu() for k, v in self.normalization_stats.items()},
@@ -130,8 +129,6 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
     ):
         from safetensors.torch import load_file
 
-        from mmf_rl.models.registry import check_state_dict, model_from_saved_config
-
         hub = dict(
             revision=revision,
             cache_dir=cache_dir,
@@ -144,12 +141,15 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
             raise FileNotFoundError(
                 f"{model_id} has no readable {CONFIG_NAME}; it was not written by save_pretrained"
             )
-        model = model_from_saved_config(config)
-        if not isinstance(model, cls):
+        fields = dict(config)
+        name = fields.pop("name", "forecaster")
+        if name != cls.model_name:
             raise TypeError(
-                f"{model_id} holds a {config.get('name')!r} model ({type(model).__name__}), not a "
-                f"{cls.__name__}; load it with mmf_rl.models.from_pretrained"
+                f"{model_id} holds a {name!r} model (its config.json), not a {cls.__name__} "
+                f"({cls.model_name!r}); "
+                "load it with mmf_rl.models.from_pretrained"
             )
+        model = cls(cls.config_class.from_dict(fields))
         weights = load_file(pretrained_file(model_id, SAFETENSORS_SINGLE_FILE, **hub))
         if strict:
             check_state_dict(model, weights, f"{model_id}/{SAFETENSORS_SINGLE_FILE}")
@@ -161,14 +161,18 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
         return model.to(map_location).eval()
 
 
-def from_pretrained(model_id: str | os.PathLike, **kwargs):
-    """Any registered model saved by ``save_pretrained``: a local directory or a hub repository id."""
-    from mmf_rl.models.registry import model_class
-
+def read_pretrained_config(model_id: str, **kwargs) -> dict:
+    """The ``config.json`` of a saved model (a local directory or a hub repository id)."""
     hub = {
         k: kwargs[k]
         for k in ("revision", "cache_dir", "force_download", "token", "local_files_only")
         if k in kwargs
     }
-    config = json.loads(pretrained_file(str(model_id), CONFIG_NAME, **hub).read_text())
-    return model_class(config.get("name", "forecaster")).from_pretrained(str(model_id), **kwargs)
+    return json.loads(pretrained_file(model_id, CONFIG_NAME, **hub).read_text())
+
+
+def check_state_dict(model, state: dict, where: str) -> None:
+    """Raise unless ``state`` fits ``model`` exactly; the error names each parameter with both shapes."""
+    mismatch = state_mismatch(model.state_dict(), state)
+    if mismatch:
+        raise CheckpointError(f"{where} does not fit this model ({mismatch})")

@@ -8,25 +8,29 @@ paper's forecaster.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from torch import nn
 
-from mmf_rl.checkpoint import META_FILE, CheckpointError, load_checkpoint, load_model_state, state_mismatch
+from mmf_rl.checkpoint import META_FILE, CheckpointError, load_checkpoint, load_model_state
 from mmf_rl.keys import ModalitySpec
-from mmf_rl.models.baselines import MVAE, LateFusionLSTM, LFLSTMConfig, MulT, MulTConfig, MVAEConfig
+from mmf_rl.models.baselines import MVAE, LateFusionLSTM, MulT
 from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
-from mmf_rl.models.hub import DATA_CONFIG_FILE, from_pretrained
+from mmf_rl.models.hub import DATA_CONFIG_FILE, check_state_dict, read_pretrained_config
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, GaussianNLLLoss, LossConfig, MissingModalityLoss
 
 
 @dataclass(frozen=True)
 class ModelEntry:
-    config_cls: type
-    model_cls: type
+    model_cls: type  # names itself (``model_name``) and its config class (``config_class``)
     make_loss: Callable[[nn.Module, LossConfig], nn.Module]
+
+    @property
+    def config_cls(self) -> type:
+        return self.model_cls.config_class
 
 
 def forecaster_loss(model: MultimodalForecaster, loss_cfg: LossConfig) -> CombinedLoss:
@@ -69,10 +73,13 @@ def mvae_loss(model: MVAE, loss_cfg: LossConfig) -> ELBOLoss:
 
 
 MODELS: dict[str, ModelEntry] = {
-    "forecaster": ModelEntry(ForecasterConfig, MultimodalForecaster, forecaster_loss),
-    "lf_lstm": ModelEntry(LFLSTMConfig, LateFusionLSTM, nll_loss),
-    "mvae": ModelEntry(MVAEConfig, MVAE, mvae_loss),
-    "mult": ModelEntry(MulTConfig, MulT, nll_loss),
+    entry.model_cls.model_name: entry
+    for entry in (
+        ModelEntry(MultimodalForecaster, forecaster_loss),
+        ModelEntry(LateFusionLSTM, nll_loss),
+        ModelEntry(MVAE, mvae_loss),
+        ModelEntry(MulT, nll_loss),
+    )
 }
 
 
@@ -122,23 +129,10 @@ def model_from_saved_config(saved: dict) -> nn.Module:
     return entry.model_cls(entry.config_cls.from_dict(cfg))
 
 
-def model_class(name: str) -> type:
-    return _entry(name).model_cls
-
-
-def registry_name(model: nn.Module) -> str:
-    """The name ``model``'s class is registered under."""
-    for name, entry in MODELS.items():
-        if type(model) is entry.model_cls:
-            return name
-    raise ValueError(f"{type(model).__name__} is not a registered model; expected one of {sorted(MODELS)}")
-
-
-def check_state_dict(model: nn.Module, state: dict, where: str) -> None:
-    """Raise unless ``state`` fits ``model`` exactly; the error names each parameter with both shapes."""
-    mismatch = state_mismatch(model.state_dict(), state)
-    if mismatch:
-        raise CheckpointError(f"{where} does not fit this model ({mismatch})")
+def from_pretrained(model_id: str | os.PathLike, **kwargs) -> nn.Module:
+    """Any registered model saved by ``save_pretrained``: a local directory or a hub repository id."""
+    name = read_pretrained_config(str(model_id), **kwargs).get("name", "forecaster")
+    return _entry(name).model_cls.from_pretrained(str(model_id), **kwargs)
 
 
 def _trained_location(path: Path) -> Path:
@@ -183,7 +177,7 @@ def init_weights_from(model: nn.Module, source_path) -> Path:
     """
     location = _trained_location(Path(source_path))
     source, _, _ = load_trained_model(location)
-    here, there = registry_name(model), registry_name(source)
+    here, there = model.model_name, source.model_name
     if here != there:
         raise CheckpointError(
             f"init_from={source_path} holds a {there!r} model, but this run builds {here!r}; "

@@ -31,6 +31,9 @@ class LFLSTMConfig(BaselineConfig):
 class LateFusionLSTM(DeterministicForecaster):
     """Per-modality encoders and LSTMs, late concatenation, MLP head (see module docstring)."""
 
+    model_name = "lf_lstm"  # its registry name (mmf_rl.models.registry.MODELS)
+    config_class = LFLSTMConfig
+
     def __init__(self, config: LFLSTMConfig):
         super().__init__(config)
         d = config.d_model

@@ -76,6 +76,9 @@ class CrossModalTransformer(nn.Module):
 class MulT(DeterministicForecaster):
     """Pairwise cross-modal attention, concatenation, MLP head (see module docstring)."""
 
+    model_name = "mult"  # its registry name (mmf_rl.models.registry.MODELS)
+    config_class = MulTConfig
+
     def __init__(self, config: MulTConfig):
         super().__init__(config)
         d = config.d_model

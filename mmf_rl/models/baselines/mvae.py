@@ -63,6 +63,9 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
     ``"latent"``. In train mode ``z`` is a reparameterised posterior sample.
     """
 
+    model_name = "mvae"  # its registry name (mmf_rl.models.registry.MODELS)
+    config_class = MVAEConfig
+
     def __init__(self, config: MVAEConfig):
         super().__init__()
         self.config = config

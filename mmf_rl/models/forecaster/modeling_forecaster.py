@@ -151,6 +151,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         >>> td["forecast", "loc"].shape  # [B, T, D]
     """
 
+    model_name = "forecaster"  # its registry name (mmf_rl.models.registry.MODELS)
+    config_class = ForecasterConfig
+
     def __init__(self, config: ForecasterConfig):
         super().__init__()
         self.config = config
