@@ -625,30 +625,8 @@ class LeRobotSource:
 
         Keeps the dataset open for :meth:`read_images`.
         """
-        try:
-            hf = load_frame_data(self.meta, None if self.selected_all else [e.index for e in self.episodes])
-            data = hf.select_columns(sorted(self._columns())).with_format("numpy")[:]
-        except Exception as error:  # noqa: BLE001 - footers and schemas were fine: a damaged page or a cast
-            raise _data_error(self.root, error) from None
-        order = np.argsort(data["index"], kind="stable")
-        data = {k: np.asarray(v)[order] for k, v in data.items()}
-        self._hf, self._row_order = hf, order
-        if self.selected_all:
-            expected = np.arange(self.meta.total_frames)
-            declared = f"meta/info.json total_frames={len(expected)}"
-        else:
-            expected = np.concatenate(
-                [np.arange(e.first_frame, e.first_frame + e.stop - e.start) for e in self.episodes]
-            )
-            declared = f"meta/episodes of the selected episodes {[e.index for e in self.episodes]}"
-        if len(data["index"]) != len(expected) or not np.array_equal(data["index"], expected):
-            raise ValueError(
-                f"{self.root / 'data'}: frame `index` column should hold {len(expected)} frames "
-                f"{expected[0] if len(expected) else None}..{expected[-1] if len(expected) else None} "
-                f"({declared}), found {len(data['index'])} rows "
-                f"from {data['index'].min() if len(data['index']) else None} to "
-                f"{data['index'].max() if len(data['index']) else None}"
-            )
+        selection = None if self.selected_all else self.episodes
+        data, self._hf, self._row_order = load_frame_columns(self.meta, self._columns(), selection)
         return data
 
     def read_images(self, name: str, rows: slice) -> list:
@@ -677,26 +655,41 @@ def load_frame_data(meta, episodes: list[int] | None = None):
     return load_nested_dataset(Path(meta.root) / "data", features=features, episodes=episodes)
 
 
-def read_frame_columns(meta, columns) -> dict[str, np.ndarray]:
-    """Per-frame ``columns`` of the dataset ``meta`` describes (its ``LeRobotDatasetMetadata``), read
-    through lerobot's loader and ordered by the global frame ``index``."""
+def load_frame_columns(meta, columns, episodes: list[Episode] | None = None):
+    """Per-frame ``columns`` (plus ``index``) of ``episodes`` (all when ``None``) of the dataset ``meta``
+    describes, read through lerobot's loader and ordered by the global frame ``index``; checked
+    against the frames the metadata declares. Returns the columns, the loaded dataset and the row
+    order that sorts it (to read more columns of the same rows later)."""
     root = Path(meta.root)
     try:
-        hf = load_frame_data(meta)
+        hf = load_frame_data(meta, None if episodes is None else [e.index for e in episodes])
         data = hf.select_columns(sorted({*columns, "index"})).with_format("numpy")[:]
     except Exception as error:  # noqa: BLE001 - footers and schemas were fine: a damaged page or a cast
         raise _data_error(root, error) from None
     order = np.argsort(data["index"], kind="stable")
     data = {k: np.asarray(v)[order] for k, v in data.items()}
-    expected = np.arange(meta.total_frames)
+    if episodes is None:
+        expected = np.arange(meta.total_frames)
+        declared = f"meta/info.json total_frames={len(expected)}"
+    else:
+        expected = np.concatenate(
+            [np.arange(e.first_frame, e.first_frame + e.stop - e.start) for e in episodes]
+        )
+        declared = f"meta/episodes of the selected episodes {[e.index for e in episodes]}"
     if len(data["index"]) != len(expected) or not np.array_equal(data["index"], expected):
         raise ValueError(
-            f"{root / 'data'}: frame `index` column should be 0..{len(expected) - 1} "
-            f"(meta/info.json total_frames={len(expected)}), found {len(data['index'])} rows "
+            f"{root / 'data'}: frame `index` column should hold {len(expected)} frames "
+            f"{expected[0] if len(expected) else None}..{expected[-1] if len(expected) else None} "
+            f"({declared}), found {len(data['index'])} rows "
             f"from {data['index'].min() if len(data['index']) else None} to "
             f"{data['index'].max() if len(data['index']) else None}"
         )
-    return data
+    return data, hf, order
+
+
+def read_frame_columns(meta, columns) -> dict[str, np.ndarray]:
+    """Per-frame ``columns`` of the whole dataset ``meta`` describes, ordered by the global frame ``index``."""
+    return load_frame_columns(meta, columns)[0]
 
 
 def _data_error(root: Path, error: BaseException) -> ValueError:
