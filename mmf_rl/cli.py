@@ -8,10 +8,15 @@ from __future__ import annotations
 
 import importlib
 import sys
+from pathlib import Path
 
-# command -> (module exposing `main(argv: list[str]) -> int | None`, one-line help)
+# command -> (module exposing `main(argv: list[str]) -> int | None`, or "module:function" for
+# another such function, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "record": ("mmf_rl.record", "record a multimodal push dataset (LeRobot v3.0)"),
+    "record": (
+        "mmf_rl.cli:record",
+        "record a multimodal push dataset (LeRobot v3.0), scripted or by an MPC agent; merge recordings",
+    ),
     "train": ("mmf_rl.trainers.run", "train a forecaster on a LeRobot dataset (Hydra overrides)"),
     "eval": ("mmf_rl.eval.run", "evaluate a checkpoint on every presence subset: table and plots"),
     "inspect": (
@@ -21,6 +26,47 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("mmf_rl.bench", "run a benchmark of benchmarks/ (accuracy, data, model, mpc)"),
     "demo": ("mmf_rl.demo", "record a push dataset, train the default model on CPU, evaluate (make demo)"),
 }
+
+
+def record(argv: list[str]) -> int:
+    """`mmf-rl record`: `mmf_rl.record`'s command plus ``--policy CHECKPOINT`` (record with MPC on
+    that world model). The recorder sits below the models and cannot load one: the agent's
+    factory (`mmf_rl.rl.PushMPCAgent`) is built here, checked once, and passed down."""
+    from mmf_rl import record as recorder
+
+    parser = recorder.build_parser()
+    agent = parser.add_argument_group(
+        "recording with an MPC agent",
+        "  instead of the scripted pusher: SequenceCEMPlanner + PushObjective on a world model, one\n"
+        "  agent per worker; --exploration adds the same random-move bursts",
+    )
+    agent.add_argument(
+        "--policy", type=Path, metavar="CHECKPOINT", help="world model: a run dir or its checkpoints/"
+    )
+    agent.add_argument("--candidates", type=int, default=128, help="CEM candidates per iteration")
+    agent.add_argument("--iterations", type=int, default=4, help="CEM iterations per step")
+    agent.add_argument("--elites", type=int, default=16, help="CEM elites")
+    agent.add_argument("--reach-weight", type=float, default=0.5, help="PushObjective's reach_weight")
+    args = parser.parse_args(argv)
+    policy = None
+    if args.policy is not None:
+        from mmf_rl.checkpoint import CheckpointError
+        from mmf_rl.rl import PushMPCAgent
+
+        try:
+            policy = PushMPCAgent(
+                args.policy,
+                image_size=args.image_size,
+                num_candidates=args.candidates,
+                num_iterations=args.iterations,
+                num_elites=args.elites,
+                reach_weight=args.reach_weight,
+            )
+        except (CheckpointError, OSError, ValueError, KeyError) as error:
+            message = error.args[0] if isinstance(error, KeyError) and error.args else error
+            print(f"{recorder.PROG}: error: --policy {args.policy}: {message}", file=sys.stderr)
+            return 2
+    return recorder.run(args, policy)
 
 
 def _usage() -> str:
@@ -40,9 +86,10 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         print(f"mmf-rl: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
-    module = importlib.import_module(COMMANDS[name][0])
+    module, _, function = COMMANDS[name][0].partition(":")
+    command = getattr(importlib.import_module(module), function or "main")
     try:
-        return int(module.main(rest) or 0)
+        return int(command(rest) or 0)
     except SystemExit as exit_:  # argparse's --help (0) and usage errors (2)
         return exit_.code if isinstance(exit_.code, int) else 1
 

@@ -1,6 +1,8 @@
-"""`mmf-rl record`: record scripted pushes in `MultimodalPushEnv` as a LeRobot v3.0 dataset.
+"""`mmf-rl record`: record pushes in `MultimodalPushEnv` as a LeRobot v3.0 dataset, and merge recordings.
 
     mmf-rl record --out data/push --episodes 200 --workers 2 --seed 0 --image-size 64 --steps 50
+    mmf-rl record --out data/round1 --episodes 100 --policy runs/world_model/checkpoints --exploration 0.1
+    mmf-rl record --merge data/push data/round1 --out data/push_round1
 
 Episode ``i`` depends only on ``(seed, i)``: worker ``k`` records a contiguous block of episodes
 into its own shard, and lerobot's `aggregate_datasets` concatenates the shards in order. All of it
@@ -26,6 +28,15 @@ Features (float32 vectors carry per-dimension ``names``):
 With ``--exploration P``, the pusher makes random-move bursts (`ScriptedPusher`): the data a
 world model needs to learn what the actions do, not what the pusher tends to do.
 
+Another agent can act instead of the scripted pusher (``RecordConfig.policy``; ``--policy
+CHECKPOINT`` in `mmf-rl record`: MPC with that world model, `mmf_rl.rl.PushMPCAgent`), with the
+same ``--exploration`` bursts on top (`mmf_rl.envs.scripted.ExploringActor`). The recorder sits
+below the models and never imports one: the policy comes as a picklable factory, called once in
+each worker to build that worker's own agent. The features are the same either way, so
+recordings of both kinds merge (`merge_recordings`, ``--merge``: lerobot's
+`aggregate_datasets`) into one dataset that trains with the same data config: PETS-style data
+aggregation (record with the current agent, retrain on the union, repeat).
+
 With ``--faults``, sensor outages are written into the data (`SensorFaults`); without it the
 validity feature is all true and no value is NaN, and the two recordings are otherwise identical.
 lerobot's statistics are not NaN-aware: a recording with force dropouts has NaN force entries in
@@ -35,6 +46,7 @@ lerobot's statistics are not NaN-aware: a recording with force dropouts has NaN 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import multiprocessing as mp
 import os
 import queue
@@ -42,7 +54,7 @@ import shutil
 import sys
 import tempfile
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -59,7 +71,7 @@ from mmf_rl.envs.push import (
     MultimodalPushEnv,
     camera_names,
 )
-from mmf_rl.envs.scripted import rollout
+from mmf_rl.envs.scripted import Actor, rollout
 
 PROG = "mmf-rl record"
 TASK = "Push the block to the red target."
@@ -151,11 +163,17 @@ class RecordConfig:
     overwrite: bool = False
     repo_id: str = "local/mmf-push"
     vcodec: str = "libsvtav1"
+    # None: the scripted pusher. Else a picklable factory of the `Actor` that records (called once
+    # per worker process): e.g. `mmf_rl.rl.PushMPCAgent`.
+    policy: Callable[[], Actor] | None = None
 
 
-def record_episode(env, config: RecordConfig, episode_index: int) -> dict[str, np.ndarray]:
-    """Roll out episode ``episode_index`` and apply its sensor faults when enabled."""
-    episode = rollout(env, config.seed, episode_index, config.steps, config.exploration)
+def record_episode(
+    env, config: RecordConfig, episode_index: int, actor: Actor | None = None
+) -> dict[str, np.ndarray]:
+    """Roll out episode ``episode_index`` (with ``actor``, built from ``config.policy``, if any) and
+    apply its sensor faults when enabled."""
+    episode = rollout(env, config.seed, episode_index, config.steps, config.exploration, actor)
     episode["image_valid"] = np.ones((config.steps, 1), dtype=bool)
     if config.faults:
         rng = np.random.default_rng(np.random.SeedSequence([config.seed, episode_index, FAULTS_STREAM]))
@@ -173,6 +191,7 @@ def record_shard(
     disable_progress_bar()  # lerobot's per-episode "Map" bars would drown the episodes bar
 
     env = MultimodalPushEnv(image_size=config.image_size, camera=config.camera)
+    actor = config.policy() if config.policy is not None else None
     try:
         dataset = LeRobotDataset.create(
             repo_id=config.repo_id,
@@ -184,7 +203,7 @@ def record_shard(
             vcodec=config.vcodec,
         )
         for index in episode_indices:
-            episode = record_episode(env, config, index)
+            episode = record_episode(env, config, index, actor)
             for t in range(config.steps):
                 dataset.add_frame(
                     {
@@ -207,6 +226,10 @@ def record_shard(
 
 
 def _worker(config: RecordConfig, root: Path, episode_indices: range, progress) -> None:
+    import torch
+
+    # One process per core already: a policy's torch ops must not spread over the others' cores.
+    torch.set_num_threads(1)
     try:
         record_shard(config, root, episode_indices, lambda index: progress.put(("episode", index)))
     except KeyboardInterrupt:
@@ -217,11 +240,10 @@ def _worker(config: RecordConfig, root: Path, episode_indices: range, progress) 
     progress.put(("done", None))
 
 
-def _check_destination(config: RecordConfig) -> None:
-    out = config.out
+def _check_destination(out: Path, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise RecordError(f"--out {out} is a file; choose a directory path.")
-    if out.is_dir() and any(out.iterdir()) and not config.overwrite:
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise RecordError(
             f"--out {out} already exists and is not empty; pass --overwrite to replace it, "
             "or choose another directory."
@@ -245,7 +267,7 @@ def _validate(config: RecordConfig) -> None:
         raise RecordError(f"--seed {config.seed}: must be non-negative.")
     if not 0.0 <= config.exploration <= 1.0:
         raise RecordError(f"--exploration {config.exploration}: must be a probability in [0, 1].")
-    _check_destination(config)
+    _check_destination(config.out, config.overwrite)
     # Slower checks last: this one imports lerobot.
     if config.camera not in camera_names():
         raise RecordError(f"--camera {config.camera!r} is unknown; choose one of {camera_names()}.")
@@ -299,11 +321,10 @@ def partial_prefix(out: Path) -> str:
     return f".{out.name}.partial-"
 
 
-def record(config: RecordConfig) -> Path:
-    """Record ``config.episodes`` episodes into ``config.out``; return the dataset's path."""
-    _validate(config)
-    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its whole config per episode otherwise
-    out = config.out.resolve()
+@contextlib.contextmanager
+def _staging(out: Path) -> Iterator[Path]:
+    """A temporary directory beside ``out`` (same file system: the result is renamed into place),
+    removed on exit; stale ones of dead recordings are removed first."""
     for stale in remove_stale_temp_dirs(out.parent, partial_prefix(out)):
         print(f"{PROG}: removed {stale}, left by a recording that is no longer running", file=sys.stderr)
     try:
@@ -314,6 +335,31 @@ def record(config: RecordConfig) -> Path:
             f"cannot write next to --out {out} ({error.strerror}); choose a writable --out."
         ) from None
     try:
+        yield work
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _publish(dataset_root: Path, out: Path, work: Path) -> None:
+    """Rename the finished dataset to ``out``, replacing what is there (overwrite was checked)."""
+    if out.exists():
+        replaced = work / "replaced"
+        out.rename(replaced)
+        try:
+            dataset_root.rename(out)
+        except OSError:
+            replaced.rename(out)  # keep the old dataset rather than nothing
+            raise
+    else:
+        dataset_root.rename(out)
+
+
+def record(config: RecordConfig) -> Path:
+    """Record ``config.episodes`` episodes into ``config.out``; return the dataset's path."""
+    _validate(config)
+    os.environ.setdefault("SVT_LOG", "1")  # SVT-AV1 prints its whole config per episode otherwise
+    out = config.out.resolve()
+    with _staging(out) as work:
         ranges = _shard_ranges(config.episodes, config.workers)
         shard_roots = [work / f"shard-{k}" for k in range(len(ranges))]
         with tqdm(total=config.episodes, unit="episode", desc="recording", dynamic_ncols=True) as bar:
@@ -333,32 +379,89 @@ def record(config: RecordConfig) -> Path:
                 roots=shard_roots,
                 aggr_root=dataset_root,
             )
-        if out.exists():  # --overwrite was checked in _validate
-            replaced = work / "replaced"
-            out.rename(replaced)
-            try:
-                dataset_root.rename(out)
-            except OSError:
-                replaced.rename(out)  # keep the old dataset rather than nothing
-                raise
-        else:
-            dataset_root.rename(out)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+        _publish(dataset_root, out, work)
+    return out
+
+
+def _differences(first: dict, other: dict) -> list[str]:
+    """The feature names whose description differs between two datasets' ``features``."""
+    return sorted(k for k in first.keys() | other.keys() if first.get(k) != other.get(k))
+
+
+def merge_recordings(
+    sources: Sequence[Path], out: Path, overwrite: bool = False, repo_id: str = RecordConfig.repo_id
+) -> Path:
+    """Concatenate LeRobot datasets into a new one at ``out``: the episodes of ``sources[0]``, then
+    of ``sources[1]``, ..., renumbered from 0 (statistics merged). Return ``out``.
+
+    lerobot's `aggregate_datasets` does the work (it also joins `record`'s shards); its own CLI
+    (``lerobot-edit-dataset --operation.type merge``) loads every source from one ``--root``, so it
+    cannot merge local recordings kept in separate directories. The sources must share fps, robot
+    type and features (names, shapes, video codec): two recordings of `mmf-rl record` with the same
+    ``--image-size``, ``--camera`` and ``--vcodec`` do. Like `record`, the result is built beside
+    ``out`` and renamed into place: an interrupted merge leaves nothing at ``out``.
+    """
+    sources = [Path(source).resolve() for source in sources]
+    out = Path(out).resolve()
+    if len(sources) < 2:
+        raise RecordError(f"--merge needs at least two datasets, found {len(sources)}.")
+    for source in sources:
+        if not (source / "meta" / "info.json").is_file():
+            raise RecordError(
+                f"--merge {source}: not a LeRobot dataset (no meta/info.json); give the directories "
+                "of finished recordings."
+            )
+    if out in sources:
+        raise RecordError(f"--out {out} is one of the --merge datasets; write the union to a new directory.")
+    _check_destination(out, overwrite)
+    from lerobot.datasets.aggregate import aggregate_datasets
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    metadata = [LeRobotDatasetMetadata(repo_id, root=source) for source in sources]
+    first = metadata[0]
+    for source, meta in zip(sources[1:], metadata[1:], strict=True):
+        # lerobot checks the same, but prints both whole feature dicts: name the differences.
+        if meta.fps != first.fps or meta.robot_type != first.robot_type:
+            raise RecordError(
+                f"--merge {source}: fps {meta.fps}, robot {meta.robot_type!r}; {sources[0]} has fps "
+                f"{first.fps}, robot {first.robot_type!r}. Only recordings of one setup merge."
+            )
+        differing = _differences(first.features, meta.features)
+        if differing:
+            raise RecordError(
+                f"--merge {source}: features {differing} differ from those of {sources[0]} (e.g. another "
+                "--image-size, --camera or --vcodec); only recordings with the same features merge."
+            )
+    with _staging(out) as work:
+        dataset_root = work / "dataset"
+        aggregate_datasets(
+            repo_ids=[repo_id] * len(sources), aggr_repo_id=repo_id, roots=sources, aggr_root=dataset_root
+        )
+        _publish(dataset_root, out, work)
     return out
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=PROG,
-        description="Record scripted pushes as a LeRobot v3.0 dataset.",
+        description="Record pushes (scripted, or by an agent) as a LeRobot v3.0 dataset, or merge recordings.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="examples:\n"
         "  mmf-rl record --out data/push --episodes 200 --workers 2 --image-size 64 --steps 50\n"
-        "  mmf-rl record --out data/push_faults --episodes 100 --faults   # with sensor outages in the data",
+        "  mmf-rl record --out data/push_faults --episodes 100 --faults   # with sensor outages in the data\n"
+        "  mmf-rl record --out data/push_mpc --episodes 100 --exploration 0.1 --policy runs/world_model  # by MPC\n"
+        "  mmf-rl record --merge data/push data/push_more --out data/push_all   # one dataset of both",
     )
     parser.add_argument("--out", type=Path, required=True, help="dataset directory to create")
-    parser.add_argument("--episodes", type=int, required=True, help="number of episodes")
+    what = parser.add_mutually_exclusive_group(required=True)
+    what.add_argument("--episodes", type=int, help="number of episodes")
+    what.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        metavar="DATASET",
+        help="instead of recording, write the episodes of these recordings (same features) to --out",
+    )
     parser.add_argument("--workers", type=int, default=1, help="recording processes (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="episode i depends only on (seed, i)")
     parser.add_argument("--image-size", type=int, default=64, help="camera image side in pixels")
@@ -383,23 +486,40 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    config = RecordConfig(
-        out=args.out,
-        episodes=args.episodes,
-        workers=args.workers,
-        seed=args.seed,
-        image_size=args.image_size,
-        steps=args.steps,
-        camera=args.camera,
-        faults=args.faults,
-        exploration=args.exploration,
-        overwrite=args.overwrite,
-        repo_id=args.repo_id,
-        vcodec=args.vcodec,
-    )
+# Options of a recording that a merge has no use for (their defaults are RecordConfig's).
+RECORDING_OPTIONS = ("workers", "seed", "image_size", "steps", "camera", "faults", "exploration", "vcodec")
+
+
+def run(args: argparse.Namespace, policy: Callable[[], Actor] | None = None) -> int:
+    """Record (with ``policy``, see `RecordConfig.policy`) or merge, as ``args`` (`build_parser`) say."""
     try:
+        if args.merge:
+            given = [
+                f"--{n.replace('_', '-')}"
+                for n in RECORDING_OPTIONS
+                if getattr(args, n) != getattr(RecordConfig, n)
+            ]
+            given += ["--policy"] if policy is not None else []
+            if given:
+                raise RecordError(f"--merge records nothing: {', '.join(given)} would be ignored; drop them.")
+            out = merge_recordings(args.merge, args.out, args.overwrite, args.repo_id)
+            print(f"merged {len(args.merge)} recordings into {out}")
+            return 0
+        config = RecordConfig(
+            out=args.out,
+            episodes=args.episodes,
+            workers=args.workers,
+            seed=args.seed,
+            image_size=args.image_size,
+            steps=args.steps,
+            camera=args.camera,
+            faults=args.faults,
+            exploration=args.exploration,
+            overwrite=args.overwrite,
+            repo_id=args.repo_id,
+            vcodec=args.vcodec,
+            policy=policy,
+        )
         out = record(config)
     except RecordError as error:
         print(f"{PROG}: error: {error}", file=sys.stderr)
@@ -407,8 +527,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted; nothing was written to {args.out}", file=sys.stderr)
         return 130
-    print(f"recorded {config.episodes} episodes to {out}")
+    print(f"recorded {config.episodes} episodes to {out}" + (f" with {policy}" if policy is not None else ""))
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":

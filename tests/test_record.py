@@ -6,11 +6,12 @@ import os
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # before lerobot / huggingface_hub load
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from mmf_rl import cli
 from mmf_rl import record as record_module
@@ -24,7 +25,9 @@ from mmf_rl.record import (
     STATE_KEY,
     TASK,
     RecordConfig,
+    RecordError,
     SensorFaults,
+    merge_recordings,
     record,
     record_episode,
 )
@@ -249,3 +252,131 @@ def test_interrupted_recording_leaves_nothing(tmp_path, capsys, monkeypatch):
     code, err = _run_cli(["--out", str(out), "--episodes", "2", "--steps", "3"], capsys)
     assert code == 130 and "interrupted" in err
     assert list(tmp_path.iterdir()) == [], "neither --out nor a temporary directory remains"
+
+
+# --- recording with an injected policy, merging recordings ----------------------------------------
+
+
+class DrawnDirection:
+    """An `Actor`: each episode pushes one direction drawn from the episode's generator."""
+
+    def reset(self, rng):
+        self.action = np.r_[rng.uniform(-1.0, 1.0, 3), 0.0].astype(np.float32)
+
+    def act(self, obs):
+        return self.action
+
+
+@dataclass(frozen=True)
+class DrawnDirectionPolicy:
+    """The picklable factory `RecordConfig.policy` takes."""
+
+    def __call__(self) -> DrawnDirection:
+        return DrawnDirection()
+
+
+@pytest.fixture(scope="module")
+def policy_recorded(config) -> Path:
+    return record(replace(config, out=config.out.parent / "policy", seed=1, policy=DrawnDirectionPolicy()))
+
+
+def test_an_injected_policy_records_its_episodes_with_the_same_features(
+    policy_recorded, recorded, config, push_env
+):
+    dataset = load(policy_recorded)
+    assert dataset.num_episodes == EPISODES and dataset.num_frames == EPISODES * STEPS
+    assert dataset.meta.features == load(recorded).meta.features, "the recordings merge and train alike"
+    policy_config = replace(config, seed=1)
+    for episode in range(EPISODES):
+        expected = record_episode(push_env, policy_config, episode, DrawnDirection())
+        stored = columns(dataset, episode)
+        np.testing.assert_array_equal(stored[ACTION_KEY], expected["action"])
+        assert (stored[ACTION_KEY] == stored[ACTION_KEY][0]).all(), "the policy acted, not the pusher"
+        np.testing.assert_array_equal(stored[OBJECT_POSE_KEY], expected["object_pose"])
+
+
+def test_merge_holds_the_episodes_of_both_recordings_in_order(recorded, policy_recorded, tmp_path):
+    merged = load(merge_recordings([recorded, policy_recorded], tmp_path / "union"))
+    assert merged.num_episodes == 2 * EPISODES and merged.num_frames == 2 * EPISODES * STEPS
+    assert merged.meta.info["codebase_version"] == "v3.0"
+    for offset, source in ((0, load(recorded)), (EPISODES, load(policy_recorded))):
+        for episode in range(EPISODES):
+            a, b = columns(source, episode), columns(merged, offset + episode)
+            for key in a:
+                np.testing.assert_array_equal(a[key], b[key], err_msg=f"{offset + episode} {key}")
+    start = int(merged.meta.episodes["dataset_from_index"][EPISODES])
+    assert merged[start][CAMERA_KEY].shape == (3, IMAGE_SIZE, IMAGE_SIZE), "the videos were merged too"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["union"], "no temporary directory left behind"
+
+
+def test_merge_of_recordings_with_other_features_is_a_clear_error(recorded, recorded_push_root, tmp_path):
+    with pytest.raises(RecordError, match=r"features \['observation\.images\.front'\] differ.*--image-size"):
+        merge_recordings([recorded, recorded_push_root], tmp_path / "union")  # 64 px and 32 px
+    assert not (tmp_path / "union").exists()
+
+
+def test_merge_errors_name_the_path_and_the_fix(recorded, tmp_path, capsys):
+    not_a_dataset = tmp_path / "empty"
+    not_a_dataset.mkdir()
+    code, err = _run_cli(["--merge", str(recorded), str(not_a_dataset), "--out", str(tmp_path / "u")], capsys)
+    _assert_one_line_error(code, err, str(not_a_dataset), "not a LeRobot dataset")
+    code, err = _run_cli(["--merge", str(recorded), str(recorded), "--out", str(recorded)], capsys)
+    _assert_one_line_error(code, err, str(recorded), "new directory")
+    code, err = _run_cli(
+        ["--merge", str(recorded), str(recorded), "--out", str(tmp_path / "u"), "--seed", "3"], capsys
+    )
+    _assert_one_line_error(code, err, "--seed", "would be ignored")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]
+
+
+# --- `mmf-rl record --policy CHECKPOINT`: MPC on a (tiny) trained world model ---------------------
+
+MPC_STEPS = 12  # > history 4 + horizon 3 of the tiny world model: every episode has windows
+MPC_OPTIONS = ["--candidates", "16", "--iterations", "1", "--elites", "4", "--image-size", "32"]
+
+
+def test_policy_checkpoint_records_mpc_episodes_that_merge_and_load_in_the_pipeline(
+    push_world_model_run, recorded_push_root, tmp_path, capsys
+):
+    from mmf_rl.configuration import compose_config, to_container
+    from mmf_rl.datasets import DataConfig, WindowDataset
+    from mmf_rl.keys import validate_batch
+
+    out = tmp_path / "mpc"
+    argv = ["--out", str(out), "--episodes", "2", "--steps", str(MPC_STEPS), "--workers", "2", "--seed", "4"]
+    code, err = _run_cli(
+        [*argv, "--exploration", "0.2", "--policy", str(push_world_model_run), *MPC_OPTIONS], capsys
+    )
+    assert code == 0, err
+    dataset = load(out)
+    assert dataset.num_episodes == 2 and dataset.num_frames == 2 * MPC_STEPS
+    assert dataset.meta.features == load(recorded_push_root).meta.features
+    for episode in range(2):
+        actions = columns(dataset, episode)[ACTION_KEY]
+        assert np.all(np.abs(actions) <= 1.0) and np.all(np.isfinite(actions))
+
+    union = merge_recordings([recorded_push_root, out], tmp_path / "union")
+    cfg = compose_config(
+        "train",
+        [
+            "data=push_world_model",
+            f"data.root={union}",
+            f"data.cache_dir={tmp_path / 'cache'}",
+            "data.image_size=[32,32]",
+            "data.history=4",
+            "data.horizon=3",
+        ],
+    )
+    windows = WindowDataset(DataConfig.from_dict(to_container(cfg.data)), num_workers=0)
+    original = load(recorded_push_root)
+    assert len(windows) == original.num_frames - 6 * original.num_episodes + 2 * (MPC_STEPS - 6)
+    batch = windows.batch(torch.arange(len(windows) - 2, len(windows)))  # windows of the MPC episodes
+    validate_batch(batch, windows.specs, history=4, horizon=3, target_dim=2, require_target=True)
+
+
+def test_bad_policy_path_is_a_clear_error_naming_it(tmp_path, capsys):
+    missing = tmp_path / "runs" / "no_such_world_model"
+    out = tmp_path / "mpc"
+    code, err = _run_cli(["--out", str(out), "--episodes", "1", "--policy", str(missing)], capsys)
+    _assert_one_line_error(code, err, f"--policy {missing}", "not found")
+    assert not out.exists()

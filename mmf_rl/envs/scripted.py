@@ -1,4 +1,5 @@
-"""A scripted pusher for `MultimodalPushEnv`, and the seeded rollout that records with it.
+"""A scripted pusher for `MultimodalPushEnv`, and the seeded rollout that records with it (or with
+any other `Actor`, e.g. an MPC agent, plus the same exploration bursts).
 
 The pusher is a small state machine over the gripper position:
 
@@ -15,6 +16,7 @@ future is not a straight extrapolation of its past.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -58,6 +60,67 @@ class PusherStyle:
         )
 
 
+class Actor(Protocol):
+    """What `rollout` drives: `reset` with the episode's generator, then one `act` per step.
+
+    ``act`` receives `MultimodalPushEnv`'s observation dict and returns a FetchPush action
+    (float32 ``[4]`` in ``[-1, 1]``). An actor draws its randomness from the generator it was
+    reset with (or seeds its own from it), so that episode ``i`` depends only on ``(seed, i)``.
+    """
+
+    def reset(self, rng: np.random.Generator) -> None: ...
+
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray: ...
+
+
+class RandomBursts:
+    """Exploration: with per-step probability ``probability``, a burst of 2-7 steps of one uniformly
+    random move (the fingers' command left at 0). Drawn only when ``probability > 0``."""
+
+    def __init__(self, probability: float = 0.0) -> None:
+        if not 0.0 <= probability <= 1.0:
+            raise ValueError(f"exploration must be a probability in [0, 1], found {probability}")
+        self.probability = probability
+        self.reset()
+
+    def reset(self) -> None:
+        self.steps, self.action = 0, np.zeros(4, dtype=np.float32)
+
+    def draw(self, rng: np.random.Generator) -> np.ndarray | None:
+        """This step's burst action, or ``None`` outside a burst."""
+        if self.steps > 0:
+            self.steps -= 1
+            return self.action
+        if self.probability and rng.random() < self.probability:
+            self.steps = int(rng.integers(1, 7))
+            self.action = np.r_[rng.uniform(-1.0, 1.0, 3), 0.0].astype(np.float32)
+            return self.action
+        return None
+
+
+class ExploringActor:
+    """``actor`` with `RandomBursts` on top: the scripted pusher's ``exploration`` for any `Actor`.
+
+    Unlike the scripted pusher, the wrapped actor is asked for an action at every step, burst or
+    not, and the burst overrides it: an agent that keeps a history of observations (an MPC
+    agent's window) must see every one of them.
+    """
+
+    def __init__(self, actor: Actor, exploration: float = 0.0) -> None:
+        self.actor, self.bursts = actor, RandomBursts(exploration)
+        self.rng = np.random.default_rng(0)
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.actor.reset(rng)
+        self.rng = rng
+        self.bursts.reset()
+
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        action = self.actor.act(obs)
+        burst = self.bursts.draw(self.rng)
+        return action if burst is None else burst
+
+
 class ScriptedPusher:
     """Pushes the object to the goal; call `reset` with the episode's generator, then `act`.
 
@@ -69,9 +132,7 @@ class ScriptedPusher:
     """
 
     def __init__(self, exploration: float = 0.0) -> None:
-        if not 0.0 <= exploration <= 1.0:
-            raise ValueError(f"exploration must be a probability in [0, 1], found {exploration}")
-        self.exploration = exploration
+        self.bursts = RandomBursts(exploration)
         self.reset(np.random.default_rng(0))
 
     def reset(self, rng: np.random.Generator) -> None:
@@ -80,17 +141,14 @@ class ScriptedPusher:
         self.phase = "approach"
         self.pause_steps = 0
         self.direction = np.zeros(2)  # push direction in the plane, unit
-        self.burst_steps, self.burst_action = 0, np.zeros(4, dtype=np.float32)
+        self.bursts.reset()
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        if self.burst_steps > 0:
-            self.burst_steps -= 1
-            return self.burst_action
-        # Drawn only when exploring, so episodes without it stay what they always were.
-        if self.exploration and self.rng.random() < self.exploration:
-            self.burst_steps = int(self.rng.integers(1, 7))
-            self.burst_action = np.r_[self.rng.uniform(-1.0, 1.0, 3), 0.0].astype(np.float32)
-            return self.burst_action
+        # Drawn first and only when exploring, so episodes without it stay what they always were;
+        # the state machine sleeps through a burst and carries on from wherever it left things.
+        burst = self.bursts.draw(self.rng)
+        if burst is not None:
+            return burst
         grip = obs["proprio"][:3]
         obj = obs["object_pose"][:3]
         goal = obs["desired_goal"]
@@ -181,9 +239,19 @@ def reset_for_push(env: MultimodalPushEnv, rng: np.random.Generator):
 
 
 def rollout(
-    env: MultimodalPushEnv, seed: int, episode_index: int, steps: int, exploration: float = 0.0
+    env: MultimodalPushEnv,
+    seed: int,
+    episode_index: int,
+    steps: int,
+    exploration: float = 0.0,
+    actor: Actor | None = None,
 ) -> dict[str, np.ndarray]:
-    """Run one scripted episode (``exploration``: see `ScriptedPusher`) and return its per-step arrays.
+    """Run one episode and return its per-step arrays.
+
+    The scripted pusher acts (``exploration``: its random-move bursts, see `ScriptedPusher`),
+    or ``actor`` with the same bursts on top (`ExploringActor`). Either is reset with the
+    episode's generator after the env, so the start and the actor's draws depend only on
+    ``(seed, episode_index)``.
 
     Frame ``t`` holds the observation before action ``t``. Keys: ``image`` ``[steps, h, w, 3]``
     uint8; ``force``, ``proprio``, ``object_pose``, ``goal``, ``action`` float32 ``[steps, d]``;
@@ -193,7 +261,7 @@ def rollout(
         raise ValueError(f"steps={steps}: an episode needs at least 1 step.")
     rng = episode_generator(seed, episode_index)
     obs, _ = reset_for_push(env, rng)
-    pusher = ScriptedPusher(exploration)
+    pusher = ScriptedPusher(exploration) if actor is None else ExploringActor(actor, exploration)
     pusher.reset(rng)
     frames: dict[str, list] = {k: [] for k in ("image", "force", "proprio", "object_pose", "goal", "action")}
     success = []

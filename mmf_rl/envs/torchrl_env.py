@@ -47,6 +47,46 @@ OBJECT_POSE = "object_pose"
 GOAL = "goal"
 
 
+def push_observation_spec(image_size: int) -> Composite:
+    """The spec of `MultimodalPushTorchEnv`'s observation (one env)."""
+    return Composite(
+        {
+            keys.OBS: Composite(
+                image=Bounded(0, 255, (3, image_size, image_size), dtype=torch.uint8),
+                force=Unbounded((len(FORCE_NAMES),), dtype=torch.float32),
+                proprio=Unbounded((len(PROPRIO_NAMES),), dtype=torch.float32),
+            ),
+            keys.PRESENT: Composite({m: Categorical(2, (), dtype=torch.bool) for m in MODALITIES}),
+            OBJECT_POSE: Unbounded((len(OBJECT_POSE_NAMES),), dtype=torch.float32),
+            GOAL: Unbounded((len(GOAL_NAMES),), dtype=torch.float32),
+        }
+    )
+
+
+def push_action_spec() -> Bounded:
+    """FetchPush's action ``[dx, dy, dz, gripper]`` in ``[-1, 1]``."""
+    return Bounded(-1.0, 1.0, (4,), dtype=torch.float32)
+
+
+def push_observation(obs: dict[str, np.ndarray]) -> TensorDict:
+    """`MultimodalPushEnv`'s observation dict as `MultimodalPushTorchEnv` emits it (every sensor
+    present): what a TorchRL policy reads, for code that steps the gymnasium env itself."""
+    return TensorDict(
+        {
+            keys.OBS: {
+                # HWC -> CHW, copied: torch must own the frame, the renderer reuses its buffer.
+                "image": torch.from_numpy(np.ascontiguousarray(obs["image"].transpose(2, 0, 1))),
+                "force": torch.as_tensor(obs["force"], dtype=torch.float32),
+                "proprio": torch.as_tensor(obs["proprio"], dtype=torch.float32),
+            },
+            keys.PRESENT: {m: torch.ones((), dtype=torch.bool) for m in MODALITIES},
+            OBJECT_POSE: torch.as_tensor(obs["object_pose"], dtype=torch.float32),
+            GOAL: torch.as_tensor(obs["desired_goal"], dtype=torch.float32),
+        },
+        batch_size=[],
+    )
+
+
 class MultimodalPushTorchEnv(EnvBase):
     """`MultimodalPushEnv` as a TorchRL env emitting ``("obs", m)`` and ``("present", m)``.
 
@@ -80,19 +120,8 @@ class MultimodalPushTorchEnv(EnvBase):
         self.min_start_distance = min_start_distance
         self._next_seed: int | None = None
 
-        self.observation_spec = Composite(
-            {
-                keys.OBS: Composite(
-                    image=Bounded(0, 255, (3, image_size, image_size), dtype=torch.uint8),
-                    force=Unbounded((len(FORCE_NAMES),), dtype=torch.float32),
-                    proprio=Unbounded((len(PROPRIO_NAMES),), dtype=torch.float32),
-                ),
-                keys.PRESENT: Composite({m: Categorical(2, (), dtype=torch.bool) for m in MODALITIES}),
-                OBJECT_POSE: Unbounded((len(OBJECT_POSE_NAMES),), dtype=torch.float32),
-                GOAL: Unbounded((len(GOAL_NAMES),), dtype=torch.float32),
-            }
-        )
-        self.action_spec = Bounded(-1.0, 1.0, (4,), dtype=torch.float32)
+        self.observation_spec = push_observation_spec(image_size)
+        self.action_spec = push_action_spec()
         self.reward_spec = Unbounded((1,), dtype=torch.float32)
         self.done_spec = Composite(
             done=Categorical(2, (1,), dtype=torch.bool),
@@ -104,29 +133,13 @@ class MultimodalPushTorchEnv(EnvBase):
     def _planar_distance(obs: dict[str, np.ndarray]) -> float:
         return float(np.linalg.norm(obs["object_pose"][:2] - obs["desired_goal"][:2]))
 
-    def _observation(self, obs: dict[str, np.ndarray]) -> TensorDict:
-        return TensorDict(
-            {
-                keys.OBS: {
-                    # HWC -> CHW, copied: torch must own the frame, the renderer reuses its buffer.
-                    "image": torch.from_numpy(np.ascontiguousarray(obs["image"].transpose(2, 0, 1))),
-                    "force": torch.as_tensor(obs["force"], dtype=torch.float32),
-                    "proprio": torch.as_tensor(obs["proprio"], dtype=torch.float32),
-                },
-                keys.PRESENT: {m: torch.ones((), dtype=torch.bool) for m in MODALITIES},
-                OBJECT_POSE: torch.as_tensor(obs["object_pose"], dtype=torch.float32),
-                GOAL: torch.as_tensor(obs["desired_goal"], dtype=torch.float32),
-            },
-            batch_size=[],
-        )
-
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         seed, self._next_seed = self._next_seed, None
         obs, _ = self._env.reset(seed=seed)
         # Redraw (from the env's own seeded generator) until the episode takes a push to succeed.
         while self._planar_distance(obs) < self.min_start_distance:
             obs, _ = self._env.reset()
-        out = self._observation(obs)
+        out = push_observation(obs)
         false = torch.zeros(1, dtype=torch.bool)
         out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
         return out
@@ -136,7 +149,7 @@ class MultimodalPushTorchEnv(EnvBase):
         obs, _, terminated, truncated, info = self._env.step(action)
         # FetchPush's own success test (3-D distance under its 5 cm threshold) ends the episode.
         terminated = bool(terminated or info.get("is_success", 0.0) > 0.5)
-        out = self._observation(obs)
+        out = push_observation(obs)
         out.update(
             {
                 "reward": torch.tensor([-self._planar_distance(obs)], dtype=torch.float32),

@@ -1,6 +1,8 @@
 """The forecaster in reinforcement learning: live-forecast and history transforms, the world model,
-a model-based env for torchrl's planners, and a vectorised CEM planner for model-predictive control."""
+a model-based env for torchrl's planners, a vectorised CEM planner for model-predictive control, and
+the MPC agent the recorder records with (`PushMPCAgent`)."""
 
+from mmf_rl.rl.agent import MPCActor, PushMPCAgent
 from mmf_rl.rl.cem import SequenceCEMPlanner
 from mmf_rl.rl.push_objective import PushObjective
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
@@ -12,6 +14,8 @@ __all__ = [
     "ForecasterWorldModelEnv",
     "HistoryWindow",
     "ImaginedPlanningPolicy",
+    "MPCActor",
+    "PushMPCAgent",
     "PushObjective",
     "SequenceCEMPlanner",
     "WorldModel",

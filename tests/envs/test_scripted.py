@@ -68,3 +68,39 @@ def test_exploration_must_be_a_probability():
 
     with pytest.raises(ValueError, match=r"exploration must be a probability in \[0, 1\], found 1.5"):
         ScriptedPusher(exploration=1.5)
+
+
+class DrawnDirection:
+    """An `Actor`: each episode pushes one direction drawn from its generator; counts its calls."""
+
+    def reset(self, rng):
+        self.action = np.r_[rng.uniform(-1.0, 1.0, 3), 0.0].astype(np.float32)
+        self.observations = []
+
+    def act(self, obs):
+        self.observations.append(obs["proprio"].copy())
+        return self.action
+
+
+def test_an_actor_acts_in_place_of_the_pusher_and_depends_only_on_seed_and_index(push_env):
+    actor = DrawnDirection()
+    episode = rollout(push_env, seed=4, episode_index=2, steps=12, actor=actor)
+    assert len(actor.observations) == 12
+    np.testing.assert_array_equal(episode["action"], np.tile(actor.action, (12, 1)))
+    np.testing.assert_array_equal(np.stack(actor.observations).astype(np.float32), episode["proprio"])
+    again = rollout(push_env, seed=4, episode_index=2, steps=12, actor=DrawnDirection())
+    for key in episode:
+        np.testing.assert_array_equal(episode[key], again[key], err_msg=key)
+    scripted = rollout(push_env, seed=4, episode_index=2, steps=12)
+    np.testing.assert_array_equal(scripted["object_pose"][0], episode["object_pose"][0])  # same start
+    assert not np.array_equal(scripted["action"], episode["action"])
+
+
+def test_exploration_bursts_override_an_actor_that_still_sees_every_step(push_env):
+    actor = DrawnDirection()
+    explored = rollout(push_env, seed=2, episode_index=1, steps=40, exploration=0.3, actor=actor)
+    assert len(actor.observations) == 40, "the actor observes every step, bursts included"
+    bursts = ~np.all(explored["action"] == actor.action, axis=1)
+    assert bursts.any() and not bursts.all()
+    again = rollout(push_env, seed=2, episode_index=1, steps=40, exploration=0.3, actor=DrawnDirection())
+    np.testing.assert_array_equal(explored["action"], again["action"])

@@ -1,0 +1,98 @@
+"""The MPC agent as an `Actor` of the recorder: what `mmf-rl record --policy CHECKPOINT` records with.
+
+`mmf_rl.record` steps the gymnasium env (`MultimodalPushEnv`) itself, one process per worker, and
+sits below the models: it cannot load a world model. It takes a picklable factory instead,
+`PushMPCAgent` (a checkpoint path and the planner's sizes), and calls it once in each worker,
+which so builds its own world model and planner. The agent is the one `benchmarks/mpc_push.py`
+and `examples/mpc_push.py` play: `SequenceCEMPlanner` on the world model with `PushObjective`,
+reading the `HistoryWindow` of every sensor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mmf_rl.envs.torchrl_env import push_action_spec, push_observation, push_observation_spec
+from mmf_rl.rl.cem import IS_INIT, Objective, SequenceCEMPlanner
+from mmf_rl.rl.push_objective import PushObjective
+from mmf_rl.rl.world_model import WorldModel
+
+
+class MPCActor:
+    """`SequenceCEMPlanner` driven by `MultimodalPushEnv`'s observation dicts (`mmf_rl.envs.scripted.Actor`).
+
+    Every observation goes through the world model's `HistoryWindow` (the first of an episode
+    fills the window, as after an env reset), then the planner picks the action. `reset` reseeds
+    the planner from the episode's generator and restarts its warm start, so an episode depends
+    only on that generator.
+    """
+
+    def __init__(self, world_model: WorldModel, objective: Objective, image_size: int, **planner_kwargs):
+        self.history = world_model.history_window()
+        # What TransformedEnv checks when the window is appended to the env: the checkpoint's
+        # modalities against the env's sensors (a clear error naming both).
+        self.history.transform_observation_spec(push_observation_spec(image_size))
+        self.planner = SequenceCEMPlanner(world_model, objective, push_action_spec(), **planner_kwargs)
+        self._new_episode = True
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.planner.generator.manual_seed(int(rng.integers(2**63)))
+        self._new_episode = True
+
+    @torch.no_grad()
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        observation = push_observation(obs)
+        # The transform's TorchRL hooks, called as TransformedEnv calls them at a reset and a step:
+        # the recorder steps the gymnasium env, not a TorchRL one.
+        if self._new_episode:
+            observation = self.history._reset(observation.empty(), observation)
+        else:
+            observation = self.history._call(observation)
+        observation.set(IS_INIT, torch.tensor([self._new_episode]))
+        self._new_episode = False
+        return self.planner(observation).get("action").numpy()
+
+
+@dataclass(frozen=True)
+class PushMPCAgent:
+    """A picklable factory of `MPCActor` on the world model at ``checkpoint`` (a run directory, its
+    ``checkpoints/``, one checkpoint or a ``save_pretrained`` directory): pass it as
+    `mmf_rl.record.RecordConfig.policy`.
+
+    Constructing it loads the checkpoint once and builds an agent, so a bad path or a model that
+    is not a push world model fails here, in the caller, not in every recording worker.
+    ``image_size`` is the recording's (the window resizes frames to the model's size).
+    The sizes and ``reach_weight`` are `SequenceCEMPlanner`'s and `PushObjective`'s, defaulting
+    to `benchmarks/mpc_push.py`'s.
+    """
+
+    checkpoint: Path
+    image_size: int = 64
+    num_candidates: int = 128
+    num_iterations: int = 4
+    num_elites: int = 16
+    reach_weight: float = 0.5
+
+    def __post_init__(self):
+        object.__setattr__(self, "checkpoint", Path(self.checkpoint))
+        self()
+
+    def __call__(self) -> MPCActor:
+        return MPCActor(
+            WorldModel.from_checkpoint(self.checkpoint),
+            PushObjective(reach_weight=self.reach_weight),
+            self.image_size,
+            num_candidates=self.num_candidates,
+            num_iterations=self.num_iterations,
+            num_elites=self.num_elites,
+        )
+
+    def __str__(self) -> str:
+        return (
+            f"MPC on the world model {self.checkpoint} ({self.num_candidates} candidates x "
+            f"{self.num_iterations} iterations, {self.num_elites} elites)"
+        )
