@@ -7,6 +7,8 @@ world-model seeds.
     MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py
     # given world models (one per training seed), nothing built
     MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py --checkpoint runs/wm0/checkpoints runs/wm1/checkpoints
+    # PETS-style data aggregation: 2 rounds of 100 MPC episodes each, retraining on the union
+    MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py --quick --aggregate 2 --aggregate-episodes 100
 
 What it builds when absent (under ``--work``; a re-run reuses the recording and resumes or skips
 the trainings): the exploration recording (`mmf_rl.record`, ``--record-episodes`` episodes, seed
@@ -23,7 +25,29 @@ world-model seeds          0 1     0 1
 episodes per condition     20      50
 outage types               episode episode bursts dies
 step-wise CEMPlanner eps.  0       10
+aggregation rounds         0       0     (--aggregate; 100 episodes each, --aggregate-episodes)
 =========================  ======  =====
+
+Data aggregation (``--aggregate ROUNDS``, PETS-style; issue #15): after the first world models
+are trained, each round records ``--aggregate-episodes`` episodes with the current MPC agent
+(`mmf_rl.rl.PushMPCAgent`: the planner and objective below, all sensors up) plus the recorder's
+random-move bursts (``--aggregate-exploration``, the meaning of ``mmf-rl record
+--exploration``), merges them with that world model's training data (lerobot's
+`aggregate_datasets`, `mmf_rl.record.merge_recordings`) and trains the next world model on the
+union, with the same seed and step budget, and early stopping on the validation MSE
+(``--early-stopping-patience`` evaluations without improvement; the trainer's own
+``trainer.early_stopping_patience``, which keeps the weights it stopped with, not the best
+evaluation's). The world models of the last round are the ones played.
+Each world-model seed aggregates its own data (its agent records, its union trains it): the seeds
+stay independent replicates of the whole procedure, so their spread includes the data's. A
+retraining starts from scratch by default: the union's normalisation statistics differ from
+the last round's, and a model trained by the same recipe on more data is what the rounds are
+meant to measure; ``--aggregate-warm-start`` starts from the last round's weights instead
+(``init_from``: new optimizer and schedule, the union's statistics), which converges in fewer
+steps with early stopping. Round ``r`` records with seed ``r + 1`` (the first recording's is 1),
+so its episodes start elsewhere, with the first recording's image size and episode length. ``results.md`` lists every round: episodes recorded, episodes
+trained on, the recording agent's success (the object within FetchPush's 5 cm of the goal at
+some recorded frame, exploration bursts included) and the steps trained.
 
 Run time: the script prints the minutes of each phase (record, each training, play) and the
 total, and writes them to ``results.md``; the quick mode is sized to finish within 25 min on 2
@@ -75,7 +99,7 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.modules.planners import CEMPlanner
 
 from mmf_rl import keys
-from mmf_rl.checkpoint import list_checkpoints
+from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.envs.modality_dropout import ModalityDropout, UniformBursts
 from mmf_rl.envs.scripted import ScriptedPusher, episode_generator
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
@@ -95,6 +119,8 @@ OUTAGES = {
     "bursts": {"outage": "bursts", "outage_prob": 0.2, "bursts": UniformBursts(2, 8)},
     "dies": {"outage": "dies", "outage_prob": 1.0, "dies_after": UniformBursts(1, 49)},
 }
+FIRST_RECORDING = {"seed": 1, "exploration": 0.1}  # of the data the first world models train on
+SUCCESS_DISTANCE = 0.05  # FetchPush's distance_threshold, metres (3-D, object to goal)
 BUDGETS = {
     "quick": {
         "record_episodes": 300,
@@ -244,42 +270,168 @@ def table(rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def train_world_model(args, run_dir: Path, data: Path, seed: int, extra: list[str] = ()) -> None:
+    """``mmf-rl train experiment=world_model`` on ``data`` into ``run_dir``; resumes an interrupted run."""
+    from mmf_rl.configuration import compose_config
+    from mmf_rl.trainers.run import train
+
+    overrides = [
+        "experiment=world_model",
+        f"name={run_dir.name}",
+        f"run_dir={run_dir}",
+        f"data.root={data}",
+        f"trainer.seed={seed}",
+        "trainer.progress_bar=false",
+        *args.train_override,
+        *extra,
+    ]
+    if args.train_steps is not None:
+        overrides.append(f"trainer.total_steps={args.train_steps}")
+    if list_checkpoints(run_dir / "checkpoints"):
+        overrides.append("resume=true")  # finishes an interrupted training; nothing to do if it had ended
+    train(compose_config("train", overrides))
+
+
 def build_world_models(args, phases: dict[str, float]) -> list[Path]:
     """The recording and one world model per seed under ``args.work``, built where absent."""
-    from mmf_rl.configuration import compose_config
     from mmf_rl.record import RecordConfig, record
-    from mmf_rl.trainers.run import train
 
     data = args.work / "push_explore"
     if not (data / "meta" / "info.json").is_file():
         print(f"mpc_push: recording {args.record_episodes} exploration episodes into {data}")
         start = time.perf_counter()
-        record(
-            RecordConfig(
-                out=data, episodes=args.record_episodes, workers=args.workers, seed=1, exploration=0.1
-            )
-        )
+        record(RecordConfig(out=data, episodes=args.record_episodes, workers=args.workers, **FIRST_RECORDING))
         phases["record"] = time.perf_counter() - start
     checkpoints = []
     for seed in args.world_model_seeds:
         run_dir = args.work / f"world_model_seed{seed}"
-        overrides = [
-            "experiment=world_model",
-            f"name=world_model_seed{seed}",
-            f"run_dir={run_dir}",
-            f"data.root={data}",
-            f"trainer.seed={seed}",
-            "trainer.progress_bar=false",
-        ]
-        if args.train_steps is not None:
-            overrides.append(f"trainer.total_steps={args.train_steps}")
-        if list_checkpoints(run_dir / "checkpoints"):
-            overrides.append("resume=true")  # finishes an interrupted training; nothing to do if it had ended
         start = time.perf_counter()
-        train(compose_config("train", overrides))
+        train_world_model(args, run_dir, data, seed)
         phases[f"train seed {seed}"] = time.perf_counter() - start
         checkpoints.append(run_dir / "checkpoints")
     return checkpoints
+
+
+def recording_summary(root: Path) -> dict:
+    """A recording's episodes, the per cent of them where the object came within
+    `SUCCESS_DISTANCE` of the goal at some frame, its image size and steps per episode."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    from mmf_rl.datasets.lerobot_source import load_frame_columns
+    from mmf_rl.record import CAMERA_KEY, GOAL_KEY, OBJECT_POSE_KEY, RecordConfig
+
+    meta = LeRobotDatasetMetadata(RecordConfig.repo_id, root=root)
+    frames, _, _ = load_frame_columns(meta, [OBJECT_POSE_KEY, GOAL_KEY, "episode_index"])
+    reached = np.linalg.norm(frames[OBJECT_POSE_KEY][:, :3] - frames[GOAL_KEY], axis=1) < SUCCESS_DISTANCE
+    episodes = np.unique(frames["episode_index"])
+    successes = sum(bool(reached[frames["episode_index"] == e].any()) for e in episodes)
+    return {
+        "episodes": len(episodes),
+        "success": 100.0 * successes / len(episodes),
+        "image_size": int(meta.features[CAMERA_KEY]["shape"][0]),
+        "steps": meta.total_frames // meta.total_episodes,  # every episode of a recording is as long
+    }
+
+
+def trained_steps(checkpoints: Path) -> int:
+    return load_checkpoint(checkpoints, with_trainer_state=False).step
+
+
+def aggregate_data(args, checkpoints: list[Path], phases: dict[str, float]) -> tuple[list[Path], list[dict]]:
+    """``args.aggregate`` rounds of PETS-style data aggregation per world-model seed (module
+    docstring); returns the last round's world models and one row per seed and round. A re-run
+    reuses finished recordings, unions and trainings, and resumes an interrupted training."""
+    from mmf_rl.record import RecordConfig, merge_recordings, record
+    from mmf_rl.rl import PushMPCAgent
+    from mmf_rl.trainers.run import PRETRAINED_DIR
+
+    base = args.work / "push_explore"
+    first = recording_summary(base)
+    rows, finals = [], []
+    for seed, checkpoint in zip(args.world_model_seeds, checkpoints, strict=True):
+        data = base
+        rows.append(
+            {
+                "seed": seed,
+                "round": 0,
+                "recorded_by": f"scripted pusher + exploration {FIRST_RECORDING['exploration']}",
+                "episodes_recorded": first["episodes"],
+                "episodes_trained_on": first["episodes"],
+                "recording_success": first["success"],
+                "steps_trained": trained_steps(checkpoint),
+                "world_model": str(checkpoint),
+            }
+        )
+        for round_ in range(1, args.aggregate + 1):
+            tag = f"seed {seed} round {round_}"
+            recording = args.work / f"aggregate_seed{seed}_round{round_}"
+            if not (recording / "meta" / "info.json").is_file():  # a recording is written atomically
+                print(f"mpc_push: [{tag}] recording {args.aggregate_episodes} MPC episodes with {checkpoint}")
+                agent = PushMPCAgent(
+                    checkpoint,
+                    image_size=first["image_size"],
+                    num_candidates=args.candidates,
+                    num_iterations=args.iterations,
+                    num_elites=args.elites,
+                    reach_weight=args.reach_weight,
+                )
+                start = time.perf_counter()
+                record(
+                    RecordConfig(
+                        out=recording,
+                        episodes=args.aggregate_episodes,
+                        workers=args.workers,
+                        seed=FIRST_RECORDING["seed"] + round_,
+                        image_size=first["image_size"],  # recorded as the first data, so that both merge
+                        steps=first["steps"],
+                        exploration=args.aggregate_exploration,
+                        policy=agent,
+                    )
+                )
+                phases[f"aggregate {tag} record"] = time.perf_counter() - start
+            union = args.work / f"union_seed{seed}_round{round_}"
+            if not (union / "meta" / "info.json").is_file():
+                merge_recordings([data, recording], union)
+            run_dir = args.work / f"world_model_seed{seed}_round{round_}"
+            if not (run_dir / PRETRAINED_DIR).is_dir():  # written when a training ends, early or not
+                extra = [f"trainer.early_stopping_patience={args.early_stopping_patience}"]
+                if args.aggregate_warm_start:
+                    extra.append(f"init_from={Path(checkpoint).parent}")
+                start = time.perf_counter()
+                train_world_model(args, run_dir, union, seed, extra)
+                phases[f"aggregate {tag} train"] = time.perf_counter() - start
+            recorded = recording_summary(recording)
+            data, checkpoint = union, run_dir / "checkpoints"
+            rows.append(
+                {
+                    "seed": seed,
+                    "round": round_,
+                    "recorded_by": f"MPC on round {round_ - 1}'s world model + exploration "
+                    f"{args.aggregate_exploration}",
+                    "episodes_recorded": recorded["episodes"],
+                    "episodes_trained_on": recording_summary(union)["episodes"],
+                    "recording_success": recorded["success"],
+                    "steps_trained": trained_steps(checkpoint),
+                    "world_model": str(checkpoint),
+                }
+            )
+        finals.append(checkpoint)
+    return finals, rows
+
+
+def aggregation_table(rows: list[dict]) -> str:
+    lines = [
+        "| world-model seed | round | recorded by | episodes recorded | episodes trained on | "
+        "recording success % | steps trained | world model |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['seed']} | {r['round']} | {r['recorded_by']} | {r['episodes_recorded']} | "
+            f"{r['episodes_trained_on']} | {r['recording_success']:.0f} | {r['steps_trained']} | "
+            f"`{r['world_model']}` |"
+        )
+    return "\n".join(lines)
 
 
 def parse_args() -> argparse.Namespace:
@@ -307,6 +459,13 @@ def parse_args() -> argparse.Namespace:
     )
     parser.add_argument("--workers", type=int, default=2, help="recording processes")
     parser.add_argument(
+        "--train-override",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="Hydra overrides added to every world-model training (e.g. model.d_model=64)",
+    )
+    parser.add_argument(
         "--episodes", type=int, default=None, help="episodes per condition (quick 20, full 50)"
     )
     parser.add_argument(
@@ -328,7 +487,40 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--elites", type=int, default=16)
     parser.add_argument("--reach-weight", type=float, default=0.5)
     parser.add_argument("--out", type=Path, default=None, help="default runs/bench_mpc_{quick,full}")
+    parser.add_argument(
+        "--aggregate",
+        type=int,
+        default=0,
+        metavar="ROUNDS",
+        help="rounds of data aggregation with the MPC agent before playing (0: none)",
+    )
+    parser.add_argument("--aggregate-episodes", type=int, default=100, help="episodes recorded per round")
+    parser.add_argument(
+        "--aggregate-exploration",
+        type=float,
+        default=0.1,
+        help="per-step probability of a random-move burst while the agent records (mmf-rl record --exploration)",
+    )
+    parser.add_argument(
+        "--early-stopping-patience",
+        type=int,
+        default=2,
+        help="retrainings of the aggregation rounds stop after this many evaluations without a better "
+        "val/mse",
+    )
+    parser.add_argument(
+        "--aggregate-warm-start",
+        action="store_true",
+        help="retrain from the last round's weights (init_from) instead of from scratch",
+    )
     args = parser.parse_args()
+    if args.aggregate < 0 or args.aggregate_episodes < 1 or args.early_stopping_patience < 0:
+        parser.error("--aggregate must be >= 0, --aggregate-episodes >= 1, --early-stopping-patience >= 0")
+    if args.aggregate and args.checkpoint:
+        parser.error(
+            "--aggregate retrains on the data the world models were trained on: build them here "
+            "(drop --checkpoint)"
+        )
     mode = "quick" if args.quick else "full"
     for key, value in BUDGETS[mode].items():
         if getattr(args, key) is None:
@@ -344,6 +536,9 @@ def main() -> None:
     started = time.perf_counter()
     phases: dict[str, float] = {}
     checkpoints = args.checkpoint or build_world_models(args, phases)
+    aggregation: list[dict] = []
+    if args.aggregate:
+        checkpoints, aggregation = aggregate_data(args, checkpoints, phases)
 
     objective = PushObjective(reach_weight=args.reach_weight)
     sizes = {"num_candidates": args.candidates, "num_iterations": args.iterations, "num_elites": args.elites}
@@ -426,18 +621,35 @@ def main() -> None:
             f"{args.train_steps or 'the config'} training steps, "
             f"{args.record_episodes} recorded episodes)"
         )
+        + (
+            f"; {args.aggregate} aggregation rounds of {args.aggregate_episodes} MPC episodes "
+            f"(exploration {args.aggregate_exploration}, "
+            f"{'warm start' if args.aggregate_warm_start else 'retrained from scratch'}, "
+            f"early stopping patience {args.early_stopping_patience})"
+            if args.aggregate
+            else ""
+        )
     )
     text = (
         f"# MPC on the multimodal push task\n\n`{command}` — {minutes:.1f} min on {torch.get_num_threads()} "
         f"threads ({timing})\n\n{budget}; world models: {', '.join(f'`{c}`' for c in checkpoints)}; CEM "
         f"{args.candidates} candidates × {args.iterations} iterations, {args.elites} elites\n\n{table(rows)}\n"
     )
+    if aggregation:
+        text += (
+            "\n## Data aggregation\n\nRound r records with the MPC agent of round r - 1's world model "
+            "(all sensors, plus exploration bursts), and trains round r's world model on the union; "
+            "the last round's world models are the ones played above. Recording success: the object "
+            f"within {100 * SUCCESS_DISTANCE:.0f} cm of the goal at some recorded frame.\n\n"
+            f"{aggregation_table(aggregation)}\n"
+        )
     args.out.mkdir(parents=True, exist_ok=True)
     write_text(args.out / "results.md", text)
     write_json(
         args.out / "results.json",
         {
             "rows": rows,
+            "aggregation": aggregation,
             "episodes": raw,
             "phases_s": phases,
             "args": {k: str(v) for k, v in vars(args).items()},
