@@ -46,6 +46,7 @@ from torchrl.objectives import BCLoss
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state, save_checkpoint
+from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.envs.torchrl_env import GOAL
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.encoders import build_encoder
@@ -103,6 +104,7 @@ class BCConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> BCConfig:
+        reject_unknown_keys(cls, d, "BC policy config")
         return cls(**d)
 
 
@@ -115,12 +117,12 @@ class EncoderChoice:
     image: str = "conv"
     image_channels: tuple[int, ...] = (16, 32, 32, 32)
     vector: str = "mlp"
-    kwargs: dict = field(default_factory=dict)
+    vector_kwargs: dict = field(default_factory=dict)
 
     def spec(self, spec: ModalitySpec) -> ModalitySpec:
         if spec.kind == "image":
             return replace(spec, encoder=self.image, encoder_kwargs={"channels": tuple(self.image_channels)})
-        return replace(spec, encoder=self.vector, encoder_kwargs=dict(self.kwargs))
+        return replace(spec, encoder=self.vector, encoder_kwargs=dict(self.vector_kwargs))
 
 
 class BCNetwork(nn.Module):

@@ -124,7 +124,7 @@ def test_offline_windows_and_forecasts_are_what_the_transforms_build_online(
             torch.testing.assert_close(out.get(keys.FORECAST_SCALE), forecasts.scale[episode[t], drop_index])
 
 
-def test_dropout_draws_are_seeded_and_never_remove_every_sensor(demonstrations, forecasts):
+def test_dropout_draws_are_seeded_and_never_remove_every_sensor(demonstrations):
     def draws(seed):
         loader = DemonstrationLoader(
             demonstrations, "train", 16, dropout={"image": 0.5, "force": 0.5, "proprio": 0.9}, seed=seed
