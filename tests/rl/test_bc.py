@@ -242,3 +242,12 @@ def test_transforms_refuse_a_forecast_the_policy_was_not_trained_with(demonstrat
         without.transforms(ForecastTransform(model, stats, denormalize=False))
     with pytest.raises(ValueError, match="pass the ForecastTable"):
         train_bc(with_forecasts, demonstrations, TrainerConfig(total_steps=1, progress_bar=False))
+
+
+def test_a_goal_or_action_feature_the_recording_lacks_is_named(forecaster):
+    _, _, data_config = forecaster
+    data = WindowDataset(DataConfig.from_dict(data_config))
+    with pytest.raises(ValueError, match="no vector feature 'observation.gaol'.*observation.goal"):
+        Demonstrations(data, goal_feature="observation.gaol")
+    with pytest.raises(ValueError, match="no vector feature 'observation.images.front'"):
+        Demonstrations(data, action_feature="observation.images.front")
