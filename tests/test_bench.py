@@ -49,13 +49,13 @@ def test_bench_data_runs_on_any_dataset_with_its_data_config(tmp_path, capsys):
 def test_bench_names_the_benchmarks_and_refuses_unknown_ones(capsys):
     assert cli(["bench", "--help"]) == 0
     out = capsys.readouterr().out
-    for name in ("accuracy", "data", "model", "mpc"):
+    for name in ("accuracy", "bc", "data", "model", "mpc"):
         assert f"\n  {name} " in out
     assert cli(["bench", "speed"]) == 2
     assert "invalid choice: 'speed'" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("benchmark", ["data", "model", "mpc", "accuracy"])
+@pytest.mark.parametrize("benchmark", ["data", "model", "mpc", "bc", "accuracy"])
 def test_bench_passes_help_to_the_script(benchmark, capsys):
     assert cli(["bench", benchmark, "--help"]) == 0
     assert capsys.readouterr().out.startswith(f"usage: {BENCHMARKS[benchmark][0]}")  # runpy names the script

@@ -1,0 +1,452 @@
+"""Behaviour cloning with and without the forecaster's forecast, in closed loop with a sensor down.
+
+    # quick: builds what it lacks (records, trains the forecaster and the BC policies with small
+    # budgets), then plays
+    MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py --quick
+    # full: 300 recorded episodes, the forecaster's committed budget, 50 episodes per condition
+    MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py
+    # a recording and a forecaster of your own (nothing recorded or trained but the policies)
+    MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py --data data/push --forecaster runs/push/checkpoints
+
+The question (issue #15): does a policy that reads the forecaster's forecast of the object's
+motion stay up when a sensor fails, better than the same policy without it? Target: the policy
+with forecasts loses at most half the success the policy without them loses when the camera is
+off.
+
+What it builds when absent (under ``--work``; a re-run reuses the recording, resumes or skips
+the trainings):
+
+* the recording: scripted pushes without exploration (``mmf-rl record --out WORK/push --episodes N
+  --seed 0``): its ``action`` column is what the policies imitate;
+* the forecaster: the default push forecaster (``mmf-rl train data.root=WORK/push``), with
+  ``--forecaster-steps`` steps of ``--forecaster-batch-size``;
+* its forecast of every training and validation frame under each training outage
+  (`ForecastTable`, computed each run);
+* per ``--bc-seeds`` seed, two policies (`BCPolicy`, ``train_bc``): ``without`` forecasts and
+  ``with`` them. Same encoders, sizes, steps, batch, optimiser; the same seed gives both the
+  same initial encoder weights, the same batch order and the same training outages (the head's
+  first layer is wider by the 2·T·D forecast numbers, so its initial draw differs).
+
+=============================  ===========  ===============================
+budget                         quick        full
+=============================  ===========  ===============================
+recorded episodes              200          300
+forecaster steps x batch       1000 x 64    3000 x 128 (configs/trainer)
+BC steps x batch (each)        1000 x 64    3000 x 128
+BC seeds (each variant)        0 1          0 1
+episodes per condition         20           50
+outage types                   episode      episode bursts dies
+                               bursts
+=============================  ===========  ===============================
+
+The quick mode's size is estimated from the code, not measured: 200 recorded episodes (a third
+fewer than the MPC benchmark's 300), a forecaster training a quarter the length of the MPC
+world model's at the same batch size, four BC trainings whose ConvNet has a third of the
+forecaster's convolution cost, and 420 played episodes of at most 50 steps, for about 10 to 15
+minutes on 2 CPU cores. The full mode, by the same reckoning, takes about three times as long
+(longer trainings, 1450 played episodes); neither is measured yet (the machine this was written
+on was loaded). The script prints the minutes of each phase and writes them to ``results.md``.
+
+Design (what the policies see, and why):
+
+* Observation: the sensor windows of the forecaster's data config (camera, force, proprio over
+  H = 10 steps, `HistoryWindow`), their presence flags, and the goal (FetchPush gives every
+  policy its goal; it is not a sensor). Not the object's pose: that is privileged state, which
+  the camera, and contact with force and proprioception, must stand in for.
+* Outages in training: each training sample loses the camera and the force sensor
+  independently with probability ``--dropout`` (`DEFAULT_DROPOUT`, 0.3), identically for both
+  variants; a policy sees the outage through the presence flags and never what an absent
+  sensor holds (its encoder is not run on that row). Without it a policy would meet its first
+  outage in the test.
+* The forecast: `ForecastTransform` (``denormalize=False``) on the same live sensors after the
+  outage, i.e. the forecaster's own missing-modality inference; the policy reads its ``loc`` and
+  ``log(scale)`` (the object's planar motion over the next T steps, and how sure the forecaster
+  is). Training uses the forecaster's forecasts of the training frames under the same outage
+  each sample is under, built by the same window rules (tests/rl/test_bc.py checks that the
+  offline windows and forecasts equal the transforms' online ones).
+
+Every policy plays the same seeded episodes (episode ``i`` reset with seed ``--seed + i``;
+success is FetchPush's: the object within 5 cm of the goal within the 50-step time limit) under
+the same seeded outages (`mmf_rl.rl.closed_loop.OUTAGES`): ``all`` sensors; ``no-camera (T)``
+and ``no-force (T)`` for each outage type T (``episode``: off the whole episode; ``bursts``:
+2-8 step outages, absent about half the time; ``dies``: off after 1-49 steps). ``scripted``:
+the pusher that recorded the data (full state), for reference.
+
+Ends with ``summary: BC success all A%/A2%, no-camera B%/B2%, no-force C%/C2% (without/with
+forecasts); camera loss without forecasts X pts, with Y pts (target Y <= X/2)``: means over BC
+seeds, the first ``--outage`` type; a loss is success with all sensors minus success with the
+camera off.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+from torchrl.envs import Compose, InitTracker, TransformedEnv
+
+from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
+from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.envs.modality_dropout import ModalityDropout
+from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
+from mmf_rl.eval.report import write_json, write_text
+from mmf_rl.models.registry import load_trained_model
+from mmf_rl.rl import (
+    BCPolicy,
+    Demonstrations,
+    EncoderChoice,
+    ForecastTable,
+    ForecastTransform,
+    train_bc,
+    validation_errors,
+)
+from mmf_rl.rl.closed_loop import OUTAGES, SENSORS, ScriptedPolicy, over_seeds, play, summarise
+from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
+
+VARIANTS = ("without", "with")  # forecasts
+BUDGETS = {
+    "quick": {
+        "record_episodes": 200,
+        "forecaster_steps": 1000,
+        "forecaster_batch_size": 64,
+        "bc_steps": 1000,
+        "bc_batch_size": 64,
+        "episodes": 20,
+        "outage": ["episode", "bursts"],
+    },
+    "full": {
+        "record_episodes": 300,
+        "forecaster_steps": None,
+        "forecaster_batch_size": None,
+        "bc_steps": 3000,
+        "bc_batch_size": 128,
+        "episodes": 50,
+        "outage": list(OUTAGES),
+    },
+}
+
+
+def build_recording(args, phases: dict[str, float]) -> Path:
+    from mmf_rl.record import RecordConfig, record
+
+    data = (args.work / "push").resolve()
+    if not (data / "meta" / "info.json").is_file():
+        print(f"bc_push: recording {args.record_episodes} scripted episodes into {data}")
+        start = time.perf_counter()
+        record(RecordConfig(out=data, episodes=args.record_episodes, workers=args.workers, seed=0))
+        phases["record"] = time.perf_counter() - start
+    return data
+
+
+def merged_overrides(base: list[str], extra: list[str]) -> list[str]:
+    """``base`` Hydra overrides with those of ``extra`` replacing the same keys (Hydra refuses a key
+    given twice)."""
+    extra_keys = {o.split("=", 1)[0] for o in extra}
+    return [o for o in base if o.split("=", 1)[0] not in extra_keys] + list(extra)
+
+
+def build_forecaster(args, data: Path, phases: dict[str, float]) -> Path:
+    """The default push forecaster trained on ``data`` (resumed or skipped when already there)."""
+    from mmf_rl.configuration import compose_config
+    from mmf_rl.trainers.run import train
+
+    overrides = [
+        "name=bc_forecaster",
+        f"run_dir={(args.work / 'forecaster').resolve()}",
+        f"data.root={data}",
+        "trainer.seed=0",
+        "trainer.progress_bar=false",
+    ]
+    if args.forecaster_steps is not None:
+        overrides.append(f"trainer.total_steps={args.forecaster_steps}")
+    if args.forecaster_batch_size is not None:
+        overrides.append(f"trainer.batch_size={args.forecaster_batch_size}")
+    cfg = compose_config("train", merged_overrides(overrides, args.forecaster_override))
+    checkpoints = Path(cfg.run_dir) / "checkpoints"
+    if list_checkpoints(checkpoints):
+        cfg.resume = True  # finishes an interrupted training; nothing to do if it had ended
+    start = time.perf_counter()
+    train(cfg)
+    phases["train forecaster"] = time.perf_counter() - start
+    return checkpoints
+
+
+def bc_trainer_config(args, seed: int) -> TrainerConfig:
+    steps = args.bc_steps
+    return TrainerConfig(
+        total_steps=steps,
+        batch_size=args.bc_batch_size,
+        lr=1e-3,
+        warmup_steps=min(50, max(1, steps // 10)),
+        eval_every=min(500, steps),
+        checkpoint_every=min(500, steps),
+        seed=seed,
+        progress_bar=False,
+    )
+
+
+def build_policy(args, variant: str, seed: int, demonstrations, forecasts, phases) -> BCPolicy:
+    """The ``variant`` policy of BC seed ``seed``: trained under ``args.work`` unless already done."""
+    run_dir = args.work / f"bc_{variant}_forecasts_seed{seed}"
+    config = bc_trainer_config(args, seed)
+    table = forecasts if variant == "with" else None
+    checkpoints = list_checkpoints(run_dir / "checkpoints")
+    if checkpoints and load_checkpoint(checkpoints[-1], with_trainer_state=False).step >= config.total_steps:
+        return BCPolicy.from_checkpoint(run_dir / "checkpoints")
+    seed_everything(seed)  # the same initial encoder weights for both variants
+    policy = BCPolicy.for_demonstrations(
+        demonstrations,
+        table,
+        encoders=EncoderChoice(image_channels=tuple(args.bc_image_channels)),
+        d_model=args.bc_d_model,
+        hidden=args.bc_hidden,
+    )
+    print(f"bc_push: training the BC policy {variant} forecasts, seed {seed} ({config.total_steps} steps)")
+    start = time.perf_counter()
+    train_bc(
+        policy,
+        demonstrations,
+        config,
+        dropout=dict.fromkeys(("image", "force"), args.dropout),
+        forecasts=table,
+        run_dir=run_dir,
+        resume=bool(checkpoints),
+    )
+    phases[f"train BC {variant} seed {seed}"] = time.perf_counter() - start
+    return BCPolicy.from_checkpoint(run_dir / "checkpoints")
+
+
+def make_env(
+    policy: BCPolicy | None, forecaster, image_size: int, sensor: str | None, outage: str | None, seed: int
+) -> TransformedEnv:
+    """The push env with ``sensor`` failing the ``outage`` way, then what ``policy`` reads (none:
+    the raw observation, for the scripted pusher)."""
+    transforms = [ModalityDropout([sensor], seed=seed, **OUTAGES[outage])] if sensor else []
+    if policy is not None:
+        model, stats, data_config = forecaster
+        forecast = (
+            ForecastTransform(model, stats, stride=int(data_config.get("stride", 1)), denormalize=False)
+            if policy.config.forecast_shape is not None
+            else None
+        )
+        transforms += policy.transforms(forecast)
+    transforms.append(InitTracker())
+    return TransformedEnv(MultimodalPushTorchEnv(image_size=image_size), Compose(*transforms))
+
+
+def success_table(rows: dict[str, dict]) -> str:
+    lines = [
+        "| policy | condition | episodes | seeds | success % (mean) | spread (min-max) | per BC seed | "
+        "final distance (m) | steps |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in rows.items():
+        policy, condition = name.split(" | ")
+        seeds = r.get("seeds", "-")
+        spread = f"{r['success_min']:.0f}-{r['success_max']:.0f}" if "success_min" in r else "-"
+        per_seed = " / ".join(f"{x:.0f}" for x in r["success_per_seed"]) if "success_per_seed" in r else "-"
+        lines.append(
+            f"| {policy} | {condition} | {r['episodes']} | {seeds} | {r['success']:.0f} | {spread} | "
+            f"{per_seed} | {r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | {r['steps_mean']:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def loss_table(rows: dict[str, dict], conditions: list[str]) -> str:
+    lines = [
+        "| condition | success lost without forecasts (pts) | success lost with forecasts (pts) |",
+        "|---|---|---|",
+    ]
+    for condition in conditions[1:]:
+        lost = [
+            rows[f"BC {v} forecasts | all"]["success"] - rows[f"BC {v} forecasts | {condition}"]["success"]
+            for v in VARIANTS
+        ]
+        lines.append(f"| {condition} | {lost[0]:.0f} | {lost[1]:.0f} |")
+    return "\n".join(lines)
+
+
+def validation_table(errors: dict[str, list[dict]]) -> str:
+    if not all(errors.values()):
+        return "(no validation episodes)"
+    names = list(next(iter(errors.values()))[0])
+    lines = [
+        "| policy | " + " | ".join(f"val {n}" for n in names) + " |",
+        "|---|" + "---|" * len(names),
+    ]
+    for variant, per_seed in errors.items():
+        means = [statistics.mean(e[n] for e in per_seed) for n in names]
+        lines.append(f"| BC {variant} forecasts | " + " | ".join(f"{m:.4f}" for m in means) + " |")
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="the small budget (see the table above)")
+    parser.add_argument("--work", type=Path, default=None, help="default runs/bench_bc_{quick,full}")
+    parser.add_argument("--data", type=Path, default=None, help="a push recording (default: record one)")
+    parser.add_argument(
+        "--forecaster", type=Path, default=None, help="a trained push forecaster (default: train one)"
+    )
+    parser.add_argument("--record-episodes", type=int, default=None)
+    parser.add_argument("--workers", type=int, default=2, help="recording processes")
+    parser.add_argument("--forecaster-steps", type=int, default=None)
+    parser.add_argument("--forecaster-batch-size", type=int, default=None)
+    parser.add_argument(
+        "--forecaster-override",
+        nargs="+",
+        default=[],
+        help="more `mmf-rl train` overrides for the forecaster (key=value; they win over the above)",
+    )
+    parser.add_argument("--bc-steps", type=int, default=None)
+    parser.add_argument("--bc-batch-size", type=int, default=None)
+    parser.add_argument("--bc-seeds", type=int, nargs="+", default=[0, 1], help="trainer seed of each policy")
+    parser.add_argument("--bc-d-model", type=int, default=64, help="embedding size per modality")
+    parser.add_argument("--bc-hidden", type=int, default=256, help="width of the MLP head")
+    parser.add_argument("--bc-image-channels", type=int, nargs="+", default=[16, 32, 32, 32])
+    parser.add_argument(
+        "--dropout", type=float, default=0.3, help="training outage probability of camera and force"
+    )
+    parser.add_argument(
+        "--episodes", type=int, default=None, help="episodes per condition (quick 20, full 50)"
+    )
+    parser.add_argument(
+        "--outage",
+        nargs="+",
+        choices=list(OUTAGES),
+        default=None,
+        help="how the sensor fails (quick: episode bursts; full: all); the summary uses the first",
+    )
+    parser.add_argument("--seed", type=int, default=1000, help="episode i is reset with seed + i")
+    parser.add_argument("--out", type=Path, default=None, help="default: --work")
+    args = parser.parse_args(argv)
+    mode = "quick" if args.quick else "full"
+    for key, value in BUDGETS[mode].items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    args.work = args.work or Path(f"runs/bench_bc_{mode}")
+    args.out = args.out or args.work
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    torch.set_num_threads(2)
+    started = time.perf_counter()
+    phases: dict[str, float] = {}
+
+    # 1. The recording, the forecaster, and the demonstrations with the forecaster's forecasts.
+    if args.forecaster is not None:
+        checkpoints = args.forecaster
+    else:
+        data = args.data.resolve() if args.data else build_recording(args, phases)
+        checkpoints = build_forecaster(args, data, phases)
+    forecaster = load_trained_model(checkpoints)
+    model, stats, data_config = forecaster
+    if args.data is not None:
+        data_config = {**data_config, "root": str(args.data.resolve())}
+    start = time.perf_counter()
+    demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
+    droppable = ("image", "force")
+    forecasts = ForecastTable.compute(
+        demonstrations, model, stats, droppable, stride=int(data_config.get("stride", 1))
+    )
+    phases["forecast the demonstrations"] = time.perf_counter() - start
+
+    # 2. Two policies per BC seed, with and without the forecast input; their offline errors.
+    policies: dict[str, list[BCPolicy]] = {v: [] for v in VARIANTS}
+    errors: dict[str, list[dict]] = {v: [] for v in VARIANTS}
+    for seed in args.bc_seeds:
+        for variant in VARIANTS:
+            policy = build_policy(args, variant, seed, demonstrations, forecasts, phases)
+            policies[variant].append(policy)
+            if len(demonstrations.split_frames["val"]):
+                table = forecasts if variant == "with" else None
+                errors[variant].append(validation_errors(policy, demonstrations, "val", droppable, table))
+
+    # 3. Closed loop: every policy, every condition, the same seeded episodes and outages.
+    image_size = next(s for s in model.config.modalities if s.name == "image").shape[-1]
+    conditions = [("all", None, None)] + [
+        (f"{name} ({outage})", sensor, outage) for outage in args.outage for name, sensor in SENSORS.items()
+    ]
+    per_seed: dict[str, list[dict]] = {}
+    raw: dict[str, list] = {}
+    play_start = time.perf_counter()
+    with torch.no_grad():
+        for variant in VARIANTS:
+            for index, policy in enumerate(policies[variant]):
+                for label, sensor, outage in conditions:
+                    name = f"BC {variant} forecasts | {label}"
+                    env = make_env(policy, forecaster, image_size, sensor, outage, args.seed)
+                    try:
+                        tag = f"[seed {args.bc_seeds[index]}] {name}"
+                        results = play(env, policy.eval(), args.episodes, args.seed, tag)
+                    finally:
+                        env.close()
+                    per_seed.setdefault(name, []).append(summarise(results))
+                    raw.setdefault(name, []).append(results)
+        env = make_env(None, forecaster, image_size, None, None, args.seed)
+        try:
+            raw["scripted | all"] = play(env, ScriptedPolicy(args.seed), args.episodes, args.seed, "scripted")
+        finally:
+            env.close()
+    phases["play"] = time.perf_counter() - play_start
+    rows = {name: over_seeds(r) for name, r in per_seed.items()} | {
+        "scripted | all": summarise(raw["scripted | all"])
+    }
+
+    # 4. Tables, results files, summary.
+    labels = [label for label, _, _ in conditions]
+    first = args.outage[0]
+
+    def success(variant: str, label: str) -> float:
+        return rows[f"BC {variant} forecasts | {label}"]["success"]
+
+    lost = [success(v, "all") - success(v, f"no-camera ({first})") for v in VARIANTS]
+    met = lost[1] <= lost[0] / 2
+    minutes = (time.perf_counter() - started) / 60
+    timing = ", ".join(f"{name} {seconds / 60:.1f} min" for name, seconds in phases.items())
+    command = " ".join(["benchmarks/bc_push.py", *(sys.argv[1:] if argv is None else argv)])
+    budget = (
+        f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, BC seeds {args.bc_seeds}, "
+        f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; forecaster "
+        f"`{checkpoints}`; {len(demonstrations.split_frames['train'])} training frames"
+    )
+    text = (
+        f"# Behaviour cloning with and without forecasts on the multimodal push task\n\n`{command}` — "
+        f"{minutes:.1f} min on {torch.get_num_threads()} threads ({timing})\n\n{budget}\n\n"
+        f"{success_table(rows)}\n\nSuccess lost against all sensors:\n\n{loss_table(rows, labels)}\n\n"
+        f"Offline: mean squared action error on the validation episodes, with each sensor subset removed "
+        f"(mean over BC seeds):\n\n{validation_table(errors)}\n\n"
+        f"Camera-loss target (with forecasts <= half of without, outage {first}): "
+        f"{'met' if met else 'not met'} ({lost[1]:.0f} vs {lost[0]:.0f} pts)\n"
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_text(args.out / "results.md", text)
+    write_json(
+        args.out / "results.json",
+        {
+            "rows": rows,
+            "episodes": raw,
+            "validation_errors": errors,
+            "phases_s": phases,
+            "args": {k: str(v) for k, v in vars(args).items()},
+        },
+    )
+    print(text)
+    print(
+        f"summary: BC success all {success('without', 'all'):.0f}%/{success('with', 'all'):.0f}%, "
+        f"no-camera {success('without', f'no-camera ({first})'):.0f}%/"
+        f"{success('with', f'no-camera ({first})'):.0f}%, "
+        f"no-force {success('without', f'no-force ({first})'):.0f}%/{success('with', f'no-force ({first})'):.0f}% "
+        f"(without/with forecasts); camera loss without forecasts {lost[0]:.0f} pts, with {lost[1]:.0f} pts "
+        f"(target Y <= X/2)"
+    )
+
+
+if __name__ == "__main__":
+    main()

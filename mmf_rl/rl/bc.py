@@ -1,0 +1,379 @@
+"""A behaviour-cloning policy for the push task that can read the forecaster's forecast.
+
+The forecaster's second use in RL, beside world models: a predictive module whose output is part
+of a policy's observation. `BCPolicy` is a `TensorDictModule` that maps the env's observation to
+an action in ``[-1, 1]``:
+
+* the sensor windows `HistoryWindow` writes (``("history", "obs", m)``) and their presence
+  flags (``("history", "present", m)``): each modality is encoded on the rows where it is
+  present (the project's registered encoders: a ConvNet over the stacked frames, a flattened-
+  window MLP for vectors) and contributes zeros where it is absent, followed by its flag, so the
+  policy sees an outage and nothing of what the absent sensor held;
+* the goal (``"goal"``, normalised), which a FetchPush policy is always given;
+* with ``forecast_shape``: ``("forecast", "loc")`` and the log of ``("forecast", "scale")``,
+  the object's motion over the next T steps as a trained forecaster sees it from the present
+  sensors (`ForecastTransform` with ``denormalize=False``: the forecaster's normalised frame).
+
+A torchrl `MLP` maps the concatenation to the action (``tanh``). It is trained offline on the
+recorded demonstrations (`mmf_rl.rl.demonstrations`) with torchrl's `BCLoss` (mean squared error
+to the demonstrated action) and the project's `Trainer` (checkpoints: safetensors weights, the
+config in ``meta.json``, the normalisation statistics beside them; resumable). Training removes
+sensors at random per sample (``dropout``), so the policy has seen outages before it meets one;
+the policy that reads forecasts is trained on the forecasts made under the same outages.
+
+In an env, the policy reads what its transforms write; put `ModalityDropout` before them::
+
+    policy = BCPolicy.from_checkpoint("runs/bc/checkpoints")
+    forecast = ForecastTransform.from_checkpoint("runs/push/checkpoints", denormalize=False)
+    env = TransformedEnv(MultimodalPushTorchEnv(), Compose(
+        ModalityDropout(["image"], outage="episode", outage_prob=1.0), *policy.transforms(forecast)))
+    rollout = env.rollout(50, policy)
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.modules import MLP
+from torchrl.objectives import BCLoss
+
+from mmf_rl import keys
+from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state, save_checkpoint
+from mmf_rl.configuration import reject_unknown_keys
+from mmf_rl.envs.torchrl_env import GOAL
+from mmf_rl.keys import ModalitySpec
+from mmf_rl.models.encoders import build_encoder
+from mmf_rl.models.rows import compute_on_rows
+from mmf_rl.rl.demonstrations import ACTION, DemonstrationLoader, Demonstrations, ForecastTable, drop_sets
+from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
+from mmf_rl.trainers.trainer import Trainer, TrainerConfig
+
+# Training outages, the same for a policy with and without forecasts: each sample loses the
+# camera and the force sensor independently with this probability (proprioception, the robot's
+# own joint readings, is never removed).
+DEFAULT_DROPOUT = {"image": 0.3, "force": 0.3}
+
+
+@dataclass
+class BCConfig:
+    """What a `BCPolicy` reads and its sizes.
+
+    ``modalities``: the sensor windows (their ``encoder`` and ``encoder_kwargs`` are the
+    policy's own); ``history``, ``stride``: the window (`HistoryWindow`); ``goal_dim``,
+    ``action_dim``; ``forecast_shape``: ``(T, D)`` of the forecast input, ``None`` for a policy
+    without it; ``d_model``: size of each modality's embedding; ``hidden``, ``depth``: the MLP
+    head's width and number of hidden layers.
+    """
+
+    modalities: list[ModalitySpec]
+    history: int
+    stride: int = 1
+    goal_dim: int = 3
+    action_dim: int = 4
+    forecast_shape: tuple[int, int] | None = None
+    d_model: int = 64
+    hidden: int = 256
+    depth: int = 2
+
+    def __post_init__(self):
+        self.modalities = [
+            m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities
+        ]
+        if self.forecast_shape is not None:
+            self.forecast_shape = tuple(int(s) for s in self.forecast_shape)
+
+    def to_dict(self) -> dict:
+        return {
+            "modalities": [m.to_dict() for m in self.modalities],
+            "history": self.history,
+            "stride": self.stride,
+            "goal_dim": self.goal_dim,
+            "action_dim": self.action_dim,
+            "forecast_shape": None if self.forecast_shape is None else list(self.forecast_shape),
+            "d_model": self.d_model,
+            "hidden": self.hidden,
+            "depth": self.depth,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> BCConfig:
+        reject_unknown_keys(cls, d, "BC policy config")
+        return cls(**d)
+
+
+@dataclass
+class EncoderChoice:
+    """The encoder a `BCPolicy` gives each modality kind (`mmf_rl.models.encoders`); images get a
+    narrower ConvNet than the forecaster's by default: the policy trains on every frame of the
+    recording, not on forecasting windows."""
+
+    image: str = "conv"
+    image_channels: tuple[int, ...] = (16, 32, 32, 32)
+    vector: str = "mlp"
+    vector_kwargs: dict = field(default_factory=dict)
+
+    def spec(self, spec: ModalitySpec) -> ModalitySpec:
+        if spec.kind == "image":
+            return replace(spec, encoder=self.image, encoder_kwargs={"channels": tuple(self.image_channels)})
+        return replace(spec, encoder=self.vector, encoder_kwargs=dict(self.vector_kwargs))
+
+
+class BCNetwork(nn.Module):
+    """The policy's network on plain tensors, in `BCPolicy.in_keys` order; any leading batch shape."""
+
+    def __init__(self, config: BCConfig, stats: Mapping[str, torch.Tensor]):
+        super().__init__()
+        self.config = config
+        self.encoders = nn.ModuleDict(
+            {s.name: build_encoder(s, config.history, config.d_model) for s in config.modalities}
+        )
+        for stat in ("mean", "std"):
+            if f"{GOAL}/{stat}" not in stats:
+                raise KeyError(
+                    f"BCNetwork: normalisation stats lack {GOAL}/{stat} (found {sorted(stats)}); use "
+                    "the statistics of the demonstrations (Demonstrations.normalizer.stats)"
+                )
+        self.register_buffer("goal_mean", stats[f"{GOAL}/mean"].float().clone())
+        self.register_buffer("goal_std", stats[f"{GOAL}/std"].float().clone())
+        forecast = 2 * config.forecast_shape[0] * config.forecast_shape[1] if config.forecast_shape else 0
+        self.head = MLP(
+            in_features=len(config.modalities) * (config.d_model + 1) + config.goal_dim + forecast,
+            out_features=config.action_dim,
+            num_cells=[config.hidden] * config.depth,
+            activation_class=nn.ReLU,
+        )
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        config, m = self.config, len(self.config.modalities)
+        observations, presence, goal = inputs[:m], inputs[m : 2 * m], inputs[2 * m]
+        batch = goal.shape[:-1]
+        n = batch.numel()
+        features = []
+        for spec, values, present in zip(config.modalities, observations, presence, strict=True):
+            values = values.reshape(n, *spec.obs_shape(config.history))
+            present = present.reshape(n)
+            encoder = self.encoders[spec.name]
+            (embedding,) = compute_on_rows(
+                present,
+                lambda rows, values=values, encoder=encoder: (
+                    encoder(values if rows is None else values[rows]),
+                ),
+                (torch.zeros(n, config.d_model, device=goal.device),),
+            )
+            features += [embedding, present.unsqueeze(1).float()]
+        features.append((goal.reshape(n, -1) - self.goal_mean) / self.goal_std)
+        if config.forecast_shape is not None:
+            loc, scale = inputs[2 * m + 1 :]
+            features += [loc.reshape(n, -1), scale.reshape(n, -1).clamp_min(1e-6).log()]
+        return torch.tanh(self.head(torch.cat(features, -1))).reshape(*batch, config.action_dim)
+
+
+class BCPolicy(TensorDictModule):
+    """A behaviour-cloning policy: observation (+ forecast) -> ``"action"`` (see the module doc).
+
+    Args:
+        config: what it reads and its sizes.
+        stats: normalisation statistics of its training data (`Demonstrations.normalizer.stats`):
+            the sensor windows' (``"<m>/mean"``, ``"<m>/std"``, ``"target/..."``, for its
+            `HistoryWindow`) and the goal's (``"goal/mean"``, ``"goal/std"``).
+    """
+
+    def __init__(self, config: BCConfig, stats: Mapping[str, torch.Tensor]):
+        network = BCNetwork(config, stats)
+        in_keys = (
+            [(keys.HISTORY, *s.obs_key) for s in config.modalities]
+            + [(keys.HISTORY, *s.present_key) for s in config.modalities]
+            + [GOAL]
+        )
+        if config.forecast_shape is not None:
+            in_keys += [keys.FORECAST_LOC, keys.FORECAST_SCALE]
+        super().__init__(network, in_keys=in_keys, out_keys=[ACTION])
+        self.config = config
+        self.stats = {k: v.detach().float().clone() for k, v in stats.items()}
+
+    @classmethod
+    def for_demonstrations(
+        cls,
+        demonstrations: Demonstrations,
+        forecasts: ForecastTable | None = None,
+        encoders: EncoderChoice | None = None,
+        **sizes,
+    ) -> BCPolicy:
+        """A policy for the windows, goal and action of ``demonstrations``; it reads forecasts of
+        ``forecasts``' shape when given. ``sizes``: `BCConfig` fields (``d_model``, ``hidden``,
+        ``depth``)."""
+        encoders = encoders or EncoderChoice()
+        config = BCConfig(
+            modalities=[encoders.spec(s) for s in demonstrations.specs],
+            history=demonstrations.history,
+            stride=demonstrations.stride,
+            goal_dim=demonstrations.goal_dim,
+            action_dim=demonstrations.action_dim,
+            forecast_shape=None if forecasts is None else forecasts.shape,
+            **sizes,
+        )
+        return cls(config, demonstrations.normalizer.stats)
+
+    # -- in an env -------------------------------------------------------------------------------
+
+    def history_window(self) -> HistoryWindow:
+        """The env transform writing the ``"history"`` window this policy reads."""
+        return HistoryWindow(self.config.modalities, self.stats, self.config.history, self.config.stride)
+
+    def transforms(self, forecast: ForecastTransform | None = None) -> list:
+        """The env transforms this policy reads from, in order: its `HistoryWindow`, then the
+        forecaster's `ForecastTransform` (``denormalize=False``) for a policy that reads forecasts."""
+        wants = self.config.forecast_shape
+        if (forecast is None) != (wants is None):
+            raise ValueError(
+                "BCPolicy.transforms: "
+                + (
+                    f"this policy reads forecasts of shape {list(wants)}: pass the ForecastTransform of the "
+                    "forecaster it was trained with"
+                    if forecast is None
+                    else "this policy was trained without forecasts: pass no ForecastTransform"
+                )
+            )
+        if forecast is None:
+            return [self.history_window()]
+        if forecast.denormalize:
+            raise ValueError(
+                "BCPolicy.transforms: the policy reads forecasts in the forecaster's normalised frame, as it "
+                "was trained; build the transform with ForecastTransform.from_checkpoint(..., denormalize=False)"
+            )
+        if (forecast.horizon, forecast.target_dim) != tuple(wants):
+            raise ValueError(
+                f"BCPolicy.transforms: the policy reads forecasts of shape {list(wants)} (T, D), the "
+                f"ForecastTransform writes {[forecast.horizon, forecast.target_dim]}; pass the forecaster "
+                "the policy was trained with"
+            )
+        return [self.history_window(), forecast]
+
+    # -- checkpoints -----------------------------------------------------------------------------
+
+    def checkpoint_meta(self) -> dict:
+        return {"bc_config": self.config.to_dict()}
+
+    def save(self, directory: str | os.PathLike, step: int = 0) -> Path:
+        """Write the policy as a checkpoint (safetensors weights and statistics, ``meta.json`` config)
+        under ``directory``, atomically; returns its path."""
+        return save_checkpoint(
+            directory, step, self.state_dict(), meta=self.checkpoint_meta(), tensors=self.stats
+        )
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike) -> BCPolicy:
+        """The policy of a checkpoint (or of the ``last`` one in a directory: a run's ``checkpoints/``)."""
+        checkpoint = load_checkpoint(path, with_trainer_state=False)
+        if "bc_config" not in checkpoint.meta:
+            raise CheckpointError(
+                f"{checkpoint.path} is not a behaviour-cloning policy (no 'bc_config' in its meta.json); "
+                "pass a checkpoint written by train_bc or BCPolicy.save"
+            )
+        policy = cls(BCConfig.from_dict(checkpoint.meta["bc_config"]), checkpoint.tensors)
+        load_model_state(policy, checkpoint)
+        return policy.eval()
+
+
+def _drop_label(dropped: Sequence[str]) -> str:
+    return "all" if not dropped else "no_" + "_".join(dropped)
+
+
+@torch.no_grad()
+def validation_errors(
+    policy: BCPolicy,
+    demonstrations: Demonstrations,
+    split: str = "val",
+    droppable: Sequence[str] = tuple(DEFAULT_DROPOUT),
+    forecasts: ForecastTable | None = None,
+    batch_size: int = 256,
+) -> dict[str, float]:
+    """Mean squared action error on ``split``, with all sensors (``mse_all``) and with each subset
+    of ``droppable`` removed from every sample (``mse_no_image``, ...); ``loss``: their mean."""
+    if not len(demonstrations.split_frames[split]):
+        raise ValueError(f"validation_errors: the {split!r} split has no demonstration frame")
+    was_training = policy.training
+    policy.eval()
+    errors = {}
+    for dropped in drop_sets(droppable):
+        loader = DemonstrationLoader(
+            demonstrations, split, batch_size, absent=dropped, forecasts=forecasts, shuffle=False
+        )
+        total, count = 0.0, 0
+        for batch in loader:
+            predicted = policy(batch.exclude(ACTION)).get(ACTION)
+            total += float(((predicted - batch.get(ACTION)) ** 2).sum())
+            count += batch.get(ACTION).numel()
+        errors[f"mse_{_drop_label(dropped)}"] = total / count
+    errors["loss"] = sum(errors.values()) / len(errors)
+    policy.train(was_training)
+    return errors
+
+
+def train_bc(
+    policy: BCPolicy,
+    demonstrations: Demonstrations,
+    config: TrainerConfig,
+    *,
+    dropout: Mapping[str, float] = DEFAULT_DROPOUT,
+    forecasts: ForecastTable | None = None,
+    run_dir: str | os.PathLike | None = None,
+    logger=None,
+    resume: bool = False,
+) -> dict[str, float]:
+    """Clone the demonstrations' actions into ``policy`` (torchrl's `BCLoss`, mean squared error)
+    with the project's `Trainer`: ``config`` sets steps, batch size, optimiser, schedule, seed
+    (the batch order and the dropout draws), evaluation and checkpoints (under
+    ``run_dir/checkpoints``; ``resume`` continues the last one). ``dropout`` removes sensors per
+    sample (see `DemonstrationLoader`); ``forecasts`` must cover those outages when the policy
+    reads forecasts. Returns the last validation errors (`validation_errors`, ``val/`` prefix).
+    """
+    if (forecasts is None) != (policy.config.forecast_shape is None):
+        raise ValueError(
+            "train_bc: "
+            + (
+                "the policy reads forecasts: pass the ForecastTable of its forecaster"
+                if forecasts is None
+                else "the policy was built without a forecast input: pass no ForecastTable"
+            )
+        )
+    if forecasts is not None and set(dropout) - set(forecasts.droppable):
+        raise ValueError(
+            f"train_bc: dropout removes {sorted(dropout)} but the forecasts cover outages of "
+            f"{list(forecasts.droppable)} only; compute the ForecastTable with droppable={sorted(dropout)}"
+        )
+    loader = DemonstrationLoader(
+        demonstrations, "train", config.batch_size, dropout=dropout, forecasts=forecasts, seed=config.seed
+    )
+    with warnings.catch_warnings():
+        # torchrl 0.13 warns that BCLoss, which has no target network, declares none.
+        warnings.filterwarnings("ignore", message="The name target_actor_network_params")
+        loss = BCLoss(policy, loss_function="mse")
+
+    def evaluate(model: BCPolicy) -> dict[str, float]:
+        errors = validation_errors(model, demonstrations, "val", list(dropout), forecasts)
+        return {f"val/{k}": v for k, v in errors.items()}
+
+    trainer = Trainer(
+        policy,
+        loss,
+        loader,
+        config,
+        run_dir=run_dir,
+        logger=logger,
+        evaluate=evaluate if len(demonstrations.split_frames["val"]) else None,
+        checkpoint_meta={**policy.checkpoint_meta(), "dropout": dict(dropout)},
+        checkpoint_tensors=policy.stats,
+    )
+    if resume:
+        if run_dir is None:
+            raise ValueError("train_bc: resume=True needs the run_dir to resume from")
+        trainer.resume(Path(run_dir) / "checkpoints")
+    return trainer.train()

@@ -1,0 +1,381 @@
+"""Recorded demonstrations for behaviour cloning: every frame as (history window, goal, action).
+
+`Demonstrations` reads the frames of the project's window cache (`WindowDataset`: decoded,
+resized, with per-frame presence) and the goal and action columns of the LeRobot recording
+(``mmf-rl record`` writes the scripted pusher's command under ``action``). Unlike forecasting
+windows, every frame of an episode is a sample, its first frames too: the history window of
+frame ``t`` holds frames ``t - (H-1)·s .. t`` with the episode's first frame repeated where they
+would precede it, which is exactly the window `HistoryWindow` writes in an env after a reset. A
+policy cloned from these windows therefore sees in closed loop the windows it was trained on.
+
+`ForecastTable` holds a trained forecaster's forecast of every demonstration frame, once per
+set of modalities a training outage may remove (:func:`drop_sets`), computed from the same
+windows `ForecastTransform` would build, so a policy that reads forecasts is trained on the
+forecasts it gets under the same outage in closed loop.
+
+`DemonstrationLoader` serves batches with the `WindowLoader` protocol (one epoch per iteration,
+deterministic given ``set_epoch``) for `mmf_rl.trainers.Trainer`, with seeded per-sample
+modality dropout.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torch import nn
+
+from mmf_rl import keys
+from mmf_rl.datasets import Normalizer, WindowDataset
+from mmf_rl.datasets.config import SPLIT_NAMES
+from mmf_rl.datasets.lerobot_source import LeRobotSource, load_frame_columns
+from mmf_rl.envs.torchrl_env import GOAL
+from mmf_rl.keys import ModalitySpec
+from mmf_rl.models.rows import compute_on_rows
+from mmf_rl.record import ACTION_KEY, GOAL_KEY
+
+ACTION = "action"  # torchrl's action key: what a policy writes and `BCLoss` reads
+
+
+def drop_sets(droppable: Sequence[str]) -> list[tuple[str, ...]]:
+    """Every subset of ``droppable``; subset ``i`` holds the modalities whose bit is set in ``i``
+    (bit ``j`` for ``droppable[j]``), so a batch's absent flags index it directly."""
+    return [tuple(m for j, m in enumerate(droppable) if i >> j & 1) for i in range(2 ** len(droppable))]
+
+
+class Demonstrations:
+    """The frames of a recording as behaviour-cloning samples.
+
+    Args:
+        data: the recording's window cache (a `WindowDataset` of the data config the policy and
+            the forecaster read: modalities, history, stride, image size, split).
+        goal_feature, action_feature: vector features of the recording read as the goal the
+            policy is given and the action it imitates.
+
+    Attributes: ``specs``, ``history``, ``stride`` (the data config's), ``normalizer`` (the
+    training split's statistics, with ``goal/mean`` and ``goal/std`` added), ``split_frames``
+    (cache rows of the samples of each split: frames with a finite goal and action).
+    """
+
+    def __init__(self, data: WindowDataset, goal_feature: str = GOAL_KEY, action_feature: str = ACTION_KEY):
+        config = data.config
+        self.specs: list[ModalitySpec] = list(data.specs)
+        self.history, self.stride = config.history, config.stride
+        frames = TensorDict.load_memmap(data.cache_path / "frames")
+        self._obs = {s.name: frames.get(s.obs_key).as_subclass(torch.Tensor) for s in self.specs}
+        self._present = {s.name: frames.get(s.present_key).as_subclass(torch.Tensor) for s in self.specs}
+        episode = frames.get("episode").as_subclass(torch.Tensor)
+        source = LeRobotSource(config)
+        columns = self._columns(source, [goal_feature, action_feature], episode)
+        self.goal = columns[goal_feature]
+        self.action = columns[action_feature]
+        # Cache rows follow the episodes' frames in order: an episode starts where its index changes.
+        starts = torch.ones(len(episode), dtype=torch.bool)
+        starts[1:] = episode[1:] != episode[:-1]
+        rows = torch.arange(len(episode))
+        self._episode_start = torch.cummax(torch.where(starts, rows, 0), 0).values
+        usable = torch.isfinite(self.goal).all(1) & torch.isfinite(self.action).all(1)
+        self.split_frames = {
+            name: rows[
+                usable & torch.isin(episode, torch.tensor(data.split_episodes[name], dtype=torch.long))
+            ]
+            for name in SPLIT_NAMES
+        }
+        goal_mean = self.goal[self.split_frames["train"]].double().mean(0)
+        goal_std = self.goal[self.split_frames["train"]].double().std(0, correction=0)
+        self.normalizer = Normalizer(
+            {
+                **data.normalizer.stats,
+                f"{GOAL}/mean": goal_mean.float(),
+                f"{GOAL}/std": goal_std.clamp_min(config.std_floor).float(),
+            }
+        )
+        self.goal_dim, self.action_dim = self.goal.shape[1], self.action.shape[1]
+
+    @staticmethod
+    def _columns(
+        source: LeRobotSource, features: list[str], episode: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """The vector ``features`` per cache row, checked to line up with the cache's frames."""
+        for feature in features:
+            found = source.features.get(feature)
+            if found is None or len(found["shape"]) != 1 or found["dtype"] in ("video", "image", "string"):
+                vectors = sorted(
+                    name
+                    for name, f in source.features.items()
+                    if len(f["shape"]) == 1 and f["dtype"] != "string"
+                )
+                raise ValueError(
+                    f"demonstrations: {source.root} has no vector feature {feature!r} "
+                    f"(meta/info.json: {found and {'dtype': found['dtype'], 'shape': found['shape']}}); "
+                    f"choose one of {vectors}"
+                )
+        data, _, _ = load_frame_columns(source.meta, [*features, "episode_index"], source.episodes)
+        if not np.array_equal(np.asarray(data["episode_index"], dtype=np.int64), episode.numpy()):
+            raise ValueError(
+                f"demonstrations: the window cache of {source.root} does not line up with its frames "
+                "(episode_index differs); the dataset changed after the cache was built: open the "
+                "WindowDataset again to rebuild it"
+            )
+        n = len(episode)
+        return {f: torch.from_numpy(np.asarray(data[f], dtype=np.float32).reshape(n, -1)) for f in features}
+
+    def rows(self, frames: torch.Tensor, history: int, stride: int) -> torch.Tensor:
+        """``[B, history]`` cache rows of the windows ending at ``frames``, oldest first; steps
+        before the episode's first frame repeat it (as `HistoryWindow` fills after a reset)."""
+        back = torch.arange(history - 1, -1, -1) * stride
+        return torch.maximum(frames[:, None] - back, self._episode_start[frames][:, None])
+
+    def _window_presence(self, spec: ModalitySpec, step_rows: torch.Tensor) -> torch.Tensor:
+        present = self._present[spec.name][step_rows]
+        return present.all(1) if spec.kind != "vector" else present
+
+    def presence(self, frames: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``{m: bool [B]}``: whether the recording has modality ``m`` in the window ending at ``frames``."""
+        rows = self.rows(frames, self.history, self.stride)
+        return {
+            s.name: self._window_presence(s, rows if s.kind != "vector" else rows[:, -1]) for s in self.specs
+        }
+
+    def window(
+        self,
+        frames: torch.Tensor,
+        absent: Mapping[str, torch.Tensor] | None = None,
+        *,
+        specs: Sequence[ModalitySpec] | None = None,
+        history: int | None = None,
+        stride: int | None = None,
+        normalizer: Normalizer | None = None,
+    ) -> TensorDict:
+        """The model window (``("obs", m)``, ``("present", m)``, batch ``[B]``) ending at ``frames``.
+
+        Built by `HistoryWindow`'s rules: vectors normalised, a ``"sequence"``/``"image"``
+        modality present only if present at every step (``"vector"``: the last), absent vector
+        windows zeroed. ``absent[m]`` (``bool [B]``) removes ``m`` from those samples, as an outage
+        would. ``specs``/``history``/``stride``/``normalizer`` default to the recording's (a
+        forecaster passes its own).
+        """
+        specs = self.specs if specs is None else specs
+        history = self.history if history is None else history
+        stride = self.stride if stride is None else stride
+        normalizer = self.normalizer if normalizer is None else normalizer
+        rows = self.rows(frames, history, stride)
+        window = TensorDict(batch_size=[len(frames)])
+        for spec in specs:
+            if spec.name not in self._obs or tuple(self._obs[spec.name].shape[1:]) != spec.shape:
+                cached = {n: list(o.shape[1:]) for n, o in self._obs.items()}
+                raise ValueError(
+                    f"demonstrations: the model reads {spec.name!r} ({spec.kind} {list(spec.shape)}) but the "
+                    f"recording's cache holds {cached}; build the demonstrations with the data config the "
+                    "model was trained on"
+                )
+            step_rows = rows if spec.kind != "vector" else rows[:, -1]
+            present = self._window_presence(spec, step_rows)
+            if absent is not None and spec.name in absent:
+                present = present & ~absent[spec.name]
+            values = self._obs[spec.name][step_rows]
+            if spec.kind != "image":
+                values = normalizer.normalize(spec.name, values) * present.view(-1, *[1] * (values.dim() - 1))
+            window.set(spec.obs_key, values)
+            window.set(spec.present_key, present)
+        return window
+
+    def batch(self, frames: torch.Tensor, absent: Mapping[str, torch.Tensor] | None = None) -> TensorDict:
+        """A behaviour-cloning batch: ``"history"`` (the policy's window, `HistoryWindow`'s key),
+        ``"goal"`` (as the env emits it) and ``"action"`` (the demonstrated command)."""
+        return TensorDict(
+            {
+                keys.HISTORY: self.window(frames, absent),
+                GOAL: self.goal[frames],
+                ACTION: self.action[frames],
+            },
+            batch_size=[len(frames)],
+        )
+
+
+@dataclass
+class ForecastTable:
+    """A forecaster's forecast of every demonstration frame under each outage of ``droppable``.
+
+    ``loc``, ``scale``: ``float32 [N, 2**len(droppable), T, D]`` (``N`` cache rows; NaN for
+    frames not computed), in the forecaster's normalised frame (what `ForecastTransform` writes
+    with ``denormalize=False``); entry ``[f, i]`` was forecast with the modalities of
+    ``drop_sets(droppable)[i]`` removed.
+    """
+
+    loc: torch.Tensor
+    scale: torch.Tensor
+    droppable: tuple[str, ...]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(T, D)`` of one forecast."""
+        return tuple(self.loc.shape[-2:])
+
+    def lookup(
+        self, frames: torch.Tensor, absent: Mapping[str, torch.Tensor]
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``loc``, ``scale`` ``[B, T, D]`` of ``frames`` with the ``absent`` modalities removed."""
+        extra = sorted(m for m, a in absent.items() if m not in self.droppable and bool(a.any()))
+        if extra:
+            raise ValueError(
+                f"ForecastTable: no forecasts without {extra}; it was computed for outages of "
+                f"{list(self.droppable)} (forecast_table(droppable=...))"
+            )
+        index = torch.zeros(len(frames), dtype=torch.long)
+        for j, name in enumerate(self.droppable):
+            if name in absent:
+                index += absent[name].long() << j
+        loc, scale = self.loc[frames, index], self.scale[frames, index]
+        if bool(torch.isnan(loc).any()):
+            raise ValueError("ForecastTable: some frames have no forecast; compute the table for their split")
+        return loc, scale
+
+    @classmethod
+    @torch.no_grad()
+    def compute(
+        cls,
+        demonstrations: Demonstrations,
+        forecaster: nn.Module,
+        stats: Mapping[str, torch.Tensor],
+        droppable: Sequence[str],
+        *,
+        stride: int = 1,
+        splits: Sequence[str] = ("train", "val"),
+        batch_size: int = 256,
+    ) -> ForecastTable:
+        """Run ``forecaster`` (eval mode; normalisation ``stats`` and window ``stride`` of its run)
+        on the frames of ``splits``, once per subset of ``droppable`` removed. A window left with
+        no present modality gets the target's training prior (mean 0, scale 1), as in
+        `ForecastTransform`."""
+        config = forecaster.config
+        unknown = sorted(set(droppable) - {s.name for s in config.modalities})
+        if unknown:
+            raise ValueError(
+                f"ForecastTable: droppable {unknown} are not modalities of the forecaster "
+                f"({[s.name for s in config.modalities]})"
+            )
+        forecaster.eval()
+        normalizer = Normalizer(dict(stats))
+        sets = drop_sets(droppable)
+        n = len(demonstrations.goal)
+        shape = (n, len(sets), config.horizon, config.target_dim)
+        loc, scale = torch.full(shape, math.nan), torch.full(shape, math.nan)
+        frames = torch.cat([demonstrations.split_frames[s] for s in splits])
+        for i, dropped in enumerate(sets):
+            for chunk in frames.split(batch_size):
+                absent = {m: torch.ones(len(chunk), dtype=torch.bool) for m in dropped}
+                window = demonstrations.window(
+                    chunk,
+                    absent,
+                    specs=config.modalities,
+                    history=config.history,
+                    stride=stride,
+                    normalizer=normalizer,
+                )
+                valid = torch.stack([window.get(s.present_key) for s in config.modalities]).any(0)
+                prior = (
+                    torch.zeros(len(chunk), config.horizon, config.target_dim),
+                    torch.ones(len(chunk), config.horizon, config.target_dim),
+                )
+
+                def predict(rows, window=window):
+                    out = forecaster(window if rows is None else window[rows])
+                    return out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
+
+                loc[chunk, i], scale[chunk, i] = compute_on_rows(valid, predict, prior)
+        return cls(loc, scale, tuple(droppable))
+
+
+class DemonstrationLoader:
+    """Behaviour-cloning batches of one split, with the `WindowLoader` protocol.
+
+    Args:
+        demonstrations: the samples.
+        split: ``"train"``, ``"val"`` or ``"test"``.
+        batch_size: samples per batch.
+        dropout: ``{modality: p}``: each sample loses each of these modalities with probability
+            ``p``, independently (drawn per epoch from ``seed``; a sample never loses all of its
+            modalities: the draws that would are not applied).
+        absent: modalities removed from every sample (an evaluation under a fixed outage).
+        forecasts: a `ForecastTable` covering the outages: batches then carry
+            ``("forecast", "loc"/"scale")`` of the outage each sample is under.
+        shuffle: default: for ``"train"``; ``seed`` orders the epochs (``(seed, epoch)``).
+        drop_last: default: when shuffled.
+    """
+
+    def __init__(
+        self,
+        demonstrations: Demonstrations,
+        split: str,
+        batch_size: int,
+        *,
+        dropout: Mapping[str, float] | None = None,
+        absent: Sequence[str] = (),
+        forecasts: ForecastTable | None = None,
+        shuffle: bool | None = None,
+        seed: int = 0,
+        drop_last: bool | None = None,
+    ):
+        if split not in SPLIT_NAMES:
+            raise ValueError(f"unknown split {split!r}; expected one of {list(SPLIT_NAMES)}")
+        if batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, found {batch_size}")
+        names = [s.name for s in demonstrations.specs]
+        dropout = dict(dropout or {})
+        unknown = sorted((set(dropout) | set(absent)) - set(names))
+        bad = {m: p for m, p in dropout.items() if not 0.0 <= p <= 1.0}
+        if unknown or bad:
+            raise ValueError(
+                f"DemonstrationLoader: dropout {dropout} / absent {list(absent)} must name modalities of "
+                f"{names} with probabilities in [0, 1]"
+            )
+        self.demonstrations, self.split, self.batch_size = demonstrations, split, batch_size
+        self.dropout, self.absent, self.forecasts = dropout, tuple(absent), forecasts
+        self.shuffle = split == "train" if shuffle is None else shuffle
+        self.drop_last = self.shuffle if drop_last is None else drop_last
+        self.seed, self.epoch = seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        n = len(self.demonstrations.split_frames[self.split])
+        return n // self.batch_size if self.drop_last else math.ceil(n / self.batch_size)
+
+    def _absent(self, frames: torch.Tensor, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        n = len(frames)
+        absent = {m: torch.ones(n, dtype=torch.bool) for m in self.absent}
+        # Drawn for every modality of the protocol each batch: the stream does not depend on outcomes.
+        draws = {m: torch.rand(n, generator=generator) < p for m, p in sorted(self.dropout.items())}
+        if draws:
+            none = torch.zeros(n, dtype=torch.bool)
+            kept = {
+                m: present & ~absent.get(m, none) & ~draws.get(m, none)
+                for m, present in self.demonstrations.presence(frames).items()
+            }
+            nothing_left = ~torch.stack(list(kept.values())).any(0)
+            for m, drawn in draws.items():
+                absent[m] = absent.get(m, none) | (drawn & ~nothing_left)
+        return absent
+
+    def __iter__(self) -> Iterator[TensorDict]:
+        frames = self.demonstrations.split_frames[self.split]
+        generator = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
+        if self.shuffle:
+            frames = frames[torch.randperm(len(frames), generator=generator)]
+        stop = len(frames) // self.batch_size * self.batch_size if self.drop_last else len(frames)
+        for first in range(0, stop, self.batch_size):
+            chunk = frames[first : first + self.batch_size]
+            absent = self._absent(chunk, generator)
+            batch = self.demonstrations.batch(chunk, absent)
+            if self.forecasts is not None:
+                loc, scale = self.forecasts.lookup(chunk, absent)
+                batch.set(keys.FORECAST_LOC, loc)
+                batch.set(keys.FORECAST_SCALE, scale)
+            yield batch
+        self.epoch += 1

@@ -1,0 +1,253 @@
+"""Behaviour cloning from the recorded push data, with and without the forecaster's forecast as input."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs import Compose, TransformedEnv
+
+from mmf_rl import keys
+from mmf_rl.checkpoint import CheckpointError
+from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.envs.modality_dropout import ModalityDropout
+from mmf_rl.envs.torchrl_env import GOAL, MultimodalPushTorchEnv
+from mmf_rl.models.registry import load_trained_model
+from mmf_rl.rl import (
+    BCPolicy,
+    DemonstrationLoader,
+    Demonstrations,
+    EncoderChoice,
+    ForecastTable,
+    ForecastTransform,
+    HistoryWindow,
+    train_bc,
+    validation_errors,
+)
+from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
+from tests.conftest import push_train_overrides
+
+IMAGE_SIZE = 32  # as recorded by `recorded_push_root`
+DROPPABLE = ("image", "force")
+TINY = {"d_model": 16, "hidden": 32, "depth": 1}
+TINY_ENCODERS = EncoderChoice(image_channels=(8, 16))
+
+
+@pytest.fixture(scope="module")
+def forecaster_run(recorded_push_root, tmp_path_factory):
+    """A tiny forecaster trained by `mmf-rl train` (data=push) on the recorded push data."""
+    from mmf_rl.cli import main as cli
+
+    base = tmp_path_factory.mktemp("bc_forecaster")
+    run = base / "run"
+    assert cli(["train", *push_train_overrides(recorded_push_root, base / "cache", run, steps=4)]) == 0
+    return run
+
+
+@pytest.fixture(scope="module")
+def forecaster(forecaster_run):
+    return load_trained_model(forecaster_run / "checkpoints")
+
+
+@pytest.fixture(scope="module")
+def demonstrations(forecaster) -> Demonstrations:
+    _, _, data_config = forecaster
+    return Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
+
+
+@pytest.fixture(scope="module")
+def forecasts(demonstrations, forecaster) -> ForecastTable:
+    model, stats, _ = forecaster
+    return ForecastTable.compute(demonstrations, model, stats, DROPPABLE, splits=("train", "val", "test"))
+
+
+def make_policy(demonstrations, forecasts=None, seed: int = 0) -> BCPolicy:
+    seed_everything(seed)
+    return BCPolicy.for_demonstrations(demonstrations, forecasts, encoders=TINY_ENCODERS, **TINY)
+
+
+def recorded_steps(demonstrations, frames: torch.Tensor, image_absent: bool) -> list[TensorDict]:
+    """The recorded frames as the env's per-step observations (single frames, presence flags)."""
+    steps = []
+    for f in frames.tolist():
+        step = TensorDict(batch_size=[])
+        for spec in demonstrations.specs:
+            value = demonstrations._obs[spec.name][f].clone()
+            absent = image_absent and spec.name == "image"
+            step.set(spec.obs_key, value.zero_() if absent else value)
+            step.set(spec.present_key, torch.tensor(not absent))
+        steps.append(step)
+    return steps
+
+
+def test_demonstrations_hold_every_frame_with_goal_and_action(demonstrations, recorded_push_root):
+    n = sum(len(f) for f in demonstrations.split_frames.values())
+    assert n == len(demonstrations.goal) == len(demonstrations.action)  # every frame, the first ones too
+    assert demonstrations.goal.shape[1] == 3 and demonstrations.action.shape[1] == 4
+    assert torch.isfinite(demonstrations.action).all() and demonstrations.action.abs().max() <= 1
+    train = demonstrations.split_frames["train"]
+    batch = demonstrations.batch(train[:5])
+    h = demonstrations.history
+    assert batch.get((keys.HISTORY, "obs", "image")).shape == (5, h, 3, IMAGE_SIZE, IMAGE_SIZE)
+    assert batch.get((keys.HISTORY, "obs", "proprio")).shape == (5, h, 17)
+    assert batch.get(GOAL).shape == (5, 3) and batch.get("action").shape == (5, 4)
+
+
+def test_offline_windows_and_forecasts_are_what_the_transforms_build_online(
+    demonstrations, forecasts, forecaster
+):
+    """Stepping `HistoryWindow` and `ForecastTransform` through a recorded episode (with the camera
+    on, then off for the whole episode) gives the windows and forecasts the policy trains on."""
+    model, stats, _ = forecaster
+    frames = demonstrations.split_frames["train"]
+    episode = frames[: demonstrations.history + 3]  # the first frames of the first episode: padded windows
+    assert bool((demonstrations._episode_start[episode] == episode[0]).all())
+    for image_absent, drop_index in [(False, 0), (True, 1)]:
+        history = HistoryWindow(demonstrations.specs, demonstrations.normalizer.stats, demonstrations.history)
+        forecast = ForecastTransform(model, stats, denormalize=False)
+        absent = {"image": torch.full((len(episode),), image_absent)}
+        expected = demonstrations.window(episode, absent)
+        for t, step in enumerate(recorded_steps(demonstrations, episode, image_absent)):
+            out = history._reset(None, step.clone()) if t == 0 else history._call(step.clone())
+            out = forecast._reset(None, out) if t == 0 else forecast._call(out)
+            window = out.get(keys.HISTORY)
+            for spec in demonstrations.specs:
+                present = bool(expected.get(spec.present_key)[t])
+                assert (
+                    bool(window.get(spec.present_key))
+                    == present
+                    == (spec.name != "image" or not image_absent)
+                )
+                if present:  # what an absent sensor holds is never read
+                    torch.testing.assert_close(window.get(spec.obs_key), expected.get(spec.obs_key)[t])
+            torch.testing.assert_close(out.get(keys.FORECAST_LOC), forecasts.loc[episode[t], drop_index])
+            torch.testing.assert_close(out.get(keys.FORECAST_SCALE), forecasts.scale[episode[t], drop_index])
+
+
+def test_dropout_draws_are_seeded_and_never_remove_every_sensor(demonstrations):
+    def draws(seed):
+        loader = DemonstrationLoader(
+            demonstrations, "train", 16, dropout={"image": 0.5, "force": 0.5, "proprio": 0.9}, seed=seed
+        )
+        return [
+            torch.stack([b.get((keys.HISTORY, *s.present_key)) for s in demonstrations.specs]) for b in loader
+        ]
+
+    first, again, other = draws(0), draws(0), draws(1)
+    assert all(torch.equal(a, b) for a, b in zip(first, again, strict=True))
+    assert not all(torch.equal(a, b) for a, b in zip(first, other, strict=True))
+    present = torch.cat(first, 1)
+    assert present.any(0).all()  # every sample keeps a sensor
+    assert (~present).any(1).all()  # and each modality is removed from some
+
+
+def test_the_absent_modality_never_changes_the_action(demonstrations, forecasts):
+    policy = make_policy(demonstrations, forecasts).eval()
+    frames = demonstrations.split_frames["train"][:6]
+    absent = {"image": torch.ones(6, dtype=torch.bool)}
+    batch = demonstrations.batch(frames, absent)
+    loc, scale = forecasts.lookup(frames, absent)
+    batch.update({keys.FORECAST_LOC: loc, keys.FORECAST_SCALE: scale})
+    action = policy(batch.clone()).get("action")
+    garbage = batch.clone()
+    image = garbage.get((keys.HISTORY, "obs", "image"))
+    garbage.set((keys.HISTORY, "obs", "image"), torch.randint_like(image, 0, 256))
+    torch.testing.assert_close(policy(garbage).get("action"), action)
+    assert torch.isfinite(action).all()
+
+
+@pytest.mark.parametrize("with_forecasts", [False, True])
+def test_policy_acts_in_the_push_env_with_a_sensor_off(demonstrations, forecasts, forecaster, with_forecasts):
+    model, stats, _ = forecaster
+    policy = make_policy(demonstrations, forecasts if with_forecasts else None).eval()
+    forecast = ForecastTransform(model, stats, denormalize=False) if with_forecasts else None
+    env = TransformedEnv(
+        MultimodalPushTorchEnv(image_size=IMAGE_SIZE),
+        Compose(ModalityDropout(["image"], outage="episode", outage_prob=1.0), *policy.transforms(forecast)),
+    )
+    try:
+        env.set_seed(0)
+        with torch.no_grad():
+            rollout = env.rollout(4, policy, break_when_any_done=False)
+    finally:
+        env.close()
+    h = demonstrations.history
+    assert rollout.get((keys.HISTORY, "obs", "image")).shape == (4, h, 3, IMAGE_SIZE, IMAGE_SIZE)
+    assert rollout.get((keys.HISTORY, "obs", "force")).shape == (4, h, 6)
+    assert not rollout.get((keys.HISTORY, "present", "image")).any()
+    assert rollout.get((keys.HISTORY, "present", "proprio")).all()
+    action = rollout.get("action")
+    assert action.shape == (4, 4) and torch.isfinite(action).all() and action.abs().max() <= 1
+    assert (keys.FORECAST_LOC in rollout.keys(True)) == with_forecasts
+    if with_forecasts:
+        assert rollout.get(keys.FORECAST_LOC).shape == (4, *forecasts.shape)
+
+
+@pytest.mark.parametrize("with_forecasts", [False, True])
+def test_training_reduces_the_bc_loss_on_recorded_pushes(demonstrations, forecasts, with_forecasts, tmp_path):
+    table = forecasts if with_forecasts else None
+    policy = make_policy(demonstrations, table)
+    before = validation_errors(policy, demonstrations, "train", DROPPABLE, table)["loss"]
+    config = TrainerConfig(
+        total_steps=40,
+        batch_size=32,
+        lr=3e-3,
+        lr_schedule="constant",
+        warmup_steps=1,
+        eval_every=40,
+        checkpoint_every=40,
+        progress_bar=False,
+    )
+    metrics = train_bc(policy, demonstrations, config, forecasts=table, run_dir=tmp_path)
+    after = validation_errors(policy, demonstrations, "train", DROPPABLE, table)["loss"]
+    assert after < 0.8 * before, (before, after)
+    assert {
+        "val/loss",
+        "val/mse_all",
+        "val/mse_no_image",
+        "val/mse_no_force",
+        "val/mse_no_image_force",
+    } <= set(metrics)
+    # The run's checkpoint is the trained policy.
+    loaded = BCPolicy.from_checkpoint(tmp_path / "checkpoints")
+    assert validation_errors(loaded, demonstrations, "train", DROPPABLE, table)["loss"] == pytest.approx(
+        after
+    )
+
+
+def test_save_and_load_round_trip(demonstrations, forecasts, forecaster_run, tmp_path):
+    policy = make_policy(demonstrations, forecasts, seed=3).eval()
+    policy.save(tmp_path / "policy")
+    loaded = BCPolicy.from_checkpoint(tmp_path / "policy")
+    assert loaded.config == policy.config
+    assert loaded.stats.keys() == policy.stats.keys()
+    frames = demonstrations.split_frames["val"][:4]
+    absent = {"force": torch.tensor([True, False, True, False])}
+    batch = demonstrations.batch(frames, absent)
+    loc, scale = forecasts.lookup(frames, absent)
+    batch.update({keys.FORECAST_LOC: loc, keys.FORECAST_SCALE: scale})
+    torch.testing.assert_close(loaded(batch.clone()).get("action"), policy(batch.clone()).get("action"))
+    with pytest.raises(CheckpointError, match="not a behaviour-cloning policy"):
+        BCPolicy.from_checkpoint(forecaster_run / "checkpoints")
+
+
+def test_transforms_refuse_a_forecast_the_policy_was_not_trained_with(demonstrations, forecasts, forecaster):
+    model, stats, _ = forecaster
+    with_forecasts, without = make_policy(demonstrations, forecasts), make_policy(demonstrations)
+    with pytest.raises(ValueError, match="reads forecasts of shape"):
+        with_forecasts.transforms()
+    with pytest.raises(ValueError, match="denormalize=False"):
+        with_forecasts.transforms(ForecastTransform(model, stats))
+    with pytest.raises(ValueError, match="trained without forecasts"):
+        without.transforms(ForecastTransform(model, stats, denormalize=False))
+    with pytest.raises(ValueError, match="pass the ForecastTable"):
+        train_bc(with_forecasts, demonstrations, TrainerConfig(total_steps=1, progress_bar=False))
+
+
+def test_a_goal_or_action_feature_the_recording_lacks_is_named(forecaster):
+    _, _, data_config = forecaster
+    data = WindowDataset(DataConfig.from_dict(data_config))
+    with pytest.raises(ValueError, match="no vector feature 'observation.gaol'.*observation.goal"):
+        Demonstrations(data, goal_feature="observation.gaol")
+    with pytest.raises(ValueError, match="no vector feature 'observation.images.front'"):
+        Demonstrations(data, action_feature="observation.images.front")

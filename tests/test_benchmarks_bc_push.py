@@ -1,0 +1,71 @@
+"""benchmarks/bc_push.py end to end with tiny budgets: builds the forecaster and both policies, plays."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+import sys
+from pathlib import Path
+
+from tests.conftest import push_train_overrides
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bc_push.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("benchmarks_bc_push", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_root, tmp_path, capsys):
+    work = tmp_path / "work"
+    tiny_forecaster = push_train_overrides(
+        recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
+    )
+    argv = [
+        "--quick",
+        "--work",
+        str(work),
+        "--data",
+        str(recorded_push_root),
+        "--forecaster-override",
+        *tiny_forecaster,
+        "--bc-steps",
+        "3",
+        "--bc-batch-size",
+        "16",
+        "--bc-seeds",
+        "0",
+        "--bc-d-model",
+        "8",
+        "--bc-hidden",
+        "16",
+        "--bc-image-channels",
+        "8",
+        "16",
+        "--episodes",
+        "1",
+        "--outage",
+        "episode",
+    ]
+    _load().main(argv)
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    pct = r"\d+%/\d+%"
+    assert re.fullmatch(
+        rf"summary: BC success all {pct}, no-camera {pct}, no-force {pct} \(without/with forecasts\); "
+        r"camera loss without forecasts -?\d+ pts, with -?\d+ pts \(target Y <= X/2\)",
+        last,
+    ), last
+    results = json.loads((work / "results.json").read_text())
+    conditions = ["all", "no-camera (episode)", "no-force (episode)"]
+    expected = {f"BC {v} forecasts | {c}" for v in ("without", "with") for c in conditions} | {
+        "scripted | all"
+    }
+    assert set(results["rows"]) == expected
+    assert set(results["validation_errors"]) == {"without", "with"}
+    for variant in ("without", "with"):
+        assert (work / f"bc_{variant}_forecasts_seed0" / "checkpoints" / "last").is_file()
