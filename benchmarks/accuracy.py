@@ -101,7 +101,7 @@ QUICK = Budget(
 # took ~57 s a training averaged over every entry (87 trainings, 83 min; issue #6's run), the paper
 # model 39-59 s. The retrained baselines are trained for the paper's three subsets only (the ones the
 # issue's target compares them on): the paper model, 6 variants, 3 zero-fill baselines, 3 x 2 retrained
-# and 7 ablations = 21 trainings a seed, 63 in all, ~60 min at 57 s.
+# and 7 ablations = 23 trainings a seed, 69 in all, ~66 min at 57 s (less with --jobs 2).
 # results.md projects this mode's time from the per-step times of the run that wrote it.
 STANDARD = Budget(
     image_size=32,
