@@ -50,7 +50,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -395,10 +395,10 @@ def record_dataset(root: Path, episodes: int) -> float:
     return time.perf_counter() - start
 
 
-def subsets() -> list[tuple[str, dict[str, bool]]]:
+def subsets(modalities: Sequence[str] = MODALITIES) -> list[tuple[str, dict[str, bool]]]:
     from mmf_rl.datasets import presence_subsets
 
-    return list(presence_subsets(MODALITIES))
+    return list(presence_subsets(list(modalities)))
 
 
 def train_overrides(
@@ -474,7 +474,7 @@ def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str
     data.normalizer = Normalizer(stats)
     ids = data.split_windows["test"]
     out = {}
-    for name, subset in subsets():
+    for name, subset in subsets([s.name for s in data.specs]):  # the trained data's modalities
         rows: dict[str, list] = {"window": [], "episode": [], "squared_error": []}
         for chunk in ids.split(batch_size):
             batch = data.batch(chunk, "test")
@@ -642,28 +642,35 @@ def entry_results(entry: Entry, budget: Budget, out: Path) -> tuple[dict[str, li
     return per_subset, runs
 
 
-def build_table(errors: dict[str, dict[str, list[dict]]], kinds: dict[str, str]) -> tuple[Table, list[int]]:
-    """Cells with paired bootstrap intervals from every entry's per-window errors."""
-    episodes = sorted(
+def build_table(
+    errors: dict[str, dict[str, list[dict]]],
+    kinds: dict[str, str],
+    modalities: Sequence[str] = MODALITIES,
+    unit: str = "episode",
+) -> tuple[Table, list[int]]:
+    """Cells with paired bootstrap intervals from every entry's per-window errors; the bootstrap
+    resamples the groups of windows ``rows[unit]`` names (test episodes by default). Returns the table
+    and the groups."""
+    groups = sorted(
         {
             e
             for per_subset in errors.values()
             for seeds in per_subset.values()
             for rows in seeds
-            for e in rows["episode"]
+            for e in rows[unit]
         }
     )
-    weights = bootstrap_weights(len(episodes))
-    names = [name for name, _ in subsets()]
+    weights = bootstrap_weights(len(groups))
+    names = [name for name, _ in subsets(modalities)]
     table = Table(subsets=ordered_subsets(names), kinds=dict(kinds))
     for label, per_subset in errors.items():
         table.cells[label] = {
             name: bootstrap_cell(
-                [episode_totals(r["episode"], r["squared_error"], episodes) for r in seeds], weights
+                [episode_totals(r[unit], r["squared_error"], groups) for r in seeds], weights
             )
             for name, seeds in per_subset.items()
         }
-    return table, episodes
+    return table, groups
 
 
 # ---------------------------------------------------------------------------------------------
@@ -685,8 +692,11 @@ def cell_text(cell: Cell | None, bold: bool, tied: bool) -> str:
     return f"**{text}**" if bold else f"{text} =" if tied else text
 
 
-def mse_table(table: Table, labels: list[str], contenders: list[str]) -> str:
-    """Subsets as rows, entries as columns; bold: best of ``contenders``, ``=``: any entry tied with it."""
+def mse_table(
+    table: Table, labels: list[str], contenders: list[str], title: Callable[[str], str] = subset_title
+) -> str:
+    """Subsets as rows (named by ``title``), entries as columns; bold: best of ``contenders``, ``=``: any
+    entry tied with it."""
     lines = ["| subset | " + " | ".join(labels) + " |", "|---" * (len(labels) + 1) + "|"]
     for s in table.subsets:
         present = {label: table.cells[label][s] for label in contenders if s in table.cells[label]}
@@ -701,15 +711,15 @@ def mse_table(table: Table, labels: list[str], contenders: list[str]) -> str:
             )
             for label in labels
         ]
-        lines.append(f"| {subset_title(s)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {title(s)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def degradation_table(table: Table, labels: list[str]) -> str:
+def degradation_table(table: Table, labels: list[str], title: Callable[[str], str] = subset_title) -> str:
     lines = ["| subset | " + " | ".join(labels) + " |", "|---" * (len(labels) + 1) + "|"]
     for s in table.subsets[1:]:
         lines.append(
-            f"| {subset_title(s)} | "
+            f"| {title(s)} | "
             + " | ".join(
                 f"{100 * table.degradation(label, s):+.0f}%" if s in table.cells[label] else ""
                 for label in labels
