@@ -50,7 +50,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -100,8 +100,8 @@ QUICK = Budget(
 # 32x32), sized for <= 75 min on 2 cores from times this benchmark measured: 1000 steps of batch 32
 # took ~57 s a training averaged over every entry (87 trainings, 83 min; issue #6's run), the paper
 # model 39-59 s. The retrained baselines are trained for the paper's three subsets only (the ones the
-# issue's target compares them on): the paper model, 4 variants, 3 zero-fill baselines, 3 x 2 retrained
-# and 7 ablations = 21 trainings a seed, 63 in all, ~60 min at 57 s.
+# issue's target compares them on): the paper model, 6 variants, 3 zero-fill baselines, 3 x 2 retrained
+# and 7 ablations = 23 trainings a seed, 69 in all, ~66 min at 57 s (less with --jobs 2).
 # results.md projects this mode's time from the per-step times of the run that wrote it.
 STANDARD = Budget(
     image_size=32,
@@ -127,20 +127,24 @@ class Entry:
     base: str | None = None  # retrained: the zero-fill entry whose all-modality run gives its "all" cell
 
 
+# The sequence encoder issue #6's model used for force and proprioception (the default is now "mlp").
+GRU_VECTORS = (
+    "data.modalities.force={feature:observation.force,encoder:gru}",
+    "data.modalities.proprio={feature:observation.state,encoder:gru}",
+)
 ENTRIES = [
     Entry("paper", "paper", ("model=forecaster",)),
-    # Issue #13's options of the paper model (the defaults stay the paper's until the evidence moves them).
-    Entry("paper prior=learned", "variant", ("model=forecaster", "model.prior=learned")),
-    Entry(
-        "paper prior=learned, drop 1..M-1",
-        "variant",
-        ("model=forecaster", "model.prior=learned", "loss.max_dropped=null"),
-    ),
+    # Issue #13's options of the paper model, each one change from the defaults (learned prior, MLP window
+    # encoders for the vector modalities, L_mis dropping one modality); the last row is issue #6's model.
+    Entry("paper prior=standard", "variant", ("model=forecaster", "model.prior=standard")),
+    Entry("paper GRU vector encoders", "variant", ("model=forecaster", *GRU_VECTORS)),
     Entry("paper drop 1..M-1", "variant", ("model=forecaster", "loss.max_dropped=null")),
+    Entry("paper GSNN 0.5", "variant", ("model=forecaster", "loss.gsnn_weight=0.5")),
+    Entry("paper degraded NLL 1.0", "variant", ("model=forecaster", "loss.dropped_nll_weight=1.0")),
     Entry(
-        "paper prior=learned, GSNN 0.5",
+        "paper prior=standard, GRU vector encoders (issue #6)",
         "variant",
-        ("model=forecaster", "model.prior=learned", "loss.gsnn_weight=0.5"),
+        ("model=forecaster", "model.prior=standard", *GRU_VECTORS),
     ),
     Entry("LF-LSTM", "zero-fill", ("model=lf_lstm",)),
     Entry("MVAE", "zero-fill", ("model=mvae",)),
@@ -391,10 +395,10 @@ def record_dataset(root: Path, episodes: int) -> float:
     return time.perf_counter() - start
 
 
-def subsets() -> list[tuple[str, dict[str, bool]]]:
+def subsets(modalities: Sequence[str] = MODALITIES) -> list[tuple[str, dict[str, bool]]]:
     from mmf_rl.datasets import presence_subsets
 
-    return list(presence_subsets(MODALITIES))
+    return list(presence_subsets(list(modalities)))
 
 
 def train_overrides(
@@ -470,7 +474,7 @@ def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str
     data.normalizer = Normalizer(stats)
     ids = data.split_windows["test"]
     out = {}
-    for name, subset in subsets():
+    for name, subset in subsets([s.name for s in data.specs]):  # the trained data's modalities
         rows: dict[str, list] = {"window": [], "episode": [], "squared_error": []}
         for chunk in ids.split(batch_size):
             batch = data.batch(chunk, "test")
@@ -638,28 +642,35 @@ def entry_results(entry: Entry, budget: Budget, out: Path) -> tuple[dict[str, li
     return per_subset, runs
 
 
-def build_table(errors: dict[str, dict[str, list[dict]]], kinds: dict[str, str]) -> tuple[Table, list[int]]:
-    """Cells with paired bootstrap intervals from every entry's per-window errors."""
-    episodes = sorted(
+def build_table(
+    errors: dict[str, dict[str, list[dict]]],
+    kinds: dict[str, str],
+    modalities: Sequence[str] = MODALITIES,
+    unit: str = "episode",
+) -> tuple[Table, list[int]]:
+    """Cells with paired bootstrap intervals from every entry's per-window errors; the bootstrap
+    resamples the groups of windows ``rows[unit]`` names (test episodes by default). Returns the table
+    and the groups."""
+    groups = sorted(
         {
             e
             for per_subset in errors.values()
             for seeds in per_subset.values()
             for rows in seeds
-            for e in rows["episode"]
+            for e in rows[unit]
         }
     )
-    weights = bootstrap_weights(len(episodes))
-    names = [name for name, _ in subsets()]
+    weights = bootstrap_weights(len(groups))
+    names = [name for name, _ in subsets(modalities)]
     table = Table(subsets=ordered_subsets(names), kinds=dict(kinds))
     for label, per_subset in errors.items():
         table.cells[label] = {
             name: bootstrap_cell(
-                [episode_totals(r["episode"], r["squared_error"], episodes) for r in seeds], weights
+                [episode_totals(r[unit], r["squared_error"], groups) for r in seeds], weights
             )
             for name, seeds in per_subset.items()
         }
-    return table, episodes
+    return table, groups
 
 
 # ---------------------------------------------------------------------------------------------
@@ -681,8 +692,11 @@ def cell_text(cell: Cell | None, bold: bool, tied: bool) -> str:
     return f"**{text}**" if bold else f"{text} =" if tied else text
 
 
-def mse_table(table: Table, labels: list[str], contenders: list[str]) -> str:
-    """Subsets as rows, entries as columns; bold: best of ``contenders``, ``=``: any entry tied with it."""
+def mse_table(
+    table: Table, labels: list[str], contenders: list[str], title: Callable[[str], str] = subset_title
+) -> str:
+    """Subsets as rows (named by ``title``), entries as columns; bold: best of ``contenders``, ``=``: any
+    entry tied with it."""
     lines = ["| subset | " + " | ".join(labels) + " |", "|---" * (len(labels) + 1) + "|"]
     for s in table.subsets:
         present = {label: table.cells[label][s] for label in contenders if s in table.cells[label]}
@@ -697,15 +711,15 @@ def mse_table(table: Table, labels: list[str], contenders: list[str]) -> str:
             )
             for label in labels
         ]
-        lines.append(f"| {subset_title(s)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {title(s)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def degradation_table(table: Table, labels: list[str]) -> str:
+def degradation_table(table: Table, labels: list[str], title: Callable[[str], str] = subset_title) -> str:
     lines = ["| subset | " + " | ".join(labels) + " |", "|---" * (len(labels) + 1) + "|"]
     for s in table.subsets[1:]:
         lines.append(
-            f"| {subset_title(s)} | "
+            f"| {title(s)} | "
             + " | ".join(
                 f"{100 * table.degradation(label, s):+.0f}%" if s in table.cells[label] else ""
                 for label in labels

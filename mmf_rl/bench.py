@@ -1,4 +1,4 @@
-"""`mmf-rl bench accuracy|bc|data|model|mpc [args]`: the scripts of benchmarks/ from the command line.
+"""`mmf-rl bench accuracy|bc|data|humanoid|model|mpc [args]`: the scripts of benchmarks/ from the command line.
 
 Each runs ``benchmarks/<script>.py`` of the repository checkout with the arguments that follow
 (``mmf-rl bench data --help`` shows them) and ends with that script's summary line. The scripts
@@ -20,6 +20,7 @@ BENCHMARKS = {
     "model": ("model_throughput.py", "training samples/s and inference latency of the forecaster"),
     "mpc": ("mpc_push.py", "MPC with the push world model vs the scripted pusher and a random policy"),
     "bc": ("bc_push.py", "behaviour cloning with vs without the forecast, camera or force off"),
+    "humanoid": ("real_humanoid.py", "the paper model vs the baselines on the real G1 humanoid recording"),
 }
 EXAMPLES = [
     "mmf-rl bench model --steps 5",

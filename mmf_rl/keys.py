@@ -101,7 +101,7 @@ NONFINITE_RULES = ("raise", "absent")
 
 # The encoder each kind gets unless the spec names another one. The encoders themselves, and which
 # kinds each accepts, are registered in mmf_rl.models.encoders (checked when a model is built).
-DEFAULT_ENCODER: dict[str, str] = {"image": "conv", "sequence": "gru", "vector": "mlp"}
+DEFAULT_ENCODER: dict[str, str] = {"image": "conv", "sequence": "mlp", "vector": "mlp"}
 
 
 @dataclass(frozen=True)

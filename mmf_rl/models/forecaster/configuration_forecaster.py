@@ -67,7 +67,7 @@ class ForecasterConfig:
     mlp_hidden: int = 128
     head_hidden: int = 256
     min_scale: float = 1e-3
-    prior: Literal["standard", "learned"] = "standard"
+    prior: Literal["standard", "learned"] = "learned"
     posterior_uses_target: bool | None = None
     eval_latent: Literal["mean", "sample"] = "mean"
     fusion: str = "agnostic"
