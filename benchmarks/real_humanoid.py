@@ -1,6 +1,6 @@
 """Missing-sensor accuracy on a real humanoid recording: the paper model against the baselines (issue #13).
 
-    .venv/bin/python benchmarks/real_humanoid.py --jobs 2    # 5 entries x 2 seeds, two runs at once
+    .venv/bin/python benchmarks/real_humanoid.py --jobs 2    # 6 entries x 2 seeds, two runs at once
     .venv/bin/python benchmarks/real_humanoid.py --steps 2 --seeds 0 --entries paper LF-LSTM --batch-size 4
 
 Run time: see results.md (it records the measured wall time of every run and of the invocation).
@@ -13,7 +13,7 @@ is the joints' motion: ``observation.state`` relative to the last observed frame
 the next T = 10 frames from H = 10 frames of history. One split by episode (split_fractions 0.8 / 0.1
 / 0.1, split_seed 0) for every model.
 
-Entries (``ENTRIES``): the paper model with the configuration defaults; the same model as issue #6
+Entries (``ENTRIES``): the paper model with the configuration defaults, and with the other prior; the same model as issue #6
 had it (standard prior, GRU encoders for joints and commands); the baselines LF-LSTM, MulT and MVAE,
 each trained once on every sensor and seeing an absent sensor as its own absence handling
 (zero-fill; MVAE drops the expert). Every entry: ``--steps`` steps of batch ``--batch-size`` for each
@@ -88,6 +88,11 @@ SENSOR_FEATURES_GRU = (
 )
 ENTRIES = [
     bench.Entry("paper", "paper", (*DATA, SENSOR_FEATURES, "model=forecaster")),
+    bench.Entry(
+        "paper prior=standard",
+        "variant",
+        (*DATA, SENSOR_FEATURES, "model=forecaster", "model.prior=standard"),
+    ),
     bench.Entry(
         "paper prior=standard, GRU vector encoders (issue #6)",
         "variant",

@@ -8,7 +8,7 @@ from tests.conftest import HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, make_
 
 def test_spec_defaults_encoder_by_kind():
     assert ModalitySpec("cam", "image", (3, 8, 8)).encoder == "conv"
-    assert ModalitySpec("f", "sequence", (6,)).encoder == "gru"
+    assert ModalitySpec("f", "sequence", (6,)).encoder == "mlp"
     assert ModalitySpec("g", "vector", (3,)).encoder == "mlp"
 
 
