@@ -76,7 +76,7 @@ def test_summary_compares_the_paper_with_the_best_baseline_and_the_most_robust_o
                 0.60,
                 {"without_cam_high": 1.02, "without_state": 1.04, "without_action": 1.06},
             ),
-            "paper prior=standard, GRU vector encoders (issue #6)": ("variant", 0.40, {}),  # not a baseline
+            "paper GRU vector encoders (issue #6)": ("variant", 0.40, {}),  # not a baseline
             "LF-LSTM": (
                 "zero-fill",
                 0.57,
@@ -185,14 +185,18 @@ def test_every_entry_composes_the_g1_data_and_its_model(tmp_path):
         assert (composed[label].trainer.total_steps, composed[label].trainer.batch_size) == (1000, 64)
     assert {label: cfg.model.name for label, cfg in composed.items()} == {
         "paper": "forecaster",
-        "paper prior=standard, GRU vector encoders (issue #6)": "forecaster",
+        "paper prior=learned": "forecaster",
+        "paper GRU vector encoders (issue #6)": "forecaster",
         "LF-LSTM": "lf_lstm",
         "MulT": "mult",
         "MVAE": "mvae",
     }
-    issue6 = "paper prior=standard, GRU vector encoders (issue #6)"
+    issue6 = "paper GRU vector encoders (issue #6)"
     assert composed["paper"].model == compose_config("train", []).model  # the configuration defaults
-    assert composed[issue6].model.prior == "standard"
+    assert (composed[issue6].model.prior, composed["paper prior=learned"].model.prior) == (
+        "standard",
+        "learned",
+    )
     assert [data[issue6].modalities[m].encoder for m in humanoid.MODALITIES] == [None, "gru", "gru"]
     assert all(c.encoder is None for c in data["paper"].modalities.values())  # each kind's default
 

@@ -33,7 +33,12 @@ class ForecasterConfig:
             conditional prior ``p(z|X)`` computed by a head on the multimodal encoder's fused
             representation of the present modalities, so the fusion shapes every test-time
             forecast (the latent is drawn from it at test time). ``loss_kl`` becomes
-            ``KL(q(z|X, y) || p(z|X))``.
+            ``KL(q(z|X, y) || p(z|X))``. The default stays ``"standard"`` by measurement
+            (``benchmarks/accuracy.py --standard``, issue #13): the learned prior was tied on MSE
+            in every subset (all sensors 0.375 vs 0.362) but its forecast scale, trained on
+            posterior draws that know ``y``, is overconfident when decoded at the prior's mean
+            (90% intervals covered 53-63% of test futures vs 75-88%), and with the unnormalised
+            ablation fusions (linear, sum, cross-attention) its training collapsed to the mean.
         posterior_uses_target: whether the future ``y`` enters the posterior head in training
             (a CVAE's ``q(z|X, y)``). ``None`` (default): ``True`` with the learned prior (which
             needs it: a posterior that sees only ``X`` can copy the prior), ``False`` with the
@@ -67,7 +72,7 @@ class ForecasterConfig:
     mlp_hidden: int = 128
     head_hidden: int = 256
     min_scale: float = 1e-3
-    prior: Literal["standard", "learned"] = "learned"
+    prior: Literal["standard", "learned"] = "standard"
     posterior_uses_target: bool | None = None
     eval_latent: Literal["mean", "sample"] = "mean"
     fusion: str = "agnostic"
