@@ -11,7 +11,8 @@ reports its wall time and peak RSS (``ru_maxrss`` of itself and of its decode wo
 of 256 train windows are then read from the cache in this process. Targets (issue #16): build
 time linear in N, peak RSS < 2 GB at 500k frames, throughput flat.
 
-Then the largest N is built again and SIGKILLed once ~90% of its video jobs are recorded in
+Then the largest N (or ``--resume-size``) is built again and SIGKILLed once ~90% of its video jobs are
+recorded in
 ``progress.jsonl``; the next build must resume: it reports how many jobs were already decoded
 and decodes only the rest.
 
@@ -178,6 +179,12 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 500_000])
     parser.add_argument("--quick", action="store_true", help="N = 10k only")
     parser.add_argument("--work-dir", type=Path, default=Path("/tmp/mmf_rl_cache_scale"))
+    parser.add_argument(
+        "--resume-size",
+        type=int,
+        default=None,
+        help="N of the dataset whose build is killed at ~90%% and resumed (default: the largest N)",
+    )
     parser.add_argument("--build", nargs=2, type=Path, metavar=("ROOT", "CACHE_DIR"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.build:
@@ -206,20 +213,20 @@ def main() -> None:
             f"{r['frames']:>8} {r['build_s']:>9.1f} {1e6 * r['build_s'] / r['frames']:>9.1f} {r['rss_mb']:>8.0f} "
             f"{r['workers_rss_mb']:>8.0f} {r['windows_s']:>10.0f}"
         )
-    largest = sizes[-1]
+    killed = args.resume_size or sizes[-1]
     resume = interrupted_build(
-        dataset(args.work_dir, largest),
-        args.work_dir / f"cache-{largest}-resume",
-        episodes=-(-largest // EPISODE_FRAMES),
+        dataset(args.work_dir, killed),
+        args.work_dir / f"cache-{killed}-resume",
+        episodes=-(-killed // EPISODE_FRAMES),
     )
-    shutil.rmtree(args.work_dir / f"cache-{largest}-resume", ignore_errors=True)
+    shutil.rmtree(args.work_dir / f"cache-{killed}-resume", ignore_errors=True)
     first, last = rows[0], rows[-1]
     per_frame = (last["build_s"] / last["frames"]) / (first["build_s"] / first["frames"])
     peak = max(last["rss_mb"], last["workers_rss_mb"])
     print(
         f"summary: build s/frame at N={last['frames']} is {per_frame:.2f}x that at N={first['frames']} "
         f"(linear: ~1); peak RSS at N={last['frames']} {peak:.0f} MB ({'<' if peak < 2048 else '>='} 2 GB target); "
-        f"throughput {last['windows_s'] / first['windows_s']:.2f}x (flat: ~1); resume: {resume}"
+        f"throughput {last['windows_s'] / first['windows_s']:.2f}x (flat: ~1); resume at N={killed}: {resume}"
     )
 
 
