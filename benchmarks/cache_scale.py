@@ -11,10 +11,9 @@ reports its wall time and peak RSS (``ru_maxrss`` of itself and of its decode wo
 of 256 train windows are then read from the cache in this process. Targets (issue #16): build
 time linear in N, peak RSS < 2 GB at 500k frames, throughput flat.
 
-Then the largest N (or ``--resume-size``) is built again and SIGKILLed once ~90% of its video jobs are
-recorded in
-``progress.jsonl``; the next build must resume: it reports how many jobs were already decoded
-and decodes only the rest.
+Then the largest N (or ``--resume-size``) is built again and SIGKILLed once ~90% of its video jobs
+are recorded in ``progress.jsonl``; the next build must resume: it reports how many jobs were
+already decoded and decodes only the rest.
 
 Prints a table, then ``summary:`` with the ratios against the smallest N measured in the same run
 (build seconds per frame, throughput) and the resume's outcome.
