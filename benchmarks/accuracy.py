@@ -698,6 +698,14 @@ def cell_text(cell: Cell | None, bold: bool, tied: bool) -> str:
     return f"**{text}**" if bold else f"{text} =" if tied else text
 
 
+def differences_text(differences: dict[str, dict]) -> str:
+    """``label: difference [low, high]; ...`` of paired differences (``paired_comparisons``' cells)."""
+    return "; ".join(
+        f"{label}: {c['difference']:+.4f} [{c['low']:+.4f}, {c['high']:+.4f}]"
+        for label, c in differences.items()
+    )
+
+
 def mse_table(
     table: Table, labels: list[str], contenders: list[str], title: Callable[[str], str] = subset_title
 ) -> str:
@@ -836,10 +844,7 @@ def markdown(table: Table, budget: Budget, mode: str, info: dict, measured: dict
         beats = all(c["high"] < 0 for c in fusion.values())
         text += (
             "Paired difference paper - fusion ablation, all modalities: "
-            + "; ".join(
-                f"{label}: {c['difference']:+.4f} [{c['low']:+.4f}, {c['high']:+.4f}]"
-                for label, c in fusion.items()
-            )
+            + differences_text(fusion)
             + ". Attention better than every other fusion beyond the interval: "
             + f"{'yes' if beats else 'no'}.\n\n"
         )

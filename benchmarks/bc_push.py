@@ -87,12 +87,10 @@ import time
 from pathlib import Path
 
 import torch
-from torchrl.envs import Compose, InitTracker, TransformedEnv
+from torchrl.envs import TransformedEnv
 
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.datasets import DataConfig, WindowDataset
-from mmf_rl.envs.modality_dropout import ModalityDropout
-from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
 from mmf_rl.eval.report import write_json, write_text
 from mmf_rl.models.registry import load_trained_model
 from mmf_rl.rl import (
@@ -104,7 +102,7 @@ from mmf_rl.rl import (
     train_bc,
     validation_errors,
 )
-from mmf_rl.rl.closed_loop import OUTAGES, SENSORS, ScriptedPolicy, over_seeds, play, summarise
+from mmf_rl.rl.closed_loop import OUTAGES, SENSORS, ScriptedPolicy, over_seeds, play, push_env, summarise
 from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
 
 VARIANTS = ("without", "with")  # forecasts
@@ -225,7 +223,7 @@ def make_env(
 ) -> TransformedEnv:
     """The push env with ``sensor`` failing the ``outage`` way, then what ``policy`` reads (none:
     the raw observation, for the scripted pusher)."""
-    transforms = [ModalityDropout([sensor], seed=seed, **OUTAGES[outage])] if sensor else []
+    readers = []
     if policy is not None:
         model, stats, data_config = forecaster
         forecast = (
@@ -233,9 +231,8 @@ def make_env(
             if policy.config.forecast_shape is not None
             else None
         )
-        transforms += policy.transforms(forecast)
-    transforms.append(InitTracker())
-    return TransformedEnv(MultimodalPushTorchEnv(image_size=image_size), Compose(*transforms))
+        readers = policy.transforms(forecast)
+    return push_env(image_size, sensor, outage, seed, readers)
 
 
 def success_table(rows: dict[str, dict]) -> str:

@@ -95,12 +95,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import Compose, InitTracker, TransformedEnv
+from torchrl.envs import TransformedEnv
 from torchrl.modules.planners import CEMPlanner
 
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
-from mmf_rl.envs.modality_dropout import ModalityDropout
-from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
 from mmf_rl.eval.report import write_json, write_text
 from mmf_rl.rl import (
     ForecasterWorldModelEnv,
@@ -109,7 +107,16 @@ from mmf_rl.rl import (
     SequenceCEMPlanner,
     WorldModel,
 )
-from mmf_rl.rl.closed_loop import OUTAGES, SENSORS, RandomPolicy, ScriptedPolicy, over_seeds, play, summarise
+from mmf_rl.rl.closed_loop import (
+    OUTAGES,
+    SENSORS,
+    RandomPolicy,
+    ScriptedPolicy,
+    over_seeds,
+    play,
+    push_env,
+    summarise,
+)
 
 FIRST_RECORDING = {"seed": 1, "exploration": 0.1}  # of the data the first world models train on
 SUCCESS_DISTANCE = 0.05  # FetchPush's distance_threshold, metres (3-D, object to goal)
@@ -148,9 +155,7 @@ def make_env(
     outage: str = "episode",
     seed: int = 0,
 ) -> TransformedEnv:
-    transforms = [ModalityDropout([dropped], seed=seed, **OUTAGES[outage])] if dropped else []
-    transforms += [world_model.history_window(), InitTracker()]
-    return TransformedEnv(MultimodalPushTorchEnv(image_size=image_size), Compose(*transforms))
+    return push_env(image_size, dropped, outage, seed, [world_model.history_window()])
 
 
 class Timed:

@@ -268,12 +268,7 @@ def markdown(table: bench.Table, info: dict, runs: dict, summary: dict, comparis
     paper_all = comparisons.get("all", {})
     if paper_all:
         text += (
-            "Paired difference paper - baseline, all sensors: "
-            + "; ".join(
-                f"{label}: {c['difference']:+.4f} [{c['low']:+.4f}, {c['high']:+.4f}]"
-                for label, c in paper_all.items()
-            )
-            + ".\n\n"
+            "Paired difference paper - baseline, all sensors: " + bench.differences_text(paper_all) + ".\n\n"
         )
     ratio = summary["paper_over_best"]
     paper_deg = summary["paper_mean_degradation_without_a_sensor"]

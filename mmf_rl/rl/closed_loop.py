@@ -11,12 +11,12 @@ import statistics
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import TransformedEnv
+from torchrl.envs import Compose, InitTracker, Transform, TransformedEnv
 
 from mmf_rl import keys
-from mmf_rl.envs.modality_dropout import UniformBursts
+from mmf_rl.envs.modality_dropout import ModalityDropout, UniformBursts
 from mmf_rl.envs.scripted import ScriptedPusher, episode_generator
-from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
+from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE, MultimodalPushTorchEnv
 
 # The sensor each outage condition removes.
 SENSORS = {"no-camera": "image", "no-force": "force"}
@@ -28,6 +28,17 @@ OUTAGES = {
     "bursts": {"outage": "bursts", "outage_prob": 0.2, "bursts": UniformBursts(2, 8)},
     "dies": {"outage": "dies", "outage_prob": 1.0, "dies_after": UniformBursts(1, 49)},
 }
+
+
+def push_env(
+    image_size: int, sensor: str | None, outage: str | None, seed: int, readers: list[Transform]
+) -> TransformedEnv:
+    """The push env with ``sensor`` failing the ``outage`` way (seeded), then the transforms a
+    policy reads through (``readers``), then an `InitTracker` (the reference policies need it)."""
+    failing = [ModalityDropout([sensor], seed=seed, **OUTAGES[outage])] if sensor else []
+    return TransformedEnv(
+        MultimodalPushTorchEnv(image_size=image_size), Compose(*failing, *readers, InitTracker())
+    )
 
 
 class ScriptedPolicy:
