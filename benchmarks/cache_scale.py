@@ -43,6 +43,11 @@ BATCH_SIZE = 256
 MAX_BATCHES = 100
 RESUME_AT = 0.9
 POLL_S = 0.05
+# lerobot's writer appends each episode to the current video file by remuxing the whole file, so
+# writing is quadratic until the file reaches ``video_files_size_in_mb`` (default 200 MB; a 64x64
+# episode is ~18 KB, so 500k frames would be one 36 MB file rewritten 2000 times). 1 MB files
+# (~56 episodes each) keep the writer linear and give the cache many files, as real datasets have.
+VIDEO_FILE_MB = 1
 
 
 def data_config(root: Path, cache_dir: Path):
@@ -64,24 +69,30 @@ def data_config(root: Path, cache_dir: Path):
 
 
 def dataset(work_dir: Path, frames: int) -> Path:
-    """The synthetic dataset of ``frames`` frames, written once (a partial one is rewritten)."""
+    """The synthetic dataset of ``frames`` frames, written once (a partial or older-layout one is rewritten)."""
     from mmf_rl.datasets.synthetic import make_synthetic_dataset
 
     root = work_dir / f"synthetic-{frames}"
     done = root / ".complete"
-    if not done.is_file():
+    layout = f"video_files_size_in_mb={VIDEO_FILE_MB}"
+    if not done.is_file() or done.read_text() != layout:
         shutil.rmtree(root, ignore_errors=True)
         episodes = [EPISODE_FRAMES] * (frames // EPISODE_FRAMES)
         episodes += [frames % EPISODE_FRAMES] if frames % EPISODE_FRAMES else []
         started = time.perf_counter()
         make_synthetic_dataset(
-            root, episodes, image_size=IMAGE_SIZE, nan_force_episodes=(), invalid_image_episodes=()
+            root,
+            episodes,
+            image_size=IMAGE_SIZE,
+            nan_force_episodes=(),
+            invalid_image_episodes=(),
+            video_files_size_in_mb=VIDEO_FILE_MB,
         )
         print(
             f"wrote {root} ({frames} frames, {len(episodes)} episodes) in {time.perf_counter() - started:.0f} s",
             flush=True,
         )
-        done.touch()
+        done.write_text(layout)
     return root
 
 

@@ -379,6 +379,13 @@ def parse_args() -> argparse.Namespace:
     )
     parser.add_argument("--workers", type=int, default=2, help="recording processes")
     parser.add_argument(
+        "--threads",
+        type=int,
+        default=2,
+        help="torch threads; use 1 on a shared machine (OpenMP threads spin-wait for a thread whose "
+        "core is busy: a 2-thread training beside another job ran 13x slower than alone)",
+    )
+    parser.add_argument(
         "--train-override",
         nargs="+",
         default=[],
@@ -452,7 +459,7 @@ def parse_args() -> argparse.Namespace:
 
 def main() -> None:
     args = parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
     started = time.perf_counter()
     phases: dict[str, float] = {}
     checkpoints = args.checkpoint or build_world_models(args, phases)

@@ -44,6 +44,7 @@ def make_synthetic_dataset(
     invalid_image_episodes: tuple[int, ...] = (2,),
     repo_id: str = "local/mmf_rl_synthetic",
     vcodec: str = "h264",
+    video_files_size_in_mb: float | None = None,
 ):
     """Record a dataset at ``root`` (must not exist) and return the ``LeRobotDataset``.
 
@@ -51,6 +52,7 @@ def make_synthetic_dataset(
     force is NaN on frames ``[5, 10)``; in each of ``invalid_image_episodes`` the camera's validity
     flag is False on frames ``[5, 10)``. ``observation.object_pose[0]`` equals
     ``episode_index + frame_index / 1000`` so a window's origin is readable from its values.
+    ``video_files_size_in_mb`` caps lerobot's video files (its default: 200 MB).
     """
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -63,6 +65,8 @@ def make_synthetic_dataset(
         use_videos=True,
         vcodec=vcodec,
     )
+    if video_files_size_in_mb is not None:
+        dataset.meta.update_chunk_settings(video_files_size_in_mb=video_files_size_in_mb)
     half = 4
     for episode, length in enumerate(episode_lengths):
         start = rng.uniform(half, image_size - half, size=2)

@@ -35,6 +35,7 @@ EPISODE_LENGTHS = [30, 25, 20, 12, 6]
 NAN_FORCE_EPISODE = 1  # force is NaN on frames [5, 10)
 INVALID_IMAGE_EPISODE = 2  # camera flagged invalid on frames [5, 10)
 IMAGE_SIZE = 24
+SYNTHETIC_IMAGE_SIZE = 32  # the recorded frames; IMAGE_SIZE is what the windows resize them to
 
 
 @pytest.fixture(scope="session")
@@ -53,7 +54,7 @@ def synthetic_root(tmp_path_factory) -> Path:
     make_synthetic_dataset(
         root,
         EPISODE_LENGTHS,
-        image_size=32,
+        image_size=SYNTHETIC_IMAGE_SIZE,
         nan_force_episodes=(NAN_FORCE_EPISODE,),
         invalid_image_episodes=(INVALID_IMAGE_EPISODE,),
     )
