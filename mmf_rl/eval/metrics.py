@@ -3,8 +3,9 @@
 Per window, then averaged over windows:
 
 * ``mse``: mean squared error of the point forecast (the forecast mean; for a latent model the
-  decode of the prior's mean) in the normalised target frame (MultiBench's metric for the push
-  task); ``mse_units``: the same in the target's units.
+  forecast of its ``eval_latent``, by default the decode of the prior's mean) in the normalised
+  target frame (MultiBench's metric for the push task); ``mse_units``: the same in the target's
+  units.
 * ``ade`` / ``fde``: average / final Euclidean distance over the target dims, in units, of the
   point forecast.
 * ``min_mse_k``, ``min_ade_k``, ``min_fde_k`` (with ``num_samples = K > 0``): the smallest MSE

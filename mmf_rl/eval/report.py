@@ -63,7 +63,8 @@ def markdown_table(
     lines.append(
         f"MSE (norm.) is on the normalised target; MSE, ADE and FDE are in {units}. The min@K columns "
         f"take each minimum on its own over {k} forecasts decoded from prior samples; the other columns "
-        "score the point forecast (a latent model's decode of the prior's mean). 'cover p%' is the share "
+        "score the point forecast (a latent model's forecast by its eval_latent; by default the decode "
+        "of the prior's mean). 'cover p%' is the share "
         "of target values inside the forecast Gaussian's central p% interval (calibrated: p%). Rows "
         "are paired: each is averaged over the same 'windows', those where every row keeps a present "
         "modality; 'available' is how many windows the row alone could be scored on. 'MSE vs all' "

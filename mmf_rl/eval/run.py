@@ -2,6 +2,7 @@
 
     mmf-rl eval checkpoint=runs/forecaster                  # the run's last checkpoint, its test split
     mmf-rl eval checkpoint=runs/forecaster data_root=/data/copy num_samples=50
+    mmf-rl eval checkpoint=runs/forecaster eval_latent=predictive   # no retraining
 
 For each subset (all modalities, each leave-one-out, each single modality) it reports MSE
 (normalised and in units), ADE/FDE of the point forecast, minMSE/minADE/minFDE over K prior
@@ -12,10 +13,16 @@ are paired: all are scored on the windows they share (see
 Writes ``results.json``, ``results.md`` and the plots into ``out_dir`` (default ``RUN_DIR/eval``).
 An ``out_dir`` outside the run directory needs ``allow_outside_run_dir=true``: a config copied
 from elsewhere cannot make an evaluation write over unrelated files by accident.
+
+``eval_latent`` / ``predictive_samples`` (``null``: as trained) score the checkpoint with another
+eval-mode latent of its model (see :class:`~mmf_rl.models.ForecasterConfig`), without retraining:
+e.g. ``eval_latent=predictive`` folds the spread of the prior's samples into the forecast's scale.
+The values used are recorded in ``results.json`` and the header of ``results.md``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 from pathlib import Path
@@ -38,12 +45,14 @@ from mmf_rl.eval.report import (
     write_json,
     write_text,
 )
-from mmf_rl.models import model_from_saved_config
+from mmf_rl.models import MODELS, model_from_saved_config
 
 EXAMPLES = [
     "mmf-rl eval checkpoint=runs/forecaster                  # the run's last checkpoint, its test split",
     "mmf-rl eval checkpoint=runs/forecaster split=val num_samples=50 plots=false",
+    "mmf-rl eval checkpoint=runs/forecaster eval_latent=predictive predictive_samples=32",
 ]
+LATENT_SETTINGS = ("eval_latent", "predictive_samples")  # model settings an eval may override
 BASELINE_KEYS = {"cv_mse": "mse", "cv_mse_units": "mse_units", "cv_ade": "ade", "cv_fde": "fde"}
 
 
@@ -78,6 +87,49 @@ def output_directory(cfg, run_dir: Path) -> Path:
     return out_dir
 
 
+def model_config_for_eval(saved: dict, overrides: dict, checkpoint_path: Path) -> dict:
+    """The checkpoint's saved model config with the eval's latent ``overrides``, checked by the
+    model's config class (a bad value or a model without the setting is a clear error)."""
+    if not overrides:
+        return saved
+    name = saved.get("name", "forecaster")
+    entry = MODELS.get(name)
+    settings = {f.name for f in dataclasses.fields(entry.config_cls)} if entry else set()
+    given = ", ".join(f"{key}={value}" for key, value in overrides.items())
+    unknown = [key for key in overrides if key not in settings]
+    if unknown:
+        raise ConfigError(
+            f"{given}: the {name!r} model of {checkpoint_path} has no setting {', '.join(unknown)}; "
+            "remove it (eval_latent and predictive_samples are settings of model=forecaster)"
+        )
+    config = {**saved, **overrides}
+    try:
+        entry.config_cls.from_dict({key: value for key, value in config.items() if key != "name"})
+    except ValueError as err:
+        raise ConfigError(f"{given} for the {name!r} model of {checkpoint_path}: {err}") from None
+    return config
+
+
+def latent_used(model, overrides: dict) -> dict:
+    """How the forecasts were decoded, for the results: the model's ``eval_latent`` (``None`` for a
+    model without latent), ``predictive_samples`` when it applies, and the eval's overrides."""
+    eval_latent = getattr(model.config, "eval_latent", None)
+    samples = model.config.predictive_samples if eval_latent == "predictive" else None
+    return {"eval_latent": eval_latent, "predictive_samples": samples, "latent_overrides": overrides}
+
+
+def latent_header(used: dict) -> str:
+    """The results.md line saying how the forecasts were decoded ("" for a model without latent)."""
+    if used["eval_latent"] is None:
+        return ""
+    line = f"Forecast latent: eval_latent={used['eval_latent']}"
+    if used["predictive_samples"] is not None:
+        line += f", predictive_samples={used['predictive_samples']}"
+    overrides = used["latent_overrides"]
+    origin = ", ".join(f"{k}={v}" for k, v in overrides.items()) if overrides else None
+    return f"{line} ({f'set by this eval: {origin}' if origin else 'as trained'})\n\n"
+
+
 def run_evaluation(cfg) -> dict:
     device = resolve_device(cfg.device)
     checkpoint = load_checkpoint(checkpoint_location(Path(cfg.checkpoint)), with_trainer_state=False)
@@ -94,7 +146,11 @@ def run_evaluation(cfg) -> dict:
     data = WindowDataset(DataConfig.from_dict(data_dict))
     # Normalise with the statistics the model was trained with, whatever data it is scored on.
     data.normalizer = Normalizer(checkpoint.tensors)
-    model = model_from_saved_config(checkpoint.meta["model_config"])
+    overrides = {name: cfg[name] for name in LATENT_SETTINGS if cfg[name] is not None}
+    # Applied to the saved config before building: the model's fixed draws follow predictive_samples.
+    model = model_from_saved_config(
+        model_config_for_eval(checkpoint.meta["model_config"], overrides, checkpoint.path)
+    )
     check_modalities_match(model.modalities, data.specs, checkpoint.path, data.config.root)
     load_model_state(model, checkpoint)
     model.to(device).eval()
@@ -134,6 +190,7 @@ def run_evaluation(cfg) -> dict:
         "split": cfg.split,
         "data_root": str(data.config.root),
         "num_samples": cfg.num_samples,
+        **latent_used(model, overrides),
         "subsets": results,
         "constant_velocity": baseline,
     }
@@ -148,7 +205,8 @@ def run_evaluation(cfg) -> dict:
     table = markdown_table(results, baseline, units, cfg.num_samples)
     table += "".join(f"\nNote: {note}\n" for note in notes)
     write_text(
-        out_dir / "results.md", f"# {checkpoint.path} on {data.config.root} ({cfg.split} split)\n\n{table}"
+        out_dir / "results.md",
+        f"# {checkpoint.path} on {data.config.root} ({cfg.split} split)\n\n{latent_header(summary)}{table}",
     )
     summary["table"], summary["plots"] = table, [str(p) for p in plots]
     return summary
@@ -241,7 +299,7 @@ def main(argv: list[str]) -> int:
             file=sys.stderr,
         )
         return 1
-    print(summary["table"])
+    print(f"{latent_header(summary)}{summary['table']}")
     for path in summary["plots"]:
         print(f"plot: {path}")
     return 0

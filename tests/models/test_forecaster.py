@@ -1,3 +1,4 @@
+import contextlib
 import dataclasses
 
 import pytest
@@ -555,3 +556,170 @@ def test_learned_prior_world_model_plans_from_the_prior_mean(small_config, mixed
             td = mixed_batch.clone()
             td.set(keys.FUTURE_ACTION, actions[:, k])
             torch.testing.assert_close(loc[:, k], model(td).get(keys.FORECAST_LOC), rtol=1e-4, atol=1e-5)
+
+
+# -- eval_latent="predictive": the moment-matched mixture of K fixed prior draws ------------------
+
+K = 4
+
+
+@pytest.fixture(params=PRIORS)
+def predictive_model(request, small_config) -> MultimodalForecaster:
+    torch.manual_seed(0)
+    config = dataclasses.replace(
+        small_config, prior=request.param, eval_latent="predictive", predictive_samples=K
+    )
+    return MultimodalForecaster(config).eval()
+
+
+@contextlib.contextmanager
+def decoder_rows(model):
+    """The row counts of the decoder calls made inside the block."""
+    rows = []
+    hook = model.decoder.register_forward_hook(lambda mod, args, out: rows.append(args[0].shape[0]))
+    try:
+        yield rows
+    finally:
+        hook.remove()
+
+
+def mixture_moments(locs: torch.Tensor, scales: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and variance of the equal-weight mixture of ``K`` Gaussians ``[K, ...]``, written out."""
+    mean = sum(locs) / len(locs)
+    variance = sum(s**2 for s in scales) / len(scales) + sum((m - mean) ** 2 for m in locs) / len(locs)
+    return mean, variance
+
+
+def test_predictive_forecast_is_the_mixture_of_k_prior_decodes_in_one_pass(predictive_model, mixed_batch):
+    model, b = predictive_model, mixed_batch.shape[0]
+    with torch.no_grad():
+        with decoder_rows(model) as rows:
+            out = model(mixed_batch.clone())
+        assert rows == [K * b]
+        assert (
+            out.get(keys.FORECAST_LOC).shape == out.get(keys.FORECAST_SCALE).shape == (b, HORIZON, TARGET_DIM)
+        )
+        assert torch.equal(out.get(keys.LATENT), out.get(keys.PRIOR_LOC))
+        # The same forecast by an explicit loop over K decodes of z_k = prior mean + prior scale * eps_k.
+        tokens, present = model.encode(mixed_batch)
+        prior_loc, prior_scale = model.prior(tokens, present)
+        decodes = [
+            model.decode(tokens, present, prior_loc + prior_scale * eps) for eps in model.predictive_noise
+        ]
+        locs, scales = torch.stack([d[0] for d in decodes]), torch.stack([d[1] for d in decodes])
+    mean, variance = mixture_moments(locs, scales)
+    torch.testing.assert_close(out.get(keys.FORECAST_LOC), mean, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out.get(keys.FORECAST_SCALE), variance.sqrt(), rtol=1e-4, atol=1e-5)
+    # The spread of the latents widens the forecast beyond the decoder's own scale, never narrows it.
+    own = scales.square().mean(0)
+    assert bool((out.get(keys.FORECAST_SCALE).square() >= own * (1 - 1e-5)).all())
+    assert bool((out.get(keys.FORECAST_SCALE).square() > own * 1.001).any())
+    assert not torch.allclose(locs[0], locs[1])  # the K latents differ
+
+
+def test_predictive_noise_is_fixed_antithetic_and_not_saved(small_config):
+    a, b = (
+        MultimodalForecaster(
+            dataclasses.replace(small_config, eval_latent="predictive", predictive_samples=6)
+        )
+        for _ in range(2)
+    )
+    noise = a.predictive_noise
+    assert noise.shape == (6, small_config.d_latent) and torch.equal(noise, b.predictive_noise)
+    assert torch.equal(noise[3:], -noise[:3]) and noise.abs().min() > 0
+    # Not in the state dict: checkpoints written before the option load, and state dicts are unchanged.
+    assert not any("predictive_noise" in name for name in a.state_dict())
+    MultimodalForecaster(small_config).load_state_dict(a.state_dict())
+
+
+def test_predictive_forecast_is_deterministic_and_leaves_the_global_rng_alone(predictive_model, batch):
+    state = torch.get_rng_state()
+    with torch.no_grad():
+        first, second = predictive_model(batch.clone()), predictive_model(batch.clone())
+    assert torch.equal(torch.get_rng_state(), state)
+    for key in (keys.FORECAST_LOC, keys.FORECAST_SCALE):
+        assert torch.equal(first.get(key), second.get(key))
+    # The check can see a consumer of the global RNG: a single prior draw is one.
+    predictive_model.config.eval_latent = "sample"
+    with torch.no_grad():
+        predictive_model(batch.clone())
+    assert not torch.equal(torch.get_rng_state(), state)
+
+
+def test_predictive_applies_to_the_degraded_decode_and_not_to_training(predictive_model, mixed_batch):
+    model, td = predictive_model, mixed_batch.clone()
+    b = td.shape[0]
+    present = torch.stack([td.get(keys.present_key(n)) for n in NAMES], 1)
+    drop = torch.zeros_like(present)
+    multi = present.sum(1) >= 2
+    drop[multi, present[multi].float().argmax(1)] = True
+    for i, name in enumerate(NAMES):
+        td.set(keys.drop_key(name), drop[:, i])
+    td.set(keys.DECODE_FROM_PRIOR, torch.ones(b, dtype=torch.bool))
+    with torch.no_grad():
+        with decoder_rows(model) as rows:
+            out = model(td.clone())
+        assert rows == [2 * K * b + b]  # full and degraded input K times each, the GSNN draw once
+        tokens, _ = model.encode(td)
+        prior_loc, prior_scale = model.prior(tokens, present)
+        decodes = [
+            model.decode(tokens, present & ~drop, prior_loc + prior_scale * eps)
+            for eps in model.predictive_noise
+        ]
+    mean, variance = mixture_moments(
+        torch.stack([d[0] for d in decodes]), torch.stack([d[1] for d in decodes])
+    )
+    torch.testing.assert_close(out.get(keys.FORECAST_DROPPED_LOC), mean, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(out.get(keys.FORECAST_DROPPED_SCALE), variance.sqrt(), rtol=1e-4, atol=1e-5)
+    with decoder_rows(model.train()) as rows:
+        model(td.clone())
+    assert rows == [3 * b]  # training decodes posterior draws, as before
+
+
+def test_predictive_world_model_plans_with_k_decodes_per_candidate(small_config, mixed_batch):
+    for prior in PRIORS:
+        torch.manual_seed(0)
+        config = dataclasses.replace(
+            small_config,
+            prior=prior,
+            eval_latent="predictive",
+            predictive_samples=K,
+            action_steps=ACTION_SHAPE[0],
+            action_dim=ACTION_SHAPE[1],
+        )
+        model = MultimodalForecaster(config).eval()
+        b, n = mixed_batch.shape[0], 3
+        actions = torch.randn(b, n, *ACTION_SHAPE, generator=torch.Generator().manual_seed(5))
+        with torch.no_grad():
+            with decoder_rows(model) as rows:
+                loc, scale = model.forecast_under_actions(mixed_batch, actions)
+            assert rows == [b * n * K], prior
+            assert loc.shape == scale.shape == (b, n, HORIZON, TARGET_DIM)
+            for k in range(n):
+                td = mixed_batch.clone()
+                td.set(keys.FUTURE_ACTION, actions[:, k])
+                out = model(td)
+                torch.testing.assert_close(loc[:, k], out.get(keys.FORECAST_LOC), rtol=1e-4, atol=1e-5)
+                torch.testing.assert_close(scale[:, k], out.get(keys.FORECAST_SCALE), rtol=1e-4, atol=1e-5)
+            model.config.eval_latent = "mean"
+            mean_loc, mean_scale = model.forecast_under_actions(mixed_batch, actions)
+        assert not torch.allclose(scale, mean_scale), prior
+
+
+def test_predictive_config_choices(small_config, small_model, batch):
+    assert small_config.eval_latent == "mean" and small_config.predictive_samples == 16
+    predictive = dataclasses.replace(small_config, eval_latent="predictive", predictive_samples=8)
+    assert ForecasterConfig.from_dict(predictive.to_dict()) == predictive
+    saved_before = {k: v for k, v in small_config.to_dict().items() if k != "predictive_samples"}
+    assert ForecasterConfig.from_dict(saved_before).predictive_samples == 16  # old checkpoints' configs load
+    with pytest.raises(ValueError, match=r"eval_latent must be one of \('mean', 'sample', 'predictive'\)"):
+        dataclasses.replace(small_config, eval_latent="median")
+    for bad in (0, 1, 3, 2.0, "8"):
+        with pytest.raises(
+            ValueError, match=f"predictive_samples must be an even integer >= 2.*found {bad!r}"
+        ):
+            dataclasses.replace(small_config, predictive_samples=bad)
+    small_model.eval().config.eval_latent = "predictive"
+    small_model.config.predictive_samples = 8  # the model was built with 16 fixed draws
+    with pytest.raises(ValueError, match="predictive_samples=8 was set after the model was built with 16"):
+        small_model(batch.clone())

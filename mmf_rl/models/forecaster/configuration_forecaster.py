@@ -10,6 +10,8 @@ from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.fusion import FUSIONS
 
+EVAL_LATENTS = ("mean", "sample", "predictive")
+
 
 @dataclass
 class ForecasterConfig:
@@ -46,9 +48,23 @@ class ForecasterConfig:
             the push benchmark (``benchmarks/accuracy.py --quick``), ``True`` lets ``z`` carry the
             future (KL ~6 nats) that the ``N(0, I)`` draws at test time do not know, so forecasts
             got much worse and seed-dependent; ``False`` was best in 5/7 presence subsets.
-        eval_latent: the latent used by ``forward`` in eval mode: ``"mean"`` (the prior's mean: a
-            deterministic forecast; ``z = 0`` under the standard prior) or ``"sample"`` (a draw
-            from the prior). :meth:`MultimodalForecaster.sample` always samples.
+        eval_latent: the latent(s) ``forward`` and
+            :meth:`~MultimodalForecaster.decode_under_actions` decode in eval mode: ``"mean"``
+            (default: the prior's mean, a deterministic forecast; ``z = 0`` under the standard
+            prior), ``"sample"`` (one draw from the prior, from the global RNG) or
+            ``"predictive"``: ``K = predictive_samples`` fixed prior draws
+            ``z_k = μ_p + σ_p ε_k`` decoded in one batched pass, and the forecast is the
+            moment-matched Gaussian of their mixture, ``loc = mean_k μ_k``,
+            ``scale = sqrt(mean_k σ_k² + var_k μ_k)``: the spread of the prior samples enters the
+            forecast's scale. It is the fix of the learned prior's overconfident scale (issue #13)
+            without retraining (``mmf-rl eval ... eval_latent=predictive``). The ``ε_k`` are
+            fixed (seeded, antithetic pairs), so the forecast is deterministic and leaves the
+            global RNG alone. Cost: every eval decode runs on ``K×`` the rows (a planner's
+            ``decode_under_actions`` decodes ``B × N × K`` rows for ``N`` candidates). It also
+            applies to a validation loss computed in eval mode. :meth:`MultimodalForecaster.sample`
+            always samples, from the global RNG.
+        predictive_samples: ``K`` of ``eval_latent="predictive"``: an even number ``>= 2`` (the
+            ``ε_k`` come in antithetic pairs ``±ε``); unused by the other eval latents.
         fusion: the multimodal encoder of the posterior: ``"agnostic"`` (the paper's
             modality-agnostic attention) or an ablation of :mod:`mmf_rl.models.fusion`
             (``"linear"``, ``"average"``, ``"sum"``, ``"cross_attention"``).
@@ -74,7 +90,8 @@ class ForecasterConfig:
     min_scale: float = 1e-3
     prior: Literal["standard", "learned"] = "standard"
     posterior_uses_target: bool | None = None
-    eval_latent: Literal["mean", "sample"] = "mean"
+    eval_latent: Literal["mean", "sample", "predictive"] = "mean"
+    predictive_samples: int = 16
     fusion: str = "agnostic"
     action_dim: int = 0
     action_steps: int = 0
@@ -117,9 +134,18 @@ class ForecasterConfig:
                 "ForecasterConfig: prior='learned' needs the posterior q(z|X, y) to read the target "
                 "(a posterior of X alone can copy the prior); set posterior_uses_target to null or true"
             )
-        if self.eval_latent not in ("mean", "sample"):
+        if self.eval_latent not in EVAL_LATENTS:
             raise ValueError(
-                f"ForecasterConfig.eval_latent must be 'mean' or 'sample', found {self.eval_latent!r}"
+                f"ForecasterConfig.eval_latent must be one of {EVAL_LATENTS}, found {self.eval_latent!r}"
+            )
+        if (
+            not isinstance(self.predictive_samples, int)
+            or self.predictive_samples < 2
+            or self.predictive_samples % 2
+        ):
+            raise ValueError(
+                "ForecasterConfig.predictive_samples must be an even integer >= 2 (the latents of "
+                f"eval_latent='predictive' come in antithetic pairs), found {self.predictive_samples!r}"
             )
         if self.action_dim < 0 or self.action_steps < 0 or (self.action_dim > 0) != (self.action_steps > 0):
             raise ValueError(

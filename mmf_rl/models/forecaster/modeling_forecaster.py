@@ -32,7 +32,12 @@ Open points of the paper, and what this implementation does:
   forecast decoded from the prior at test time degrades (see ``ForecasterConfig``).
 * **Inference.** ``z`` from the prior: ``forward`` in eval mode uses the prior's mean by
   default (deterministic forecasts for RL and metrics); :meth:`sample` draws ``K`` latents for
-  best-of-K. With the paper's standard prior ``N(0, I)`` (``prior="standard"``) the multimodal
+  best-of-K. ``eval_latent="predictive"`` decodes ``K`` fixed prior draws in one batched pass
+  and writes the moment-matched Gaussian of their mixture (mean of the means; variance = mean
+  variance + variance of the means): the forecast's scale then carries the spread of ``p(z|X)``,
+  which the decoder's own scale, trained on posterior draws that know ``y``, misses (a learned
+  prior decoded at its mean is overconfident). No retraining: ``mmf-rl eval`` can apply it to
+  any checkpoint. With the paper's standard prior ``N(0, I)`` (``prior="standard"``) the multimodal
   encoder feeds only the posterior, so a forecast decoded from the prior does not depend on it:
   it shapes the model through training alone (on the push benchmark its fusion ablations land
   within noise of it). The paper's eq. (15) integrates over ``p(z | X)`` and says the prior can
@@ -76,6 +81,31 @@ from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.fusion import build_fusion
 from mmf_rl.models.hub import PretrainedModel
 from mmf_rl.models.rows import compute_on_rows
+
+
+def antithetic_normal(num: int, dim: int) -> torch.Tensor:
+    """``num`` (even) fixed standard-normal vectors ``[num, dim]``: ``num / 2`` seeded draws ``ε``,
+    then ``-ε``.
+
+    Fixed (a private seeded generator): a predictive forecast is reproducible and leaves the global
+    RNG alone. Antithetic: the ``ε`` average exactly to 0, so for any ``K`` the mixture's mean is
+    exact for a decoder linear in ``z`` and otherwise centred on the prior-mean decode to first
+    order, the Monte Carlo error left to the curvature only.
+    """
+    half = torch.randn(num // 2, dim, generator=torch.Generator().manual_seed(0))
+    return torch.cat([half, -half])
+
+
+def moment_match(loc: torch.Tensor, scale: torch.Tensor, draws: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Gaussian with the mean and variance of the equal-weight mixture of ``draws`` Gaussians.
+
+    ``loc``, ``scale`` ``[draws × N, ...]`` (row ``k * N + n`` is component ``k`` of ``n``) ->
+    ``[N, ...]``: ``mean_k μ_k`` and ``sqrt(mean_k σ_k² + var_k μ_k)`` (population variance)."""
+    if draws == 1:
+        return loc, scale
+    loc, scale = loc.unflatten(0, (draws, -1)), scale.unflatten(0, (draws, -1))
+    variance = scale.square().mean(0) + loc.var(0, correction=0)
+    return loc.mean(0), variance.sqrt()
 
 
 class ModalityAgnosticEncoder(nn.Module):
@@ -142,7 +172,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     ``("drop", m)`` is given), and ``("forecast_from_prior", ...)`` (when requested).
 
     In train mode ``z`` is sampled from the posterior (reparameterised); in eval mode it is the
-    prior's mean (``eval_latent="mean"``; ``0`` under the standard prior) or a prior draw.
+    prior's mean (``eval_latent="mean"``; ``0`` under the standard prior), a prior draw
+    (``"sample"``), or ``K`` fixed prior draws whose decodes are moment-matched into one Gaussian
+    (``"predictive"``; ``"latent"`` is then the prior's mean).
 
     Example:
         >>> cfg = ForecasterConfig(modalities=[ModalitySpec("force", "sequence", (6,))], history=10)
@@ -179,6 +211,13 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.decoder = ModalitySpecificDecoder(config)
         self.action_encoder = (
             mlp(config.action_steps * config.action_dim, config.head_hidden, d) if config.action_dim else None
+        )
+        # The ε_k of eval_latent="predictive". Not persistent: checkpoints stay as they were, and a
+        # model saved before the option existed loads unchanged.
+        self.register_buffer(
+            "predictive_noise",
+            antithetic_normal(config.predictive_samples, config.d_latent),
+            persistent=False,
         )
 
         self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
@@ -326,37 +365,41 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             z = post_loc + post_scale * torch.randn_like(post_scale)
         else:
             z = self._eval_latent(prior_loc, prior_scale)
-        td.set(keys.LATENT, z)
+        # K latents per sample (rows k * B + b) with eval_latent="predictive", else one.
+        td.set(keys.LATENT, z if z.shape[0] == batch else prior_loc)
 
-        # Every decode of this pass (full input; degraded input; from the prior) in one decoder call.
-        presences, latents = [present], [z]
+        # Every decode of this pass (full input; degraded input; from the prior) in one decoder call;
+        # a decode is a presence [B, M] and its latents, B rows or K blocks of B rows.
+        decodes = [(present, z)]
         if kept is not None:  # teacher and student share tokens and z
-            presences.append(kept)
-            latents.append(z)
+            decodes.append((kept, z))
         from_prior = keys.DECODE_FROM_PRIOR in td.keys()
         if from_prior:  # the GSNN term: a reparameterised prior draw, so the prior head learns from it
-            presences.append(present)
-            latents.append(prior_loc + prior_scale * torch.randn_like(prior_scale))
+            decodes.append((present, prior_loc + prior_scale * torch.randn_like(prior_scale)))
         action = self.embed_actions(td)
-        copies = len(presences)
+        rows = [latent.shape[0] for _, latent in decodes]
+        copies = sum(rows) // batch
         if copies == 1:
             loc, scale = self.decode(tokens, present, z, action)
         else:
             loc, scale = self.decode(
                 tokens.repeat(copies, 1, 1),
-                torch.cat(presences),
-                torch.cat(latents),
+                torch.cat([presence.repeat(latent.shape[0] // batch, 1) for presence, latent in decodes]),
+                torch.cat([latent for _, latent in decodes]),
                 None if action is None else action.repeat(copies, 1),
             )
-        locs, scales = loc.split(batch), scale.split(batch)
-        td.set(keys.FORECAST_LOC, locs[0])
-        td.set(keys.FORECAST_SCALE, scales[0])
+        forecasts = [
+            moment_match(*parts, n // batch)
+            for *parts, n in zip(loc.split(rows), scale.split(rows), rows, strict=True)
+        ]
+        td.set(keys.FORECAST_LOC, forecasts[0][0])
+        td.set(keys.FORECAST_SCALE, forecasts[0][1])
         if kept is not None:
-            td.set(keys.FORECAST_DROPPED_LOC, locs[1])
-            td.set(keys.FORECAST_DROPPED_SCALE, scales[1])
+            td.set(keys.FORECAST_DROPPED_LOC, forecasts[1][0])
+            td.set(keys.FORECAST_DROPPED_SCALE, forecasts[1][1])
         if from_prior:
-            td.set(keys.FORECAST_FROM_PRIOR_LOC, locs[-1])
-            td.set(keys.FORECAST_FROM_PRIOR_SCALE, scales[-1])
+            td.set(keys.FORECAST_FROM_PRIOR_LOC, forecasts[-1][0])
+            td.set(keys.FORECAST_FROM_PRIOR_SCALE, forecasts[-1][1])
         return td
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
@@ -404,7 +447,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Decode encoded histories (:meth:`encode`: tokens ``[B, M, d]``, presence ``[B, M]``) under
         ``[B, N, S, A]`` normalised action sequences, ``z`` from the prior by ``eval_latent`` (its mean
-        by default)."""
+        by default; ``"predictive"`` decodes ``B × N × K`` rows in one pass and moment-matches them)."""
         self._require_actions("decode_under_actions")
         expected = (tokens.shape[0], *self.config.action_shape)
         if actions.dim() != 4 or (actions.shape[0], *actions.shape[2:]) != expected:
@@ -417,17 +460,34 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         z = self._eval_latent(
             prior_loc.repeat_interleave(candidates, 0), prior_scale.repeat_interleave(candidates, 0)
         )
+        draws = z.shape[0] // (batch * candidates)  # K with eval_latent="predictive", else 1
         embedded = self.action_encoder(actions.reshape(batch * candidates, -1))
-        loc, scale = self.decode(
-            tokens.repeat_interleave(candidates, 0), present.repeat_interleave(candidates, 0), z, embedded
+        loc, scale = moment_match(
+            *self.decode(
+                tokens.repeat_interleave(candidates, 0).repeat(draws, 1, 1),
+                present.repeat_interleave(candidates, 0).repeat(draws, 1),
+                z,
+                embedded.repeat(draws, 1),
+            ),
+            draws,
         )
         return loc.view(batch, candidates, *loc.shape[1:]), scale.view(batch, candidates, *scale.shape[1:])
 
     def _eval_latent(self, prior_loc: torch.Tensor, prior_scale: torch.Tensor) -> torch.Tensor:
-        """``z`` for an eval forecast: the prior's mean (``eval_latent="mean"``) or a prior draw."""
+        """The eval-mode latents of ``N`` prior rows by ``eval_latent``: ``[N, d_z]``, the prior's mean
+        (``"mean"``) or a draw (``"sample"``); ``[K × N, d_z]`` for ``"predictive"``, row ``k * N + n``
+        ``= μ_n + σ_n ε_k`` with the fixed ``ε_k`` of ``predictive_noise``."""
         if self.config.eval_latent == "mean":
             return prior_loc
-        return prior_loc + prior_scale * torch.randn_like(prior_scale)
+        if self.config.eval_latent == "sample":
+            return prior_loc + prior_scale * torch.randn_like(prior_scale)
+        noise = self.predictive_noise
+        if noise.shape[0] != self.config.predictive_samples:
+            raise ValueError(
+                f"model.config.predictive_samples={self.config.predictive_samples} was set after the model "
+                f"was built with {noise.shape[0]}; set it in the ForecasterConfig the model is built from"
+            )
+        return (prior_loc + prior_scale * noise.unsqueeze(1)).flatten(0, 1)
 
     def _require_actions(self, method: str) -> None:
         if self.action_encoder is None:
