@@ -1,0 +1,162 @@
+"""Calibration of the forecast's scale by eval latent: trained runs re-evaluated, nothing retrained.
+
+    .venv/bin/python benchmarks/calibration.py RUN_DIR [RUN_DIR ...] --out /tmp/calibration
+    .venv/bin/python benchmarks/calibration.py bench/acc_std/paper*/seed* --latents mean predictive
+
+The question (issue #13): the learned prior's point forecast, decoded at the prior's mean, is as
+accurate as the standard prior's, but its Gaussian scale was trained on posterior draws that know
+the future and its 90% intervals cover far less than 90% of test futures. Does the moment-matched
+predictive (``eval_latent=predictive``: the mean and variance of the mixture of the decodes of
+``K`` prior draws, ``ForecasterConfig.predictive_samples``) give calibrated intervals without
+costing point accuracy?
+
+Every run directory (a ``mmf-rl train`` run) is scored by ``mmf-rl eval``'s ``run_evaluation`` on
+its own test split (``--split``: choose settings such as ``--predictive-samples`` on ``val``), on every presence subset, once per ``--latents`` entry (``as-trained`` keeps
+the run's own ``eval_latent``), with ``--num-samples`` prior samples for minMSE@K. Runs are grouped
+by their parent directory's name (``acc_std/paper_prior_learned/seed0`` -> ``paper_prior_learned``:
+the seeds of one benchmark entry); each cell is the mean over the group's runs. The evaluations
+are written under ``--out/<group>/<run>/<latent>/``; a re-run reuses the finished ones.
+
+Writes ``--out/results.md`` and ``results.json``; ends with one ``summary:`` line per group and
+latent: the all-sensor MSE and the range over subsets of the 50% and 90% interval coverage (a
+calibrated scale: 0.5 and 0.9).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+from mmf_rl.eval.report import write_json, write_text
+
+METRICS = (
+    ("mse", "MSE", "{:.4f}"),
+    ("min_mse_k", "minMSE@K", "{:.4f}"),
+    ("nll", "NLL", "{:.1f}"),
+    ("coverage_50", "cover 50%", "{:.2f}"),
+    ("coverage_90", "cover 90%", "{:.2f}"),
+)
+
+
+def evaluate(run_dir: Path, latent: str, args) -> dict:
+    """``run_evaluation``'s summary of ``run_dir`` under ``latent`` (reused when already written)."""
+    from mmf_rl.configuration import compose_config
+    from mmf_rl.eval.run import run_evaluation
+
+    out_dir = args.out / run_dir.parent.name / run_dir.name / latent
+    done = out_dir / "results.json"
+    if done.is_file():
+        return json.loads(done.read_text())
+    overrides = [
+        f"checkpoint={run_dir}",
+        f"out_dir={out_dir}",
+        "allow_outside_run_dir=true",
+        "plots=false",
+        f"num_samples={args.num_samples}",
+        f"device={args.device}",
+        f"split={args.split}",
+    ]
+    if latent != "as-trained":
+        overrides.append(f"eval_latent={latent}")
+    if latent == "predictive":
+        overrides.append(f"predictive_samples={args.predictive_samples}")
+    started = time.perf_counter()
+    summary = run_evaluation(compose_config("eval", overrides))
+    print(f"  {run_dir} {latent}: {time.perf_counter() - started:.0f} s", flush=True)
+    return summary
+
+
+def group_table(rows: dict[str, dict[str, list[dict]]]) -> dict[str, dict[str, dict[str, float]]]:
+    """``{latent: {subset: {metric: mean over runs}}}`` from ``{latent: {run: summary}}``."""
+    table: dict[str, dict[str, dict[str, float]]] = {}
+    for latent, summaries in rows.items():
+        subsets = summaries[0]["subsets"]
+        table[latent] = {
+            subset: {
+                metric: statistics.fmean(s["subsets"][subset][metric] for s in summaries)
+                for metric, _, _ in METRICS
+                if metric in subsets[subset]
+            }
+            for subset in subsets
+        }
+    return table
+
+
+def summary_lines(tables: dict[str, dict]) -> list[str]:
+    lines = []
+    for group, table in tables.items():
+        for latent, subsets in table.items():
+            cover = {level: [row[f"coverage_{level}"] for row in subsets.values()] for level in ("50", "90")}
+            lines.append(
+                f"summary: {group} {latent}: MSE all {subsets['all']['mse']:.4f}; "
+                f"coverage 50% {min(cover['50']):.2f}-{max(cover['50']):.2f}, "
+                f"90% {min(cover['90']):.2f}-{max(cover['90']):.2f} over {len(subsets)} subsets"
+            )
+    return lines
+
+
+def markdown(tables: dict[str, dict], runs: dict[str, list[str]], args, minutes: float) -> str:
+    parts = [
+        "# Calibration by eval latent\n",
+        f"`benchmarks/calibration.py` — {minutes:.1f} min; {args.split} split; K = {args.num_samples} samples "
+        f"for minMSE@K; predictive: {args.predictive_samples} prior draws. Each cell: mean over the "
+        "group's runs.\n",
+    ]
+    for group, table in tables.items():
+        parts.append(f"\n## {group}\n\nRuns: {', '.join(f'`{r}`' for r in runs[group])}\n")
+        header = "| subset | latent | " + " | ".join(title for _, title, _ in METRICS) + " |"
+        parts += [header, "|" + "---|" * (len(METRICS) + 2)]
+        subsets = next(iter(table.values())).keys()
+        for subset in subsets:
+            for latent, rows in table.items():
+                row = rows[subset]
+                cells = [fmt.format(row[m]) if m in row else "-" for m, _, fmt in METRICS]
+                parts.append(f"| {subset} | {latent} | " + " | ".join(cells) + " |")
+    return "\n".join(parts) + "\n\n" + "\n".join(summary_lines(tables)) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("runs", type=Path, nargs="+", help="run directories of `mmf-rl train`")
+    parser.add_argument("--latents", nargs="+", default=["mean", "predictive"])
+    parser.add_argument("--predictive-samples", type=int, default=16)
+    parser.add_argument("--num-samples", type=int, default=20, help="K of minMSE@K (0: skip)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--split",
+        default="test",
+        choices=["train", "val", "test"],
+        help="choose settings on val, report test",
+    )
+    parser.add_argument("--out", type=Path, default=Path("runs/bench_calibration"))
+    args = parser.parse_args(argv)
+    unknown = sorted(set(args.latents) - {"as-trained", "mean", "sample", "predictive"})
+    if unknown:
+        parser.error(f"--latents: unknown {unknown}; choose among as-trained, mean, sample, predictive")
+    missing = [str(r) for r in args.runs if not (r / "checkpoints").is_dir()]
+    if missing:
+        parser.error(f"not `mmf-rl train` run directories (no checkpoints/ inside): {missing}")
+
+    started = time.perf_counter()
+    groups: dict[str, dict[str, list[dict]]] = {}
+    runs: dict[str, list[str]] = {}
+    for run_dir in args.runs:
+        group = run_dir.parent.name
+        runs.setdefault(group, []).append(str(run_dir))
+        for latent in args.latents:
+            groups.setdefault(group, {}).setdefault(latent, []).append(evaluate(run_dir, latent, args))
+    tables = {group: group_table(rows) for group, rows in groups.items()}
+    minutes = (time.perf_counter() - started) / 60
+    text = markdown(tables, runs, args, minutes)
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_text(args.out / "results.md", text)
+    write_json(args.out / "results.json", {"runs": runs, "tables": tables, "minutes": minutes})
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,87 @@
+"""benchmarks/calibration.py: re-evaluating trained runs under each eval latent, on recorded push data."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "calibration.py"
+SUMMARY = re.compile(
+    r"summary: (\S+) (\S+): MSE all (\S+); coverage 50% (\S+)-(\S+), 90% (\S+)-(\S+) over (\d+) subsets"
+)
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("benchmarks_calibration", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+calibration = _load()
+
+
+@pytest.fixture(scope="module")
+def learned_runs(recorded_push_root, tmp_path_factory):
+    """Two seeds of a tiny learned-prior forecaster, as a benchmark entry's ``<entry>/seed<k>``."""
+    from mmf_rl.configuration import compose_config
+    from mmf_rl.trainers.run import train
+    from tests.conftest import push_train_overrides
+
+    base = tmp_path_factory.mktemp("calibration")
+    runs = []
+    for seed in (0, 1):
+        run = base / "learned" / f"seed{seed}"
+        overrides = push_train_overrides(recorded_push_root, base / "cache", run)
+        train(compose_config("train", [*overrides, "model.prior=learned", f"trainer.seed={seed}"]))
+        runs.append(run)
+    return runs
+
+
+def test_each_latent_is_scored_on_the_same_windows_and_summarised(learned_runs, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = [*map(str, learned_runs), "--out", str(out), "--num-samples", "3", "--predictive-samples", "4"]
+    assert calibration.main(argv) == 0
+    lines = [m.groups() for m in map(SUMMARY.match, capsys.readouterr().out.splitlines()) if m]
+    assert [(group, latent) for group, latent, *_ in lines] == [
+        ("learned", "mean"),
+        ("learned", "predictive"),
+    ]
+    for _, _, mse, low50, high50, low90, high90, _ in lines:
+        assert float(mse) > 0 and 0 <= float(low50) <= float(high50) <= 1 and float(low90) <= float(high90)
+    result = json.loads((out / "results.json").read_text())
+    table = result["tables"]["learned"]
+    assert table["mean"].keys() == table["predictive"].keys()
+    # Each cell is the mean over the two seeds' own evaluations, written where the docstring says.
+    for latent in ("mean", "predictive"):
+        per_run = [
+            json.loads((out / "learned" / run.name / latent / "results.json").read_text())
+            for run in learned_runs
+        ]
+        assert per_run[0]["eval_latent"] == latent
+        expected = sum(s["subsets"]["all"]["coverage_90"] for s in per_run) / 2
+        assert table[latent]["all"]["coverage_90"] == pytest.approx(expected)
+
+
+def test_finished_evaluations_are_reused(learned_runs, tmp_path, monkeypatch, capsys):
+    out = tmp_path / "out"
+    argv = [str(learned_runs[0]), "--out", str(out), "--num-samples", "0", "--latents", "mean"]
+    assert calibration.main(argv) == 0
+    import mmf_rl.eval.run
+
+    def refuse(cfg):
+        raise AssertionError("a finished evaluation was run again")
+
+    monkeypatch.setattr(mmf_rl.eval.run, "run_evaluation", refuse)
+    assert calibration.main(argv) == 0
+
+
+def test_a_directory_that_is_not_a_run_is_refused(tmp_path):
+    with pytest.raises(SystemExit):
+        calibration.main([str(tmp_path), "--out", str(tmp_path / "out")])
