@@ -291,6 +291,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument("--record-episodes", type=int, default=None)
     parser.add_argument("--workers", type=int, default=2, help="recording processes")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=2,
+        help="torch threads; use 1 on a shared machine (OpenMP threads spin-wait for a busy core)",
+    )
     parser.add_argument("--forecaster-steps", type=int, default=None)
     parser.add_argument("--forecaster-batch-size", type=int, default=None)
     parser.add_argument(
@@ -332,7 +338,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
-    torch.set_num_threads(2)
+    torch.set_num_threads(args.threads)
     started = time.perf_counter()
     phases: dict[str, float] = {}
 
