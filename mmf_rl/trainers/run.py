@@ -114,7 +114,20 @@ def check_resumable(run_dir: Path, cfg) -> None:
                 yield f"{prefix}{k}", v
 
     a, b = dict(flat(saved)), dict(flat(current))
-    changed = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES)
+    # Settings a newer mmf-rl added since the run started: the saved config cannot hold them, and
+    # refusing them would make every run unresumable after an upgrade. They are taken as composed
+    # now (their defaults, unless set on this command line) and named.
+    added = sorted(set(b) - set(a))
+    if added:
+        warnings.warn(
+            f"resuming {run_dir}: its {saved_path.name} predates the settings "
+            + ", ".join(f"{k}={b[k]!r}" for k in added)
+            + "; the resumed run uses these values",
+            stacklevel=2,
+        )
+    changed = sorted(
+        k for k in set(a) | set(b) if k not in added and a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES
+    )
     if changed:
         details = ", ".join(f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in changed[:8])
         raise CheckpointError(

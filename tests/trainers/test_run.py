@@ -58,6 +58,18 @@ def test_existing_run_is_never_overwritten_and_resume_needs_same_config(override
     assert "differs from" in err and "model.d_latent: 4 -> 6" in err
 
 
+def test_a_run_saved_before_a_setting_existed_resumes_with_a_warning_naming_it(overrides, tmp_path):
+    import yaml
+
+    assert cli(["train", *overrides("run")]) == 0
+    config = tmp_path / "run" / "config.yaml"
+    saved = yaml.safe_load(config.read_text())
+    del saved["model"]["predictive_samples"]  # as an older mmf-rl wrote it
+    config.write_text(yaml.safe_dump(saved))
+    with pytest.warns(UserWarning, match=r"predates the settings model\.predictive_samples=16"):
+        assert cli(["train", *overrides("run"), "resume=true"]) == 0
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
