@@ -65,6 +65,7 @@ def test_existing_run_is_never_overwritten_and_resume_needs_same_config(override
         (["model=transformer"], "Could not find 'model/transformer'"),
         (["data.root=/nonexistent/dataset"], "/nonexistent/dataset"),
         (["+loss.kl_wieght=1"], "loss config: unknown keys ['kl_wieght']"),
+        (["+data.modalities.sonar.encoder=mlp"], "data config: `modalities.sonar` gives no feature"),
         (
             ["data.modalities.force={feature: observation.force, encoder: resnet}"],
             "modality 'force': encoder 'resnet' is not available; expected one of ['conv', 'conv_gru', 'gru',",
