@@ -80,8 +80,8 @@ SENSOR_FEATURES = (
     "data.modalities={cam_high:{feature:observation.images.cam_high},"
     "state:{feature:observation.state},action:{feature:action}}"
 )
-# The same with issue #6's sequence encoder for the vector sensors (the default is now "mlp"). The whole
-# mapping: a dotted override (data.modalities.state=...) after a replaced mapping does not compose.
+# The same with issue #6's sequence encoder for the vector sensors (the default is now "mlp"), as one
+# mapping (SENSOR_FEATURES + data.modalities.state.encoder=gru ... composes the same config).
 SENSOR_FEATURES_GRU = (
     "data.modalities={cam_high:{feature:observation.images.cam_high},"
     "state:{feature:observation.state,encoder:gru},action:{feature:action,encoder:gru}}"

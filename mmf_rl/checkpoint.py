@@ -206,9 +206,9 @@ def _load_safetensors(path: Path) -> dict[str, torch.Tensor]:
         ) from None
 
 
-def load_checkpoint(path: str | os.PathLike, *, with_trainer_state: bool = True) -> Checkpoint:
-    """Read a checkpoint (or the ``last`` one in a directory) without executing any code."""
-    path = resolve_checkpoint(path)
+def read_meta(path: str | os.PathLike) -> dict:
+    """The ``meta.json`` of the checkpoint directory ``path``, checked (step, format version)."""
+    path = Path(path)
     try:
         meta = json.loads((path / META_FILE).read_text())
     except (OSError, json.JSONDecodeError) as err:
@@ -220,6 +220,13 @@ def load_checkpoint(path: str | os.PathLike, *, with_trainer_state: bool = True)
             f"{path} has checkpoint format {meta['format_version']}, newer than this mmf-rl "
             f"reads ({FORMAT_VERSION}); upgrade mmf-rl"
         )
+    return meta
+
+
+def load_checkpoint(path: str | os.PathLike, *, with_trainer_state: bool = True) -> Checkpoint:
+    """Read a checkpoint (or the ``last`` one in a directory) without executing any code."""
+    path = resolve_checkpoint(path)
+    meta = read_meta(path)
     model_state = _load_safetensors(path / MODEL_FILE)
     tensors = _load_safetensors(path / TENSORS_FILE) if (path / TENSORS_FILE).exists() else {}
     trainer_state = None

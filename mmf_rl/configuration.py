@@ -6,7 +6,14 @@ the same:
 * A mapping given whole on the command line replaces the config's (``data.modalities='{cam:
   observation.images.top}'``), where Hydra would merge it into the base config's mapping. The keys
   are :data:`REPLACED_MAPPINGS`; a dotted key (``data.modalities.cam.required=true``) still edits
-  one entry.
+  one entry, whether or not the entry gives that key yet: the keys of an entry (:data:`ENTRIES`: a
+  modality, the target, the action, an outage) all have defaults in the data config, and an entry
+  given as a feature name (``cam: observation.images.top``) is short for ``{feature: ...}``.
+  Hydra alone refuses such an edit: it composes in struct mode, where ``key=value`` may only
+  change a key that exists and adding one takes ``+key=value`` (its override grammar). So the
+  overrides of these mappings are applied here, after Hydra has composed the rest (group options
+  included), in command-line order, with Hydra's own parsed values; the entry they edit must
+  exist (a misspelt modality is an error naming the ones there are).
 * Config files outside the package: ``config_dirs`` are added to Hydra's search path (their
   ``<group>/<name>.yaml`` become options of ``<group>``), and a group option may be a YAML file's
   path (``data=/path/to/mine.yaml``).
@@ -23,13 +30,16 @@ import re
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 # The configs shipped inside the package (a link to the repository's configs/ in a checkout, a
 # copy in a wheel); MMF_RL_CONFIG_DIR points elsewhere.
 DEFAULT_CONFIG_DIR = (Path(__file__).parent / "configs").resolve()
 # Mappings that a whole value on the command line replaces instead of merging into.
 REPLACED_MAPPINGS = ("data.modalities", "data.target", "data.missing", "data.action")
+# Their entries, whose keys all have defaults (ModalityConfig, TargetConfig, ActionConfig,
+# OutageConfig): a dotted override sets one whether or not the entry gives it.
+ENTRIES = ("data.modalities.*", "data.target", "data.action", "data.missing.*")
 YAML_SUFFIXES = (".yaml", ".yml")
 
 
@@ -114,9 +124,9 @@ def _config_file_option(group: str, value: str) -> str:
     return name
 
 
-def _prepare_overrides(name: str, overrides: list[str], config_dirs: list[Path]) -> list[str]:
-    """Overrides as Hydra should see them: file-path options registered by name, and whole
-    mappings of :data:`REPLACED_MAPPINGS` turned into delete + add (Hydra's ``~key ++key=value``)."""
+def _prepare_overrides(overrides: list[str], config_dirs: list[Path]) -> tuple[list[str], list]:
+    """The overrides for Hydra (file-path options registered by name), and the parsed overrides of
+    :data:`REPLACED_MAPPINGS` and their keys, which :func:`_apply_mapping_overrides` applies."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.core.override_parser.types import OverrideType
     from hydra.errors import HydraException
@@ -126,10 +136,13 @@ def _prepare_overrides(name: str, overrides: list[str], config_dirs: list[Path])
     except HydraException as err:
         raise ConfigError(str(err).strip()) from None
     groups = config_groups(config_dirs)
-    prepared, replaced = [], {}
+    for_hydra, for_mappings = [], []
     for override in parsed:
         key, line = override.key_or_group, override.input_line
         value = override.value()
+        if key.startswith(tuple(f"{m}." for m in REPLACED_MAPPINGS)) or key in REPLACED_MAPPINGS:
+            for_mappings.append(override)
+            continue
         if (
             override.type == OverrideType.CHANGE
             and key in groups
@@ -137,26 +150,86 @@ def _prepare_overrides(name: str, overrides: list[str], config_dirs: list[Path])
             and value.endswith(YAML_SUFFIXES)
         ):
             line = f"{override.get_key_element()}={_config_file_option(key, value)}"
-        elif override.type == OverrideType.CHANGE and key in REPLACED_MAPPINGS:
-            replaced[len(prepared)] = key
-            line = f"++{line}"
-        prepared.append(line)
-    if not replaced:
-        return prepared
-    # Hydra deletes only what exists: compose once without the replaced keys (and the overrides
-    # under them) to see which of them the config has as a mapping.
-    under = tuple(replaced.values())
-    base = _compose(
-        name,
-        [o for o, p in zip(prepared, parsed, strict=True) if not p.key_or_group.startswith(under)],
-        config_dirs,
+        for_hydra.append(line)
+    return for_hydra, for_mappings
+
+
+def _is_entry(path: str) -> bool:
+    parts = path.split(".")
+    return any(
+        len(parts) == len(pattern.split("."))
+        and all(p == q or q == "*" for p, q in zip(parts, pattern.split("."), strict=True))
+        for pattern in ENTRIES
     )
-    result = []
-    for i, line in enumerate(prepared):
-        if i in replaced and isinstance(OmegaConf.select(base, replaced[i]), DictConfig):
-            result.append(f"~{replaced[i]}")
-        result.append(line)
-    return result
+
+
+_ABSENT = object()
+
+
+def _apply_mapping_overrides(cfg: DictConfig, overrides: list) -> None:
+    """Apply the overrides of :data:`REPLACED_MAPPINGS` and their keys to the composed ``cfg``, in
+    order: a whole mapping replaces the config's; a key of an entry is set whether or not the entry
+    gives it (a feature-name entry becomes ``{feature: name}`` first); anything else follows Hydra's
+    rules (``key=value`` changes a key that exists, ``+`` adds one, ``++`` either, ``~`` deletes).
+
+    Hand-written because Hydra's rules differ on both points: its ``key=value`` merges a mapping into
+    the config's, and its struct mode refuses a key the entry does not give yet. The values are
+    Hydra's parsed ones."""
+    for override in overrides:
+        key, value, line = override.key_or_group, override.value(), override.input_line
+        parent, _, leaf = key.rpartition(".")
+        current = OmegaConf.select(cfg, key, default=_ABSENT, throw_on_missing=False)
+        with open_dict(cfg):
+            if override.is_delete():
+                if current is _ABSENT or (value is not None and value != current):
+                    found = "is not in the config" if current is _ABSENT else f"is {current!r}, not {value!r}"
+                    raise ConfigError(f"{line}: {key} {found}; nothing to delete")
+                del OmegaConf.select(cfg, parent)[leaf]
+            elif key in REPLACED_MAPPINGS:
+                OmegaConf.update(cfg, key, value, merge=False, force_add=True)
+            elif _is_entry(parent):
+                _expand_entry(cfg, parent, line, adding=override.is_add() or override.is_force_add())
+                OmegaConf.update(cfg, key, value, merge=True, force_add=True)
+            elif override.is_add() and current is not _ABSENT and not isinstance(value, (dict, list)):
+                raise ConfigError(
+                    f"{line}: {key} is already in the config; change it with {line[1:]} "
+                    f"(or add-or-change with +{line})"
+                )
+            elif not (override.is_add() or override.is_force_add()) and current is _ABSENT:
+                node = OmegaConf.select(cfg, parent)
+                there = (
+                    f" (it has {', '.join(map(str, node)) or 'nothing'})"
+                    if isinstance(node, DictConfig)
+                    else ""
+                )
+                raise ConfigError(
+                    f"{line}: {parent} has no {leaf!r}{there}; fix the name, or add it with +{line}"
+                )
+            else:
+                OmegaConf.update(cfg, key, value, merge=True, force_add=True)
+
+
+def _expand_entry(cfg: DictConfig, entry: str, line: str, adding: bool) -> None:
+    """Make the entry ``entry`` a mapping a key can be set in: a feature name ``s`` becomes
+    ``{feature: s}``; an entry that is not there is an error unless the override adds it."""
+    node = OmegaConf.select(cfg, entry, default=_ABSENT, throw_on_missing=False)
+    if node is _ABSENT or node is None:
+        if adding:
+            return
+        mapping, _, name = entry.rpartition(".")
+        names = OmegaConf.select(cfg, mapping)
+        names = ", ".join(str(k) for k in names) if isinstance(names, DictConfig) and names else "none"
+        if _is_entry(f"{mapping}.*"):
+            where = f"{mapping} has no entry {name!r} (it has {names})"
+        else:
+            where = f"{entry} is not set"
+        raise ConfigError(f"{line}: {where}; fix the name, or give the whole entry: +{entry}='{{...}}'")
+    if isinstance(node, str):
+        OmegaConf.update(cfg, entry, {"feature": node}, merge=False)
+    elif not isinstance(node, DictConfig):
+        raise ConfigError(
+            f"{line}: {entry} is {node!r}, not a mapping; give the whole entry: {entry}='{{...}}'"
+        )
 
 
 def _compose(name: str, overrides: list[str], config_dirs: list[Path]) -> DictConfig:
@@ -179,7 +252,9 @@ def compose_config(name: str, overrides: list[str], config_dirs: list[Path] = ()
 
     try:
         config_dirs = _check_config_dirs(list(config_dirs))
-        cfg = _compose(name, _prepare_overrides(name, overrides, config_dirs), config_dirs)
+        for_hydra, for_mappings = _prepare_overrides(overrides, config_dirs)
+        cfg = _compose(name, for_hydra, config_dirs)
+        _apply_mapping_overrides(cfg, for_mappings)
         OmegaConf.resolve(cfg)
     except (HydraException, OmegaConfBaseException) as err:
         # Hydra's messages name the key and the options; its chained causes add only noise.
@@ -226,8 +301,10 @@ def _settings_help(name: str, config_dirs: list[Path]) -> str:
     )
     if "data" in groups:
         lines += [
-            f"A whole mapping for {', '.join(REPLACED_MAPPINGS)} replaces the config's:",
-            "  data.modalities='{cam: observation.images.top, joints: observation.state}'",
+            f"A whole mapping for {', '.join(REPLACED_MAPPINGS)} replaces the config's; a dotted key",
+            "then edits one entry (whether or not the entry gives that key yet):",
+            "  data.modalities='{cam: observation.images.top, joints: observation.state}' "
+            "data.modalities.cam.encoder=conv_gru",
         ]
     return "\n".join(lines)
 

@@ -1,4 +1,5 @@
-"""Composing configs: whole mappings replace, configs outside the package, the configs in a wheel."""
+"""Composing configs: whole mappings replace, dotted keys edit their entries, configs outside the
+package, the configs in a wheel."""
 
 import re
 import shlex
@@ -11,7 +12,10 @@ import pytest
 import yaml
 from omegaconf import OmegaConf
 
+from mmf_rl.checkpoint import load_checkpoint
+from mmf_rl.cli import main as cli
 from mmf_rl.configuration import DEFAULT_CONFIG_DIR, ConfigError, compose_config, config_groups
+from tests.conftest import push_train_overrides
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -48,6 +52,112 @@ def test_a_whole_mapping_replaces_the_base_configs():
     assert data["target"] == {"feature": "observation.object_pose", "dims": [0], "relative": True}
     # The same over a data config that lacks the key (push_world_model has `action`, push has none).
     assert data_of(["data=push_world_model", "data.action=null"])["action"] is None
+
+
+TWO_MODALITIES = (
+    "data.modalities={image: {feature: observation.images.front}, force: {feature: observation.force}}"
+)
+
+
+def test_a_dotted_key_sets_a_key_its_entry_does_not_give_yet():
+    """After a whole mapping, and over a feature-name entry: the entry's keys have defaults (Hydra
+    alone needs `+` for them, in struct mode)."""
+    replaced = {"image": {"feature": "observation.images.front"}, "force": {"feature": "observation.force"}}
+    with_mlp = {**replaced, "force": {"feature": "observation.force", "encoder": "mlp"}}
+    assert data_of([TWO_MODALITIES, "data.modalities.force.encoder=mlp"])["modalities"] == with_mlp
+    for prefix in ("+", "++"):  # Hydra's spellings keep working
+        assert (
+            data_of([TWO_MODALITIES, f"{prefix}data.modalities.force.encoder=mlp"])["modalities"] == with_mlp
+        )
+    # In command-line order: a whole mapping given later replaces the edit.
+    assert data_of(["data.modalities.force.encoder=mlp", TWO_MODALITIES])["modalities"] == replaced
+    # An entry given as a feature name is {feature: name}; the others stay as they are.
+    assert data_of(["data.modalities.force.required=true"])["modalities"] == {
+        "image": "observation.images.front",
+        "force": {"feature": "observation.force", "required": True},
+        "proprio": "observation.state",
+    }
+    assert data_of(["data.target=observation.state", "data.target.dims=[0]"])["target"] == {
+        "feature": "observation.state",
+        "dims": [0],
+    }
+    assert data_of(["data=push_world_model", "data.action.dims=[0,1]"])["action"] == {
+        "feature": "action",
+        "dims": [0, 1],
+    }
+    outage = data_of(["data.missing={force: {fraction: 0.1}}", "data.missing.force.mean_burst=5"])
+    assert outage["missing"] == {"force": {"fraction": 0.1, "mean_burst": 5}}
+    assert data_of(["+data.action.feature=action"])["action"] == {"feature": "action"}
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (
+            ["data.modalities.forse.encoder=mlp"],
+            "data.modalities.forse.encoder=mlp: data.modalities has no entry 'forse' (it has image, force, "
+            "proprio); fix the name, or give the whole entry: +data.modalities.forse='{...}'",
+        ),
+        (
+            [TWO_MODALITIES, "data.modalities.proprio.encoder=mlp"],
+            "data.modalities.proprio.encoder=mlp: data.modalities has no entry 'proprio' (it has image, force)",
+        ),
+        (
+            ["data.modalities.forse=observation.force"],
+            "data.modalities.forse=observation.force: data.modalities has no 'forse' (it has image, force, "
+            "proprio); fix the name, or add it with +data.modalities.forse=observation.force",
+        ),
+        (
+            ["+data.modalities.force=observation.force"],
+            "+data.modalities.force=observation.force: data.modalities.force is already in the config; change "
+            "it with data.modalities.force=observation.force",
+        ),
+        (
+            ["data.action.feature=action"],
+            "data.action.feature=action: data.action is not set; fix the name, or give the whole entry: "
+            "+data.action='{...}'",
+        ),
+        (
+            ["data.missing={force: 0.5}", "data.missing.force.fraction=0.1"],
+            "data.missing.force.fraction=0.1: data.missing.force is 0.5, not a mapping; give the whole entry: "
+            "data.missing.force='{...}'",
+        ),
+        (
+            ["~data.modalities.force.encoder"],
+            "~data.modalities.force.encoder: data.modalities.force.encoder is not in the config; nothing to delete",
+        ),
+    ],
+)
+def test_an_edit_of_an_entry_that_is_not_there_is_a_one_line_error(overrides, message):
+    with pytest.raises(ConfigError) as error:
+        compose_config("train", overrides)
+    assert str(error.value).startswith(message) and "\n" not in str(error.value)
+
+
+def test_mmf_rl_train_trains_with_the_edited_entry(recorded_push_root, tmp_path, capsys):
+    run = tmp_path / "run"
+    edit = [
+        "data.modalities={image: observation.images.front, force: {feature: observation.force}}",
+        "data.modalities.force.encoder=mlp",
+    ]
+    assert (
+        cli(["train", *push_train_overrides(recorded_push_root, tmp_path / "cache", run, steps=2), *edit])
+        == 0
+    )
+    modalities = {
+        m["name"]: m for m in load_checkpoint(run / "checkpoints").meta["model_config"]["modalities"]
+    }
+    assert sorted(modalities) == ["force", "image"] and modalities["force"]["encoder"] == "mlp"
+    assert yaml.safe_load((run / "config.yaml").read_text())["data"]["modalities"]["force"] == {
+        "feature": "observation.force",
+        "encoder": "mlp",
+    }
+
+    capsys.readouterr()
+    assert cli(["train", "--cfg", edit[0], "data.modalities.forse.encoder=mlp"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("mmf-rl train: error: data.modalities.forse.encoder=mlp: data.modalities has no ")
+    assert "\n" not in err
 
 
 def test_configs_outside_the_package(tmp_path):

@@ -7,7 +7,7 @@ gives it back so a run can store exactly what it trained on, missingness protoco
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 
 from mmf_rl.configuration import reject_unknown_keys
@@ -242,25 +242,17 @@ class DataConfig:
         for required in ("modalities", "target"):
             if required not in d:
                 raise ValueError(f"data config: missing key `{required}`")
-        modalities = {}
-        for name, value in dict(d["modalities"]).items():
-            value = {"feature": value} if isinstance(value, str) else dict(value)
-            reject_unknown_keys(ModalityConfig, value, f"data config: modalities.{name}")
-            modalities[str(name)] = ModalityConfig(**value)
-        target = d["target"]
-        target = {"feature": target} if isinstance(target, str) else dict(target)
-        reject_unknown_keys(TargetConfig, target, "data config: target")
-        d["modalities"] = modalities
-        d["target"] = TargetConfig(**target)
+        d["modalities"] = {
+            str(name): _entry(ModalityConfig, value, f"modalities.{name}")
+            for name, value in dict(d["modalities"]).items()
+        }
+        d["target"] = _entry(TargetConfig, d["target"], "target")
         missing = d.get("missing", {})
         if not isinstance(missing, str):
             missing = {str(k): _missing_entry(k, v) for k, v in dict(missing).items()}
         d["missing"] = missing
-        action = d.get("action")
-        if action is not None:
-            action = {"feature": action} if isinstance(action, str) else dict(action)
-            reject_unknown_keys(ActionConfig, action, "data config: action")
-            d["action"] = ActionConfig(**action)
+        if d.get("action") is not None:
+            d["action"] = _entry(ActionConfig, d["action"], "action")
         return cls(**d)
 
     @property
@@ -313,6 +305,29 @@ class DataConfig:
         if self.cache_dir is not None:
             return Path(self.cache_dir)
         return Path(os.environ.get("MMF_RL_CACHE", Path.home() / ".cache" / "mmf_rl")) / "windows"
+
+
+def _entry(cls, value, key: str):
+    """One entry of the data config (a modality, the target, the action): a mapping of ``cls``'s
+    fields, or just the name of its feature."""
+    if isinstance(value, str):
+        value = {"feature": value}
+    elif isinstance(value, dict) or hasattr(value, "items"):
+        value = dict(value)
+    else:
+        raise ValueError(f"data config: `{key}` must be a feature name or a mapping, found {value!r}")
+    reject_unknown_keys(cls, value, f"data config: {key}")
+    absent = [
+        f.name
+        for f in fields(cls)
+        if f.default is MISSING and f.default_factory is MISSING and f.name not in value
+    ]
+    if absent:
+        raise ValueError(
+            f"data config: `{key}` gives no {', '.join(absent)} (found {value}); give the dataset feature it "
+            f"reads, e.g. data.{key}.feature=observation.state"
+        )
+    return cls(**value)
 
 
 def _missing_entry(name, value) -> float | OutageConfig:

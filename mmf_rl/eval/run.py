@@ -1,8 +1,17 @@
-"""`mmf-rl eval checkpoint=RUN_DIR [overrides]`: score a trained forecaster on every presence subset.
+"""`mmf-rl eval checkpoint=DIR [overrides]`: score a trained forecaster on every presence subset.
 
     mmf-rl eval checkpoint=runs/forecaster                  # the run's last checkpoint, its test split
     mmf-rl eval checkpoint=runs/forecaster data_root=/data/copy num_samples=50
     mmf-rl eval checkpoint=runs/forecaster eval_latent=predictive   # no retraining
+    mmf-rl eval checkpoint=exports/g1 data_root=/data/g1    # a save_pretrained directory (or hub download)
+
+``checkpoint`` is a training run directory, its ``checkpoints/``, one checkpoint, or a directory
+written by ``save_pretrained`` (``config.json``, ``model.safetensors``, ``normalization.safetensors``,
+``data_config.json``: what ``mmf-rl train`` leaves in ``RUN_DIR/model``, ``model.save_pretrained(dir)``
+writes, or ``hf download USER/MODEL --local-dir DIR`` fetches). The model is scored on the data
+its data config names, with its normalisation statistics; ``data_root`` says where that dataset
+is on this machine when it is elsewhere (a saved root that does not exist here is an error
+naming it).
 
 For each subset (all modalities, each leave-one-out, each single modality) it reports MSE
 (normalised and in units), ADE/FDE of the point forecast, minMSE/minADE/minFDE over K prior
@@ -10,19 +19,25 @@ samples, NLL, the coverage of the forecast's central 50% and 90% intervals, and 
 degradation against all modalities; the constant-velocity baseline is a reference row. The rows
 are paired: all are scored on the windows they share (see
 :func:`~mmf_rl.eval.metrics.evaluate_presence_subsets`), with the window counts in the table.
-Writes ``results.json``, ``results.md`` and the plots into ``out_dir`` (default ``RUN_DIR/eval``).
-An ``out_dir`` outside the run directory needs ``allow_outside_run_dir=true``: a config copied
-from elsewhere cannot make an evaluation write over unrelated files by accident.
+Writes ``results.json``, ``results.md`` and the plots into ``out_dir``: by default ``RUN_DIR/eval``
+for a run or its checkpoints, ``DIR/eval`` for a save_pretrained directory (the directory stands
+for the run: a copy of the model carries its evaluations). An ``out_dir`` outside that directory
+needs ``allow_outside_run_dir=true``: a config copied from elsewhere cannot make an evaluation
+write over unrelated files by accident. A save_pretrained directory inside the Hugging Face cache
+(``from_pretrained``'s or ``snapshot_download``'s copy) needs an ``out_dir`` elsewhere: the cache
+is not a place for results. ``results.json`` names the ``checkpoint`` scored and its training
+``step``; a save_pretrained directory records no step (``step: null``, and a note says so).
 
-``eval_latent`` / ``predictive_samples`` (``null``: as trained) score the checkpoint with another
-eval-mode latent of its model (see :class:`~mmf_rl.models.ForecasterConfig`), without retraining:
-e.g. ``eval_latent=predictive`` folds the spread of the prior's samples into the forecast's scale.
-The values used are recorded in ``results.json`` and the header of ``results.md``.
+``eval_latent`` / ``predictive_samples`` (``null``: as trained) score the model with another
+eval-mode latent (see :class:`~mmf_rl.models.ForecasterConfig`), without retraining: e.g.
+``eval_latent=predictive`` folds the spread of the prior's samples into the forecast's scale.
+They are applied to the saved model config before the model is built, for a checkpoint and a
+save_pretrained directory alike (``load_trained_model(..., config_overrides=...)``). The values
+used are recorded in ``results.json`` and the header of ``results.md``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import sys
 from pathlib import Path
@@ -31,7 +46,7 @@ import torch
 from omegaconf import OmegaConf
 
 from mmf_rl import keys
-from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state
+from mmf_rl.checkpoint import CheckpointError
 from mmf_rl.configuration import ConfigError, parse_config_command
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
 from mmf_rl.datasets.splits import Normalizer
@@ -45,69 +60,67 @@ from mmf_rl.eval.report import (
     write_json,
     write_text,
 )
-from mmf_rl.models import MODELS, model_from_saved_config
+from mmf_rl.models import TrainedModelSource, load_trained_model, locate_trained_model
+from mmf_rl.models.registry import TRAINED_MODEL_KINDS
 
 EXAMPLES = [
     "mmf-rl eval checkpoint=runs/forecaster                  # the run's last checkpoint, its test split",
     "mmf-rl eval checkpoint=runs/forecaster split=val num_samples=50 plots=false",
     "mmf-rl eval checkpoint=runs/forecaster eval_latent=predictive predictive_samples=32",
+    "mmf-rl eval checkpoint=exports/g1 data_root=/data/g1     # save_pretrained dir -> exports/g1/eval",
 ]
 LATENT_SETTINGS = ("eval_latent", "predictive_samples")  # model settings an eval may override
 BASELINE_KEYS = {"cv_mse": "mse", "cv_mse_units": "mse_units", "cv_ade": "ade", "cv_fde": "fde"}
 
 
-def checkpoint_location(path: Path) -> Path:
-    """A run directory, its ``checkpoints/`` or a single checkpoint directory."""
-    return path / "checkpoints" if (path / "checkpoints").is_dir() else path
-
-
-def check_modalities_match(model_specs, data_specs, checkpoint_path: Path, data_root) -> None:
+def check_modalities_match(model_specs, data_specs, source_path: Path, data_root) -> None:
     def describe(specs):
         return {s.name: (s.kind, tuple(s.shape)) for s in specs}
 
     model_side, data_side = describe(model_specs), describe(data_specs)
     if model_side != data_side:
         raise CheckpointError(
-            f"the checkpoint {checkpoint_path} was trained on modalities {model_side} but the data "
+            f"the model {source_path} was trained on modalities {model_side} but the data "
             f"at {data_root} gives {data_side}; evaluate on a dataset with the same features"
         )
 
 
-def output_directory(cfg, run_dir: Path) -> Path:
-    """``out_dir`` resolved; outside ``run_dir`` only when ``allow_outside_run_dir`` says so."""
-    run_dir = run_dir.resolve()
+def output_directory(cfg, source: TrainedModelSource) -> Path:
+    """``out_dir`` resolved (default: ``eval/`` in the run directory, or in the save_pretrained
+    directory); outside that directory only when ``allow_outside_run_dir`` says so."""
+    from huggingface_hub.constants import HF_HUB_CACHE
+
+    home = (source.path if source.kind == "save_pretrained" else source.path.parent.parent).resolve()
     if cfg.out_dir is None:
-        return run_dir / "eval"
+        if home.is_relative_to(Path(HF_HUB_CACHE).resolve()):
+            raise ConfigError(
+                f"{source.path} is in the Hugging Face cache ({HF_HUB_CACHE}); pass out_dir=DIR "
+                "allow_outside_run_dir=true to write the evaluation elsewhere"
+            )
+        return home / "eval"
     out_dir = Path(cfg.out_dir).resolve()
-    if not out_dir.is_relative_to(run_dir) and not cfg.allow_outside_run_dir:
+    if not out_dir.is_relative_to(home) and not cfg.allow_outside_run_dir:
+        what = "save_pretrained directory" if source.kind == "save_pretrained" else "run directory"
         raise ConfigError(
-            f"out_dir={cfg.out_dir} resolves to {out_dir}, outside the run directory {run_dir}; "
-            "pass allow_outside_run_dir=true to write there, or choose an out_dir inside the run"
+            f"out_dir={cfg.out_dir} resolves to {out_dir}, outside the {what} {home}; "
+            f"pass allow_outside_run_dir=true to write there, or choose an out_dir inside {home}"
         )
     return out_dir
 
 
-def model_config_for_eval(saved: dict, overrides: dict, checkpoint_path: Path) -> dict:
-    """The checkpoint's saved model config with the eval's latent ``overrides``, checked by the
-    model's config class (a bad value or a model without the setting is a clear error)."""
-    if not overrides:
-        return saved
-    name = saved.get("name", "forecaster")
-    entry = MODELS.get(name)
-    settings = {f.name for f in dataclasses.fields(entry.config_cls)} if entry else set()
-    given = ", ".join(f"{key}={value}" for key, value in overrides.items())
-    unknown = [key for key in overrides if key not in settings]
-    if unknown:
+def data_config_for_eval(saved: dict, data_root, source: TrainedModelSource) -> DataConfig:
+    """The data config the model was trained with, on ``data_root`` when given. A saved root that
+    does not exist here (a model trained on another machine) is an error naming ``data_root=``."""
+    data = dict(saved)
+    if data_root is not None:
+        data["root"] = str(data_root)
+    elif data.get("root") is not None and not Path(data["root"]).exists():
         raise ConfigError(
-            f"{given}: the {name!r} model of {checkpoint_path} has no setting {', '.join(unknown)}; "
-            "remove it (eval_latent and predictive_samples are settings of model=forecaster)"
+            f"the data config saved with {source.path} reads the dataset at {data['root']}, which does not "
+            f"exist on this machine (from {Path.cwd()}); pass data_root=/path/to/the/dataset (a copy with "
+            f"the same features: {', '.join(sorted(data.get('modalities', {})))})"
         )
-    config = {**saved, **overrides}
-    try:
-        entry.config_cls.from_dict({key: value for key, value in config.items() if key != "name"})
-    except ValueError as err:
-        raise ConfigError(f"{given} for the {name!r} model of {checkpoint_path}: {err}") from None
-    return config
+    return DataConfig.from_dict(data)
 
 
 def latent_used(model, overrides: dict) -> dict:
@@ -132,27 +145,16 @@ def latent_header(used: dict) -> str:
 
 def run_evaluation(cfg) -> dict:
     device = resolve_device(cfg.device)
-    checkpoint = load_checkpoint(checkpoint_location(Path(cfg.checkpoint)), with_trainer_state=False)
+    source = locate_trained_model(cfg.checkpoint)
     # Checked before the slow part: a refused out_dir fails in a second, not after the scoring.
-    out_dir = output_directory(cfg, checkpoint.path.parent.parent)
-    train_cfg = checkpoint.meta.get("config")
-    if not train_cfg or "model_config" not in checkpoint.meta:
-        raise CheckpointError(
-            f"{checkpoint.path}/meta.json lacks the run config; it was not written by `mmf-rl train`"
-        )
-    data_dict = dict(train_cfg["data"])
-    if cfg.data_root is not None:
-        data_dict["root"] = str(cfg.data_root)
-    data = WindowDataset(DataConfig.from_dict(data_dict))
-    # Normalise with the statistics the model was trained with, whatever data it is scored on.
-    data.normalizer = Normalizer(checkpoint.tensors)
+    out_dir = output_directory(cfg, source)
     overrides = {name: cfg[name] for name in LATENT_SETTINGS if cfg[name] is not None}
     # Applied to the saved config before building: the model's fixed draws follow predictive_samples.
-    model = model_from_saved_config(
-        model_config_for_eval(checkpoint.meta["model_config"], overrides, checkpoint.path)
-    )
-    check_modalities_match(model.modalities, data.specs, checkpoint.path, data.config.root)
-    load_model_state(model, checkpoint)
+    model, stats, data_config = load_trained_model(source.path, config_overrides=overrides)
+    data = WindowDataset(data_config_for_eval(data_config, cfg.data_root, source))
+    # Normalise with the statistics the model was trained with, whatever data it is scored on.
+    data.normalizer = Normalizer(stats)
+    check_modalities_match(model.modalities, data.specs, source.path, data.config.root)
     model.to(device).eval()
 
     if len(data.split_windows[cfg.split]) == 0:
@@ -184,9 +186,14 @@ def run_evaluation(cfg) -> dict:
         if skipped
         else []
     )
+    if source.step is None:
+        notes.append(
+            f"training step unknown: {source.path} is a save_pretrained directory, which records none"
+        )
     summary = {
-        "checkpoint": str(checkpoint.path),
-        "step": checkpoint.step,
+        "checkpoint": str(source.path),
+        "model_format": source.kind,
+        "step": source.step,
         "split": cfg.split,
         "data_root": str(data.config.root),
         "num_samples": cfg.num_samples,
@@ -206,7 +213,7 @@ def run_evaluation(cfg) -> dict:
     table += "".join(f"\nNote: {note}\n" for note in notes)
     write_text(
         out_dir / "results.md",
-        f"# {checkpoint.path} on {data.config.root} ({cfg.split} split)\n\n{latent_header(summary)}{table}",
+        f"# {source.path} on {data.config.root} ({cfg.split} split)\n\n{latent_header(summary)}{table}",
     )
     summary["table"], summary["plots"] = table, [str(p) for p in plots]
     return summary
@@ -287,9 +294,7 @@ def main(argv: list[str]) -> int:
             print(OmegaConf.to_yaml(cfg), end="")
             return 0
         if cfg.get("checkpoint") is None:
-            raise ConfigError(
-                "checkpoint=PATH is required (a run directory, its checkpoints/ or one checkpoint)"
-            )
+            raise ConfigError(f"checkpoint=PATH is required: {TRAINED_MODEL_KINDS}")
         summary = run_evaluation(cfg)
     except (ConfigError, CheckpointError, FileNotFoundError, ValueError, KeyError) as err:
         if os.environ.get("MMF_RL_DEBUG"):

@@ -8,18 +8,29 @@ paper's forecaster.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from huggingface_hub.constants import CONFIG_NAME
 from torch import nn
 
-from mmf_rl.checkpoint import META_FILE, CheckpointError, load_checkpoint, load_model_state
+from mmf_rl.checkpoint import (
+    LAST_POINTER,
+    META_FILE,
+    CheckpointError,
+    load_checkpoint,
+    load_model_state,
+    read_meta,
+    resolve_checkpoint,
+)
+from mmf_rl.configuration import ConfigError
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.baselines import MVAE, LateFusionLSTM, MulT
 from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
-from mmf_rl.models.hub import DATA_CONFIG_FILE, check_state_dict, read_pretrained_config
+from mmf_rl.models.hub import DATA_CONFIG_FILE, NORMALIZATION_FILE, check_state_dict, read_pretrained_config
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, GaussianNLLLoss, LossConfig, MissingModalityLoss
 
 
@@ -129,10 +140,62 @@ def model_from_saved_config(saved: dict) -> nn.Module:
     return entry.model_cls(entry.config_cls.from_dict(cfg))
 
 
-def from_pretrained(model_id: str | os.PathLike, **kwargs) -> nn.Module:
-    """Any registered model saved by ``save_pretrained``: a local directory or a hub repository id."""
-    name = read_pretrained_config(str(model_id), **kwargs).get("name", "forecaster")
-    return _entry(name).model_cls.from_pretrained(str(model_id), **kwargs)
+def model_config_with_overrides(saved: dict, overrides: dict | None, where) -> dict:
+    """A saved model config (:func:`saved_config`'s form) with ``overrides`` of its settings (e.g. an
+    eval's ``eval_latent``), checked by the model's config class: a setting the model does not
+    have, or a bad value, is a :class:`ConfigError` naming it and the model saved at ``where``."""
+    if not overrides:
+        return dict(saved)
+    name = saved.get("name", "forecaster")
+    entry = _entry(name)
+
+    def settings(config_cls) -> set[str]:
+        return {f.name for f in dataclasses.fields(config_cls)}
+
+    given = ", ".join(f"{key}={value}" for key, value in overrides.items())
+    unknown = [key for key in overrides if key not in settings(entry.config_cls)]
+    if unknown:
+        having = sorted(n for n, e in MODELS.items() if set(unknown) <= settings(e.config_cls))
+        raise ConfigError(
+            f"{given}: the {name!r} model of {where} has no setting {', '.join(unknown)}; remove it"
+            + (f" (models that have it: {', '.join(having)})" if having else "")
+        )
+    config = {**saved, **overrides}
+    try:
+        entry.config_cls.from_dict({key: value for key, value in config.items() if key != "name"})
+    except ValueError as err:
+        raise ConfigError(f"{given} for the {name!r} model of {where}: {err}") from None
+    return config
+
+
+def from_pretrained(
+    model_id: str | os.PathLike, *, config_overrides: dict | None = None, **kwargs
+) -> nn.Module:
+    """Any registered model saved by ``save_pretrained``: a local directory or a hub repository id.
+
+    ``config_overrides`` change settings of the saved config before the model is built (see
+    :func:`model_config_with_overrides`); ``kwargs`` go to the class's ``from_pretrained``."""
+    saved = read_pretrained_config(str(model_id), **kwargs)
+    config = model_config_with_overrides(saved, config_overrides, model_id)
+    entry = _entry(config.get("name", "forecaster"))
+    # An explicit `config` replaces the mixin's reading of config.json (huggingface_hub's ModelHubMixin).
+    return entry.model_cls.from_pretrained(str(model_id), config=config, **kwargs)
+
+
+TRAINED_MODEL_KINDS = (
+    "a run directory, its checkpoints/, one checkpoint (meta.json) or a directory written by save_pretrained "
+    f"({CONFIG_NAME}, model.safetensors, {NORMALIZATION_FILE}, {DATA_CONFIG_FILE})"
+)
+
+
+@dataclass(frozen=True)
+class TrainedModelSource:
+    """What :func:`load_trained_model` reads: a checkpoint of a ``mmf-rl train`` run, or a directory
+    written by ``save_pretrained`` (an export or a hub download: it records no training step)."""
+
+    path: Path  # the checkpoint directory (step_*), or the save_pretrained directory
+    kind: str  # "checkpoint" | "save_pretrained"
+    step: int | None  # the checkpoint's training step; None for a save_pretrained directory
 
 
 def _trained_location(path: Path) -> Path:
@@ -140,30 +203,60 @@ def _trained_location(path: Path) -> Path:
     return path / "checkpoints" if (path / "checkpoints").is_dir() else path
 
 
-def load_trained_model(path, map_location="cpu") -> tuple[nn.Module, dict, dict]:
+def locate_trained_model(path) -> TrainedModelSource:
+    """Where the trained model ``path`` names is (see :data:`TRAINED_MODEL_KINDS`), without loading it;
+    anything else is a :class:`CheckpointError` saying what was found and what is expected."""
+    given = Path(path)
+    location = _trained_location(given)
+    if (location / CONFIG_NAME).is_file() and not (location / META_FILE).is_file():
+        return TrainedModelSource(location, "save_pretrained", None)
+    if not given.exists():
+        raise CheckpointError(f"{given} does not exist; expected {TRAINED_MODEL_KINDS}")
+    if not location.is_dir():
+        raise CheckpointError(f"{location} is a file, not a trained model; expected {TRAINED_MODEL_KINDS}")
+    if not any((location / name).is_file() for name in (META_FILE, LAST_POINTER)):
+        found = sorted(p.name + ("/" if p.is_dir() else "") for p in location.iterdir())
+        holds = ", ".join(found[:5]) + (" ..." if len(found) > 5 else "") if found else "nothing"
+        raise CheckpointError(
+            f"{location} is not a trained model (it holds {holds}); expected {TRAINED_MODEL_KINDS}"
+        )
+    checkpoint = resolve_checkpoint(location)
+    return TrainedModelSource(checkpoint, "checkpoint", int(read_meta(checkpoint)["step"]))
+
+
+def load_trained_model(
+    path, map_location="cpu", config_overrides: dict | None = None
+) -> tuple[nn.Module, dict, dict]:
     """A trained model with its weights in eval mode, its normalisation stats and its data config.
 
     ``path``: a run directory, its ``checkpoints/``, one checkpoint, or a directory written by
-    ``save_pretrained``. The model carries the stats and data config too (``normalization_stats``,
-    ``data_config``), so ``model.save_pretrained(dir)`` exports all it needs."""
-    path = _trained_location(Path(path))
-    if (path / "config.json").is_file() and not (path / META_FILE).is_file():
-        if not (path / DATA_CONFIG_FILE).is_file():
+    ``save_pretrained`` (:func:`locate_trained_model`). ``config_overrides`` change settings of the
+    saved model config before the model is built, either way (:func:`model_config_with_overrides`;
+    e.g. ``{"eval_latent": "predictive"}``). The model carries the stats and data config too
+    (``normalization_stats``, ``data_config``), so ``model.save_pretrained(dir)`` exports all it needs."""
+    source = locate_trained_model(path)
+    if source.kind == "save_pretrained":
+        absent = [f for f in (NORMALIZATION_FILE, DATA_CONFIG_FILE) if not (source.path / f).is_file()]
+        if absent:
             raise CheckpointError(
-                f"{path} holds a saved model without its data config ({DATA_CONFIG_FILE}); "
-                "save it from a trained run (load_trained_model(run).save_pretrained(dir))"
+                f"{source.path} holds a saved model without {' and '.join(absent)} (its normalisation "
+                "statistics and data config); save it from a trained run "
+                "(load_trained_model(run).save_pretrained(dir))"
             )
-        model = from_pretrained(path, map_location=map_location)
-        return model, model.normalization_stats or {}, model.data_config
-    checkpoint = load_checkpoint(path, with_trainer_state=False)
-    if "model_config" not in checkpoint.meta:
+        model = from_pretrained(source.path, config_overrides=config_overrides, map_location=map_location)
+        return model, model.normalization_stats, model.data_config
+    checkpoint = load_checkpoint(source.path, with_trainer_state=False)
+    data_config = checkpoint.meta.get("config", {}).get("data")
+    if "model_config" not in checkpoint.meta or not data_config:
         raise CheckpointError(
-            f"{checkpoint.path} has no 'model_config' in its meta.json; it was not written by "
-            "`mmf-rl train` (or save_checkpoint(meta={'model_config': saved_config(...)}))"
+            f"{checkpoint.path}/{META_FILE} lacks the model config or the run config ('model_config', "
+            "'config': {'data': ...}); it was not written by `mmf-rl train` (or save_checkpoint(meta="
+            "{'model_config': saved_config(...), 'config': {'data': data_config.to_dict()}}))"
         )
-    model = model_from_saved_config(checkpoint.meta["model_config"])
+    model = model_from_saved_config(
+        model_config_with_overrides(checkpoint.meta["model_config"], config_overrides, checkpoint.path)
+    )
     load_model_state(model, checkpoint)
-    data_config = checkpoint.meta.get("config", {}).get("data", {})
     model.normalization_stats, model.data_config = checkpoint.tensors, data_config
     return model.to(map_location).eval(), checkpoint.tensors, data_config
 

@@ -1,19 +1,17 @@
 """`mmf-rl train` + `mmf-rl eval` of the learned prior on a recording whose sensors fail in some windows;
-evaluating its checkpoint with another eval latent."""
+evaluating its checkpoint with another eval latent; evaluating its save_pretrained export."""
 
 import json
-from pathlib import Path
+import shutil
 
 import pytest
 import torch
 
 from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
-from mmf_rl.configuration import ConfigError
 from mmf_rl.datasets import DataConfig, WindowDataset
-from mmf_rl.eval.run import model_config_for_eval
-from mmf_rl.models import build_model, saved_config
-from tests.conftest import HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, push_train_overrides
+from mmf_rl.models import load_trained_model
+from tests.conftest import push_train_overrides
 
 NEW_COLUMNS = ("available", "minMSE@K (norm.)", "minADE@K", "minFDE@K", "NLL", "cover 50%", "cover 90%")
 
@@ -125,22 +123,134 @@ def test_eval_names_a_bad_latent_override(learned_prior_run, capsys, override, m
     assert not out_dir.exists()
 
 
-def test_latent_override_of_a_baseline_names_the_model():
-    """A baseline without the setting refuses it by name; the MVAE takes the eval latents it has."""
-    checkpoint = Path("runs/x/checkpoints/step_6")
-    saved = {
-        name: saved_config(name, build_model({"name": name}, SMALL_MODALITIES, HISTORY, HORIZON, TARGET_DIM))
-        for name in ("lf_lstm", "mvae")
-    }
-    with pytest.raises(
-        ConfigError, match=r"eval_latent=predictive: the 'lf_lstm' model of runs/x.* no setting eval_latent"
-    ):
-        model_config_for_eval(saved["lf_lstm"], {"eval_latent": "predictive"}, checkpoint)
-    with pytest.raises(ConfigError, match="the 'mvae' model of .* has no setting predictive_samples"):
-        model_config_for_eval(saved["mvae"], {"predictive_samples": 8}, checkpoint)
-    with pytest.raises(ConfigError, match="'mvae' model .*MVAEConfig.eval_latent must be 'mean' or 'sample'"):
-        model_config_for_eval(saved["mvae"], {"eval_latent": "predictive"}, checkpoint)
-    assert (
-        model_config_for_eval(saved["mvae"], {"eval_latent": "sample"}, checkpoint)["eval_latent"] == "sample"
+@pytest.fixture(scope="module")
+def exported(learned_prior_run, tmp_path_factory):
+    """The run's last checkpoint exported with save_pretrained, as a user shares it."""
+    model, _, _ = load_trained_model(learned_prior_run)
+    path = tmp_path_factory.mktemp("exported") / "learned_prior"
+    model.save_pretrained(path)
+    return path
+
+
+def results(path) -> dict:
+    return json.loads((path / "results.json").read_text())
+
+
+def assert_same_scores(mine: dict, reference: dict) -> None:
+    """The same rows on the same windows with the same numbers (to 1e-6)."""
+    assert mine["subsets"].keys() == reference["subsets"].keys()
+    for name, row in mine["subsets"].items():
+        assert row.keys() == reference["subsets"][name].keys(), name
+        for metric, value in row.items():
+            assert value == pytest.approx(reference["subsets"][name][metric], abs=1e-6), (name, metric)
+    assert mine["constant_velocity"] == pytest.approx(reference["constant_velocity"], abs=1e-6)
+
+
+def test_eval_of_a_save_pretrained_export_scores_like_the_run(learned_prior_run, exported, capsys):
+    run, common = learned_prior_run, ["num_samples=5", "plots=false"]
+    assert cli(["eval", f"checkpoint={run}", *common, f"out_dir={run / 'eval_as_run'}"]) == 0
+    assert cli(["eval", f"checkpoint={exported}", *common]) == 0
+    capsys.readouterr()
+    reference, mine = results(run / "eval_as_run"), results(exported / "eval")  # default: DIR/eval
+    assert_same_scores(mine, reference)
+    assert (reference["model_format"], reference["step"]) == ("checkpoint", 40)
+    assert (mine["model_format"], mine["step"]) == ("save_pretrained", None)
+    assert mine["checkpoint"] == str(exported)
+    assert mine["data_root"] == reference["data_root"] and mine["eval_latent"] == "mean"
+    unknown = f"training step unknown: {exported} is a save_pretrained directory"
+    assert any(note.startswith(unknown) for note in mine["notes"])
+    assert unknown in (exported / "eval" / "results.md").read_text()
+
+
+def test_eval_of_a_moved_export_with_data_root_and_another_eval_latent(
+    learned_prior_run, exported, faulty_push_root, tmp_path, capsys
+):
+    """A model from another machine: its saved data root does not exist here; data_root= says where
+    the data is. The eval latent override applies to an export as to a checkpoint."""
+    moved = tmp_path / "downloaded"
+    shutil.copytree(exported, moved, ignore=shutil.ignore_patterns("eval"))
+    data_config = json.loads((moved / "data_config.json").read_text())
+    saved_root = tmp_path / "elsewhere" / "push"
+    (moved / "data_config.json").write_text(json.dumps({**data_config, "root": str(saved_root)}))
+    assert cli(["eval", f"checkpoint={moved}", "plots=false"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"mmf-rl eval: error: the data config saved with {moved} reads the dataset at ")
+    assert f"{saved_root}, which does not exist on this machine" in err and "pass data_root=" in err
+    assert not (moved / "eval").exists()
+
+    overrides = {"eval_latent": "predictive", "predictive_samples": 4}
+    latent = [f"{k}={v}" for k, v in overrides.items()] + ["num_samples=0", "plots=false"]
+    run = learned_prior_run
+    assert cli(["eval", f"checkpoint={run}", *latent, f"out_dir={run / 'eval_predictive'}"]) == 0
+    assert cli(["eval", f"checkpoint={moved}", *latent, f"data_root={faulty_push_root}"]) == 0
+    mine, reference = results(moved / "eval"), results(run / "eval_predictive")
+    assert_same_scores(mine, reference)
+    assert (mine["eval_latent"], mine["predictive_samples"]) == ("predictive", 4)
+    assert mine["latent_overrides"] == reference["latent_overrides"] == overrides
+    assert mine["data_root"] == str(faulty_push_root)
+    # The override is the eval's alone: the export still says how it was trained.
+    assert json.loads((moved / "config.json").read_text())["eval_latent"] == "mean"
+
+
+KINDS = "expected a run directory, its checkpoints/, one checkpoint (meta.json) or a directory written by"
+
+
+@pytest.mark.parametrize(
+    ("setup", "message"),
+    [
+        ("missing", "{path} does not exist; " + KINDS),
+        ("empty", "{path} is not a trained model (it holds nothing); " + KINDS),
+        ("other files", "{path} is not a trained model (it holds notes.txt, scores/); " + KINDS),
+        ("empty run", "{path}/checkpoints is not a trained model (it holds nothing); " + KINDS),
+        ("no data config", "{path} holds a saved model without data_config.json (its normalisation"),
+        ("no stats", "{path} holds a saved model without normalization.safetensors (its normalisation"),
+        ("no weights", "{path} is not a saved mmf-rl model: {path}/model.safetensors does not exist"),
+        (
+            "bad latent",
+            "eval_latent=median for the 'forecaster' model of {path}: ForecasterConfig.eval_latent",
+        ),
+        (
+            "outside",
+            "out_dir=/tmp/elsewhere resolves to /tmp/elsewhere, outside the save_pretrained directory",
+        ),
+    ],
+)
+def test_eval_names_what_is_wrong_with_the_directory(exported, tmp_path, capsys, setup, message):
+    path = tmp_path / "model"
+    args = []
+    if setup in ("other files", "empty", "empty run"):
+        path.mkdir()
+    if setup == "other files":
+        (path / "notes.txt").write_text("not a model")
+        (path / "scores").mkdir()
+    if setup == "empty run":
+        (path / "checkpoints").mkdir()
+    if setup in ("no data config", "no stats", "no weights", "bad latent", "outside"):
+        shutil.copytree(exported, path, ignore=shutil.ignore_patterns("eval"))
+        removed = {"no data config": "data_config.json", "no stats": "normalization.safetensors"}
+        removed["no weights"] = "model.safetensors"
+        if setup in removed:
+            (path / removed[setup]).unlink()
+        args = {"bad latent": ["eval_latent=median"], "outside": ["out_dir=/tmp/elsewhere"]}.get(setup, [])
+    assert cli(["eval", f"checkpoint={path}", *args]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"mmf-rl eval: error: {message.format(path=path)}"), err
+    assert "\n" not in err.strip() and not (path / "eval").exists()
+
+
+def test_a_model_in_the_hugging_face_cache_needs_an_out_dir_elsewhere(
+    exported, tmp_path, monkeypatch, capsys
+):
+    """from_pretrained's copy of a hub model (a snapshot in the hub cache) is not a place for results."""
+    import huggingface_hub.constants
+
+    cache = tmp_path / "hub"
+    snapshot = cache / "models--user--push" / "snapshots" / "0123abc"
+    shutil.copytree(exported, snapshot, ignore=shutil.ignore_patterns("eval"))
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(cache))
+    assert cli(["eval", f"checkpoint={snapshot}", "plots=false"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(
+        f"mmf-rl eval: error: {snapshot} is in the Hugging Face cache ({cache}); pass out_dir="
     )
-    assert model_config_for_eval(saved["lf_lstm"], {}, checkpoint) == saved["lf_lstm"]
+    assert not (snapshot / "eval").exists()

@@ -77,6 +77,7 @@ def test_a_run_saved_before_a_setting_existed_resumes_with_a_warning_naming_it(o
         (["model=transformer"], "Could not find 'model/transformer'"),
         (["data.root=/nonexistent/dataset"], "/nonexistent/dataset"),
         (["+loss.kl_wieght=1"], "loss config: unknown keys ['kl_wieght']"),
+        (["+data.modalities.sonar.encoder=mlp"], "data config: `modalities.sonar` gives no feature"),
         (
             ["data.modalities.force={feature: observation.force, encoder: resnet}"],
             "modality 'force': encoder 'resnet' is not available; expected one of ['conv', 'conv_gru', 'gru',",
