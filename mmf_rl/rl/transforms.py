@@ -448,9 +448,9 @@ class _TracedForecaster:
     (the common case, one graph call per step), else one graph per modality encoder (on all
     ``n`` rows) and one for :meth:`~MultimodalForecaster.forecast_from_tokens`.
 
-    Exact for every presence pattern, because no graph branches on presence: the first one
-    serves a single pattern and is used for it only, an encoder sees one modality's rows, and
-    the presence mask is an input of the last graph. The presence branches of the model's own
+    The eager forward's forecasts (to float rounding) for every presence pattern, because no
+    graph branches on presence: the first one serves a single pattern and is used for it only,
+    an encoder sees one modality's rows, and the presence mask is an input of the last graph. The presence branches of the model's own
     ``encode`` are taken here in Python, the same way: a modality present nowhere gets zero
     tokens (its encoder does not run), one present in some rows only runs the eager encoder on
     those rows (`compute_on_rows`; no graph per row count, so there are at most M + 2 graphs
@@ -459,9 +459,9 @@ class _TracedForecaster:
     Frozen (``torch.jit.freeze``: the weights become constants of the graph, which spares a
     parameter lookup per use and folds what depends on weights only), so an in-place change of
     the model's parameters (``load_state_dict``, an optimizer step) is caught by their version
-    counters and the graphs are traced again. With ``eval_latent="sample"`` the latent draws
-    cover all ``n`` rows, the eager forward's the rows with a sensor only: the same distribution,
-    other draws when some env has none.
+    counters and the graphs are traced again. With ``eval_latent="sample"`` a latent is drawn for
+    every row, where the eager forward draws for the rows with a sensor only: the same
+    distribution, but other draws when some env has none.
 
     Why `torch.jit.trace`, deprecated in torch 2.x: torch.export refuses the presence branches
     of the whole forward, and ``torch.compile`` (inductor) took 83 s to compile the image
