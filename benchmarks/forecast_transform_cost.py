@@ -10,9 +10,9 @@ path, untrained weights (the cost does not depend on them).
 For each batch size, a `SerialEnv` of `MultimodalPushTorchEnv` is stepped with random actions
 (timed: the env step, rendering included), and the recorded tensordicts are then fed to the
 transform alone (timed: history update, normalisation, one batched forward, outputs), so the two
-costs are measured separately in the same run: with the traced forward (opt-in,
-``trace=True``) and with the eager TensorDict forward (the default), beside the eager model
-forward alone. Medians over the timed steps; the first (warm-up) call traces the graph.
+costs are measured separately in the same run: with the lean traced forward (the default,
+``trace=True``) and with the eager TensorDict forward (``trace=False``), beside the eager model
+forward alone. Medians over the timed steps; the reset before them traces the graphs.
 Run it on a quiet machine: the figures are wall-clock times.
 """
 
@@ -71,8 +71,8 @@ def push_checkpoint(directory: Path) -> tuple[Path, dict]:
 
 
 def measure(num_envs: int, checkpoint: Path, image_size: int, steps: int, warmup: int) -> dict[str, float]:
-    """Median seconds per step for ``num_envs`` envs: the env step, the transform (traced and eager
-    forward) and the eager model forward alone."""
+    """Median seconds per step for ``num_envs`` envs: the env step, the transform (lean traced and
+    eager forward) and the eager model forward alone."""
     env = SerialEnv(num_envs, MultimodalPushTorchEnv, create_env_kwargs={"image_size": image_size})
     try:
         env.set_seed(0)
@@ -90,11 +90,11 @@ def measure(num_envs: int, checkpoint: Path, image_size: int, steps: int, warmup
         env.close()
 
     times = {"env": env_times}
-    for name, trace in (("traced", True), ("eager", False)):
+    for name, trace in (("lean", True), ("eager", False)):
         transform = ForecastTransform.from_checkpoint(checkpoint, trace=trace)
         transform._reset(reset.empty(), reset.clone())  # noqa: SLF001 - the transform alone, no env around it
         times[name], model_times = [], []
-        for frame in frames:  # the first (warm-up) call traces the graph
+        for frame in frames:
             start = time.perf_counter()
             transform._call(frame)  # noqa: SLF001
             times[name].append(time.perf_counter() - start)
@@ -115,12 +115,12 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--steps", type=int, default=20, help="timed steps per batch size")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed first steps (the first one traces)")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed first steps")
     parser.add_argument("--batches", type=int, nargs="+", default=[1, 16])
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     args = parser.parse_args()
     if args.warmup < 1:
-        parser.error("--warmup must be >= 1: the first call traces the model's graph")
+        parser.error("--warmup must be >= 1: TorchScript optimises a graph on its first runs")
     torch.set_num_threads(args.threads)
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -134,17 +134,17 @@ def main() -> None:
     )
     for b, r in results.items():
         print(
-            f"batch {b:>3}: env step {r['env'] * 1e3:7.2f} ms, ForecastTransform {r['traced'] * 1e3:7.2f} ms "
-            f"({r['traced'] / b * 1e3:.2f} ms/env; eager forward {r['eager'] * 1e3:.2f} ms, model forward "
-            f"alone {r['model'] * 1e3:.2f} ms), transform/env = {r['traced'] / r['env']:.2f}"
+            f"batch {b:>3}: env step {r['env'] * 1e3:7.2f} ms, ForecastTransform {r['lean'] * 1e3:7.2f} ms "
+            f"({r['lean'] / b * 1e3:.2f} ms/env; eager forward {r['eager'] * 1e3:.2f} ms, model forward "
+            f"alone {r['model'] * 1e3:.2f} ms), transform/env = {r['lean'] / r['env']:.2f}"
         )
     first, last = args.batches[0], args.batches[-1]
     print(
-        f"summary: forecast per step: batch{first} {results[first]['traced'] * 1e3:.2f} ms "
+        f"summary: forecast per step: batch{first} {results[first]['lean'] * 1e3:.2f} ms "
         f"(eager {results[first]['eager'] * 1e3:.2f} ms, env step {results[first]['env'] * 1e3:.2f} ms, "
-        f"transform/env {results[first]['traced'] / results[first]['env']:.2f}), batch{last} "
-        f"{results[last]['traced'] * 1e3:.2f} ms (env step {results[last]['env'] * 1e3:.2f} ms, "
-        f"transform/env {results[last]['traced'] / results[last]['env']:.2f})"
+        f"transform/env {results[first]['lean'] / results[first]['env']:.2f}), batch{last} "
+        f"{results[last]['lean'] * 1e3:.2f} ms (env step {results[last]['env'] * 1e3:.2f} ms, "
+        f"transform/env {results[last]['lean'] / results[last]['env']:.2f})"
     )
 
 

@@ -33,6 +33,7 @@ from mmf_rl import keys
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.envs.modality_dropout import not_standalone, reset_rows
 from mmf_rl.keys import ModalitySpec
+from mmf_rl.models.forecaster import MultimodalForecaster
 from mmf_rl.models.registry import load_trained_model
 from mmf_rl.models.rows import compute_on_rows
 
@@ -74,6 +75,9 @@ class _WindowTransform(Transform):
         self._frames: dict[str, torch.Tensor] = {}
         self._present: dict[str, torch.Tensor] = {}
         self._newest = 0  # ring slot of the newest frame, shared by all envs (a reset fills every slot)
+        # Ring slots of the H window steps, oldest first, for each slot of the newest frame.
+        steps = torch.arange(history - 1, -1, -1) * stride
+        self._slots = [(newest - steps) % self.buffer_length for newest in range(self.buffer_length)]
         self._batch_size: torch.Size | None = None
 
     # -- specs ---------------------------------------------------------------------------------
@@ -150,9 +154,10 @@ class _WindowTransform(Transform):
             frame = self._frame(spec, tensordict, n)
             present = tensordict.get(spec.present_key).reshape(n)
             # A sensor reading NaN/Inf is absent for every window holding it, as in the data
-            # pipeline: the model never sees it, so no forecast or action turns NaN.
-            unreadable = keys.nonfinite_rows(frame)
-            if bool(unreadable.any()):
+            # pipeline: the model never sees it, so no forecast or action turns NaN. (One check
+            # of the whole frame first: the rows are looked for only when one is unreadable.)
+            if frame.is_floating_point() and not bool(torch.isfinite(frame).all()):
+                unreadable = keys.nonfinite_rows(frame)
                 frame = frame.masked_fill(unreadable.view(-1, *[1] * (frame.dim() - 1)), 0)
                 present = present & ~unreadable
             if rows is None:
@@ -181,9 +186,7 @@ class _WindowTransform(Transform):
 
     def _window_tensors(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """:meth:`window` as plain tensors, one per modality: observations and presence flags."""
-        # Ring slots of the H window steps, oldest first.
-        steps = torch.arange(self.history - 1, -1, -1) * self.stride
-        slots = (self._newest - steps) % self.buffer_length
+        slots = self._slots[self._newest]
         observations, presence = [], []
         for spec in self.specs:
             if spec.kind == "vector":
@@ -216,6 +219,11 @@ class _WindowTransform(Transform):
             raise RuntimeError(
                 f"{type(self).__name__}: the env was stepped before its first reset; call env.reset()"
             )
+        if next_tensordict.batch_size != self._batch_size:
+            raise RuntimeError(
+                f"{type(self).__name__}: the env batch is {list(next_tensordict.batch_size)} but was "
+                f"{list(self._batch_size)} at the last reset; reset every env after changing the batch size"
+            )
         self._push(next_tensordict, None)
         return self._emit(next_tensordict)
 
@@ -228,29 +236,34 @@ class ForecastTransform(_WindowTransform):
 
     Args:
         model: a forecaster from the model registry (``config.modalities``, ``config.history``,
-            ``config.horizon``, ``config.target_dim``); it is put in eval mode and run under
-            ``torch.inference_mode()``. An action-conditioned world model cannot forecast without the
+            ``config.horizon``, ``config.target_dim``); it is put in eval mode and run without
+            gradients. An action-conditioned world model cannot forecast without the
             future actions: plan with it instead (`HistoryWindow` + `mmf_rl.rl`).
         stats: the normalisation statistics of its training run (a checkpoint's ``tensors``):
             ``"<m>/mean"``, ``"<m>/std"`` for every non-image modality, ``"target/mean"``,
             ``"target/std"``.
         stride: frames between two window steps (the data config's ``stride``).
         num_samples: ``K > 0`` also writes ``("forecast", "samples")`` ``[*batch, K, T, D]``, one
-            forecast per prior latent draw (costs a second forward).
+            forecast per prior latent draw (costs a second, eager forward).
         denormalize: ``True`` writes forecasts in the target's units (for the push data: metres,
             world frame; a run trained with ``data.target.relative`` forecasts displacements from
             the current step, as the push config does), ``False`` in the normalised frame the
             model was trained in.
-        trace: ``True`` runs a `torch.jit.trace` of the model's forward, one graph per
-            batch size and presence pattern (traced the first time it occurs), on plain tensors:
-            no TensorDict, validation or Python module dispatch per step. The inputs were checked
-            against the env's specs once (:meth:`transform_observation_spec`). A batch where a
-            modality is present in some envs but not others runs the eager forward, as does
-            ``trace=False`` (for a model whose forward branches on values, which no registry
-            model does: they branch on presence and shapes only). Off by default: with it, the
-            resident memory of 16 envs under outages kept growing after warm-up (+56 MiB over 500
-            steps, +68 MiB over 1000; flat without it), and its speed-up is not yet measured on a
-            quiet machine.
+        trace: ``True`` (the default) runs the paper's forecaster (`MultimodalForecaster`) as
+            frozen `torch.jit.trace` graphs on plain tensors: the whole forecast when every env
+            has every sensor, else one graph per modality encoder and one for the rest
+            (:meth:`~MultimodalForecaster.forecast_from_tokens`: prior, latent, decoder). No
+            TensorDict, validation or Python module dispatch per step (the inputs were checked
+            against the env's specs once, :meth:`transform_observation_spec`), and no
+            posterior. No graph branches on presence, so a sensor that dies or comes back runs
+            graphs already traced or traces the missing ones once (at most M + 2 per batch
+            size; a new batch size, at a reset, replaces them); the encoder of a modality no
+            env has is skipped, and one present in some envs only runs eagerly on those (as the
+            model's own encode). Each graph is traced on its first use (a step that takes a
+            few hundred ms). An in-place update of the weights (``load_state_dict``, an
+            optimizer step) is detected and re-traces them. ``False``, and any other model, run
+            the model's eager TensorDict forward; both write the same forecasts (to float
+            rounding).
 
     Written every step (env batch ``[*batch]``): ``("forecast", "loc")`` and ``("forecast",
     "scale")`` ``float32 [*batch, T, D]`` (the model's deterministic eval forecast, a diagonal
@@ -263,9 +276,10 @@ class ForecastTransform(_WindowTransform):
     ``"sequence"``/``"image"`` modality is present in the window only if it is present at all H
     steps (``"vector"``: at the last step), and an absent modality's vector window is zeroed.
     After a reset, the first observation fills the whole history (its presence too), so a full
-    window exists from the first step; it is replaced step by step over the next H-1 steps. A window with no present modality cannot be forecast: its
-    row gets ``valid = False`` and the training marginal of the target (normalised mean 0,
-    scale 1, i.e. ``target/mean`` and ``target/std`` in target units).
+    window exists from the first step; it is replaced step by step over the next H-1 steps. A
+    window with no present modality cannot be forecast: its row gets ``valid = False`` and the
+    training marginal of the target (normalised mean 0, scale 1, i.e. ``target/mean`` and
+    ``target/std`` in target units).
 
     The history is a fixed ring buffer per env: the cost per step does not grow with time
     (`benchmarks/forecast_transform_cost.py` measures it against the env step).
@@ -279,7 +293,7 @@ class ForecastTransform(_WindowTransform):
         stride: int = 1,
         num_samples: int = 0,
         denormalize: bool = True,
-        trace: bool = False,
+        trace: bool = True,
     ):
         config = model.config
         if getattr(config, "action_dim", 0):
@@ -300,9 +314,11 @@ class ForecastTransform(_WindowTransform):
         super().__init__(config.modalities, stats, config.history, stride, out_keys)
         self.model = model.eval()
         self.horizon, self.target_dim = config.horizon, config.target_dim
-        self.num_samples, self.denormalize, self.trace = num_samples, denormalize, trace
+        self.num_samples, self.denormalize = num_samples, denormalize
+        self.trace = trace and isinstance(model, MultimodalForecaster)
         self._model_keys = [s.obs_key for s in self.specs] + [s.present_key for s in self.specs]
-        self._graphs: dict[tuple, torch.jit.ScriptModule] = {}  # by presence pattern (_presence_pattern)
+        self._traced: _TracedForecaster | None = None  # for the current batch size (see _allocate)
+        self._device: torch.device | None = None  # the model's, read at each allocation
 
     @classmethod
     def from_checkpoint(
@@ -311,7 +327,7 @@ class ForecastTransform(_WindowTransform):
         *,
         num_samples: int = 0,
         denormalize: bool = True,
-        trace: bool = False,
+        trace: bool = True,
         map_location: str | torch.device = "cpu",
     ) -> ForecastTransform:
         """Load the model, its weights, normalisation stats and window stride from a checkpoint.
@@ -348,108 +364,209 @@ class ForecastTransform(_WindowTransform):
 
     # -- forecast ------------------------------------------------------------------------------
 
+    def _allocate(self, batch_size: torch.Size) -> None:
+        super()._allocate(batch_size)
+        self._device = next(self.model.parameters()).device
+        # Graphs are traced for one batch size: the previous ones go (memory stays bounded).
+        self._traced = _TracedForecaster(self.model, self.specs, batch_size.numel()) if self.trace else None
+
     def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
         observations, presence = self._window_tensors()
-        n = self._batch_size.numel()
-        valid = torch.stack(presence, 1).any(1)
-        # Envs with no present sensor get the target's training prior (zero mean, unit scale).
-        prior = [torch.zeros(n, self.horizon, self.target_dim), torch.ones(n, self.horizon, self.target_dim)]
-        if self.num_samples:
-            prior.append(torch.zeros(n, self.num_samples, self.horizon, self.target_dim))
-        device = next(self.model.parameters()).device
-
-        def predict(rows: torch.Tensor | None) -> list[torch.Tensor]:
-            with torch.inference_mode():
-                inputs = [(t if rows is None else t[rows]).to(device) for t in observations + presence]
-                predicted = list(self._forecast(inputs))
-                if self.num_samples:
-                    window = TensorDict(
-                        dict(zip(self._model_keys, inputs, strict=True)), batch_size=inputs[0].shape[:1]
-                    )
-                    predicted.append(self.model.sample(window, self.num_samples).get(keys.FORECAST_SAMPLES))
-            # Copied out of inference mode: a policy trained on the forecasts must be able to
-            # save them for backward.
-            return [p.to("cpu", copy=True) for p in predicted]
-
-        loc, scale, *samples = compute_on_rows(valid, predict, prior)
-        samples = samples[0] if samples else None
+        present = torch.stack(presence, 1)
+        valid = present.any(1)
+        device = self._device
+        if self._traced is not None:
+            # No grad, not inference mode: a policy trained on the forecasts saves them for backward.
+            with torch.no_grad():
+                loc, scale = self._traced(
+                    [o.to(device) for o in observations], present.to(device), valid.to(device)
+                )
+            loc, scale = loc.cpu(), scale.cpu()
+            samples = self._samples(observations, presence, valid, device) if self.num_samples else None
+        else:
+            loc, scale, *samples = self._eager(observations, presence, valid, device)
+            samples = samples[0] if samples else None
         if self.denormalize:
             loc = self.normalizer.denormalize_target(loc)
             scale = self.normalizer.denormalize_target_scale(scale)
-            if self.num_samples:
+            if samples is not None:
                 samples = self.normalizer.denormalize_target(samples)
         batch = self._batch_size
         tensordict.set(keys.FORECAST_LOC, loc.reshape(*batch, self.horizon, self.target_dim))
         tensordict.set(keys.FORECAST_SCALE, scale.reshape(*batch, self.horizon, self.target_dim))
         tensordict.set(keys.FORECAST_VALID, valid.reshape(batch))
-        if self.num_samples:
+        if samples is not None:
             tensordict.set(
                 keys.FORECAST_SAMPLES,
                 samples.reshape(*batch, self.num_samples, self.horizon, self.target_dim),
             )
         return tensordict
 
-    def _forecast(self, inputs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        """``loc``, ``scale`` of the model's eval forecast for window tensors (observations, then presence).
+    def _prior(self, n: int) -> list[torch.Tensor]:
+        """The target's training prior (zero mean, unit scale) for ``n`` envs with no present sensor:
+        ``loc``, ``scale``, and its samples (its mean) when ``num_samples > 0``."""
+        shape = (n, self.horizon, self.target_dim)
+        prior = [torch.zeros(shape), torch.ones(shape)]
+        if self.num_samples:
+            prior.append(torch.zeros(n, self.num_samples, *shape[1:]))
+        return prior
 
-        With ``trace``, a traced graph of the model's forward for this batch size and presence
-        pattern (traced on first use); eagerly through the TensorDict forward otherwise, and for a
-        batch where some modality is present in some rows only.
-        """
-        pattern = self._presence_pattern(inputs[len(self.specs) :]) if self.trace else None
-        if pattern is None:
-            out = self.model(
-                TensorDict(dict(zip(self._model_keys, inputs, strict=True)), batch_size=inputs[0].shape[:1])
-            )
-            return out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
-        graph = self._graphs.get(pattern)
+    def _eager(self, observations, presence, valid, device) -> tuple[torch.Tensor, ...]:
+        """``loc``, ``scale`` (and the samples) of the model's eager TensorDict forward on the valid rows."""
+
+        def predict(rows: torch.Tensor | None) -> list[torch.Tensor]:
+            window = self._model_window(observations, presence, rows, device)
+            with torch.inference_mode():
+                out = self.model(window.clone(False))
+                predicted = [out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)]
+                if self.num_samples:
+                    predicted.append(self.model.sample(window, self.num_samples).get(keys.FORECAST_SAMPLES))
+            # Copied out of inference mode: a policy trained on the forecasts must be able to
+            # save them for backward.
+            return [p.to("cpu", copy=True) for p in predicted]
+
+        return compute_on_rows(valid, predict, self._prior(valid.shape[0]))
+
+    def _samples(self, observations, presence, valid, device) -> torch.Tensor:
+        """``("forecast", "samples")`` in the model's frame, by its eager ``sample`` on the valid rows."""
+
+        def sample(rows: torch.Tensor | None) -> list[torch.Tensor]:
+            window = self._model_window(observations, presence, rows, device)
+            with torch.no_grad():
+                return [self.model.sample(window, self.num_samples).get(keys.FORECAST_SAMPLES).cpu()]
+
+        return compute_on_rows(valid, sample, self._prior(valid.shape[0])[2:])[0]
+
+    def _model_window(self, observations, presence, rows, device) -> TensorDict:
+        inputs = [(t if rows is None else t[rows]).to(device) for t in observations + presence]
+        return TensorDict(dict(zip(self._model_keys, inputs, strict=True)), batch_size=inputs[0].shape[:1])
+
+
+class _TracedForecaster:
+    """`MultimodalForecaster`'s eval forecast of ``n`` windows as frozen `torch.jit.trace` graphs,
+    each traced on first use: the whole forecast when every modality is present in every row
+    (the common case, one graph call per step), else one graph per modality encoder (on all
+    ``n`` rows) and one for :meth:`~MultimodalForecaster.forecast_from_tokens`.
+
+    The eager forward's forecasts (to float rounding) for every presence pattern, because no
+    graph branches on presence: the first one serves a single pattern and is used for it only,
+    an encoder sees one modality's rows, and the presence mask is an input of the last graph. The presence branches of the model's own
+    ``encode`` are taken here in Python, the same way: a modality present nowhere gets zero
+    tokens (its encoder does not run), one present in some rows only runs the eager encoder on
+    those rows (`compute_on_rows`; no graph per row count, so there are at most M + 2 graphs
+    however the outages fall).
+
+    Frozen (``torch.jit.freeze``: the weights become constants of the graph, which spares a
+    parameter lookup per use and folds what depends on weights only), so an in-place change of
+    the model's parameters (``load_state_dict``, an optimizer step) is caught by their version
+    counters and the graphs are traced again. With ``eval_latent="sample"`` a latent is drawn for
+    every row, where the eager forward draws for the rows with a sensor only: the same
+    distribution, but other draws when some env has none.
+
+    Why `torch.jit.trace`, deprecated in torch 2.x: torch.export refuses the presence branches
+    of the whole forward, and ``torch.compile`` (inductor) took 83 s to compile the image
+    encoder alone on a loaded 2-core machine and ran it slower than this trace.
+    """
+
+    def __init__(self, model: MultimodalForecaster, specs: Sequence[ModalitySpec], n: int):
+        self.model, self.specs, self.n = model, list(specs), n
+        self.parameters = list(model.parameters())
+        self.version = self._weights_version()
+        self.everywhere: torch.jit.ScriptModule | None = None
+        self.encoders: dict[str, torch.jit.ScriptModule] = {}
+        self.head: torch.jit.ScriptModule | None = None
+
+    def __call__(
+        self, observations: list[torch.Tensor], present: torch.Tensor, valid: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``loc``, ``scale`` ``[n, T, D]``: the model's, in rows with a present modality; in the
+        others, the prior (zeros, ones: `ForecastTransform` denormalises it to the target's marginal)."""
+        version = self._weights_version()
+        if version != self.version:
+            self.encoders.clear()
+            self.everywhere, self.head, self.version = None, None, version
+        if bool(present.all()):
+            if self.everywhere is None:
+                names = [s.name for s in self.specs]
+                self.everywhere = _trace(_ForecastFromWindows(self.model, names), (present, *observations))
+            return self.everywhere(present, *observations)
+        counts = present.sum(0).tolist()  # envs with each modality: one sync for all the branches below
+        zeros = None
+        tokens = []
+        for spec, obs, count, column in zip(self.specs, observations, counts, present.unbind(1), strict=True):
+            if count == self.n:
+                token = self._encoder(spec.name, obs)(obs)
+            else:
+                if zeros is None:
+                    zeros = torch.zeros(self.n, self.model.config.d_model, device=present.device)
+                encoder = self.model.encoders[spec.name]
+                token = compute_on_rows(column, lambda rows, obs=obs, e=encoder: (e(obs[rows]),), (zeros,))[0]
+            tokens.append(token)
+        tokens = torch.stack(tokens, 1)
+        everywhere = bool(valid.all())
+        if not everywhere:
+            # Rows without any sensor are decoded on their zero tokens as if all were present (an
+            # attention over no key is NaN); their forecast is replaced by the prior below.
+            present = present | ~valid.unsqueeze(1)
+        if self.head is None:
+            self.head = _trace(_ForecastFromTokens(self.model), (tokens, present))
+        loc, scale = self.head(tokens, present)
+        if not everywhere:
+            keep = valid.view(-1, 1, 1)
+            loc, scale = loc.where(keep, 0.0), scale.where(keep, 1.0)
+        return loc, scale
+
+    def _encoder(self, name: str, example: torch.Tensor) -> torch.jit.ScriptModule:
+        graph = self.encoders.get(name)
         if graph is None:
-            graph = self._graphs[pattern] = self._trace(inputs)
-        return graph(*inputs)
+            graph = self.encoders[name] = _trace(self.model.encoders[name], (example,))
+        return graph
 
-    @staticmethod
-    def _presence_pattern(presence: list[torch.Tensor]) -> tuple | None:
-        """(batch size, each modality present in every row or in none); ``None`` for a mixed column.
+    def _weights_version(self) -> int:
+        # Every in-place write to a tensor bumps its version counter.
+        return sum(p._version for p in self.parameters)
 
-        The models take Python branches on presence (which encoders run, `compute_on_rows`) and
-        on shapes, never on values: a trace is exact for the pattern it was traced with.
-        """
-        columns = []
-        for present in presence:
-            everywhere = bool(present.all())
-            if not everywhere and bool(present.any()):
-                return None
-            columns.append(everywhere)
-        return (presence[0].shape[0], *columns)
-
-    def _trace(self, inputs: list[torch.Tensor]) -> torch.jit.ScriptModule:
-        # Plain tensors in, (loc, scale) out: the graph has no TensorDict, validation or Python
-        # dispatch left, and the outputs nobody reads (the posterior, in eval) are pruned from it.
-        # Why torch.jit.trace, deprecated in torch 2.x: torch.export refuses the presence branches,
-        # and torch.compile took minutes to compile on 2 CPU cores and was slower than this trace
-        # at batch 1 (graph breaks around the TensorDict forward).
-        with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
-            # The trace freezes the presence branches: expected, hence keyed by presence pattern.
-            warnings.simplefilter("ignore", torch.jit.TracerWarning)
-            warnings.simplefilter("ignore", DeprecationWarning)
-            example = tuple(t.clone() for t in inputs)
-            return torch.jit.trace(
-                _ForecastOfTensors(self.model, self._model_keys), example, check_trace=False
-            )
+    def __getstate__(self) -> dict:
+        # A graph does not pickle: a copy (a transform sent to a worker) traces its own when used.
+        return self.__dict__ | {"everywhere": None, "encoders": {}, "head": None}
 
 
-class _ForecastOfTensors(nn.Module):
-    """A forecaster's eval forward as a function of plain tensors (for `torch.jit.trace`)."""
+class _ForecastFromWindows(nn.Module):
+    """The eval forecast of windows with every modality present in every row: each encoder on its
+    windows, then `MultimodalForecaster.forecast_from_tokens` (a module, for `torch.jit.trace`)."""
 
-    def __init__(self, model: nn.Module, in_keys: list):
+    def __init__(self, model: MultimodalForecaster, names: list[str]):
         super().__init__()
-        self.model, self.in_keys = model, in_keys
+        self.model, self.names = model, names
 
-    def forward(self, *tensors: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        out = self.model(
-            TensorDict(dict(zip(self.in_keys, tensors, strict=True)), batch_size=tensors[0].shape[:1])
-        )
-        return out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
+    def forward(
+        self, present: torch.Tensor, *observations: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        encoders = self.model.encoders
+        tokens = torch.stack([encoders[m](obs) for m, obs in zip(self.names, observations, strict=True)], 1)
+        return self.model.forecast_from_tokens(tokens, present)
+
+
+class _ForecastFromTokens(nn.Module):
+    """`MultimodalForecaster.forecast_from_tokens` as a module (what `torch.jit.trace` takes)."""
+
+    def __init__(self, model: MultimodalForecaster):
+        super().__init__()
+        self.model = model
+
+    def forward(self, tokens: torch.Tensor, present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.model.forecast_from_tokens(tokens, present)
+
+
+def _trace(module: nn.Module, example: tuple[torch.Tensor, ...]) -> torch.jit.ScriptModule:
+    """A frozen `torch.jit.trace` of an eval-mode ``module`` (see `_TracedForecaster`)."""
+    with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # torch.jit.trace (see _TracedForecaster)
+        # The tracer warns of every Python branch on a tensor; in these modules they are on shapes
+        # (attention and group-norm checks), fixed for the batch size the graphs are traced for.
+        warnings.simplefilter("ignore", torch.jit.TracerWarning)
+        traced = torch.jit.trace(module.eval(), tuple(t.clone() for t in example), check_trace=False)
+        return torch.jit.freeze(traced)
 
 
 class HistoryWindow(_WindowTransform):

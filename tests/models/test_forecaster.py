@@ -436,6 +436,21 @@ def test_forecast_from_the_prior_does_not_depend_on_the_multimodal_encoder(small
     assert not torch.allclose(after.get(keys.POSTERIOR_LOC), before.get(keys.POSTERIOR_LOC))
 
 
+def test_forecast_from_tokens_is_the_eval_forecast_without_what_it_does_not_read(model, mixed_batch):
+    """The lean inference entry (`ForecastTransform` traces it) writes the eval forward's forecast
+    for every presence pattern; the multimodal encoder runs only for the learned prior that reads it."""
+    model.eval()
+    calls = []
+    model.fusion.register_forward_hook(lambda *args: calls.append(1))
+    with torch.no_grad():
+        expected = model(mixed_batch.clone())
+        calls.clear()
+        loc, scale = model.forecast_from_tokens(*model.encode(mixed_batch))
+    assert torch.equal(loc, expected.get(keys.FORECAST_LOC))
+    assert torch.equal(scale, expected.get(keys.FORECAST_SCALE))
+    assert len(calls) == (model.config.prior == "learned")
+
+
 # -- learned conditional prior p(z | X) -----------------------------------------------------------
 
 

@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import pickle
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -31,8 +33,8 @@ def make_stats(seed: int = 0) -> dict[str, torch.Tensor]:
     return stats
 
 
-def write_checkpoint(directory, specs, stride: int = 1):
-    torch.manual_seed(0)
+def write_checkpoint(directory, specs, stride: int = 1, prior: str = "standard", seed: int = 0):
+    torch.manual_seed(seed)
     model = build_model(
         {
             "name": "forecaster",
@@ -41,6 +43,7 @@ def write_checkpoint(directory, specs, stride: int = 1):
             "num_heads": 2,
             "mlp_hidden": 32,
             "head_hidden": 32,
+            "prior": prior,
         },
         specs,
         HISTORY,
@@ -147,41 +150,162 @@ def test_forecast_equals_the_model_on_the_window_built_by_hand(checkpoint):
     assert td["next", FORECAST_VALID].all()
 
 
-@pytest.mark.parametrize("num_envs", [1, 3])
-def test_traced_forecast_equals_the_eager_forward(checkpoint, num_envs):
-    """The lean path (one trace per batch size and presence pattern) writes the eager forward's forecasts."""
+# -- the lean (traced) path, on the project's recorded pushes -------------------------------------
 
-    def rollout(trace: bool):
-        forecast = ForecastTransform.from_checkpoint(checkpoint, trace=trace)
-        base = (
-            MultimodalPushTorchEnv(image_size=IMAGE_SIZE)
-            if num_envs == 1
-            else SerialEnv(num_envs, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE))
-        )
-        env = TransformedEnv(
-            base,
-            Compose(
-                ModalityDropout(["image", "force"], outage_prob=0.3, bursts=UniformBursts(1, 3), seed=4),
-                forecast,
-            ),
-        )
-        try:
-            env.set_seed(0)
-            torch.manual_seed(0)  # the random actions
-            assert not env.reset()[keys.FORECAST_LOC].is_inference(), "a policy can train on the forecasts"
-            return env.rollout(12, break_when_any_done=False), forecast
-        finally:
-            env.close()
+RECORDED_ENVS = 3
 
-    traced, forecast = rollout(trace=True)
-    eager, _ = rollout(trace=False)
-    patterns = {pattern[1:] for pattern in forecast._graphs}  # noqa: SLF001
-    # Batch 1: every step is traced; a batch of 3 mixes presence across envs, so the eager path runs too.
-    assert len(patterns) >= (2 if num_envs == 1 else 1), (
-        "the rollout should exercise traced presence patterns"
+
+@pytest.fixture(scope="module")
+def recorded_steps(recorded_push_root) -> list[TensorDict]:
+    """The first recorded push episodes as the steps of a batch of envs (one episode each): what
+    the env emits, camera frames decoded from the recording's video."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from mmf_rl.record import CAMERA_KEY, CAMERA_VALID_KEY, FORCE_KEY, STATE_KEY, RecordConfig
+
+    dataset = LeRobotDataset(RecordConfig.repo_id, root=recorded_push_root)
+    episodes = [dataset.meta.episodes[e] for e in range(RECORDED_ENVS)]
+    length = min(e["dataset_to_index"] - e["dataset_from_index"] for e in episodes)
+    frames = [[dataset[e["dataset_from_index"] + t] for e in episodes] for t in range(length)]
+    return [
+        TensorDict(
+            {
+                keys.obs_key("image"): torch.stack(
+                    [(f[CAMERA_KEY] * 255).round().to(torch.uint8) for f in step]
+                ),
+                keys.obs_key("force"): torch.stack([f[FORCE_KEY] for f in step]),
+                keys.obs_key("proprio"): torch.stack([f[STATE_KEY] for f in step]),
+                keys.present_key("image"): torch.stack([f[CAMERA_VALID_KEY].reshape(()) for f in step]),
+                keys.present_key("force"): torch.ones(RECORDED_ENVS, dtype=torch.bool),
+                keys.present_key("proprio"): torch.ones(RECORDED_ENVS, dtype=torch.bool),
+            },
+            batch_size=[RECORDED_ENVS],
+        )
+        for step in frames
+    ]
+
+
+def with_outages(steps: list[TensorDict], num_envs: int, nan_as_absent: bool = False) -> list[TensorDict]:
+    """The first ``num_envs`` envs of ``steps`` with sensor faults, env ``e`` shifted by ``5 e`` steps:
+    the camera dies at step 6 for good; force reads NaN at steps 10-11 (or, ``nan_as_absent``,
+    is flagged absent there, over garbage); every sensor is absent at steps 20-21."""
+    out = []
+    for t, step in enumerate(steps):
+        step = step[:num_envs].clone()
+        for env in range(num_envs):
+            local = t - 5 * env
+            if local >= 6:
+                step[keys.present_key("image")][env] = False
+            if local in (10, 11):
+                if nan_as_absent:
+                    step[keys.obs_key("force")][env] = 1e6
+                    step[keys.present_key("force")][env] = False
+                else:
+                    step[keys.obs_key("force")][env, 2] = float("nan")
+            if local in (20, 21):
+                for name in MODALITIES:
+                    step[keys.present_key(name)][env] = False
+        out.append(step)
+    return out
+
+
+def replay(forecast: ForecastTransform, steps: list[TensorDict]) -> list[TensorDict]:
+    """The transform's outputs for a reset on ``steps[0]`` then a step on each of the others (the
+    transform alone, fed what an env would emit)."""
+    first = steps[0].clone()
+    outputs = [forecast._reset(first.empty(), first)]  # noqa: SLF001 - the transform alone, no env around it
+    outputs += [forecast._call(step.clone()) for step in steps[1:]]  # noqa: SLF001
+    return outputs
+
+
+def graphs(forecast: ForecastTransform) -> int:
+    traced = forecast._traced  # noqa: SLF001
+    return len(traced.encoders) + (traced.everywhere is not None) + (traced.head is not None)
+
+
+def assert_same_forecasts(lean: list[TensorDict], eager: list[TensorDict]) -> None:
+    for t, (a, b) in enumerate(zip(lean, eager, strict=True)):
+        for key in (keys.FORECAST_LOC, keys.FORECAST_SCALE):
+            torch.testing.assert_close(a[key], b[key], msg=lambda m, t=t, key=key: f"step {t}, {key}: {m}")
+        assert torch.equal(a[FORECAST_VALID], b[FORECAST_VALID]), f"step {t}"
+
+
+@pytest.mark.parametrize("prior", ["standard", "learned"])
+@pytest.mark.parametrize("num_envs", [1, RECORDED_ENVS])
+def test_lean_forecast_equals_the_eager_forward_on_recorded_pushes(recorded_steps, tmp_path, num_envs, prior):
+    """The default (traced) path writes the eager TensorDict forward's forecasts through a camera
+    that dies, NaN force readings and windows with no sensor; with 3 envs these hit some envs only."""
+    checkpoint = write_checkpoint(tmp_path, PUSH_SPECS, prior=prior)
+    steps = with_outages(recorded_steps, num_envs)
+    lean_transform = ForecastTransform.from_checkpoint(checkpoint)
+    lean = replay(lean_transform, steps)
+    eager = replay(ForecastTransform.from_checkpoint(checkpoint, trace=False), steps)
+    assert_same_forecasts(lean, eager)
+
+    valid = torch.stack([out[FORECAST_VALID] for out in lean])
+    assert valid[0].all() and not valid.all(), "the replay should hold windows without any sensor"
+    assert all(torch.isfinite(out[keys.FORECAST_LOC]).all() for out in lean), "a NaN reading is absent"
+    traced = lean_transform._traced  # noqa: SLF001
+    assert traced.everywhere is not None and traced.head is not None, "both traced paths should run"
+    assert not lean[-1][keys.FORECAST_LOC].is_inference(), "a policy can train on the forecasts"
+
+
+def test_lean_forecast_reads_a_nan_reading_as_an_absent_sensor(recorded_steps, checkpoint):
+    with_nan = replay(ForecastTransform.from_checkpoint(checkpoint), with_outages(recorded_steps, 1))
+    flagged = replay(
+        ForecastTransform.from_checkpoint(checkpoint), with_outages(recorded_steps, 1, nan_as_absent=True)
     )
-    for key in (keys.FORECAST_LOC, keys.FORECAST_SCALE):
-        torch.testing.assert_close(traced["next", *key], eager["next", *key])
+    assert_same_forecasts(with_nan, flagged)
+
+
+def test_lean_forecast_follows_a_new_batch_size_and_refuses_an_unannounced_one(recorded_steps, checkpoint):
+    steps = with_outages(recorded_steps, RECORDED_ENVS)
+    forecast = ForecastTransform.from_checkpoint(checkpoint)
+    replay(forecast, [step[:1] for step in steps[:8]])
+    lean = replay(forecast, steps)  # a reset of a batch of 3: new history, graphs traced again
+    assert_same_forecasts(lean, replay(ForecastTransform.from_checkpoint(checkpoint, trace=False), steps))
+    with pytest.raises(RuntimeError, match=r"env batch is \[2\] but was \[3\] at the last reset"):
+        forecast._call(steps[1][:2].clone())  # noqa: SLF001
+
+
+def test_a_running_lean_forecast_transform_pickles(recorded_steps, checkpoint):
+    """A transform sent to a worker mid-rollout: its graphs stay behind, the copy traces its own."""
+    steps = with_outages(recorded_steps, 1)
+    forecast = ForecastTransform.from_checkpoint(checkpoint)
+    replay(forecast, steps[:8])
+    copied = pickle.loads(pickle.dumps(forecast))
+    for step in steps[8:12]:
+        assert_same_forecasts([copied._call(step.clone())], [forecast._call(step.clone())])  # noqa: SLF001
+
+
+def test_lean_forecast_follows_in_place_weight_updates(recorded_steps, tmp_path, checkpoint):
+    steps = with_outages(recorded_steps, 1)
+    other = write_checkpoint(tmp_path, PUSH_SPECS, seed=1)
+    forecast = ForecastTransform.from_checkpoint(checkpoint)
+    before = replay(forecast, steps[:5])
+    eager_other = ForecastTransform.from_checkpoint(other, trace=False)
+    expected = replay(eager_other, steps)
+    assert not torch.allclose(before[-1][keys.FORECAST_LOC], expected[4][keys.FORECAST_LOC])
+    forecast.model.load_state_dict(eager_other.model.state_dict())
+    after = [forecast._call(step.clone()) for step in steps[5:]]  # noqa: SLF001
+    assert_same_forecasts(after, expected[5:])
+
+
+def test_lean_forecast_keeps_a_bounded_set_of_graphs_whatever_the_outages(recorded_steps, checkpoint):
+    """At most one graph per modality encoder, one for the rest and one for full presence, for any
+    mix of presence across envs and steps (a graph per presence pattern and row count made the
+    memory of 16 envs grow for thousands of steps)."""
+    generator = torch.Generator().manual_seed(0)
+    steps = []
+    for step in recorded_steps * 3:
+        step = step.clone()
+        for name in MODALITIES:
+            step[keys.present_key(name)] &= torch.rand(RECORDED_ENVS, generator=generator) > 0.3
+        steps.append(step)
+    forecast = ForecastTransform.from_checkpoint(checkpoint)
+    lean = replay(forecast, steps)
+    assert graphs(forecast) <= len(PUSH_SPECS) + 2
+    assert_same_forecasts(lean, replay(ForecastTransform.from_checkpoint(checkpoint, trace=False), steps))
 
 
 def test_forecast_history_resets_with_the_envs_that_reset(checkpoint):

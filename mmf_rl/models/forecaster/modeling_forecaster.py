@@ -309,6 +309,25 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         and, for a world model, the embedded action sequence (:meth:`embed_actions`)."""
         return self.decoder(tokens, ~present, z, action)
 
+    def forecast_from_tokens(
+        self, tokens: torch.Tensor, present: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The eval forecast of encoded windows: what :meth:`forward` writes under ``("forecast",
+        "loc"/"scale")`` in eval mode, ``[N, T, D]``, for tokens ``[N, M, d]`` and presence ``[N, M]``
+        (:meth:`encode`; every row with a present modality).
+
+        ``z`` from the prior by ``eval_latent``, then the decoder; nothing the forecast does not
+        read runs (the posterior, and under the standard prior the multimodal encoder, which
+        feeds only the posterior). No Python branch depends on the values of ``present``: one
+        `torch.jit.trace` of it serves every presence pattern (`mmf_rl.rl.ForecastTransform`).
+        """
+        if self.action_encoder is not None:
+            raise ValueError(
+                "forecast_from_tokens: a world model forecasts under given actions; use decode_under_actions"
+            )
+        prior_loc, prior_scale = self.prior(tokens, present)
+        return self.decode(tokens, present, self._eval_latent(prior_loc, prior_scale))
+
     def embed_actions(self, td: TensorDictBase) -> torch.Tensor | None:
         """The action-sequence embedding ``[B, d]`` of a world model, ``None`` for a plain forecaster."""
         if self.action_encoder is None:
