@@ -378,5 +378,5 @@ def test_bad_policy_path_is_a_clear_error_naming_it(tmp_path, capsys):
     missing = tmp_path / "runs" / "no_such_world_model"
     out = tmp_path / "mpc"
     code, err = _run_cli(["--out", str(out), "--episodes", "1", "--policy", str(missing)], capsys)
-    _assert_one_line_error(code, err, f"--policy {missing}", "not found")
+    _assert_one_line_error(code, err, f"--policy {missing}", "does not exist")
     assert not out.exists()

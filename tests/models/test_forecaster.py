@@ -738,3 +738,12 @@ def test_predictive_config_choices(small_config, small_model, batch):
     small_model.config.predictive_samples = 8  # the model was built with 16 fixed draws
     with pytest.raises(ValueError, match="predictive_samples=8 was set after the model was built with 16"):
         small_model(batch.clone())
+
+
+def test_forecast_from_tokens_moment_matches_like_the_eval_forward(predictive_model, mixed_batch):
+    """The lean inference entry honours eval_latent="predictive": the same K draws, the same mixture."""
+    with torch.no_grad():
+        expected = predictive_model(mixed_batch.clone())
+        loc, scale = predictive_model.forecast_from_tokens(*predictive_model.encode(mixed_batch))
+    torch.testing.assert_close(loc, expected.get(keys.FORECAST_LOC))
+    torch.testing.assert_close(scale, expected.get(keys.FORECAST_SCALE))

@@ -326,7 +326,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                 "forecast_from_tokens: a world model forecasts under given actions; use decode_under_actions"
             )
         prior_loc, prior_scale = self.prior(tokens, present)
-        return self.decode(tokens, present, self._eval_latent(prior_loc, prior_scale))
+        z = self._eval_latent(prior_loc, prior_scale)
+        draws = z.shape[0] // tokens.shape[0]  # K with eval_latent="predictive", else 1
+        return moment_match(*self.decode(tokens.repeat(draws, 1, 1), present.repeat(draws, 1), z), draws)
 
     def embed_actions(self, td: TensorDictBase) -> torch.Tensor | None:
         """The action-sequence embedding ``[B, d]`` of a world model, ``None`` for a plain forecaster."""
