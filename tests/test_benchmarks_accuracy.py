@@ -2,27 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import re
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
+from tests.conftest import load_benchmark
 
-
-def _load():
-    spec = importlib.util.spec_from_file_location("benchmarks_accuracy", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
-
-
-accuracy = _load()
+accuracy = load_benchmark("accuracy")
 SUBSETS = [
     "all",
     "without_force",

@@ -2,23 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
-import sys
-from pathlib import Path
 
-from tests.conftest import push_train_overrides
-
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bc_push.py"
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("benchmarks_bc_push", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+from tests.conftest import load_benchmark, push_train_overrides
 
 
 def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_root, tmp_path, capsys):
@@ -52,7 +39,7 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_ro
         "--outage",
         "episode",
     ]
-    _load().main(argv)
+    load_benchmark("bc_push").main(argv)
     last = capsys.readouterr().out.strip().splitlines()[-1]
     pct = r"\d+%/\d+%"
     assert re.fullmatch(

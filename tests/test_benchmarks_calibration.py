@@ -2,29 +2,19 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
-import sys
-from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "calibration.py"
+from tests.conftest import load_benchmark
+
 SUMMARY = re.compile(
     r"summary: (\S+) (\S+): MSE all (\S+); coverage 50% (\S+)-(\S+), 90% (\S+)-(\S+) over (\d+) subsets"
 )
 
 
-def _load():
-    spec = importlib.util.spec_from_file_location("benchmarks_calibration", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-calibration = _load()
+calibration = load_benchmark("calibration")
 
 
 @pytest.fixture(scope="module")

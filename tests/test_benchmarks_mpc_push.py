@@ -3,26 +3,13 @@ recorded push data with a tiny world model."""
 
 from __future__ import annotations
 
-import importlib.util
 import sys
-from pathlib import Path
 
 import pytest
 
-from tests.conftest import push_train_overrides
+from tests.conftest import load_benchmark, push_train_overrides
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "mpc_push.py"
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("benchmarks_mpc_push", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-mpc_push = _load()
+mpc_push = load_benchmark("mpc_push")
 
 
 def parse(monkeypatch, *argv: str):

@@ -3,28 +3,17 @@ end-to-end smoke run on the real G1 recording."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "real_humanoid.py"
+from tests.conftest import load_benchmark
 
-
-def _load():
-    spec = importlib.util.spec_from_file_location("benchmarks_real_humanoid", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
-
-
-humanoid = _load()
+humanoid = load_benchmark("real_humanoid")
 bench = humanoid.bench  # benchmarks/accuracy.py, as the script imports it
 SUBSETS = [name for name, _ in bench.subsets(humanoid.MODALITIES)]
 SUMMARY = re.compile(

@@ -2,27 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
 from mmf_rl import keys
+from tests.conftest import load_benchmark
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "model_throughput.py"
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location("benchmarks_model_throughput", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-throughput = _load()
+throughput = load_benchmark("model_throughput")
 
 
 def forecast_and_gradients(name: str, channels_last: bool):

@@ -500,15 +500,22 @@ def test_learned_prior_sample_draws_from_the_prior(learned_model, mixed_batch):
     torch.testing.assert_close(prior_loc, learned_model(mixed_batch.clone()).get(keys.PRIOR_LOC))
 
 
-def test_degraded_prior_comes_from_the_kept_modalities_in_one_fusion_pass(learned_model, mixed_batch):
-    learned_model.train()
-    td = mixed_batch.clone()
+def drop_first_present_modality(td):
+    """Mark the first present modality of every multi-modality row of ``td`` dropped (``("drop", m)``,
+    as `MissingModalityLoss` does); returns presence and the drop mask ``[B, M]``."""
     present = torch.stack([td.get(keys.present_key(n)) for n in NAMES], 1)
     drop = torch.zeros_like(present)
     multi = present.sum(1) >= 2
     drop[multi, present[multi].float().argmax(1)] = True
     for i, name in enumerate(NAMES):
         td.set(keys.drop_key(name), drop[:, i])
+    return present, drop
+
+
+def test_degraded_prior_comes_from_the_kept_modalities_in_one_fusion_pass(learned_model, mixed_batch):
+    learned_model.train()
+    td = mixed_batch.clone()
+    present, drop = drop_first_present_modality(td)
     td.set(keys.DECODE_FROM_PRIOR, torch.ones(td.shape[0], dtype=torch.bool))
     fusion_rows, decoder_rows = [], []
     hooks = [
@@ -529,7 +536,8 @@ def test_degraded_prior_comes_from_the_kept_modalities_in_one_fusion_pass(learne
     torch.testing.assert_close(out.get(keys.PRIOR_LOC), full[0], rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(out.get(keys.PRIOR_DROPPED_LOC), degraded[0], rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(out.get(keys.PRIOR_DROPPED_SCALE), degraded[1], rtol=1e-4, atol=1e-5)
-    assert not torch.allclose(full[0][multi], degraded[0][multi])
+    dropped = drop.any(1)  # the rows with two or more present modalities
+    assert not torch.allclose(full[0][dropped], degraded[0][dropped])
     assert out.get(keys.FORECAST_FROM_PRIOR_LOC).shape == (b, HORIZON, TARGET_DIM)
 
 
@@ -664,12 +672,7 @@ def test_predictive_forecast_is_deterministic_and_leaves_the_global_rng_alone(pr
 def test_predictive_applies_to_the_degraded_decode_and_not_to_training(predictive_model, mixed_batch):
     model, td = predictive_model, mixed_batch.clone()
     b = td.shape[0]
-    present = torch.stack([td.get(keys.present_key(n)) for n in NAMES], 1)
-    drop = torch.zeros_like(present)
-    multi = present.sum(1) >= 2
-    drop[multi, present[multi].float().argmax(1)] = True
-    for i, name in enumerate(NAMES):
-        td.set(keys.drop_key(name), drop[:, i])
+    present, drop = drop_first_present_modality(td)
     td.set(keys.DECODE_FROM_PRIOR, torch.ones(b, dtype=torch.bool))
     with torch.no_grad():
         with decoder_rows(model) as rows:
