@@ -48,17 +48,23 @@ def g1_root() -> Path:
     return G1_ROOT
 
 
-@pytest.fixture(scope="session")
-def synthetic_root(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("synthetic") / "push"
+def record_synthetic(root: Path, **options) -> Path:
+    """The tests' synthetic dataset at ``root``; ``options`` go to ``make_synthetic_dataset`` (e.g.
+    its file layout), everything else is the same for every caller."""
     make_synthetic_dataset(
         root,
         EPISODE_LENGTHS,
         image_size=SYNTHETIC_IMAGE_SIZE,
         nan_force_episodes=(NAN_FORCE_EPISODE,),
         invalid_image_episodes=(INVALID_IMAGE_EPISODE,),
+        **options,
     )
     return root
+
+
+@pytest.fixture(scope="session")
+def synthetic_root(tmp_path_factory) -> Path:
+    return record_synthetic(tmp_path_factory.mktemp("synthetic") / "push")
 
 
 @pytest.fixture

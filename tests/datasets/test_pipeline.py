@@ -11,7 +11,7 @@ from safetensors.torch import load_file, save_file
 
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.splits import Normalizer
-from mmf_rl.datasets.synthetic import FORCE_FEATURE, POSE_FEATURE, STATE_FEATURE, make_synthetic_dataset
+from mmf_rl.datasets.synthetic import FORCE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
 from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, obs_key, present_key, validate_batch
 from tests.datasets.conftest import (
@@ -19,8 +19,8 @@ from tests.datasets.conftest import (
     INVALID_IMAGE_EPISODE,
     NAN_FORCE_EPISODE,
     SO101_ROOT,
-    SYNTHETIC_IMAGE_SIZE,
     needs_so101,
+    record_synthetic,
     so101_config,
     synthetic_config,
 )
@@ -374,15 +374,7 @@ def test_pool_build_equals_in_process_build(synthetic_root, tmp_path):
 def test_video_split_over_many_files_reads_like_one_file(synthetic_root, tmp_path):
     # lerobot starts a new video file once the current one would pass video_files_size_in_mb; a
     # 1 KB cap puts every episode in its own file (the layout of large datasets).
-    many_files = tmp_path / "many_files"
-    make_synthetic_dataset(
-        many_files,
-        EPISODE_LENGTHS,
-        image_size=SYNTHETIC_IMAGE_SIZE,
-        nan_force_episodes=(NAN_FORCE_EPISODE,),
-        invalid_image_episodes=(INVALID_IMAGE_EPISODE,),
-        video_files_size_in_mb=0.001,
-    )
+    many_files = record_synthetic(tmp_path / "many_files", video_files_size_in_mb=0.001)
     assert len(list((many_files / "videos").rglob("*.mp4"))) == len(EPISODE_LENGTHS)
     assert len(list((synthetic_root / "videos").rglob("*.mp4"))) == 1
     split = open_quietly(synthetic_config(many_files, tmp_path / "a"))
