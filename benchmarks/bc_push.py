@@ -73,9 +73,12 @@ and ``no-force (T)`` for each outage type T (``episode``: off the whole episode;
 the pusher that recorded the data (full state), for reference.
 
 Ends with ``summary: BC success all A%/A2%, no-camera B%/B2%, no-force C%/C2% (without/with
-forecasts); camera loss without forecasts X pts, with Y pts (target Y <= X/2)``: means over BC
-seeds, the first ``--outage`` type; a loss is success with all sensors minus success with the
-camera off.
+forecasts); camera loss without/with forecasts episode X/Y pts, bursts ... (target with <=
+without/2: met for K of N outage types)``: means over BC seeds, success figures for the first
+``--outage`` type, camera losses for each; a loss is success with all sensors minus success with
+the camera off. The target is judged per outage type because the camera off for a whole episode
+leaves nothing that locates the object (see the observation above): both variants are expected
+to lose everything there, by construction.
 """
 
 from __future__ import annotations
@@ -322,7 +325,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         nargs="+",
         choices=list(OUTAGES),
         default=None,
-        help="how the sensor fails (quick: episode bursts; full: all); the summary uses the first",
+        help="how the sensor fails (quick: episode bursts; full: all); the summary's success figures use the first",
     )
     parser.add_argument("--seed", type=int, default=1000, help="episode i is reset with seed + i")
     parser.add_argument("--out", type=Path, default=None, help="default: --work")
@@ -409,8 +412,14 @@ def main(argv: list[str] | None = None) -> None:
     def success(variant: str, label: str) -> float:
         return rows[f"BC {variant} forecasts | {label}"]["success"]
 
-    lost = [success(v, "all") - success(v, f"no-camera ({first})") for v in VARIANTS]
-    met = lost[1] <= lost[0] / 2
+    # The target is judged for every outage type: a camera off for the whole episode leaves no
+    # sensor that locates the object (the observation has no object pose), unlike bursts and a
+    # camera that dies mid-episode, which a forecaster might bridge.
+    camera_loss = {
+        outage: [success(v, "all") - success(v, f"no-camera ({outage})") for v in VARIANTS]
+        for outage in args.outage
+    }
+    met = {outage: lost[1] <= lost[0] / 2 for outage, lost in camera_loss.items()}
     minutes = (time.perf_counter() - started) / 60
     timing = ", ".join(f"{name} {seconds / 60:.1f} min" for name, seconds in phases.items())
     command = " ".join(["benchmarks/bc_push.py", *(sys.argv[1:] if argv is None else argv)])
@@ -425,8 +434,12 @@ def main(argv: list[str] | None = None) -> None:
         f"{success_table(rows)}\n\nSuccess lost against all sensors:\n\n{loss_table(rows, labels)}\n\n"
         f"Offline: mean squared action error on the validation episodes, with each sensor subset removed "
         f"(mean over BC seeds):\n\n{validation_table(errors)}\n\n"
-        f"Camera-loss target (with forecasts <= half of without, outage {first}): "
-        f"{'met' if met else 'not met'} ({lost[1]:.0f} vs {lost[0]:.0f} pts)\n"
+        "Camera-loss target (success lost with forecasts <= half of that lost without): "
+        + "; ".join(
+            f"{outage} {'met' if met[outage] else 'not met'} ({lost[1]:.0f} vs {lost[0]:.0f} pts)"
+            for outage, lost in camera_loss.items()
+        )
+        + "\n"
     )
     args.out.mkdir(parents=True, exist_ok=True)
     write_text(args.out / "results.md", text)
@@ -446,8 +459,9 @@ def main(argv: list[str] | None = None) -> None:
         f"no-camera {success('without', f'no-camera ({first})'):.0f}%/"
         f"{success('with', f'no-camera ({first})'):.0f}%, "
         f"no-force {success('without', f'no-force ({first})'):.0f}%/{success('with', f'no-force ({first})'):.0f}% "
-        f"(without/with forecasts); camera loss without forecasts {lost[0]:.0f} pts, with {lost[1]:.0f} pts "
-        f"(target Y <= X/2)"
+        f"(without/with forecasts); camera loss without/with forecasts "
+        + ", ".join(f"{outage} {lost[0]:.0f}/{lost[1]:.0f} pts" for outage, lost in camera_loss.items())
+        + f" (target with <= without/2: met for {sum(met.values())} of {len(met)} outage types)"
     )
 
 

@@ -44,7 +44,8 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_ro
     pct = r"\d+%/\d+%"
     assert re.fullmatch(
         rf"summary: BC success all {pct}, no-camera {pct}, no-force {pct} \(without/with forecasts\); "
-        r"camera loss without forecasts -?\d+ pts, with -?\d+ pts \(target Y <= X/2\)",
+        r"camera loss without/with forecasts episode -?\d+/-?\d+ pts "
+        r"\(target with <= without/2: met for [01] of 1 outage types\)",
         last,
     ), last
     results = json.loads((work / "results.json").read_text())
