@@ -11,6 +11,14 @@ in a step, `mmf_rl.envs.scripted.TRACKING_GAIN`). Unless the gripper is already 
 object and on the push line, it is asked to travel above the block (`CLEARANCE`), so an approach
 from the wrong side passes over the object instead of ploughing it away — a collision the world
 model has seen too rarely to forecast well.
+
+The approach has two modes, chosen from where the gripper is now, as the scripted pusher that
+made the data does it: until the gripper is low behind the object on the push line, it aims for
+the scripted pre-push point (`PRE_PUSH_DISTANCE` behind the object) and may only come down
+there; once it is, it aims for contact (`CONTACT_DISTANCE`) and pushes. With a single mode
+(contact distance throughout), traces of the agent showed it descending onto the block's back
+edge from above and then pushing from on top: the block tipped or was pressed into the table,
+moved a few millimetres per step, and long pushes ran out of time (issue #15's note).
 """
 
 from __future__ import annotations
@@ -19,7 +27,7 @@ import torch
 from tensordict import TensorDictBase
 
 from mmf_rl import keys
-from mmf_rl.envs.scripted import ACTION_SCALE, CLEARANCE, CONTACT_DISTANCE, TRACKING_GAIN
+from mmf_rl.envs.scripted import ACTION_SCALE, CLEARANCE, CONTACT_DISTANCE, PRE_PUSH_DISTANCE, TRACKING_GAIN
 from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
 
 # Where the gripper may be low (metres, relative to the object, along and across the push line):
@@ -27,6 +35,9 @@ from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
 # to the line. Everywhere else it should travel above the block.
 BEHIND_MARGIN = 0.01
 LINE_WIDTH = 0.02
+# The gripper counts as at pushing height this close above the object's centre (a third of the
+# travel height above it).
+LOW = CLEARANCE / 3
 
 
 class PushObjective:
@@ -74,16 +85,33 @@ class PushObjective:
         # forecast step would swing wildly as the object nears the goal.
         to_goal = goal - pose[..., :2]
         direction = to_goal / to_goal.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-        pre_push = obj - CONTACT_DISTANCE * direction
+        pushing = self._in_contact_mode(gripper_now, pose, direction)  # [n, 1, 1]
+        standoff = torch.where(pushing, CONTACT_DISTANCE, PRE_PUSH_DISTANCE)
+        pre_push = obj - standoff.unsqueeze(-1) * direction
 
         travel = (ACTION_SCALE / TRACKING_GAIN) * actions[..., :3].cumsum(-2)  # [n, N, S, 3]
         stride = steps // horizon
         gripper = gripper_now + travel[..., stride - 1 :: stride, :]  # at the forecast frames
         planar = (gripper[..., :2] - pre_push).norm(dim=-1)
-        offset = gripper[..., :2] - obj
-        along = (offset * direction).sum(-1)
-        across = (offset[..., 0] * direction[..., 1] - offset[..., 1] * direction[..., 0]).abs()
-        may_be_low = (along <= -(CONTACT_DISTANCE - BEHIND_MARGIN)) & (across <= LINE_WIDTH)
+        along, across = self._along_across(gripper[..., :2] - obj, direction)
+        may_be_low = (along <= -(standoff - BEHIND_MARGIN)) & (across <= LINE_WIDTH)
         height = pose[..., 2] + CLEARANCE * (~may_be_low).float()
         reach = planar + self.height_weight * (gripper[..., 2] - height).abs()
         return -(goal_distance + self.reach_weight * reach)
+
+    @staticmethod
+    def _along_across(offset: torch.Tensor, direction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """A planar offset from the object: its component along the push direction, and its
+        distance from the push line."""
+        along = (offset * direction).sum(-1)
+        across = (offset[..., 0] * direction[..., 1] - offset[..., 1] * direction[..., 0]).abs()
+        return along, across
+
+    def _in_contact_mode(
+        self, gripper_now: torch.Tensor, pose: torch.Tensor, direction: torch.Tensor
+    ) -> torch.Tensor:
+        """Whether each env's gripper is now low, behind the object, on the push line: then it
+        pushes; otherwise it goes to the pre-push point first (see the module docstring)."""
+        along, across = self._along_across(gripper_now[..., :2] - pose[..., :2], direction)
+        low = gripper_now[..., 2] - pose[..., 2] <= LOW
+        return low & (along <= -(CONTACT_DISTANCE - BEHIND_MARGIN)) & (across <= LINE_WIDTH)

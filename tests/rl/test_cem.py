@@ -8,7 +8,7 @@ from torchrl.envs import Compose, InitTracker, TransformedEnv
 
 from mmf_rl import keys
 from mmf_rl.envs import MultimodalPushTorchEnv
-from mmf_rl.envs.scripted import ACTION_SCALE, CONTACT_DISTANCE, TRACKING_GAIN
+from mmf_rl.envs.scripted import ACTION_SCALE, CLEARANCE, CONTACT_DISTANCE, PRE_PUSH_DISTANCE, TRACKING_GAIN
 from mmf_rl.rl import PushObjective, SequenceCEMPlanner
 
 IMAGE_SIZE = 32
@@ -124,11 +124,8 @@ def test_planner_drives_the_real_env_batched_with_outages(push_world_model):
     )
 
 
-def test_push_objective_prefers_pushing_toward_the_goal_and_approaching_from_behind():
-    objective = PushObjective()
-    object_xy, goal_xy = torch.tensor([1.30, 0.75]), torch.tensor([1.40, 0.75])
-    grip = torch.tensor([1.30 - CONTACT_DISTANCE, 0.75, 0.425])  # behind the object, at pushing height
-    context = TensorDict(
+def push_context(object_xy, goal_xy, grip) -> TensorDict:
+    return TensorDict(
         {
             "object_pose": torch.cat([object_xy, torch.tensor([0.425, 1, 0, 0, 0])])[None],
             "goal": torch.cat([goal_xy, torch.tensor([0.425])])[None],
@@ -136,6 +133,13 @@ def test_push_objective_prefers_pushing_toward_the_goal_and_approaching_from_beh
         },
         batch_size=[1],
     )
+
+
+def test_push_objective_prefers_pushing_toward_the_goal_and_approaching_from_behind():
+    objective = PushObjective()
+    object_xy, goal_xy = torch.tensor([1.30, 0.75]), torch.tensor([1.40, 0.75])
+    grip = torch.tensor([1.30 - CONTACT_DISTANCE, 0.75, 0.425])  # behind the object, at pushing height
+    context = push_context(object_xy, goal_xy, grip)
     steps = 3
     push = torch.zeros(1, 2, steps, 4)
     push[0, 0, :, 0] = (
@@ -149,6 +153,30 @@ def test_push_objective_prefers_pushing_toward_the_goal_and_approaching_from_beh
     # Pushed: object nearer the goal and the gripper still right behind it.
     assert (rewards[0, 0] > rewards[0, 1]).all()
     torch.testing.assert_close(rewards[0, 0], -(0.10 - moved), atol=1e-5, rtol=0)
+
+
+def test_push_objective_brings_a_high_gripper_down_at_the_pre_push_point_not_on_the_block():
+    # The failure seen in closed loop (#15): a gripper above the block's back edge came down onto
+    # it and pushed from on top, tipping it. From travel height just behind the block, going back
+    # to the pre-push point must beat coming straight down; once there, coming down must win.
+    objective = PushObjective()
+    object_xy, goal_xy = torch.tensor([1.30, 0.75]), torch.tensor([1.45, 0.75])
+    steps = 4
+    per_step = ACTION_SCALE / TRACKING_GAIN
+    no_motion = torch.zeros(1, 2, steps, 2)
+
+    near = torch.tensor([1.30 - CONTACT_DISTANCE, 0.75, 0.425 + CLEARANCE])
+    candidates = torch.zeros(1, 2, steps, 4)
+    candidates[0, 0, :, 2] = -CLEARANCE / (per_step * steps)  # straight down onto the block's edge
+    candidates[0, 1, :, 0] = -(PRE_PUSH_DISTANCE - CONTACT_DISTANCE) / (per_step * steps)  # back, high
+    rewards = objective(no_motion, candidates, push_context(object_xy, goal_xy, near))
+    assert rewards[0, 1, -1] > rewards[0, 0, -1]
+
+    at_pre_push = torch.tensor([1.30 - PRE_PUSH_DISTANCE, 0.75, 0.425 + CLEARANCE])
+    candidates = torch.zeros(1, 2, steps, 4)
+    candidates[0, 0, :, 2] = -CLEARANCE / (per_step * steps)  # down behind the block
+    rewards = objective(no_motion, candidates, push_context(object_xy, goal_xy, at_pre_push))
+    assert rewards[0, 0, -1] > rewards[0, 1, -1]
 
 
 def test_planner_refuses_an_action_spec_the_model_was_not_trained_on(push_world_model):
