@@ -138,14 +138,13 @@ def main() -> None:
             f"({r['lean'] / b * 1e3:.2f} ms/env; eager forward {r['eager'] * 1e3:.2f} ms, model forward "
             f"alone {r['model'] * 1e3:.2f} ms), transform/env = {r['lean'] / r['env']:.2f}"
         )
-    first, last = args.batches[0], args.batches[-1]
-    print(
-        f"summary: forecast per step: batch{first} {results[first]['lean'] * 1e3:.2f} ms "
-        f"(eager {results[first]['eager'] * 1e3:.2f} ms, env step {results[first]['env'] * 1e3:.2f} ms, "
-        f"transform/env {results[first]['lean'] / results[first]['env']:.2f}), batch{last} "
-        f"{results[last]['lean'] * 1e3:.2f} ms (env step {results[last]['env'] * 1e3:.2f} ms, "
-        f"transform/env {results[last]['lean'] / results[last]['env']:.2f})"
-    )
+    # The first and the last batch size (once when they are the same, e.g. ``--batches 1``).
+    parts = [
+        f"batch{b} {results[b]['lean'] * 1e3:.2f} ms (eager {results[b]['eager'] * 1e3:.2f} ms, env step "
+        f"{results[b]['env'] * 1e3:.2f} ms, transform/env {results[b]['lean'] / results[b]['env']:.2f})"
+        for b in dict.fromkeys([args.batches[0], args.batches[-1]])
+    ]
+    print(f"summary: forecast per step: {', '.join(parts)}")
 
 
 if __name__ == "__main__":

@@ -14,8 +14,9 @@ model has seen too rarely to forecast well.
 
 The approach has two modes, chosen from where the gripper is now, as the scripted pusher that
 made the data does it: until the gripper is low behind the object on the push line, it aims for
-the scripted pre-push point (`PRE_PUSH_DISTANCE` behind the object) and may only come down
-there; once it is, it aims for contact (`CONTACT_DISTANCE`) and pushes. With a single mode
+the scripted pre-push point (`PRE_PUSH_DISTANCE` behind the object) and may come down only
+clear of the block (`BEHIND_MARGIN` beyond the contact distance); once it is low behind the
+block, it aims for contact (`CONTACT_DISTANCE`) and pushes. With a single mode
 (contact distance throughout), traces of the agent showed it descending onto the block's back
 edge from above and then pushing from on top: the block tipped or was pressed into the table,
 moved a few millimetres per step, and long pushes ran out of time (issue #15's note).
@@ -31,8 +32,8 @@ from mmf_rl.envs.scripted import ACTION_SCALE, CLEARANCE, CONTACT_DISTANCE, PRE_
 from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
 
 # Where the gripper may be low (metres, relative to the object, along and across the push line):
-# behind the object by at least the fingers' contact distance minus this margin, and this close
-# to the line. Everywhere else it should travel above the block.
+# behind the object by at least the fingers' contact distance minus this margin when pushing (plus
+# it when coming down), and this close to the line. Everywhere else it travels above the block.
 BEHIND_MARGIN = 0.01
 LINE_WIDTH = 0.02
 # The gripper counts as at pushing height this close above the object's centre (a third of the
@@ -94,7 +95,9 @@ class PushObjective:
         gripper = gripper_now + travel[..., stride - 1 :: stride, :]  # at the forecast frames
         planar = (gripper[..., :2] - pre_push).norm(dim=-1)
         along, across = self._along_across(gripper[..., :2] - obj, direction)
-        may_be_low = (along <= -(standoff - BEHIND_MARGIN)) & (across <= LINE_WIDTH)
+        # Coming down is allowed a margin clear of the block (approach), pushing a margin into it.
+        low_from = torch.where(pushing, CONTACT_DISTANCE - BEHIND_MARGIN, CONTACT_DISTANCE + BEHIND_MARGIN)
+        may_be_low = (along <= -low_from) & (across <= LINE_WIDTH)
         height = pose[..., 2] + CLEARANCE * (~may_be_low).float()
         reach = planar + self.height_weight * (gripper[..., 2] - height).abs()
         return -(goal_distance + self.reach_weight * reach)
