@@ -6,10 +6,13 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from mmf_rl import keys
+from mmf_rl.checkpoint import CheckpointError, save_checkpoint
 from mmf_rl.models import (
     ForecasterConfig,
     MultimodalForecaster,
     build_loss,
+    from_pretrained,
+    load_trained_model,
     model_from_saved_config,
     saved_config,
 )
@@ -188,6 +191,34 @@ def test_registry_checkpoint_round_trip_keeps_the_fusion(small_config, fusion, t
     batch = make_batch(4)
     for key in OUTPUTS:
         torch.testing.assert_close(rebuilt(batch.clone()).get(key), model(batch.clone()).get(key))
+
+
+def without_output_norm(state: dict) -> dict:
+    """The weights as saved before the ablation fusions ended in a LayerNorm."""
+    return {k: v for k, v in state.items() if not k.startswith("fusion.output_norm.")}
+
+
+@pytest.mark.parametrize("fusion", NORMALISED)
+def test_run_checkpoint_saved_before_the_output_norm_is_a_clear_error(small_config, fusion, tmp_path):
+    model = make_model(small_config, fusion)
+    meta = {"model_config": saved_config("forecaster", model), "config": {"data": {"root": "data"}}}
+    save_checkpoint(tmp_path, 1, without_output_norm(model.state_dict()), meta=meta)
+    with pytest.raises(
+        CheckpointError,
+        match=rf"missing: \['fusion\.output_norm\.bias', 'fusion\.output_norm\.weight'\]\).*"
+        rf"saved before the ablation fusions ended in a LayerNorm.*retrain with model\.fusion={fusion}",
+    ):
+        load_trained_model(tmp_path)
+
+
+def test_save_pretrained_export_before_the_output_norm_is_a_clear_error(small_config, tmp_path):
+    model = make_model(small_config, "sum")
+    model.save_pretrained(tmp_path)
+    save_file(without_output_norm(load_file(tmp_path / "model.safetensors")), tmp_path / "model.safetensors")
+    with pytest.raises(
+        CheckpointError, match=r"model\.safetensors does not fit.*retrain with model\.fusion=sum"
+    ):
+        from_pretrained(tmp_path)
 
 
 def test_unknown_fusion_is_rejected(small_config):
