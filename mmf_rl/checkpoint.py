@@ -269,10 +269,21 @@ def state_mismatch(own: dict[str, torch.Tensor], loaded: dict[str, torch.Tensor]
     return "; ".join(details) or None
 
 
+def known_mismatch(module: torch.nn.Module, loaded: dict[str, torch.Tensor]) -> str | None:
+    """Why ``loaded`` does not fit ``module``, if the module knows: a model may define
+    ``explain_state_mismatch(loaded) -> str | None`` for weights it can recognise, e.g. ones saved by
+    an older version of it, whose fix is not "use the checkpoint's own config"."""
+    explain = getattr(module, "explain_state_mismatch", None)
+    return explain(loaded) if explain is not None else None
+
+
 def load_model_state(module: torch.nn.Module, checkpoint: Checkpoint) -> None:
     """Load weights strictly; a mismatch names the keys and shapes on both sides."""
     mismatch = state_mismatch(module.state_dict(), checkpoint.model_state)
     if mismatch:
+        known = known_mismatch(module, checkpoint.model_state)
+        if known:
+            raise CheckpointError(f"{checkpoint.path} does not fit this model ({mismatch}): {known}")
         raise CheckpointError(
             f"{checkpoint.path} was saved from a different model configuration ({mismatch}); "
             f"build the model from the checkpoint's own config ({META_FILE} 'config')"

@@ -30,7 +30,7 @@ from pathlib import Path
 from huggingface_hub import PyTorchModelHubMixin, hf_hub_download
 from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
 
-from mmf_rl.checkpoint import CheckpointError, state_mismatch
+from mmf_rl.checkpoint import CheckpointError, known_mismatch, state_mismatch
 
 NORMALIZATION_FILE = "normalization.safetensors"
 DATA_CONFIG_FILE = "data_config.json"
@@ -175,4 +175,7 @@ def check_state_dict(model, state: dict, where: str) -> None:
     """Raise unless ``state`` fits ``model`` exactly; the error names each parameter with both shapes."""
     mismatch = state_mismatch(model.state_dict(), state)
     if mismatch:
-        raise CheckpointError(f"{where} does not fit this model ({mismatch})")
+        known = known_mismatch(model, state)
+        raise CheckpointError(
+            f"{where} does not fit this model ({mismatch})" + (f": {known}" if known else "")
+        )

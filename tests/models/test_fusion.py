@@ -6,14 +6,17 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from mmf_rl import keys
+from mmf_rl.checkpoint import CheckpointError, save_checkpoint
 from mmf_rl.models import (
     ForecasterConfig,
     MultimodalForecaster,
     build_loss,
+    from_pretrained,
+    load_trained_model,
     model_from_saved_config,
     saved_config,
 )
-from mmf_rl.models.fusion import AverageFusion, CrossAttentionFusion, LinearFusion, SumFusion
+from mmf_rl.models.fusion import AverageFusion, CrossAttentionFusion, LinearFusion, SumFusion, build_fusion
 from mmf_rl.objectives import LossConfig
 from tests.conftest import (
     HORIZON,
@@ -79,7 +82,7 @@ def test_tokens_of_absent_modalities_change_nothing(fusion):
     module = {
         "linear": LinearFusion(3, 8),
         "average": AverageFusion(),
-        "sum": SumFusion(),
+        "sum": SumFusion(8),
         "cross_attention": CrossAttentionFusion(3, 8, 2, 16),
     }[fusion]
     tokens = torch.randn(7, 3, 8)
@@ -115,10 +118,35 @@ def test_value_under_absent_modality_changes_nothing(small_config, mixed_batch, 
 
 
 def test_average_and_sum_pool_the_present_tokens():
-    tokens = torch.tensor([[[1.0, 2.0], [3.0, 4.0], [100.0, 100.0]]])
+    tokens = torch.tensor([[[1.0, 2.0, 0.0], [3.0, 4.0, 2.0], [100.0, -50.0, 7.0]]])
     absent = torch.tensor([[False, False, True]])
-    torch.testing.assert_close(AverageFusion()(tokens, absent), torch.tensor([[[2.0, 3.0]]]))
-    torch.testing.assert_close(SumFusion()(tokens, absent), torch.tensor([[[4.0, 6.0]]]))
+    torch.testing.assert_close(AverageFusion()(tokens, absent), torch.tensor([[[2.0, 3.0, 1.0]]]))
+    sum_fusion = SumFusion(3)
+    torch.testing.assert_close(
+        sum_fusion(tokens, absent), sum_fusion.output_norm(torch.tensor([[[4.0, 6.0, 2.0]]]))
+    )
+
+
+NORMALISED = ["cross_attention", "linear", "sum"]  # the fusions that end in a LayerNorm
+
+
+@pytest.mark.parametrize("fusion", NORMALISED)
+@pytest.mark.parametrize("token_scale", [1.0, 1e3])
+def test_fused_rows_are_layer_normalised_whatever_is_present(fusion, token_scale):
+    """The learned prior ties the prior of the full input to that of the input minus dropped
+    modalities: their fused features must be on one scale, whatever the number of present
+    modalities and the tokens' scale (unnormalised sum/linear/cross-attention collapsed, issue #13).
+    At initialisation (unit gain, zero bias) every present row has zero mean and unit variance."""
+    torch.manual_seed(0)
+    module = build_fusion(fusion, num_modalities=3, d_model=8, num_heads=2, mlp_hidden=16)
+    tokens = token_scale * torch.randn(7, 3, 8)
+    absent = ~torch.tensor([[n in p for n in NAMES] for p in presence_patterns(NAMES)])
+    out = module(tokens.masked_fill(absent.unsqueeze(-1), 0), absent)
+    rows = out[~absent] if fusion == "cross_attention" else out.flatten(0, 1)
+    torch.testing.assert_close(rows.mean(-1), torch.zeros(len(rows)), atol=1e-5, rtol=0)
+    torch.testing.assert_close(rows.var(-1, correction=0), torch.ones(len(rows)), atol=1e-3, rtol=0)
+    if fusion == "cross_attention":
+        assert not out[absent].any()
 
 
 @pytest.mark.parametrize("present", [[True, True, True], [True, False, True]])
@@ -134,7 +162,8 @@ def test_cross_attention_row_attends_to_the_other_present_modalities(present):
         others = [j for j in range(3) if j != i and present[j]]
         kv = module.norm_kv(x[:, others])
         h = x[:, i : i + 1] + module.attn(module.norm_query(x[:, i : i + 1]), kv, kv)[0]
-        torch.testing.assert_close(out[:, i : i + 1], h + module.mlp(module.norm_mlp(h)))
+        expected = module.output_norm(h + module.mlp(module.norm_mlp(h)))
+        torch.testing.assert_close(out[:, i : i + 1], expected)
     assert not out[absent].any()
 
 
@@ -162,6 +191,34 @@ def test_registry_checkpoint_round_trip_keeps_the_fusion(small_config, fusion, t
     batch = make_batch(4)
     for key in OUTPUTS:
         torch.testing.assert_close(rebuilt(batch.clone()).get(key), model(batch.clone()).get(key))
+
+
+def without_output_norm(state: dict) -> dict:
+    """The weights as saved before the ablation fusions ended in a LayerNorm."""
+    return {k: v for k, v in state.items() if not k.startswith("fusion.output_norm.")}
+
+
+@pytest.mark.parametrize("fusion", NORMALISED)
+def test_run_checkpoint_saved_before_the_output_norm_is_a_clear_error(small_config, fusion, tmp_path):
+    model = make_model(small_config, fusion)
+    meta = {"model_config": saved_config("forecaster", model), "config": {"data": {"root": "data"}}}
+    save_checkpoint(tmp_path, 1, without_output_norm(model.state_dict()), meta=meta)
+    with pytest.raises(
+        CheckpointError,
+        match=rf"missing: \['fusion\.output_norm\.bias', 'fusion\.output_norm\.weight'\]\).*"
+        rf"saved before the ablation fusions ended in a LayerNorm.*retrain with model\.fusion={fusion}",
+    ):
+        load_trained_model(tmp_path)
+
+
+def test_save_pretrained_export_before_the_output_norm_is_a_clear_error(small_config, tmp_path):
+    model = make_model(small_config, "sum")
+    model.save_pretrained(tmp_path)
+    save_file(without_output_norm(load_file(tmp_path / "model.safetensors")), tmp_path / "model.safetensors")
+    with pytest.raises(
+        CheckpointError, match=r"model\.safetensors does not fit.*retrain with model\.fusion=sum"
+    ):
+        from_pretrained(tmp_path)
 
 
 def test_unknown_fusion_is_rejected(small_config):

@@ -40,7 +40,8 @@ class ForecasterConfig:
             in every subset (all sensors 0.375 vs 0.362) but its forecast scale, trained on
             posterior draws that know ``y``, is overconfident when decoded at the prior's mean
             (90% intervals covered 53-63% of test futures vs 75-88%), and with the unnormalised
-            ablation fusions (linear, sum, cross-attention) its training collapsed to the mean.
+            ablation fusions (linear, sum, cross-attention) its training collapsed to the mean
+            (measured before those fusions ended in a LayerNorm; see :mod:`mmf_rl.models.fusion`).
         posterior_uses_target: whether the future ``y`` enters the posterior head in training
             (a CVAE's ``q(z|X, y)``). ``None`` (default): ``True`` with the learned prior (which
             needs it: a posterior that sees only ``X`` can copy the prior), ``False`` with the

@@ -239,6 +239,21 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         if self.prior_head is not None:
             self.out_keys += [keys.PRIOR_DROPPED_LOC, keys.PRIOR_DROPPED_SCALE]
 
+    def explain_state_mismatch(self, state: dict[str, torch.Tensor]) -> str | None:
+        """Weights of the ``linear``/``sum``/``cross_attention`` fusion saved before those fusions ended
+        in a LayerNorm lack only ``fusion.output_norm.*``. They are refused rather than completed with
+        an identity norm: the norm changes what the fusion computes, so they would give other forecasts
+        than the model they were trained in (see :mod:`mmf_rl.models.fusion`, "Output scale")."""
+        missing = set(self.state_dict()) - set(state)
+        if not missing or not all(key.startswith("fusion.output_norm.") for key in missing):
+            return None
+        return (
+            f"these are weights of the fusion={self.config.fusion!r} ablation saved before the ablation "
+            "fusions ended in a LayerNorm (fusion.output_norm), and they cannot be used with it; retrain "
+            f"with model.fusion={self.config.fusion} (without the norm, training with model.prior=learned "
+            "collapsed to the mean forecast)"
+        )
+
     # -- building blocks -------------------------------------------------------------------------
 
     def validate(self, td: TensorDictBase, require_target: bool = False) -> None:
