@@ -25,9 +25,10 @@ collapsed to the training mean. So these three end in a LayerNorm over each outp
 (``output_norm``): every row reaches the heads on one scale whatever the tokens' scale and the
 number of present modalities. A LayerNorm on the tokens before the fusion (the agnostic encoder's
 pre-LN) is not enough: in a short gradient diagnostic on the push data sum stayed scaled by the
-count and linear's weights grew the scale back. Cross-attention's absent rows stay zero (no value under an absent modality reaches the
-output), so a dropped modality still removes a whole row of its flattened features, and its
-degraded-input prior term trains down more slowly than the other fusions'.
+count and linear's weights grew the scale back. Cross-attention's absent rows stay zero (no value
+under an absent modality reaches the output), so a dropped modality still removes a whole row of
+its flattened features, and its degraded-input prior term trains down more slowly than the other
+fusions'.
 
 ``average`` has no output norm: like the agnostic pooling it is a convex combination of the
 tokens, and it trained without one. With one it would be the same function as ``sum``: a
