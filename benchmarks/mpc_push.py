@@ -51,9 +51,10 @@ some recorded frame, exploration bursts included) and the steps trained.
 
 Run time: the script prints the minutes of each phase (record, each training, play) and the
 total, and writes them to ``results.md``; the quick mode is sized to finish within 25 min on 2
-CPU cores. The full mode's time is obtained the same way, from one full run on a quiet machine
-(the #7 figures: recording 2.7 min, one 4000-step training 7.1 min, 7.1 min of play for one
-world model with 10 step-wise episodes), i.e. roughly 2.7 + 2 x 7.1 + 2 x (play) minutes.
+CPU cores. Full mode, measured with ``--threads 1`` beside another 1-thread job (so upper
+bounds): about 2.7 min of recording, 11-13 min per 4000-step world-model training, and 11.6 min
+of play for the two world models without step-wise episodes (``--stepwise-episodes 0``); the
+10 step-wise `CEMPlanner` episodes add about 5 min (585 ms per decision): 40-45 min in all.
 
 Every policy plays the same seeded episodes of `MultimodalPushTorchEnv` (episode ``i`` is reset
 with seed ``seed + i``; success is FetchPush's: the object within 5 cm of the goal, within the
