@@ -57,10 +57,12 @@ class PushObjective:
     ``__call__(forecast [n, N, T, 2], actions [n, N, S, 4], context [n])`` returns rewards
     ``[n, N, T]``: ``-(|object_t - goal| + reach_weight * reach_t)`` with the
     object's position ``object_t`` = now + the forecast displacement (the push world model
-    forecasts displacements, `data.target.relative`) and ``target_t`` the pre-push point behind
-    ``object_t`` on the current object→goal line, ``reach_t`` the gripper's planar distance to
-    it plus ``height_weight`` times its height error (pushing height only when behind the object
-    on the line, travel height elsewhere).
+    forecasts displacements, `data.target.relative`) and ``target_t`` the point behind
+    ``object_t`` on the current object→goal line (`PRE_PUSH_DISTANCE` behind while approaching,
+    `CONTACT_DISTANCE` once the gripper is low behind the object: the module docstring's two
+    modes), ``reach_t`` the gripper's planar distance to it plus ``height_weight`` times its
+    height error (pushing height only when behind the object on the line, travel height
+    elsewhere).
     """
 
     in_keys = [OBJECT_POSE, GOAL, keys.obs_key("proprio")]
