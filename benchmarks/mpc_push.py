@@ -51,10 +51,10 @@ some recorded frame, exploration bursts included) and the steps trained.
 
 Run time: the script prints the minutes of each phase (record, each training, play) and the
 total, and writes them to ``results.md``; the quick mode is sized to finish within 25 min on 2
-CPU cores. Full mode, measured with ``--threads 1`` beside another 1-thread job (so upper
-bounds): about 2.7 min of recording, 11-13 min per 4000-step world-model training, and 11.6 min
-of play for the two world models without step-wise episodes (``--stepwise-episodes 0``); the
-10 step-wise `CEMPlanner` episodes add about 5 min (585 ms per decision): 40-45 min in all.
+CPU cores (measured: 9.7 min on a quiet machine). Full mode: about 2.7 min of recording,
+11-13 min per 4000-step world-model training (measured with ``--threads 1`` beside another job,
+so upper bounds), and 12.0 min of play for the two world models, the 10 step-wise `CEMPlanner`
+episodes included (quiet machine, 2 threads): about 40 min in all.
 
 Every policy plays the same seeded episodes of `MultimodalPushTorchEnv` (episode ``i`` is reset
 with seed ``seed + i``; success is FetchPush's: the object within 5 cm of the goal, within the
