@@ -88,7 +88,12 @@ class PushObjective:
         # forecast step would swing wildly as the object nears the goal.
         to_goal = goal - pose[..., :2]
         direction = to_goal / to_goal.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-        pushing = self._in_contact_mode(gripper_now, pose, direction)  # [n, 1, 1]
+        # Contact mode (module docstring): the gripper is now low, behind the object, on the push
+        # line; otherwise it goes to the pre-push point first.
+        low_now = gripper_now[..., 2] - pose[..., 2] <= LOW
+        pushing = low_now & behind_on_line(
+            gripper_now[..., :2] - pose[..., :2], direction, CONTACT_DISTANCE - BEHIND_MARGIN
+        )  # [n, 1, 1]
         standoff = torch.where(pushing, CONTACT_DISTANCE, PRE_PUSH_DISTANCE)
         pre_push = obj - standoff.unsqueeze(-1) * direction
 
@@ -96,27 +101,19 @@ class PushObjective:
         stride = steps // horizon
         gripper = gripper_now + travel[..., stride - 1 :: stride, :]  # at the forecast frames
         planar = (gripper[..., :2] - pre_push).norm(dim=-1)
-        along, across = self._along_across(gripper[..., :2] - obj, direction)
         # Coming down is allowed a margin clear of the block (approach), pushing a margin into it.
         low_from = torch.where(pushing, CONTACT_DISTANCE - BEHIND_MARGIN, CONTACT_DISTANCE + BEHIND_MARGIN)
-        may_be_low = (along <= -low_from) & (across <= LINE_WIDTH)
+        may_be_low = behind_on_line(gripper[..., :2] - obj, direction, low_from)
         height = pose[..., 2] + CLEARANCE * (~may_be_low).float()
         reach = planar + self.height_weight * (gripper[..., 2] - height).abs()
         return -(goal_distance + self.reach_weight * reach)
 
-    @staticmethod
-    def _along_across(offset: torch.Tensor, direction: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """A planar offset from the object: its component along the push direction, and its
-        distance from the push line."""
-        along = (offset * direction).sum(-1)
-        across = (offset[..., 0] * direction[..., 1] - offset[..., 1] * direction[..., 0]).abs()
-        return along, across
 
-    def _in_contact_mode(
-        self, gripper_now: torch.Tensor, pose: torch.Tensor, direction: torch.Tensor
-    ) -> torch.Tensor:
-        """Whether each env's gripper is now low, behind the object, on the push line: then it
-        pushes; otherwise it goes to the pre-push point first (see the module docstring)."""
-        along, across = self._along_across(gripper_now[..., :2] - pose[..., :2], direction)
-        low = gripper_now[..., 2] - pose[..., 2] <= LOW
-        return low & (along <= -(CONTACT_DISTANCE - BEHIND_MARGIN)) & (across <= LINE_WIDTH)
+def behind_on_line(
+    offset: torch.Tensor, direction: torch.Tensor, distance: float | torch.Tensor
+) -> torch.Tensor:
+    """Whether a planar offset from the object is at least ``distance`` behind it along the push
+    ``direction`` and within `LINE_WIDTH` of the push line."""
+    along = (offset * direction).sum(-1)
+    across = (offset[..., 0] * direction[..., 1] - offset[..., 1] * direction[..., 0]).abs()
+    return (along <= -distance) & (across <= LINE_WIDTH)
