@@ -30,7 +30,9 @@ Entries (``ENTRIES``; a new model option is one line there):
 * Ablations of the paper's model: the multimodal encoder replaced by ``linear``, ``average``,
   ``sum``, ``cross_attention`` fusion (Table 4); without ``L_mis`` (``loss=no_mis``) and trained
   with 50 % of the image samples missing (Table 5); and, to separate the image encoder from the
-  fusion, the paper model with the baselines' per-frame image encoder (``conv_gru``).
+  fusion, the paper model with the baselines' per-frame image encoder (``conv_gru``). The four fusion
+  ablations again under the learned prior (``learned fusion``), compared with the learned prior's own
+  attention run: only there does the fusion act at test time.
 
 The dataset is recorded if ``--data`` does not exist (the mode's episode count x 50 steps at
 64x64, 2 workers). Completed runs (``<out>/<entry>/seed<k>/eval/window_errors.json``) are reused,
@@ -97,12 +99,11 @@ QUICK = Budget(
     entries=("paper", "paper w/o L_mis", "LF-LSTM", "MVAE", "MulT"),
 )
 # Standard: every entry, 3 seeds, at the budget of issue #13's single-change runs (1000 steps of batch 32,
-# 32x32), sized for <= 75 min on 2 cores from times this benchmark measured: 1000 steps of batch 32
-# took ~57 s a training averaged over every entry (87 trainings, 83 min; issue #6's run), the paper
-# model 39-59 s. The retrained baselines are trained for the paper's three subsets only (the ones the
-# issue's target compares them on): the paper model, 6 variants, 3 zero-fill baselines, 3 x 2 retrained
-# and 7 ablations = 23 trainings a seed, 69 in all, ~66 min at 57 s (less with --jobs 2).
-# results.md projects this mode's time from the per-step times of the run that wrote it.
+# 32x32), for <= 75 min on 2 cores. The retrained baselines are trained for the paper's three subsets
+# only (the ones the issue's target compares them on): the paper model, 7 variants, 3 zero-fill
+# baselines, 3 x 2 retrained, 4 + 4 fusion ablations (standard and learned prior) and 3 other ablations
+# = 28 trainings a seed, 84 in all. results.md gives the wall time and projects this mode's time from
+# the per-step times of the run that wrote it.
 STANDARD = Budget(
     image_size=32,
     batch_size=32,
@@ -122,9 +123,11 @@ MODES = {"tiny": TINY, "quick": QUICK, "standard": STANDARD, "full": FULL}
 @dataclass(frozen=True)
 class Entry:
     label: str
-    kind: str  # paper | variant | zero-fill | retrained | fusion | ablation
+    kind: str  # paper | variant | zero-fill | retrained | fusion | learned fusion | ablation
     overrides: tuple[str, ...]
-    base: str | None = None  # retrained: the zero-fill entry whose all-modality run gives its "all" cell
+    # retrained: the zero-fill entry whose all-modality run gives its "all" cell; learned fusion: the
+    # entry it is compared with (the same prior with the paper's fusion)
+    base: str | None = None
 
 
 LEARNED = ("model.prior=learned",)
@@ -152,6 +155,7 @@ ENTRIES = [
         ("model=forecaster", *LEARNED, "loss.dropped_nll_weight=1.0"),
     ),
     Entry("paper GRU vector encoders (issue #6)", "variant", ("model=forecaster", *GRU_VECTORS)),
+    Entry("paper, drop 1..M-1", "variant", ("model=forecaster", "loss.max_dropped=null")),
     Entry("LF-LSTM", "zero-fill", ("model=lf_lstm",)),
     Entry("MVAE", "zero-fill", ("model=mvae",)),
     Entry("MulT", "zero-fill", ("model=mult",)),
@@ -162,6 +166,17 @@ ENTRIES = [
     Entry("paper fusion=average", "fusion", ("model=forecaster", "model.fusion=average")),
     Entry("paper fusion=sum", "fusion", ("model=forecaster", "model.fusion=sum")),
     Entry("paper fusion=cross_attention", "fusion", ("model=forecaster", "model.fusion=cross_attention")),
+    # Table 4 where the fusion acts at test time: under the standard prior a forecast is decoded at z = 0
+    # and the fusion only shapes training (through q(z|X)); under the learned prior it gives p(z|X).
+    *(
+        Entry(
+            f"paper prior=learned, fusion={fusion}",
+            "learned fusion",
+            ("model=forecaster", *LEARNED, f"model.fusion={fusion}"),
+            base="paper prior=learned",
+        )
+        for fusion in ("linear", "average", "sum", "cross_attention")
+    ),
     Entry("paper w/o L_mis", "ablation", ("model=forecaster", "loss=no_mis")),
     Entry(
         "paper, 50% image missing in training", "ablation", ("model=forecaster", "+data.missing.image=0.5")
@@ -348,18 +363,27 @@ def summarize(table: Table) -> tuple[str, dict]:
     }
 
 
+def reference_of(label: str, kind: str) -> str:
+    """The entry a rival is compared with: ``paper``, or for a learned-prior fusion ablation the learned
+    prior with the paper's fusion (its ``base``)."""
+    if kind == "learned fusion":
+        return next(e.base for e in ENTRIES if e.label == label)
+    return "paper"
+
+
 def paired_comparisons(table: Table) -> dict[str, dict[str, dict]]:
-    """Per subset: ``paper - rival`` intervals against each baseline and fusion ablation (paired)."""
+    """Per subset: ``reference - rival`` intervals (paired) of each baseline against the paper model and
+    of each fusion ablation against the same model with the paper's fusion (``reference_of``)."""
     out: dict[str, dict[str, dict]] = {}
     for s in table.subsets:
-        paper = table.cells["paper"].get(s)
-        if paper is None:
-            continue
-        for label in table.labels(*BASELINE_KINDS, "fusion"):
-            if s in table.cells[label]:
-                low, high = difference_interval(paper, table.cells[label][s])
+        for label in table.labels(*BASELINE_KINDS, "fusion", "learned fusion"):
+            reference = reference_of(label, table.kinds[label])
+            ours = table.cells.get(reference, {}).get(s)
+            if ours is not None and s in table.cells[label]:
+                low, high = difference_interval(ours, table.cells[label][s])
                 out.setdefault(s, {})[label] = {
-                    "difference": paper.mean - table.cells[label][s].mean,
+                    "reference": reference,
+                    "difference": ours.mean - table.cells[label][s].mean,
                     "low": low,
                     "high": high,
                 }
@@ -547,6 +571,7 @@ def run_one(
         "train_seconds": trained,
         "seconds": total,
         "step_seconds": step_seconds,
+        "jobs": args.jobs,  # runs trained at once: their per-run times overlap
         "steps": budget.steps,
         "batch_size": budget.batch_size,
         "constant_velocity": summary.get("constant_velocity"),
@@ -698,6 +723,24 @@ def cell_text(cell: Cell | None, bold: bool, tied: bool) -> str:
     return f"**{text}**" if bold else f"{text} =" if tied else text
 
 
+def fusion_verdicts(table: Table, differences: dict[str, dict]) -> str:
+    """One paragraph per prior: the paired all-modality differences against the attention fusion and
+    whether attention beats every other fusion beyond the interval (Table 4's claim)."""
+    text = ""
+    for kind in ("fusion", "learned fusion"):
+        rivals = {label: c for label, c in differences.items() if table.kinds[label] == kind}
+        if rivals:
+            reference = next(iter(rivals.values()))["reference"]
+            beats = all(c["high"] < 0 for c in rivals.values())
+            text += (
+                f"Paired difference {reference} - fusion ablation, all modalities: "
+                + differences_text(rivals)
+                + ". Attention better than every other fusion beyond the interval: "
+                + f"{'yes' if beats else 'no'}.\n\n"
+            )
+    return text
+
+
 def differences_text(differences: dict[str, dict]) -> str:
     """``label: difference [low, high]; ...`` of paired differences (``paired_comparisons``' cells)."""
     return "; ".join(
@@ -747,8 +790,9 @@ def degradation_table(table: Table, labels: list[str], title: Callable[[str], st
 
 
 def timing(runs: dict[str, list[dict]]) -> dict[str, dict[str, float]]:
-    """Per entry: measured ms per training step (the training loop) and the rest of a run (data and
-    model setup, validation, checkpoint, evaluation) in seconds."""
+    """Per entry: measured ms per training step (the training loop), the rest of a run (data and model
+    setup, validation, checkpoint, evaluation) in seconds, and how many runs were trained at once while
+    they were measured (``--jobs``; results written before it was recorded count as 1)."""
     out = {}
     for label, results in runs.items():
         if results:
@@ -759,6 +803,7 @@ def timing(runs: dict[str, list[dict]]) -> dict[str, dict[str, float]]:
                 ),
                 "runs": len(results),
                 "batch_size": results[0]["batch_size"],
+                "jobs": statistics.fmean(r.get("jobs", 1) for r in results),
             }
     return out
 
@@ -768,8 +813,9 @@ def runs_per_seed(entry: Entry, budget: Budget) -> int:
 
 
 def projection(measured: dict[str, dict[str, float]], budget: Budget) -> tuple[float, list[str]]:
-    """Seconds the ``budget`` would take from the measured per-step times and per-run overheads
-    (recording excluded), and the entries not measured at its batch size."""
+    """Wall seconds the ``budget`` would take from the measured per-step times and per-run overheads
+    (recording excluded), and the entries not measured at its batch size. Runs measured ``jobs`` at a
+    time overlapped: each adds its time divided by ``jobs`` (summing them would count the overlap twice)."""
     seconds, missing = 0.0, []
     for entry in ENTRIES:
         if budget.entries is not None and entry.label not in budget.entries:
@@ -779,7 +825,7 @@ def projection(measured: dict[str, dict[str, float]], budget: Budget) -> tuple[f
             missing.append(entry.label)
             continue
         per_run = budget.steps * m["ms_per_step"] / 1e3 + m["other_seconds"]
-        seconds += per_run * runs_per_seed(entry, budget) * len(budget.seeds)
+        seconds += per_run / m.get("jobs", 1) * runs_per_seed(entry, budget) * len(budget.seeds)
     return seconds, missing
 
 
@@ -833,32 +879,33 @@ def markdown(table: Table, budget: Budget, mode: str, info: dict, measured: dict
             + mse_table(table, ablation_labels, ablation_labels)
             + "\n\n"
         )
+    learned_fusion = table.labels("learned fusion")
+    if learned_fusion:
+        learned_labels = [reference_of(learned_fusion[0], "learned fusion"), *learned_fusion]
+        text += (
+            "## Table 4 under the learned prior\n\n"
+            "With the standard prior a forecast is decoded at z = 0, so the fusion acts only in training; "
+            "with the learned prior it gives p(z|X), which every forecast is decoded from.\n\n"
+            + mse_table(table, learned_labels, learned_labels)
+            + "\n\n"
+        )
     text += (
         "## Relative degradation (MSE / MSE with all modalities - 1)\n\n"
-        + degradation_table(table, [*main_labels, *ablation_labels[1:]])
+        + degradation_table(table, [*main_labels, *ablation_labels[1:], *learned_fusion])
         + "\n\n"
     )
-    paper_all = comparisons.get("all", {})
-    fusion = {label: c for label, c in paper_all.items() if table.kinds[label] == "fusion"}
-    if fusion:
-        beats = all(c["high"] < 0 for c in fusion.values())
-        text += (
-            "Paired difference paper - fusion ablation, all modalities: "
-            + differences_text(fusion)
-            + ". Attention better than every other fusion beyond the interval: "
-            + f"{'yes' if beats else 'no'}.\n\n"
-        )
+    text += fusion_verdicts(table, comparisons.get("all", {}))
     text += (
         "## Run time\n\n"
         f"Window cache built or opened once before the trainings in {info['cache_seconds']:.0f} s. "
         "Per entry, measured by each run when it trained (a reused run keeps its times): the training "
         "loop's time per step and the rest of a run (data and model setup, validation, checkpoint, "
         "evaluation).\n\n"
-        "| entry | runs timed | training ms/step | rest of a run (s) |\n|---|---|---|---|\n"
+        "| entry | runs timed | runs at once | training ms/step | rest of a run (s) |\n|---|---|---|---|---|\n"
     )
     text += (
         "\n".join(
-            f"| {label} | {m['runs']} | {m['ms_per_step']:.0f} | {m['other_seconds']:.0f} |"
+            f"| {label} | {m['runs']} | {m['jobs']:g} | {m['ms_per_step']:.0f} | {m['other_seconds']:.0f} |"
             for label, m in measured.items()
         )
         + "\n\n"
@@ -869,7 +916,7 @@ def markdown(table: Table, budget: Budget, mode: str, info: dict, measured: dict
             continue  # nothing measured at its batch size
         text += (
             f"Projected {name} mode ({target.steps} steps of batch {target.batch_size}, "
-            f"{len(target.seeds)} seeds, one run at a time, "
+            f"{len(target.seeds)} seeds, as many runs at once as measured, "
             f"recording excluded) from these times: {seconds / 60:.0f} min"
             + (
                 f" for the entries measured; not measured at batch {target.batch_size}: {', '.join(missing)}"

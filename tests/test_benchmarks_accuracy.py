@@ -190,15 +190,28 @@ def test_projection_scales_the_measured_step_time():
     assert missing == ["LF-LSTM", "LF-LSTM (retrained)"]
 
 
-def test_entries_are_labelled_once_and_retrained_ones_name_a_zero_fill_base():
+def test_entries_are_labelled_once_and_name_the_base_they_are_compared_with():
     labels = [e.label for e in accuracy.ENTRIES]
     assert len(labels) == len(set(labels)) and labels[0] == "paper"
-    kinds = {e.label: e.kind for e in accuracy.ENTRIES}
+    entries = {e.label: e for e in accuracy.ENTRIES}
     for entry in accuracy.ENTRIES:
-        assert entry.kind in ("paper", "variant", "zero-fill", "retrained", "fusion", "ablation")
-        assert (entry.base is not None) == (entry.kind == "retrained")
-        if entry.base is not None:
-            assert kinds[entry.base] == "zero-fill"
+        assert entry.kind in (
+            "paper",
+            "variant",
+            "zero-fill",
+            "retrained",
+            "fusion",
+            "learned fusion",
+            "ablation",
+        )
+        assert (entry.base is not None) == (entry.kind in ("retrained", "learned fusion"))
+        if entry.kind == "retrained":
+            assert entries[entry.base].kind == "zero-fill"
+        if entry.kind == "learned fusion":  # the same prior with the attention fusion: one change apart
+            base = entries[entry.base]
+            assert base.kind == "variant" and "model.prior=learned" in base.overrides
+            changed = set(entry.overrides) ^ set(base.overrides)
+            assert len(changed) == 1 and next(iter(changed)).startswith("model.fusion=")
     for mode in accuracy.MODES.values():
         assert mode.entries is None or set(mode.entries) <= set(labels)
 
@@ -263,6 +276,37 @@ def trained_data_config(run: Path) -> dict:
     from mmf_rl.checkpoint import load_checkpoint
 
     return load_checkpoint(run / "checkpoints", with_trainer_state=False).meta["config"]["data"]
+
+
+def test_projection_counts_runs_measured_side_by_side_once():
+    budget = accuracy.Budget(
+        image_size=32, batch_size=32, steps=1000, seeds=(0, 1, 2), episodes=200, entries=("paper",)
+    )
+    alone = {"paper": {"ms_per_step": 50.0, "other_seconds": 4.0, "runs": 3, "batch_size": 32, "jobs": 1}}
+    paired = {"paper": {**alone["paper"], "jobs": 2}}
+    assert accuracy.projection(paired, budget)[0] == pytest.approx(accuracy.projection(alone, budget)[0] / 2)
+    results = [
+        {"step_seconds": 0.05, "seconds": 54.0, "steps": 1000, "batch_size": 32, "jobs": 2},
+        {"step_seconds": 0.05, "seconds": 54.0, "steps": 1000, "batch_size": 32},  # written before "jobs"
+    ]
+    assert accuracy.timing({"paper": results})["paper"]["jobs"] == 1.5
+
+
+def test_learned_prior_fusions_are_compared_with_the_learned_prior_not_the_default_model():
+    table = make_table(paper=0.30, zero_fill=0.5, retrained=0.2, fusion=0.30)
+    learned = "paper prior=learned"
+    rival = f"{learned}, fusion=sum"
+    for label, kind, level in ((learned, "variant", 0.40), (rival, "learned fusion", 0.60)):
+        table.kinds[label] = kind
+        table.cells[label] = {s: cell(level, level - 0.01, level + 0.01) for s in table.subsets}
+    differences = accuracy.paired_comparisons(table)["all"]
+    assert differences[rival]["reference"] == learned
+    assert differences[rival]["difference"] == pytest.approx(-0.20)
+    assert differences["paper fusion=sum"]["reference"] == "paper"
+    verdicts = accuracy.fusion_verdicts(table, differences)
+    # The default prior's sum fusion ties attention; the learned prior's is 0.2 behind it.
+    assert verdicts.count("beyond the interval: no") == 1 and verdicts.count("beyond the interval: yes") == 1
+    assert f"Paired difference {learned} - fusion ablation" in verdicts
 
 
 def test_entries_are_checked_against_the_configs_before_any_training(tmp_path):
