@@ -82,15 +82,17 @@ def save_checkpoint(
     tensors: dict[str, torch.Tensor] | None = None,
     trainer_state: dict | None = None,
     keep_last: int | None = None,
+    point_last: bool = True,
 ) -> Path:
     """Write checkpoint ``step`` under ``directory`` atomically and point ``last`` at it.
 
-    ``keep_last``: delete all but the newest ``keep_last`` checkpoints afterwards.
+    ``keep_last``: delete all but the newest ``keep_last`` checkpoints afterwards. ``point_last=False``
+    leaves ``last`` as it is (re-saving an earlier checkpoint with a change, e.g. its scale factors).
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     try:
-        final = _save(directory, step, model_state, meta, tensors, trainer_state)
+        final = _save(directory, step, model_state, meta, tensors, trainer_state, point_last)
     except OSError as error:
         if error.errno != errno.ENOSPC:
             raise
@@ -122,6 +124,7 @@ def _save(
     meta: dict | None,
     tensors: dict[str, torch.Tensor] | None,
     trainer_state: dict | None,
+    point_last: bool,
 ) -> Path:
     final = directory / f"step_{step:09d}"
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=directory))
@@ -138,13 +141,20 @@ def _save(
             if (tmp / name).exists():
                 with open(tmp / name, "rb+") as f:
                     os.fsync(f.fileno())
-        if final.exists():  # re-saving the same step (e.g. after a resume): replace it
-            shutil.rmtree(final)
+        replaced = None
+        if final.exists():  # re-saving the same step (after a resume, or a calibration): replace it
+            # Renamed aside first: a kill never leaves a step_* directory with files missing.
+            replaced = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".deleting", dir=directory))
+            os.replace(final, replaced)
         os.replace(tmp, final)
         _fsync_dir(directory)
+        if replaced is not None:
+            shutil.rmtree(replaced, ignore_errors=True)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    if not point_last:
+        return final
     pointer_tmp = directory / f".{LAST_POINTER}.tmp"
     try:
         pointer_tmp.write_text(final.name + "\n")
@@ -277,9 +287,26 @@ def known_mismatch(module: torch.nn.Module, loaded: dict[str, torch.Tensor]) -> 
     return explain(loaded) if explain is not None else None
 
 
+def state_with_defaults(module: torch.nn.Module, loaded: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """``loaded`` completed with the entries a state saved before they existed lacks.
+
+    Any submodule may define ``state_defaults() -> dict[str, Tensor]`` (names relative to it): the
+    value under which the module behaves as it did before the entry existed (e.g. scale factors of
+    ones). Only such entries are filled in; every other missing weight stays a mismatch."""
+    completed = dict(loaded)
+    for prefix, submodule in module.named_modules():
+        defaults = getattr(submodule, "state_defaults", None)
+        if callable(defaults):
+            for name, value in defaults().items():
+                completed.setdefault(f"{prefix}.{name}" if prefix else name, value)
+    return completed
+
+
 def load_model_state(module: torch.nn.Module, checkpoint: Checkpoint) -> None:
-    """Load weights strictly; a mismatch names the keys and shapes on both sides."""
-    mismatch = state_mismatch(module.state_dict(), checkpoint.model_state)
+    """Load weights strictly (completed by :func:`state_with_defaults`); a mismatch names the keys
+    and shapes on both sides."""
+    state = state_with_defaults(module, checkpoint.model_state)
+    mismatch = state_mismatch(module.state_dict(), state)
     if mismatch:
         known = known_mismatch(module, checkpoint.model_state)
         if known:
@@ -288,4 +315,4 @@ def load_model_state(module: torch.nn.Module, checkpoint: Checkpoint) -> None:
             f"{checkpoint.path} was saved from a different model configuration ({mismatch}); "
             f"build the model from the checkpoint's own config ({META_FILE} 'config')"
         )
-    module.load_state_dict(checkpoint.model_state)
+    module.load_state_dict(state)

@@ -7,11 +7,14 @@ Every registered model mixes in :class:`PretrainedModel` (``huggingface_hub``'s
     model.safetensors           the weights
     normalization.safetensors   the training split's normalisation statistics (``Normalizer.stats``)
     data_config.json            the data config it was trained with (features, window, stride)
+    calibration.json            how its per-presence-pattern scale factors were fitted, if they were
     README.md                   the hub's model card
 
 so a model loaded anywhere forecasts in the units it was trained in (``ForecastTransform`` and
 ``load_trained_model`` read these). The statistics and data config travel as the attributes
-``normalization_stats`` and ``data_config`` of the model (``None`` until a run or a load sets them).
+``normalization_stats`` and ``data_config`` of the model (``None`` until a run or a load sets them);
+the fit of the scale factors (``mmf-rl calibrate``; the factors themselves are weights) as
+``calibration``.
 
     model, stats, data = load_trained_model("runs/g1")      # a run, its checkpoints/ or one checkpoint
     model.save_pretrained("exports/g1")                      # stats and data config included
@@ -30,10 +33,11 @@ from pathlib import Path
 from huggingface_hub import PyTorchModelHubMixin, hf_hub_download
 from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
 
-from mmf_rl.checkpoint import CheckpointError, known_mismatch, state_mismatch
+from mmf_rl.checkpoint import CheckpointError, known_mismatch, state_mismatch, state_with_defaults
 
 NORMALIZATION_FILE = "normalization.safetensors"
 DATA_CONFIG_FILE = "data_config.json"
+CALIBRATION_FILE = "calibration.json"
 
 
 def pretrained_file(model_id: str, filename: str, required: bool = True, **hub_kwargs) -> Path | None:
@@ -67,6 +71,7 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
 
     normalization_stats: dict | None = None
     data_config: dict | None = None
+    calibration: dict | None = None  # how the scale factors were fitted (mmf_rl.eval.calibration)
 
     def _save_pretrained(self, save_directory: Path) -> None:
         from safetensors.torch import save_file
@@ -81,6 +86,8 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
             )
         if self.data_config is not None:
             (save_directory / DATA_CONFIG_FILE).write_text(json.dumps(self.data_config, indent=2))
+        if self.calibration is not None:
+            (save_directory / CALIBRATION_FILE).write_text(json.dumps(self.calibration, indent=2))
 
     def save_pretrained(
         self,
@@ -102,6 +109,8 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
             files = sorted(staging.iterdir(), key=lambda p: p.name == CONFIG_NAME)
             for path in files:
                 os.replace(path, final / path.name)
+            if self.calibration is None:  # a fit described there is not the one of these weights
+                (final / CALIBRATION_FILE).unlink(missing_ok=True)
         finally:
             shutil.rmtree(staging, ignore_errors=True)
         if push_to_hub:
@@ -150,7 +159,11 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
                 "load it with mmf_rl.models.from_pretrained"
             )
         model = cls(cls.config_class.from_dict(fields))
-        weights = load_file(pretrained_file(model_id, SAFETENSORS_SINGLE_FILE, **hub))
+        # A model saved before some state existed (e.g. the scale factors) loads with the value that
+        # reproduces its behaviour then.
+        weights = state_with_defaults(
+            model, load_file(pretrained_file(model_id, SAFETENSORS_SINGLE_FILE, **hub))
+        )
         if strict:
             check_state_dict(model, weights, f"{model_id}/{SAFETENSORS_SINGLE_FILE}")
         model.load_state_dict(weights, strict=strict)
@@ -158,6 +171,8 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
         model.normalization_stats = load_file(stats) if stats is not None else None
         data = pretrained_file(model_id, DATA_CONFIG_FILE, required=False, **hub)
         model.data_config = json.loads(data.read_text()) if data is not None else None
+        fit = pretrained_file(model_id, CALIBRATION_FILE, required=False, **hub)
+        model.calibration = json.loads(fit.read_text()) if fit is not None else None
         return model.to(map_location).eval()
 
 
@@ -172,8 +187,9 @@ def read_pretrained_config(model_id: str, **kwargs) -> dict:
 
 
 def check_state_dict(model, state: dict, where: str) -> None:
-    """Raise unless ``state`` fits ``model`` exactly; the error names each parameter with both shapes."""
-    mismatch = state_mismatch(model.state_dict(), state)
+    """Raise unless ``state`` (completed by :func:`~mmf_rl.checkpoint.state_with_defaults`) fits
+    ``model`` exactly; the error names each parameter with both shapes."""
+    mismatch = state_mismatch(model.state_dict(), state_with_defaults(model, state))
     if mismatch:
         known = known_mismatch(model, state)
         raise CheckpointError(

@@ -182,6 +182,8 @@ def from_pretrained(
     return entry.model_cls.from_pretrained(str(model_id), config=config, **kwargs)
 
 
+RUN_EXPORT_DIR = "model"  # RUN_DIR/model: a run's final weights as save_pretrained writes them
+
 TRAINED_MODEL_KINDS = (
     "a run directory, its checkpoints/, one checkpoint (meta.json) or a directory written by save_pretrained "
     f"({CONFIG_NAME}, model.safetensors, {NORMALIZATION_FILE}, {DATA_CONFIG_FILE})"
@@ -233,7 +235,8 @@ def load_trained_model(
     ``save_pretrained`` (:func:`locate_trained_model`). ``config_overrides`` change settings of the
     saved model config before the model is built, either way (:func:`model_config_with_overrides`;
     e.g. ``{"eval_latent": "predictive"}``). The model carries the stats and data config too
-    (``normalization_stats``, ``data_config``), so ``model.save_pretrained(dir)`` exports all it needs."""
+    (``normalization_stats``, ``data_config``), so ``model.save_pretrained(dir)`` exports all it needs,
+    and ``calibration``: how its scale factors were fitted (``mmf-rl calibrate``; ``None`` if never)."""
     source = locate_trained_model(path)
     if source.kind == "save_pretrained":
         absent = [f for f in (NORMALIZATION_FILE, DATA_CONFIG_FILE) if not (source.path / f).is_file()]
@@ -258,6 +261,7 @@ def load_trained_model(
     )
     load_model_state(model, checkpoint)
     model.normalization_stats, model.data_config = checkpoint.tensors, data_config
+    model.calibration = checkpoint.meta.get("calibration")
     return model.to(map_location).eval(), checkpoint.tensors, data_config
 
 
@@ -266,7 +270,8 @@ def init_weights_from(model: nn.Module, source_path) -> Path:
 
     The source may be anything :func:`load_trained_model` reads. A different model type, a
     modality missing on either side or of another kind or shape, or a parameter of another shape
-    is an error naming it (this run's value first, then the source's). Returns the source's path.
+    is an error naming it (this run's value first, then the source's). The source's scale factors
+    (``mmf-rl calibrate``) are not copied. Returns the source's path.
     """
     location = _trained_location(Path(source_path))
     source, _, _ = load_trained_model(location)
@@ -302,6 +307,8 @@ def init_weights_from(model: nn.Module, source_path) -> Path:
         )
         raise CheckpointError(f"{error}{'; the configs differ in ' + hint if hint else ''}") from None
     model.load_state_dict(source.state_dict())
+    # The source's scale factors were fitted for its weights, not for the ones fine-tuning makes.
+    model.scale_calibration.reset()
     return location
 
 

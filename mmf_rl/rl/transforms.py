@@ -260,8 +260,8 @@ class ForecastTransform(_WindowTransform):
             size; a new batch size, at a reset, replaces them); the encoder of a modality no
             env has is skipped, and one present in some envs only runs eagerly on those (as the
             model's own encode). Each graph is traced on its first use (a step that takes a
-            few hundred ms). An in-place update of the weights (``load_state_dict``, an
-            optimizer step) is detected and re-traces them. ``False``, and any other model, run
+            few hundred ms). An in-place update of the weights or the scale factors
+            (``load_state_dict``, an optimizer step, a calibration fit) is detected and re-traces them. ``False``, and any other model, run
             the model's eager TensorDict forward; both write the same forecasts (to float
             rounding).
 
@@ -458,7 +458,8 @@ class _TracedForecaster:
 
     Frozen (``torch.jit.freeze``: the weights become constants of the graph, which spares a
     parameter lookup per use and folds what depends on weights only), so an in-place change of
-    the model's parameters (``load_state_dict``, an optimizer step) is caught by their version
+    the model's parameters or buffers (``load_state_dict``, an optimizer step, fitting the scale
+    factors) is caught by their version
     counters and the graphs are traced again. With ``eval_latent="sample"`` a latent is drawn for
     every row, where the eager forward draws for the rows with a sensor only: the same
     distribution, but other draws when some env has none.
@@ -470,7 +471,8 @@ class _TracedForecaster:
 
     def __init__(self, model: MultimodalForecaster, specs: Sequence[ModalitySpec], n: int):
         self.model, self.specs, self.n = model, list(specs), n
-        self.parameters = list(model.parameters())
+        # Buffers too: the scale factors of `mmf-rl calibrate` are frozen into the graphs as well.
+        self.tensors = list(model.parameters()) + list(model.buffers())
         self.version = self._weights_version()
         self.everywhere: torch.jit.ScriptModule | None = None
         self.encoders: dict[str, torch.jit.ScriptModule] = {}
@@ -524,7 +526,7 @@ class _TracedForecaster:
 
     def _weights_version(self) -> int:
         # Every in-place write to a tensor bumps its version counter.
-        return sum(p._version for p in self.parameters)
+        return sum(t._version for t in self.tensors)
 
     def __getstate__(self) -> dict:
         # A graph does not pickle: a copy (a transform sent to a worker) traces its own when used.

@@ -291,6 +291,21 @@ def test_lean_forecast_follows_in_place_weight_updates(recorded_steps, tmp_path,
     assert_same_forecasts(after, expected[5:])
 
 
+def test_lean_forecast_applies_and_follows_the_scale_factors(recorded_steps, checkpoint):
+    """Factors fitted while graphs are in use (an in-place change of a buffer, frozen into the
+    graphs) are applied from the next step on, per env's presence pattern, as the eager forward does."""
+    steps = with_outages(recorded_steps, RECORDED_ENVS)
+    forecast = ForecastTransform.from_checkpoint(checkpoint)
+    eager = ForecastTransform.from_checkpoint(checkpoint, trace=False)
+    before = replay(forecast, steps[:5])
+    factors = torch.linspace(0.5, 4.0, 2 ** len(PUSH_SPECS))
+    for transform in (forecast, eager):
+        transform.model.scale_calibration.factors.copy_(factors)
+    expected = replay(eager, steps)
+    assert_same_forecasts([forecast._call(step.clone()) for step in steps[5:]], expected[5:])  # noqa: SLF001
+    assert not torch.allclose(before[-1][keys.FORECAST_SCALE], expected[4][keys.FORECAST_SCALE])
+
+
 def test_lean_forecast_keeps_a_bounded_set_of_graphs_whatever_the_outages(recorded_steps, checkpoint):
     """At most one graph per modality encoder, one for the rest and one for full presence, for any
     mix of presence across envs and steps (a graph per presence pattern and row count made the

@@ -1,7 +1,9 @@
 """What the baselines share: their configuration, the zero-fill protocol, per-step tokenizers.
 
 Every baseline follows the batch contract of :mod:`mmf_rl.keys`: it reads ``("obs", m)`` and
-``("present", m)`` and writes a diagonal Gaussian ``("forecast", "loc"/"scale")`` ``[B, T, D]``.
+``("present", m)`` and writes a diagonal Gaussian ``("forecast", "loc"/"scale")`` ``[B, T, D]``,
+whose scale is multiplied in eval mode by its presence pattern's factor (``scale_calibration``,
+:mod:`mmf_rl.models.calibration`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from torch import nn
 from mmf_rl import keys
 from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
+from mmf_rl.models.calibration import PresenceScaleCalibration
 from mmf_rl.models.encoders import ImageWindowEncoder, check_encoder
 from mmf_rl.models.hub import PretrainedModel
 
@@ -115,6 +118,11 @@ class StepTokenizer(nn.Module):
         return self.frame(obs)
 
 
+def presence(td: TensorDictBase, modalities: list[ModalitySpec]) -> torch.Tensor:
+    """``[B, M]`` bool: ``("present", m)`` of each modality, in spec order."""
+    return torch.stack([td.get(s.present_key) for s in modalities], dim=1)
+
+
 def gaussian_head_output(raw: torch.Tensor, horizon: int, target_dim: int, min_scale: float):
     """``[N, 2 T D]`` head output -> ``loc``, ``scale`` ``[N, T, D]`` (softplus + floor)."""
     loc, raw_scale = raw.view(raw.shape[0], 2, horizon, target_dim).unbind(1)
@@ -129,6 +137,7 @@ class DeterministicForecaster(TensorDictModuleBase, PretrainedModel):
         super().__init__()
         self.config = config
         self.modalities = list(config.modalities)
+        self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
         self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
         self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE]
 
@@ -149,7 +158,7 @@ class DeterministicForecaster(TensorDictModuleBase, PretrainedModel):
         self.validate(td)
         loc, scale = self.forecast(td)
         td.set(keys.FORECAST_LOC, loc)
-        td.set(keys.FORECAST_SCALE, scale)
+        td.set(keys.FORECAST_SCALE, self.scale_calibration(scale, presence(td, self.modalities)))
         return td
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:

@@ -30,7 +30,8 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from mmf_rl import keys
-from mmf_rl.models.baselines.common import BaselineConfig, gaussian_head_output
+from mmf_rl.models.baselines.common import BaselineConfig, gaussian_head_output, presence
+from mmf_rl.models.calibration import PresenceScaleCalibration
 from mmf_rl.models.encoders import build_encoder, mlp
 from mmf_rl.models.hub import PretrainedModel
 
@@ -60,7 +61,8 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
     """Product-of-experts VAE forecaster (see module docstring).
 
     Writes ``("forecast", "loc"/"scale")``, ``("posterior", ...)``, ``("prior", ...)`` and
-    ``"latent"``. In train mode ``z`` is a reparameterised posterior sample.
+    ``"latent"``. In train mode ``z`` is a reparameterised posterior sample. In eval mode the
+    forecast's scale is multiplied by its presence pattern's factor (``scale_calibration``).
     """
 
     model_name = "mvae"  # its registry name (mmf_rl.models.registry.MODELS)
@@ -74,6 +76,7 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
         self.encoders = nn.ModuleDict({s.name: build_encoder(s, config.history, d) for s in self.modalities})
         self.experts = nn.ModuleDict({s.name: nn.Linear(d, 2 * dz) for s in self.modalities})
         self.decoder = mlp(dz, config.head_hidden, 2 * config.horizon * config.target_dim)
+        self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
         self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
         self.out_keys = [
             keys.FORECAST_LOC,
@@ -97,7 +100,7 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
 
     def posterior(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """PoE posterior ``loc``, ``scale`` ``[B, d_z]``; each expert runs on its present rows only."""
-        present = torch.stack([td.get(s.present_key) for s in self.modalities], dim=1)
+        present = presence(td, self.modalities)
         batch, dz = present.shape[0], self.config.d_latent
         locs, scales = [], []
         for i, spec in enumerate(self.modalities):
@@ -130,7 +133,7 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
         td.set(keys.LATENT, z)
         forecast_loc, forecast_scale = self.decode(z)
         td.set(keys.FORECAST_LOC, forecast_loc)
-        td.set(keys.FORECAST_SCALE, forecast_scale)
+        td.set(keys.FORECAST_SCALE, self.scale_calibration(forecast_scale, presence(td, self.modalities)))
         return td
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:

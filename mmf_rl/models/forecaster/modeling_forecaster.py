@@ -76,6 +76,7 @@ from torch import nn
 
 from mmf_rl import keys
 from mmf_rl.models.attention import FixedQueryAttention, PreLNTransformerLayer
+from mmf_rl.models.calibration import PresenceScaleCalibration
 from mmf_rl.models.encoders import build_encoder, mlp
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.fusion import build_fusion
@@ -174,7 +175,10 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     In train mode ``z`` is sampled from the posterior (reparameterised); in eval mode it is the
     prior's mean (``eval_latent="mean"``; ``0`` under the standard prior), a prior draw
     (``"sample"``), or ``K`` fixed prior draws whose decodes are moment-matched into one Gaussian
-    (``"predictive"``; ``"latent"`` is then the prior's mean).
+    (``"predictive"``; ``"latent"`` is then the prior's mean). In eval mode the eval forecast's
+    scale (``forward``, :meth:`forecast_from_tokens`, :meth:`decode_under_actions`) is multiplied
+    by its presence pattern's factor (``scale_calibration``: ones until ``mmf-rl calibrate`` fits
+    them; see :mod:`mmf_rl.models.calibration`).
 
     Example:
         >>> cfg = ForecasterConfig(modalities=[ModalitySpec("force", "sequence", (6,))], history=10)
@@ -209,6 +213,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             mlp(fused, config.head_hidden, 2 * config.d_latent) if config.prior == "learned" else None
         )
         self.decoder = ModalitySpecificDecoder(config)
+        self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
         self.action_encoder = (
             mlp(config.action_steps * config.action_dim, config.head_hidden, d) if config.action_dim else None
         )
@@ -343,7 +348,10 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         prior_loc, prior_scale = self.prior(tokens, present)
         z = self._eval_latent(prior_loc, prior_scale)
         draws = z.shape[0] // tokens.shape[0]  # K with eval_latent="predictive", else 1
-        return moment_match(*self.decode(tokens.repeat(draws, 1, 1), present.repeat(draws, 1), z), draws)
+        loc, scale = moment_match(
+            *self.decode(tokens.repeat(draws, 1, 1), present.repeat(draws, 1), z), draws
+        )
+        return loc, self.scale_calibration(scale, present)
 
     def embed_actions(self, td: TensorDictBase) -> torch.Tensor | None:
         """The action-sequence embedding ``[B, d]`` of a world model, ``None`` for a plain forecaster."""
@@ -429,7 +437,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             for *parts, n in zip(loc.split(rows), scale.split(rows), rows, strict=True)
         ]
         td.set(keys.FORECAST_LOC, forecasts[0][0])
-        td.set(keys.FORECAST_SCALE, forecasts[0][1])
+        td.set(keys.FORECAST_SCALE, self.scale_calibration(forecasts[0][1], present))
         if kept is not None:
             td.set(keys.FORECAST_DROPPED_LOC, forecasts[1][0])
             td.set(keys.FORECAST_DROPPED_SCALE, forecasts[1][1])
@@ -498,15 +506,17 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         )
         draws = z.shape[0] // (batch * candidates)  # K with eval_latent="predictive", else 1
         embedded = self.action_encoder(actions.reshape(batch * candidates, -1))
+        present = present.repeat_interleave(candidates, 0)
         loc, scale = moment_match(
             *self.decode(
                 tokens.repeat_interleave(candidates, 0).repeat(draws, 1, 1),
-                present.repeat_interleave(candidates, 0).repeat(draws, 1),
+                present.repeat(draws, 1),
                 z,
                 embedded.repeat(draws, 1),
             ),
             draws,
         )
+        scale = self.scale_calibration(scale, present)
         return loc.view(batch, candidates, *loc.shape[1:]), scale.view(batch, candidates, *scale.shape[1:])
 
     def _eval_latent(self, prior_loc: torch.Tensor, prior_scale: torch.Tensor) -> torch.Tensor:

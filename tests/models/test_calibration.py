@@ -1,0 +1,153 @@
+"""The per-presence-pattern scale factors every registered model holds (mmf_rl.models.calibration)."""
+
+import json
+import re
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from mmf_rl import keys
+from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state, save_checkpoint
+from mmf_rl.models import (
+    MODELS,
+    ForecasterConfig,
+    MultimodalForecaster,
+    build_model,
+    from_pretrained,
+    saved_config,
+)
+from mmf_rl.models.calibration import PresenceScaleCalibration, pattern_name
+from mmf_rl.models.hub import check_state_dict
+from tests.conftest import HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch, presence_patterns
+
+NAMES = [s.name for s in SMALL_MODALITIES]
+FACTORS = "scale_calibration.factors"
+SIZES = {
+    "forecaster": {"d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32, "head_hidden": 32},
+    "lf_lstm": {"d_model": 16, "head_hidden": 32},
+    "mvae": {"d_model": 16, "d_latent": 4, "head_hidden": 32},
+    "mult": {"d_model": 16, "head_hidden": 32},
+}
+
+
+def small(name: str):
+    torch.manual_seed(0)
+    return build_model(
+        {"name": name, **SIZES[name]}, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM
+    ).eval()
+
+
+def every_pattern_batch():
+    """One window per non-empty presence pattern of the three small modalities, and their indices."""
+    patterns = presence_patterns(NAMES)
+    present = {n: torch.tensor([n in p for p in patterns]) for n in NAMES}
+    index = torch.tensor([sum(1 << i for i, n in enumerate(NAMES) if n in p) for p in patterns])
+    return make_batch(len(patterns), present=present, seed=1), index
+
+
+def eval_scale(model, batch):
+    return model(batch.clone()).get(keys.FORECAST_SCALE)
+
+
+def test_pattern_index_and_names_cover_every_presence_pattern():
+    calibration = PresenceScaleCalibration(3)
+    assert calibration.factors.shape == (8,) and torch.equal(calibration.factors, torch.ones(8))
+    present = torch.tensor([[a, b, c] for c in (0, 1) for b in (0, 1) for a in (0, 1)], dtype=torch.bool)
+    assert calibration.pattern_index(present).tolist() == list(range(8))
+    assert [pattern_name(i, NAMES) for i in (1, 2, 4, 5, 7)] == [
+        "image",
+        "force",
+        "proprio",
+        "image+proprio",
+        "image+force+proprio",
+    ]
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_each_window_gets_its_patterns_factor_in_eval_mode_only(name):
+    model = small(name)
+    assert model.state_dict()[FACTORS].shape == (2 ** len(NAMES),)
+    batch, index = every_pattern_batch()
+    # All ones: bit-identical to the head's own scale (the calibration skipped in train mode).
+    expected = eval_scale(model, batch)
+    expected_loc = model(batch.clone()).get(keys.FORECAST_LOC)
+    model.scale_calibration.train()
+    assert torch.equal(eval_scale(model, batch), expected)
+    model.scale_calibration.eval()
+    factors = torch.arange(1.0, 9.0) / 4
+    model.scale_calibration.factors.copy_(factors)
+    scaled = eval_scale(model, batch)
+    assert scaled.shape == (len(index), HORIZON, TARGET_DIM)
+    assert torch.allclose(scaled, expected * factors[index].view(-1, 1, 1), rtol=1e-6)
+    assert torch.equal(model(batch.clone()).get(keys.FORECAST_LOC), expected_loc)
+    # Training sees the head's own scale, whatever the factors (a deterministic baseline's forward
+    # in train mode is its eval forward).
+    if name in ("lf_lstm", "mult"):
+        assert torch.equal(model.train()(batch.clone()).get(keys.FORECAST_SCALE), expected)
+
+
+def test_the_forecasters_lean_and_world_model_paths_apply_the_factors(small_config):
+    torch.manual_seed(0)
+    model = MultimodalForecaster(small_config).eval()
+    batch, index = every_pattern_batch()
+    model.scale_calibration.factors.copy_(torch.arange(1.0, 9.0))
+    tokens, present = model.encode(batch)
+    loc, scale = model.forecast_from_tokens(tokens, present)
+    out = model(batch.clone())
+    assert torch.equal(loc, out.get(keys.FORECAST_LOC)) and torch.allclose(
+        scale, out.get(keys.FORECAST_SCALE)
+    )
+
+    world = MultimodalForecaster(
+        ForecasterConfig(**{**small_config.to_dict(), "action_steps": 5, "action_dim": 2})
+    )
+    world.eval().scale_calibration.factors.copy_(torch.arange(1.0, 9.0))
+    actions = torch.randn(len(index), 3, 5, 2)
+    _, calibrated = world.forecast_under_actions(batch, actions)
+    world.scale_calibration.reset()
+    _, raw = world.forecast_under_actions(batch, actions)
+    assert torch.allclose(calibrated, raw * (index + 1).float().view(-1, 1, 1, 1), rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_a_state_saved_before_the_factors_loads_as_ones_and_forecasts_the_same(name, tmp_path):
+    model = small(name)
+    batch, _ = every_pattern_batch()
+    expected = model(batch.clone())
+    old = {k: v for k, v in model.state_dict().items() if k != FACTORS}  # what older mmf-rl saved
+
+    # A checkpoint of `mmf-rl train`.
+    save_checkpoint(tmp_path / "ckpt", 3, old, meta={"model_config": saved_config(name, model)})
+    restored = small(name)
+    restored.scale_calibration.factors.fill_(2.0)  # must come back to ones
+    load_model_state(restored, load_checkpoint(tmp_path / "ckpt"))
+    # A save_pretrained directory.
+    model.save_pretrained(tmp_path / "export")
+    save_file(old, tmp_path / "export" / "model.safetensors")
+    assert FACTORS not in load_file(tmp_path / "export" / "model.safetensors")
+    check_state_dict(small(name), old, "old weights")
+    for loaded in (restored.eval(), from_pretrained(tmp_path / "export")):
+        assert torch.equal(loaded.scale_calibration.factors, torch.ones(8))
+        out = loaded(batch.clone())
+        for key in (keys.FORECAST_LOC, keys.FORECAST_SCALE):
+            assert torch.equal(out.get(key), expected.get(key))
+    # Only the factors are completed: any other missing weight stays an error naming it.
+    dropped = next(iter(old))
+    with pytest.raises(CheckpointError, match=re.escape(f"missing: ['{dropped}']")):
+        check_state_dict(small(name), {k: v for k, v in old.items() if k != dropped}, "older weights")
+
+
+def test_saved_factors_and_fit_record_travel_with_the_export(tmp_path):
+    model = small("lf_lstm")
+    model.scale_calibration.factors.copy_(torch.linspace(1, 2, 8))
+    model.calibration = {"split": "val", "factors": model.scale_calibration.factors.tolist()}
+    model.save_pretrained(tmp_path / "export")
+    loaded = from_pretrained(tmp_path / "export")
+    assert torch.equal(loaded.scale_calibration.factors, model.scale_calibration.factors)
+    assert loaded.calibration == model.calibration
+    assert json.loads((tmp_path / "export" / "calibration.json").read_text())["split"] == "val"
+    # A model without a fit written over the export removes the stale record.
+    small("lf_lstm").save_pretrained(tmp_path / "export")
+    assert not (tmp_path / "export" / "calibration.json").exists()
+    assert from_pretrained(tmp_path / "export").calibration is None
