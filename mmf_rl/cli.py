@@ -19,6 +19,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "train": ("mmf_rl.trainers.run", "train a forecaster on a LeRobot dataset (Hydra overrides)"),
     "eval": ("mmf_rl.eval.run", "evaluate a checkpoint on every presence subset: table and plots"),
+    "calibrate": (
+        "mmf_rl.eval.calibrate",
+        "fit a trained model's forecast scale per presence pattern on its val split; store it with the model",
+    ),
     "inspect": (
         "mmf_rl.datasets.inspect",
         "report a LeRobot dataset's features, cameras, NaN spans and outages; suggest a data config",

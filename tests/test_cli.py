@@ -46,7 +46,7 @@ def test_every_command_answers_help_with_usage_and_two_examples(command, capsys)
     assert len([line for line in examples if line.startswith(f"  mmf-rl {command}")]) >= 2, out
 
 
-@pytest.mark.parametrize("command", ["train", "eval"])
+@pytest.mark.parametrize("command", ["train", "eval", "calibrate"])
 def test_config_commands_list_their_groups_options_and_settings(command, capsys, tmp_path):
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "mine.yaml").write_text("root: /data/mine\n")

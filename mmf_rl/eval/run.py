@@ -34,6 +34,10 @@ eval-mode latent (see :class:`~mmf_rl.models.ForecasterConfig`), without retrain
 They are applied to the saved model config before the model is built, for a checkpoint and a
 save_pretrained directory alike (``load_trained_model(..., config_overrides=...)``). The values
 used are recorded in ``results.json`` and the header of ``results.md``.
+
+A model whose scale was recalibrated per presence pattern (``mmf-rl calibrate``) is scored with
+its factors, as stored; ``results.json`` (``scale_calibration``) and the header of ``results.md``
+say so and on which split they were fitted.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ from mmf_rl.configuration import ConfigError, parse_config_command
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.devices import resolve_device
+from mmf_rl.eval.calibration import calibration_header, calibration_in_use, unfit_for_latent
 from mmf_rl.eval.metrics import evaluate_presence_subsets, scorable_windows
 from mmf_rl.eval.report import (
     markdown_table,
@@ -143,6 +148,12 @@ def latent_header(used: dict) -> str:
     return f"{line} ({f'set by this eval: {origin}' if origin else 'as trained'})\n\n"
 
 
+def headers(summary: dict) -> str:
+    """The lines above the results table: how the forecasts were decoded, how their scale was
+    calibrated."""
+    return latent_header(summary) + calibration_header(summary["scale_calibration"])
+
+
 def run_evaluation(cfg) -> dict:
     device = resolve_device(cfg.device)
     source = locate_trained_model(cfg.checkpoint)
@@ -151,6 +162,7 @@ def run_evaluation(cfg) -> dict:
     overrides = {name: cfg[name] for name in LATENT_SETTINGS if cfg[name] is not None}
     # Applied to the saved config before building: the model's fixed draws follow predictive_samples.
     model, stats, data_config = load_trained_model(source.path, config_overrides=overrides)
+    unfit = unfit_for_latent(model)
     data = WindowDataset(data_config_for_eval(data_config, cfg.data_root, source))
     # Normalise with the statistics the model was trained with, whatever data it is scored on.
     data.normalizer = Normalizer(stats)
@@ -186,6 +198,8 @@ def run_evaluation(cfg) -> dict:
         if skipped
         else []
     )
+    if unfit is not None:
+        notes.append(unfit)
     if source.step is None:
         notes.append(
             f"training step unknown: {source.path} is a save_pretrained directory, which records none"
@@ -198,6 +212,7 @@ def run_evaluation(cfg) -> dict:
         "data_root": str(data.config.root),
         "num_samples": cfg.num_samples,
         **latent_used(model, overrides),
+        "scale_calibration": calibration_in_use(model),
         "subsets": results,
         "constant_velocity": baseline,
     }
@@ -213,7 +228,7 @@ def run_evaluation(cfg) -> dict:
     table += "".join(f"\nNote: {note}\n" for note in notes)
     write_text(
         out_dir / "results.md",
-        f"# {source.path} on {data.config.root} ({cfg.split} split)\n\n{latent_header(summary)}{table}",
+        f"# {source.path} on {data.config.root} ({cfg.split} split)\n\n{headers(summary)}{table}",
     )
     summary["table"], summary["plots"] = table, [str(p) for p in plots]
     return summary
@@ -304,7 +319,7 @@ def main(argv: list[str]) -> int:
             file=sys.stderr,
         )
         return 1
-    print(f"{latent_header(summary)}{summary['table']}")
+    print(f"{headers(summary)}{summary['table']}")
     for path in summary["plots"]:
         print(f"plot: {path}")
     return 0

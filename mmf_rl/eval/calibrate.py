@@ -1,0 +1,112 @@
+"""`mmf-rl calibrate checkpoint=DIR [split=val] [min_windows=32]`: recalibrate a trained model's
+forecast scale per presence pattern, on held-out windows, and store the factors with the model.
+
+    mmf-rl calibrate checkpoint=runs/forecaster              # fit on its val split, write back
+    mmf-rl eval checkpoint=runs/forecaster                   # then scores the calibrated model
+
+``checkpoint`` is what ``mmf-rl eval`` takes (a run directory, its ``checkpoints/``, one checkpoint
+or a ``save_pretrained`` directory), opened on its own data config and normalisation statistics
+(``data_root`` when the dataset is elsewhere). The factors are fitted in closed form from the
+uncalibrated scale (:mod:`mmf_rl.eval.calibration`; a refit replaces earlier factors), printed as
+a table (pattern, windows, factor, 90% coverage on the split before -> after), and written
+atomically into the checkpoint (re-saved at its step) or the ``save_pretrained`` directory, and
+into the run's other copy of the same weights (``RUN_DIR/model`` or the last checkpoint). A later
+``mmf-rl eval`` uses them without any flag, and its results say so.
+
+``split=test`` is refused: a calibration fitted on the test futures would score itself.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import torch
+from omegaconf import OmegaConf
+
+from mmf_rl.checkpoint import CheckpointError
+from mmf_rl.configuration import ConfigError, parse_config_command
+from mmf_rl.datasets import WindowDataset
+from mmf_rl.datasets.splits import Normalizer
+from mmf_rl.devices import resolve_device
+from mmf_rl.eval.calibration import calibration_record, fit_scale_calibration, fit_table, save_calibration
+from mmf_rl.eval.run import check_modalities_match, data_config_for_eval
+from mmf_rl.models import load_trained_model, locate_trained_model
+from mmf_rl.models.registry import TRAINED_MODEL_KINDS
+
+EXAMPLES = [
+    "mmf-rl calibrate checkpoint=runs/forecaster                 # its val split; then mmf-rl eval",
+    "mmf-rl calibrate checkpoint=exports/g1 data_root=/data/g1 min_windows=64",
+]
+FIT_SPLITS = ("val", "train")
+
+
+def run_calibration(cfg) -> dict:
+    if cfg.split not in FIT_SPLITS:
+        raise ConfigError(
+            f"split={cfg.split!r}: the scale factors are fitted on {' or '.join(FIT_SPLITS)} "
+            "(test must stay unseen to score them)"
+        )
+    device = resolve_device(cfg.device)
+    source = locate_trained_model(cfg.checkpoint)
+    model, stats, data_config = load_trained_model(source.path)
+    data = WindowDataset(data_config_for_eval(data_config, cfg.data_root, source))
+    data.normalizer = Normalizer(stats)  # the statistics the model was trained with
+    check_modalities_match(model.modalities, data.specs, source.path, data.config.root)
+    if len(data.split_windows[cfg.split]) == 0:
+        raise ValueError(
+            f"the {cfg.split!r} split of {data.config.root} has no window to fit the scale factors on; "
+            "use split=train or record more episodes"
+        )
+    torch.manual_seed(0)  # eval_latent="sample" draws: a refit gives the same factors
+    fits = fit_scale_calibration(model, data.loader(cfg.split, cfg.batch_size), cfg.min_windows, device)
+    model.calibration = calibration_record(model, fits, cfg.split, cfg.min_windows, data.config.root)
+    written = save_calibration(model.cpu(), source)
+    kept = [fit.pattern for fit in fits if not fit.fitted]
+    notes = (
+        [f"kept at 1 (fewer than min_windows={cfg.min_windows} {cfg.split} windows): {', '.join(kept)}"]
+        if kept
+        else []
+    )
+    return {
+        "checkpoint": str(source.path),
+        "split": cfg.split,
+        "fits": fits,
+        "table": fit_table(fits, cfg.split),
+        "notes": notes,
+        "written": [str(p) for p in written],
+    }
+
+
+def main(argv: list[str]) -> int:
+    command = parse_config_command(
+        argv,
+        "calibrate",
+        "mmf-rl calibrate",
+        "Fit a trained model's forecast scale per presence pattern on its validation split "
+        "and store the factors with the model.",
+        EXAMPLES,
+    )
+    try:
+        cfg = command.compose("calibrate")
+        if command.print_config:
+            print(OmegaConf.to_yaml(cfg), end="")
+            return 0
+        if cfg.get("checkpoint") is None:
+            raise ConfigError(f"checkpoint=PATH is required: {TRAINED_MODEL_KINDS}")
+        summary = run_calibration(cfg)
+    except (ConfigError, CheckpointError, FileNotFoundError, ValueError, KeyError, TypeError) as err:
+        if os.environ.get("MMF_RL_DEBUG"):
+            raise
+        print(
+            f"mmf-rl calibrate: error: {err.args[0] if isinstance(err, KeyError) and err.args else err}",
+            file=sys.stderr,
+        )
+        return 1
+    print(f"{summary['checkpoint']}: forecast scale factors fitted on the {summary['split']} split\n")
+    print(summary["table"])
+    for note in summary["notes"]:
+        print(f"\nNote: {note}")
+    for path in summary["written"]:
+        print(f"written: {path}")
+    return 0

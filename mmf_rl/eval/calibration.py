@@ -1,0 +1,308 @@
+"""Fit a trained model's per-presence-pattern scale factors on held-out windows, and store them.
+
+The factors (:class:`~mmf_rl.models.calibration.PresenceScaleCalibration`) are fitted in closed
+form: for each presence pattern ``p``, the NLL-optimal scalar temperature of the Gaussian forecast,
+
+    s_p² = mean over the windows with pattern p and over the T × D future values of ((y - loc) / scale)²,
+
+on every window of the batches under every presence subset of the evaluation
+(:func:`~mmf_rl.datasets.presence_subsets`, applied as :func:`~mmf_rl.datasets.apply_presence_subset`
+does), each (window, pattern) pair once. The fit starts from the uncalibrated scale (the factors
+are reset to ones first), so refitting replaces earlier factors. A pattern seen in fewer than
+``min_windows`` windows keeps the factor 1: a temperature from a handful of windows would be noise.
+Fit on the validation split (``mmf-rl calibrate`` does): the test split must stay unseen.
+
+:func:`save_calibration` writes the factors where the model was loaded from (a checkpoint is
+re-saved at its step, a ``save_pretrained`` directory rewritten) and into its twin, the run's
+``model/`` export or last checkpoint, when that holds the same weights; each write is atomic.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from huggingface_hub.constants import SAFETENSORS_SINGLE_FILE
+from safetensors.torch import load_file
+from tensordict import TensorDictBase
+
+from mmf_rl import keys
+from mmf_rl.checkpoint import (
+    MODEL_FILE,
+    CheckpointError,
+    list_checkpoints,
+    load_checkpoint,
+    resolve_checkpoint,
+    save_checkpoint,
+)
+from mmf_rl.datasets import apply_presence_subset, presence_subsets
+from mmf_rl.eval.metrics import COVERAGE_LEVELS
+from mmf_rl.models import TrainedModelSource
+from mmf_rl.models.calibration import pattern_name
+from mmf_rl.models.registry import RUN_EXPORT_DIR
+
+DEFAULT_MIN_WINDOWS = 32
+FACTORS_KEY = "scale_calibration.factors"  # the factors' name in a registered model's state dict
+# The half width of the central 90% interval of N(0, 1), for the coverage the fit reports.
+HALF_WIDTH_90 = float(
+    torch.distributions.Normal(0.0, 1.0).icdf(torch.tensor(0.5 + COVERAGE_LEVELS["coverage_90"] / 2))
+)
+
+
+@dataclass(frozen=True)
+class PatternFit:
+    """One presence pattern's fit: its windows, factor, and 90% coverage before and after on the
+    fitted windows (``fitted=False``: fewer than ``min_windows`` windows, the factor stays 1)."""
+
+    pattern: str
+    index: int
+    windows: int
+    factor: float
+    fitted: bool
+    coverage_90_before: float
+    coverage_90_after: float
+
+
+def _calibration_module(model):
+    calibration = getattr(model, "scale_calibration", None)
+    if calibration is None:
+        raise TypeError(
+            f"{type(model).__name__} has no per-presence-pattern scale factors (scale_calibration); "
+            "only the registered models (mmf_rl.models.MODELS) can be calibrated"
+        )
+    return calibration
+
+
+def _presence(batch: TensorDictBase, names: list[str], where: str) -> torch.Tensor:
+    """``[B, M]`` bool ``("present", m)`` of ``batch``; a missing key is a clear error."""
+    found = batch.keys(include_nested=True)
+    absent = [keys.present_key(n) for n in names if keys.present_key(n) not in found]
+    if absent:
+        raise KeyError(
+            f"{where} lacks the presence flags {absent}: the scale factors are per presence pattern, and "
+            "every batch needs ('present', m) for each of the model's modalities (mmf_rl.keys)"
+        )
+    return torch.stack([batch.get(keys.present_key(n)).cpu() for n in names], dim=1)
+
+
+@torch.no_grad()
+def fit_scale_calibration(
+    model,
+    batches: Iterable[TensorDictBase],
+    min_windows: int = DEFAULT_MIN_WINDOWS,
+    device: torch.device | str = "cpu",
+) -> list[PatternFit]:
+    """Fit ``model.scale_calibration`` in place (see module docstring); one entry per pattern seen.
+
+    ``batches``: CPU batches with ``"target"`` (e.g. ``WindowDataset.loader("val", ...)``)."""
+    calibration = _calibration_module(model)
+    if min_windows < 1:
+        raise ValueError(f"min_windows must be >= 1, found {min_windows}")
+    names = [s.name for s in model.modalities]
+    subsets = list(presence_subsets(names))
+    calibration.reset()
+    model.to(device).eval()
+    bits = calibration.bits.cpu()
+    squared = defaultdict(float)  # pattern -> sum over windows of the window's mean z²
+    windows = defaultdict(int)
+    residuals: dict[int, list[torch.Tensor]] = defaultdict(list)  # |z| of each value, for the coverage
+    for batch in batches:
+        if batch.shape[0] == 0:
+            continue
+        present = _presence(batch, names, "a batch")
+        rows = torch.arange(batch.shape[0])
+        seen = torch.zeros(batch.shape[0], 2 ** len(names), dtype=torch.bool)
+        for _, subset in subsets:
+            kept = present & torch.tensor([subset[n] for n in names])
+            nominal = (kept.long() * bits).sum(-1)
+            new = kept.any(1) & ~seen[rows, nominal]
+            if not new.any():
+                continue
+            seen[rows[new], nominal[new]] = True
+            window = apply_presence_subset(batch[new], subset)
+            out = model(window.exclude(keys.TARGET).to(device))
+            # The presence the model used (nonfinite="absent" may have made a modality absent).
+            pattern = calibration.pattern_index(_presence(out, names, "the model's output")).cpu()
+            z = (window.get(keys.TARGET) - out.get(keys.FORECAST_LOC).cpu()) / out.get(
+                keys.FORECAST_SCALE
+            ).cpu()
+            z = z.flatten(1).double()
+            for index in pattern.unique().tolist():
+                mine = pattern == index
+                squared[index] += float(z[mine].square().mean(1).sum())
+                windows[index] += int(mine.sum())
+                residuals[index].append(z[mine].abs().flatten())
+    if not windows:
+        raise ValueError("no window to fit the scale factors on: the batches are empty")
+    fits = []
+    for index in sorted(windows):
+        fitted = windows[index] >= min_windows
+        factor = math.sqrt(squared[index] / windows[index]) if fitted else 1.0
+        calibration.factors[index] = factor
+        magnitudes = torch.cat(residuals[index])
+        fits.append(
+            PatternFit(
+                pattern=pattern_name(index, names),
+                index=index,
+                windows=windows[index],
+                factor=float(calibration.factors[index]),
+                fitted=fitted,
+                coverage_90_before=float((magnitudes <= HALF_WIDTH_90).double().mean()),
+                coverage_90_after=float((magnitudes <= HALF_WIDTH_90 * factor).double().mean()),
+            )
+        )
+    return fits
+
+
+def calibration_record(model, fits: list[PatternFit], split: str, min_windows: int, data_root) -> dict:
+    """What is stored with the model about its fit (``model.calibration``): the split, the
+    settings, every pattern's fit and the factors it describes (so a reader can tell whether the
+    weights still hold them)."""
+    return {
+        "split": split,
+        "min_windows": min_windows,
+        "data_root": str(data_root),
+        "eval_latent": getattr(model.config, "eval_latent", None),
+        "patterns": [asdict(fit) for fit in fits],
+        "factors": _calibration_module(model).factors.tolist(),
+    }
+
+
+def calibration_in_use(model) -> dict | None:
+    """``model.calibration`` if it describes the factors the model holds now; ``None`` when the
+    factors are ones and no fit is recorded. Factors without a matching record (written by hand,
+    or the record of another fit) give ``{"split": None, ...}``: recalibrated, fit unknown."""
+    factors = _calibration_module(model).factors
+    record = getattr(model, "calibration", None)
+    if record is not None and torch.equal(
+        torch.tensor(record.get("factors", []), dtype=factors.dtype), factors.cpu()
+    ):
+        return record
+    if _calibration_module(model).is_identity():
+        return None
+    return {"split": None, "factors": factors.tolist()}
+
+
+def calibration_header(record: dict | None) -> str:
+    """The results.md line saying how the forecast's scale was calibrated ("" when it was not)."""
+    if record is None:
+        return ""
+    if record["split"] is None:
+        return (
+            "Forecast scale: recalibrated per presence pattern (the fit is not recorded with the model)\n\n"
+        )
+    fitted = sum(p["fitted"] for p in record["patterns"])
+    return (
+        f"Forecast scale: recalibrated per presence pattern on the {record['split']} split "
+        f"(`mmf-rl calibrate`; {fitted} of {len(record['patterns'])} patterns fitted, "
+        f"min_windows={record['min_windows']})\n\n"
+    )
+
+
+def unfit_for_latent(model) -> str | None:
+    """Reset the factors (to the scale as trained) when they were fitted under another eval latent
+    than the model now decodes with (e.g. ``mmf-rl eval eval_latent=predictive`` of a model
+    calibrated with ``mean``): they describe another forecast. Returns a note saying so, or None."""
+    record = getattr(model, "calibration", None)
+    now = getattr(model.config, "eval_latent", None)
+    if record is None or record.get("eval_latent") == now:
+        return None
+    _calibration_module(model).reset()
+    model.calibration = None
+    return (
+        f"scale factors not applied: they were fitted with eval_latent={record.get('eval_latent')} and this "
+        f"evaluation decodes with eval_latent={now} (refit: mmf-rl calibrate, after saving the model with it)"
+    )
+
+
+def fit_table(fits: list[PatternFit], split: str) -> str:
+    """The per-pattern table ``mmf-rl calibrate`` prints."""
+    lines = [
+        f"| pattern | {split} windows | factor | coverage 90% before -> after |",
+        "|---|---|---|---|",
+    ]
+    for fit in fits:
+        factor = f"{fit.factor:.3f}" if fit.fitted else "1 (kept: too few windows)"
+        lines.append(
+            f"| {fit.pattern} | {fit.windows} | {factor} | "
+            f"{fit.coverage_90_before:.3f} -> {fit.coverage_90_after:.3f} |"
+        )
+    return "\n".join(lines)
+
+
+def _same_weights(model, state: dict[str, torch.Tensor]) -> bool:
+    """``state`` holds the weights of ``model``, whatever its scale factors."""
+    own = {k: v for k, v in model.state_dict().items() if k != FACTORS_KEY}
+    theirs = {k: v for k, v in state.items() if k != FACTORS_KEY}
+    return own.keys() == theirs.keys() and all(torch.equal(v.cpu(), theirs[k]) for k, v in own.items())
+
+
+def _save_to_checkpoint(model, path: Path) -> Path:
+    """Re-save checkpoint ``path`` at its step with the model's factors and fit (its ``last``
+    pointer unchanged)."""
+    checkpoint = load_checkpoint(path)
+    directory = checkpoint.path.parent
+    meta = {k: v for k, v in checkpoint.meta.items() if k not in ("format_version", "step")}
+    meta["calibration"] = model.calibration
+    last = list_checkpoints(directory)[-1:] == [checkpoint.path]
+    return save_checkpoint(
+        directory,
+        checkpoint.step,
+        {k: v.cpu() for k, v in model.state_dict().items()},
+        meta=meta,
+        tensors=checkpoint.tensors,
+        trainer_state=checkpoint.trainer_state,
+        point_last=last,
+    )
+
+
+def _in_hub_cache(path: Path) -> bool:
+    from huggingface_hub.constants import HF_HUB_CACHE
+
+    return path.resolve().is_relative_to(Path(HF_HUB_CACHE).resolve())
+
+
+def save_calibration(model, source: TrainedModelSource) -> list[Path]:
+    """Write the model's factors and fit (``model.calibration``) back where it was loaded from, and
+    into the run's twin copy holding the same weights (a checkpoint's ``RUN_DIR/model`` export, an
+    export's last checkpoint). Returns the paths written."""
+    if source.kind == "save_pretrained":
+        if _in_hub_cache(source.path):
+            raise CheckpointError(
+                f"{source.path} is in the Hugging Face cache, which is no place for a changed model; copy it "
+                "first (hf download USER/MODEL --local-dir DIR), then calibrate DIR"
+            )
+        export, checkpoint = source.path, None
+        checkpoints = source.path.parent / "checkpoints"
+        if source.path.name == RUN_EXPORT_DIR and list_checkpoints(checkpoints):
+            twin = resolve_checkpoint(checkpoints)
+            if _same_weights(model, load_file(twin / MODEL_FILE)):
+                checkpoint = twin
+    else:
+        checkpoint, export = source.path, None
+        twin = source.path.parent.parent / RUN_EXPORT_DIR
+        weights = twin / SAFETENSORS_SINGLE_FILE
+        if weights.is_file() and _same_weights(model, load_file(weights)):
+            export = twin
+    written = []
+    if checkpoint is not None:
+        written.append(_save_to_checkpoint(model, checkpoint))
+    if export is not None:
+        model.save_pretrained(export)
+        written.append(export)
+    return written
+
+
+def calibrate_after_training(model, data, checkpoint: Path, device: torch.device | str = "cpu") -> str:
+    """``mmf-rl train calibrate=true``: fit the trained ``model`` on its run's val split (``data``, a
+    ``WindowDataset``) and re-save its last ``checkpoint`` with the factors; what to print."""
+    if len(data.split_windows["val"]) == 0:
+        return "forecast scale not recalibrated: the val split has no window"
+    fits = fit_scale_calibration(model, data.loader("val", 256), DEFAULT_MIN_WINDOWS, device)
+    model.calibration = calibration_record(model, fits, "val", DEFAULT_MIN_WINDOWS, data.config.root)
+    _save_to_checkpoint(model, checkpoint)
+    return f"forecast scale recalibrated per presence pattern on the val split:\n{fit_table(fits, 'val')}"

@@ -1,0 +1,209 @@
+"""Fitting the per-presence-pattern scale factors (mmf_rl.eval.calibration), and `mmf-rl calibrate`
+end to end on a recorded push dataset: train, calibrate, eval."""
+
+import json
+
+import pytest
+import torch
+from safetensors.torch import load_file
+from tensordict.nn import TensorDictModuleBase
+
+from mmf_rl import keys
+from mmf_rl.checkpoint import LAST_POINTER, list_checkpoints, load_checkpoint
+from mmf_rl.cli import main as cli
+from mmf_rl.eval.calibration import (
+    HALF_WIDTH_90,
+    calibration_header,
+    calibration_in_use,
+    calibration_record,
+    fit_scale_calibration,
+    unfit_for_latent,
+)
+from mmf_rl.models import load_trained_model
+from mmf_rl.models.calibration import PresenceScaleCalibration, pattern_name
+from tests.conftest import HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch, push_train_overrides
+
+NAMES = [s.name for s in SMALL_MODALITIES]
+FACTORS = "scale_calibration.factors"
+
+
+class FixedGaussian(TensorDictModuleBase):
+    """A model whose forecast is ``N(0, sigma_p²)`` for presence pattern ``p``: fitted on targets
+    ``~ N(0, 1)``, pattern ``p``'s factor must come out as ``1 / sigma_p``."""
+
+    def __init__(self, sigma: torch.Tensor):
+        super().__init__()
+        self.modalities = list(SMALL_MODALITIES)
+        self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
+        self.sigma = sigma
+        self.in_keys, self.out_keys = [], [keys.FORECAST_LOC, keys.FORECAST_SCALE]
+
+    def forward(self, td):
+        present = torch.stack([td.get(s.present_key) for s in self.modalities], 1)
+        scale = self.sigma[self.scale_calibration.pattern_index(present)].view(-1, 1, 1)
+        td.set(keys.FORECAST_LOC, torch.zeros(td.shape[0], HORIZON, TARGET_DIM))
+        td.set(keys.FORECAST_SCALE, self.scale_calibration(scale.expand(-1, HORIZON, TARGET_DIM), present))
+        return td
+
+
+def batches(count: int, size: int = 50, without_image: bool = False, seed: int = 0):
+    absent = {"image": torch.zeros(size, dtype=torch.bool)} if without_image else None
+    return [make_batch(size, present=absent, seed=seed + i) for i in range(count)]
+
+
+def test_the_fit_recovers_a_known_miscalibration_per_pattern():
+    sigma = torch.tensor([1.0, 0.5, 0.5, 2.0, 0.25, 1.0, 0.8, 0.5])  # pattern 0 (nothing) unused
+    model = FixedGaussian(sigma)
+    data = batches(4)  # 200 windows, every sensor present: each pattern once per window
+    fits = fit_scale_calibration(model, data, min_windows=32)
+    assert [fit.index for fit in fits] == list(range(1, 8))
+    for fit in fits:
+        assert fit.pattern == pattern_name(fit.index, NAMES) and fit.windows == 200 and fit.fitted
+        # 2000 values a pattern: the fitted temperature is within a few percent of the true one.
+        assert fit.factor == pytest.approx(1 / float(sigma[fit.index]), rel=0.06)
+        assert fit.coverage_90_after == pytest.approx(0.9, abs=0.03)
+        expected_before = torch.special.erf(torch.tensor(HALF_WIDTH_90 * float(sigma[fit.index]) / 2**0.5))
+        assert fit.coverage_90_before == pytest.approx(float(expected_before), abs=0.04)
+    assert torch.equal(model.scale_calibration.factors[1:], torch.tensor([f.factor for f in fits]))
+    # A refit starts from the uncalibrated scale: the same factors, not their square.
+    again = fit_scale_calibration(model, data, min_windows=32)
+    assert [f.factor for f in again] == [f.factor for f in fits]
+
+
+def test_patterns_with_too_few_windows_keep_one_and_each_window_counts_once():
+    model = FixedGaussian(torch.full((8,), 0.5))
+    # 40 windows with every sensor, 40 without the camera: the camera's patterns have 40 windows,
+    # the others 80 (a camera-less window under "all" and under "without_image" is one window).
+    data = batches(1, 40) + batches(1, 40, without_image=True, seed=5)
+    fits = {fit.pattern: fit for fit in fit_scale_calibration(model, data, min_windows=50)}
+    assert {name: fit.windows for name, fit in fits.items()} == {
+        "image": 40,
+        "force": 80,
+        "image+force": 40,
+        "proprio": 80,
+        "image+proprio": 40,
+        "force+proprio": 80,
+        "image+force+proprio": 40,
+    }
+    for name, fit in fits.items():
+        assert fit.fitted == ("image" not in name)
+        assert (fit.factor == 1.0) == ("image" in name)
+        if "image" in name:
+            assert fit.coverage_90_after == fit.coverage_90_before
+    factors = model.scale_calibration.factors
+    assert factors[1] == 1 and factors[6] == pytest.approx(2.0, rel=0.1)
+
+
+def test_bad_input_is_a_one_line_error():
+    with pytest.raises(TypeError, match="has no per-presence-pattern scale factors"):
+        fit_scale_calibration(torch.nn.Linear(2, 2), batches(1))
+    model = FixedGaussian(torch.ones(8))
+    with pytest.raises(ValueError, match="min_windows must be >= 1"):
+        fit_scale_calibration(model, batches(1), min_windows=0)
+    with pytest.raises(ValueError, match="no window to fit"):
+        fit_scale_calibration(model, [])
+    without_presence = batches(1)[0].exclude(keys.present_key("force"))
+    with pytest.raises(KeyError, match=r"lacks the presence flags \[\('present', 'force'\)\]"):
+        fit_scale_calibration(model, [without_presence])
+
+
+def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
+    model = FixedGaussian(torch.full((8,), 0.5))
+    model.config = type("Config", (), {"eval_latent": "mean"})()
+    assert calibration_in_use(model) is None and calibration_header(None) == ""
+    fits = fit_scale_calibration(model, batches(1), min_windows=32)
+    model.calibration = calibration_record(model, fits, "val", 32, "/data/push")
+    record = calibration_in_use(model)
+    assert record["split"] == "val"
+    assert "recalibrated per presence pattern on the val split" in calibration_header(record)
+    assert unfit_for_latent(model) is None
+    model.scale_calibration.factors[3] = 5.0  # factors that the record does not describe
+    assert "fit is not recorded" in calibration_header(calibration_in_use(model))
+    # Scored under another eval latent than the fit's: the factors describe another forecast.
+    model.calibration = calibration_record(model, fits, "val", 32, "/data/push")
+    model.config.eval_latent = "predictive"
+    assert "fitted with eval_latent=mean" in unfit_for_latent(model)
+    assert calibration_in_use(model) is None and model.scale_calibration.is_identity()
+
+
+# -- `mmf-rl calibrate` on a recorded push dataset -------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def push_run(recorded_push_root, tmp_path_factory):
+    """A tiny forecaster trained by `mmf-rl train` (calibrate=true by default) on recorded pushes."""
+    base = tmp_path_factory.mktemp("calibrate")
+    run = base / "run"
+    assert cli(["train", *push_train_overrides(recorded_push_root, base / "cache", run)]) == 0
+    return run
+
+
+def stored_factors(run):
+    checkpoint = load_checkpoint(run / "checkpoints", with_trainer_state=False)
+    return checkpoint, load_file(run / "model" / "model.safetensors")[FACTORS]
+
+
+def test_training_ends_with_a_calibration_on_val_stored_in_checkpoint_and_export(push_run):
+    checkpoint, exported = stored_factors(push_run)
+    record = checkpoint.meta["calibration"]
+    assert record["split"] == "val" and record["min_windows"] == 32
+    assert torch.equal(checkpoint.model_state[FACTORS], exported)
+    assert exported.tolist() == record["factors"]
+    assert json.loads((push_run / "model" / "calibration.json").read_text()) == record
+    # The trainer state survives the re-save: the run can still be resumed.
+    assert load_checkpoint(push_run / "checkpoints").trainer_state is not None
+
+
+def test_calibrate_refits_writes_back_and_eval_scores_with_the_factors(push_run, capsys):
+    last = (push_run / "checkpoints" / LAST_POINTER).read_text()
+    steps = list_checkpoints(push_run / "checkpoints")
+    assert cli(["calibrate", f"checkpoint={push_run}", "min_windows=4"]) == 0
+    out = capsys.readouterr().out
+    assert "| pattern | val windows | factor | coverage 90% before -> after |" in out
+    assert f"written: {steps[-1]}" in out and f"written: {push_run / 'model'}" in out
+    assert (push_run / "checkpoints" / LAST_POINTER).read_text() == last
+    assert list_checkpoints(push_run / "checkpoints") == steps
+    assert not [p for p in (push_run / "checkpoints").iterdir() if p.name.startswith(".")]
+    checkpoint, exported = stored_factors(push_run)
+    record = checkpoint.meta["calibration"]
+    assert record["min_windows"] == 4 and torch.equal(checkpoint.model_state[FACTORS], exported)
+    fitted = {p["pattern"]: p for p in record["patterns"]}
+    assert all(p["fitted"] for p in fitted.values()) and len(fitted) == 7
+    assert not torch.equal(exported, torch.ones_like(exported))
+    # A refit starts from ones: calibrating again gives the same factors.
+    assert cli(["calibrate", f"checkpoint={push_run / 'model'}", "min_windows=4"]) == 0
+    capsys.readouterr()
+    assert torch.equal(stored_factors(push_run)[1], exported)
+
+    # `mmf-rl eval` scores the calibrated model, without a flag, and says so. On val (no sensor
+    # fails in this recording: every subset is one pattern on every window) its 90% coverage per
+    # subset is the calibration's "after".
+    assert cli(["eval", f"checkpoint={push_run}", "split=val", "num_samples=0", "plots=false"]) == 0
+    capsys.readouterr()
+    results = json.loads((push_run / "eval" / "results.json").read_text())
+    assert results["scale_calibration"]["split"] == "val"
+    assert (
+        "Forecast scale: recalibrated per presence pattern on the val split"
+        in (push_run / "eval" / "results.md").read_text()
+    )
+    pattern = {"all": "image+force+proprio", "only_force": "force", "without_image": "force+proprio"}
+    for subset, name in pattern.items():
+        row = results["subsets"][subset]
+        assert row["windows"] == fitted[name]["windows"]
+        assert row["coverage_90"] == pytest.approx(fitted[name]["coverage_90_after"], abs=1e-6)
+    model, _, _ = load_trained_model(push_run / "model")
+    assert torch.equal(model.scale_calibration.factors, exported)
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        (["checkpoint=RUN", "split=test"], "split='test': the scale factors are fitted on val or train"),
+        (["checkpoint=/nowhere/run"], "/nowhere/run does not exist"),
+        ([], "checkpoint=PATH is required"),
+    ],
+)
+def test_calibrate_names_bad_input_in_one_line(push_run, capsys, arguments, message):
+    assert cli(["calibrate", *(a.replace("RUN", str(push_run)) for a in arguments)]) == 1
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
