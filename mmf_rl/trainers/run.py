@@ -10,8 +10,11 @@ the model and its losses, train with checkpoints, logs and validation, then save
 weights. ``resume=true`` continues the run in ``run_dir`` exactly where its last checkpoint was;
 ``init_from=RUN_OR_CHECKPOINT`` fine-tunes: a new run starting from another run's (or a
 ``save_pretrained`` directory's) weights, with a new optimizer and schedule, at step 0, and the
-normalisation statistics of this run's data. The final model is also written with
-``save_pretrained`` to ``run_dir/model`` (weights, config, statistics, data config).
+normalisation statistics of this run's data. With ``calibrate=true`` (the default) the trained
+model's forecast scale is then recalibrated per presence pattern on the val split (what
+``mmf-rl calibrate`` does) and the last checkpoint re-saved with the factors. The final model is
+also written with ``save_pretrained`` to ``run_dir/model`` (weights, config, statistics, data
+config, and the calibration's fit).
 """
 
 from __future__ import annotations
@@ -31,14 +34,16 @@ from mmf_rl.checkpoint import CheckpointError, list_checkpoints, remove_leftover
 from mmf_rl.configuration import ConfigError, load_config, parse_config_command, save_config, to_container
 from mmf_rl.datasets import AugmentConfig, DataConfig, ImageAugmentation, WindowDataset
 from mmf_rl.devices import resolve_device
+from mmf_rl.eval.calibration import calibrate_after_training
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.models import build_loss, build_model, init_weights_from, saved_config
 from mmf_rl.models.encoders import check_encoder
+from mmf_rl.models.registry import RUN_EXPORT_DIR
 from mmf_rl.objectives import LossConfig
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
 RUN_CONFIG = "config.yaml"
-PRETRAINED_DIR = "model"  # run_dir/model: the final weights as save_pretrained writes them
+PRETRAINED_DIR = RUN_EXPORT_DIR  # run_dir/model: the final weights as save_pretrained writes them
 EXAMPLES = [
     "mmf-rl train data=so101 trainer.total_steps=500 run_dir=runs/so101",
     "mmf-rl train data=/path/to/mine.yaml run_dir=runs/mine      # your own data config (mmf-rl inspect writes one)",
@@ -241,11 +246,16 @@ def train(cfg) -> Path:
         trainer.register_op("batch_process", lambda batch: batch.to(device, non_blocking=True))
     if cfg.resume:
         trainer.resume(run_dir / "checkpoints")
+        if trainer.step < trainer_cfg.total_steps:
+            # Scale factors fitted for the weights training is about to change (calibrate refits them).
+            model.scale_calibration.reset()
         if rank == 0 and cfg.logger == "csv":
             truncate_csv_logs(run_dir / "logs", trainer.step)
     metrics = trainer.train()
     if rank == 0:  # the trained model with what it needs to forecast, ready for from_pretrained / push_to_hub
         model.normalization_stats, model.data_config = data.normalizer.stats, data_cfg.to_dict()
+        if cfg.calibrate:
+            print(calibrate_after_training(model, data, trainer.last_checkpoint, device))
         model.save_pretrained(run_dir / PRETRAINED_DIR)
         summary = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
         print(
