@@ -17,6 +17,14 @@ by their parent directory's name (``acc_std/paper_prior_learned/seed0`` -> ``pap
 the seeds of one benchmark entry); each cell is the mean over the group's runs. The evaluations
 are written under ``--out/<group>/<run>/<latent>/``; a re-run reuses the finished ones.
 
+``--recalibrate`` answers the next question (issue #13's target: the 90% interval covers 80-97%
+of test futures in every presence subset): does a per-presence-pattern scale recalibration on the
+validation split (``mmf-rl calibrate``) get there? For each run and latent it writes two copies of
+the model under ``--out/<group>/<run>/<latent>/`` (``save_pretrained``; the run itself is not
+touched): ``raw``, its scale factors reset to ones (the scale as trained), and ``recalibrated``,
+fitted on the run's val split with ``--min-windows``; both are scored on ``--split``, as the rows
+``<latent>:raw`` and ``<latent>:recalibrated``.
+
 Writes ``--out/results.md`` and ``results.json``; ends with one ``summary:`` line per group and
 latent: the all-sensor MSE and the range over subsets of the 50% and 90% interval coverage (a
 calibrated scale: 0.5 and 0.9).
@@ -41,12 +49,13 @@ METRICS = (
 )
 
 
-def evaluate(run_dir: Path, latent: str, args) -> dict:
-    """``run_evaluation``'s summary of ``run_dir`` under ``latent`` (reused when already written)."""
+def evaluate(run_dir: Path, latent: str, args, out_dir: Path | None = None) -> dict:
+    """``run_evaluation``'s summary of ``run_dir`` (a run or a saved model) under ``latent`` (reused
+    when already written), into ``out_dir`` (default ``--out/<group>/<run>/<latent>``)."""
     from mmf_rl.configuration import compose_config
     from mmf_rl.eval.run import run_evaluation
 
-    out_dir = args.out / run_dir.parent.name / run_dir.name / latent
+    out_dir = out_dir or args.out / run_dir.parent.name / run_dir.name / latent
     done = out_dir / "results.json"
     if done.is_file():
         return json.loads(done.read_text())
@@ -67,6 +76,44 @@ def evaluate(run_dir: Path, latent: str, args) -> dict:
     summary = run_evaluation(compose_config("eval", overrides))
     print(f"  {run_dir} {latent}: {time.perf_counter() - started:.0f} s", flush=True)
     return summary
+
+
+RECALIBRATION_VARIANTS = ("raw", "recalibrated")
+
+
+def recalibrated_copies(run_dir: Path, latent: str, args) -> dict[str, Path]:
+    """The run's model under ``latent`` as the ``raw`` and ``recalibrated`` copies (see the module
+    docstring), written once under ``--out``; the run is only read."""
+    from mmf_rl.configuration import compose_config
+    from mmf_rl.eval.calibrate import run_calibration
+    from mmf_rl.models import load_trained_model
+    from mmf_rl.models.hub import CALIBRATION_FILE
+
+    base = args.out / run_dir.parent.name / run_dir.name / latent
+    copies = {variant: base / variant for variant in RECALIBRATION_VARIANTS}
+    if (copies["raw"] / "config.json").is_file() and (copies["recalibrated"] / CALIBRATION_FILE).is_file():
+        return copies
+    overrides = {}
+    if latent != "as-trained":
+        overrides["eval_latent"] = latent
+    if latent == "predictive":
+        overrides["predictive_samples"] = args.predictive_samples
+    model, _, _ = load_trained_model(run_dir, config_overrides=overrides)
+    model.scale_calibration.reset()
+    model.calibration = None
+    for path in copies.values():
+        model.save_pretrained(path)
+    run_calibration(
+        compose_config(
+            "calibrate",
+            [
+                f"checkpoint={copies['recalibrated']}",
+                f"min_windows={args.min_windows}",
+                f"device={args.device}",
+            ],
+        )
+    )
+    return copies
 
 
 def group_table(rows: dict[str, dict[str, list[dict]]]) -> dict[str, dict[str, dict[str, float]]]:
@@ -103,7 +150,14 @@ def markdown(tables: dict[str, dict], runs: dict[str, list[str]], args, minutes:
         "# Calibration by eval latent\n",
         f"`benchmarks/calibration.py` — {minutes:.1f} min; {args.split} split; K = {args.num_samples} samples "
         f"for minMSE@K; predictive: {args.predictive_samples} prior draws. Each cell: mean over the "
-        "group's runs.\n",
+        "group's runs."
+        + (
+            " `<latent>:raw`: the scale as trained; `<latent>:recalibrated`: recalibrated per presence "
+            f"pattern on the val split (min_windows={args.min_windows})."
+            if args.recalibrate
+            else ""
+        )
+        + "\n",
     ]
     for group, table in tables.items():
         parts.append(f"\n## {group}\n\nRuns: {', '.join(f'`{r}`' for r in runs[group])}\n")
@@ -132,6 +186,14 @@ def main(argv: list[str] | None = None) -> int:
         help="choose settings on val, report test",
     )
     parser.add_argument("--out", type=Path, default=Path("runs/bench_calibration"))
+    parser.add_argument(
+        "--recalibrate",
+        action="store_true",
+        help="score each latent with its scale as trained (raw) and recalibrated per presence pattern on val",
+    )
+    parser.add_argument(
+        "--min-windows", type=int, default=32, help="--recalibrate: mmf-rl calibrate's min_windows"
+    )
     args = parser.parse_args(argv)
     unknown = sorted(set(args.latents) - {"as-trained", "mean", "sample", "predictive"})
     if unknown:
@@ -147,7 +209,13 @@ def main(argv: list[str] | None = None) -> int:
         group = run_dir.parent.name
         runs.setdefault(group, []).append(str(run_dir))
         for latent in args.latents:
-            groups.setdefault(group, {}).setdefault(latent, []).append(evaluate(run_dir, latent, args))
+            if not args.recalibrate:
+                groups.setdefault(group, {}).setdefault(latent, []).append(evaluate(run_dir, latent, args))
+                continue
+            for variant, copy in recalibrated_copies(run_dir, latent, args).items():
+                # The copy's config holds the latent: it is scored as saved.
+                summary = evaluate(copy, "as-trained", args, out_dir=copy / "eval")
+                groups.setdefault(group, {}).setdefault(f"{latent}:{variant}", []).append(summary)
     tables = {group: group_table(rows) for group, rows in groups.items()}
     minutes = (time.perf_counter() - started) / 60
     text = markdown(tables, runs, args, minutes)

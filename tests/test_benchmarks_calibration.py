@@ -6,6 +6,7 @@ import json
 import re
 
 import pytest
+import torch
 
 from tests.conftest import load_benchmark
 
@@ -75,3 +76,42 @@ def test_finished_evaluations_are_reused(learned_runs, tmp_path, monkeypatch, ca
 def test_a_directory_that_is_not_a_run_is_refused(tmp_path):
     with pytest.raises(SystemExit):
         calibration.main([str(tmp_path), "--out", str(tmp_path / "out")])
+
+
+def test_recalibrate_scores_raw_and_val_recalibrated_copies_and_leaves_the_run_alone(
+    learned_runs, tmp_path, capsys
+):
+    from safetensors.torch import load_file
+
+    run = learned_runs[0]
+    stored = sorted(p for p in run.rglob("*") if p.is_file() and "eval" not in p.parts)
+    before = {p: p.read_bytes() for p in stored}
+    out = tmp_path / "out"
+    argv = [str(run), "--out", str(out), "--num-samples", "0", "--latents", "mean"]
+    assert calibration.main([*argv, "--recalibrate", "--min-windows", "4"]) == 0
+    lines = [m.groups() for m in map(SUMMARY.match, capsys.readouterr().out.splitlines()) if m]
+    assert [(group, latent) for group, latent, *_ in lines] == [
+        ("learned", "mean:raw"),
+        ("learned", "mean:recalibrated"),
+    ]
+    assert {p: p.read_bytes() for p in stored} == before and sorted(
+        p for p in run.rglob("*") if p.is_file() and "eval" not in p.parts
+    ) == stored
+    copies = out / "learned" / run.name / "mean"
+    factors = {
+        v: load_file(copies / v / "model.safetensors")["scale_calibration.factors"]
+        for v in ("raw", "recalibrated")
+    }
+    assert torch.equal(factors["raw"], torch.ones_like(factors["raw"]))  # the run's own fit reset
+    assert not torch.equal(factors["recalibrated"], factors["raw"])
+    recalibrated = json.loads((copies / "recalibrated" / "eval" / "results.json").read_text())
+    assert recalibrated["scale_calibration"]["split"] == "val" and recalibrated["split"] == "test"
+    assert recalibrated["scale_calibration"]["factors"] == factors["recalibrated"].tolist()
+    table = json.loads((out / "results.json").read_text())["tables"]["learned"]
+    # The same test windows and point forecasts; only the scale (so the coverage) changes.
+    for subset, row in table["mean:raw"].items():
+        assert table["mean:recalibrated"][subset]["mse"] == pytest.approx(row["mse"])
+    assert any(
+        table["mean:recalibrated"][s]["coverage_90"] != row["coverage_90"]
+        for s, row in table["mean:raw"].items()
+    )
