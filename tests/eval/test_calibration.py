@@ -167,7 +167,7 @@ def test_calibrate_refits_writes_back_and_eval_scores_with_the_factors(push_run,
     checkpoint, exported = stored_factors(push_run)
     record = checkpoint.meta["calibration"]
     assert record["min_windows"] == 4 and torch.equal(checkpoint.model_state[FACTORS], exported)
-    fitted = {p["pattern"]: p for p in record["patterns"]}
+    fitted = {frozenset(p["pattern"].split("+")): p for p in record["patterns"]}
     assert all(p["fitted"] for p in fitted.values()) and len(fitted) == 7
     assert not torch.equal(exported, torch.ones_like(exported))
     # A refit starts from ones: calibrating again gives the same factors.
@@ -186,8 +186,13 @@ def test_calibrate_refits_writes_back_and_eval_scores_with_the_factors(push_run,
         "Forecast scale: recalibrated per presence pattern on the val split"
         in (push_run / "eval" / "results.md").read_text()
     )
-    pattern = {"all": "image+force+proprio", "only_force": "force", "without_image": "force+proprio"}
+    pattern = {
+        "all": {"image", "force", "proprio"},
+        "only_force": {"force"},
+        "without_image": {"force", "proprio"},
+    }
     for subset, name in pattern.items():
+        name = frozenset(name)
         row = results["subsets"][subset]
         assert row["windows"] == fitted[name]["windows"]
         assert row["coverage_90"] == pytest.approx(fitted[name]["coverage_90_after"], abs=1e-6)
