@@ -62,6 +62,8 @@ REPO = Path(__file__).resolve().parents[1]
 MODALITIES = ["force", "image", "proprio"]
 # MuJoCo Push subsets reported in the paper (Table 3): image+force+proprio, image+force, image+proprio.
 PAPER_SUBSETS = ("all", "without_proprio", "without_force")
+# Issue #13: the forecast's 90% interval must cover 80-97% of the test futures in every subset.
+COVERAGE_TARGET = (0.80, 0.97)
 BOOTSTRAP_RESAMPLES = 2000
 BOOTSTRAP_SEED = 0
 LEVEL = 0.95
@@ -673,6 +675,41 @@ def entry_results(entry: Entry, budget: Budget, out: Path) -> tuple[dict[str, li
     return per_subset, runs
 
 
+def entry_coverage(entry: Entry, budget: Budget, out: Path) -> tuple[dict[str, float], bool]:
+    """``({subset: 90% interval coverage, mean over seeds}, every run recalibrated)`` from the
+    evaluations ``run_one`` wrote (``<run>/eval/results.json``), with each run's scale as it stored it
+    (recalibrated per presence pattern on val when its training did: ``mmf-rl train calibrate=true``)."""
+    per_subset: dict[str, list[float]] = {}
+    recalibrated = True
+    for _, _, run_dir, _, subset in run_plan(entry, budget, out):
+        scores = json.loads((run_dir / "eval" / "results.json").read_text())
+        recalibrated &= scores.get("scale_calibration") is not None
+        for name, row in scores["subsets"].items():
+            if subset in ("", name) and row.get("coverage_90") is not None:
+                per_subset.setdefault(name, []).append(row["coverage_90"])
+    return {name: statistics.fmean(values) for name, values in per_subset.items()}, recalibrated
+
+
+def coverage_table(coverage: dict[str, tuple[dict[str, float], bool]], subsets: Sequence[str]) -> str:
+    """Entries as rows: the 90% coverage per subset, how many subsets are in ``COVERAGE_TARGET``, and
+    whether the scale was recalibrated."""
+    low, high = COVERAGE_TARGET
+    lines = [
+        "| entry | " + " | ".join(subset_title(s) for s in subsets) + f" | in {low:.2f}-{high:.2f} | scale |",
+        "|---" * (len(subsets) + 3) + "|",
+    ]
+    for label, (cells, recalibrated) in coverage.items():
+        inside = sum(low <= cells[s] <= high for s in subsets if s in cells)
+        lines.append(
+            f"| {label} | "
+            + " | ".join(f"{cells[s]:.3f}" if s in cells else "" for s in subsets)
+            + f" | {inside}/{sum(s in cells for s in subsets)} | "
+            + ("recalibrated on val" if recalibrated else "as trained")
+            + " |"
+        )
+    return "\n".join(lines)
+
+
 def build_table(
     errors: dict[str, dict[str, list[dict]]],
     kinds: dict[str, str],
@@ -829,7 +866,15 @@ def projection(measured: dict[str, dict[str, float]], budget: Budget) -> tuple[f
     return seconds, missing
 
 
-def markdown(table: Table, budget: Budget, mode: str, info: dict, measured: dict, comparisons: dict) -> str:
+def markdown(
+    table: Table,
+    budget: Budget,
+    mode: str,
+    info: dict,
+    measured: dict,
+    comparisons: dict,
+    coverage: dict[str, tuple[dict[str, float], bool]] | None = None,
+) -> str:
     seeds = ", ".join(map(str, budget.seeds))
     recorded = (
         f" (recorded in this run in {info['record_seconds']:.0f} s)"
@@ -895,6 +940,14 @@ def markdown(table: Table, budget: Budget, mode: str, info: dict, measured: dict
         + "\n\n"
     )
     text += fusion_verdicts(table, comparisons.get("all", {}))
+    if coverage:
+        text += (
+            "## Calibration: 90% interval coverage on test (mean over seeds)\n\n"
+            f"Issue #13's target: {COVERAGE_TARGET[0]:.2f}-{COVERAGE_TARGET[1]:.2f} in every subset. The "
+            "paper model and its variants are scored at their eval latent (default: the prior's mean).\n\n"
+            + coverage_table(coverage, table.subsets)
+            + "\n\n"
+        )
     text += (
         "## Run time\n\n"
         f"Window cache built or opened once before the trainings in {info['cache_seconds']:.0f} s. "
@@ -992,10 +1045,11 @@ def main(argv: list[str] | None = None) -> int:
     record_seconds = None if args.data.exists() else record_dataset(args.data, budget.episodes)
     cache_seconds = build_cache(budget, args)
     args.runs, args.reused = run_pending(entries, budget, args)  # the wall time covers the runs not reused
-    errors, runs, kinds = {}, {}, {}
+    errors, runs, kinds, coverage = {}, {}, {}, {}
     for entry in entries:
         errors[entry.label], runs[entry.label] = entry_results(entry, budget, args.out)
         kinds[entry.label] = entry.kind
+        coverage[entry.label] = entry_coverage(entry, budget, args.out)
     seconds = time.perf_counter() - start
 
     table, test_episodes = build_table(errors, kinds)
@@ -1022,7 +1076,7 @@ def main(argv: list[str] | None = None) -> int:
         "reused": args.reused,
         "constant_velocity_mse": cv,
     }
-    text = markdown(table, budget, mode, info, measured, comparisons) + f"{line}\n"
+    text = markdown(table, budget, mode, info, measured, comparisons, coverage) + f"{line}\n"
     args.out.mkdir(parents=True, exist_ok=True)
     write_text(args.out / "results.md", text)
     write_json(
@@ -1040,6 +1094,7 @@ def main(argv: list[str] | None = None) -> int:
             },
             "paired_differences": comparisons,
             "timing": measured,
+            "coverage_90": {label: cells for label, (cells, _) in coverage.items()},
             "summary": summary,
         },
     )

@@ -317,3 +317,41 @@ def test_entries_are_checked_against_the_configs_before_any_training(tmp_path):
     bogus = accuracy.Entry("paper typo", "variant", ("model=forecaster", "model.fusoin=sum"))
     with pytest.raises(SystemExit, match=r"'paper typo' \(model=forecaster model.fusoin=sum\)"):
         accuracy.check_entries([accuracy.ENTRIES[0], bogus], budget, args)
+
+
+def test_coverage_is_read_per_run_and_judged_against_the_issues_band(tmp_path):
+    """Coverage comes from each run's own evaluation; a retrained entry's cell from the run trained
+    for that subset; the table counts the subsets inside 0.80-0.97 and says how the scale was set."""
+    import json
+
+    budget = accuracy.Budget(
+        image_size=32,
+        batch_size=8,
+        steps=4,
+        seeds=(0, 1),
+        episodes=16,
+        entries=None,
+        retrained_subsets="paper",
+    )
+    entry = next(e for e in accuracy.ENTRIES if e.label == "LF-LSTM (retrained)")
+    plan = accuracy.run_plan(entry, budget, tmp_path)
+    for index, (_, seed, run_dir, _, subset) in enumerate(plan):
+        value = 0.70 + 0.01 * index  # distinct per run: the cell must come from the right one
+        scores = {
+            name: {"coverage_90": value + (0.5 if name != subset else 0)} for name, _ in accuracy.subsets()
+        }
+        (run_dir / "eval").mkdir(parents=True)
+        (run_dir / "eval" / "results.json").write_text(
+            json.dumps({"subsets": scores, "scale_calibration": {"split": "val"} if seed == 0 else None})
+        )
+    cells, recalibrated = accuracy.entry_coverage(entry, budget, tmp_path)
+    assert set(cells) == {"all", *(name for name in accuracy.PAPER_SUBSETS if name != "all")}
+    expected = {
+        s: sum(0.70 + 0.01 * i for i, p in enumerate(plan) if p[4] == s) / len(budget.seeds) for s in cells
+    }
+    assert cells == pytest.approx(expected)
+    assert not recalibrated  # seed 1's runs kept the scale as trained
+    text = accuracy.coverage_table(
+        {"paper": ({"all": 0.85, "only_image": 0.75}, True)}, ["all", "only_image"]
+    )
+    assert text.splitlines()[-1] == "| paper | 0.850 | 0.750 | 1/2 | recalibrated on val |"
