@@ -48,6 +48,25 @@ def presence_patterns(names: list[str]) -> list[tuple[str, ...]]:
     return [c for r in range(1, len(names) + 1) for c in itertools.combinations(names, r)]
 
 
+# Small sizes of every registered model, for tests that build each of them by name.
+SMALL_MODEL_SIZES = {
+    "forecaster": {"d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32, "head_hidden": 32},
+    "lf_lstm": {"d_model": 16, "head_hidden": 32},
+    "mvae": {"d_model": 16, "d_latent": 4, "head_hidden": 32},
+    "mult": {"d_model": 16, "head_hidden": 32},
+}
+
+
+def small_registered_model(name: str):
+    """The registered model ``name`` at ``SMALL_MODEL_SIZES`` over ``SMALL_MODALITIES``, seeded, in eval mode."""
+    from mmf_rl.models import build_model
+
+    torch.manual_seed(0)
+    return build_model(
+        {"name": name, **SMALL_MODEL_SIZES[name]}, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM
+    ).eval()
+
+
 def make_batch(
     batch_size: int,
     modalities=SMALL_MODALITIES,

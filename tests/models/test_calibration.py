@@ -13,29 +13,22 @@ from mmf_rl.models import (
     MODELS,
     ForecasterConfig,
     MultimodalForecaster,
-    build_model,
     from_pretrained,
     saved_config,
 )
 from mmf_rl.models.calibration import PresenceScaleCalibration, pattern_name
 from mmf_rl.models.hub import check_state_dict
-from tests.conftest import HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch, presence_patterns
+from tests.conftest import (
+    HORIZON,
+    SMALL_MODALITIES,
+    TARGET_DIM,
+    make_batch,
+    presence_patterns,
+    small_registered_model,
+)
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 FACTORS = "scale_calibration.factors"
-SIZES = {
-    "forecaster": {"d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32, "head_hidden": 32},
-    "lf_lstm": {"d_model": 16, "head_hidden": 32},
-    "mvae": {"d_model": 16, "d_latent": 4, "head_hidden": 32},
-    "mult": {"d_model": 16, "head_hidden": 32},
-}
-
-
-def small(name: str):
-    torch.manual_seed(0)
-    return build_model(
-        {"name": name, **SIZES[name]}, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM
-    ).eval()
 
 
 def every_pattern_batch():
@@ -66,7 +59,7 @@ def test_pattern_index_and_names_cover_every_presence_pattern():
 
 @pytest.mark.parametrize("name", sorted(MODELS))
 def test_each_window_gets_its_patterns_factor_in_eval_mode_only(name):
-    model = small(name)
+    model = small_registered_model(name)
     assert model.state_dict()[FACTORS].shape == (2 ** len(NAMES),)
     batch, index = every_pattern_batch()
     # All ones: bit-identical to the head's own scale (the calibration skipped in train mode).
@@ -112,21 +105,21 @@ def test_the_forecasters_lean_and_world_model_paths_apply_the_factors(small_conf
 
 @pytest.mark.parametrize("name", sorted(MODELS))
 def test_a_state_saved_before_the_factors_loads_as_ones_and_forecasts_the_same(name, tmp_path):
-    model = small(name)
+    model = small_registered_model(name)
     batch, _ = every_pattern_batch()
     expected = model(batch.clone())
     old = {k: v for k, v in model.state_dict().items() if k != FACTORS}  # what older mmf-rl saved
 
     # A checkpoint of `mmf-rl train`.
     save_checkpoint(tmp_path / "ckpt", 3, old, meta={"model_config": saved_config(name, model)})
-    restored = small(name)
+    restored = small_registered_model(name)
     restored.scale_calibration.factors.fill_(2.0)  # must come back to ones
     load_model_state(restored, load_checkpoint(tmp_path / "ckpt"))
     # A save_pretrained directory.
     model.save_pretrained(tmp_path / "export")
     save_file(old, tmp_path / "export" / "model.safetensors")
     assert FACTORS not in load_file(tmp_path / "export" / "model.safetensors")
-    check_state_dict(small(name), old, "old weights")
+    check_state_dict(small_registered_model(name), old, "old weights")
     for loaded in (restored.eval(), from_pretrained(tmp_path / "export")):
         assert torch.equal(loaded.scale_calibration.factors, torch.ones(8))
         out = loaded(batch.clone())
@@ -135,11 +128,13 @@ def test_a_state_saved_before_the_factors_loads_as_ones_and_forecasts_the_same(n
     # Only the factors are completed: any other missing weight stays an error naming it.
     dropped = next(iter(old))
     with pytest.raises(CheckpointError, match=re.escape(f"missing: ['{dropped}']")):
-        check_state_dict(small(name), {k: v for k, v in old.items() if k != dropped}, "older weights")
+        check_state_dict(
+            small_registered_model(name), {k: v for k, v in old.items() if k != dropped}, "older weights"
+        )
 
 
 def test_saved_factors_and_fit_record_travel_with_the_export(tmp_path):
-    model = small("lf_lstm")
+    model = small_registered_model("lf_lstm")
     model.scale_calibration.factors.copy_(torch.linspace(1, 2, 8))
     model.calibration = {"split": "val", "factors": model.scale_calibration.factors.tolist()}
     model.save_pretrained(tmp_path / "export")
@@ -148,6 +143,6 @@ def test_saved_factors_and_fit_record_travel_with_the_export(tmp_path):
     assert loaded.calibration == model.calibration
     assert json.loads((tmp_path / "export" / "calibration.json").read_text())["split"] == "val"
     # A model without a fit written over the export removes the stale record.
-    small("lf_lstm").save_pretrained(tmp_path / "export")
+    small_registered_model("lf_lstm").save_pretrained(tmp_path / "export")
     assert not (tmp_path / "export" / "calibration.json").exists()
     assert from_pretrained(tmp_path / "export").calibration is None

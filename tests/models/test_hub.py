@@ -7,28 +7,14 @@ import torch
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError
-from mmf_rl.models import MODELS, build_model, from_pretrained
+from mmf_rl.models import MODELS, from_pretrained
 from mmf_rl.models.baselines import LateFusionLSTM
-from tests.conftest import HISTORY, HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch
-
-SIZES = {
-    "forecaster": {"d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32, "head_hidden": 32},
-    "lf_lstm": {"d_model": 16, "head_hidden": 32},
-    "mvae": {"d_model": 16, "d_latent": 4, "head_hidden": 32},
-    "mult": {"d_model": 16, "head_hidden": 32},
-}
-
-
-def small(name: str):
-    torch.manual_seed(0)
-    return build_model(
-        {"name": name, **SIZES[name]}, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM
-    ).eval()
+from tests.conftest import HISTORY, HORIZON, make_batch, small_registered_model
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
 def test_local_round_trip_gives_the_same_forecasts(name, tmp_path):
-    model = small(name)
+    model = small_registered_model(name)
     model.normalization_stats = {
         "target/mean": torch.tensor([1.0, 2.0]),
         "target/std": torch.tensor([0.5, 3.0]),
@@ -58,7 +44,7 @@ def test_local_round_trip_gives_the_same_forecasts(name, tmp_path):
 
 
 def test_loading_is_strict_and_names_what_does_not_fit(tmp_path):
-    small("forecaster").save_pretrained(tmp_path / "saved")
+    small_registered_model("forecaster").save_pretrained(tmp_path / "saved")
     with pytest.raises(TypeError, match=r"holds a 'forecaster' model .* not a LateFusionLSTM"):
         LateFusionLSTM.from_pretrained(tmp_path / "saved")
     config = json.loads((tmp_path / "saved" / "config.json").read_text())
