@@ -27,6 +27,7 @@ import argparse
 import hashlib
 import os
 import re
+import sys
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -352,6 +353,18 @@ def parse_config_command(
     )
     args = parser.parse_intermixed_args(argv)
     return ConfigCommand(overrides=args.overrides, config_dirs=args.config_dir, print_config=args.cfg)
+
+
+def report_command_error(command: str, error: Exception) -> int:
+    """A command's expected failure (bad config, missing file, bad data) as one line on stderr, exit
+    code 1; with ``MMF_RL_DEBUG`` set the exception propagates with its traceback. Call it from the
+    ``except`` block that caught ``error``. A ``KeyError`` shows its message without the quotes
+    ``str(KeyError)`` adds."""
+    if os.environ.get("MMF_RL_DEBUG"):
+        raise error
+    message = error.args[0] if isinstance(error, KeyError) and error.args else error
+    print(f"{command}: error: {message}", file=sys.stderr)
+    return 1
 
 
 def to_container(cfg: DictConfig) -> dict:

@@ -18,14 +18,12 @@ window cache is built.
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from mmf_rl.configuration import save_config
+from mmf_rl.configuration import report_command_error, save_config
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.lerobot_source import (
     BOOKKEEPING_FEATURES,
@@ -287,10 +285,7 @@ def main(argv: list[str]) -> int:
         report = inspect_dataset(args.dataset.expanduser().resolve(), args.repo_id)
         config = suggested_data_config(report, args.repo_id)
     except (FileNotFoundError, NotADirectoryError, ValueError) as err:
-        if os.environ.get("MMF_RL_DEBUG"):
-            raise
-        print(f"mmf-rl inspect: error: {err}", file=sys.stderr)
-        return 1
+        return report_command_error("mmf-rl inspect", err)
     print(format_report(report))
     print()
     header = (

@@ -18,14 +18,11 @@ into the run's other copy of the same weights (``RUN_DIR/model`` or the last che
 
 from __future__ import annotations
 
-import os
-import sys
-
 import torch
 from omegaconf import OmegaConf
 
 from mmf_rl.checkpoint import CheckpointError
-from mmf_rl.configuration import ConfigError, parse_config_command
+from mmf_rl.configuration import ConfigError, parse_config_command, report_command_error
 from mmf_rl.datasets import WindowDataset
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.devices import resolve_device
@@ -96,13 +93,7 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"checkpoint=PATH is required: {TRAINED_MODEL_KINDS}")
         summary = run_calibration(cfg)
     except (ConfigError, CheckpointError, FileNotFoundError, ValueError, KeyError, TypeError) as err:
-        if os.environ.get("MMF_RL_DEBUG"):
-            raise
-        print(
-            f"mmf-rl calibrate: error: {err.args[0] if isinstance(err, KeyError) and err.args else err}",
-            file=sys.stderr,
-        )
-        return 1
+        return report_command_error("mmf-rl calibrate", err)
     print(f"{summary['checkpoint']}: forecast scale factors fitted on the {summary['split']} split\n")
     print(summary["table"])
     for note in summary["notes"]:

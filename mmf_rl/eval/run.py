@@ -42,8 +42,6 @@ say so and on which split they were fitted.
 
 from __future__ import annotations
 
-import os
-import sys
 from pathlib import Path
 
 import torch
@@ -51,7 +49,7 @@ from omegaconf import OmegaConf
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError
-from mmf_rl.configuration import ConfigError, parse_config_command
+from mmf_rl.configuration import ConfigError, parse_config_command, report_command_error
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.devices import resolve_device
@@ -312,13 +310,7 @@ def main(argv: list[str]) -> int:
             raise ConfigError(f"checkpoint=PATH is required: {TRAINED_MODEL_KINDS}")
         summary = run_evaluation(cfg)
     except (ConfigError, CheckpointError, FileNotFoundError, ValueError, KeyError) as err:
-        if os.environ.get("MMF_RL_DEBUG"):
-            raise
-        print(
-            f"mmf-rl eval: error: {err.args[0] if isinstance(err, KeyError) and err.args else err}",
-            file=sys.stderr,
-        )
-        return 1
+        return report_command_error("mmf-rl eval", err)
     print(f"{headers(summary)}{summary['table']}")
     for path in summary["plots"]:
         print(f"plot: {path}")

@@ -31,7 +31,14 @@ import torch.distributed as dist
 from omegaconf import OmegaConf
 
 from mmf_rl.checkpoint import CheckpointError, list_checkpoints, remove_leftovers
-from mmf_rl.configuration import ConfigError, load_config, parse_config_command, save_config, to_container
+from mmf_rl.configuration import (
+    ConfigError,
+    load_config,
+    parse_config_command,
+    report_command_error,
+    save_config,
+    to_container,
+)
 from mmf_rl.datasets import AugmentConfig, DataConfig, ImageAugmentation, WindowDataset
 from mmf_rl.devices import resolve_device
 from mmf_rl.eval.calibration import calibrate_after_training
@@ -299,11 +306,7 @@ def main(argv: list[str]) -> int:
         run_dir = Path(cfg.run_dir).resolve()
         train(cfg)
     except (ConfigError, CheckpointError, TrainingStopped, OSError, ValueError, KeyError) as err:
-        if os.environ.get("MMF_RL_DEBUG"):
-            raise
-        message = err.args[0] if isinstance(err, KeyError) and err.args else err
-        print(f"mmf-rl train: error: {message}", file=sys.stderr)
-        return 1
+        return report_command_error("mmf-rl train", err)
     except RuntimeError as err:
         # Under DDP a dead or hung peer surfaces as a RuntimeError from a collective (gloo's
         # "Connection reset by peer", a timeout after MMF_RL_DIST_TIMEOUT seconds): say so in one
