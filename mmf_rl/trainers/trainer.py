@@ -45,7 +45,9 @@ class TrainerConfig:
     ``batch_size`` is per rank and is used by whoever builds the loader.
     ``max_nonfinite_steps``: a step whose loss is NaN/Inf is skipped (no update) and counted;
     more than this many in a row stop the run. ``loss_explosion_threshold``: a finite total loss
-    above it stops the run, naming the last good checkpoint.
+    above it stops the run, naming the last good checkpoint. ``early_stopping_patience``: stop
+    after this many evaluations in a row without a lower ``early_stopping_metric``, which must be
+    one of the metrics the evaluation returns.
     """
 
     total_steps: int = 1000
@@ -60,7 +62,7 @@ class TrainerConfig:
     checkpoint_every: int = 250
     keep_checkpoints: int = 2
     early_stopping_patience: int | None = None
-    early_stopping_metric: str = "val/loss"
+    early_stopping_metric: str = "val/mse"
     max_nonfinite_steps: int = 10
     loss_explosion_threshold: float = 1e6
     seed: int = 0
@@ -385,12 +387,19 @@ class Trainer:
         with torch.no_grad():
             metrics = self.evaluate(self.model)
         self.model.train(was_training)
-        metric = metrics.get(self.config.early_stopping_metric)
-        if metric is not None:
-            if metric < self.best_metric:
-                self.best_metric, self.evals_without_improvement = metric, 0
-            else:
-                self.evals_without_improvement += 1
+        name = self.config.early_stopping_metric
+        if name not in metrics:
+            if self.config.early_stopping_patience is not None:
+                # Skipping it would silently train without early stopping.
+                raise ValueError(
+                    f"trainer.early_stopping_metric={name!r} is not among the evaluation's metrics "
+                    f"{sorted(metrics)}; set it to one of them"
+                )
+            return metrics
+        if metrics[name] < self.best_metric:
+            self.best_metric, self.evals_without_improvement = metrics[name], 0
+        else:
+            self.evals_without_improvement += 1
         return metrics
 
     def _log(self, values: dict[str, float]) -> None:

@@ -9,6 +9,7 @@ from torchrl.record.loggers import CSVLogger
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import load_checkpoint
+from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
 from mmf_rl.trainers.trainer import (
@@ -180,6 +181,22 @@ def test_early_stopping(synthetic_task, tmp_path):
     trainer.train()
     assert trainer.step == 6  # best at 2, no improvement at 4 and 6 -> stop
     assert load_checkpoint(tmp_path / "checkpoints").step == 6
+
+
+def test_early_stopping_on_a_metric_the_evaluation_lacks_is_an_error(synthetic_task, tmp_path):
+    trainer = build(synthetic_task, tmp_path, early_stopping_patience=1, early_stopping_metric="val/loss")
+    with pytest.raises(ValueError, match=r"early_stopping_metric='val/loss' is not among .*\['val/mse'\]"):
+        trainer.train()
+
+
+def test_default_early_stopping_metric_is_one_the_train_command_reports(synthetic_task, tmp_path):
+    trainer = build(synthetic_task, tmp_path, total_steps=6, early_stopping_patience=3)
+    # what `mmf-rl train` validates with (mmf_rl.trainers.run)
+    trainer.evaluate = lambda m: {
+        f"val/{k}": v for k, v in evaluate_forecasts(m, [synthetic_task["test"][:64]], lambda t: t).items()
+    }
+    metrics = trainer.train()
+    assert trainer.best_metric == metrics[TrainerConfig().early_stopping_metric]
 
 
 def test_bad_config_and_hook_names(synthetic_task, tmp_path):
