@@ -34,7 +34,8 @@ never changes any output; output shapes never depend on presence. A batch has at
 (an empty batch is a clear error, not empty outputs: a loss or metric over zero samples has no
 value, so the caller skips it). NaN or ±Inf under a *present* modality is an error naming the key
 and the samples, or, with a model's ``nonfinite="absent"``, makes that modality absent for those
-samples (:func:`validate_batch`); the RL glue always does the latter.
+samples (:func:`validate_batch` checks, :func:`mark_nonfinite_absent` applies); the RL glue always
+does the latter.
 """
 
 from __future__ import annotations
@@ -204,14 +205,15 @@ def validate_batch(
     action_shape: tuple[int, int] | None = None,
     nonfinite: NonFiniteRule = "raise",
 ) -> None:
-    """Check a batch against the contract; raise errors that name the key, expected and found.
+    """Check a batch against the contract, without changing it; raise errors that name the key,
+    expected and found.
 
     Checked: the batch is not empty, every ``("obs", m)`` and ``("present", m)`` exists with the
     right dtype and shape, no present ``("obs", m)`` holds NaN or ±Inf (``nonfinite="raise"``;
-    with ``"absent"`` the ``("present", m)`` flag of those samples is set to False in ``td``
-    instead), every sample has at least one present modality, ``"target"`` (if present or
-    required) is ``float [B, T, D]``, and, for an action-conditioned model (``action_shape =
-    (S, A)``), ``"future_action"`` is finite ``float32 [B, S, A]``.
+    with ``"absent"`` those samples count as absent, which :func:`mark_nonfinite_absent` then
+    writes into the batch), every sample has at least one present modality, ``"target"`` (if
+    present or required) is ``float [B, T, D]``, and, for an action-conditioned model
+    (``action_shape = (S, A)``), ``"future_action"`` is finite ``float32 [B, S, A]``.
     """
     if nonfinite not in NONFINITE_RULES:
         raise ValueError(f"nonfinite must be one of {NONFINITE_RULES}, found {nonfinite!r}")
@@ -226,30 +228,9 @@ def validate_batch(
     any_present = None
     made_absent = []
     for spec in modalities:
-        for key in (spec.obs_key, spec.present_key):
-            if key not in td.keys(include_nested=True):
-                hint = " (True where the modality is available)" if key[0] == PRESENT else ""
-                raise KeyError(f"batch is missing key {key} for modality {spec.name!r}{hint}")
-        obs = td.get(spec.obs_key)
-        expected = (batch, *spec.obs_shape(history))
-        if obs.dtype != spec.dtype or tuple(obs.shape) != expected:
-            raise ValueError(
-                f"td[{spec.obs_key}]: expected {str(spec.dtype).removeprefix('torch.')} {list(expected)}, "
-                f"found {_describe(obs)}"
-            )
-        present = td.get(spec.present_key)
-        if present.dtype != torch.bool or tuple(present.shape) != (batch,):
-            raise ValueError(f"td[{spec.present_key}]: expected bool [{batch}], found {_describe(present)}")
-        bad = nonfinite_rows(obs) & present
-        if bool(bad.any()):
-            if nonfinite == "raise":
-                raise ValueError(
-                    f"td[{spec.obs_key}] holds NaN or Inf in {int(bad.sum())} sample(s) where {spec.present_key} is "
-                    f"True (batch indices {_indices(bad)}); mark those samples absent ({spec.present_key} = False), "
-                    "or build the model with nonfinite='absent' to read them as absent"
-                )
-            present = present & ~bad
-            td.set(spec.present_key, present)
+        nonfinite_present = _check_modality(td, spec, batch, history, nonfinite)
+        present = td.get(spec.present_key) & ~nonfinite_present
+        if bool(nonfinite_present.any()):
             made_absent.append(spec.name)
         any_present = present if any_present is None else any_present | present
     if any_present is not None and not bool(any_present.all()):
@@ -259,32 +240,83 @@ def validate_batch(
             f"{_indices(~any_present)}); every sample needs at least one of {[s.name for s in modalities]}"
         )
     if TARGET in td.keys() or require_target:
-        if TARGET not in td.keys():
-            raise KeyError(f"batch is missing key {TARGET!r} (the future to forecast, [B, T, D])")
-        target = td.get(TARGET)
-        expected = (
-            batch,
-            horizon if horizon is not None else target.shape[1],
-            target_dim if target_dim is not None else target.shape[-1],
-        )
-        if not target.is_floating_point() or tuple(target.shape) != expected:
-            raise ValueError(f"td[{TARGET!r}]: expected float {list(expected)}, found {_describe(target)}")
+        _check_target(td, batch, horizon, target_dim)
     if action_shape is not None:
-        if FUTURE_ACTION not in td.keys():
-            raise KeyError(
-                f"batch is missing key {FUTURE_ACTION!r}: this model is action-conditioned (a world model) and "
-                f"needs the actions applied over the horizon, float32 [B, {action_shape[0]}, {action_shape[1]}] "
-                "(set `action` in the data config)"
-            )
-        action = td.get(FUTURE_ACTION)
-        expected = (batch, *action_shape)
-        if action.dtype != torch.float32 or tuple(action.shape) != expected:
-            raise ValueError(
-                f"td[{FUTURE_ACTION!r}]: expected float32 {list(expected)}, found {_describe(action)}"
-            )
-        bad = nonfinite_rows(action)
+        _check_actions(td, batch, action_shape)
+
+
+def mark_nonfinite_absent(td, modalities: list[ModalitySpec]) -> list[str]:
+    """Set ``("present", m)`` to False in ``td`` (in place) for the samples whose present
+    ``("obs", m)`` holds NaN or ±Inf: the ``nonfinite="absent"`` rule, applied to a batch that
+    :func:`validate_batch` accepted with that rule. Returns the modalities it changed."""
+    changed = []
+    for spec in modalities:
+        present = td.get(spec.present_key)
+        bad = nonfinite_rows(td.get(spec.obs_key)) & present
         if bool(bad.any()):
-            raise ValueError(
-                f"td[{FUTURE_ACTION!r}] holds NaN or Inf (batch indices {_indices(bad)}); a forecast "
-                "under a non-finite action has no meaning"
-            )
+            td.set(spec.present_key, present & ~bad)
+            changed.append(spec.name)
+    return changed
+
+
+def _check_modality(
+    td, spec: ModalitySpec, batch: int, history: int, nonfinite: NonFiniteRule
+) -> torch.Tensor:
+    """Check one modality's keys; return ``[B]`` bool: its present samples holding NaN or ±Inf
+    (all False unless ``nonfinite="absent"``, under which they read as absent)."""
+    for key in (spec.obs_key, spec.present_key):
+        if key not in td.keys(include_nested=True):
+            hint = " (True where the modality is available)" if key[0] == PRESENT else ""
+            raise KeyError(f"batch is missing key {key} for modality {spec.name!r}{hint}")
+    obs = td.get(spec.obs_key)
+    expected = (batch, *spec.obs_shape(history))
+    if obs.dtype != spec.dtype or tuple(obs.shape) != expected:
+        raise ValueError(
+            f"td[{spec.obs_key}]: expected {str(spec.dtype).removeprefix('torch.')} {list(expected)}, "
+            f"found {_describe(obs)}"
+        )
+    present = td.get(spec.present_key)
+    if present.dtype != torch.bool or tuple(present.shape) != (batch,):
+        raise ValueError(f"td[{spec.present_key}]: expected bool [{batch}], found {_describe(present)}")
+    bad = nonfinite_rows(obs) & present
+    if bool(bad.any()) and nonfinite == "raise":
+        raise ValueError(
+            f"td[{spec.obs_key}] holds NaN or Inf in {int(bad.sum())} sample(s) where {spec.present_key} is "
+            f"True (batch indices {_indices(bad)}); mark those samples absent ({spec.present_key} = False), "
+            "or build the model with nonfinite='absent' to read them as absent"
+        )
+    return bad
+
+
+def _check_target(td, batch: int, horizon: int | None, target_dim: int | None) -> None:
+    if TARGET not in td.keys():
+        raise KeyError(f"batch is missing key {TARGET!r} (the future to forecast, [B, T, D])")
+    target = td.get(TARGET)
+    expected = (
+        batch,
+        horizon if horizon is not None else target.shape[1],
+        target_dim if target_dim is not None else target.shape[-1],
+    )
+    if not target.is_floating_point() or tuple(target.shape) != expected:
+        raise ValueError(f"td[{TARGET!r}]: expected float {list(expected)}, found {_describe(target)}")
+
+
+def _check_actions(td, batch: int, action_shape: tuple[int, int]) -> None:
+    if FUTURE_ACTION not in td.keys():
+        raise KeyError(
+            f"batch is missing key {FUTURE_ACTION!r}: this model is action-conditioned (a world model) and "
+            f"needs the actions applied over the horizon, float32 [B, {action_shape[0]}, {action_shape[1]}] "
+            "(set `action` in the data config)"
+        )
+    action = td.get(FUTURE_ACTION)
+    expected = (batch, *action_shape)
+    if action.dtype != torch.float32 or tuple(action.shape) != expected:
+        raise ValueError(
+            f"td[{FUTURE_ACTION!r}]: expected float32 {list(expected)}, found {_describe(action)}"
+        )
+    bad = nonfinite_rows(action)
+    if bool(bad.any()):
+        raise ValueError(
+            f"td[{FUTURE_ACTION!r}] holds NaN or Inf (batch indices {_indices(bad)}); a forecast "
+            "under a non-finite action has no meaning"
+        )

@@ -36,8 +36,26 @@ def test_spec_roundtrips_through_dict():
     assert ModalitySpec.from_dict(spec.to_dict()) == spec
 
 
-def test_validate_accepts_contract_batch(batch):
-    validate_batch(batch, SMALL_MODALITIES, HISTORY, HORIZON, TARGET_DIM, require_target=True)
+def assert_identical(td, expected):
+    torch.testing.assert_close(td.to_dict(), expected.to_dict(), rtol=0, atol=0, equal_nan=True)
+
+
+def test_validate_accepts_contract_batch_and_leaves_it_unchanged(mixed_batch):
+    before = mixed_batch.clone()
+    validate_batch(mixed_batch, SMALL_MODALITIES, HISTORY, HORIZON, TARGET_DIM, require_target=True)
+    assert_identical(mixed_batch, before)
+
+
+def test_nonfinite_absent_is_checked_by_validate_and_applied_by_mark_nonfinite_absent(batch):
+    batch[keys.obs_key("force")][[1, 5], 0, 0] = float("nan")
+    before = batch.clone()
+    with pytest.raises(ValueError, match=r"holds NaN or Inf in 2 sample\(s\).*batch indices \[1, 5\]"):
+        validate_batch(batch, SMALL_MODALITIES, HISTORY)
+    validate_batch(batch, SMALL_MODALITIES, HISTORY, nonfinite="absent")
+    assert_identical(batch, before)
+    assert keys.mark_nonfinite_absent(batch, SMALL_MODALITIES) == ["force"]
+    assert batch[keys.present_key("force")].tolist() == [True, False, True, True, True, False, True, True]
+    assert_identical(batch.exclude(keys.present_key("force")), before.exclude(keys.present_key("force")))
 
 
 def test_validate_names_missing_key(batch):

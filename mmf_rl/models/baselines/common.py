@@ -37,7 +37,7 @@ class BaselineConfig:
         head_hidden: hidden width of the output head.
         min_scale: floor added to every predicted standard deviation.
         nonfinite: NaN/Inf under a present modality: ``"raise"`` (default) or ``"absent"`` (read
-            as absent), as :func:`mmf_rl.keys.validate_batch` applies it.
+            as absent), as :func:`mmf_rl.keys.mark_nonfinite_absent` applies it.
     """
 
     modalities: list[ModalitySpec] = field(default_factory=list)
@@ -150,6 +150,8 @@ class DeterministicForecaster(TensorDictModuleBase, PretrainedModel):
             self.config.target_dim,
             nonfinite=self.config.nonfinite,
         )
+        if self.config.nonfinite == "absent":
+            keys.mark_nonfinite_absent(td, self.modalities)
 
     def forecast(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         raise NotImplementedError

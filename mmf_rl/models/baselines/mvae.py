@@ -97,6 +97,8 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
             self.config.target_dim,
             nonfinite=self.config.nonfinite,
         )
+        if self.config.nonfinite == "absent":
+            keys.mark_nonfinite_absent(td, self.modalities)
 
     def posterior(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """PoE posterior ``loc``, ``scale`` ``[B, d_z]``; each expert runs on its present rows only."""

@@ -262,7 +262,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     # -- building blocks -------------------------------------------------------------------------
 
     def validate(self, td: TensorDictBase, require_target: bool = False) -> None:
-        """Raise a clear error if ``td`` does not follow the key contract for this model."""
+        """Raise a clear error if ``td`` does not follow the key contract for this model; with
+        ``nonfinite="absent"``, mark its present samples holding NaN/Inf absent in ``td``."""
         keys.validate_batch(
             td,
             self.modalities,
@@ -273,6 +274,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             action_shape=self.config.action_shape,
             nonfinite=self.config.nonfinite,
         )
+        if self.config.nonfinite == "absent":
+            keys.mark_nonfinite_absent(td, self.modalities)
 
     def encode(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Unimodal encoders -> tokens ``[B, M, d]`` (zeros where absent) and presence ``[B, M]``."""
@@ -484,6 +487,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         """
         self._require_actions("forecast_under_actions")
         keys.validate_batch(td, self.modalities, self.config.history, nonfinite=self.config.nonfinite)
+        if self.config.nonfinite == "absent":
+            keys.mark_nonfinite_absent(td, self.modalities)
         return self.decode_under_actions(*self.encode(td), actions)
 
     def decode_under_actions(
