@@ -35,6 +35,26 @@ def _select_gl_backend() -> None:
 
 _select_gl_backend()
 
+
+def _import_gymnasium_robotics_quietly() -> None:
+    """Import gymnasium-robotics without the note on its Adroit envs' rewards that it prints to
+    stderr on import (through farama_notifications): mmf-rl uses no Adroit env, and the note
+    reached every process that imports the push env. Only gymnasium-robotics' own notifications
+    are held back, and only during this import."""
+    try:
+        from farama_notifications import notifications
+    except ImportError:  # without it gymnasium-robotics prints nothing either
+        notifications = {}
+    held = notifications.pop("gymnasium_robotics", None)
+    try:
+        import gymnasium_robotics  # noqa: F401
+    finally:
+        if held is not None:
+            notifications["gymnasium_robotics"] = held
+
+
+_import_gymnasium_robotics_quietly()
+
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from gymnasium import spaces  # noqa: E402

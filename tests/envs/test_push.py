@@ -1,5 +1,8 @@
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import gymnasium
 import numpy as np
 import pytest
@@ -87,3 +90,13 @@ def test_registered_gymnasium_id():
         assert env.spec.max_episode_steps == 50
     finally:
         env.close()
+
+
+def test_importing_the_envs_prints_no_adroit_note():
+    """gymnasium-robotics' note on its Adroit envs is held back; its other output is not."""
+    code = (
+        "import sys, mmf_rl.envs, farama_notifications; "
+        "print('kept' if 'gymnasium_robotics' in farama_notifications.notifications else 'lost', file=sys.stderr)"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "Adroit" not in result.stderr and result.stderr.endswith("kept\n")
