@@ -1,14 +1,19 @@
-"""`mmf-rl <command> [args]`: one entry point, one module per command.
+"""`mmf-rl [--verbose | --quiet] <command> [args]`: one entry point, one module per command.
 
 Commands are imported lazily so that `mmf-rl --help` stays fast and a command's heavy
-dependencies (MuJoCo, lerobot) load only when it runs.
+dependencies (MuJoCo, lerobot) load only when it runs. What a command exists to print (a report,
+a table, a config) goes to stdout; its progress messages and warnings are log records of the
+``mmf_rl`` loggers, which this entry point (and only it) sends to stderr.
 """
 
 from __future__ import annotations
 
 import importlib
+import logging
 import sys
 from pathlib import Path
+
+from tqdm.auto import tqdm
 
 # command -> (module exposing `main(argv: list[str]) -> int | None`, or "module:function" for
 # another such function, one-line help)
@@ -73,8 +78,48 @@ def record(argv: list[str]) -> int:
     return recorder.run(args, policy)
 
 
+# top-level option -> level of the mmf_rl log records shown
+LOG_LEVELS = {
+    "-v": logging.DEBUG,
+    "--verbose": logging.DEBUG,
+    "-q": logging.WARNING,
+    "--quiet": logging.WARNING,
+}
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+class _ProgressSafeHandler(logging.Handler):
+    """Writes each record to the current ``sys.stderr`` through ``tqdm.write``, so that a message
+    does not tear a progress bar drawn there."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            tqdm.write(self.format(record), file=sys.stderr)
+        except Exception:
+            self.handleError(record)
+
+
+def configure_logging(level: int = logging.INFO) -> None:
+    """Show the ``mmf_rl`` loggers' records of ``level`` and above on stderr (other libraries'
+    logging is left as it is). Calling it again only changes the level."""
+    logger = logging.getLogger("mmf_rl")
+    logger.setLevel(level)
+    if not any(isinstance(handler, _ProgressSafeHandler) for handler in logger.handlers):
+        handler = _ProgressSafeHandler()
+        handler.setFormatter(logging.Formatter(LOG_FORMAT, datefmt="%H:%M:%S"))
+        logger.addHandler(handler)
+
+
 def _usage() -> str:
-    lines = ["usage: mmf-rl <command> [args]", "", "commands:"]
+    lines = [
+        "usage: mmf-rl [-v | --verbose | -q | --quiet] <command> [args]",
+        "",
+        "options:",
+        "  -v, --verbose  also show debug messages",
+        "  -q, --quiet    show warnings and errors only, not progress messages",
+        "",
+        "commands:",
+    ]
     lines += [f"  {name:<10} {help_}" for name, (_, help_) in sorted(COMMANDS.items())]
     if not COMMANDS:
         lines.append("  (none yet)")
@@ -83,6 +128,10 @@ def _usage() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    level = logging.INFO
+    while argv and argv[0] in LOG_LEVELS:  # before the command: what follows it is the command's
+        level = LOG_LEVELS[argv.pop(0)]
+    configure_logging(level)
     if not argv or argv[0] in ("-h", "--help"):
         print(_usage())
         return 0

@@ -9,6 +9,7 @@ evaluates again, so an interrupted demo never starts over.
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 import time
@@ -19,6 +20,8 @@ from mmf_rl.configuration import ConfigError, compose_config
 from mmf_rl.eval.run import run_evaluation
 from mmf_rl.record import RecordConfig, record
 from mmf_rl.trainers.run import train
+
+logger = logging.getLogger(__name__)
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
@@ -47,17 +50,19 @@ def main(argv: list[str]) -> int:
     started = time.perf_counter()
     try:
         if not (args.data / "meta" / "info.json").is_file():
-            print(f"demo: recording {args.episodes} push episodes into {args.data}")
+            logger.info("demo: recording %d push episodes into %s", args.episodes, args.data)
             record(
                 RecordConfig(
                     out=args.data, episodes=args.episodes, workers=args.workers, image_size=64, steps=50
                 )
             )
         else:
-            print(f"demo: using the recording in {args.data}")
+            logger.info("demo: using the recording in %s", args.data)
         overrides = ["experiment=demo", f"data.root={args.data}", f"run_dir={args.run_dir}", *args.overrides]
         if list_checkpoints(args.run_dir / "checkpoints"):
-            print(f"demo: {args.run_dir} has checkpoints: resuming (nothing to do if training had finished)")
+            logger.info(
+                "demo: %s has checkpoints: resuming (nothing to do if training had finished)", args.run_dir
+            )
             overrides.append("resume=true")
         recorded = time.perf_counter()
         train(compose_config("train", overrides))

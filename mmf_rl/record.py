@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import multiprocessing as mp
 import os
 import queue
@@ -72,6 +73,8 @@ from mmf_rl.envs.push import (
     camera_names,
 )
 from mmf_rl.envs.scripted import Actor, rollout
+
+logger = logging.getLogger(__name__)
 
 PROG = "mmf-rl record"
 TASK = "Push the block to the red target."
@@ -326,7 +329,7 @@ def _staging(out: Path) -> Iterator[Path]:
     """A temporary directory beside ``out`` (same file system: the result is renamed into place),
     removed on exit; stale ones of dead recordings are removed first."""
     for stale in remove_stale_temp_dirs(out.parent, partial_prefix(out)):
-        print(f"{PROG}: removed {stale}, left by a recording that is no longer running", file=sys.stderr)
+        logger.info("removed %s, left by a recording that is no longer running", stale)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix=owned_temp_prefix(partial_prefix(out)), dir=out.parent))

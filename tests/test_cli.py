@@ -1,3 +1,4 @@
+import logging
 import re
 
 import pytest
@@ -32,6 +33,44 @@ def test_unknown_command_is_a_clear_error(commands, capsys):
     assert cli.main(["trian"]) == 2
     err = capsys.readouterr().err
     assert "unknown command 'trian'" in err and "echo" in err
+
+
+def log(argv):
+    logger = logging.getLogger("mmf_rl.tests")
+    logger.debug("a detail")
+    logger.info("progress")
+    logger.warning("a problem")
+    logging.getLogger("another_library").info("not ours")
+
+
+@pytest.mark.parametrize(
+    "options, shown",
+    [
+        ([], ["INFO mmf_rl.tests: progress", "WARNING mmf_rl.tests: a problem"]),
+        (
+            ["--verbose"],
+            [
+                "DEBUG mmf_rl.tests: a detail",
+                "INFO mmf_rl.tests: progress",
+                "WARNING mmf_rl.tests: a problem",
+            ],
+        ),
+        (["-q"], ["WARNING mmf_rl.tests: a problem"]),
+    ],
+)
+def test_log_messages_go_to_stderr_at_the_level_the_top_level_option_sets(
+    monkeypatch, capsys, options, shown
+):
+    monkeypatch.setattr(cli, "COMMANDS", {"log": ("tests.test_cli:log", "log at every level")})
+    assert cli.main([*options, "log"]) == 0
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert [line.split(" ", 1)[1] for line in err.splitlines()] == shown  # after the time
+
+
+def test_a_config_command_takes_its_overrides_after_a_top_level_option(capsys):
+    assert cli.main(["--quiet", "train", "--cfg", "trainer.lr=0.5"]) == 0
+    assert yaml.safe_load(capsys.readouterr().out)["trainer"]["lr"] == 0.5
 
 
 # --- every real command: --help with usage and examples, --cfg without running -----------------

@@ -22,12 +22,12 @@ def test_demo_trains_evaluates_and_reruns_without_starting_over(recorded_push_ro
         *small_overrides(recorded_push_root, tmp_path),
     ]
     assert cli(args) == 0
-    out = capsys.readouterr().out
-    assert f"using the recording in {recorded_push_root}" in out
+    out, err = capsys.readouterr()
+    assert f"using the recording in {recorded_push_root}" in err
     assert "| all |" in out and "| constant velocity |" in out and "all modalities: MSE" in out
     assert (tmp_path / "demo" / "eval" / "forecasts.png").is_file()
     assert cli(args) == 0
-    assert "has checkpoints: resuming" in capsys.readouterr().out
+    assert "has checkpoints: resuming" in capsys.readouterr().err
 
 
 def test_demo_records_when_the_dataset_is_absent(tmp_path, capsys):
@@ -48,5 +48,5 @@ def test_demo_records_when_the_dataset_is_absent(tmp_path, capsys):
         "data.split_fractions=[0.34,0.33,0.33]",
     ]
     assert cli(args) == 0
-    assert "recording 3 push episodes" in capsys.readouterr().out
+    assert "recording 3 push episodes" in capsys.readouterr().err
     assert (data / "meta" / "info.json").is_file()

@@ -40,12 +40,12 @@ import fcntl
 import glob
 import hashlib
 import json
+import logging
 import multiprocessing
 import os
 import re
 import shutil
 import socket
-import sys
 import tempfile
 import time
 import warnings
@@ -66,6 +66,8 @@ from mmf_rl.datasets.lerobot_source import (
     run_video_job,
     to_cache_frames,
 )
+
+logger = logging.getLogger(__name__)
 
 # 2: cache.json records each file's size and checksum; 3: Inf targets stored as 0, windows need a
 # finite target at their last observed frame
@@ -315,10 +317,11 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
         if _job_key(job) in finished and finished[_job_key(job)][0] is not None
     ]
     if finished:
-        print(
-            f"resuming an interrupted window cache build in {directory}: {len(jobs) - len(todo)} of {len(jobs)} "
-            "video jobs already decoded",
-            file=sys.stderr,
+        logger.info(
+            "resuming an interrupted window cache build in %s: %d of %d video jobs already decoded",
+            directory,
+            len(jobs) - len(todo),
+            len(jobs),
         )
     failed += _decode(
         todo,
@@ -571,11 +574,7 @@ def _locked(cache_dir: Path):
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            print(
-                f"waiting for another process to finish with the window caches in {cache_dir} ...",
-                file=sys.stderr,
-                flush=True,
-            )
+            logger.info("waiting for another process to finish with the window caches in %s ...", cache_dir)
             fcntl.flock(fd, fcntl.LOCK_EX)
         yield
     finally:

@@ -19,6 +19,7 @@ config, and the calibration's fit).
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import sys
@@ -48,6 +49,8 @@ from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.registry import RUN_EXPORT_DIR
 from mmf_rl.objectives import LossConfig
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
+
+logger = logging.getLogger(__name__)
 
 RUN_CONFIG = "config.yaml"
 PRETRAINED_DIR = RUN_EXPORT_DIR  # run_dir/model: the final weights as save_pretrained writes them
@@ -169,10 +172,7 @@ def train(cfg) -> Path:
     cfg.run_dir = str(run_dir)
     if rank == 0:
         for leftover in remove_leftovers(run_dir / "checkpoints"):
-            print(
-                f"removed {leftover}: left by a run killed while saving or pruning a checkpoint",
-                file=sys.stderr,
-            )
+            logger.info("removed %s: left by a run killed while saving or pruning a checkpoint", leftover)
         if cfg.resume:
             check_resumable(run_dir, cfg)
         elif list_checkpoints(run_dir / "checkpoints"):
@@ -209,7 +209,7 @@ def train(cfg) -> Path:
     if cfg.get("init_from") is not None and not cfg.resume:  # resuming restores the run's own weights
         source = init_weights_from(model, cfg.init_from)
         if rank == 0:
-            print(f"fine-tuning from {source}: weights copied, new optimizer, step 0")
+            logger.info("fine-tuning from %s: weights copied, new optimizer, step 0", source)
     loss = build_loss(model_name, model, loss_cfg)
     seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents
     augment_cfg = AugmentConfig.from_dict(to_container(cfg.augment) if "augment" in cfg else None)
@@ -262,12 +262,14 @@ def train(cfg) -> Path:
     if rank == 0:  # the trained model with what it needs to forecast, ready for from_pretrained / push_to_hub
         model.normalization_stats, model.data_config = data.normalizer.stats, data_cfg.to_dict()
         if cfg.calibrate:
-            print(calibrate_after_training(model, data, trainer.last_checkpoint, device))
+            logger.info("%s", calibrate_after_training(model, data, trainer.last_checkpoint, device))
         model.save_pretrained(run_dir / PRETRAINED_DIR)
         summary = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
-        print(
-            f"trained {trainer.step} steps -> {trainer.last_checkpoint}"
-            + (f" ({summary})" if summary else "")
+        logger.info(
+            "trained %d steps -> %s%s",
+            trainer.step,
+            trainer.last_checkpoint,
+            f" ({summary})" if summary else "",
         )
     if world_size > 1:
         dist.destroy_process_group()

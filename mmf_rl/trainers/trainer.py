@@ -13,6 +13,7 @@ the batches and random draws of an uninterrupted one.
 
 from __future__ import annotations
 
+import logging
 import math
 import random
 import time
@@ -30,6 +31,8 @@ from tqdm.auto import tqdm
 
 from mmf_rl.checkpoint import load_checkpoint, load_model_state, save_checkpoint
 from mmf_rl.configuration import reject_unknown_keys
+
+logger = logging.getLogger(__name__)
 
 OPS = ("batch_process", "post_loss", "post_optim", "post_steps", "post_steps_log")
 
@@ -459,9 +462,12 @@ class Trainer:
                         cfg.early_stopping_patience is not None
                         and self.evals_without_improvement > cfg.early_stopping_patience
                     ):
-                        tqdm.write(
-                            f"early stopping at step {self.step}: {cfg.early_stopping_metric} has not improved "
-                            f"for {self.evals_without_improvement} evaluations (best {self.best_metric:.4g})"
+                        logger.info(
+                            "early stopping at step %d: %s has not improved for %d evaluations (best %.4g)",
+                            self.step,
+                            cfg.early_stopping_metric,
+                            self.evals_without_improvement,
+                            self.best_metric,
                         )
                         self.save()
                         break
@@ -486,8 +492,10 @@ class Trainer:
                 f"{self.step} steps"
             )
         if self.rank == 0:
-            print(
-                f"data parallel: {self.world_size} ranks agree after {self.step} steps "
-                f"(max weight difference {float(gap):.1e})"
+            logger.info(
+                "data parallel: %d ranks agree after %d steps (max weight difference %.1e)",
+                self.world_size,
+                self.step,
+                float(gap),
             )
         return float(gap)

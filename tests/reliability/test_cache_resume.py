@@ -3,6 +3,7 @@
 The large-N version (kill at ~90% of 10k-500k frames) is `benchmarks/cache_scale.py`.
 """
 
+import logging
 import sys
 import textwrap
 
@@ -39,7 +40,7 @@ def build_killed_after(jobs: int, root, cache_dir) -> str:
     return output(process)
 
 
-def test_a_killed_cache_build_resumes_and_matches_a_full_build(push_copy, tmp_path, monkeypatch, capsys):
+def test_a_killed_cache_build_resumes_and_matches_a_full_build(push_copy, tmp_path, monkeypatch, caplog):
     cache_dir = tmp_path / "cache"
     build_killed_after(DECODED_BEFORE_KILL, push_copy, cache_dir)
     [partial] = cache_dir.glob(".building-*")
@@ -47,13 +48,13 @@ def test_a_killed_cache_build_resumes_and_matches_a_full_build(push_copy, tmp_pa
 
     decode, decoded = cache.run_video_job, []
     monkeypatch.setattr(cache, "run_video_job", lambda job: decoded.append(job) or decode(job))
-    resumed = WindowDataset(push_data_config(push_copy, cache_dir), num_workers=1)
+    with caplog.at_level(logging.INFO, logger="mmf_rl"):
+        resumed = WindowDataset(push_data_config(push_copy, cache_dir), num_workers=1)
     assert resumed.built and len(decoded) == EPISODES - DECODED_BEFORE_KILL, (
         "only the jobs not done were decoded"
     )
-    err = capsys.readouterr().err
-    assert f"resuming an interrupted window cache build in {cache_dir}/.building-" in err
-    assert f"{DECODED_BEFORE_KILL} of {EPISODES} video jobs already decoded" in err
+    assert f"resuming an interrupted window cache build in {cache_dir}/.building-" in caplog.text
+    assert f"{DECODED_BEFORE_KILL} of {EPISODES} video jobs already decoded" in caplog.text
     assert [p.name for p in cache_dir.iterdir()] == [resumed.cache_path.name], (
         "the adopted temp dir became the cache"
     )

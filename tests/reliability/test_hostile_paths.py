@@ -51,7 +51,7 @@ def test_relative_run_dir_with_dotdot_is_resolved_and_saved_resolved(
     )
     resolved = (tmp_path / "runs" / "x").resolve()
     assert yaml.safe_load((resolved / "config.yaml").read_text())["run_dir"] == str(resolved)
-    assert f"-> {resolved}" in capsys.readouterr().out
+    assert f"-> {resolved}" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("name", ["../../etc", "a/b", ".."])

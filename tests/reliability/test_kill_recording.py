@@ -1,5 +1,6 @@
 """SIGKILL during `mmf-rl record`: the partial output is never read as a dataset and is cleaned next time."""
 
+import logging
 import tempfile
 from pathlib import Path
 
@@ -11,7 +12,7 @@ from mmf_rl.record import RecordConfig, partial_prefix, record
 from tests.reliability.conftest import background, cli_command, wait_for
 
 
-def test_killed_recording_is_never_read_and_the_next_recording_removes_it(tmp_path, capsys):
+def test_killed_recording_is_never_read_and_the_next_recording_removes_it(tmp_path, caplog):
     out = tmp_path / "push"
     partials = lambda: sorted(tmp_path.glob(f"{partial_prefix(out)}*"))  # noqa: E731
     command = cli_command(
@@ -41,8 +42,9 @@ def test_killed_recording_is_never_read_and_the_next_recording_removes_it(tmp_pa
 
     # A recording in progress beside the same --out (here: this live process) is left alone.
     live = Path(tempfile.mkdtemp(prefix=owned_temp_prefix(partial_prefix(out)), dir=tmp_path))
-    record(RecordConfig(out=out, episodes=1, steps=3, image_size=32))
-    assert f"removed {partial}" in capsys.readouterr().err
+    with caplog.at_level(logging.INFO, logger="mmf_rl"):
+        record(RecordConfig(out=out, episodes=1, steps=3, image_size=32))
+    assert f"removed {partial}" in caplog.text
     assert partials() == [live]
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 

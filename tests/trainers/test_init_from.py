@@ -25,7 +25,7 @@ def test_fine_tuning_starts_from_the_weights_at_step_zero(trained_run, recorded_
     overrides = push_train_overrides(recorded_push_root, trained_run / "cache", tmp_path / "tuned", steps=3)
     # lr = 0: the weights after fine-tuning are the ones it started from
     assert cli(["train", *overrides, f"init_from={trained_run / 'run'}", "trainer.lr=0.0"]) == 0
-    assert "fine-tuning from" in capsys.readouterr().out
+    assert "fine-tuning from" in capsys.readouterr().err
     tuned = load_checkpoint(tmp_path / "tuned" / "checkpoints")
     assert tuned.step == 3, "a fine-tuning run counts its own steps from 0"
     assert tuned.trainer_state["scheduler"]["last_epoch"] == 3

@@ -168,7 +168,7 @@ def test_two_gloo_ranks_train_in_lockstep_and_agree(overrides, tmp_path):
     ]
     result = subprocess.run(command, env=subprocess_env(), capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "data parallel: 2 ranks agree after 6 steps" in result.stdout
+    assert "data parallel: 2 ranks agree after 6 steps" in result.stderr
     checkpoint = load_checkpoint(tmp_path / "ddp" / "checkpoints")
     assert checkpoint.step == 6 and checkpoint.meta["world_size"] == 2
     assert len(checkpoint.trainer_state["rng"]) == 2
