@@ -12,6 +12,7 @@ import statistics
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs import Compose, InitTracker, Transform, TransformedEnv
+from tqdm.auto import tqdm
 
 from mmf_rl import keys
 from mmf_rl.envs.modality_dropout import ModalityDropout, UniformBursts
@@ -72,7 +73,8 @@ def play(env: TransformedEnv, policy, episodes: int, seed: int, label: str) -> l
     """``episodes`` episodes of ``policy`` in ``env`` (episode ``i`` reset with seed ``seed + i``):
     per episode, success (FetchPush's, within the time limit), final object-goal distance, steps."""
     results = []
-    for i in range(episodes):
+    bar = tqdm(range(episodes), desc=label, unit="episode", dynamic_ncols=True)
+    for i in bar:
         env.set_seed(seed + i)  # applied at the next reset: the same start for every policy
         rollout = env.rollout(env.base_env._env.spec.max_episode_steps, policy, break_when_any_done=True)
         results.append(
@@ -82,9 +84,7 @@ def play(env: TransformedEnv, policy, episodes: int, seed: int, label: str) -> l
                 "steps": rollout.shape[0],
             }
         )
-        done = sum(r["success"] for r in results)
-        print(f"\r{label}: episode {i + 1}/{episodes}, success so far {done}/{i + 1}", end="", flush=True)
-    print()
+        bar.set_postfix(success=f"{sum(r['success'] for r in results)}/{i + 1}")
     return results
 
 
