@@ -1109,4 +1109,7 @@ def _episode_count(root: Path) -> int | None:
 
 
 if __name__ == "__main__":
+    from mmf_rl.cli import configure_logging
+
+    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
     sys.exit(main())

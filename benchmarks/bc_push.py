@@ -93,6 +93,7 @@ import torch
 from torchrl.envs import TransformedEnv
 
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
+from mmf_rl.cli import configure_logging
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.report import write_json, write_text
 from mmf_rl.models.registry import load_trained_model
@@ -466,4 +467,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
+    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
     main()

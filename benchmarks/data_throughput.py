@@ -23,6 +23,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch
 
+from mmf_rl.cli import configure_logging
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
@@ -188,4 +189,5 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
+    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
     main()

@@ -100,6 +100,7 @@ from torchrl.envs import TransformedEnv
 from torchrl.modules.planners import CEMPlanner
 
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
+from mmf_rl.cli import configure_logging
 from mmf_rl.eval.report import write_json, write_text
 from mmf_rl.rl import (
     ForecasterWorldModelEnv,
@@ -603,5 +604,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
     np.set_printoptions(precision=3)
     main()

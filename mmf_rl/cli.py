@@ -99,12 +99,15 @@ class _ProgressSafeHandler(logging.Handler):
             self.handleError(record)
 
 
-def configure_logging(level: int = logging.INFO) -> None:
+def configure_logging(level: int | None = None) -> None:
     """Show the ``mmf_rl`` loggers' records of ``level`` and above on stderr (other libraries'
-    logging is left as it is). Calling it again only changes the level."""
+    logging is left as it is). Calling it again only changes the level; ``None`` is INFO, or the
+    level of an earlier call (a benchmark script run by ``mmf-rl bench`` keeps the CLI's)."""
     logger = logging.getLogger("mmf_rl")
-    logger.setLevel(level)
-    if not any(isinstance(handler, _ProgressSafeHandler) for handler in logger.handlers):
+    configured = any(isinstance(handler, _ProgressSafeHandler) for handler in logger.handlers)
+    if level is not None or not configured:
+        logger.setLevel(logging.INFO if level is None else level)
+    if not configured:
         handler = _ProgressSafeHandler()
         handler.setFormatter(logging.Formatter(LOG_FORMAT, datefmt="%H:%M:%S"))
         logger.addHandler(handler)

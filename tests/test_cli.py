@@ -126,3 +126,17 @@ def test_train_cfg_prints_the_composed_config_and_trains_nothing(capsys, tmp_pat
     assert yaml.safe_load(capsys.readouterr().out)["num_samples"] == 3
     assert cli.main(["train", "--cfg", "trainer.lrr=1"]) == 1
     assert "Could not override 'trainer.lrr'" in capsys.readouterr().err
+
+
+def test_a_script_run_by_the_cli_keeps_its_level_and_run_alone_shows_progress():
+    logger = logging.getLogger("mmf_rl")
+    try:
+        cli.configure_logging(logging.WARNING)  # `mmf-rl --quiet bench ...`
+        cli.configure_logging()  # then the benchmark script's own call
+        assert logger.level == logging.WARNING
+        logger.handlers = [h for h in logger.handlers if not isinstance(h, cli._ProgressSafeHandler)]
+        cli.configure_logging()  # the script run alone
+        assert logger.level == logging.INFO
+        assert sum(isinstance(h, cli._ProgressSafeHandler) for h in logger.handlers) == 1
+    finally:
+        cli.configure_logging(logging.INFO)
