@@ -50,19 +50,17 @@ def main(argv: list[str]) -> int:
     started = time.perf_counter()
     try:
         if not (args.data / "meta" / "info.json").is_file():
-            logger.info("demo: recording %d push episodes into %s", args.episodes, args.data)
+            logger.info("recording %d push episodes into %s", args.episodes, args.data)
             record(
                 RecordConfig(
                     out=args.data, episodes=args.episodes, workers=args.workers, image_size=64, steps=50
                 )
             )
         else:
-            logger.info("demo: using the recording in %s", args.data)
+            logger.info("using the recording in %s", args.data)
         overrides = ["experiment=demo", f"data.root={args.data}", f"run_dir={args.run_dir}", *args.overrides]
         if list_checkpoints(args.run_dir / "checkpoints"):
-            logger.info(
-                "demo: %s has checkpoints: resuming (nothing to do if training had finished)", args.run_dir
-            )
+            logger.info("%s has checkpoints: resuming (nothing to do if training had finished)", args.run_dir)
             overrides.append("resume=true")
         recorded = time.perf_counter()
         train(compose_config("train", overrides))
