@@ -245,18 +245,15 @@ def validate_batch(
         _check_actions(td, batch, action_shape)
 
 
-def mark_nonfinite_absent(td, modalities: list[ModalitySpec]) -> list[str]:
+def mark_nonfinite_absent(td, modalities: list[ModalitySpec]) -> None:
     """Set ``("present", m)`` to False in ``td`` (in place) for the samples whose present
     ``("obs", m)`` holds NaN or ±Inf: the ``nonfinite="absent"`` rule, applied to a batch that
-    :func:`validate_batch` accepted with that rule. Returns the modalities it changed."""
-    changed = []
+    :func:`validate_batch` accepted with that rule."""
     for spec in modalities:
         present = td.get(spec.present_key)
         bad = nonfinite_rows(td.get(spec.obs_key)) & present
-        if bool(bad.any()):
+        if bool(bad.any()):  # a batch without NaN/Inf keeps its own tensors
             td.set(spec.present_key, present & ~bad)
-            changed.append(spec.name)
-    return changed
 
 
 def _check_modality(
