@@ -24,13 +24,14 @@ from __future__ import annotations
 
 import argparse
 import logging
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import yaml
+
+from mmf_rl.configuration import report_command_error
 
 logger = logging.getLogger(__name__)
 
@@ -237,7 +238,7 @@ def fold_files(raw_dir: Path, fold: str) -> dict[str, list[tuple[str, Path]]]:
     if absent:
         raise FileNotFoundError(
             f"ETH/UCY files missing under {raw_dir}: {absent}; RAW_DIR must hold trajectories/{{train,val,"
-            "all_data}}/ and scenes/ as in the data's README"
+            "all_data}/ and scenes/ as in the data's README"
         )
     return files
 
@@ -362,6 +363,5 @@ def main(argv: list[str]) -> int:
             path = convert_fold(args.raw_dir, fold, args.out, args.neighbours, crop)
             logger.info("fold %s: train with `mmf-rl train data=%s`", fold, path)
     except (OSError, ValueError) as error:
-        print(f"mmf-rl import ethucy: error: {error}", file=sys.stderr)
-        return 2
+        return report_command_error("mmf-rl import ethucy", error)
     return 0

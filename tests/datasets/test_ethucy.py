@@ -191,3 +191,12 @@ def test_folds_follow_the_protocol_table():
     assert all(p.name.endswith("_train.txt") for _, p in files["train"])
     with pytest.raises(ValueError, match="unknown ETH/UCY fold 'mars'"):
         ethucy.fold_files(RAW, "mars")
+
+
+def test_import_command_names_the_missing_files(tmp_path, capsys):
+    from mmf_rl.cli import main
+
+    assert main(["import", "ethucy", str(tmp_path), "--out", str(tmp_path / "out"), "--fold", "eth"]) == 1
+    error = capsys.readouterr().err
+    assert "biwi_hotel_train.txt" in error and "trajectories/{train,val,all_data}/" in error
+    assert not (tmp_path / "out" / "eth").exists()
