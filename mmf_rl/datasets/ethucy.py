@@ -11,8 +11,8 @@ where it was not annotated and nothing is interpolated or zero-filled there. Per
 * ``observation.neighbours`` ``[K * 5]``: the K nearest other agents annotated at that frame,
   nearest first, each ``[dx, dy, dvx, dvy, valid]`` relative to the agent; empty slots are
   zeros with ``valid = 0`` (the data config leaves the ``valid`` dims unnormalised).
-* ``observation.images.scene``: a north-up crop of the scene's reference frame centred on the
-  agent, through the world->pixel maps of the data's README; ``observation.scene_camera_valid``
+* ``observation.images.scene``: a crop of the scene's reference frame centred on the agent
+  (north-up, or heading-up), through the world->pixel maps of the data's README; ``observation.scene_camera_valid``
   is False for sequences without a reference frame (``crowds_zara03``, ``uni_examples``), whose
   windows then train with the scene absent.
 
@@ -79,10 +79,12 @@ UCY_ROW = (288.0, 6.8734, 0.023866)
 
 @dataclass(frozen=True)
 class CropConfig:
-    """The scene crop: ``pixels`` square, covering ``metres`` on a side, north-up in world axes."""
+    """The scene crop: ``pixels`` square, covering ``metres`` on a side; north-up in world axes, or
+    with ``heading`` the agent's direction of motion up (its last known one while it stands)."""
 
     pixels: int = 64
     metres: float = 8.0
+    heading: bool = False
 
 
 @dataclass(frozen=True)
@@ -101,17 +103,35 @@ class Scene:
         homogeneous = np.concatenate([xy, np.ones_like(xy[..., :1])], axis=-1) @ self.world_to_image.T
         return homogeneous[..., :2] / homogeneous[..., 2:]
 
-    def crops(self, centres: np.ndarray, crop: CropConfig) -> np.ndarray:
-        """``uint8 [N, p, p, 3]`` nearest-pixel crops centred on ``centres`` ``[N, 2]``; black outside."""
+    def crops(self, centres: np.ndarray, crop: CropConfig, headings: np.ndarray | None = None) -> np.ndarray:
+        """``uint8 [N, p, p, 3]`` nearest-pixel crops centred on ``centres`` ``[N, 2]``; black outside.
+
+        ``headings`` ``[N]`` (radians from +x) is the world direction shown up; default north (+y).
+        """
         p, res = crop.pixels, crop.metres / crop.pixels
         offsets = (np.arange(p) - (p - 1) / 2) * res
-        # Output row i, column j shows world (x + offsets[j], y - offsets[i]): north (+y) is up.
-        grid = np.stack(np.meshgrid(offsets, -offsets, indexing="xy"), axis=-1)  # [p, p, 2] (dx, dy)
-        pixels = np.rint(self.to_pixel(centres[:, None, None, :] + grid[None])).astype(np.int64)
+        angle = np.full(len(centres), np.pi / 2) if headings is None else np.asarray(headings)
+        up = np.stack([np.cos(angle), np.sin(angle)], axis=-1)[:, None, None, :]  # [N, 1, 1, 2]
+        right = np.stack([np.sin(angle), -np.cos(angle)], axis=-1)[:, None, None, :]
+        # Output row i, column j shows world centre + offsets[j] * right - offsets[i] * up.
+        world = (
+            centres[:, None, None, :]
+            + offsets[None, None, :, None] * right
+            - offsets[None, :, None, None] * up
+        )
+        pixels = np.rint(self.to_pixel(world)).astype(np.int64)
         h, w = self.image.shape[:2]
         inside = (pixels[..., 0] >= 0) & (pixels[..., 0] < h) & (pixels[..., 1] >= 0) & (pixels[..., 1] < w)
         rows, cols = np.clip(pixels[..., 0], 0, h - 1), np.clip(pixels[..., 1], 0, w - 1)
         return self.image[rows, cols] * inside[..., None].astype(np.uint8)
+
+
+def headings(velocities: np.ndarray, min_speed: float = 0.1) -> np.ndarray:
+    """``[N]`` direction of motion of one track's ``[N, 2]`` past-only velocities; below ``min_speed``
+    (m/s) the last direction it had (north before it first moves)."""
+    angle = pd.Series(np.arctan2(velocities[:, 1], velocities[:, 0]))
+    angle[np.hypot(velocities[:, 0], velocities[:, 1]) < min_speed] = np.nan
+    return angle.ffill().fillna(np.pi / 2).to_numpy()
 
 
 def load_scene(raw_dir: Path, name: str) -> Scene:
@@ -206,7 +226,7 @@ def sequence_episodes(
         part = table.iloc[rows]
         centres = part[["x", "y"]].to_numpy()
         images = (
-            scene.crops(centres, crop)
+            scene.crops(centres, crop, headings(part[["vx", "vy"]].to_numpy()) if crop.heading else None)
             if scene is not None
             else np.zeros((len(rows), crop.pixels, crop.pixels, 3), dtype=np.uint8)
         )
@@ -351,13 +371,16 @@ def build_parser() -> argparse.ArgumentParser:
     ethucy.add_argument("--neighbours", type=int, default=8, help="K nearest agents per step")
     ethucy.add_argument("--crop-pixels", type=int, default=64, help="scene crop side in pixels")
     ethucy.add_argument("--crop-metres", type=float, default=8.0, help="scene crop side in metres")
+    ethucy.add_argument(
+        "--crop-heading", action="store_true", help="crop with the agent's heading up (default north up)"
+    )
     return parser
 
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    crop = CropConfig(args.crop_pixels, args.crop_metres)
+    crop = CropConfig(args.crop_pixels, args.crop_metres, args.crop_heading)
     try:
         for fold in args.fold or sorted(FOLDS):
             path = convert_fold(args.raw_dir, fold, args.out, args.neighbours, crop)

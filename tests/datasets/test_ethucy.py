@@ -123,12 +123,13 @@ def test_a_frame_without_neighbours_has_only_invalid_slots():
     assert (np.diff(distance, axis=1)[slots[:, 1:, 4] == 1] >= 0).all()
 
 
-def _episodes(tables) -> list[dict[str, np.ndarray]]:
+def _episodes(tables, crop: ethucy.CropConfig) -> list[dict[str, np.ndarray]]:
     scene = ethucy.load_scene(RAW, "seq_eth")
-    return ethucy.sequence_episodes(tables, scene, 8, ethucy.CropConfig(), ethucy.HISTORY + ethucy.HORIZON)
+    return ethucy.sequence_episodes(tables, scene, 8, crop, ethucy.HISTORY + ethucy.HORIZON)
 
 
-def test_no_input_reads_a_future_position():
+@pytest.mark.parametrize("heading", [False, True])
+def test_no_input_reads_a_future_position(heading):
     """The velocity leak: moving every agent's positions after frame `now` (the agent's own and its
     neighbours') must leave every input of frames up to `now` unchanged."""
     table = _slice("biwi_eth")
@@ -137,7 +138,8 @@ def test_no_input_reads_a_future_position():
     future = moved["frame"] > now
     rng = np.random.default_rng(0)
     moved.loc[future, ["x", "y"]] += rng.normal(0.0, 1.0, (int(future.sum()), 2))
-    before, after = _episodes(table), _episodes(moved)
+    crop = ethucy.CropConfig(heading=heading)
+    before, after = _episodes(table, crop), _episodes(moved, crop)
     assert len(before) == len(after) > 0
     checked = changed = 0
     for a, b in zip(before, after, strict=True):
@@ -200,3 +202,45 @@ def test_import_command_names_the_missing_files(tmp_path, capsys):
     error = capsys.readouterr().err
     assert "biwi_hotel_train.txt" in error and "trajectories/{train,val,all_data}/" in error
     assert not (tmp_path / "out" / "eth").exists()
+
+
+def test_train_and_eval_through_the_cli_report_metres_and_best_of_20(converted, tmp_path):
+    """The normal `mmf-rl train data=FILE` / `mmf-rl eval` path on the converted slice."""
+    import json
+
+    import yaml
+
+    from mmf_rl.cli import main
+
+    _, config, _ = converted
+    data = tmp_path / "slice.yaml"
+    data.write_text(yaml.safe_dump(config))
+    run = tmp_path / "run"
+    small = ["model.d_model=16", "model.d_latent=4", "model.num_heads=2", "model.mlp_hidden=32"]
+    steps = [
+        "trainer.total_steps=6",
+        "trainer.batch_size=16",
+        "trainer.eval_every=3",
+        "trainer.warmup_steps=2",
+    ]
+    quiet = ["trainer.progress_bar=false", "logger=csv", "num_workers=0"]
+    assert main(["train", f"data={data}", f"run_dir={run}", *small, *steps, *quiet]) == 0
+    assert main(["eval", f"checkpoint={run}", "num_samples=20", "plots=false"]) == 0
+    scores = json.loads((run / "eval" / "results.json").read_text())["subsets"]["all"]
+    # Metres: an untrained model is off by metres, not by normalised units of ~1; best of 20 <= point.
+    assert 0.05 < scores["ade"] < 20.0 and scores["min_ade_k"] <= scores["ade"] + 1e-6
+    assert scores["min_fde_k"] <= scores["fde"] + 1e-6
+
+
+def test_heading_up_crops_show_what_lies_ahead_above_the_centre():
+    scene = _coded_scene(None)
+    crop = ethucy.CropConfig(pixels=33, metres=8.25, heading=True)
+    centre = np.array([[5.0, 6.0]])
+    # Walking east, then standing: the standing step keeps the eastward heading.
+    heading = ethucy.headings(np.array([[1.2, 0.0], [0.0, 0.0]]))
+    np.testing.assert_allclose(heading, [0.0, 0.0])
+    image = scene.crops(centre, crop, heading[:1])[0]
+    north_up = scene.crops(centre, ethucy.CropConfig(pixels=33, metres=8.25))[0]
+    assert _decode(image[12, 16]) == _decode(north_up[16, 20])  # 1 m ahead (east) is 4 px up
+    assert _decode(image[16, 12]) == _decode(north_up[12, 16])  # 1 m to its left (north) is 4 px left
+    assert ethucy.headings(np.zeros((2, 2)))[0] == pytest.approx(np.pi / 2)  # never moved: north up
