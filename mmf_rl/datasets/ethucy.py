@@ -32,6 +32,7 @@ import pandas as pd
 import yaml
 
 from mmf_rl.configuration import report_command_error
+from mmf_rl.datasets.config import DataConfig
 
 logger = logging.getLogger(__name__)
 
@@ -310,8 +311,11 @@ def write_dataset(
 
 
 def data_config(root: Path, split: dict[str, list[int]], num_slots: int, crop: CropConfig) -> dict:
-    """The fold's data config: the protocol's window geometry, the modalities and the episode split."""
-    return {
+    """The fold's data config: the protocol's window geometry, the modalities and the episode split.
+
+    Every key is written (defaults included), so any of them can be overridden on the command line.
+    """
+    config = {
         "root": str(Path(root).resolve()),
         "repo_id": f"local/{Path(root).name}",
         "history": HISTORY,
@@ -330,6 +334,7 @@ def data_config(root: Path, split: dict[str, list[int]], num_slots: int, crop: C
         },
         "target": {"feature": TRAJECTORY_KEY, "dims": [0, 1], "relative": True},
     }
+    return DataConfig.from_dict(config).to_dict()
 
 
 def convert_fold(
@@ -348,7 +353,10 @@ def convert_fold(
     split = write_dataset(root, tables, raw_dir, num_slots, crop)
     path = Path(out) / f"{fold}.yaml"
     header = f"# ETH/UCY fold {fold!r} (test: {', '.join(FOLDS[fold])}), written by `mmf-rl import ethucy`\n"
-    path.write_text(header + yaml.safe_dump(data_config(root, split, num_slots, crop), sort_keys=False))
+    path.write_text(
+        header
+        + yaml.safe_dump(data_config(root, split, num_slots, crop), sort_keys=False, default_flow_style=None)
+    )
     return path
 
 

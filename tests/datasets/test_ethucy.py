@@ -244,3 +244,16 @@ def test_heading_up_crops_show_what_lies_ahead_above_the_centre():
     assert _decode(image[12, 16]) == _decode(north_up[16, 20])  # 1 m ahead (east) is 4 px up
     assert _decode(image[16, 12]) == _decode(north_up[12, 16])  # 1 m to its left (north) is 4 px left
     assert ethucy.headings(np.zeros((2, 2)))[0] == pytest.approx(np.pi / 2)  # never moved: north up
+
+
+# Windows of 8 + 12 steps in each fold's test files: the sizes the literature's test sets have.
+TEST_WINDOWS = {"eth": 364, "hotel": 1197, "univ": 24334, "zara1": 2356, "zara2": 5910}
+
+
+@pytest.mark.parametrize("fold", sorted(ethucy.FOLDS))
+def test_each_fold_has_the_standard_number_of_test_windows(fold):
+    windows = 0
+    for _, path in ethucy.fold_files(RAW, fold)["test"]:
+        tracks = ethucy.with_velocities(ethucy.read_sequence(path)).groupby(["agent", "segment"]).size()
+        windows += int((tracks - (ethucy.HISTORY + ethucy.HORIZON - 1)).clip(lower=0).sum())
+    assert windows == TEST_WINDOWS[fold]
