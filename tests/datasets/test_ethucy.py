@@ -257,3 +257,13 @@ def test_each_fold_has_the_standard_number_of_test_windows(fold):
         tracks = ethucy.with_velocities(ethucy.read_sequence(path)).groupby(["agent", "segment"]).size()
         windows += int((tracks - (ethucy.HISTORY + ethucy.HORIZON - 1)).clip(lower=0).sum())
     assert windows == TEST_WINDOWS[fold]
+
+
+def test_raw_dims_outside_the_feature_are_refused(converted):
+    _, config, _ = converted
+    bad = {**config, "modalities": {**config["modalities"]}}
+    bad["modalities"]["neighbours"] = {**config["modalities"]["neighbours"], "raw_dims": [4, 40]}
+    with pytest.raises(
+        ValueError, match=r"modalities\.neighbours\.raw_dims` \[4, 40\] must index its 40 dims"
+    ):
+        WindowDataset(DataConfig.from_dict(bad), num_workers=0)
