@@ -360,9 +360,20 @@ def convert_fold(
     return path
 
 
+EXAMPLES = (
+    "examples:\n"
+    "  mmf-rl import ethucy ../shared/data/ethucy --out data/ethucy --fold eth "
+    "&& mmf-rl train data=data/ethucy/eth.yaml\n"
+    "  mmf-rl import ethucy ../shared/data/ethucy --out data/ethucy   # all five folds"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="mmf-rl import", description="convert a public dataset to LeRobot v3.0"
+        prog="mmf-rl import",
+        description="convert a public dataset to LeRobot v3.0, with a data config to train on it",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=EXAMPLES,
     )
     sources = parser.add_subparsers(dest="source", required=True)
     ethucy = sources.add_parser(
@@ -370,6 +381,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="ETH/UCY pedestrians: one dataset + data config per leave-one-scene-out fold",
         description="ETH/UCY pedestrians -> OUT/<fold>/ (LeRobot v3.0) and OUT/<fold>.yaml (data config: "
         "train with `mmf-rl train data=OUT/<fold>.yaml`)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=EXAMPLES,
     )
     ethucy.add_argument("raw_dir", type=Path, help="the folder holding trajectories/ and scenes/")
     ethucy.add_argument("--out", type=Path, required=True, help="output folder")
