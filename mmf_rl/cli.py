@@ -32,6 +32,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "mmf_rl.datasets.inspect",
         "report a LeRobot dataset's features, cameras, NaN spans and outages; suggest a data config",
     ),
+    "import": (
+        "mmf_rl.datasets.ethucy",
+        "convert a public dataset to LeRobot v3.0 with its data config (ethucy: ETH/UCY pedestrians)",
+    ),
     "bench": ("mmf_rl.bench", "run a benchmark of benchmarks/ (accuracy, data, model, mpc)"),
     "demo": ("mmf_rl.demo", "record a push dataset, train the default model on CPU, evaluate (make demo)"),
 }

@@ -27,6 +27,8 @@ class ModalityConfig:
     ``observation.<cam>_camera_valid`` as the recorder writes it) is used if the dataset has it.
     ``dims`` selects feature dims.
     ``required`` turns "absent" from a warning into an error.
+    ``raw_dims`` (indices after ``dims``) are left unnormalised: flags such as a per-slot
+    ``valid`` keep their exact 0/1 meaning, which a mean/std shift would make data-dependent.
     """
 
     feature: str
@@ -35,6 +37,7 @@ class ModalityConfig:
     valid_feature: str | None = None
     required: bool = False
     encoder: str | None = None
+    raw_dims: list[int] | None = None
 
     def __post_init__(self):
         if self.kind is not None and self.kind not in MODALITY_KINDS:
@@ -44,6 +47,8 @@ class ModalityConfig:
             )
         if self.dims is not None:
             self.dims = [int(i) for i in self.dims]
+        if self.raw_dims is not None:
+            self.raw_dims = [int(i) for i in self.raw_dims]
 
 
 @dataclass

@@ -132,6 +132,13 @@ class WindowDataset:
             if spec.kind != "image":
                 valid = train_frames & _plain(frames.get(spec.present_key))
                 mean, std = mean_std(self._obs[spec.name], valid, floor, f"modality {spec.name!r}")
+                raw = self.config.modalities[spec.name].raw_dims or []
+                if any(not 0 <= i < mean.numel() for i in raw):
+                    raise ValueError(
+                        f"data config: `modalities.{spec.name}.raw_dims` {raw} must index its "
+                        f"{mean.numel()} dims (after `dims`); fix the indices"
+                    )
+                mean[raw], std[raw] = 0.0, 1.0
                 stats[f"{spec.name}/mean"], stats[f"{spec.name}/std"] = mean, std
         if self.config.target.relative:
             future, _ = self._targets(self.window_start[self.split_windows["train"]], with_past=False)

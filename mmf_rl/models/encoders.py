@@ -189,6 +189,47 @@ def mlp_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> Fla
     return FlatMLPEncoder(in_dim, d_model, **kwargs)
 
 
+class DeepSetsEncoder(nn.Module):
+    """Slot-order-invariant encoder of a window of agent slots ``[N, H, K * slot_dim]`` -> ``[N, d]``.
+
+    Each step holds ``K`` slots of ``slot_dim`` values whose last one is the slot's validity
+    (1 = an agent, 0 = an empty slot, left unnormalised by the data config's ``raw_dims``). A
+    shared MLP embeds every slot; a masked mean and max over the valid slots pool each step
+    (DeepSets), so permuting slots changes nothing and an empty slot's values are never read; a
+    step without any valid slot pools to zeros. A GRU then summarises the steps.
+    """
+
+    def __init__(self, spec: ModalitySpec, d_model: int, slot_dim: int = 5, hidden_dim: int | None = None):
+        super().__init__()
+        if slot_dim < 2 or spec.shape[0] % slot_dim:
+            raise ValueError(
+                f"deepsets encoder for {spec.name!r}: the feature's {spec.shape[0]} dims must be K slots of "
+                f"slot_dim={slot_dim} values (the last one the validity); set encoder_kwargs.slot_dim"
+            )
+        self.slot_dim = slot_dim
+        hidden = hidden_dim or d_model
+        self.slot = mlp(slot_dim - 1, hidden, hidden)
+        self.step = nn.Linear(2 * hidden, d_model)
+        self.gru = nn.GRU(d_model, d_model, batch_first=True)
+
+    def forward(self, seq: torch.Tensor) -> torch.Tensor:
+        slots = seq.unflatten(-1, (-1, self.slot_dim))  # [N, H, K, slot_dim]
+        valid = slots[..., -1:] > 0.5
+        values = torch.where(valid, slots[..., :-1], torch.zeros_like(slots[..., :-1]))
+        embedded = self.slot(values)
+        count = valid.sum(-2)
+        mean = (embedded * valid).sum(-2) / count.clamp_min(1)
+        peak = embedded.masked_fill(~valid, float("-inf")).amax(-2)
+        peak = torch.where(count > 0, peak, torch.zeros_like(peak))
+        steps = torch.relu(self.step(torch.cat([mean, peak], -1)))
+        return self.gru(steps)[1][-1]
+
+
+@register_encoder("deepsets", kinds=("sequence",))
+def deepsets_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> DeepSetsEncoder:
+    return DeepSetsEncoder(spec, d_model, **kwargs)
+
+
 def build_encoder(spec: ModalitySpec, history: int, d_model: int) -> nn.Module:
     """The registered encoder a spec names, with its ``encoder_kwargs``."""
     entry = check_encoder(spec.name, spec.encoder, spec.kind)

@@ -1,0 +1,269 @@
+"""ETH/UCY -> LeRobot: converted on a slice of the real files (skipped when ../shared is absent)."""
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from mmf_rl.datasets import ethucy
+from mmf_rl.datasets.config import DataConfig
+from mmf_rl.datasets.windows import WindowDataset
+from tests.datasets.conftest import SHARED_DATA
+
+RAW = SHARED_DATA / "ethucy"
+pytestmark = pytest.mark.skipif(
+    not (RAW / "trajectories" / "all_data" / "biwi_eth.txt").is_file(),
+    reason=f"ETH/UCY data not at {RAW} (set MMF_RL_SHARED_DATA)",
+)
+SLICE_STEPS = 60  # steps of each file kept
+
+
+def _slice(sequence: str) -> pd.DataFrame:
+    table = ethucy.read_sequence(RAW / "trajectories" / "all_data" / f"{sequence}.txt")
+    return table[table["frame"] < table["frame"].min() + SLICE_STEPS * ethucy.FRAME_STEP].reset_index(
+        drop=True
+    )
+
+
+def _with_gap(table: pd.DataFrame) -> tuple[pd.DataFrame, int, np.ndarray]:
+    """The longest-tracked agent made to leave for two steps mid-track (the real files have no such
+    agent): the table without those rows, the agent, and the frames removed."""
+    agent = int(table.groupby("agent").size().idxmax())
+    frames = np.sort(table.loc[table["agent"] == agent, "frame"].to_numpy())
+    gone = frames[len(frames) // 2 : len(frames) // 2 + 2]
+    keep = ~((table["agent"] == agent) & table["frame"].isin(gone))
+    return table[keep].reset_index(drop=True), agent, gone
+
+
+@pytest.fixture(scope="module")
+def converted(tmp_path_factory) -> tuple[Path, dict, dict]:
+    """A three-split dataset from slices: zara01 (with a leaving agent) / zara03 (no scene) / eth."""
+    root = tmp_path_factory.mktemp("ethucy") / "slice"
+    zara, agent, gone = _with_gap(_slice("crowds_zara01"))
+    tables = {
+        "train": [("crowds_zara01", zara)],
+        "val": [("crowds_zara03", _slice("crowds_zara03"))],
+        "test": [("biwi_eth", _slice("biwi_eth"))],
+    }
+    split = ethucy.write_dataset(root, tables, RAW)
+    config = ethucy.data_config(root, split, 8, ethucy.CropConfig())
+    config["cache_dir"] = str(root.parent / "cache")
+    return root, config, {"agent": agent, "gone": gone, "tables": tables}
+
+
+def _frames(root: Path) -> pd.DataFrame:
+    return pd.concat(
+        [pd.read_parquet(p) for p in sorted((root / "data").rglob("*.parquet"))], ignore_index=True
+    ).drop(columns=[ethucy.SCENE_KEY])
+
+
+def _column(frames: pd.DataFrame, key: str) -> np.ndarray:
+    """A feature column as ``[N, d]`` (lerobot stores one-value features as scalars)."""
+    return np.stack([np.atleast_1d(v) for v in frames[key].to_numpy()])
+
+
+def test_slice_converts_to_a_dataset_the_window_pipeline_reads(converted):
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    root, config, _ = converted
+    meta = LeRobotDatasetMetadata("local/slice", root=root)
+    assert meta.total_episodes == sum(len(v) for v in config["split"].values()) > 0
+    assert meta.fps == pytest.approx(2.5)
+    windows = WindowDataset(DataConfig.from_dict(config), num_workers=0)
+    assert all(len(windows.split_windows[s]) > 0 for s in ("train", "val", "test"))
+    batch = windows.batch(windows.split_windows["test"][:5])
+    assert batch["target"].shape == (5, ethucy.HORIZON, 2)
+    assert batch["obs", "scene"].shape == (5, ethucy.HISTORY, 3, 64, 64)
+    # The slots' validity flags stay 0/1 through normalisation, as the deepsets encoder reads them.
+    flags = batch["obs", "neighbours"].unflatten(-1, (-1, ethucy.SLOT_DIM))[..., -1]
+    assert set(flags.unique().tolist()) <= {0.0, 1.0}
+    # zara03 has no reference frame: its windows have the scene absent, the others present.
+    val, test = windows.split_windows["val"], windows.split_windows["test"]
+    assert not windows.presence["scene"][val].any() and windows.presence["scene"][test].all()
+    # Metres back: the denormalised target is the recorded displacement from the current step.
+    frames = _frames(root)
+    start = int(windows.window_start[test[0]])
+    xy = _column(frames, ethucy.TRAJECTORY_KEY)[:, :2]
+    now = start + ethucy.HISTORY - 1
+    expected = xy[now + 1 : now + 1 + ethucy.HORIZON] - xy[now]
+    got = windows.normalizer.denormalize_target(batch["target"][0]).numpy()
+    np.testing.assert_allclose(got, expected, atol=1e-4)
+
+
+def test_every_position_is_an_annotated_one_and_a_leaving_agent_splits_its_track(converted):
+    root, config, info = converted
+    frames = _frames(root)
+    agents = _column(frames, ethucy.AGENT_KEY)[:, 0]
+    for name, [(_, table)] in info["tables"].items():
+        mine = frames["episode_index"].isin(config["split"][name]).to_numpy()
+        written = pd.DataFrame(_column(frames[mine], ethucy.TRAJECTORY_KEY)[:, :2], columns=["x", "y"])
+        written["agent"], written["frame"] = agents[mine], _column(frames[mine], ethucy.FRAME_KEY)[:, 0]
+        joined = written.merge(table, on=["agent", "frame"], how="left", suffixes=("", "_raw"))
+        # Every written position is the annotated one: none zero-filled, none interpolated.
+        np.testing.assert_allclose(joined[["x", "y"]], joined[["x_raw", "y_raw"]], atol=1e-5)
+    for _, episode in frames.groupby("episode_index"):
+        assert (np.diff(_column(episode, ethucy.FRAME_KEY)[:, 0]) == ethucy.FRAME_STEP).all()
+    train = frames["episode_index"].isin(config["split"]["train"]).to_numpy()
+    mine = frames[train & (agents == info["agent"])]
+    assert mine["episode_index"].nunique() == 2, "the agent that leaves and re-enters is two episodes"
+    assert not set(_column(mine, ethucy.FRAME_KEY)[:, 0]) & set(info["gone"])
+
+
+def test_a_frame_without_neighbours_has_only_invalid_slots():
+    table = ethucy.with_velocities(_slice("biwi_eth"))
+    alone = table.groupby("frame")["agent"].transform("size").to_numpy() == 1
+    assert alone.any(), "the eth slice starts with a lone pedestrian"
+    slots = ethucy.neighbour_slots(table, 8).reshape(len(table), 8, ethucy.SLOT_DIM)
+    assert (slots[alone] == 0).all()
+    crowded = table.groupby("frame")["agent"].transform("size").to_numpy()
+    # Valid slots: exactly min(K, others) of them, the nearest first.
+    np.testing.assert_array_equal(slots[..., 4].sum(1), np.minimum(8, crowded - 1))
+    distance = np.hypot(slots[..., 0], slots[..., 1])
+    assert (np.diff(distance, axis=1)[slots[:, 1:, 4] == 1] >= 0).all()
+
+
+def _episodes(tables, crop: ethucy.CropConfig) -> list[dict[str, np.ndarray]]:
+    scene = ethucy.load_scene(RAW, "seq_eth")
+    return ethucy.sequence_episodes(tables, scene, 8, crop, ethucy.HISTORY + ethucy.HORIZON)
+
+
+@pytest.mark.parametrize("heading", [False, True])
+def test_no_input_reads_a_future_position(heading):
+    """The velocity leak: moving every agent's positions after frame `now` (the agent's own and its
+    neighbours') must leave every input of frames up to `now` unchanged."""
+    table = _slice("biwi_eth")
+    now = int(np.sort(table["frame"].unique())[SLICE_STEPS // 2])
+    moved = table.copy()
+    future = moved["frame"] > now
+    rng = np.random.default_rng(0)
+    moved.loc[future, ["x", "y"]] += rng.normal(0.0, 1.0, (int(future.sum()), 2))
+    crop = ethucy.CropConfig(heading=heading)
+    before, after = _episodes(table, crop), _episodes(moved, crop)
+    assert len(before) == len(after) > 0
+    checked = changed = 0
+    for a, b in zip(before, after, strict=True):
+        past = a[ethucy.FRAME_KEY][:, 0] <= now
+        for key in (ethucy.TRAJECTORY_KEY, ethucy.NEIGHBOURS_KEY, ethucy.SCENE_KEY):
+            np.testing.assert_array_equal(a[key][past], b[key][past], err_msg=f"{key} reads the future")
+        checked += int(past.sum())
+        changed += int((a[ethucy.TRAJECTORY_KEY][~past] != b[ethucy.TRAJECTORY_KEY][~past]).any())
+    assert checked > 0 and changed > 0  # the test compares real past frames, and the future did move
+
+
+def _coded_scene(world_to_image) -> ethucy.Scene:
+    """A scene whose pixel values spell their own (row, col)."""
+    rows, cols = np.meshgrid(np.arange(576), np.arange(720), indexing="ij")
+    image = np.stack([rows % 256, cols % 256, rows // 256 * 16 + cols // 256], axis=-1).astype(np.uint8)
+    return ethucy.Scene(image, world_to_image)
+
+
+def _decode(pixel: np.ndarray) -> tuple[int, int]:
+    return int(pixel[0]) + 256 * (int(pixel[2]) // 16), int(pixel[1]) + 256 * (int(pixel[2]) % 16)
+
+
+@pytest.mark.parametrize("name", ["seq_eth", "zara01"])
+def test_scene_crop_puts_a_world_point_where_the_map_says(name):
+    crop = ethucy.CropConfig(pixels=33, metres=8.25)  # 0.25 m per pixel, centre pixel (16, 16)
+    homography = np.loadtxt(RAW / "scenes" / name / "H.txt") if name == "seq_eth" else None
+    scene = _coded_scene(None if homography is None else np.linalg.inv(homography))
+    centre = np.array([[5.0, 6.0]])
+    image = scene.crops(centre, crop)[0]
+    for (dx, dy), (i, j) in [((0.0, 0.0), (16, 16)), ((1.0, 0.0), (16, 20)), ((0.0, 1.0), (12, 16))]:
+        x, y = centre[0, 0] + dx, centre[0, 1] + dy
+        if homography is None:  # the README's UCY formula
+            expected = (288 - (y - 6.8734) / 0.023866, 360 + (x - 7.5767) / 0.021047)
+        else:  # H maps (row, col, 1) to world (x, y, 1)
+            row_col = np.linalg.solve(homography, [x, y, 1.0])
+            expected = tuple(row_col[:2] / row_col[2])
+        assert _decode(image[i, j]) == tuple(int(round(v)) for v in expected)
+
+
+def test_crops_outside_the_reference_frame_are_black():
+    scene = _coded_scene(None)
+    far = scene.crops(np.array([[500.0, 500.0]]), ethucy.CropConfig(pixels=8, metres=2.0))
+    assert (far == 0).all()
+
+
+def test_folds_follow_the_protocol_table():
+    files = ethucy.fold_files(RAW, "univ")
+    assert [s for s, _ in files["test"]] == ["students001", "students003"]
+    assert [s for s, _ in files["train"]] == [s for s, _ in files["val"]]
+    assert {s for s, _ in files["train"]} == set(ethucy.SEQUENCES) - {"students001", "students003"}
+    assert all(p.name.endswith("_train.txt") for _, p in files["train"])
+    with pytest.raises(ValueError, match="unknown ETH/UCY fold 'mars'"):
+        ethucy.fold_files(RAW, "mars")
+
+
+def test_import_command_names_the_missing_files(tmp_path, capsys):
+    from mmf_rl.cli import main
+
+    assert main(["import", "ethucy", str(tmp_path), "--out", str(tmp_path / "out"), "--fold", "eth"]) == 1
+    error = capsys.readouterr().err
+    assert "biwi_hotel_train.txt" in error and "trajectories/{train,val,all_data}/" in error
+    assert not (tmp_path / "out" / "eth").exists()
+
+
+def test_train_and_eval_through_the_cli_report_metres_and_best_of_20(converted, tmp_path):
+    """The normal `mmf-rl train data=FILE` / `mmf-rl eval` path on the converted slice."""
+    import json
+
+    import yaml
+
+    from mmf_rl.cli import main
+
+    _, config, _ = converted
+    data = tmp_path / "slice.yaml"
+    data.write_text(yaml.safe_dump(config))
+    run = tmp_path / "run"
+    small = ["model.d_model=16", "model.d_latent=4", "model.num_heads=2", "model.mlp_hidden=32"]
+    steps = [
+        "trainer.total_steps=6",
+        "trainer.batch_size=16",
+        "trainer.eval_every=3",
+        "trainer.warmup_steps=2",
+    ]
+    quiet = ["trainer.progress_bar=false", "logger=csv", "num_workers=0"]
+    assert main(["train", f"data={data}", f"run_dir={run}", *small, *steps, *quiet]) == 0
+    assert main(["eval", f"checkpoint={run}", "num_samples=20", "plots=false"]) == 0
+    scores = json.loads((run / "eval" / "results.json").read_text())["subsets"]["all"]
+    # Metres: an untrained model is off by metres, not by normalised units of ~1; best of 20 <= point.
+    assert 0.05 < scores["ade"] < 20.0 and scores["min_ade_k"] <= scores["ade"] + 1e-6
+    assert scores["min_fde_k"] <= scores["fde"] + 1e-6
+
+
+def test_heading_up_crops_show_what_lies_ahead_above_the_centre():
+    scene = _coded_scene(None)
+    crop = ethucy.CropConfig(pixels=33, metres=8.25, heading=True)
+    centre = np.array([[5.0, 6.0]])
+    # Walking east, then standing: the standing step keeps the eastward heading.
+    heading = ethucy.headings(np.array([[1.2, 0.0], [0.0, 0.0]]))
+    np.testing.assert_allclose(heading, [0.0, 0.0])
+    image = scene.crops(centre, crop, heading[:1])[0]
+    north_up = scene.crops(centre, ethucy.CropConfig(pixels=33, metres=8.25))[0]
+    assert _decode(image[12, 16]) == _decode(north_up[16, 20])  # 1 m ahead (east) is 4 px up
+    assert _decode(image[16, 12]) == _decode(north_up[12, 16])  # 1 m to its left (north) is 4 px left
+    assert ethucy.headings(np.zeros((2, 2)))[0] == pytest.approx(np.pi / 2)  # never moved: north up
+
+
+# Windows of 8 + 12 steps in each fold's test files: the sizes the literature's test sets have.
+TEST_WINDOWS = {"eth": 364, "hotel": 1197, "univ": 24334, "zara1": 2356, "zara2": 5910}
+
+
+@pytest.mark.parametrize("fold", sorted(ethucy.FOLDS))
+def test_each_fold_has_the_standard_number_of_test_windows(fold):
+    windows = 0
+    for _, path in ethucy.fold_files(RAW, fold)["test"]:
+        tracks = ethucy.with_velocities(ethucy.read_sequence(path)).groupby(["agent", "segment"]).size()
+        windows += int((tracks - (ethucy.HISTORY + ethucy.HORIZON - 1)).clip(lower=0).sum())
+    assert windows == TEST_WINDOWS[fold]
+
+
+def test_raw_dims_outside_the_feature_are_refused(converted):
+    _, config, _ = converted
+    bad = {**config, "modalities": {**config["modalities"]}}
+    bad["modalities"]["neighbours"] = {**config["modalities"]["neighbours"], "raw_dims": [4, 40]}
+    with pytest.raises(
+        ValueError, match=r"modalities\.neighbours\.raw_dims` \[4, 40\] must index its 40 dims"
+    ):
+        WindowDataset(DataConfig.from_dict(bad), num_workers=0)
