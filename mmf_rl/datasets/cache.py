@@ -178,7 +178,7 @@ def _video_jobs(
             if path in absent:
                 continue
             offset = source.video_from_timestamp(episode.index, m.feature)
-            stamps = columns["timestamp"][episode.start : episode.stop].astype(np.float64) + offset
+            stamps = _episode_times(source, columns, episode) + offset
             jobs.append(
                 VideoJob(
                     modality=name,
@@ -193,6 +193,13 @@ def _video_jobs(
                 )
             )
     return jobs
+
+
+def _episode_times(source: LeRobotSource, columns: dict, episode) -> np.ndarray:
+    """The times (from the episode's start in its video) of the video frames an episode's rows read."""
+    if source.config.video_sync == "frame_index":
+        return np.arange(episode.stop - episode.start, dtype=np.float64) / source.meta.fps
+    return columns["timestamp"][episode.start : episode.stop].astype(np.float64)
 
 
 def _job_key(job: VideoJob) -> str:

@@ -50,6 +50,12 @@ DEFAULT_TEMPLATES = {
 # than 2^28 values (16k x 16k RGB), a vector feature of more than 2^16 dims.
 MAX_FRAME_VALUES = 2**28
 MAX_VECTOR_WIDTH = 2**16
+# What a damaged or unreadable camera file raises while decoding: torchcodec's and torchvision's
+# decoders (RuntimeError from FFmpeg or libpng/libjpeg, ValueError for a file without a video
+# stream, IndexError for a frame past the end), lerobot's FrameTimestampError (a ValueError) and
+# OSError for a missing or unreadable file. Anything else (a TypeError from an API change) is a
+# bug and propagates instead of being cached as "camera absent".
+DECODE_ERRORS = (RuntimeError, ValueError, IndexError, OSError)
 
 
 @dataclass(frozen=True)
@@ -754,7 +760,7 @@ def decode_images(entries: list, channels: int, root: Path) -> tuple[list, list[
             image = decode_image(torch.frombuffer(bytearray(data), dtype=torch.uint8), mode=mode)
             frames.append(to_dtype(image, torch.float32, scale=True))  # 8- or 16-bit (depth) PNGs alike
             errors.append(None)
-        except Exception as error:  # noqa: BLE001 - an unreadable frame means "camera absent" there
+        except DECODE_ERRORS as error:  # an unreadable frame means "camera absent" there
             frames.append(None)
             errors.append(f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}")
     return frames, errors
@@ -811,6 +817,6 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
             )  # float32 [n, 3, h, w] in [0, 1]
             start = job.row_start + offset
             destination[start : start + len(stamps)] = to_cache_frames(frames, job.image_size, job.channels)
-    except Exception as error:  # noqa: BLE001 - any decoder failure means "camera absent", reported by file
+    except DECODE_ERRORS as error:  # an undecodable video means "camera absent", reported by file
         return job, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}", 0
     return job, short, decoded

@@ -11,7 +11,7 @@ from safetensors.torch import load_file, save_file
 
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.splits import Normalizer
-from mmf_rl.datasets.synthetic import FORCE_FEATURE, POSE_FEATURE, STATE_FEATURE
+from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
 from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, obs_key, present_key, validate_batch
 from tests.datasets.conftest import (
@@ -72,6 +72,19 @@ def test_so101_required_camera_is_a_clear_error(tmp_path):
     config.modalities["front"].required = True
     with pytest.raises(
         FileNotFoundError, match=r"required modality.*'front'.*observation\.images\.front.*file-000\.mp4"
+    ):
+        WindowDataset(config)
+
+
+@needs_so101
+def test_so101_camera_absent_on_every_frame_is_an_error_unless_accepted(tmp_path):
+    config = so101_config(tmp_path)
+    config.modalities["top"].allow_absent = False
+    with pytest.raises(
+        ValueError,
+        match=r"modality 'top' \(observation\.images\.top\) is absent on 100\.0% of the 1492 frames.*"
+        r"video file\(s\) missing.*file-000\.mp4.*Restore the video files, or accept it with "
+        r"data\.modalities\.top\.allow_absent=true",
     ):
         WindowDataset(config)
 
@@ -272,13 +285,23 @@ def test_presence_masks_follow_nan_spans_and_validity(synthetic_root, tmp_path):
 def test_missing_and_undecodable_videos_mark_camera_absent(synthetic_copy, tmp_path):
     video = next((synthetic_copy / "videos").rglob("*.mp4"))
     video.write_bytes(b"not an mp4 file")
+    # The one video holds every episode: the camera is lost on every frame, an error unless accepted.
+    with pytest.raises(
+        ValueError, match=rf"'image'.*absent on 100\.0%.*undecodable.*{video.name}.*allow_absent=true"
+    ):
+        WindowDataset(synthetic_config(synthetic_copy, tmp_path / "a"))
+    accepted = {
+        "image": {"feature": IMAGE_FEATURE, "allow_absent": True},
+        "state": STATE_FEATURE,
+        "force": FORCE_FEATURE,
+    }
     with pytest.warns(UserWarning, match=rf"{video.name} \(undecodable"):
-        dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "a"))
+        dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "a", modalities=accepted))
     assert not dataset.presence["image"].any() and dataset.presence["state"].all()
 
     video.unlink()  # declared in meta/info.json, missing on disk
     with pytest.warns(UserWarning, match=rf"{video.name} \(missing\)"):
-        dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "b"))
+        dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "b", modalities=accepted))
     assert not dataset.presence["image"].any()
     validate_batch(all_windows(dataset), dataset.specs, 4, 3, 2)
     required = synthetic_config(synthetic_copy, tmp_path / "b")
