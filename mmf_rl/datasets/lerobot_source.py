@@ -820,3 +820,23 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
     except DECODE_ERRORS as error:  # an undecodable video means "camera absent", reported by file
         return job, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}", 0
     return job, short, decoded
+
+
+def probe_video(video_path: str, timestamps: list[float], tolerance_s: float) -> tuple[str | None, float]:
+    """Decode ``timestamps`` of a video as a cache build would (lerobot's decoder, ``tolerance_s``).
+
+    Returns the decode error (``None`` if every frame decoded) and the largest gap between a
+    queried time and the frame lerobot picks for it: the ``tolerance_s`` those times would need.
+    """
+    from lerobot.datasets.video_utils import VideoDecoderCache, decode_video_frames_torchcodec
+
+    decoders, gap = VideoDecoderCache(), float("nan")
+    try:
+        fps = decoders.get_decoder(video_path).metadata.average_fps
+        gap = float(np.abs(np.asarray(timestamps) - np.round(np.asarray(timestamps) * fps) / fps).max())
+        decode_video_frames_torchcodec(video_path, timestamps, tolerance_s, decoder_cache=decoders)
+    except DECODE_ERRORS as error:
+        return f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}", gap
+    finally:
+        decoders.clear()
+    return None, gap

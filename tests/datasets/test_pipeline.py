@@ -8,6 +8,7 @@ import pandas as pd
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
+from tensordict import TensorDict
 
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.splits import Normalizer
@@ -462,3 +463,36 @@ def test_vector_kind_and_required_vector_modality(synthetic_root, tmp_path):
     assert absent > 0 and dataset.report["skipped"]["windows_without_required_modality"] == absent
     in_splits = torch.cat(list(dataset.split_windows.values()))
     assert dataset.presence["force"][in_splits].all() and len(in_splits) == len(dataset) - absent
+
+
+def test_drifting_timestamps_lose_the_camera_with_an_error_unless_synced_by_frame_index(
+    drifting_g1_root, g1_root, tmp_path
+):
+    """A real camera whose rows carry wall-clock stamps: decoding at them loses it on every frame, an
+    error naming the sync option; synced by frame index it decodes exactly the original's frames."""
+
+    def g1_config(root, **overrides):
+        return DataConfig.from_dict(
+            {
+                "root": str(root),
+                "cache_dir": str(tmp_path),
+                "history": 5,
+                "horizon": 5,
+                "image_size": [16, 16],
+                "modalities": {"cam": "observation.images.cam_high", "state": "observation.state"},
+                "target": {"feature": "observation.state", "relative": True},
+                **overrides,
+            }
+        )
+
+    with pytest.raises(
+        ValueError,
+        match=r"modality 'cam' \(observation\.images\.cam_high\) is absent on 100\.0% of the 2316 frames.*"
+        r"FrameTimestampError.*mmf-rl inspect.*data\.video_sync=frame_index",
+    ):
+        WindowDataset(g1_config(drifting_g1_root))
+    synced = WindowDataset(g1_config(drifting_g1_root, video_sync="frame_index"))
+    assert synced.presence["cam"].all() and not synced.report["undecodable_files"]
+    original = WindowDataset(g1_config(g1_root))
+    frames = [TensorDict.load_memmap(d.cache_path / "frames") for d in (synced, original)]
+    assert torch.equal(*(f.get(obs_key("cam")).as_subclass(torch.Tensor) for f in frames))
