@@ -227,7 +227,7 @@ def suggested_data_config(report: dict, repo_id: str = "local/dataset") -> dict:
     for feature in report["cameras"] + report["vectors"]:
         name = _modality_name(feature, taken)
         taken.add(name)
-        absent = report["sensors"][feature]["outages"]["fraction"] > MAX_ABSENT_FRACTION
+        absent = _mostly_absent(report["sensors"][feature])
         modalities[name] = {"feature": feature, "allow_absent": True} if absent else feature
     target = choose_target(report)
     ratio = report["sensors"][target]["motion_ratio"]
@@ -257,6 +257,14 @@ def suggested_data_config(report: dict, repo_id: str = "local/dataset") -> dict:
         config["image_size"] = _image_size(first["shape"], first["names"])
     # Every key written out: a user's file is the whole data config, so `data.KEY=...` overrides any key.
     return DataConfig.from_dict(config).to_dict()
+
+
+def _mostly_absent(sensor: dict) -> bool:
+    """A sensor absent on more than half of the frames, or a camera whose sampled frames decode
+    neither at the rows' timestamps nor by frame index (a damaged video): training loses it."""
+    sync = sensor.get("sync")
+    undecodable = sync is not None and sync["timestamp_error"] and sync["frame_index_error"]
+    return sensor["outages"]["fraction"] > MAX_ABSENT_FRACTION or bool(undecodable)
 
 
 def choose_target(report: dict) -> str:
@@ -312,6 +320,14 @@ def config_comments(report: dict, config: dict) -> list[str]:
     for name, m in config["modalities"].items():
         if m["allow_absent"]:
             sensor = report["sensors"][m["feature"]]
+            sync = sensor.get("sync")
+            if sync is not None and sync["timestamp_error"] and sync["frame_index_error"]:
+                lines.append(
+                    f"{name}: allow_absent: sampled frames of {m['feature']} decode neither at the rows' "
+                    f"timestamps nor by frame index ({sync['frame_index_error'][:120]}); accepted absent, "
+                    "restore or re-encode its videos to use it."
+                )
+                continue
             why = (
                 "its video files are missing"
                 if sensor.get("video_files_missing")

@@ -211,3 +211,20 @@ def test_relative_follows_the_motion_ratio():
     noise = np.random.default_rng(1).normal(size=(400, 2))  # noise around a level: absolute
     assert _motion_ratio(smooth, episode) < 0.5 and _motion_ratio(noise, episode) > 1.5
     assert _motion_ratio(np.ones((400, 2)), episode) is None
+
+
+def test_a_camera_that_decodes_neither_way_is_accepted_absent_with_the_error(synthetic_copy, tmp_path):
+    video = next((synthetic_copy / "videos").rglob("*.mp4"))
+    video.write_bytes(b"not an mp4 file")
+    report = inspect_dataset(synthetic_copy)
+    sync = report["sensors"][IMAGE_FEATURE]["sync"]
+    assert sync["timestamp_error"].startswith("RuntimeError") and sync["frame_index_error"].startswith(
+        "RuntimeError"
+    )
+    config = suggested_data_config(report)
+    assert config["video_sync"] == "timestamp" and config["modalities"]["front"]["allow_absent"]
+    assert any("decode neither" in c and "RuntimeError" in c for c in config_comments(report, config))
+    # As written, the config trains (the camera absent, with the decoder's warning).
+    config = DataConfig.from_dict({**config, "history": 4, "horizon": 3, "cache_dir": str(tmp_path)})
+    with pytest.warns(UserWarning, match=rf"{video.name} \(undecodable"):
+        assert not WindowDataset(config).presence["front"].any()
