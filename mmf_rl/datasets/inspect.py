@@ -5,14 +5,17 @@
     mmf-rl train data=mine.yaml run_dir=runs/mine
 
 The report lists every feature (dtype, shape, names), fps, episodes and frames; for each camera,
-which of its video files exist; for each numeric vector, its NaN/Inf spans; and for every sensor
-that could be a modality, its outages: the fraction of frames it is absent (non-finite values, a
-validity flag saying so, a missing video file) and the lengths of those bursts. The suggested
-config maps cameras and vectors to modalities, forecasts ``observation.state`` (else the first
-observation vector) and, when a sensor has outages, replays them in training
-(``missing: {m: {fraction, mean_burst}}``, see ``mmf_rl.datasets.config.OutageConfig``).
-Video files are checked for existence only, not decoded: an undecodable one shows up when the
-window cache is built.
+which of its video files exist, how far the rows' ``timestamp`` drifts from ``frame_index / fps``,
+and whether a sample of its frames decodes at those timestamps (as the window cache would, at the
+default ``tolerance_s``) and by frame index; for each numeric vector, its NaN/Inf spans and how far
+it moves over the suggested horizon; and for every sensor that could be a modality, its outages:
+the fraction of frames it is absent (non-finite values, a validity flag saying so, a missing video
+file) and the lengths of those bursts. The suggested config maps cameras and vectors to
+modalities, forecasts the target :func:`choose_target` picks (``relative`` when it moves little
+over the horizon against its spread), syncs video by frame index when only that decodes, accepts
+the cameras it finds absent on most frames (``allow_absent``) and, when a sensor has outages,
+replays them in training (``missing: {m: {fraction, mean_burst}}``, see
+``mmf_rl.datasets.config.OutageConfig``); comments in the written file say why.
 """
 
 from __future__ import annotations
