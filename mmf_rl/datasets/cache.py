@@ -304,7 +304,9 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
     """Build the cache's files in ``directory``; continue the build a killed process left there."""
     columns = source.read_columns()
     n = len(columns["index"])
-    unordered = source.drop_episodes_with_unordered_timestamps(columns)
+    # Synced by frame index, the (wall-clock) timestamps match no video frame: their order does not matter.
+    by_index = source.config.video_sync == "frame_index"
+    unordered = [] if by_index else source.drop_episodes_with_unordered_timestamps(columns)
     per_frame = _frame_columns(source, columns)
     missing = source.missing_videos()
     jobs = _video_jobs(source, columns, directory / "frames", missing)
