@@ -151,7 +151,8 @@ class WindowDataset:
                 return cause, (
                     "The dataset's `timestamp` column does not match its video frames (`mmf-rl inspect "
                     f"{source.root}` reports the drift from frame_index/fps): set data.video_sync=frame_index "
-                    "to decode frame k of an episode at k/fps, or raise data.tolerance_s"
+                    "to decode frame k of an episode at k/fps (a larger data.tolerance_s would decode, but "
+                    "pair rows with frames as far apart as the drift)"
                 )
             return cause, "Restore or re-encode the video files"
         if missing:
