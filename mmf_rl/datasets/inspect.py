@@ -112,20 +112,9 @@ def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> 
         present = np.ones(n, dtype=bool)
         entry: dict = {"validity_feature": validity[feature]}
         if feature in vectors:
-            finite = np.isfinite(np.asarray(columns[feature], dtype=np.float64).reshape(n, -1)).all(1)
-            spans = _runs(~finite, episode)
-            entry["nonfinite_frames"] = int((~finite).sum())
-            entry["nonfinite_spans"] = [
-                {
-                    "episode": int(episode[a]),
-                    "frames": [a - _first(episodes, episode[a]), b - _first(episodes, episode[a])],
-                }
-                for a, b in spans
-            ]
-            present &= finite
-            entry["motion_ratio"] = _motion_ratio(
-                np.asarray(columns[feature], dtype=np.float64).reshape(n, -1), episode
-            )
+            values = np.asarray(columns[feature], dtype=np.float64).reshape(n, -1)
+            entry.update(_vector_entry(values, episode, episodes))
+            present &= np.isfinite(values).all(1)
         elif features[feature]["dtype"] == "video":
             missing = []
             for index, start, stop in episodes:
@@ -157,6 +146,22 @@ def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> 
         "vectors": vectors,
         "validity_features": sorted(flags),
         "sensors": sensors,
+    }
+
+
+def _vector_entry(values: np.ndarray, episode: np.ndarray, episodes: list[tuple[int, int, int]]) -> dict:
+    """A vector's NaN/Inf frames and spans (frames counted from each episode's start), its motion ratio."""
+    finite = np.isfinite(values).all(1)
+    return {
+        "nonfinite_frames": int((~finite).sum()),
+        "nonfinite_spans": [
+            {
+                "episode": int(episode[a]),
+                "frames": [a - _first(episodes, episode[a]), b - _first(episodes, episode[a])],
+            }
+            for a, b in _runs(~finite, episode)
+        ],
+        "motion_ratio": _motion_ratio(values, episode),
     }
 
 
@@ -391,21 +396,27 @@ def format_report(report: dict) -> str:
             lines += [f"      missing: {p}" for p in missing[:SPANS_SHOWN]]
             lines += _sync_lines(s.get("sync"))
         else:
-            spans = s["nonfinite_spans"]
-            found = f"{s['nonfinite_frames']} frames in {len(spans)} spans" if spans else "none"
-            lines.append(f"    NaN/Inf: {found}")
-            lines += [
-                f"      episode {sp['episode']}, frames {sp['frames'][0]}..{sp['frames'][1]}"
-                for sp in spans[:SPANS_SHOWN]
-            ]
-            if len(spans) > SPANS_SHOWN:
-                lines.append(f"      ... {len(spans) - SPANS_SHOWN} more")
-            if s["motion_ratio"] is not None:
-                lines.append(
-                    f"    motion over {SUGGESTED_HORIZON} frames: mean squared change / variance = "
-                    f"{s['motion_ratio']:.3g}"
-                )
+            lines += _vector_lines(s)
     return "\n".join(lines)
+
+
+def _vector_lines(sensor: dict) -> list[str]:
+    """The report's lines on a vector: its NaN/Inf spans and how far it moves over the horizon."""
+    spans = sensor["nonfinite_spans"]
+    found = f"{sensor['nonfinite_frames']} frames in {len(spans)} spans" if spans else "none"
+    lines = [f"    NaN/Inf: {found}"]
+    lines += [
+        f"      episode {sp['episode']}, frames {sp['frames'][0]}..{sp['frames'][1]}"
+        for sp in spans[:SPANS_SHOWN]
+    ]
+    if len(spans) > SPANS_SHOWN:
+        lines.append(f"      ... {len(spans) - SPANS_SHOWN} more")
+    if sensor["motion_ratio"] is not None:
+        lines.append(
+            f"    motion over {SUGGESTED_HORIZON} frames: mean squared change / variance = "
+            f"{sensor['motion_ratio']:.3g}"
+        )
+    return lines
 
 
 def _sync_lines(sync: dict | None) -> list[str]:
