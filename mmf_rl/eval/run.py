@@ -126,6 +126,12 @@ def data_config_for_eval(saved: dict, data_root, source: TrainedModelSource) -> 
             f"exist on this machine (from {Path.cwd()}); pass data_root=/path/to/the/dataset (a copy with "
             f"the same features: {', '.join(sorted(data.get('modalities', {})))})"
         )
+    # Losing a modality on most frames stops training, not scoring: an evaluation scores what the data
+    # holds (the missing-file warning and the table's `available` column show what was lost).
+    data["modalities"] = {
+        name: {**({"feature": m} if isinstance(m, str) else dict(m)), "allow_absent": True}
+        for name, m in data.get("modalities", {}).items()
+    }
     return DataConfig.from_dict(data)
 
 

@@ -11,6 +11,7 @@ from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.report import constant_velocity_warning
+from mmf_rl.eval.run import data_config_for_eval
 from mmf_rl.models import load_trained_model
 from tests.conftest import push_train_overrides
 
@@ -269,3 +270,17 @@ def test_a_model_in_the_hugging_face_cache_needs_an_out_dir_elsewhere(
         f"mmf-rl eval: error: {snapshot} is in the Hugging Face cache ({cache}); pass out_dir="
     )
     assert not (snapshot / "eval").exists()
+
+
+def test_eval_scores_data_that_lost_a_modality_on_most_frames(tmp_path):
+    """The more-than-half-absent error guards training; an evaluation scores what the data holds."""
+    saved = {
+        "root": str(tmp_path),
+        "modalities": {"cam": "observation.images.cam", "state": {"feature": "observation.state"}},
+        "target": {"feature": "observation.state"},
+    }
+    config = data_config_for_eval(saved, None, source=None)
+    assert all(m.allow_absent for m in config.modalities.values())
+    assert saved["modalities"]["state"] == {"feature": "observation.state"}, (
+        "the saved config is left as it was"
+    )
