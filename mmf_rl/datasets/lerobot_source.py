@@ -762,7 +762,7 @@ def decode_images(entries: list, channels: int, root: Path) -> tuple[list, list[
             errors.append(None)
         except DECODE_ERRORS as error:  # an unreadable frame means "camera absent" there
             frames.append(None)
-            errors.append(f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}")
+            errors.append(_error_text(error))
     return frames, errors
 
 
@@ -790,36 +790,52 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
 
     A video shorter than its parquet rows (the rows' timestamps run past its last frame) gives its
     frames up to its end; the error names both lengths, and the rows past the end stay undecoded.
+    Only decode errors (``DECODE_ERRORS``) are caught: writing the frames is not decoding.
     """
     from lerobot.datasets.video_utils import decode_video_frames_torchcodec
     from tensordict import TensorDict
 
     destination = TensorDict.load_memmap(job.frames_dir).get(obs_key(job.modality))
     chunk = max(1, DECODE_CHUNK_BYTES // (4 * job.source_frame_values))
-    decoded, short = len(job.timestamps), None
     try:
-        metadata = _decoders().get_decoder(job.video_path).metadata
-        if metadata.num_frames is not None and metadata.average_fps:
-            # The frame index lerobot's decoder looks up for each timestamp.
-            indices = np.round(np.asarray(job.timestamps) * metadata.average_fps).astype(np.int64)
-            past_end = np.flatnonzero(indices >= metadata.num_frames)
-            if len(past_end):
-                decoded = int(past_end[0])
-                short = (
-                    f"the video has {metadata.num_frames} frames ({metadata.num_frames / metadata.average_fps:.2f} "
-                    f"s), but the parquet rows of this episode need frames up to {job.timestamps[-1]:.2f} s: "
-                    f"its last {len(job.timestamps) - decoded} rows have no frame"
-                )
-        for offset in range(0, decoded, chunk):
-            stamps = list(job.timestamps[offset : min(offset + chunk, decoded)])
+        decoded, short = _frames_in_video(job)
+    except DECODE_ERRORS as error:  # an unreadable video means "camera absent", reported by file
+        return job, _error_text(error), 0
+    for offset in range(0, decoded, chunk):
+        stamps = list(job.timestamps[offset : min(offset + chunk, decoded)])
+        try:
             frames = decode_video_frames_torchcodec(
                 job.video_path, stamps, job.tolerance_s, decoder_cache=_decoders()
             )  # float32 [n, 3, h, w] in [0, 1]
-            start = job.row_start + offset
-            destination[start : start + len(stamps)] = to_cache_frames(frames, job.image_size, job.channels)
-    except DECODE_ERRORS as error:  # an undecodable video means "camera absent", reported by file
-        return job, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}", 0
+        except DECODE_ERRORS as error:
+            return job, _error_text(error), 0
+        start = job.row_start + offset
+        destination[start : start + len(stamps)] = to_cache_frames(frames, job.image_size, job.channels)
     return job, short, decoded
+
+
+def _frames_in_video(job: VideoJob) -> tuple[int, str | None]:
+    """How many of the job's leading timestamps fall inside the video, and the error text for the
+    rows past its end (``None`` when all are inside)."""
+    metadata = _decoders().get_decoder(job.video_path).metadata
+    if metadata.num_frames is None or not metadata.average_fps:
+        return len(job.timestamps), None
+    # The frame index lerobot's decoder looks up for each timestamp.
+    indices = np.round(np.asarray(job.timestamps) * metadata.average_fps).astype(np.int64)
+    past_end = np.flatnonzero(indices >= metadata.num_frames)
+    if not len(past_end):
+        return len(job.timestamps), None
+    decoded = int(past_end[0])
+    return decoded, (
+        f"the video has {metadata.num_frames} frames ({metadata.num_frames / metadata.average_fps:.2f} "
+        f"s), but the parquet rows of this episode need frames up to {job.timestamps[-1]:.2f} s: "
+        f"its last {len(job.timestamps) - decoded} rows have no frame"
+    )
+
+
+def _error_text(error: BaseException) -> str:
+    """``Type: first line of the message``: what the cache report records for an undecodable file."""
+    return f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
 
 
 def probe_video(video_path: str, timestamps: list[float], tolerance_s: float) -> tuple[str | None, float]:
@@ -836,7 +852,7 @@ def probe_video(video_path: str, timestamps: list[float], tolerance_s: float) ->
         gap = float(np.abs(np.asarray(timestamps) - np.round(np.asarray(timestamps) * fps) / fps).max())
         decode_video_frames_torchcodec(video_path, timestamps, tolerance_s, decoder_cache=decoders)
     except DECODE_ERRORS as error:
-        return f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}", gap
+        return _error_text(error), gap
     finally:
         decoders.clear()
     return None, gap

@@ -154,7 +154,7 @@ class WindowDataset:
                     "to decode frame k of an episode at k/fps (a larger data.tolerance_s would decode, but "
                     "pair rows with frames as far apart as the drift)"
                 )
-            return cause, "Restore or re-encode the video files"
+            return cause, "Restore or re-encode the camera's files"
         if missing:
             return f"{len(missing)} video file(s) missing, e.g. {missing[0]}", "Restore the video files"
         return (

@@ -12,7 +12,7 @@ from tensordict import TensorDict
 
 from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.configuration import compose_config
-from mmf_rl.datasets import WindowDataset
+from mmf_rl.datasets import WindowDataset, lerobot_source
 from mmf_rl.keys import obs_key, present_key
 from mmf_rl.trainers.run import train
 from tests.datasets.conftest import (
@@ -138,3 +138,13 @@ def test_a_decoder_bug_propagates_instead_of_marking_the_camera_absent(
     with pytest.raises(TypeError, match="unexpected keyword argument"):
         WindowDataset(config, num_workers=1)
     assert not list(tmp_path.glob("*/cache.json")), "no cache records the camera as absent"
+
+    # Storing decoded frames is not decoding: a RuntimeError there is a bug too, not an absent camera.
+    monkeypatch.undo()
+
+    def bad_store(*args, **kwargs):
+        raise RuntimeError("The size of tensor a (16) must match the size of tensor b (32)")
+
+    monkeypatch.setattr(lerobot_source, "to_cache_frames", bad_store)
+    with pytest.raises(RuntimeError, match="must match the size"):
+        WindowDataset(config, num_workers=1)
