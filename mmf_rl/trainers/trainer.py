@@ -166,7 +166,7 @@ class _LossStep(torch.nn.Module):
     is registered next to the loss so that every weight it checkpoints is reduced.
 
     With ``dtype`` (bf16/fp16) the forward runs under ``torch.autocast``; the trainer casts the
-    model's outputs back to fp32 (:func:`_outputs_to_fp32`), so the Gaussian NLL and KL terms,
+    model's outputs back to fp32 (:func:`outputs_to_fp32`), so the Gaussian NLL and KL terms,
     elementwise ops that autocast leaves in their inputs' dtype, are computed in fp32.
     """
 
@@ -187,7 +187,7 @@ class _LossStep(torch.nn.Module):
         return sum(v for k, v in losses.items() if k.startswith("loss_")), losses.detach()
 
 
-def _outputs_to_fp32(module: torch.nn.Module, args, output):
+def outputs_to_fp32(module: torch.nn.Module, args, output):
     """Forward hook: the model's autocast (bf16/fp16) outputs (a tensor or TensorDict) as fp32."""
 
     def cast(t: torch.Tensor) -> torch.Tensor:
@@ -196,7 +196,7 @@ def _outputs_to_fp32(module: torch.nn.Module, args, output):
     return cast(output) if isinstance(output, torch.Tensor) else output.apply(cast)
 
 
-def _check_precision(precision: str, device: torch.device) -> None:
+def check_precision(precision: str, device: torch.device) -> None:
     if precision == "fp16" and device.type != "cuda":
         raise ValueError(
             f"trainer.precision=fp16 needs a CUDA device (loss scaling with torch.amp.GradScaler), "
@@ -256,7 +256,7 @@ class Trainer:
         self.rank, self.world_size = rank, world_size
         self.device = next(model.parameters()).device
         self.prefetch_in_thread = prefetch_in_thread
-        _check_precision(config.precision, self.device)
+        check_precision(config.precision, self.device)
         self.optimizer = make_optimizer(model.parameters(), config)
         self.scheduler = make_scheduler(self.optimizer, config)
         self.ops: dict[str, list[Callable]] = {name: [] for name in OPS}
@@ -522,7 +522,7 @@ class Trainer:
         self.loss_module.train()
         batches = self._batch_stream()
         # Outside autocast (evaluation, fp32) the hook leaves the outputs as they are.
-        fp32_outputs = self.model.register_forward_hook(_outputs_to_fp32) if cfg.precision != "fp32" else None
+        fp32_outputs = self.model.register_forward_hook(outputs_to_fp32) if cfg.precision != "fp32" else None
         window: dict[str, list[float]] = defaultdict(list)
         samples, started = 0, time.perf_counter()
         bar = tqdm(

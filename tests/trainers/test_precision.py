@@ -7,7 +7,7 @@ import torch
 from tensordict import TensorDict
 
 from mmf_rl import keys
-from mmf_rl.trainers.trainer import Trainer, TrainerConfig, _outputs_to_fp32
+from mmf_rl.trainers.trainer import Trainer, TrainerConfig, outputs_to_fp32
 from tests.conftest import InMemoryLoader
 from tests.trainers.test_trainer import build, combined_loss, small_forecaster, trainer_config
 
@@ -57,7 +57,7 @@ def test_without_the_cast_the_losses_would_see_bf16_forecasts(synthetic_task):
     model = small_forecaster()
     with torch.autocast("cpu", dtype=torch.bfloat16):
         raw = model(synthetic_task["train"][:32].clone())
-        handle = model.register_forward_hook(_outputs_to_fp32)
+        handle = model.register_forward_hook(outputs_to_fp32)
         cast = model(synthetic_task["train"][:32].clone())
     handle.remove()
     assert raw[keys.FORECAST_LOC].dtype == torch.bfloat16
