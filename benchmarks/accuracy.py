@@ -138,6 +138,12 @@ GRU_VECTORS = (
     "data.modalities.force={feature:observation.force,encoder:gru}",
     "data.modalities.proprio={feature:observation.state,encoder:gru}",
 )
+# One token per step for every modality (the image's per frame).
+STEP_TOKENS = (
+    "data.modalities.image.encoder=conv_frames",
+    "data.modalities.force.encoder=steps",
+    "data.modalities.proprio.encoder=steps",
+)
 ENTRIES = [
     Entry("paper", "paper", ("model=forecaster",)),
     # Issue #13's options of the paper model. The defaults (standard prior, MLP window encoders for the
@@ -158,6 +164,20 @@ ENTRIES = [
     ),
     Entry("paper GRU vector encoders (issue #6)", "variant", ("model=forecaster", *GRU_VECTORS)),
     Entry("paper, drop 1..M-1", "variant", ("model=forecaster", "loss.max_dropped=null")),
+    # The fusion on every test forecast: the decoder reads the multimodal encoder's mixed tokens, or
+    # decodes at q(z|X)'s mean (eqs. 10 and 15); and tokens per step instead of one per modality.
+    Entry("paper, decoder reads mixed tokens", "variant", ("model=forecaster", "model.decoder_input=mixed")),
+    Entry("paper eval_latent=posterior", "variant", ("model=forecaster", "model.eval_latent=posterior")),
+    Entry(
+        "paper, mixed tokens, per-frame image tokens",
+        "variant",
+        ("model=forecaster", "model.decoder_input=mixed", "data.modalities.image.encoder=conv_frames"),
+    ),
+    Entry(
+        "paper, mixed tokens, per-step tokens",
+        "variant",
+        ("model=forecaster", "model.decoder_input=mixed", *STEP_TOKENS),
+    ),
     Entry("LF-LSTM", "zero-fill", ("model=lf_lstm",)),
     Entry("MVAE", "zero-fill", ("model=mvae",)),
     Entry("MulT", "zero-fill", ("model=mult",)),
@@ -180,6 +200,7 @@ ENTRIES = [
         for fusion in ("linear", "average", "sum", "cross_attention")
     ),
     Entry("paper w/o L_mis", "ablation", ("model=forecaster", "loss=no_mis")),
+    Entry("paper, L_mis teacher not detached", "ablation", ("model=forecaster", "loss.detach_teacher=false")),
     Entry(
         "paper, 50% image missing in training", "ablation", ("model=forecaster", "+data.missing.image=0.5")
     ),
@@ -690,6 +711,28 @@ def entry_coverage(entry: Entry, budget: Budget, out: Path) -> tuple[dict[str, f
     return {name: statistics.fmean(values) for name, values in per_subset.items()}, recalibrated
 
 
+def entry_kl(entry: Entry, budget: Budget, out: Path) -> float | None:
+    """The KL of the posterior to the prior in nats with every sensor, mean over seeds (``None`` for a
+    model without a latent): near zero, the latent has collapsed."""
+    values = []
+    for _, _, run_dir, _, subset in run_plan(entry, budget, out):
+        row = json.loads((run_dir / "eval" / "results.json").read_text())["subsets"].get("all", {})
+        if subset in ("", "all") and row.get("kl") is not None:
+            values.append(row["kl"])
+    return statistics.fmean(values) if values else None
+
+
+def kl_section(kl: dict[str, float | None]) -> str:
+    rows = [f"| {label} | {value:.2f} |" for label, value in kl.items() if value is not None]
+    if not rows:
+        return ""
+    return (
+        "## Latent: KL(q(z|X[,y]) || p(z|X)) on test, every sensor (nats, mean over seeds)\n\n"
+        "What the latent carries beyond its prior; near zero it has collapsed and a forecast does not "
+        "depend on it.\n\n| entry | KL |\n|---|---|\n" + "\n".join(rows) + "\n\n"
+    )
+
+
 def coverage_table(coverage: dict[str, tuple[dict[str, float], bool]], subsets: Sequence[str]) -> str:
     """Entries as rows: the 90% coverage per subset, how many subsets are in ``COVERAGE_TARGET``, and
     whether the scale was recalibrated."""
@@ -874,6 +917,7 @@ def markdown(
     measured: dict,
     comparisons: dict,
     coverage: dict[str, tuple[dict[str, float], bool]] | None = None,
+    kl: dict[str, float | None] | None = None,
 ) -> str:
     seeds = ", ".join(map(str, budget.seeds))
     recorded = (
@@ -948,6 +992,7 @@ def markdown(
             + coverage_table(coverage, table.subsets)
             + "\n\n"
         )
+    text += kl_section(kl or {})
     text += (
         "## Run time\n\n"
         f"Window cache built or opened once before the trainings in {info['cache_seconds']:.0f} s. "
@@ -1045,11 +1090,12 @@ def main(argv: list[str] | None = None) -> int:
     record_seconds = None if args.data.exists() else record_dataset(args.data, budget.episodes)
     cache_seconds = build_cache(budget, args)
     args.runs, args.reused = run_pending(entries, budget, args)  # the wall time covers the runs not reused
-    errors, runs, kinds, coverage = {}, {}, {}, {}
+    errors, runs, kinds, coverage, kl = {}, {}, {}, {}, {}
     for entry in entries:
         errors[entry.label], runs[entry.label] = entry_results(entry, budget, args.out)
         kinds[entry.label] = entry.kind
         coverage[entry.label] = entry_coverage(entry, budget, args.out)
+        kl[entry.label] = entry_kl(entry, budget, args.out)
     seconds = time.perf_counter() - start
 
     table, test_episodes = build_table(errors, kinds)
@@ -1076,7 +1122,7 @@ def main(argv: list[str] | None = None) -> int:
         "reused": args.reused,
         "constant_velocity_mse": cv,
     }
-    text = markdown(table, budget, mode, info, measured, comparisons, coverage) + f"{line}\n"
+    text = markdown(table, budget, mode, info, measured, comparisons, coverage, kl) + f"{line}\n"
     args.out.mkdir(parents=True, exist_ok=True)
     write_text(args.out / "results.md", text)
     write_json(
@@ -1095,6 +1141,7 @@ def main(argv: list[str] | None = None) -> int:
             "paired_differences": comparisons,
             "timing": measured,
             "coverage_90": {label: cells for label, (cells, _) in coverage.items()},
+            "kl": kl,
             "summary": summary,
         },
     )

@@ -96,6 +96,17 @@ ENTRIES = [
     bench.Entry(
         "paper GRU vector encoders (issue #6)", "variant", (*DATA, SENSOR_FEATURES_GRU, "model=forecaster")
     ),
+    bench.Entry(
+        "paper, mixed tokens, per-frame camera tokens",
+        "variant",
+        (
+            *DATA,
+            SENSOR_FEATURES,
+            "model=forecaster",
+            "model.decoder_input=mixed",
+            "data.modalities.cam_high.encoder=conv_frames",
+        ),
+    ),
     bench.Entry("LF-LSTM", "zero-fill", (*DATA, SENSOR_FEATURES, "model=lf_lstm")),
     bench.Entry("MulT", "zero-fill", (*DATA, SENSOR_FEATURES, "model=mult")),
     bench.Entry("MVAE", "zero-fill", (*DATA, SENSOR_FEATURES, "model=mvae")),

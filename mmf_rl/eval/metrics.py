@@ -15,6 +15,9 @@ Per window, then averaged over windows:
   (summed over ``T × D``).
 * ``coverage_50`` / ``coverage_90``: share of the ``T × D`` target values inside the central
   50% / 90% interval of the forecast's Gaussian: a calibrated scale gives 0.5 / 0.9.
+* ``kl`` (latent models): ``KL(q(z | X[, y]) || p(z | X))`` in nats, summed over ``d_z``: what the
+  latent carries beyond the prior; near zero, the latent has collapsed and the forecast does not
+  depend on it.
 * ``cv_*`` (``with_baseline``): the errors of a constant-velocity extrapolation of the target's
   own past (needs ``"target_past"``), a reference every model should beat.
 
@@ -34,7 +37,7 @@ from tensordict import TensorDictBase
 
 from mmf_rl import keys
 from mmf_rl.datasets.protocols import apply_presence_subset
-from mmf_rl.objectives.common import gaussian_nll
+from mmf_rl.objectives.common import gaussian_kl, gaussian_nll
 
 COVERAGE_LEVELS = {"coverage_50": 0.5, "coverage_90": 0.9}
 BASELINE_PREFIX = "cv_"
@@ -99,12 +102,32 @@ def window_metrics(
         "nll": gaussian_nll(target, loc, scale).flatten(1).sum(-1),
     }
     metrics |= {name: interval_coverage(target, loc, scale, level) for name, level in COVERAGE_LEVELS.items()}
+    kl = latent_kl(model, batch, out)
+    if kl is not None:
+        metrics["kl"] = kl
     if num_samples:
         samples = model.sample(inputs.clone(False), num_samples).get(keys.FORECAST_SAMPLES)
         metrics |= best_of_samples(samples, target, denormalize(samples), target_units)
     if with_baseline:
         metrics |= baseline_metrics(batch, denormalize)
     return {name: value.detach().float().cpu() for name, value in metrics.items()}
+
+
+def latent_kl(model, batch: TensorDictBase, out: TensorDictBase) -> torch.Tensor | None:
+    """``[B]`` KL of the posterior to the prior in nats, or ``None`` for a model without a latent.
+
+    ``out`` is the model's output without the target; a posterior that reads the target is
+    computed by a second pass with it (the forecast itself never sees the target)."""
+    if keys.PRIOR_LOC not in out.keys(include_nested=True):
+        return None
+    if keys.POSTERIOR_LOC not in out.keys(include_nested=True):
+        out = model(batch.clone(False))
+    return gaussian_kl(
+        out.get(keys.POSTERIOR_LOC),
+        out.get(keys.POSTERIOR_SCALE),
+        out.get(keys.PRIOR_LOC),
+        out.get(keys.PRIOR_SCALE),
+    ).sum(-1)
 
 
 def baseline_metrics(

@@ -25,6 +25,7 @@ COLUMNS = [
     ("nll", "NLL", "{:.3f}"),
     ("coverage_50", "cover 50%", "{:.2f}"),
     ("coverage_90", "cover 90%", "{:.2f}"),
+    ("kl", "KL (nats)", "{:.2f}"),
     ("degradation", "MSE vs all", "{:+.1%}"),
 ]
 

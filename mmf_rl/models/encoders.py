@@ -1,4 +1,9 @@
-"""Unimodal encoders ``E_m``: one modality's window -> one ``d``-vector per sample.
+"""Unimodal encoders ``E_m``: one modality's window -> ``d``-tokens per sample.
+
+Most encoders summarise the window in one token ``[N, d]``. A step-token encoder keeps the
+detail of every step: it sets ``num_tokens`` (``L``) and returns ``[N, L, d]`` with a learned step
+embedding, and the multimodal encoder attends over every present token (the fixed queries keep
+its output shape).
 
 Encoders are registered by name: a new one is a class (or builder) here, or in user code,
 plus one ``@register_encoder(name, kinds)``; a :class:`~mmf_rl.keys.ModalitySpec` then names it
@@ -181,6 +186,51 @@ class FlatMLPEncoder(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x.flatten(1))
+
+
+class StepTokens(nn.Module):
+    """One token per step of a vector window ``[N, H, d_in]`` -> ``[N, H, d]``: a per-step MLP plus a
+    learned step embedding (so attention can tell the steps apart, as MulT's tokens do)."""
+
+    def __init__(self, spec: ModalitySpec, history: int, d_model: int, hidden_dim: int | None = None):
+        super().__init__()
+        self.num_tokens = history
+        self.net = mlp(spec.shape[0], hidden_dim or 2 * d_model, d_model)
+        self.step_embedding = nn.Parameter(torch.randn(history, d_model) * 0.02)
+
+    def forward(self, seq: torch.Tensor) -> torch.Tensor:
+        return self.net(seq) + self.step_embedding
+
+
+@register_encoder("steps", kinds=("sequence",))
+def steps_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> StepTokens:
+    return StepTokens(spec, history, d_model, **kwargs)
+
+
+class FrameTokens(nn.Module):
+    """One token per frame of an image window ``uint8 [N, H, C, h, w]`` -> ``[N, H, d]``: the
+    ConvNet on each frame plus a learned step embedding (``H`` times the cost of ``conv``)."""
+
+    def __init__(self, spec: ModalitySpec, history: int, d_model: int, **kwargs):
+        super().__init__()
+        self.num_tokens = history
+        self.frame = ImageWindowEncoder(spec, 1, d_model, temporal="stack", **kwargs)
+        self.step_embedding = nn.Parameter(torch.randn(history, d_model) * 0.02)
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        n, steps = frames.shape[:2]
+        return self.frame(frames.flatten(0, 1).unsqueeze(1)).view(n, steps, -1) + self.step_embedding
+
+
+@register_encoder("conv_frames", kinds=("image",))
+def conv_frames_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> FrameTokens:
+    return FrameTokens(spec, history, d_model, **kwargs)
+
+
+def num_tokens(encoder: nn.Module) -> int:
+    """Tokens an encoder emits per sample: ``num_tokens`` if it declares one (``[N, L, d]``), else 1
+    (``[N, d]``)."""
+    return getattr(encoder, "num_tokens", 1)
 
 
 @register_encoder("mlp", kinds=("sequence", "vector"))

@@ -493,18 +493,20 @@ class _TracedForecaster:
                 self.everywhere = _trace(_ForecastFromWindows(self.model, names), (present, *observations))
             return self.everywhere(present, *observations)
         counts = present.sum(0).tolist()  # envs with each modality: one sync for all the branches below
-        zeros = None
         tokens = []
-        for spec, obs, count, column in zip(self.specs, observations, counts, present.unbind(1), strict=True):
+        for i, (spec, obs, count) in enumerate(zip(self.specs, observations, counts, strict=True)):
             if count == self.n:
-                token = self._encoder(spec.name, obs)(obs)
+                token = self.model.as_tokens(self._encoder(spec.name, obs)(obs))
             else:
-                if zeros is None:
-                    zeros = torch.zeros(self.n, self.model.config.d_model, device=present.device)
+                zeros = self.model.absent_tokens(i, self.n, present.device)
                 encoder = self.model.encoders[spec.name]
-                token = compute_on_rows(column, lambda rows, obs=obs, e=encoder: (e(obs[rows]),), (zeros,))[0]
+                token = compute_on_rows(
+                    present[:, i],
+                    lambda rows, obs=obs, e=encoder: (self.model.as_tokens(e(obs[rows])),),
+                    (zeros,),
+                )[0]
             tokens.append(token)
-        tokens = torch.stack(tokens, 1)
+        tokens = torch.cat(tokens, 1)
         everywhere = bool(valid.all())
         if not everywhere:
             # Rows without any sensor are decoded on their zero tokens as if all were present (an
@@ -544,8 +546,10 @@ class _ForecastFromWindows(nn.Module):
     def forward(
         self, present: torch.Tensor, *observations: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        encoders = self.model.encoders
-        tokens = torch.stack([encoders[m](obs) for m, obs in zip(self.names, observations, strict=True)], 1)
+        encoders, as_tokens = self.model.encoders, self.model.as_tokens
+        tokens = torch.cat(
+            [as_tokens(encoders[m](obs)) for m, obs in zip(self.names, observations, strict=True)], 1
+        )
         return self.model.forecast_from_tokens(tokens, present)
 
 

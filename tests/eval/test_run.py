@@ -110,7 +110,7 @@ def test_eval_scores_a_trained_checkpoint_with_another_eval_latent(learned_prior
     [
         (
             "eval_latent=median",
-            "ForecasterConfig.eval_latent must be one of ('mean', 'sample', 'predictive')",
+            "ForecasterConfig.eval_latent must be one of ('mean', 'sample', 'predictive', 'posterior')",
         ),
         ("predictive_samples=3", "ForecasterConfig.predictive_samples must be an even integer >= 2"),
     ],

@@ -740,7 +740,9 @@ def test_predictive_config_choices(small_config, small_model, batch):
     assert ForecasterConfig.from_dict(predictive.to_dict()) == predictive
     saved_before = {k: v for k, v in small_config.to_dict().items() if k != "predictive_samples"}
     assert ForecasterConfig.from_dict(saved_before).predictive_samples == 16  # old checkpoints' configs load
-    with pytest.raises(ValueError, match=r"eval_latent must be one of \('mean', 'sample', 'predictive'\)"):
+    with pytest.raises(
+        ValueError, match=r"eval_latent must be one of \('mean', 'sample', 'predictive', 'posterior'\)"
+    ):
         dataclasses.replace(small_config, eval_latent="median")
     for bad in (0, 1, 3, 2.0, "8"):
         with pytest.raises(

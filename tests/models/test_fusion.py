@@ -11,12 +11,19 @@ from mmf_rl.models import (
     ForecasterConfig,
     MultimodalForecaster,
     build_loss,
-    from_pretrained,
     load_trained_model,
     model_from_saved_config,
     saved_config,
 )
-from mmf_rl.models.fusion import AverageFusion, CrossAttentionFusion, LinearFusion, SumFusion, build_fusion
+from mmf_rl.models.fusion import (
+    FUSIONS,
+    AverageFusion,
+    CrossAttentionFusion,
+    FusionShape,
+    SumFusion,
+    build_fusion,
+    register_fusion,
+)
 from mmf_rl.objectives import LossConfig
 from tests.conftest import (
     HORIZON,
@@ -45,12 +52,35 @@ def with_presence(td, pattern):
     return td
 
 
+def shape(num_tokens: int = 3, role: str = "encoder") -> FusionShape:
+    return FusionShape(
+        num_modalities=3,
+        num_tokens=num_tokens,
+        d_model=8,
+        num_heads=2,
+        mlp_hidden=16,
+        num_layers=2,
+        role=role,
+    )
+
+
+ONE_TOKEN_EACH = torch.arange(3)
+
+
 @pytest.mark.parametrize("fusion", ABLATIONS)
-def test_fusion_replaces_only_the_multimodal_encoder(small_config, fusion):
+def test_fusion_swaps_the_aggregation_in_both_places(small_config, fusion):
     paper, ablation = make_model(small_config, "agnostic"), make_model(small_config, fusion)
-    assert type(ablation.fusion) is not type(paper.fusion)
-    assert type(ablation.decoder) is type(paper.decoder)
+    assert type(ablation.fusion) is type(ablation.decoder.fusion) is type(build_fusion(fusion, shape()))
+    assert paper.decoder.fusion is None  # the paper's own attention from P^D (eqs. 12-14)
+    assert not hasattr(ablation.decoder, "aggregate") and not hasattr(ablation.decoder, "refine")
     assert set(ablation.encoders) == set(paper.encoders)
+
+
+@pytest.mark.parametrize("fusion", ABLATIONS)
+def test_every_fusion_hands_the_heads_the_same_features(small_config, fusion):
+    paper, ablation = make_model(small_config, "agnostic"), make_model(small_config, fusion)
+    assert ablation.posterior_head[0].in_features == paper.posterior_head[0].in_features
+    assert ablation.decoder.head[0].in_features == paper.decoder.head[0].in_features
 
 
 @pytest.mark.parametrize("fusion", ABLATIONS)
@@ -79,17 +109,13 @@ def test_mixed_batch_equals_per_sample_results(small_config, mixed_batch, fusion
 def test_tokens_of_absent_modalities_change_nothing(fusion):
     """The fusion masks absent tokens itself, whatever the encode step left in them."""
     torch.manual_seed(0)
-    module = {
-        "linear": LinearFusion(3, 8),
-        "average": AverageFusion(),
-        "sum": SumFusion(8),
-        "cross_attention": CrossAttentionFusion(3, 8, 2, 16),
-    }[fusion]
+    module = build_fusion(fusion, shape())
     tokens = torch.randn(7, 3, 8)
     absent = ~torch.tensor([[n in p for n in NAMES] for p in presence_patterns(NAMES)])
     garbage = tokens.masked_fill(absent.unsqueeze(-1), 1e6)
     torch.testing.assert_close(
-        module(garbage, absent), module(tokens.masked_fill(absent.unsqueeze(-1), 0), absent)
+        module(garbage, absent, ONE_TOKEN_EACH),
+        module(tokens.masked_fill(absent.unsqueeze(-1), 0), absent, ONE_TOKEN_EACH),
     )
 
 
@@ -120,10 +146,12 @@ def test_value_under_absent_modality_changes_nothing(small_config, mixed_batch, 
 def test_average_and_sum_pool_the_present_tokens():
     tokens = torch.tensor([[[1.0, 2.0, 0.0], [3.0, 4.0, 2.0], [100.0, -50.0, 7.0]]])
     absent = torch.tensor([[False, False, True]])
-    torch.testing.assert_close(AverageFusion()(tokens, absent), torch.tensor([[[2.0, 3.0, 1.0]]]))
-    sum_fusion = SumFusion(3)
+    average = AverageFusion(shape())(tokens, absent, ONE_TOKEN_EACH)
+    torch.testing.assert_close(average, torch.tensor([[[2.0, 3.0, 1.0]]]).expand(1, 3, 3))
+    sum_fusion = SumFusion(dataclasses.replace(shape(), d_model=3))
     torch.testing.assert_close(
-        sum_fusion(tokens, absent), sum_fusion.output_norm(torch.tensor([[[4.0, 6.0, 2.0]]]))
+        sum_fusion(tokens, absent, ONE_TOKEN_EACH),
+        sum_fusion.output_norm(torch.tensor([[[4.0, 6.0, 2.0]]])).expand(1, 3, 3),
     )
 
 
@@ -138,10 +166,10 @@ def test_fused_rows_are_layer_normalised_whatever_is_present(fusion, token_scale
     modalities and the tokens' scale (unnormalised sum/linear/cross-attention collapsed, issue #13).
     At initialisation (unit gain, zero bias) every present row has zero mean and unit variance."""
     torch.manual_seed(0)
-    module = build_fusion(fusion, num_modalities=3, d_model=8, num_heads=2, mlp_hidden=16)
+    module = build_fusion(fusion, shape())
     tokens = token_scale * torch.randn(7, 3, 8)
     absent = ~torch.tensor([[n in p for n in NAMES] for p in presence_patterns(NAMES)])
-    out = module(tokens.masked_fill(absent.unsqueeze(-1), 0), absent)
+    out = module(tokens.masked_fill(absent.unsqueeze(-1), 0), absent, ONE_TOKEN_EACH)
     rows = out[~absent] if fusion == "cross_attention" else out.flatten(0, 1)
     torch.testing.assert_close(rows.mean(-1), torch.zeros(len(rows)), atol=1e-5, rtol=0)
     torch.testing.assert_close(rows.var(-1, correction=0), torch.ones(len(rows)), atol=1e-3, rtol=0)
@@ -153,10 +181,10 @@ def test_fused_rows_are_layer_normalised_whatever_is_present(fusion, token_scale
 def test_cross_attention_row_attends_to_the_other_present_modalities(present):
     """Reference: row ``i`` attends, unmasked, to exactly the other present rows."""
     torch.manual_seed(0)
-    module = CrossAttentionFusion(3, 8, 2, 16)
+    module = CrossAttentionFusion(shape())
     tokens = torch.randn(1, 3, 8)
     absent = ~torch.tensor([present])
-    out = module(tokens, absent)
+    out = module(tokens, absent, ONE_TOKEN_EACH)
     x = tokens.masked_fill(absent.unsqueeze(-1), 0) + module.modality_embedding
     for i in [i for i in range(3) if present[i]]:
         others = [j for j in range(3) if j != i and present[j]]
@@ -168,8 +196,9 @@ def test_cross_attention_row_attends_to_the_other_present_modalities(present):
 
 
 def test_cross_attention_with_a_single_present_modality_is_finite():
-    module = CrossAttentionFusion(3, 8, 2, 16)
-    out = module(torch.randn(2, 3, 8), torch.tensor([[False, True, True], [True, True, False]]))
+    module = CrossAttentionFusion(shape())
+    absent = torch.tensor([[False, True, True], [True, True, False]])
+    out = module(torch.randn(2, 3, 8), absent, ONE_TOKEN_EACH)
     assert bool(torch.isfinite(out).all())
 
 
@@ -193,36 +222,39 @@ def test_registry_checkpoint_round_trip_keeps_the_fusion(small_config, fusion, t
         torch.testing.assert_close(rebuilt(batch.clone()).get(key), model(batch.clone()).get(key))
 
 
-def without_output_norm(state: dict) -> dict:
-    """The weights as saved before the ablation fusions ended in a LayerNorm."""
-    return {k: v for k, v in state.items() if not k.startswith("fusion.output_norm.")}
-
-
-@pytest.mark.parametrize("fusion", NORMALISED)
-def test_run_checkpoint_saved_before_the_output_norm_is_a_clear_error(small_config, fusion, tmp_path):
-    model = make_model(small_config, fusion)
+def test_checkpoint_of_a_posterior_only_ablation_is_a_clear_error(small_config, tmp_path):
+    """Ablation weights saved when the ablation replaced only the posterior's fusion (the decoder kept
+    the paper's attention) do not fit a model whose decoder aggregates with the ablation too."""
+    model = make_model(small_config, "sum")
+    state = {k: v for k, v in model.state_dict().items() if not k.startswith("decoder.fusion.")}
+    state |= {f"decoder.{k}": v for k, v in make_model(small_config, "agnostic").decoder.state_dict().items()}
     meta = {"model_config": saved_config("forecaster", model), "config": {"data": {"root": "data"}}}
-    save_checkpoint(tmp_path, 1, without_output_norm(model.state_dict()), meta=meta)
+    save_checkpoint(tmp_path, 1, state, meta=meta)
     with pytest.raises(
-        CheckpointError,
-        match=rf"missing: \['fusion\.output_norm\.bias', 'fusion\.output_norm\.weight'\]\).*"
-        rf"saved before the ablation fusions ended in a LayerNorm.*retrain with model\.fusion={fusion}",
+        CheckpointError, match=r"replaced only the posterior's fusion.*retrain with model\.fusion=sum"
     ):
         load_trained_model(tmp_path)
 
 
-def test_save_pretrained_export_before_the_output_norm_is_a_clear_error(small_config, tmp_path):
-    model = make_model(small_config, "sum")
-    model.save_pretrained(tmp_path)
-    save_file(without_output_norm(load_file(tmp_path / "model.safetensors")), tmp_path / "model.safetensors")
-    with pytest.raises(
-        CheckpointError, match=r"model\.safetensors does not fit.*retrain with model\.fusion=sum"
-    ):
-        from_pretrained(tmp_path)
+def test_a_new_fusion_is_one_module_and_one_registration(small_config):
+    @register_fusion("first_token")
+    class FirstToken(torch.nn.Module):
+        def __init__(self, shape: FusionShape):
+            super().__init__()
+            self.out_rows = shape.num_modalities
+
+        def forward(self, tokens, absent, token_modality):
+            return tokens[:, :1].expand(-1, self.out_rows, -1)
+
+    try:
+        model = make_model(small_config, "first_token").eval()
+        assert model(make_batch(2)).get(keys.FORECAST_LOC).shape == (2, HORIZON, TARGET_DIM)
+    finally:
+        del FUSIONS["first_token"]
 
 
 def test_unknown_fusion_is_rejected(small_config):
-    with pytest.raises(ValueError, match="fusion must be one of"):
+    with pytest.raises(ValueError, match=r"unknown fusion 'concat'; expected one of \['agnostic', 'average'"):
         dataclasses.replace(small_config, fusion="concat")
 
 

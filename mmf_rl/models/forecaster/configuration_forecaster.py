@@ -8,9 +8,9 @@ from typing import Literal
 from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
 from mmf_rl.models.encoders import check_encoder
-from mmf_rl.models.fusion import FUSIONS
+from mmf_rl.models.fusion import check_fusion
 
-EVAL_LATENTS = ("mean", "sample", "predictive")
+EVAL_LATENTS = ("mean", "sample", "predictive", "posterior")
 
 
 @dataclass
@@ -60,7 +60,9 @@ class ForecasterConfig:
             forecast's scale. It is the fix of the learned prior's overconfident scale (issue #13)
             without retraining (``mmf-rl eval ... eval_latent=predictive``). The ``ε_k`` are
             fixed (seeded, antithetic pairs), so the forecast is deterministic and leaves the
-            global RNG alone. Cost: every eval decode runs on ``K×`` the rows (a planner's
+            global RNG alone. ``"posterior"``: the mean of ``q(z | X)``, the fusion's posterior
+            (the paper's eqs. 10 and 15 read literally; needs a posterior that does not read the
+            target). Cost of ``"predictive"``: every eval decode runs on ``K×`` the rows (a planner's
             ``decode_under_actions`` decodes ``B × N × K`` rows for ``N`` candidates). It also
             applies to a validation loss computed in eval mode. :meth:`MultimodalForecaster.sample`
             always samples, from the global RNG.
@@ -69,6 +71,10 @@ class ForecasterConfig:
         fusion: the multimodal encoder of the posterior: ``"agnostic"`` (the paper's
             modality-agnostic attention) or an ablation of :mod:`mmf_rl.models.fusion`
             (``"linear"``, ``"average"``, ``"sum"``, ``"cross_attention"``).
+        decoder_input: what the decoder reads: ``"tokens"`` (the paper: the unimodal encoders'
+            tokens) or ``"mixed"`` (the same tokens after the multimodal encoder's self-attention
+            layers; a fusion without such layers passes them through), so the fusion acts on every
+            forecast, whatever the prior.
         action_dim: ``A``; with ``action_steps``, makes the model an action-conditioned world
             model that reads ``"future_action"`` ``[B, action_steps, A]`` (the actions applied
             over the horizon). ``0`` (default): no action input, the paper's forecaster.
@@ -91,9 +97,10 @@ class ForecasterConfig:
     min_scale: float = 1e-3
     prior: Literal["standard", "learned"] = "standard"
     posterior_uses_target: bool | None = None
-    eval_latent: Literal["mean", "sample", "predictive"] = "mean"
+    eval_latent: Literal["mean", "sample", "predictive", "posterior"] = "mean"
     predictive_samples: int = 16
     fusion: str = "agnostic"
+    decoder_input: Literal["tokens", "mixed"] = "tokens"
     action_dim: int = 0
     action_steps: int = 0
     nonfinite: NonFiniteRule = "raise"
@@ -139,6 +146,12 @@ class ForecasterConfig:
             raise ValueError(
                 f"ForecasterConfig.eval_latent must be one of {EVAL_LATENTS}, found {self.eval_latent!r}"
             )
+        if self.eval_latent == "posterior" and self.posterior_reads_target:
+            raise ValueError(
+                "ForecasterConfig: eval_latent='posterior' decodes at the mean of q(z|X), which a posterior "
+                "that reads the target cannot give at test time; set posterior_uses_target=false (and "
+                "prior=standard) or choose another eval_latent"
+            )
         if (
             not isinstance(self.predictive_samples, int)
             or self.predictive_samples < 2
@@ -157,8 +170,11 @@ class ForecasterConfig:
             raise ValueError(
                 f"ForecasterConfig.nonfinite must be one of {NONFINITE_RULES}, found {self.nonfinite!r}"
             )
-        if self.fusion not in FUSIONS:
-            raise ValueError(f"ForecasterConfig.fusion must be one of {FUSIONS}, found {self.fusion!r}")
+        check_fusion(self.fusion)
+        if self.decoder_input not in ("tokens", "mixed"):
+            raise ValueError(
+                f"ForecasterConfig.decoder_input must be 'tokens' or 'mixed', found {self.decoder_input!r}"
+            )
 
     @property
     def modality_names(self) -> list[str]:

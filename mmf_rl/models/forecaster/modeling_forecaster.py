@@ -2,19 +2,24 @@
 
 Pipeline for a batch ``[B]`` with ``M`` modalities (paper, "Model Architecture"):
 
-1. **Unimodal encoders** ``E_m`` turn each present window into ``x̄_m ∈ R^d``. Each encoder runs
-   once, on the rows where its modality is present (gathered); absent rows get zeros. So the
-   value stored under an absent modality never reaches any computation, and an encoder whose
-   modality is absent from the whole batch does not run and gets no gradient.
-2. **Multimodal encoder** (posterior, and the learned prior): ``x̄_m + p^E_m``, ``L - 1`` pre-LN
-   Transformer layers, then modality-agnostic attention with the fixed queries ``P^E`` (always
-   ``M`` rows), flatten, MLP -> ``(μ, σ)`` of ``q(z | X, y)``; with ``prior="learned"`` a second
-   MLP on the same fused representation -> ``(μ, σ)`` of ``p(z | X)``. Absent modalities are
-   padded slots masked out of every attention (``key_padding_mask``): one pass for any mix of
-   presence patterns.
-3. **Decoder**: ``[(x̄_m + p^D_m) ⊕ z]`` -> shared MLP -> ``H0``; ``H1 = MHA(LN(P^D), LN(H0),
-   LN(H0)) + P^D``; ``H2 = MHA(LN(H1), LN(H0), LN(H0)) + H1``; flatten, MLP -> ``loc``, ``scale``
-   of a diagonal Gaussian over the ``T × D`` future, in the normalised frame of the target.
+1. **Unimodal encoders** ``E_m`` turn each present window into tokens: one ``x̄_m ∈ R^d`` (the
+   paper), or one per step (``steps``, ``conv_frames`` encoders: the detail step-wise models such
+   as MulT keep). Each encoder runs once, on the rows where its modality is present (gathered);
+   absent rows get zero tokens. So the value stored under an absent modality never reaches any
+   computation, and an encoder whose modality is absent from the whole batch does not run and gets
+   no gradient.
+2. **Multimodal encoder** (posterior, and the learned prior): ``+ p^E_m`` on every token of ``m``,
+   ``L - 1`` pre-LN Transformer layers, then modality-agnostic attention with the fixed queries
+   ``P^E`` (always ``M`` rows, however many tokens), flatten, MLP -> ``(μ, σ)`` of ``q(z | X)``;
+   with ``prior="learned"`` a second MLP on the same fused representation -> ``(μ, σ)`` of
+   ``p(z | X)``. Absent tokens are masked out of every attention (``key_padding_mask``): one pass
+   for any mix of presence patterns. Any registered fusion (:mod:`mmf_rl.models.fusion`) can take
+   its place, and the decoder's aggregation's with it.
+3. **Decoder**: ``[(x̄_m + p^D_m) ⊕ z]`` per token -> shared MLP -> ``H0``; ``H1 = MHA(LN(P^D),
+   LN(H0), LN(H0)) + P^D``; ``H2 = MHA(LN(H1), LN(H0), LN(H0)) + H1``; flatten, MLP -> ``loc``,
+   ``scale`` of a diagonal Gaussian over the ``T × D`` future, in the normalised frame of the
+   target. With ``decoder_input="mixed"`` its tokens are those after the multimodal encoder's
+   Transformer layers, so the fusion shapes every forecast.
 
 Open points of the paper, and what this implementation does:
 
@@ -68,6 +73,8 @@ Open points of the paper, and what this implementation does:
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDictBase
@@ -75,11 +82,11 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from mmf_rl import keys
-from mmf_rl.models.attention import FixedQueryAttention, PreLNTransformerLayer
+from mmf_rl.models.attention import FixedQueryAttention
 from mmf_rl.models.calibration import PresenceScaleCalibration
-from mmf_rl.models.encoders import build_encoder, mlp
+from mmf_rl.models.encoders import build_encoder, mlp, num_tokens
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
-from mmf_rl.models.fusion import build_fusion
+from mmf_rl.models.fusion import FusionShape, build_fusion
 from mmf_rl.models.hub import PretrainedModel
 from mmf_rl.models.rows import compute_on_rows
 
@@ -109,55 +116,47 @@ def moment_match(loc: torch.Tensor, scale: torch.Tensor, draws: int) -> tuple[to
     return loc.mean(0), variance.sqrt()
 
 
-class ModalityAgnosticEncoder(nn.Module):
-    """The paper's multimodal encoder: tokens ``[B, M, d]`` + presence -> ``[B, M, d]``."""
-
-    def __init__(self, num_modalities: int, d_model: int, num_heads: int, num_layers: int, mlp_hidden: int):
-        super().__init__()
-        self.out_rows = num_modalities
-        self.modality_embedding = nn.Parameter(torch.randn(num_modalities, d_model) * 0.02)  # P^E
-        self.layers = nn.ModuleList(
-            PreLNTransformerLayer(d_model, num_heads, mlp_hidden) for _ in range(num_layers - 1)
-        )
-        self.aggregate = FixedQueryAttention(d_model, num_heads)
-        self.norm_mlp = nn.LayerNorm(d_model)
-        self.mlp = mlp(d_model, mlp_hidden, d_model)
-
-    def forward(self, tokens: torch.Tensor, absent: torch.Tensor) -> torch.Tensor:
-        x = tokens + self.modality_embedding
-        for layer in self.layers:
-            x = layer(x, absent)
-        queries = self.modality_embedding.expand(tokens.shape[0], -1, -1)
-        x = self.aggregate(queries, x, absent, residual=queries)
-        return x + self.mlp(self.norm_mlp(x))
-
-
 class ModalitySpecificDecoder(nn.Module):
     """The paper's decoder: tokens, presence and ``z`` -> Gaussian parameters over ``T × D``."""
 
-    def __init__(self, cfg: ForecasterConfig):
+    def __init__(self, cfg: ForecasterConfig, fusion_shape: FusionShape):
         super().__init__()
         m, d = len(cfg.modalities), cfg.d_model
         self.modality_embedding = nn.Parameter(torch.randn(m, d) * 0.02)  # P^D
         self.joint = mlp(d + cfg.d_latent + (d if cfg.action_dim else 0), cfg.mlp_hidden, d)
-        self.aggregate = FixedQueryAttention(d, cfg.num_heads)
-        self.refine = FixedQueryAttention(d, cfg.num_heads)
+        # The aggregation: the paper's two attentions from P^D, or the ablation fusion that replaces them.
+        self.fusion = build_fusion(cfg.fusion, fusion_shape)
+        if self.fusion is None:
+            self.aggregate = FixedQueryAttention(d, cfg.num_heads)
+            self.refine = FixedQueryAttention(d, cfg.num_heads)
         self.head = mlp(m * d, cfg.head_hidden, 2 * cfg.horizon * cfg.target_dim)
         self.out_shape = (cfg.horizon, cfg.target_dim)
         self.min_scale = cfg.min_scale
 
     def forward(
-        self, tokens: torch.Tensor, absent: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None = None
+        self,
+        tokens: torch.Tensor,
+        absent: torch.Tensor,
+        token_modality: torch.Tensor,
+        z: torch.Tensor,
+        action: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        n, m, _ = tokens.shape
+        n, num_tokens, _ = tokens.shape
         conditions = z if action is None else torch.cat([z, action], dim=-1)
         joint = torch.cat(
-            [tokens + self.modality_embedding, conditions.unsqueeze(1).expand(n, m, -1)], dim=-1
+            [
+                tokens + self.modality_embedding[token_modality],
+                conditions.unsqueeze(1).expand(n, num_tokens, -1),
+            ],
+            dim=-1,
         )
         h0 = self.joint(joint)
-        queries = self.modality_embedding.expand(n, -1, -1)
-        h1 = self.aggregate(queries, h0, absent, residual=queries)
-        h2 = self.refine(h1, h0, absent, residual=h1)
+        if self.fusion is None:
+            queries = self.modality_embedding.expand(n, -1, -1)
+            h1 = self.aggregate(queries, h0, absent, residual=queries)
+            h2 = self.refine(h1, h0, absent, residual=h1)
+        else:
+            h2 = self.fusion(h0, absent, token_modality)
         loc, raw_scale = self.head(h2.flatten(1)).view(n, 2, *self.out_shape).unbind(1)
         return loc, F.softplus(raw_scale) + self.min_scale
 
@@ -196,14 +195,23 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.modalities = list(config.modalities)
         d = config.d_model
         self.encoders = nn.ModuleDict({s.name: build_encoder(s, config.history, d) for s in self.modalities})
-        if config.fusion == "agnostic":
-            self.fusion = ModalityAgnosticEncoder(
-                len(self.modalities), d, config.num_heads, config.num_encoder_layers, config.mlp_hidden
-            )
-        else:  # an ablation of the multimodal encoder (paper Table 4)
-            self.fusion = build_fusion(
-                config.fusion, len(self.modalities), d, config.num_heads, config.mlp_hidden
-            )
+        # The modality of each token of encode's [B, N, d] (an encoder may emit several).
+        self.token_counts = [num_tokens(self.encoders[s.name]) for s in self.modalities]
+        self.register_buffer(
+            "token_modality",
+            torch.repeat_interleave(torch.arange(len(self.modalities)), torch.tensor(self.token_counts)),
+            persistent=False,
+        )
+        shape = FusionShape(
+            num_modalities=len(self.modalities),
+            num_tokens=sum(self.token_counts),
+            d_model=d,
+            num_heads=config.num_heads,
+            mlp_hidden=config.mlp_hidden,
+            num_layers=config.num_encoder_layers,
+            role="encoder",
+        )
+        self.fusion = build_fusion(config.fusion, shape)
         target_numel = config.horizon * config.target_dim
         reads_target = config.posterior_reads_target
         self.target_encoder = mlp(target_numel, config.head_hidden, d) if reads_target else None
@@ -212,7 +220,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.prior_head = (
             mlp(fused, config.head_hidden, 2 * config.d_latent) if config.prior == "learned" else None
         )
-        self.decoder = ModalitySpecificDecoder(config)
+        self.decoder = ModalitySpecificDecoder(config, dataclasses.replace(shape, role="decoder"))
         self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
         self.action_encoder = (
             mlp(config.action_steps * config.action_dim, config.head_hidden, d) if config.action_dim else None
@@ -245,18 +253,15 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             self.out_keys += [keys.PRIOR_DROPPED_LOC, keys.PRIOR_DROPPED_SCALE]
 
     def explain_state_mismatch(self, state: dict[str, torch.Tensor]) -> str | None:
-        """Weights of the ``linear``/``sum``/``cross_attention`` fusion saved before those fusions ended
-        in a LayerNorm lack only ``fusion.output_norm.*``. They are refused rather than completed with
-        an identity norm: the norm changes what the fusion computes, so they would give other forecasts
-        than the model they were trained in (see :mod:`mmf_rl.models.fusion`, "Output scale")."""
-        missing = set(self.state_dict()) - set(state)
-        if not missing or not all(key.startswith("fusion.output_norm.") for key in missing):
+        """Ablation weights saved when an ablation fusion replaced only the posterior's fusion (the
+        decoder kept the paper's attention, ``decoder.aggregate``/``decoder.refine``) do not fit a
+        model whose decoder aggregates with the ablation too: refused, naming the fix."""
+        if self.decoder.fusion is None or not any(key.startswith("decoder.aggregate.") for key in state):
             return None
         return (
-            f"these are weights of the fusion={self.config.fusion!r} ablation saved before the ablation "
-            "fusions ended in a LayerNorm (fusion.output_norm), and they cannot be used with it; retrain "
-            f"with model.fusion={self.config.fusion} (without the norm, training with model.prior=learned "
-            "collapsed to the mean forecast)"
+            f"these are weights of the fusion={self.config.fusion!r} ablation saved when an ablation replaced "
+            "only the posterior's fusion; the decoder now aggregates with the same fusion, so retrain "
+            f"with model.fusion={self.config.fusion}"
         )
 
     # -- building blocks -------------------------------------------------------------------------
@@ -278,23 +283,39 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             keys.mark_nonfinite_absent(td, self.modalities)
 
     def encode(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        """Unimodal encoders -> tokens ``[B, M, d]`` (zeros where absent) and presence ``[B, M]``."""
+        """Unimodal encoders -> tokens ``[B, N, d]`` (zeros where absent; ``N`` is the sum of the
+        encoders' token counts, in modality order) and presence ``[B, M]``."""
         present = torch.stack([td.get(s.present_key) for s in self.modalities], dim=1)
-        absent = torch.zeros(present.shape[0], self.config.d_model, device=present.device)
         columns = []
         for i, spec in enumerate(self.modalities):
             obs, encoder = td.get(spec.obs_key), self.encoders[spec.name]
+            absent = self.absent_tokens(i, present.shape[0], present.device)
             columns += compute_on_rows(
                 present[:, i],
-                lambda rows, obs=obs, encoder=encoder: (encoder(obs if rows is None else obs[rows]),),
+                lambda rows, obs=obs, encoder=encoder: (
+                    self.as_tokens(encoder(obs if rows is None else obs[rows])),
+                ),
                 (absent,),
             )
-        return torch.stack(columns, dim=1), present
+        return torch.cat(columns, dim=1), present
+
+    @staticmethod
+    def as_tokens(encoded: torch.Tensor) -> torch.Tensor:
+        """An encoder's output as tokens ``[N, L, d]`` (a one-token encoder returns ``[N, d]``)."""
+        return encoded.unsqueeze(1) if encoded.dim() == 2 else encoded
+
+    def absent_tokens(self, modality: int, rows: int, device: torch.device) -> torch.Tensor:
+        """The zero tokens ``[rows, L_m, d]`` of an absent modality."""
+        return torch.zeros(rows, self.token_counts[modality], self.config.d_model, device=device)
+
+    def token_absent(self, present: torch.Tensor) -> torch.Tensor:
+        """Presence ``[N, M]`` -> the key-padding mask ``[N, num_tokens]`` (True: absent token)."""
+        return ~present[:, self.token_modality]
 
     def fuse(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
         """The multimodal encoder: the flattened fused representation ``[N, out_rows × d]`` of ``N``
-        rows of tokens ``[N, M, d]`` and presence ``[N, M]``."""
-        return self.fusion(tokens, ~present).flatten(1)
+        rows of tokens ``[N, num_tokens, d]`` and presence ``[N, M]``."""
+        return self.fusion(tokens, self.token_absent(present), self.token_modality).flatten(1)
 
     def posterior(self, tokens: torch.Tensor, present: torch.Tensor, target: torch.Tensor | None):
         """``q(z | X[, y])``: ``loc``, ``scale`` ``[B, d_z]``."""
@@ -329,8 +350,13 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self, tokens: torch.Tensor, present: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None = None
     ):
         """``p(y | X, z[, a])``: ``loc``, ``scale`` ``[N, T, D]`` for ``N`` rows of tokens, presence, ``z``
-        and, for a world model, the embedded action sequence (:meth:`embed_actions`)."""
-        return self.decoder(tokens, ~present, z, action)
+        and, for a world model, the embedded action sequence (:meth:`embed_actions`). With
+        ``decoder_input="mixed"`` the decoder reads the tokens after the multimodal encoder's
+        self-attention layers, so the fusion shapes every forecast."""
+        absent = self.token_absent(present)
+        if self.config.decoder_input == "mixed" and hasattr(self.fusion, "mix"):
+            tokens = self.fusion.mix(tokens, absent, self.token_modality)
+        return self.decoder(tokens, absent, self.token_modality, z, action)
 
     def forecast_from_tokens(
         self, tokens: torch.Tensor, present: torch.Tensor
@@ -348,8 +374,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             raise ValueError(
                 "forecast_from_tokens: a world model forecasts under given actions; use decode_under_actions"
             )
-        prior_loc, prior_scale = self.prior(tokens, present)
-        z = self._eval_latent(prior_loc, prior_scale)
+        z = self._eval_latent(*self.eval_distribution(tokens, present))
         draws = z.shape[0] // tokens.shape[0]  # K with eval_latent="predictive", else 1
         loc, scale = moment_match(
             *self.decode(tokens.repeat(draws, 1, 1), present.repeat(draws, 1), z), draws
@@ -410,6 +435,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             td.set(keys.POSTERIOR_SCALE, post_scale)
         if self.training:
             z = post_loc + post_scale * torch.randn_like(post_scale)
+        elif self.config.eval_latent == "posterior":
+            z = post_loc
         else:
             z = self._eval_latent(prior_loc, prior_scale)
         # K latents per sample (rows k * B + b) with eval_latent="predictive", else one.
@@ -450,7 +477,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         return td
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
-        """Decode ``num_samples`` latents drawn from the prior ``p(z | X)`` in one batched pass.
+        """Decode ``num_samples`` latents drawn from :meth:`eval_distribution` (the prior ``p(z | X)``,
+        or ``q(z | X)`` with ``eval_latent="posterior"``) in one batched pass.
 
         Writes ``("forecast", "samples")`` ``[B, K, T, D]``: the mean of ``p(y | X, z_k)`` for each
         ``z_k``. Other outputs are left untouched. Use under ``torch.no_grad()`` for evaluation.
@@ -460,7 +488,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.validate(td)
         tokens, present = self.encode(td)
         batch = present.shape[0]
-        prior_loc, prior_scale = self.prior(tokens, present)
+        prior_loc, prior_scale = self.eval_distribution(tokens, present)
         # Row k * B + b is sample k of batch element b.
         noise = torch.randn(num_samples * batch, self.config.d_latent, device=present.device)
         z = prior_loc.repeat(num_samples, 1) + prior_scale.repeat(num_samples, 1) * noise
@@ -505,10 +533,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                 f"found {list(actions.shape)}"
             )
         batch, candidates = actions.shape[:2]
-        prior_loc, prior_scale = self.prior(tokens, present)  # once per history, not per candidate
-        z = self._eval_latent(
-            prior_loc.repeat_interleave(candidates, 0), prior_scale.repeat_interleave(candidates, 0)
-        )
+        loc, scale = self.eval_distribution(tokens, present)  # once per history, not per candidate
+        z = self._eval_latent(loc.repeat_interleave(candidates, 0), scale.repeat_interleave(candidates, 0))
         draws = z.shape[0] // (batch * candidates)  # K with eval_latent="predictive", else 1
         embedded = self.action_encoder(actions.reshape(batch * candidates, -1))
         present = present.repeat_interleave(candidates, 0)
@@ -524,11 +550,20 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         scale = self.scale_calibration(scale, present)
         return loc.view(batch, candidates, *loc.shape[1:]), scale.view(batch, candidates, *scale.shape[1:])
 
+    def eval_distribution(
+        self, tokens: torch.Tensor, present: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The latent distribution eval decodes from: ``q(z | X)`` with ``eval_latent="posterior"``
+        (eqs. 10 and 15 read literally), else the prior ``p(z | X)``."""
+        if self.config.eval_latent == "posterior":
+            return self._posterior_from(self.fuse(tokens, present), None)
+        return self.prior(tokens, present)
+
     def _eval_latent(self, prior_loc: torch.Tensor, prior_scale: torch.Tensor) -> torch.Tensor:
         """The eval-mode latents of ``N`` prior rows by ``eval_latent``: ``[N, d_z]``, the prior's mean
         (``"mean"``) or a draw (``"sample"``); ``[K × N, d_z]`` for ``"predictive"``, row ``k * N + n``
         ``= μ_n + σ_n ε_k`` with the fixed ``ε_k`` of ``predictive_noise``."""
-        if self.config.eval_latent == "mean":
+        if self.config.eval_latent in ("mean", "posterior"):
             return prior_loc
         if self.config.eval_latent == "sample":
             return prior_loc + prior_scale * torch.randn_like(prior_scale)

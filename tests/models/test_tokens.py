@@ -1,0 +1,142 @@
+"""Several tokens per modality, the decoder reading the fused tokens, and decoding at q(z|X)."""
+
+import dataclasses
+
+import pytest
+import torch
+
+from mmf_rl import keys
+from mmf_rl.eval.metrics import window_metrics
+from mmf_rl.models import MultimodalForecaster, build_loss
+from mmf_rl.models.encoders import FrameTokens, StepTokens, num_tokens
+from mmf_rl.objectives import LossConfig
+from tests.conftest import (
+    HISTORY,
+    SMALL_MODALITIES,
+    assert_a_few_steps_reduce_the_loss,
+    make_batch,
+)
+
+STEP_MODALITIES = [
+    dataclasses.replace(s, encoder="conv_frames" if s.kind == "image" else "steps") for s in SMALL_MODALITIES
+]
+OUTPUTS = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.POSTERIOR_LOC, keys.POSTERIOR_SCALE]
+
+
+def step_model(small_config, **changes) -> MultimodalForecaster:
+    torch.manual_seed(0)
+    return MultimodalForecaster(dataclasses.replace(small_config, modalities=STEP_MODALITIES, **changes))
+
+
+def test_step_encoders_emit_one_token_per_step(small_config):
+    model = step_model(small_config)
+    assert isinstance(model.encoders["image"], FrameTokens)
+    assert isinstance(model.encoders["force"], StepTokens)
+    assert [num_tokens(model.encoders[s.name]) for s in STEP_MODALITIES] == [HISTORY] * 3
+    assert model.token_modality.tolist() == [0] * HISTORY + [1] * HISTORY + [2] * HISTORY
+    tokens, present = model.encode(make_batch(4, STEP_MODALITIES))
+    assert tokens.shape == (4, 3 * HISTORY, small_config.d_model) and present.shape == (4, 3)
+
+
+def test_a_step_token_depends_on_its_step_only(small_config):
+    encoder = step_model(small_config).encoders["force"]
+    seq = torch.randn(2, HISTORY, 6)
+    changed = seq.clone()
+    changed[:, 3] += 1.0
+    moved = (encoder(changed) - encoder(seq)).abs().amax((0, 2))
+    assert bool(moved[3] > 0) and not bool(moved[torch.arange(HISTORY) != 3].any())
+
+
+@pytest.mark.parametrize("decoder_input", ["tokens", "mixed"])
+@pytest.mark.parametrize("fusion", ["agnostic", "linear", "average", "sum", "cross_attention"])
+def test_step_tokens_keep_the_presence_invariants(small_config, mixed_batch, fusion, decoder_input):
+    """A mixed batch gives each sample's own result, and what is stored under an absent modality
+    changes nothing, with many tokens per modality as with one."""
+    model = step_model(small_config, fusion=fusion, decoder_input=decoder_input).eval()
+    batch = make_batch(mixed_batch.shape[0], STEP_MODALITIES, seed=1)
+    for spec in STEP_MODALITIES:
+        batch.set(spec.present_key, mixed_batch.get(spec.present_key))
+    with torch.no_grad():
+        together = model(batch.clone())
+        for i in range(batch.shape[0]):
+            alone = model(batch[i : i + 1].clone())
+            for key in OUTPUTS:
+                torch.testing.assert_close(alone.get(key)[0], together.get(key)[i], rtol=1e-4, atol=1e-5)
+        corrupted = batch.clone()
+        for spec in STEP_MODALITIES:
+            absent, obs = ~corrupted.get(spec.present_key), corrupted.get(spec.obs_key)
+            obs[absent] = (255 if spec.kind == "image" else 1e6) - obs[absent]
+        out = model(corrupted)
+    for key in OUTPUTS:
+        assert torch.equal(out.get(key), together.get(key)), key
+
+
+def test_an_encoder_absent_from_the_batch_gets_no_gradient(small_config):
+    model = step_model(small_config, decoder_input="mixed").train()
+    batch = make_batch(4, STEP_MODALITIES, present={"image": torch.zeros(4, dtype=torch.bool)})
+    loss = build_loss("forecaster", model, LossConfig())(batch)
+    sum(v for k, v in loss.items() if k.startswith("loss_")).backward()
+    assert all(p.grad is None for p in model.encoders["image"].parameters())
+    assert all(p.grad is not None for p in model.encoders["force"].parameters())
+
+
+def test_step_token_model_trains(small_config):
+    model = step_model(small_config, decoder_input="mixed").train()
+    assert_a_few_steps_reduce_the_loss(model, build_loss("forecaster", model, LossConfig()))
+
+
+def perturbed_fusion_moves(model: MultimodalForecaster, batch) -> float:
+    """Max change of the eval forecast when every weight of the multimodal encoder is perturbed."""
+    model.eval()
+    with torch.no_grad():
+        before = model(batch.clone()).get(keys.FORECAST_LOC)
+        for p in model.fusion.parameters():
+            p.add_(0.5 * torch.randn_like(p))
+        return float((model(batch.clone()).get(keys.FORECAST_LOC) - before).abs().max())
+
+
+@pytest.mark.parametrize(
+    "changes, acts",
+    [
+        ({}, False),  # the paper read literally: decoded at z = 0, the fusion feeds only q(z|X)
+        ({"decoder_input": "mixed"}, True),
+        ({"eval_latent": "posterior"}, True),
+        ({"prior": "learned"}, True),
+    ],
+)
+def test_whether_the_fusion_acts_on_eval_forecasts(small_config, changes, acts):
+    torch.manual_seed(0)
+    model = MultimodalForecaster(dataclasses.replace(small_config, **changes))
+    assert (perturbed_fusion_moves(model, make_batch(4)) > 1e-4) is acts
+
+
+def test_posterior_eval_latent_decodes_at_the_mean_of_q(small_config):
+    torch.manual_seed(0)
+    model = MultimodalForecaster(dataclasses.replace(small_config, eval_latent="posterior")).eval()
+    batch = make_batch(4)
+    with torch.no_grad():
+        out = model(batch.exclude(keys.TARGET))
+        tokens, present = model.encode(batch)
+        post_loc = out.get(keys.POSTERIOR_LOC)
+        expected = model.decode(tokens, present, post_loc)[0]
+        torch.testing.assert_close(out.get(keys.LATENT), post_loc)
+        torch.testing.assert_close(out.get(keys.FORECAST_LOC), expected)
+
+
+def test_posterior_eval_latent_needs_a_posterior_without_the_target(small_config):
+    with pytest.raises(ValueError, match="eval_latent='posterior'.*posterior_uses_target=false"):
+        dataclasses.replace(small_config, eval_latent="posterior", prior="learned")
+
+
+@pytest.mark.parametrize("prior", ["standard", "learned"])
+def test_eval_reports_the_kl_of_the_posterior_to_the_prior(small_config, prior):
+    torch.manual_seed(0)
+    model = MultimodalForecaster(dataclasses.replace(small_config, prior=prior)).eval()
+    batch = make_batch(4)
+    with torch.no_grad():
+        kl = window_metrics(model, batch, lambda y: y)["kl"]
+        full = model(batch.clone())
+    post = torch.distributions.Normal(full.get(keys.POSTERIOR_LOC), full.get(keys.POSTERIOR_SCALE))
+    prior_dist = torch.distributions.Normal(full.get(keys.PRIOR_LOC), full.get(keys.PRIOR_SCALE))
+    torch.testing.assert_close(kl, torch.distributions.kl_divergence(post, prior_dist).sum(-1))
+    assert bool((kl > 0).all())
