@@ -4,7 +4,8 @@ A model registers itself with ``@register_model(name, config_class, loss=...)`` 
 config class and the loss terms it trains with (names of ``mmf_rl.objectives.LOSS_TERMS``). Every
 model reads the same batch contract (mmf_rl.keys) and writes ``("forecast", "loc"/"scale")``;
 models with a latent also write ``("posterior", ...)``. This module imports no model: each model's
-module imports it to register, and ``mmf_rl.models`` imports every model's module.
+module imports it to register, and ``mmf_rl.models`` imports every model's module (and registers
+the forecaster, whose package stays free of the registry).
 """
 
 from __future__ import annotations
