@@ -90,7 +90,7 @@ class ELBOLoss(ForecasterLossBase):
         if loss_cfg.gsnn_weight > 0 and not getattr(forecaster, "decodes_from_prior", True):
             raise ValueError(
                 "loss.gsnn_weight > 0 needs a model that decodes from its prior in training "
-                f"(model=forecaster); the {forecaster.model_name!r} model does not: set loss.gsnn_weight=0"
+                f"(model=forecaster); {type(forecaster).__name__} does not: set loss.gsnn_weight=0"
             )
         return cls(
             forecaster,
