@@ -91,6 +91,16 @@ def make_batch(
     return TensorDict(data, batch_size=[batch_size])
 
 
+def assert_each_sample_alone_gives_its_batch_result(model, batch, out_keys) -> None:
+    """One pass over a batch mixing presence patterns gives every sample what it gets alone."""
+    with torch.no_grad():
+        together = model(batch.clone())
+        for i in range(batch.shape[0]):
+            alone = model(batch[i : i + 1].clone())
+            for key in out_keys:
+                torch.testing.assert_close(alone.get(key)[0], together.get(key)[i], rtol=1e-4, atol=1e-5)
+
+
 def assert_a_few_steps_reduce_the_loss(
     model, loss_module, action_shape: tuple[int, int] | None = None
 ) -> None:

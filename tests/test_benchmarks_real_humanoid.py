@@ -176,6 +176,7 @@ def test_every_entry_composes_the_g1_data_and_its_model(tmp_path):
         "paper": "forecaster",
         "paper prior=learned": "forecaster",
         "paper GRU vector encoders (issue #6)": "forecaster",
+        "paper, mixed tokens, per-frame camera tokens": "forecaster",
         "LF-LSTM": "lf_lstm",
         "MulT": "mult",
         "MVAE": "mvae",
@@ -188,6 +189,9 @@ def test_every_entry_composes_the_g1_data_and_its_model(tmp_path):
     )
     assert [data[issue6].modalities[m].encoder for m in humanoid.MODALITIES] == [None, "gru", "gru"]
     assert all(c.encoder is None for c in data["paper"].modalities.values())  # each kind's default
+    frames = "paper, mixed tokens, per-frame camera tokens"
+    assert data[frames].modalities["cam_high"].encoder == "conv_frames"
+    assert composed[frames].model.decoder_input == "mixed"
 
 
 def test_a_missing_recording_is_a_clear_error(tmp_path, capsys):

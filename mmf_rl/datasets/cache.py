@@ -180,7 +180,7 @@ def _video_jobs(
             if path in absent:
                 continue
             offset = source.video_from_timestamp(episode.index, m.feature)
-            stamps = columns["timestamp"][episode.start : episode.stop].astype(np.float64) + offset
+            stamps = _episode_times(source, columns, episode) + offset
             jobs.append(
                 VideoJob(
                     modality=name,
@@ -195,6 +195,13 @@ def _video_jobs(
                 )
             )
     return jobs
+
+
+def _episode_times(source: LeRobotSource, columns: dict, episode) -> np.ndarray:
+    """The times (from the episode's start in its video) of the video frames an episode's rows read."""
+    if source.config.video_sync == "frame_index":
+        return np.arange(episode.stop - episode.start, dtype=np.float64) / source.meta.fps
+    return columns["timestamp"][episode.start : episode.stop].astype(np.float64)
 
 
 def _job_key(job: VideoJob) -> str:
@@ -299,7 +306,9 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
     """Build the cache's files in ``directory``; continue the build a killed process left there."""
     columns = source.read_columns()
     n = len(columns["index"])
-    unordered = source.drop_episodes_with_unordered_timestamps(columns)
+    # Synced by frame index, the (wall-clock) timestamps match no video frame: their order does not matter.
+    by_index = source.config.video_sync == "frame_index"
+    unordered = [] if by_index else source.drop_episodes_with_unordered_timestamps(columns)
     per_frame = _frame_columns(source, columns)
     missing = source.missing_videos()
     jobs = _video_jobs(source, columns, directory / "frames", missing)

@@ -26,7 +26,10 @@ class ModalityConfig:
     unset, ``"<feature>_valid"`` (or, for a camera ``observation.images.<cam>``,
     ``observation.<cam>_camera_valid`` as the recorder writes it) is used if the dataset has it.
     ``dims`` selects feature dims.
-    ``required`` turns "absent" from a warning into an error.
+    ``required`` turns "absent" from a warning into an error. ``allow_absent`` accepts losing the
+    modality on most frames: without it, a modality absent on more than half of the frames
+    (missing or undecodable video, NaN spans, validity flags) is an error, since the model would
+    silently train without it (e.g. a declared camera whose video files were never recorded).
     ``raw_dims`` (indices after ``dims``) are left unnormalised: flags such as a per-slot
     ``valid`` keep their exact 0/1 meaning, which a mean/std shift would make data-dependent.
     """
@@ -38,6 +41,7 @@ class ModalityConfig:
     required: bool = False
     encoder: str | None = None
     raw_dims: list[int] | None = None
+    allow_absent: bool = False
 
     def __post_init__(self):
         if self.kind is not None and self.kind not in MODALITY_KINDS:
@@ -107,6 +111,9 @@ class OutageConfig:
 
 
 OBSERVED = "observed"
+# How video frames are matched to parquet rows: by the row's `timestamp` (lerobot's way), or by its
+# position in the episode (frame k at k / fps), for recordings whose timestamps drift off k / fps.
+VIDEO_SYNC_MODES = ("timestamp", "frame_index")
 
 
 @dataclass
@@ -130,6 +137,11 @@ class DataConfig:
     ``split_fractions`` cut the selected episodes at random (``split_seed``), or ``split`` names
     them, ``{train: [...], val: [...], test: [...]}`` (a split left out is empty; without
     ``episodes``, the union of the lists is the selection).
+
+    ``video_sync`` matches video frames to parquet rows: ``"timestamp"`` decodes each row's
+    ``timestamp`` within ``tolerance_s`` (as lerobot does), ``"frame_index"`` decodes the row's
+    frame ``k`` of its episode at ``k / fps`` of the episode's video segment, for recordings whose
+    ``timestamp`` holds wall-clock stamps that drift from ``k / fps`` (``mmf-rl inspect`` measures it).
     """
 
     modalities: dict[str, ModalityConfig]
@@ -152,9 +164,14 @@ class DataConfig:
     episodes: list[int] | None = None
     exclude_episodes: list[int] = field(default_factory=list)
     split: dict[str, list[int]] | None = None
+    video_sync: str = "timestamp"
 
     def __post_init__(self):
         self._check_episode_lists()
+        if self.video_sync not in VIDEO_SYNC_MODES:
+            raise ValueError(
+                f"data config: `video_sync` must be one of {list(VIDEO_SYNC_MODES)}, found {self.video_sync!r}"
+            )
         if not self.modalities:
             raise ValueError("data config: `modalities` is empty; map at least one name to a dataset feature")
         reserved = {"target", "future_action"} & set(self.modalities)
@@ -303,6 +320,8 @@ class DataConfig:
         }
         if self.action is not None:  # only when set: caches built before actions existed stay valid
             fields["action"] = {"feature": self.action.feature, "dims": self.action.dims}
+        if self.video_sync != "timestamp":  # likewise: caches synced by timestamp keep their key
+            fields["video_sync"] = self.video_sync
         return fields
 
     def resolved_cache_dir(self) -> Path:

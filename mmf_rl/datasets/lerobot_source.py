@@ -50,6 +50,12 @@ DEFAULT_TEMPLATES = {
 # than 2^28 values (16k x 16k RGB), a vector feature of more than 2^16 dims.
 MAX_FRAME_VALUES = 2**28
 MAX_VECTOR_WIDTH = 2**16
+# What a damaged or unreadable camera file raises while decoding: torchcodec's and torchvision's
+# decoders (RuntimeError from FFmpeg or libpng/libjpeg, ValueError for a file without a video
+# stream, IndexError for a frame past the end), lerobot's FrameTimestampError (a ValueError) and
+# OSError for a missing or unreadable file. Anything else (a TypeError from an API change) is a
+# bug and propagates instead of being cached as "camera absent".
+DECODE_ERRORS = (RuntimeError, ValueError, IndexError, OSError)
 
 
 @dataclass(frozen=True)
@@ -754,9 +760,9 @@ def decode_images(entries: list, channels: int, root: Path) -> tuple[list, list[
             image = decode_image(torch.frombuffer(bytearray(data), dtype=torch.uint8), mode=mode)
             frames.append(to_dtype(image, torch.float32, scale=True))  # 8- or 16-bit (depth) PNGs alike
             errors.append(None)
-        except Exception as error:  # noqa: BLE001 - an unreadable frame means "camera absent" there
+        except DECODE_ERRORS as error:  # an unreadable frame means "camera absent" there
             frames.append(None)
-            errors.append(f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}")
+            errors.append(_error_text(error))
     return frames, errors
 
 
@@ -784,33 +790,69 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
 
     A video shorter than its parquet rows (the rows' timestamps run past its last frame) gives its
     frames up to its end; the error names both lengths, and the rows past the end stay undecoded.
+    Only decode errors (``DECODE_ERRORS``) are caught: writing the frames is not decoding.
     """
     from lerobot.datasets.video_utils import decode_video_frames_torchcodec
     from tensordict import TensorDict
 
     destination = TensorDict.load_memmap(job.frames_dir).get(obs_key(job.modality))
     chunk = max(1, DECODE_CHUNK_BYTES // (4 * job.source_frame_values))
-    decoded, short = len(job.timestamps), None
     try:
-        metadata = _decoders().get_decoder(job.video_path).metadata
-        if metadata.num_frames is not None and metadata.average_fps:
-            # The frame index lerobot's decoder looks up for each timestamp.
-            indices = np.round(np.asarray(job.timestamps) * metadata.average_fps).astype(np.int64)
-            past_end = np.flatnonzero(indices >= metadata.num_frames)
-            if len(past_end):
-                decoded = int(past_end[0])
-                short = (
-                    f"the video has {metadata.num_frames} frames ({metadata.num_frames / metadata.average_fps:.2f} "
-                    f"s), but the parquet rows of this episode need frames up to {job.timestamps[-1]:.2f} s: "
-                    f"its last {len(job.timestamps) - decoded} rows have no frame"
-                )
-        for offset in range(0, decoded, chunk):
-            stamps = list(job.timestamps[offset : min(offset + chunk, decoded)])
+        decoded, short = _frames_in_video(job)
+    except DECODE_ERRORS as error:  # an unreadable video means "camera absent", reported by file
+        return job, _error_text(error), 0
+    for offset in range(0, decoded, chunk):
+        stamps = list(job.timestamps[offset : min(offset + chunk, decoded)])
+        try:
             frames = decode_video_frames_torchcodec(
                 job.video_path, stamps, job.tolerance_s, decoder_cache=_decoders()
             )  # float32 [n, 3, h, w] in [0, 1]
-            start = job.row_start + offset
-            destination[start : start + len(stamps)] = to_cache_frames(frames, job.image_size, job.channels)
-    except Exception as error:  # noqa: BLE001 - any decoder failure means "camera absent", reported by file
-        return job, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}", 0
+        except DECODE_ERRORS as error:
+            return job, _error_text(error), 0
+        start = job.row_start + offset
+        destination[start : start + len(stamps)] = to_cache_frames(frames, job.image_size, job.channels)
     return job, short, decoded
+
+
+def _frames_in_video(job: VideoJob) -> tuple[int, str | None]:
+    """How many of the job's leading timestamps fall inside the video, and the error text for the
+    rows past its end (``None`` when all are inside)."""
+    metadata = _decoders().get_decoder(job.video_path).metadata
+    if metadata.num_frames is None or not metadata.average_fps:
+        return len(job.timestamps), None
+    # The frame index lerobot's decoder looks up for each timestamp.
+    indices = np.round(np.asarray(job.timestamps) * metadata.average_fps).astype(np.int64)
+    past_end = np.flatnonzero(indices >= metadata.num_frames)
+    if not len(past_end):
+        return len(job.timestamps), None
+    decoded = int(past_end[0])
+    return decoded, (
+        f"the video has {metadata.num_frames} frames ({metadata.num_frames / metadata.average_fps:.2f} "
+        f"s), but the parquet rows of this episode need frames up to {job.timestamps[-1]:.2f} s: "
+        f"its last {len(job.timestamps) - decoded} rows have no frame"
+    )
+
+
+def _error_text(error: BaseException) -> str:
+    """``Type: first line of the message``: what the cache report records for an undecodable file."""
+    return f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+
+
+def probe_video(video_path: str, timestamps: list[float], tolerance_s: float) -> tuple[str | None, float]:
+    """Decode ``timestamps`` of a video as a cache build would (lerobot's decoder, ``tolerance_s``).
+
+    Returns the decode error (``None`` if every frame decoded) and the largest gap between a
+    queried time and the frame lerobot picks for it: the ``tolerance_s`` those times would need.
+    """
+    from lerobot.datasets.video_utils import VideoDecoderCache, decode_video_frames_torchcodec
+
+    decoders, gap = VideoDecoderCache(), float("nan")
+    try:
+        fps = decoders.get_decoder(video_path).metadata.average_fps
+        gap = float(np.abs(np.asarray(timestamps) - np.round(np.asarray(timestamps) * fps) / fps).max())
+        decode_video_frames_torchcodec(video_path, timestamps, tolerance_s, decoder_cache=decoders)
+    except DECODE_ERRORS as error:
+        return _error_text(error), gap
+    finally:
+        decoders.clear()
+    return None, gap

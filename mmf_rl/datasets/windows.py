@@ -17,6 +17,9 @@ from mmf_rl.datasets.protocols import outage_statistics, replay_outages, trainin
 from mmf_rl.datasets.splits import Normalizer, episode_splits, mean_std
 from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, ModalitySpec
 
+# A modality absent on more of the frames than this is an error unless its config sets `allow_absent`.
+MAX_ABSENT_FRACTION = 0.5
+
 
 def _plain(tensor: torch.Tensor) -> torch.Tensor:
     """The memory-mapped tensor as a plain ``torch.Tensor`` view (no subclass dispatch per gather)."""
@@ -64,9 +67,8 @@ class WindowDataset:
         self.action_shape: tuple[int, int] | None = (
             None if source.action_dim is None else (config.horizon * config.stride, source.action_dim)
         )
-        self._check_presence(source)
-
         frames = TensorDict.load_memmap(self.cache_path / "frames")
+        self._check_presence(source, frames)
         windows = TensorDict.load_memmap(self.cache_path / "windows")
         self._obs = {}
         for spec in self.specs:
@@ -99,7 +101,7 @@ class WindowDataset:
         self.observed_outages = self._observed_outages(frames)
         self.train_presence = self._train_presence()
 
-    def _check_presence(self, source: LeRobotSource) -> None:
+    def _check_presence(self, source: LeRobotSource, frames: TensorDict) -> None:
         problems = {}
         for name, paths in self.report["missing_files"].items():
             problems.setdefault(name, []).extend(f"{p} (missing)" for p in paths)
@@ -112,6 +114,7 @@ class WindowDataset:
                 f"required modality absent from {source.root}: {lines}. Restore the files, or set "
                 f"`required: false` for it to train with the modality marked absent"
             )
+        self._check_mostly_absent(source, frames)
         if problems:
             lines = "; ".join(
                 f"{n!r} ({source.modalities[n].feature}): {', '.join(p)}" for n, p in problems.items()
@@ -121,6 +124,44 @@ class WindowDataset:
                 f"present=False there: {lines}",
                 stacklevel=3,
             )
+
+    def _check_mostly_absent(self, source: LeRobotSource, frames: TensorDict) -> None:
+        """A modality absent on more than half of the frames is an error unless its config accepts it
+        (``allow_absent``): otherwise the model would silently train without it."""
+        for name, m in source.modalities.items():
+            present = _plain(frames.get(m.spec.present_key))
+            absent = 1.0 - present.float().mean().item() if len(present) else 0.0
+            if absent <= MAX_ABSENT_FRACTION or self.config.modalities[name].allow_absent:
+                continue
+            cause, fix = self._absence_cause(name, source)
+            raise ValueError(
+                f"modality {name!r} ({m.feature}) is absent on {absent:.1%} of the {len(present)} frames of "
+                f"{source.root}: {cause}. The model would train without it. {fix}, or accept it with "
+                f"data.modalities.{name}.allow_absent=true"
+            )
+
+    def _absence_cause(self, name: str, source: LeRobotSource) -> tuple[str, str]:
+        """Why modality ``name`` is absent (from the cache report) and the fix to suggest first."""
+        missing = self.report["missing_files"].get(name, [])
+        errors = self.report["undecodable_files"].get(name, {})
+        if errors:
+            path, error = next(iter(errors.items()))
+            cause = f"{len(errors)} undecodable file(s), e.g. {path} ({error})"
+            if "FrameTimestampError" in error:
+                return cause, (
+                    "The dataset's `timestamp` column does not match its video frames (`mmf-rl inspect "
+                    f"{source.root}` reports the drift from frame_index/fps): set data.video_sync=frame_index "
+                    "to decode frame k of an episode at k/fps (a larger data.tolerance_s would decode, but "
+                    "pair rows with frames as far apart as the drift)"
+                )
+            return cause, "Restore or re-encode the camera's files"
+        if missing:
+            return f"{len(missing)} video file(s) missing, e.g. {missing[0]}", "Restore the video files"
+        return (
+            "non-finite values or its validity feature mark it absent",
+            f"Check the feature {source.modalities[name].feature!r} (`mmf-rl inspect {source.root}` lists "
+            "its NaN spans and outages)",
+        )
 
     def _train_stats(self, frames: TensorDict) -> dict[str, torch.Tensor]:
         train_frames = torch.isin(

@@ -74,6 +74,26 @@ def markdown_table(
     return "\n".join(lines) + "\n"
 
 
+def constant_velocity_warning(
+    results: dict[str, dict[str, float]], baseline: dict[str, float] | None, relative: bool
+) -> str | None:
+    """The warning for a model whose MSE with all modalities is worse than constant velocity's (on
+    the same windows), with the likely fix for an absolute target; ``None`` when it is not."""
+    if not baseline or "all" not in results or results["all"]["mse"] <= baseline["mse"]:
+        return None
+    model, cv = results["all"]["mse"], baseline["mse"]
+    fix = (
+        " The target is absolute: forecasting its change from the last observed frame usually fixes this "
+        "(retrain with data.target.relative=true)."
+        if not relative
+        else " Train longer, or check the inputs (mmf-rl inspect DATASET)."
+    )
+    return (
+        f"the model loses to constant velocity: MSE (norm.) with all modalities {model:.4g} against "
+        f"constant velocity's {cv:.4g} ({model / cv:.2f}x) on the same windows.{fix}"
+    )
+
+
 def plot_error_per_subset(
     results: dict[str, dict[str, float]], baseline: dict[str, float] | None, path: Path
 ) -> None:

@@ -42,6 +42,7 @@ say so and on which split they were fitted.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import torch
@@ -56,6 +57,7 @@ from mmf_rl.devices import resolve_device
 from mmf_rl.eval.calibration import calibration_header, calibration_in_use, unfit_for_latent
 from mmf_rl.eval.metrics import evaluate_presence_subsets, scorable_windows
 from mmf_rl.eval.report import (
+    constant_velocity_warning,
     markdown_table,
     plot_error_per_subset,
     plot_forecasts,
@@ -73,6 +75,7 @@ EXAMPLES = [
     "mmf-rl eval checkpoint=exports/g1 data_root=/data/g1     # save_pretrained dir -> exports/g1/eval",
 ]
 LATENT_SETTINGS = ("eval_latent", "predictive_samples")  # model settings an eval may override
+logger = logging.getLogger(__name__)
 BASELINE_KEYS = {"cv_mse": "mse", "cv_mse_units": "mse_units", "cv_ade": "ade", "cv_fde": "fde"}
 
 
@@ -123,6 +126,12 @@ def data_config_for_eval(saved: dict, data_root, source: TrainedModelSource) -> 
             f"exist on this machine (from {Path.cwd()}); pass data_root=/path/to/the/dataset (a copy with "
             f"the same features: {', '.join(sorted(data.get('modalities', {})))})"
         )
+    # Losing a modality on most frames stops training, not scoring: an evaluation scores what the data
+    # holds (the missing-file warning and the table's `available` column show what was lost).
+    data["modalities"] = {
+        name: {**({"feature": m} if isinstance(m, str) else dict(m)), "allow_absent": True}
+        for name, m in data.get("modalities", {}).items()
+    }
     return DataConfig.from_dict(data)
 
 
@@ -150,6 +159,28 @@ def headers(summary: dict) -> str:
     """The lines above the results table: how the forecasts were decoded, how their scale was
     calibrated."""
     return latent_header(summary) + calibration_header(summary["scale_calibration"])
+
+
+def evaluation_notes(
+    split: str, skipped: list[str], unfit: str | None, source, relative: bool, results: dict, baseline
+) -> list[str]:
+    """The notes under the results table; a model losing to constant velocity is also a logged warning."""
+    notes = (
+        [f"not scored (no {split} window has any of their modalities): {', '.join(skipped)}"]
+        if skipped
+        else []
+    )
+    if unfit is not None:
+        notes.append(unfit)
+    losing = constant_velocity_warning(results, baseline, relative)
+    if losing is not None:
+        logger.warning(losing)
+        notes.append(losing)
+    if source.step is None:
+        notes.append(
+            f"training step unknown: {source.path} is a save_pretrained directory, which records none"
+        )
+    return notes
 
 
 def run_evaluation(cfg) -> dict:
@@ -191,17 +222,9 @@ def run_evaluation(cfg) -> dict:
 
     out_dir.mkdir(parents=True, exist_ok=True)
     units = f"units of {data.config.target.feature}"
-    notes = (
-        [f"not scored (no {cfg.split} window has any of their modalities): {', '.join(skipped)}"]
-        if skipped
-        else []
+    notes = evaluation_notes(
+        cfg.split, skipped, unfit, source, data.config.target.relative, results, baseline
     )
-    if unfit is not None:
-        notes.append(unfit)
-    if source.step is None:
-        notes.append(
-            f"training step unknown: {source.path} is a save_pretrained directory, which records none"
-        )
     summary = {
         "checkpoint": str(source.path),
         "model_format": source.kind,

@@ -227,6 +227,32 @@ def conv_frames_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs
     return FrameTokens(spec, history, d_model, **kwargs)
 
 
+class PatchTokens(nn.Module):
+    """The frame-stacked ConvNet of ``conv``, one token per cell of its last feature map (plus a
+    learned position embedding) instead of one projection of the whole map: spatial detail at the
+    cost of ``conv``, ``(h / 2^L) × (w / 2^L)`` tokens."""
+
+    def __init__(self, spec: ModalitySpec, history: int, d_model: int, **kwargs):
+        super().__init__()
+        stack = ImageWindowEncoder(spec, history, d_model, temporal="stack", **kwargs)
+        self.trunk = stack.trunk
+        channels = next(m for m in reversed(self.trunk) if isinstance(m, nn.Conv2d)).out_channels
+        cells = stack.project.in_features // channels
+        self.num_tokens = cells
+        self.project = nn.Linear(channels, d_model)
+        self.position_embedding = nn.Parameter(torch.randn(cells, d_model) * 0.02)
+
+    def forward(self, frames: torch.Tensor) -> torch.Tensor:
+        x = frames.float().mul_(1.0 / 255.0).sub_(0.5).flatten(1, 2)
+        cells = self.trunk(x).flatten(2).transpose(1, 2)  # [N, cells, channels]
+        return self.project(cells) + self.position_embedding
+
+
+@register_encoder("conv_patches", kinds=("image",))
+def conv_patches_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> PatchTokens:
+    return PatchTokens(spec, history, d_model, **kwargs)
+
+
 def num_tokens(encoder: nn.Module) -> int:
     """Tokens an encoder emits per sample: ``num_tokens`` if it declares one (``[N, L, d]``), else 1
     (``[N, d]``)."""

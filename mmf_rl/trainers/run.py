@@ -61,7 +61,7 @@ EXAMPLES = [
     "data.target=observation.state   # print the composed config only",
 ]
 # Keys that may differ between a run and its resumption (run_dir: the run may have been moved).
-RESUMABLE_CHANGES = {"resume", "trainer.progress_bar", "logger", "num_workers", "run_dir"}
+RESUMABLE_CHANGES = {"resume", "trainer.progress_bar", "trainer.prefetch", "logger", "num_workers", "run_dir"}
 
 
 def init_distributed(device: torch.device) -> tuple[int, int]:
@@ -186,12 +186,16 @@ def train(cfg) -> Path:
     for name, modality in data_cfg.modalities.items():  # before the window cache is built
         if modality.encoder is not None:
             check_encoder(name, modality.encoder, modality.kind)
-    if rank == 0:  # one process builds the cache, the others open it
+    # One process per machine builds the cache (or waits on the cache directory's lock for
+    # another machine's build on a shared filesystem); the others open it after the barrier.
+    builder = int(os.environ.get("LOCAL_RANK", "0")) == 0
+    if builder:
         data = WindowDataset(data_cfg, num_workers=cfg.num_workers)
+        logger.info("window cache %s: %s", "built" if data.built else "opened", data.cache_path)
     if world_size > 1:
         dist.barrier()
-    if rank != 0:
-        with warnings.catch_warnings():  # rank 0 already warned about absent modalities
+    if not builder:
+        with warnings.catch_warnings():  # the builder already warned about absent modalities
             warnings.simplefilter("ignore")
             data = WindowDataset(data_cfg)
 
@@ -248,9 +252,9 @@ def train(cfg) -> Path:
         checkpoint_tensors=data.normalizer.stats,
         rank=rank,
         world_size=world_size,
+        # Augmentation seeds the global RNG through fork_rng: a second thread would interleave it.
+        prefetch_in_thread=augment is None,
     )
-    if device.type != "cpu":
-        trainer.register_op("batch_process", lambda batch: batch.to(device, non_blocking=True))
     if cfg.resume:
         trainer.resume(run_dir / "checkpoints")
         if trainer.step < trainer_cfg.total_steps:

@@ -31,10 +31,12 @@ from tqdm.auto import tqdm
 
 from mmf_rl.checkpoint import load_checkpoint, load_model_state, save_checkpoint
 from mmf_rl.configuration import reject_unknown_keys
+from mmf_rl.datasets.prefetch import Prefetcher
 
 logger = logging.getLogger(__name__)
 
 OPS = ("batch_process", "post_loss", "post_optim", "post_steps", "post_steps_log")
+PRECISIONS = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
 class TrainingStopped(RuntimeError):
@@ -51,6 +53,11 @@ class TrainerConfig:
     above it stops the run, naming the last good checkpoint. ``early_stopping_patience``: stop
     after this many evaluations in a row without a lower ``early_stopping_metric``, which must be
     one of the metrics the evaluation returns.
+
+    ``precision``: ``fp32``, or ``bf16``/``fp16`` autocast of the model's forward (the losses
+    stay fp32; ``fp16`` is CUDA-only and scales the loss with a ``GradScaler``). ``compile``:
+    ``torch.compile`` the training forward. ``prefetch``: make the next batch (and copy it to the
+    device) while the current step runs; the batches and results are the same either way.
     """
 
     total_steps: int = 1000
@@ -70,8 +77,13 @@ class TrainerConfig:
     loss_explosion_threshold: float = 1e6
     seed: int = 0
     progress_bar: bool = True
+    precision: str = "fp32"
+    compile: bool = False
+    prefetch: bool = True
 
     def __post_init__(self):
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"trainer.precision must be one of {list(PRECISIONS)}, found {self.precision!r}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(
                 f"trainer.lr_schedule must be 'constant' or 'cosine', found {self.lr_schedule!r}"
@@ -152,15 +164,49 @@ class _LossStep(torch.nn.Module):
     graph back from the tensors it finds in the forward's output (tensors, tuples, dicts; not a
     TensorDict's entries). The summed loss is the one tensor every gradient flows from. The model
     is registered next to the loss so that every weight it checkpoints is reduced.
+
+    With ``dtype`` (bf16/fp16) the forward runs under ``torch.autocast``; the trainer casts the
+    model's outputs back to fp32 (:func:`outputs_to_fp32`), so the Gaussian NLL and KL terms,
+    elementwise ops that autocast leaves in their inputs' dtype, are computed in fp32.
     """
 
-    def __init__(self, model: torch.nn.Module, loss_module: torch.nn.Module):
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        loss_module: torch.nn.Module,
+        device_type: str = "cpu",
+        dtype: torch.dtype | None = None,
+    ):
         super().__init__()
         self.model, self.loss_module = model, loss_module
+        self.device_type, self.dtype = device_type, dtype
 
     def forward(self, batch: TensorDictBase) -> tuple[torch.Tensor, TensorDictBase]:
-        losses = self.loss_module(batch)
+        with torch.autocast(self.device_type, dtype=self.dtype, enabled=self.dtype is not None):
+            losses = self.loss_module(batch)
         return sum(v for k, v in losses.items() if k.startswith("loss_")), losses.detach()
+
+
+def outputs_to_fp32(module: torch.nn.Module, args, output):
+    """Forward hook: the model's autocast (bf16/fp16) outputs (a tensor or TensorDict) as fp32."""
+
+    def cast(t: torch.Tensor) -> torch.Tensor:
+        return t.float() if t.dtype in (torch.bfloat16, torch.float16) else t
+
+    return cast(output) if isinstance(output, torch.Tensor) else output.apply(cast)
+
+
+def check_precision(precision: str, device: torch.device) -> None:
+    if precision == "fp16" and device.type != "cuda":
+        raise ValueError(
+            f"trainer.precision=fp16 needs a CUDA device (loss scaling with torch.amp.GradScaler), "
+            f"found device={device}; use trainer.precision=bf16 or fp32 on the CPU"
+        )
+    if precision == "bf16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
+        raise ValueError(
+            f"trainer.precision=bf16 is not supported by {torch.cuda.get_device_name(device)}; "
+            "use trainer.precision=fp16 (with loss scaling) or fp32"
+        )
 
 
 class Trainer:
@@ -179,6 +225,10 @@ class Trainer:
             fingerprint, normalisation statistics).
         rank, world_size: data-parallel position (``torch.distributed`` must be initialised
             when ``world_size > 1``).
+        prefetch_in_thread: with ``config.prefetch``, make batches on a background thread; pass
+            ``False`` when making a batch draws from the global RNG (image augmentation).
+
+    Batches are moved to the model's device (pinned, ``non_blocking``, on CUDA).
     """
 
     def __init__(
@@ -195,6 +245,7 @@ class Trainer:
         checkpoint_tensors: dict[str, torch.Tensor] | None = None,
         rank: int = 0,
         world_size: int = 1,
+        prefetch_in_thread: bool = True,
     ):
         self.model, self.loss_module, self.loader, self.config = model, loss_module, loader, config
         self.run_dir = Path(run_dir) if run_dir is not None else None
@@ -203,6 +254,9 @@ class Trainer:
         self.checkpoint_meta = dict(checkpoint_meta or {})
         self.checkpoint_tensors = dict(checkpoint_tensors or {})
         self.rank, self.world_size = rank, world_size
+        self.device = next(model.parameters()).device
+        self.prefetch_in_thread = prefetch_in_thread
+        check_precision(config.precision, self.device)
         self.optimizer = make_optimizer(model.parameters(), config)
         self.scheduler = make_scheduler(self.optimizer, config)
         self.ops: dict[str, list[Callable]] = {name: [] for name in OPS}
@@ -217,13 +271,19 @@ class Trainer:
         self.history: list[dict[str, float]] = []
         if config.grad_clip_norm:
             self.register_op("post_loss", self._clip_gradients)
-        self.loss_step: torch.nn.Module = _LossStep(model, loss_module)
+        # Disabled (fp32, bf16) it passes the loss and the optimizer step through unchanged.
+        self.scaler = torch.amp.GradScaler(self.device.type, enabled=config.precision == "fp16")
+        self.loss_step: torch.nn.Module = _LossStep(
+            model, loss_module, self.device.type, PRECISIONS[config.precision]
+        )
         if world_size > 1:
             # DDP starts every rank from rank 0's weights and averages gradients in backward. An
             # encoder whose modality is absent from a rank's batch gets no gradient there
             # (find_unused_parameters): it counts as zero in the average, and keeps no gradient
             # (no optimizer update) when absent on every rank, as in one process.
             self.loss_step = DistributedDataParallel(self.loss_step, find_unused_parameters=True)
+        if config.compile:
+            self.loss_step = torch.compile(self.loss_step)
 
     # -- hooks ------------------------------------------------------------------------------------
 
@@ -261,6 +321,7 @@ class Trainer:
             "nonfinite_total": self.nonfinite_total,
             "best_metric": self.best_metric,
             "evals_without_improvement": self.evals_without_improvement,
+            **({"grad_scaler": self.scaler.state_dict()} if self.scaler.is_enabled() else {}),
         }
 
     def _rng_states(self) -> list[dict]:
@@ -286,6 +347,8 @@ class Trainer:
         self.nonfinite_total = state["nonfinite_total"]
         self.best_metric = state["best_metric"]
         self.evals_without_improvement = state["evals_without_improvement"]
+        if self.scaler.is_enabled() and "grad_scaler" in state:
+            self.scaler.load_state_dict(state["grad_scaler"])
 
     def save(self) -> Path | None:
         """Checkpoint (rank 0 writes; under DDP every rank must call it: the RNG states are gathered)."""
@@ -320,20 +383,32 @@ class Trainer:
     # -- loop -------------------------------------------------------------------------------------
 
     def _batches(self):
+        """Batches from the trainer's position on. It keeps its own position (it may run ahead on
+        the prefetch thread); the trainer's advances as batches are taken (:meth:`_advance`)."""
         if len(self.loader) == 0:
             raise ValueError(
                 "the training loader yields no batch: the training split has fewer windows than "
                 "one batch per rank; lower the batch size or record more episodes"
             )
+        epoch, skip = self.epoch, self.batch_in_epoch
         while True:
-            self.loader.set_epoch(self.epoch)
+            self.loader.set_epoch(epoch)
             for index, batch in enumerate(self.loader):
-                if index < self.batch_in_epoch:  # resuming inside an epoch: replay up to where we were
-                    continue
-                self.batch_in_epoch = index + 1
-                yield batch
-            self.epoch += 1
-            self.batch_in_epoch = 0
+                if index >= skip:  # resuming inside an epoch: replay up to where we were
+                    yield batch
+            epoch, skip = epoch + 1, 0
+
+    def _advance(self) -> None:
+        if self.batch_in_epoch >= len(self.loader):
+            self.epoch, self.batch_in_epoch = self.epoch + 1, 0
+        self.batch_in_epoch += 1
+
+    def _batch_stream(self):
+        if self.config.prefetch:
+            return Prefetcher(self._batches(), self.device, threaded=self.prefetch_in_thread)
+        if self.device.type == "cpu":
+            return self._batches()
+        return (batch.to(self.device) for batch in self._batches())
 
     def _train_step(self, batch: TensorDictBase) -> dict[str, float] | None:
         total, losses = self.loss_step(batch)
@@ -371,10 +446,12 @@ class Trainer:
             )
         self.nonfinite_in_a_row = 0
         self.optimizer.zero_grad(set_to_none=True)
-        total.backward()
+        self.scaler.scale(total).backward()
+        self.scaler.unscale_(self.optimizer)  # clipping and post_loss hooks see the true gradients
         for op in self.ops["post_loss"]:
             op(self)
-        self.optimizer.step()
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
         self.scheduler.step()
         for op in self.ops["post_optim"]:
             op(self)
@@ -410,12 +487,42 @@ class Trainer:
             for name, value in values.items():
                 self.logger.log_scalar(name, value, step=self.step)
 
+    def _log_window(self, window: dict[str, list[float]], rate: float, bar) -> None:
+        """Log the averages of the steps since the last log, then start a new window."""
+        averaged = {f"train/{k}": sum(v) / len(v) for k, v in window.items()}
+        averaged["train/samples_per_s"] = rate
+        averaged["train/lr"] = self.scheduler.get_last_lr()[0]
+        self._log(averaged)
+        self.history.append({"step": self.step, **averaged})
+        for op in self.ops["post_steps_log"]:
+            op(self, averaged)
+        bar.set_postfix(loss=f"{averaged['train/loss']:.3f}", samples_s=f"{rate:.0f}")
+        window.clear()
+
+    def _stops_early(self) -> bool:
+        cfg = self.config
+        if (
+            cfg.early_stopping_patience is None
+            or self.evals_without_improvement <= cfg.early_stopping_patience
+        ):
+            return False
+        logger.info(
+            "early stopping at step %d: %s has not improved for %d evaluations (best %.4g)",
+            self.step,
+            cfg.early_stopping_metric,
+            self.evals_without_improvement,
+            self.best_metric,
+        )
+        return True
+
     def train(self) -> dict[str, float]:
         """Run until ``total_steps`` (or early stopping); return the last evaluation's metrics."""
         cfg = self.config
         self.model.train()
         self.loss_module.train()
-        batches = self._batches()
+        batches = self._batch_stream()
+        # Outside autocast (evaluation, fp32) the hook leaves the outputs as they are.
+        fp32_outputs = self.model.register_forward_hook(outputs_to_fp32) if cfg.precision != "fp32" else None
         window: dict[str, list[float]] = defaultdict(list)
         samples, started = 0, time.perf_counter()
         bar = tqdm(
@@ -430,6 +537,7 @@ class Trainer:
         try:
             while self.step < cfg.total_steps:
                 batch = next(batches)
+                self._advance()
                 for op in self.ops["batch_process"]:
                     batch = op(batch)
                 logs = self._train_step(batch)
@@ -444,37 +552,22 @@ class Trainer:
                 for op in self.ops["post_steps"]:
                     op(self)
                 if self.step % cfg.log_every == 0 or self.step == cfg.total_steps:
-                    rate = samples / max(time.perf_counter() - started, 1e-9)
-                    averaged = {f"train/{k}": sum(v) / len(v) for k, v in window.items()}
-                    averaged["train/samples_per_s"] = rate
-                    averaged["train/lr"] = self.scheduler.get_last_lr()[0]
-                    self._log(averaged)
-                    self.history.append({"step": self.step, **averaged})
-                    for op in self.ops["post_steps_log"]:
-                        op(self, averaged)
-                    bar.set_postfix(loss=f"{averaged['train/loss']:.3f}", samples_s=f"{rate:.0f}")
-                    window.clear()
+                    self._log_window(window, samples / max(time.perf_counter() - started, 1e-9), bar)
                 last = self.step == cfg.total_steps
                 if self.step % cfg.eval_every == 0 or last:
                     metrics = self._evaluate()
                     self._log(metrics)
-                    if (
-                        cfg.early_stopping_patience is not None
-                        and self.evals_without_improvement > cfg.early_stopping_patience
-                    ):
-                        logger.info(
-                            "early stopping at step %d: %s has not improved for %d evaluations (best %.4g)",
-                            self.step,
-                            cfg.early_stopping_metric,
-                            self.evals_without_improvement,
-                            self.best_metric,
-                        )
+                    if self._stops_early():
                         self.save()
                         break
                 if self.step % cfg.checkpoint_every == 0 or last:
                     self.save()
         finally:
             bar.close()
+            if isinstance(batches, Prefetcher):
+                batches.close()
+            if fp32_outputs is not None:
+                fp32_outputs.remove()
         if self.world_size > 1:
             self.check_replicas_agree()
         return metrics

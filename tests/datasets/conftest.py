@@ -48,6 +48,28 @@ def g1_root() -> Path:
     return G1_ROOT
 
 
+# A wall-clock `timestamp` that drifts from frame_index / fps: a clock 1.37% fast, started 12.3 ms late.
+CLOCK_RATE, CLOCK_OFFSET_S = 1.0137, 0.0123
+
+
+@pytest.fixture(scope="session")
+def drifting_g1_root(g1_root, tmp_path_factory) -> Path:
+    """A copy of the real G1 recording whose parquet `timestamp` drifts off frame_index / fps the way
+    a recorder stamping frames with wall-clock time does (frames and video untouched)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    root = Path(shutil.copytree(g1_root, tmp_path_factory.mktemp("drift") / "g1_drifting"))
+    fps = 30
+    for path in sorted((root / "data").rglob("*.parquet")):
+        table = pq.read_table(path)
+        frame = table["frame_index"].to_numpy().astype(np.float64)
+        drifted = pa.array((frame / fps * CLOCK_RATE + CLOCK_OFFSET_S).astype(np.float32))
+        table = table.set_column(table.schema.get_field_index("timestamp"), "timestamp", drifted)
+        pq.write_table(table, path)
+    return root
+
+
 def record_synthetic(root: Path, **options) -> Path:
     """The tests' synthetic dataset at ``root``; ``options`` go to ``make_synthetic_dataset`` (e.g.
     its file layout), everything else is the same for every caller."""
@@ -100,8 +122,9 @@ def so101_config(cache_dir, **overrides) -> DataConfig:
         "horizon": 5,
         "image_size": [16, 16],
         "modalities": {
-            "front": "observation.images.front",
-            "top": "observation.images.top",
+            # no video file of either camera is on disk
+            "front": {"feature": "observation.images.front", "allow_absent": True},
+            "top": {"feature": "observation.images.top", "allow_absent": True},
             "state": "observation.state",
         },
         "target": {"feature": "observation.state", "dims": [0, 1, 2]},

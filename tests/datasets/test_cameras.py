@@ -5,19 +5,21 @@ recorder does not use; cached and batched values are checked against what was re
 """
 
 import numpy as np
+import pytest
 import torch
 from omegaconf import OmegaConf, open_dict
 from tensordict import TensorDict
 
 from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.configuration import compose_config
-from mmf_rl.datasets import WindowDataset
+from mmf_rl.datasets import WindowDataset, lerobot_source
 from mmf_rl.keys import obs_key, present_key
 from mmf_rl.trainers.run import train
 from tests.datasets.conftest import (
     CAMERA_EPISODES,
     CAMERA_HEIGHT,
     CAMERA_WIDTH,
+    JOINTS,
     VIDEO_CAMERA,
     camera_config,
     camera_frame,
@@ -119,3 +121,30 @@ def test_training_reads_every_camera_storage_with_augmentation(mixed_cameras_roo
         "wrist": [3, CAMERA_HEIGHT, CAMERA_WIDTH],
     }
     assert all(torch.isfinite(v).all() for v in checkpoint.model_state.values())
+
+
+def test_a_decoder_bug_propagates_instead_of_marking_the_camera_absent(
+    mixed_cameras_root, tmp_path, monkeypatch
+):
+    """Only decode errors mean "camera absent": a TypeError (say, from a lerobot API change) is a bug
+    and must surface, not be cached as a camera that is never there."""
+    import lerobot.datasets.video_utils
+
+    def changed_api(*args, **kwargs):
+        raise TypeError("decode_video_frames_torchcodec() got an unexpected keyword argument")
+
+    monkeypatch.setattr(lerobot.datasets.video_utils, "decode_video_frames_torchcodec", changed_api)
+    config = camera_config(mixed_cameras_root, tmp_path, modalities={"cam": VIDEO_CAMERA, "joints": JOINTS})
+    with pytest.raises(TypeError, match="unexpected keyword argument"):
+        WindowDataset(config, num_workers=1)
+    assert not list(tmp_path.glob("*/cache.json")), "no cache records the camera as absent"
+
+    # Storing decoded frames is not decoding: a RuntimeError there is a bug too, not an absent camera.
+    monkeypatch.undo()
+
+    def bad_store(*args, **kwargs):
+        raise RuntimeError("The size of tensor a (16) must match the size of tensor b (32)")
+
+    monkeypatch.setattr(lerobot_source, "to_cache_frames", bad_store)
+    with pytest.raises(RuntimeError, match="must match the size"):
+        WindowDataset(config, num_workers=1)

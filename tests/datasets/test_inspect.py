@@ -3,11 +3,19 @@
 import shutil
 import warnings
 
+import numpy as np
+import pytest
 import yaml
 
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets.config import DataConfig
-from mmf_rl.datasets.inspect import inspect_dataset, suggested_data_config
+from mmf_rl.datasets.inspect import (
+    _motion_ratio,
+    choose_target,
+    config_comments,
+    inspect_dataset,
+    suggested_data_config,
+)
 from mmf_rl.datasets.synthetic import (
     FORCE_FEATURE,
     IMAGE_FEATURE,
@@ -17,6 +25,8 @@ from mmf_rl.datasets.synthetic import (
 )
 from mmf_rl.datasets.windows import WindowDataset
 from tests.datasets.conftest import (
+    CLOCK_OFFSET_S,
+    CLOCK_RATE,
     EPISODE_LENGTHS,
     INVALID_IMAGE_EPISODE,
     NAN_FORCE_EPISODE,
@@ -109,7 +119,14 @@ def test_so101_cameras_are_reported_missing():
     for camera in ("observation.images.front", "observation.images.top"):
         assert report["sensors"][camera]["outages"]["fraction"] == 1.0
     assert report["sensors"]["observation.state"]["outages"]["fraction"] == 0.0
-    assert suggested_data_config(report)["target"]["feature"] == "observation.state"
+    config = suggested_data_config(report)
+    assert config["target"]["feature"] == "observation.state"
+    # No video file: the cameras are accepted absent, with a comment saying so.
+    assert config["modalities"]["front"]["allow_absent"] and config["modalities"]["top"]["allow_absent"]
+    assert not config["modalities"]["state"]["allow_absent"]
+    assert any(
+        "front: allow_absent" in c and "video files are missing" in c for c in config_comments(report, config)
+    )
 
 
 def test_the_readmes_inspect_train_eval_path(synthetic_root, tmp_path, monkeypatch, capsys):
@@ -147,3 +164,67 @@ def test_the_readmes_inspect_train_eval_path(synthetic_root, tmp_path, monkeypat
         capsys.readouterr()
         assert cli(["eval", *evaluate, "num_samples=2", "plots=false"]) == 0
     assert "| all |" in capsys.readouterr().out
+
+
+def test_inspect_measures_timestamp_drift_and_writes_frame_index_sync(drifting_g1_root, g1_root, capsys):
+    camera = "observation.images.cam_high"
+    report = inspect_dataset(drifting_g1_root)
+    sync = report["sensors"][camera]["sync"]
+    longest = max(report["episode_frames"])
+    assert sync["max_drift_s"] == pytest.approx(
+        (longest - 1) / report["fps"] * (CLOCK_RATE - 1) + CLOCK_OFFSET_S, rel=1e-3
+    )
+    assert sync["timestamp_error"].startswith("FrameTimestampError") and sync["frame_index_error"] is None
+    assert sync["sampled_frames"] >= 3
+    config = suggested_data_config(report)
+    assert config["video_sync"] == "frame_index"
+    (line,) = [c for c in config_comments(report, config) if "video_sync" in c]
+    assert camera in line and f"{sync['max_drift_s']:.3g} s" in line
+    assert cli(["inspect", str(drifting_g1_root)]) == 0
+    out = capsys.readouterr().out
+    assert "sampled frames at the rows' timestamps (tolerance_s=0.0001): FAIL (FrameTimestampError" in out
+    assert "by frame index (video_sync: frame_index): decode" in out
+
+    # The original recording: stamps on the k / fps grid, decoded as lerobot does.
+    report = inspect_dataset(g1_root)
+    sync = report["sensors"][camera]["sync"]
+    assert sync["max_drift_s"] < 1e-5 and sync["timestamp_error"] is None
+    assert suggested_data_config(report)["video_sync"] == "timestamp"
+
+
+def test_target_prefers_state_then_environment_state_then_a_vector_without_outages(synthetic_root):
+    report = inspect_dataset(synthetic_root)
+    assert report["sensors"][FORCE_FEATURE]["outages"]["fraction"] > 0  # NaN spans
+    assert choose_target(report) == STATE_FEATURE
+    report["vectors"].remove(STATE_FEATURE)
+    # The force sensor comes first but has NaN outages: the complete pose is forecast instead.
+    assert report["vectors"].index(FORCE_FEATURE) < report["vectors"].index(POSE_FEATURE)
+    assert choose_target(report) == POSE_FEATURE
+    report["vectors"].append("observation.environment_state")
+    report["sensors"]["observation.environment_state"] = report["sensors"][FORCE_FEATURE]
+    assert choose_target(report) == "observation.environment_state"
+
+
+def test_relative_follows_the_motion_ratio():
+    episode = np.zeros(400, dtype=np.int64)
+    smooth = np.cumsum(np.random.default_rng(0).normal(size=(400, 2)), 0)  # a position: relative
+    noise = np.random.default_rng(1).normal(size=(400, 2))  # noise around a level: absolute
+    assert _motion_ratio(smooth, episode) < 0.5 and _motion_ratio(noise, episode) > 1.5
+    assert _motion_ratio(np.ones((400, 2)), episode) is None
+
+
+def test_a_camera_that_decodes_neither_way_is_accepted_absent_with_the_error(synthetic_copy, tmp_path):
+    video = next((synthetic_copy / "videos").rglob("*.mp4"))
+    video.write_bytes(b"not an mp4 file")
+    report = inspect_dataset(synthetic_copy)
+    sync = report["sensors"][IMAGE_FEATURE]["sync"]
+    assert sync["timestamp_error"].startswith("RuntimeError") and sync["frame_index_error"].startswith(
+        "RuntimeError"
+    )
+    config = suggested_data_config(report)
+    assert config["video_sync"] == "timestamp" and config["modalities"]["front"]["allow_absent"]
+    assert any("decode neither" in c and "RuntimeError" in c for c in config_comments(report, config))
+    # As written, the config trains (the camera absent, with the decoder's warning).
+    config = DataConfig.from_dict({**config, "history": 4, "horizon": 3, "cache_dir": str(tmp_path)})
+    with pytest.warns(UserWarning, match=rf"{video.name} \(undecodable"):
+        assert not WindowDataset(config).presence["front"].any()

@@ -8,10 +8,11 @@ import pandas as pd
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
+from tensordict import TensorDict
 
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.splits import Normalizer
-from mmf_rl.datasets.synthetic import FORCE_FEATURE, POSE_FEATURE, STATE_FEATURE
+from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
 from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, obs_key, present_key, validate_batch
 from tests.datasets.conftest import (
@@ -72,6 +73,19 @@ def test_so101_required_camera_is_a_clear_error(tmp_path):
     config.modalities["front"].required = True
     with pytest.raises(
         FileNotFoundError, match=r"required modality.*'front'.*observation\.images\.front.*file-000\.mp4"
+    ):
+        WindowDataset(config)
+
+
+@needs_so101
+def test_so101_camera_absent_on_every_frame_is_an_error_unless_accepted(tmp_path):
+    config = so101_config(tmp_path)
+    config.modalities["top"].allow_absent = False
+    with pytest.raises(
+        ValueError,
+        match=r"modality 'top' \(observation\.images\.top\) is absent on 100\.0% of the 1492 frames.*"
+        r"video file\(s\) missing.*file-000\.mp4.*Restore the video files, or accept it with "
+        r"data\.modalities\.top\.allow_absent=true",
     ):
         WindowDataset(config)
 
@@ -272,13 +286,23 @@ def test_presence_masks_follow_nan_spans_and_validity(synthetic_root, tmp_path):
 def test_missing_and_undecodable_videos_mark_camera_absent(synthetic_copy, tmp_path):
     video = next((synthetic_copy / "videos").rglob("*.mp4"))
     video.write_bytes(b"not an mp4 file")
+    # The one video holds every episode: the camera is lost on every frame, an error unless accepted.
+    with pytest.raises(
+        ValueError, match=rf"'image'.*absent on 100\.0%.*undecodable.*{video.name}.*allow_absent=true"
+    ):
+        WindowDataset(synthetic_config(synthetic_copy, tmp_path / "a"))
+    accepted = {
+        "image": {"feature": IMAGE_FEATURE, "allow_absent": True},
+        "state": STATE_FEATURE,
+        "force": FORCE_FEATURE,
+    }
     with pytest.warns(UserWarning, match=rf"{video.name} \(undecodable"):
-        dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "a"))
+        dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "a", modalities=accepted))
     assert not dataset.presence["image"].any() and dataset.presence["state"].all()
 
     video.unlink()  # declared in meta/info.json, missing on disk
     with pytest.warns(UserWarning, match=rf"{video.name} \(missing\)"):
-        dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "b"))
+        dataset = WindowDataset(synthetic_config(synthetic_copy, tmp_path / "b", modalities=accepted))
     assert not dataset.presence["image"].any()
     validate_batch(all_windows(dataset), dataset.specs, 4, 3, 2)
     required = synthetic_config(synthetic_copy, tmp_path / "b")
@@ -439,3 +463,36 @@ def test_vector_kind_and_required_vector_modality(synthetic_root, tmp_path):
     assert absent > 0 and dataset.report["skipped"]["windows_without_required_modality"] == absent
     in_splits = torch.cat(list(dataset.split_windows.values()))
     assert dataset.presence["force"][in_splits].all() and len(in_splits) == len(dataset) - absent
+
+
+def test_drifting_timestamps_lose_the_camera_with_an_error_unless_synced_by_frame_index(
+    drifting_g1_root, g1_root, tmp_path
+):
+    """A real camera whose rows carry wall-clock stamps: decoding at them loses it on every frame, an
+    error naming the sync option; synced by frame index it decodes exactly the original's frames."""
+
+    def g1_config(root, **overrides):
+        return DataConfig.from_dict(
+            {
+                "root": str(root),
+                "cache_dir": str(tmp_path),
+                "history": 5,
+                "horizon": 5,
+                "image_size": [16, 16],
+                "modalities": {"cam": "observation.images.cam_high", "state": "observation.state"},
+                "target": {"feature": "observation.state", "relative": True},
+                **overrides,
+            }
+        )
+
+    with pytest.raises(
+        ValueError,
+        match=r"modality 'cam' \(observation\.images\.cam_high\) is absent on 100\.0% of the 2316 frames.*"
+        r"FrameTimestampError.*mmf-rl inspect.*data\.video_sync=frame_index",
+    ):
+        WindowDataset(g1_config(drifting_g1_root))
+    synced = WindowDataset(g1_config(drifting_g1_root, video_sync="frame_index"))
+    assert synced.presence["cam"].all() and not synced.report["undecodable_files"]
+    original = WindowDataset(g1_config(g1_root))
+    frames = [TensorDict.load_memmap(d.cache_path / "frames") for d in (synced, original)]
+    assert torch.equal(*(f.get(obs_key("cam")).as_subclass(torch.Tensor) for f in frames))

@@ -10,6 +10,8 @@ import torch
 from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.eval.report import constant_velocity_warning
+from mmf_rl.eval.run import data_config_for_eval
 from mmf_rl.models import load_trained_model
 from tests.conftest import push_train_overrides
 
@@ -75,6 +77,20 @@ def test_learned_prior_eval_pairs_subsets_on_windows_with_failed_sensors(learned
     assert rows["all"]["degradation"] == 0
     # The learned prior's latents depend on the present modalities: the t-SNE has something to show.
     assert (run / "eval" / "latent_tsne.png").stat().st_size > 1000
+    # results.md warns exactly when the model loses to constant velocity.
+    cv = json.loads((run / "eval" / "results.json").read_text())["constant_velocity"]
+    loses = rows["all"]["mse"] > cv["mse"]
+    assert ("loses to constant velocity" in (run / "eval" / "results.md").read_text()) == loses
+
+
+def test_losing_to_constant_velocity_is_a_warning_naming_both_errors_and_the_fix():
+    rows, cv = {"all": {"mse": 0.5}}, {"mse": 0.25}
+    warning = constant_velocity_warning(rows, cv, relative=False)
+    assert "0.5 against constant velocity's 0.25 (2.00x)" in warning
+    assert "data.target.relative=true" in warning
+    assert "data.target.relative=true" not in constant_velocity_warning(rows, cv, relative=True)
+    assert constant_velocity_warning({"all": {"mse": 0.2}}, cv, relative=False) is None
+    assert constant_velocity_warning(rows, None, relative=False) is None
 
 
 def test_eval_scores_a_trained_checkpoint_with_another_eval_latent(learned_prior_run, capsys):
@@ -254,3 +270,17 @@ def test_a_model_in_the_hugging_face_cache_needs_an_out_dir_elsewhere(
         f"mmf-rl eval: error: {snapshot} is in the Hugging Face cache ({cache}); pass out_dir="
     )
     assert not (snapshot / "eval").exists()
+
+
+def test_eval_scores_data_that_lost_a_modality_on_most_frames(tmp_path):
+    """The more-than-half-absent error guards training; an evaluation scores what the data holds."""
+    saved = {
+        "root": str(tmp_path),
+        "modalities": {"cam": "observation.images.cam", "state": {"feature": "observation.state"}},
+        "target": {"feature": "observation.state"},
+    }
+    config = data_config_for_eval(saved, None, source=None)
+    assert all(m.allow_absent for m in config.modalities.values())
+    assert saved["modalities"]["state"] == {"feature": "observation.state"}, (
+        "the saved config is left as it was"
+    )

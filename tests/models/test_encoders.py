@@ -26,7 +26,8 @@ def test_an_encoder_not_registered_for_the_kind_fails_when_the_model_is_built(mo
 def test_an_unknown_encoder_names_how_to_register_one():
     spec = ModalitySpec("cam", "image", (3, 16, 16), encoder="resnet")
     with pytest.raises(
-        ValueError, match=r"expected one of \['conv', 'conv_frames', 'conv_gru'\].*register_encoder"
+        ValueError,
+        match=r"expected one of \['conv', 'conv_frames', 'conv_gru', 'conv_patches'\].*register_encoder",
     ):
         ForecasterConfig(modalities=[spec])
 

@@ -16,6 +16,7 @@ from tests.conftest import (
     SMALL_MODALITIES,
     TARGET_DIM,
     assert_a_few_steps_reduce_the_loss,
+    assert_each_sample_alone_gives_its_batch_result,
     make_batch,
     presence_patterns,
 )
@@ -66,13 +67,7 @@ def test_output_shapes_do_not_depend_on_presence(model, batch, train):
 
 
 def test_mixed_batch_equals_per_sample_results(model, mixed_batch):
-    model.eval()
-    with torch.no_grad():
-        together = model(mixed_batch.clone())
-        for i in range(mixed_batch.shape[0]):
-            alone = model(mixed_batch[i : i + 1].clone())
-            for key in OUTPUTS:
-                torch.testing.assert_close(alone.get(key)[0], together.get(key)[i], rtol=1e-4, atol=1e-5)
+    assert_each_sample_alone_gives_its_batch_result(model.eval(), mixed_batch, OUTPUTS)
 
 
 @pytest.mark.parametrize("fill", ["noise", "nan", "zeros"])
@@ -433,14 +428,16 @@ def test_world_model_learns_what_the_actions_do():
     assert statistics.median(ratios) < 0.5, ratios
 
 
-def test_forecast_from_the_prior_does_not_depend_on_the_multimodal_encoder(small_model, batch):
-    """The fusion feeds only q(z|X): eval forecasts (z = 0) ignore it; only training sees it."""
-    small_model.eval()
+def test_with_raw_tokens_the_forecast_from_the_prior_does_not_depend_on_the_fusion(small_config, batch):
+    """Decoding the raw tokens (the paper read literally), the fusion feeds only q(z|X): eval
+    forecasts (z = 0) ignore it; only training sees it."""
+    torch.manual_seed(0)
+    model = MultimodalForecaster(dataclasses.replace(small_config, decoder_input="tokens")).eval()
     with torch.no_grad():
-        before = small_model(batch.clone())
-        for parameter in small_model.fusion.parameters():
+        before = model(batch.clone())
+        for parameter in model.fusion.parameters():
             parameter.add_(1.0)
-        after = small_model(batch.clone())
+        after = model(batch.clone())
     torch.testing.assert_close(after.get(keys.FORECAST_LOC), before.get(keys.FORECAST_LOC))
     assert not torch.allclose(after.get(keys.POSTERIOR_LOC), before.get(keys.POSTERIOR_LOC))
 

@@ -30,6 +30,7 @@ from tests.conftest import (
     SMALL_MODALITIES,
     TARGET_DIM,
     assert_a_few_steps_reduce_the_loss,
+    assert_each_sample_alone_gives_its_batch_result,
     make_batch,
     presence_patterns,
 )
@@ -96,13 +97,9 @@ def test_output_shapes_do_not_depend_on_presence(small_config, batch, fusion, tr
 
 @pytest.mark.parametrize("fusion", ABLATIONS)
 def test_mixed_batch_equals_per_sample_results(small_config, mixed_batch, fusion):
-    model = make_model(small_config, fusion).eval()
-    with torch.no_grad():
-        together = model(mixed_batch.clone())
-        for i in range(mixed_batch.shape[0]):
-            alone = model(mixed_batch[i : i + 1].clone())
-            for key in OUTPUTS:
-                torch.testing.assert_close(alone.get(key)[0], together.get(key)[i], rtol=1e-4, atol=1e-5)
+    assert_each_sample_alone_gives_its_batch_result(
+        make_model(small_config, fusion).eval(), mixed_batch, OUTPUTS
+    )
 
 
 @pytest.mark.parametrize("fusion", ABLATIONS)

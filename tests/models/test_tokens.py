@@ -14,6 +14,7 @@ from tests.conftest import (
     HISTORY,
     SMALL_MODALITIES,
     assert_a_few_steps_reduce_the_loss,
+    assert_each_sample_alone_gives_its_batch_result,
     make_batch,
 )
 
@@ -56,12 +57,9 @@ def test_step_tokens_keep_the_presence_invariants(small_config, mixed_batch, fus
     batch = make_batch(mixed_batch.shape[0], STEP_MODALITIES, seed=1)
     for spec in STEP_MODALITIES:
         batch.set(spec.present_key, mixed_batch.get(spec.present_key))
+    assert_each_sample_alone_gives_its_batch_result(model, batch, OUTPUTS)
     with torch.no_grad():
         together = model(batch.clone())
-        for i in range(batch.shape[0]):
-            alone = model(batch[i : i + 1].clone())
-            for key in OUTPUTS:
-                torch.testing.assert_close(alone.get(key)[0], together.get(key)[i], rtol=1e-4, atol=1e-5)
         corrupted = batch.clone()
         for spec in STEP_MODALITIES:
             absent, obs = ~corrupted.get(spec.present_key), corrupted.get(spec.obs_key)
@@ -98,10 +96,10 @@ def perturbed_fusion_moves(model: MultimodalForecaster, batch) -> float:
 @pytest.mark.parametrize(
     "changes, acts",
     [
-        ({}, False),  # the paper read literally: decoded at z = 0, the fusion feeds only q(z|X)
-        ({"decoder_input": "mixed"}, True),
-        ({"eval_latent": "posterior"}, True),
-        ({"prior": "learned"}, True),
+        ({"decoder_input": "tokens"}, False),  # the paper read literally: z = 0, the fusion feeds only q(z|X)
+        ({}, True),  # the default reads the mixed tokens
+        ({"decoder_input": "tokens", "eval_latent": "posterior"}, True),
+        ({"decoder_input": "tokens", "prior": "learned"}, True),
     ],
 )
 def test_whether_the_fusion_acts_on_eval_forecasts(small_config, changes, acts):
@@ -121,6 +119,13 @@ def test_posterior_eval_latent_decodes_at_the_mean_of_q(small_config):
         expected = model.decode(tokens, present, post_loc)[0]
         torch.testing.assert_close(out.get(keys.LATENT), post_loc)
         torch.testing.assert_close(out.get(keys.FORECAST_LOC), expected)
+
+
+def test_a_config_saved_before_decoder_input_loads_as_the_raw_tokens(small_config):
+    saved = small_config.to_dict()
+    del saved["decoder_input"]
+    assert small_config.decoder_input == "mixed"
+    assert type(small_config).from_dict(saved).decoder_input == "tokens"
 
 
 def test_posterior_eval_latent_needs_a_posterior_without_the_target(small_config):

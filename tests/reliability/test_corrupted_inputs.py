@@ -19,8 +19,16 @@ FORCE_DIMS, PROPRIO_DIMS = 6, 17
 def test_truncated_mp4_makes_the_camera_absent_with_a_warning_naming_the_file(push_copy, tmp_path):
     [video] = (push_copy / "videos").rglob("*.mp4")
     video.write_bytes(video.read_bytes()[: video.stat().st_size * 2 // 5])
+    # More than half of the frames lose their camera: an error naming the file, unless accepted.
+    with pytest.raises(ValueError, match=rf"'image'.*absent on [\d.]+% .*{video.name}.*allow_absent=true"):
+        WindowDataset(push_data_config(push_copy, tmp_path / "cache"))
+    accepted = {
+        "image": {"feature": "observation.images.front", "allow_absent": True},
+        "force": "observation.force",
+        "proprio": "observation.state",
+    }
     with pytest.warns(UserWarning, match=rf"{video.name} \(undecodable"):
-        dataset = WindowDataset(push_data_config(push_copy, tmp_path / "cache"))
+        dataset = WindowDataset(push_data_config(push_copy, tmp_path / "cache", modalities=accepted))
     image = dataset.presence["image"]
     assert not image.all(), "the episodes past the truncation have no camera"
     assert dataset.presence["force"].all() and dataset.presence["proprio"].all()

@@ -127,6 +127,10 @@ def test_timestamps_going_backwards_skip_the_episode_with_a_warning(push_copy, t
     ), messages
     assert 2 not in dataset.window_episode.tolist() and {0, 1, 3} <= set(dataset.window_episode.tolist())
     assert dataset.report["skipped"]["episodes_timestamps_not_increasing"] == [2]
+    # Synced by frame index the stamps match no video frame: the episode is kept, its camera decoded.
+    synced = WindowDataset(push_data_config(push_copy, tmp_path / "cache", video_sync="frame_index"))
+    assert synced.report["skipped"]["episodes_timestamps_not_increasing"] == []
+    assert synced.presence["image"][synced.window_episode == 2].all()
 
 
 def test_a_video_shorter_than_its_parquet_makes_the_camera_absent_past_its_end(push_copy, tmp_path):

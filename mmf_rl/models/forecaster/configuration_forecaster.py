@@ -71,10 +71,11 @@ class ForecasterConfig:
         fusion: the multimodal encoder of the posterior: ``"agnostic"`` (the paper's
             modality-agnostic attention) or an ablation of :mod:`mmf_rl.models.fusion`
             (``"linear"``, ``"average"``, ``"sum"``, ``"cross_attention"``).
-        decoder_input: what the decoder reads: ``"tokens"`` (the paper: the unimodal encoders'
-            tokens) or ``"mixed"`` (the same tokens after the multimodal encoder's self-attention
-            layers; a fusion without such layers passes them through), so the fusion acts on every
-            forecast, whatever the prior.
+        decoder_input: what the decoder reads: ``"mixed"`` (default: the unimodal encoders' tokens
+            after the multimodal encoder's self-attention layers, so the fusion acts on every
+            forecast whatever the prior; a fusion without such layers passes them through) or
+            ``"tokens"`` (the paper read literally: the raw tokens, and under the standard prior
+            the fusion shapes only training). A saved config without it loads as ``"tokens"``.
         action_dim: ``A``; with ``action_steps``, makes the model an action-conditioned world
             model that reads ``"future_action"`` ``[B, action_steps, A]`` (the actions applied
             over the horizon). ``0`` (default): no action input, the paper's forecaster.
@@ -100,7 +101,7 @@ class ForecasterConfig:
     eval_latent: Literal["mean", "sample", "predictive", "posterior"] = "mean"
     predictive_samples: int = 16
     fusion: str = "agnostic"
-    decoder_input: Literal["tokens", "mixed"] = "tokens"
+    decoder_input: Literal["tokens", "mixed"] = "mixed"
     action_dim: int = 0
     action_steps: int = 0
     nonfinite: NonFiniteRule = "raise"
@@ -198,4 +199,5 @@ class ForecasterConfig:
     @classmethod
     def from_dict(cls, d: dict) -> ForecasterConfig:
         reject_unknown_keys(cls, d, "ForecasterConfig")
-        return cls(**d)
+        # A config saved before decoder_input existed describes a decoder that read the raw tokens.
+        return cls(**{"decoder_input": "tokens", **d})

@@ -1,0 +1,78 @@
+"""Two torchrun "nodes" on this machine (c10d rendezvous, gloo, one process each), started for real."""
+
+import re
+import subprocess
+import sys
+
+import torch
+
+from mmf_rl.cli import main as cli
+from tests.trainers.test_run import final_weights, free_port, subprocess_env
+
+STEPS = 4
+
+
+def deterministic_run(root, cache_dir, run_dir, batch_size: int) -> list[str]:
+    """A model and loss without random draws (lf_lstm, Gaussian NLL): one process on the union of
+    the ranks' batches must then train the same weights as two data-parallel ranks."""
+    return [
+        f"data.root={root}",
+        f"data.cache_dir={cache_dir}",
+        f"run_dir={run_dir}",
+        "data.image_size=[32,32]",
+        "data.history=4",
+        "data.horizon=3",
+        "data.split_fractions=[0.5,0.25,0.25]",
+        "model=lf_lstm",
+        "model.d_model=16",
+        "model.head_hidden=32",
+        f"trainer.total_steps={STEPS}",
+        f"trainer.batch_size={batch_size}",
+        "trainer.warmup_steps=2",
+        "trainer.progress_bar=false",
+        "logger=none",
+        "num_workers=0",
+        "calibrate=false",
+    ]
+
+
+def test_two_nodes_build_the_cache_once_and_train_the_weights_of_one_process(recorded_push_root, tmp_path):
+    port = free_port()
+    node = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nnodes=2",
+        "--nproc_per_node=1",
+        "--rdzv-backend=c10d",
+        f"--rdzv-endpoint=127.0.0.1:{port}",
+        "--rdzv-id=mmf-rl-two-nodes",
+        "-m",
+        "mmf_rl.cli",
+        "train",
+        # One cache directory for both: a shared filesystem (each node's own disk works alike).
+        *deterministic_run(recorded_push_root, tmp_path / "cache", tmp_path / "nodes", batch_size=16),
+    ]
+    nodes = [
+        subprocess.Popen(
+            node, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+        )
+        for _ in range(2)
+    ]
+    errors = [process.communicate(timeout=300)[1] for process in nodes]
+    assert [process.returncode for process in nodes] == [0, 0], "\n".join(e[-3000:] for e in errors)
+    log = "\n".join(errors)
+    assert log.count("window cache built") == 1 and log.count("window cache opened") == 1, log[-3000:]
+    # Each rank's weights against rank 0's, after the last step (Trainer.check_replicas_agree).
+    gap = re.search(r"2 ranks agree after 4 steps \(max weight difference (\S+)\)", log)
+    assert gap is not None and float(gap.group(1)) == 0.0, log[-3000:]
+
+    torch.set_num_threads(1)  # the kernels of the single-threaded node processes
+    try:
+        run = deterministic_run(recorded_push_root, tmp_path / "cache", tmp_path / "one", batch_size=32)
+        assert cli(["train", *run]) == 0
+    finally:
+        torch.set_num_threads(2)
+    two_nodes, one_process = final_weights(tmp_path / "nodes"), final_weights(tmp_path / "one")
+    deltas = {name: float((two_nodes[name] - value).abs().max()) for name, value in one_process.items()}
+    assert max(deltas.values()) <= 1e-6, sorted(deltas.items(), key=lambda item: -item[1])[:5]
