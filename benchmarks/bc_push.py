@@ -96,7 +96,7 @@ from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.cli import configure_logging
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.report import write_json, write_text
-from mmf_rl.models.registry import load_trained_model
+from mmf_rl.models.loading import load_trained_model
 from mmf_rl.rl import (
     BCPolicy,
     Demonstrations,

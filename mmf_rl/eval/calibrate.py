@@ -29,7 +29,7 @@ from mmf_rl.devices import resolve_device
 from mmf_rl.eval.calibration import calibration_record, fit_scale_calibration, fit_table, save_calibration
 from mmf_rl.eval.run import check_modalities_match, data_config_for_eval
 from mmf_rl.models import load_trained_model, locate_trained_model
-from mmf_rl.models.registry import TRAINED_MODEL_KINDS
+from mmf_rl.models.loading import TRAINED_MODEL_KINDS
 
 EXAMPLES = [
     "mmf-rl calibrate checkpoint=runs/forecaster                 # its val split; then mmf-rl eval",

@@ -43,7 +43,7 @@ from mmf_rl.datasets import apply_presence_subset, presence_subsets
 from mmf_rl.eval.metrics import COVERAGE_LEVELS
 from mmf_rl.models import TrainedModelSource
 from mmf_rl.models.calibration import pattern_name
-from mmf_rl.models.registry import RUN_EXPORT_DIR
+from mmf_rl.models.loading import RUN_EXPORT_DIR
 
 DEFAULT_MIN_WINDOWS = 32
 FACTORS_KEY = "scale_calibration.factors"  # the factors' name in a registered model's state dict

@@ -66,7 +66,7 @@ from mmf_rl.eval.report import (
     write_text,
 )
 from mmf_rl.models import TrainedModelSource, load_trained_model, locate_trained_model
-from mmf_rl.models.registry import TRAINED_MODEL_KINDS
+from mmf_rl.models.loading import TRAINED_MODEL_KINDS
 
 EXAMPLES = [
     "mmf-rl eval checkpoint=runs/forecaster                  # the run's last checkpoint, its test split",

@@ -1,22 +1,37 @@
+from mmf_rl.models.baselines import MVAE, LateFusionLSTM, MulT
+from mmf_rl.models.finetune import init_weights_from
 from mmf_rl.models.forecaster import ForecasterConfig, MultimodalForecaster
 from mmf_rl.models.hub import PretrainedModel
-from mmf_rl.models.registry import (
-    MODELS,
+from mmf_rl.models.loading import (
+    RUN_EXPORT_DIR,
+    TRAINED_MODEL_KINDS,
     TrainedModelSource,
-    build_loss,
-    build_model,
     from_pretrained,
-    init_weights_from,
     load_trained_model,
     locate_trained_model,
+)
+from mmf_rl.models.registry import (
+    MODELS,
+    build_loss,
+    build_model,
     model_config_with_overrides,
+    model_entry,
     model_from_saved_config,
+    register_model,
     saved_config,
 )
 
+# The paper's forecaster: its ELBO and the missing-modality loss (off at loss.missing_modality_weight=0).
+register_model("forecaster", ForecasterConfig, loss=("elbo", "mis"))(MultimodalForecaster)
+
 __all__ = [
     "MODELS",
+    "MVAE",
+    "RUN_EXPORT_DIR",
+    "TRAINED_MODEL_KINDS",
     "ForecasterConfig",
+    "LateFusionLSTM",
+    "MulT",
     "MultimodalForecaster",
     "PretrainedModel",
     "TrainedModelSource",
@@ -27,6 +42,8 @@ __all__ = [
     "load_trained_model",
     "locate_trained_model",
     "model_config_with_overrides",
+    "model_entry",
     "model_from_saved_config",
+    "register_model",
     "saved_config",
 ]

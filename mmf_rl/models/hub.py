@@ -19,7 +19,7 @@ the fit of the scale factors (``mmf-rl calibrate``; the factors themselves are w
     model, stats, data = load_trained_model("runs/g1")      # a run, its checkpoints/ or one checkpoint
     model.save_pretrained("exports/g1")                      # stats and data config included
     model.push_to_hub("me/g1-forecaster")                    # online users
-    model = from_pretrained("exports/g1")                    # registry's: "me/g1-forecaster" too; any model
+    model = from_pretrained("exports/g1")                    # loading's: "me/g1-forecaster" too; any model
 """
 
 from __future__ import annotations

@@ -4,15 +4,20 @@ from mmf_rl.objectives.config import LossConfig
 from mmf_rl.objectives.elbo import ELBOLoss
 from mmf_rl.objectives.missing_modality import MissingModalityLoss
 from mmf_rl.objectives.nll import GaussianNLLLoss
+from mmf_rl.objectives.registry import LOSS_TERMS, build_loss_terms, loss_term, register_loss_term
 
 __all__ = [
     "CombinedLoss",
     "ELBOLoss",
     "ForecasterLossBase",
     "GaussianNLLLoss",
+    "LOSS_TERMS",
     "LossConfig",
     "MissingModalityLoss",
+    "build_loss_terms",
     "gaussian_kl",
     "gaussian_kl_to_standard",
     "gaussian_nll",
+    "loss_term",
+    "register_loss_term",
 ]

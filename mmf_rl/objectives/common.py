@@ -79,6 +79,13 @@ class ForecasterLossBase(LossModule):
         defaults = self.default_tensor_keys()
         super().set_keys(**{k: getattr(defaults, k, None) if v is None else v for k, v in kwargs.items()})
 
+    @classmethod
+    def from_config(cls, forecaster, loss_cfg) -> ForecasterLossBase | None:
+        """This loss for ``forecaster`` as the loss config group (a ``LossConfig``) sets it; ``None``
+        when the config turns it off. By default the loss's own defaults: a loss with settings in
+        the loss config overrides this."""
+        return cls(forecaster)
+
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No value estimator: nothing to forward (required by ``set_keys``)."""
 

@@ -9,7 +9,8 @@ from mmf_rl.configuration import reject_unknown_keys
 
 @dataclass
 class LossConfig:
-    """How a model's losses are weighted; each model's registry entry picks the terms it uses.
+    """How a model's losses are weighted; each model's registry entry picks the terms it uses
+    (``@register_model(..., loss=...)``) unless ``terms`` names others.
 
     The defaults are the losses' own (β = 1 without warm-up, ``L_mis`` at weight 1 with a detached
     teacher); a training run takes its values from ``configs/loss/<name>.yaml``.
@@ -26,6 +27,8 @@ class LossConfig:
             sample; 1 is the paper's setting, ``None`` up to ``M_i - 1`` (single-modality inputs trained).
         dropped_nll_weight: > 0 adds the target's NLL under the degraded forecast beside ``L_mis``.
         dropped_prior_weight: learned prior only: weight of ``KL(p(z|X) || p(z|X without the dropped))``.
+        terms: the loss terms to train with, by registered name (``mmf_rl.objectives.LOSS_TERMS``,
+            ``@register_loss_term``); null: the model's own.
     """
 
     kl_weight: float = 1.0
@@ -36,6 +39,7 @@ class LossConfig:
     max_dropped: int | None = 1
     dropped_nll_weight: float = 0.0
     dropped_prior_weight: float = 1.0
+    terms: list[str] | None = None
 
     def __post_init__(self):
         if self.max_dropped is not None and (
@@ -56,6 +60,16 @@ class LossConfig:
         ):
             if getattr(self, name) < 0:
                 raise ValueError(f"loss.{name} must be >= 0, found {getattr(self, name)}")
+        if self.terms is not None:
+            if (
+                isinstance(self.terms, str)
+                or not all(isinstance(t, str) for t in self.terms)
+                or not self.terms
+            ):
+                raise ValueError(
+                    f"loss.terms must be a non-empty list of loss term names or null, found {self.terms!r}"
+                )
+            self.terms = list(self.terms)
         if not isinstance(self.detach_teacher, bool):
             raise ValueError(f"loss.detach_teacher must be true or false, found {self.detach_teacher!r}")
 

@@ -16,8 +16,10 @@ from mmf_rl.objectives.common import (
     gaussian_nll,
     reduce_batch,
 )
+from mmf_rl.objectives.registry import register_loss_term
 
 
+@register_loss_term("elbo")
 class ELBOLoss(ForecasterLossBase):
     """``-ELBO = E_q[-log p(y | X, z)] + β KL(q(z | X, y) || p(z | X))`` (paper, "Model Learning").
 
@@ -80,6 +82,22 @@ class ELBOLoss(ForecasterLossBase):
         self.kl_warmup_steps = kl_warmup_steps
         self.gsnn_weight = gsnn_weight
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
+
+    @classmethod
+    def from_config(cls, forecaster, loss_cfg) -> ELBOLoss:
+        """``kl_weight``, ``kl_warmup_steps`` and ``gsnn_weight`` of the loss config; a model that
+        declares ``decodes_from_prior = False`` refuses the GSNN term rather than fail mid-training."""
+        if loss_cfg.gsnn_weight > 0 and not getattr(forecaster, "decodes_from_prior", True):
+            raise ValueError(
+                "loss.gsnn_weight > 0 needs a model that decodes from its prior in training "
+                f"(model=forecaster); {type(forecaster).__name__} does not: set loss.gsnn_weight=0"
+            )
+        return cls(
+            forecaster,
+            kl_weight=loss_cfg.kl_weight,
+            kl_warmup_steps=loss_cfg.kl_warmup_steps,
+            gsnn_weight=loss_cfg.gsnn_weight,
+        )
 
     def _loss_in_keys(self) -> list:
         k = self.tensor_keys

@@ -10,8 +10,10 @@ from tensordict.utils import NestedKey
 
 from mmf_rl import keys
 from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl, gaussian_nll, reduce_batch
+from mmf_rl.objectives.registry import register_loss_term
 
 
+@register_loss_term("mis")
 class MissingModalityLoss(ForecasterLossBase):
     """``L_mis = KL(p(y | X, z) || p(y | X \\ S, z))`` with a random set ``S`` of present modalities dropped.
 
@@ -104,6 +106,21 @@ class MissingModalityLoss(ForecasterLossBase):
         learned = getattr(getattr(forecaster, "config", None), "prior", "standard") == "learned"
         self.prior_weight = prior_weight if learned else 0.0
         self.modality_names = [spec.name for spec in forecaster.modalities]
+
+    @classmethod
+    def from_config(cls, forecaster, loss_cfg) -> MissingModalityLoss | None:
+        """The loss config's ``missing_modality_weight`` and ``L_mis`` options; weight 0 turns the
+        term off (the paper's ablation, ``loss=no_mis``)."""
+        if loss_cfg.missing_modality_weight <= 0:
+            return None
+        return cls(
+            forecaster,
+            weight=loss_cfg.missing_modality_weight,
+            detach_teacher=loss_cfg.detach_teacher,
+            max_dropped=loss_cfg.max_dropped,
+            dropped_nll_weight=loss_cfg.dropped_nll_weight,
+            prior_weight=loss_cfg.dropped_prior_weight,
+        )
 
     def default_tensor_keys(self) -> _AcceptedKeys:
         return self.default_keys(present={spec.name: spec.present_key for spec in self.forecaster.modalities})

@@ -9,8 +9,10 @@ from tensordict.utils import NestedKey
 
 from mmf_rl import keys
 from mmf_rl.objectives.common import ForecasterLossBase, gaussian_nll, reduce_batch
+from mmf_rl.objectives.registry import register_loss_term
 
 
+@register_loss_term("nll")
 class GaussianNLLLoss(ForecasterLossBase):
     """``-log N(y; loc, scale²)`` summed over ``T × D`` and reduced over the batch.
 
@@ -21,7 +23,7 @@ class GaussianNLLLoss(ForecasterLossBase):
         forecaster: any module writing ``("forecast", "loc"/"scale")``.
         reduction: ``"mean"`` | ``"sum"`` | ``"none"`` over the batch.
 
-    Returns a TensorDict with ``loss_nll``.
+    Returns a TensorDict with ``loss_nll``. The loss config has no setting for it.
     """
 
     @dataclass

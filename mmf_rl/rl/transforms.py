@@ -34,7 +34,7 @@ from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.envs.modality_dropout import not_standalone, reset_rows
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.forecaster import MultimodalForecaster
-from mmf_rl.models.registry import load_trained_model
+from mmf_rl.models.loading import load_trained_model
 from mmf_rl.models.rows import compute_on_rows
 
 

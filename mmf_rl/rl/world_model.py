@@ -11,7 +11,7 @@ from tensordict import TensorDictBase
 from mmf_rl import keys
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.models.forecaster import MultimodalForecaster
-from mmf_rl.models.registry import load_trained_model
+from mmf_rl.models.loading import load_trained_model
 from mmf_rl.models.rows import compute_on_rows
 from mmf_rl.rl.transforms import HistoryWindow
 

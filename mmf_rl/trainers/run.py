@@ -46,7 +46,7 @@ from mmf_rl.eval.calibration import calibrate_after_training
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.models import build_loss, build_model, init_weights_from, saved_config
 from mmf_rl.models.encoders import check_encoder
-from mmf_rl.models.registry import RUN_EXPORT_DIR
+from mmf_rl.models.loading import RUN_EXPORT_DIR
 from mmf_rl.objectives import LossConfig
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 

@@ -352,9 +352,9 @@ def test_action_fields_go_together_and_a_plain_forecaster_cannot_plan(small_conf
 
 
 def test_world_model_trains_with_both_losses(world_model):
-    from mmf_rl.models.registry import forecaster_loss
+    from mmf_rl.models import build_loss
 
-    loss = forecaster_loss(world_model, LossConfig())
+    loss = build_loss("forecaster", world_model, LossConfig())
     assert_a_few_steps_reduce_the_loss(world_model, loss, action_shape=ACTION_SHAPE)
 
 
@@ -389,7 +389,7 @@ def test_world_model_learns_what_the_actions_do():
     picked up the actions (seeds 0-9 at one thread: world/plain error ratios 0.09-0.31, and 0.79 once),
     and which seed does depends on the kernels' summation order; a single seed made the test flaky. The
     claim is judged on the median over five seeds."""
-    from mmf_rl.models.registry import forecaster_loss
+    from mmf_rl.models import build_loss
 
     train, test = action_task(2048, seed=0), action_task(512, seed=1)
     specs = [ModalitySpec("vel", "sequence", (2,)), ModalitySpec("noise", "sequence", (2,))]
@@ -411,7 +411,7 @@ def test_world_model_learns_what_the_actions_do():
                 **({} if action_shape is None else {"action_steps": 6, "action_dim": 2}),
             )
             model = MultimodalForecaster(cfg)
-            loss = forecaster_loss(model, LossConfig())
+            loss = build_loss("forecaster", model, LossConfig())
             optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
             g = torch.Generator().manual_seed(seed)
             for _ in range(300):
@@ -559,9 +559,10 @@ def test_prior_config_choices(small_config):
 
 
 def test_learned_prior_model_trains_with_every_loss_option(learned_model):
-    from mmf_rl.models.registry import forecaster_loss
+    from mmf_rl.models import build_loss
 
-    loss = forecaster_loss(
+    loss = build_loss(
+        "forecaster",
         learned_model,
         LossConfig(gsnn_weight=0.5, max_dropped=None, dropped_nll_weight=0.5, dropped_prior_weight=1.0),
     )

@@ -12,7 +12,7 @@ from mmf_rl.checkpoint import CheckpointError
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.envs.modality_dropout import ModalityDropout
 from mmf_rl.envs.torchrl_env import GOAL, MultimodalPushTorchEnv
-from mmf_rl.models.registry import load_trained_model
+from mmf_rl.models.loading import load_trained_model
 from mmf_rl.rl import (
     BCPolicy,
     DemonstrationLoader,

@@ -21,6 +21,7 @@ from mmf_rl.models.baselines.common import (
     zero_filled,
 )
 from mmf_rl.models.encoders import mlp
+from mmf_rl.models.registry import register_model
 
 
 @dataclass
@@ -28,11 +29,9 @@ class LFLSTMConfig(BaselineConfig):
     """:class:`BaselineConfig`; the LSTMs' hidden size is ``d_model``."""
 
 
+@register_model("lf_lstm", LFLSTMConfig, loss=("nll",))
 class LateFusionLSTM(DeterministicForecaster):
     """Per-modality encoders and LSTMs, late concatenation, MLP head (see module docstring)."""
-
-    model_name = "lf_lstm"  # its registry name (mmf_rl.models.registry.MODELS)
-    config_class = LFLSTMConfig
 
     def __init__(self, config: LFLSTMConfig):
         super().__init__(config)

@@ -24,6 +24,7 @@ from mmf_rl.models.baselines.common import (
     zero_filled,
 )
 from mmf_rl.models.encoders import mlp
+from mmf_rl.models.registry import register_model
 
 
 @dataclass
@@ -73,11 +74,9 @@ class CrossModalTransformer(nn.Module):
         return query
 
 
+@register_model("mult", MulTConfig, loss=("nll",))
 class MulT(DeterministicForecaster):
     """Pairwise cross-modal attention, concatenation, MLP head (see module docstring)."""
-
-    model_name = "mult"  # its registry name (mmf_rl.models.registry.MODELS)
-    config_class = MulTConfig
 
     def __init__(self, config: MulTConfig):
         super().__init__(config)

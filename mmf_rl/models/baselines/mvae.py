@@ -34,6 +34,7 @@ from mmf_rl.models.baselines.common import BaselineConfig, gaussian_head_output,
 from mmf_rl.models.calibration import PresenceScaleCalibration
 from mmf_rl.models.encoders import build_encoder, mlp
 from mmf_rl.models.hub import PretrainedModel
+from mmf_rl.models.registry import register_model
 
 
 @dataclass
@@ -57,6 +58,7 @@ def product_of_experts(loc: torch.Tensor, scale: torch.Tensor, present: torch.Te
     return (precision * loc).sum(1) / total, total.rsqrt()
 
 
+@register_model("mvae", MVAEConfig, loss=("elbo",))
 class MVAE(TensorDictModuleBase, PretrainedModel):
     """Product-of-experts VAE forecaster (see module docstring).
 
@@ -65,8 +67,8 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
     forecast's scale is multiplied by its presence pattern's factor (``scale_calibration``).
     """
 
-    model_name = "mvae"  # its registry name (mmf_rl.models.registry.MODELS)
-    config_class = MVAEConfig
+    # It decodes from its posterior only, so the ELBO refuses the GSNN term (loss.gsnn_weight).
+    decodes_from_prior = False
 
     def __init__(self, config: MVAEConfig):
         super().__init__()

@@ -1,0 +1,58 @@
+"""Fine-tuning: start a run from the weights of a trained model of the same kind (``init_from``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from torch import nn
+
+from mmf_rl.checkpoint import CheckpointError
+from mmf_rl.models.hub import check_state_dict
+from mmf_rl.models.loading import load_trained_model, trained_location
+
+
+def init_weights_from(model: nn.Module, source_path) -> Path:
+    """Fine-tuning: copy the weights of a trained model (``init_from``) into ``model``, built for this run.
+
+    The source may be anything :func:`load_trained_model` reads. A different model type, a
+    modality missing on either side or of another kind or shape, or a parameter of another shape
+    is an error naming it (this run's value first, then the source's). The source's scale factors
+    (``mmf-rl calibrate``) are not copied. Returns the source's path.
+    """
+    location = trained_location(Path(source_path))
+    source, _, _ = load_trained_model(location)
+    here, there = model.model_name, source.model_name
+    if here != there:
+        raise CheckpointError(
+            f"init_from={source_path} holds a {there!r} model, but this run builds {here!r}; "
+            f"train model={there} or start from a {here!r} run"
+        )
+    mine = {s.name: (s.kind, tuple(s.shape)) for s in model.config.modalities}
+    theirs = {s.name: (s.kind, tuple(s.shape)) for s in source.config.modalities}
+    problems = [
+        f"modality {n!r}: this run has {mine.get(n, 'none')}, {source_path} has {theirs.get(n, 'none')}"
+        for n in sorted(set(mine) | set(theirs))
+        if mine.get(n) != theirs.get(n)
+    ]
+    if problems:
+        raise CheckpointError(
+            "init_from: the modalities differ (" + "; ".join(problems) + "); map the same "
+            "modality names to features of the same kind and shape (images: data.image_size)"
+        )
+    differing = sorted(
+        k
+        for k, v in model.config.to_dict().items()
+        if k != "modalities" and source.config.to_dict().get(k) != v
+    )
+    try:
+        check_state_dict(model, source.state_dict(), f"init_from={source_path}")
+    except CheckpointError as error:
+        hint = ", ".join(
+            f"model.{k}: this run {getattr(model.config, k)!r}, source {getattr(source.config, k)!r}"
+            for k in differing
+        )
+        raise CheckpointError(f"{error}{'; the configs differ in ' + hint if hint else ''}") from None
+    model.load_state_dict(source.state_dict())
+    # The source's scale factors were fitted for its weights, not for the ones fine-tuning makes.
+    model.scale_calibration.reset()
+    return location
