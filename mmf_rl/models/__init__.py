@@ -21,9 +21,6 @@ from mmf_rl.models.registry import (
     saved_config,
 )
 
-# The paper's forecaster: its ELBO and the missing-modality loss (off at loss.missing_modality_weight=0).
-register_model("forecaster", ForecasterConfig, loss=("elbo", "mis"))(MultimodalForecaster)
-
 __all__ = [
     "MODELS",
     "MVAE",

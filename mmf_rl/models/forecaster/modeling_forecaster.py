@@ -88,6 +88,7 @@ from mmf_rl.models.encoders import build_encoder, mlp, num_tokens
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.fusion import FusionShape, build_fusion
 from mmf_rl.models.hub import PretrainedModel
+from mmf_rl.models.registry import register_model
 from mmf_rl.models.rows import compute_on_rows
 
 
@@ -161,6 +162,8 @@ class ModalitySpecificDecoder(nn.Module):
         return loc, F.softplus(raw_scale) + self.min_scale
 
 
+# The paper's losses: its ELBO and the missing-modality loss (off at loss.missing_modality_weight=0).
+@register_model("forecaster", ForecasterConfig, loss=("elbo", "mis"))
 class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     """Attention-based CVAE forecaster robust to missing modalities (see module docstring).
 
@@ -185,9 +188,6 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         >>> td = model(batch)           # batch follows mmf_rl.keys
         >>> td["forecast", "loc"].shape  # [B, T, D]
     """
-
-    model_name = "forecaster"  # its registry name (mmf_rl.models.registry.MODELS)
-    config_class = ForecasterConfig
 
     def __init__(self, config: ForecasterConfig):
         super().__init__()
