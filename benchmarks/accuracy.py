@@ -999,7 +999,8 @@ def markdown(
         "Per entry, measured by each run when it trained (a reused run keeps its times): the training "
         "loop's time per step and the rest of a run (data and model setup, validation, checkpoint, "
         "evaluation).\n\n"
-        "| entry | runs timed | runs at once | training ms/step | rest of a run (s) |\n|---|---|---|---|---|\n"
+        "| entry | runs timed | runs at once | training ms/step | rest of a run (s) "
+        "|\n|---|---|---|---|---|\n"
     )
     text += (
         "\n".join(

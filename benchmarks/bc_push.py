@@ -252,7 +252,8 @@ def success_table(rows: dict[str, dict]) -> str:
         per_seed = " / ".join(f"{x:.0f}" for x in r["success_per_seed"]) if "success_per_seed" in r else "-"
         lines.append(
             f"| {policy} | {condition} | {r['episodes']} | {seeds} | {r['success']:.0f} | {spread} | "
-            f"{per_seed} | {r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | {r['steps_mean']:.1f} |"
+            f"{per_seed} | {r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | "
+            f"{r['steps_mean']:.1f} |"
         )
     return "\n".join(lines)
 
@@ -326,7 +327,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         nargs="+",
         choices=list(OUTAGES),
         default=None,
-        help="how the sensor fails (quick: episode bursts; full: all); the summary's success figures use the first",
+        help=(
+            "how the sensor fails (quick: episode bursts; full: all); the summary's success figures use "
+            "the first"
+        ),
     )
     parser.add_argument("--seed", type=int, default=1000, help="episode i is reset with seed + i")
     parser.add_argument("--out", type=Path, default=None, help="default: --work")
@@ -459,7 +463,8 @@ def main(argv: list[str] | None = None) -> None:
         f"summary: BC success all {success('without', 'all'):.0f}%/{success('with', 'all'):.0f}%, "
         f"no-camera {success('without', f'no-camera ({first})'):.0f}%/"
         f"{success('with', f'no-camera ({first})'):.0f}%, "
-        f"no-force {success('without', f'no-force ({first})'):.0f}%/{success('with', f'no-force ({first})'):.0f}% "
+        f"no-force {success('without', f'no-force ({first})'):.0f}%/"
+        f"{success('with', f'no-force ({first})'):.0f}% "
         f"(without/with forecasts); camera loss without/with forecasts "
         + ", ".join(f"{outage} {lost[0]:.0f}/{lost[1]:.0f} pts" for outage, lost in camera_loss.items())
         + f" (target with <= without/2: met for {sum(met.values())} of {len(met)} outage types)"

@@ -69,7 +69,10 @@ def data_config(root: Path, cache_dir: Path):
 
 
 def dataset(work_dir: Path, frames: int) -> Path:
-    """The synthetic dataset of ``frames`` frames, written once (a partial or older-layout one is rewritten)."""
+    """The synthetic dataset of ``frames`` frames, written once.
+
+    A partial or older-layout one is rewritten.
+    """
     from mmf_rl.datasets.synthetic import make_synthetic_dataset
 
     root = work_dir / f"synthetic-{frames}"
@@ -89,7 +92,8 @@ def dataset(work_dir: Path, frames: int) -> Path:
             video_files_size_in_mb=VIDEO_FILE_MB,
         )
         print(
-            f"wrote {root} ({frames} frames, {len(episodes)} episodes) in {time.perf_counter() - started:.0f} s",
+            f"wrote {root} ({frames} frames, {len(episodes)} episodes) in "
+            f"{time.perf_counter() - started:.0f} s",
             flush=True,
         )
         done.write_text(layout)
@@ -169,7 +173,10 @@ def interrupted_build(root: Path, cache_dir: Path, episodes: int) -> str:
 
     while recorded() < RESUME_AT * episodes:
         if process.poll() is not None:
-            return f"the build ended (exit {process.returncode}) before {RESUME_AT:.0%} of its jobs: not interrupted"
+            return (
+                f"the build ended (exit {process.returncode}) before {RESUME_AT:.0%} of its jobs: not "
+                "interrupted"
+            )
         time.sleep(POLL_S)
     os.killpg(process.pid, signal.SIGKILL)  # the build and its decode workers
     process.wait()
@@ -177,10 +184,13 @@ def interrupted_build(root: Path, cache_dir: Path, episodes: int) -> str:
     stats, stderr = measure_build(root, cache_dir)
     resumed = re.search(r"resuming an interrupted window cache build .*: (\d+) of (\d+) video jobs", stderr)
     if resumed is None:
-        return f"killed at {killed_at}/{episodes} jobs; the next build started over (no resume) in {stats['build_s']:.1f} s"
+        return (
+            f"killed at {killed_at}/{episodes} jobs; the next build started over (no resume) in "
+            f"{stats['build_s']:.1f} s"
+        )
     return (
-        f"killed at {killed_at}/{episodes} jobs; the next build resumed with {resumed[1]} of {resumed[2]} done "
-        f"and decoded the other {int(resumed[2]) - int(resumed[1])} in {stats['build_s']:.1f} s"
+        f"killed at {killed_at}/{episodes} jobs; the next build resumed with {resumed[1]} of {resumed[2]} "
+        f"done and decoded the other {int(resumed[2]) - int(resumed[1])} in {stats['build_s']:.1f} s"
     )
 
 
@@ -220,7 +230,8 @@ def main() -> None:
     print(f"\n{'frames':>8} {'build s':>9} {'ms/1k fr':>9} {'RSS MB':>8} {'wkr MB':>8} {'windows/s':>10}")
     for r in rows:
         print(
-            f"{r['frames']:>8} {r['build_s']:>9.1f} {1e6 * r['build_s'] / r['frames']:>9.1f} {r['rss_mb']:>8.0f} "
+            f"{r['frames']:>8} {r['build_s']:>9.1f} {1e6 * r['build_s'] / r['frames']:>9.1f} "
+            f"{r['rss_mb']:>8.0f} "
             f"{r['workers_rss_mb']:>8.0f} {r['windows_s']:>10.0f}"
         )
     killed = args.resume_size or sizes[-1]
@@ -235,7 +246,8 @@ def main() -> None:
     peak = max(last["rss_mb"], last["workers_rss_mb"])
     print(
         f"summary: build s/frame at N={last['frames']} is {per_frame:.2f}x that at N={first['frames']} "
-        f"(linear: ~1); peak RSS at N={last['frames']} {peak:.0f} MB ({'<' if peak < 2048 else '>='} 2 GB target); "
+        f"(linear: ~1); peak RSS at N={last['frames']} {peak:.0f} MB ({'<' if peak < 2048 else '>='} 2 GB "
+        "target); "
         f"throughput {last['windows_s'] / first['windows_s']:.2f}x (flat: ~1); resume at N={killed}: {resume}"
     )
 

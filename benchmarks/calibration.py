@@ -11,7 +11,8 @@ predictive (``eval_latent=predictive``: the mean and variance of the mixture of 
 costing point accuracy?
 
 Every run directory (a ``mmf-rl train`` run) is scored by ``mmf-rl eval``'s ``run_evaluation`` on
-its own test split (``--split``: choose settings such as ``--predictive-samples`` on ``val``), on every presence subset, once per ``--latents`` entry (``as-trained`` keeps
+its own test split (``--split``: choose settings such as ``--predictive-samples`` on ``val``),
+on every presence subset, once per ``--latents`` entry (``as-trained`` keeps
 the run's own ``eval_latent``), with ``--num-samples`` prior samples for minMSE@K. Runs are grouped
 by their parent directory's name (``acc_std/paper_prior_learned/seed0`` -> ``paper_prior_learned``:
 the seeds of one benchmark entry); each cell is the mean over the group's runs. The evaluations
@@ -148,8 +149,8 @@ def summary_lines(tables: dict[str, dict]) -> list[str]:
 def markdown(tables: dict[str, dict], runs: dict[str, list[str]], args, minutes: float) -> str:
     parts = [
         "# Calibration by eval latent\n",
-        f"`benchmarks/calibration.py` — {minutes:.1f} min; {args.split} split; K = {args.num_samples} samples "
-        f"for minMSE@K; predictive: {args.predictive_samples} prior draws. Each cell: mean over the "
+        f"`benchmarks/calibration.py` — {minutes:.1f} min; {args.split} split; K = {args.num_samples} "
+        f"samples for minMSE@K; predictive: {args.predictive_samples} prior draws. Each cell: mean over the "
         "group's runs."
         + (
             " `<latent>:raw`: the scale as trained; `<latent>:recalibrated`: recalibrated per presence "

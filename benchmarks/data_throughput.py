@@ -2,7 +2,8 @@
 
     .venv/bin/python benchmarks/data_throughput.py                 # records a small dataset
     .venv/bin/python benchmarks/data_throughput.py --root data/push
-    mmf-rl bench data --data-config mine.yaml                      # any dataset: a data config (mmf-rl inspect)
+    mmf-rl bench data --data-config mine.yaml                      # any dataset: a data config
+                                                                   # (mmf-rl inspect writes one)
 
 The reference is ``LeRobotDataset(..., delta_timestamps=...)`` in a ``torch.utils.data.DataLoader``
 reading exactly the windows the cache serves (same history, horizon, stride and features). The
@@ -138,7 +139,8 @@ def main(argv: list[str] | None = None) -> None:
             if root is None:
                 root = scratch / "push"
                 print(
-                    f"dataset: {make_dataset(root, args.episodes, args.steps, args.image_size, args.workers)} "
+                    "dataset: "
+                    f"{make_dataset(root, args.episodes, args.steps, args.image_size, args.workers)} "
                     f"at {root}"
                 )
             data = {
@@ -184,7 +186,8 @@ def main(argv: list[str] | None = None) -> None:
         f"{'no slower' if build_s <= one_pass_s else 'SLOWER'} ({one_pass_s / build_s:.1f}x)"
     )
     print(
-        f"ratio: {cache_rate / lerobot_rate:.1f}x (cache {cache_rate:.0f} windows/s vs lerobot {lerobot_rate:.0f} windows/s)"
+        f"ratio: {cache_rate / lerobot_rate:.1f}x (cache {cache_rate:.0f} windows/s vs lerobot "
+        f"{lerobot_rate:.0f} windows/s)"
     )
 
 

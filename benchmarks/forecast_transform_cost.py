@@ -129,7 +129,8 @@ def main() -> None:
         results = {b: measure(b, checkpoint, image_size, args.steps, args.warmup) for b in args.batches}
 
     print(
-        f"forecaster: default config, image {image_size}x{image_size} + force 6 + proprio 17, H={data['history']}, "
+        f"forecaster: default config, image {image_size}x{image_size} + force 6 + proprio 17, "
+        f"H={data['history']}, "
         f"T={data['horizon']}; {args.threads} threads; median of {args.steps} steps"
     )
     for b, r in results.items():

@@ -6,7 +6,8 @@ world-model seeds.
     # full: the committed budget (experiment=world_model), 50 episodes, every outage type
     MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py
     # given world models (one per training seed), nothing built
-    MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py --checkpoint runs/wm0/checkpoints runs/wm1/checkpoints
+    MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py \
+        --checkpoint runs/wm0/checkpoints runs/wm1/checkpoints
     # PETS-style data aggregation: 2 rounds of 100 MPC episodes each, retraining on the union
     MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py --quick --aggregate 2 --aggregate-episodes 100
 
@@ -45,7 +46,8 @@ the last round's, and a model trained by the same recipe on more data is what th
 meant to measure; ``--aggregate-warm-start`` starts from the last round's weights instead
 (``init_from``: new optimizer and schedule, the union's statistics), which converges in fewer
 steps with early stopping. Round ``r`` records with seed ``r + 1`` (the first recording's is 1),
-so its episodes start elsewhere, with the first recording's image size and episode length. ``results.md`` lists every round: episodes recorded, episodes
+so its episodes start elsewhere, with the first recording's image size and episode length.
+``results.md`` lists every round: episodes recorded, episodes
 trained on, the recording agent's success (the object within FetchPush's 5 cm of the goal at
 some recorded frame, exploration bursts included) and the steps trained.
 
@@ -428,7 +430,10 @@ def parse_args() -> argparse.Namespace:
         "--aggregate-exploration",
         type=float,
         default=0.1,
-        help="per-step probability of a random-move burst while the agent records (mmf-rl record --exploration)",
+        help=(
+            "per-step probability of a random-move burst while the agent records (mmf-rl record "
+            "--exploration)"
+        ),
     )
     parser.add_argument(
         "--early-stopping-patience",
@@ -562,7 +567,8 @@ def main() -> None:
     text = (
         f"# MPC on the multimodal push task\n\n`{command}` — {minutes:.1f} min on {torch.get_num_threads()} "
         f"threads ({timing})\n\n{budget}; world models: {', '.join(f'`{c}`' for c in checkpoints)}; CEM "
-        f"{args.candidates} candidates × {args.iterations} iterations, {args.elites} elites\n\n{table(rows)}\n"
+        f"{args.candidates} candidates × {args.iterations} iterations, {args.elites} "
+        f"elites\n\n{table(rows)}\n"
     )
     if aggregation:
         text += (
@@ -592,13 +598,15 @@ def main() -> None:
     )
     decision = statistics.median(rows[f"mpc {label}"]["decision_ms"] for label, _, _ in conditions)
     print(
-        f"spread over world-model seeds {args.world_model_seeds if not args.checkpoint else len(checkpoints)}: "
+        "spread over world-model seeds "
+        f"{args.world_model_seeds if not args.checkpoint else len(checkpoints)}: "
         f"{spread}; MPC decision {decision:.1f} ms/step (median)"
     )
     print(
         f"summary: success all {rows['mpc all']['success']:.0f}%, "
         f"no-camera {rows[f'mpc no-camera ({first})']['success']:.0f}%, "
-        f"no-force {rows[f'mpc no-force ({first})']['success']:.0f}%, scripted {rows['scripted']['success']:.0f}%, "
+        f"no-force {rows[f'mpc no-force ({first})']['success']:.0f}%, scripted "
+        f"{rows['scripted']['success']:.0f}%, "
         f"random {rows['random']['success']:.0f}%"
     )
 

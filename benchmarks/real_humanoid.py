@@ -13,7 +13,8 @@ is the joints' motion: ``observation.state`` relative to the last observed frame
 the next T = 10 frames from H = 10 frames of history. One split by episode (split_fractions 0.8 / 0.1
 / 0.1, split_seed 0) for every model.
 
-Entries (``ENTRIES``): the paper model with the configuration defaults, and with the other prior; the same model as issue #6
+Entries (``ENTRIES``): the paper model with the configuration defaults, and with the other prior;
+the same model as issue #6
 had it (GRU encoders for joints and commands); the baselines LF-LSTM, MulT and MVAE,
 each trained once on every sensor and seeing an absent sensor as its own absence handling
 (zero-fill; MVAE drops the expert). Every entry: ``--steps`` steps of batch ``--batch-size`` for each
@@ -303,9 +304,8 @@ def markdown(table: bench.Table, info: dict, runs: dict, summary: dict, comparis
     text += (
         "## Run time\n\n"
         f"Measured on the machine that wrote this file; window cache built or opened before the trainings "
-        f"in {info['cache_seconds']:.0f} s. A reused run keeps the times of the invocation that trained it.\n\n"
-        + run_times(runs, info["seeds"])
-        + "\n\n"
+        f"in {info['cache_seconds']:.0f} s. A reused run keeps the times of the invocation that trained "
+        "it.\n\n" + run_times(runs, info["seeds"]) + "\n\n"
     )
     return text
 

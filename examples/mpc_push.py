@@ -2,15 +2,16 @@
 
     mmf-rl record --out data/push_wm --episodes 300 --seed 1
     mmf-rl train experiment=world_model data.root=data/push_wm
-    MUJOCO_GL=egl .venv/bin/python examples/mpc_push.py --checkpoint runs/world_model/checkpoints --drop image \
-        --outage dies
+    MUJOCO_GL=egl .venv/bin/python examples/mpc_push.py --checkpoint runs/world_model/checkpoints \
+        --drop image --outage dies
 
 Every step, the agent encodes the last H steps of whatever sensors work, samples candidate
 action sequences, forecasts the object's motion under each with the world model (one batched
 decode), and applies the first action of the best ones (CEM). `--drop` makes a sensor fail, the
 `--outage` way: off for whole episodes (`episode`, unplugged), in bursts of a few steps
 (`bursts`), or dying at a random step and staying off until the episode ends (`dies`). The same
-model keeps planning from the rest. benchmarks/mpc_push.py runs this over many episodes against the scripted pusher.
+model keeps planning from the rest. benchmarks/mpc_push.py runs this over many episodes against
+the scripted pusher.
 """
 
 import argparse

@@ -1,4 +1,5 @@
-"""`mmf-rl bench accuracy|bc|data|humanoid|model|mpc [args]`: the scripts of benchmarks/ from the command line.
+"""`mmf-rl bench accuracy|bc|data|humanoid|model|mpc [args]`: the scripts of benchmarks/ from the
+command line.
 
 Each runs ``benchmarks/<script>.py`` of the repository checkout with the arguments that follow
 (``mmf-rl bench data --help`` shows them) and ends with that script's summary line. The scripts

@@ -259,7 +259,10 @@ def load_checkpoint(path: str | os.PathLike, *, with_trainer_state: bool = True)
 
 
 def state_mismatch(own: dict[str, torch.Tensor], loaded: dict[str, torch.Tensor]) -> str | None:
-    """What differs between a model's state dict and a loaded one (missing, unexpected, shapes); None if nothing."""
+    """What differs between a model's state dict and a loaded one (missing, unexpected, shapes).
+
+    None if nothing.
+    """
     missing = sorted(set(own) - set(loaded))
     unexpected = sorted(set(loaded) - set(own))
     mismatched = [

@@ -83,7 +83,8 @@ def main(argv: list[str]) -> int:
             f"({model['mse'] / baseline['mse'] - 1:+.0%}); ADE {model['ade']:.4f} vs {baseline['ade']:.4f}"
         )
     print(
-        f"demo: {finished - started:.0f} s (record {recorded - started:.0f} s, train {trained - recorded:.0f} s, "
+        f"demo: {finished - started:.0f} s (record {recorded - started:.0f} s, train "
+        f"{trained - recorded:.0f} s, "
         f"evaluate {finished - trained:.0f} s)"
     )
     return 0

@@ -17,7 +17,8 @@ key                                  shape                meaning
 ``("forecast", "samples")``          ``[B, K, T, D]``     K forecasts, one per latent sample (best-of-K)
 ``("forecast", "valid")``            ``[B]`` bool         False where no modality was present (RL glue: the
                                                           forecast is then the target's training prior)
-``("forecast_dropped", ...)``        ``[B, T, D]``        forecast with the modalities in ``("drop", m)`` removed
+``("forecast_dropped", ...)``        ``[B, T, D]``        forecast with the modalities in ``("drop", m)``
+                                                          removed
 ``("drop", m)``                      ``[B]`` bool         modality removed for the missing-modality loss
 ``("posterior" | "prior", ...)``     ``[B, d_z]``         latent distributions (``loc``/``scale``)
 ``("prior_dropped", ...)``           ``[B, d_z]``         learned prior ``p(z|X)`` of the input without the

@@ -447,12 +447,15 @@ def merge_recordings(
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=PROG,
-        description="Record pushes (scripted, or by an agent) as a LeRobot v3.0 dataset, or merge recordings.",
+        description=(
+            "Record pushes (scripted, or by an agent) as a LeRobot v3.0 dataset, or merge recordings."
+        ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="examples:\n"
         "  mmf-rl record --out data/push --episodes 200 --workers 2 --image-size 64 --steps 50\n"
         "  mmf-rl record --out data/push_faults --episodes 100 --faults   # with sensor outages in the data\n"
-        "  mmf-rl record --out data/push_mpc --episodes 100 --exploration 0.1 --policy runs/world_model  # by MPC\n"
+        "  mmf-rl record --out data/push_mpc --episodes 100 --exploration 0.1 --policy runs/world_model  # "
+        "by MPC\n"
         "  mmf-rl record --merge data/push data/push_more --out data/push_all   # one dataset of both",
     )
     parser.add_argument("--out", type=Path, required=True, help="dataset directory to create")

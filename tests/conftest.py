@@ -58,7 +58,10 @@ SMALL_MODEL_SIZES = {
 
 
 def small_registered_model(name: str):
-    """The registered model ``name`` at ``SMALL_MODEL_SIZES`` over ``SMALL_MODALITIES``, seeded, in eval mode."""
+    """The registered model ``name`` at ``SMALL_MODEL_SIZES`` over ``SMALL_MODALITIES``.
+
+    Seeded, in eval mode.
+    """
     from mmf_rl.models import build_model
 
     torch.manual_seed(0)

@@ -100,7 +100,8 @@ def test_a_dotted_key_sets_a_key_its_entry_does_not_give_yet():
         ),
         (
             [TWO_MODALITIES, "data.modalities.proprio.encoder=mlp"],
-            "data.modalities.proprio.encoder=mlp: data.modalities has no entry 'proprio' (it has image, force)",
+            "data.modalities.proprio.encoder=mlp: data.modalities has no entry 'proprio' (it has image, "
+            "force)",
         ),
         (
             ["data.modalities.forse=observation.force"],
@@ -109,8 +110,8 @@ def test_a_dotted_key_sets_a_key_its_entry_does_not_give_yet():
         ),
         (
             ["+data.modalities.force=observation.force"],
-            "+data.modalities.force=observation.force: data.modalities.force is already in the config; change "
-            "it with data.modalities.force=observation.force",
+            "+data.modalities.force=observation.force: data.modalities.force is already in the config; "
+            "change it with data.modalities.force=observation.force",
         ),
         (
             ["data.action.feature=action"],
@@ -119,12 +120,13 @@ def test_a_dotted_key_sets_a_key_its_entry_does_not_give_yet():
         ),
         (
             ["data.missing={force: 0.5}", "data.missing.force.fraction=0.1"],
-            "data.missing.force.fraction=0.1: data.missing.force is 0.5, not a mapping; give the whole entry: "
-            "data.missing.force='{...}'",
+            "data.missing.force.fraction=0.1: data.missing.force is 0.5, not a mapping; give the whole "
+            "entry: data.missing.force='{...}'",
         ),
         (
             ["~data.modalities.force.encoder"],
-            "~data.modalities.force.encoder: data.modalities.force.encoder is not in the config; nothing to delete",
+            "~data.modalities.force.encoder: data.modalities.force.encoder is not in the config; nothing "
+            "to delete",
         ),
     ],
 )

@@ -116,8 +116,8 @@ class ImageAugmentation:
                 if augmented.shape != frames.shape:
                     raise ValueError(
                         f"augment: the transforms turn {name!r} frames of {list(frames.shape[-2:])} into "
-                        f"{list(augmented.shape[-2:])}; a transform that resizes (e.g. RandomResizedCrop's `size`) "
-                        "must give the data config's image_size"
+                        f"{list(augmented.shape[-2:])}; a transform that resizes (e.g. RandomResizedCrop's "
+                        "`size`) must give the data config's image_size"
                     )
                 batch.set(keys.obs_key(name), augmented)
         return batch

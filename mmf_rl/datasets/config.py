@@ -170,7 +170,8 @@ class DataConfig:
         self._check_episode_lists()
         if self.video_sync not in VIDEO_SYNC_MODES:
             raise ValueError(
-                f"data config: `video_sync` must be one of {list(VIDEO_SYNC_MODES)}, found {self.video_sync!r}"
+                f"data config: `video_sync` must be one of {list(VIDEO_SYNC_MODES)}, found "
+                f"{self.video_sync!r}"
             )
         if not self.modalities:
             raise ValueError("data config: `modalities` is empty; map at least one name to a dataset feature")
@@ -206,7 +207,8 @@ class DataConfig:
         for name, p in ({} if isinstance(self.missing, str) else self.missing).items():
             if name not in self.modalities:
                 raise ValueError(
-                    f"data config: `missing` names modality {name!r}, which is not one of {sorted(self.modalities)}"
+                    f"data config: `missing` names modality {name!r}, which is not one of "
+                    f"{sorted(self.modalities)}"
                 )
             if not isinstance(p, OutageConfig) and not 0.0 <= float(p) <= 1.0:
                 raise ValueError(f"data config: `missing.{name}` must be a fraction in [0, 1], found {p}")

@@ -12,7 +12,8 @@ where it was not annotated and nothing is interpolated or zero-filled there. Per
   nearest first, each ``[dx, dy, dvx, dvy, valid]`` relative to the agent; empty slots are
   zeros with ``valid = 0`` (the data config leaves the ``valid`` dims unnormalised).
 * ``observation.images.scene``: a crop of the scene's reference frame centred on the agent
-  (north-up, or heading-up), through the world->pixel maps of the data's README; ``observation.scene_camera_valid``
+  (north-up, or heading-up), through the world->pixel maps of the data's README;
+  ``observation.scene_camera_valid``
   is False for sequences without a reference frame (``crowds_zara03``, ``uni_examples``), whose
   windows then train with the scene absent.
 

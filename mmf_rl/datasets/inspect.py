@@ -313,7 +313,8 @@ def config_comments(report: dict, config: dict) -> list[str]:
     ratio = report["sensors"][target]["motion_ratio"]
     lines = [
         f"target {target}: {' then '.join(PREFERRED_TARGETS)} come first, then a vector without outages.",
-        f"relative: {str(config['target']['relative']).lower()}: over {config['horizon']} frames the target's "
+        f"relative: {str(config['target']['relative']).lower()}: over {config['horizon']} frames the "
+        "target's "
         f"mean squared change is {'n/a' if ratio is None else f'{ratio:.3g}x'} its variance; below 1 the "
         "change from the last observed frame forecasts better than the level (absolute targets lost to "
         "constant velocity on real recordings).",
@@ -322,8 +323,8 @@ def config_comments(report: dict, config: dict) -> list[str]:
         sync = report["sensors"][feature]["sync"]
         lines.append(
             f"video_sync: frame_index: {feature}'s `timestamp` drifts up to {sync['max_drift_s']:.3g} s from "
-            f"frame_index/fps and its frames do not decode at it (tolerance_s={sync['tolerance_s']}); frame k "
-            "of an episode is read at k/fps instead."
+            f"frame_index/fps and its frames do not decode at it (tolerance_s={sync['tolerance_s']}); "
+            "frame k of an episode is read at k/fps instead."
         )
     for name, m in config["modalities"].items():
         if m["allow_absent"]:
@@ -342,7 +343,8 @@ def config_comments(report: dict, config: dict) -> list[str]:
                 else "NaN or flagged invalid"
             )
             lines.append(
-                f"{name}: allow_absent: {m['feature']} is absent on {sensor['outages']['fraction']:.0%} of the "
+                f"{name}: allow_absent: {m['feature']} is absent on {sensor['outages']['fraction']:.0%} of "
+                "the "
                 f"frames ({why}); accepted, or training would stop on losing it on more than half of them."
             )
     return [f"# {line}" for line in lines]
@@ -431,8 +433,10 @@ def _sync_lines(sync: dict | None) -> list[str]:
     )
     by_index = "decode" if sync["frame_index_error"] is None else f"FAIL ({sync['frame_index_error'][:160]})"
     return [
-        f"    timestamps: up to {sync['max_drift_s']:.3g} s from frame_index/fps (episode {sync['drift_episode']})",
-        f"    {sync['sampled_frames']} sampled frames at the rows' timestamps (tolerance_s={sync['tolerance_s']}): "
+        f"    timestamps: up to {sync['max_drift_s']:.3g} s from frame_index/fps (episode "
+        f"{sync['drift_episode']})",
+        f"    {sync['sampled_frames']} sampled frames at the rows' timestamps "
+        f"(tolerance_s={sync['tolerance_s']}): "
         f"{at_timestamps}",
         f"    the same frames by frame index (video_sync: frame_index): {by_index}",
     ]
@@ -475,8 +479,8 @@ def main(argv: list[str]) -> int:
     print()
     header = (
         "# Data config suggested by `mmf-rl inspect`: edit the modalities, the target and the window,\n"
-        "# then `mmf-rl train data=THIS_FILE`. `missing` replays each sensor's measured outages in training.\n"
-        + "".join(f"{line}\n" for line in comments)
+        "# then `mmf-rl train data=THIS_FILE`. `missing` replays each sensor's measured outages in "
+        "training.\n" + "".join(f"{line}\n" for line in comments)
     )
     if args.write_config is not None:
         path = args.write_config.expanduser().resolve()

@@ -200,7 +200,8 @@ def _check_version(root: Path, info: dict) -> None:
         raise ValueError(
             f"{root} is a LeRobot v2.x dataset ({path}: codebase_version {found!r}"
             f"{', but the v2 layout meta/episodes.jsonl' if v2_layout else ''}); "
-            f"lerobot {package_version('lerobot')} and mmf-rl read only {CODEBASE_VERSION}. Convert it in place with lerobot's converter (the original "
+            f"lerobot {package_version('lerobot')} and mmf-rl read only {CODEBASE_VERSION}. Convert it in "
+            "place with lerobot's converter (the original "
             f"is kept as {root.parent / (root.name + '_old')}).{older}\n  {command}"
         )
     if version.major > supported.major:
@@ -231,8 +232,8 @@ def _check_info(path: Path, info: dict) -> None:
         ):
             raise ValueError(
                 f"{path}: `{key}` {template!r} leads outside the dataset root; a LeRobot path template is "
-                f"relative to the root without '..' (like {DEFAULT_TEMPLATES[key]!r}). Restore info.json from the "
-                "original dataset"
+                f"relative to the root without '..' (like {DEFAULT_TEMPLATES[key]!r}). Restore info.json "
+                "from the original dataset"
             )
     total = info["total_frames"]
     if not isinstance(total, int) or isinstance(total, bool) or total < 0:
@@ -261,14 +262,15 @@ def _check_info(path: Path, info: dict) -> None:
             )
         if int(np.prod(shape, dtype=object)) > MAX_FRAME_VALUES:
             raise ValueError(
-                f"{path}: feature {name!r} declares `shape` {shape}, {int(np.prod(shape, dtype=object)):.3g} values "
-                f"per frame (more than {MAX_FRAME_VALUES}); this is not a real sensor. Restore info.json from "
-                "the original dataset"
+                f"{path}: feature {name!r} declares `shape` {shape}, "
+                f"{int(np.prod(shape, dtype=object)):.3g} values "
+                f"per frame (more than {MAX_FRAME_VALUES}); this is not a real sensor. Restore info.json "
+                "from the original dataset"
             )
         if ft["dtype"] == "image" and len(shape) not in (2, 3):
             raise ValueError(
-                f"{path}: image feature {name!r} `shape` should be [height, width, channels] or [height, width], "
-                f"found {shape}"
+                f"{path}: image feature {name!r} `shape` should be [height, width, channels] or [height, "
+                f"width], found {shape}"
             )
     absent = [c for c in FRAME_COLUMNS if c not in features]
     if absent:
@@ -335,7 +337,8 @@ def _camera_channels(feature: str, ft: dict, info_path: Path) -> int:
     channels = int(shape[names.index("channels")]) if "channels" in names else int(shape[-1])
     if channels not in (1, 3):
         raise ValueError(
-            f"{info_path}: camera feature {feature!r} has {channels} channels (shape {shape}, names {names}); "
+            f"{info_path}: camera feature {feature!r} has {channels} channels (shape {shape}, names "
+            f"{names}); "
             "mmf-rl reads colour (3) or single-channel (1, e.g. depth) cameras"
         )
     return channels
@@ -415,7 +418,8 @@ class LeRobotSource:
             )
         if ft["shape"][0] > MAX_VECTOR_WIDTH:
             raise ValueError(
-                f"{what}: feature {feature!r} declares `shape` {list(ft['shape'])} in {self.root / INFO_FILE}, "
+                f"{what}: feature {feature!r} declares `shape` {list(ft['shape'])} in "
+                f"{self.root / INFO_FILE}, "
                 f"more than {MAX_VECTOR_WIDTH} dims; a model input that wide is not a sensor. Fix info.json, "
                 "or select the dims to use (`dims`)"
             )
@@ -446,7 +450,8 @@ class LeRobotSource:
                 raise ValueError(
                     f"{self._episodes_file(position)}: episode {episode.index} has dataset_from_index="
                     f"{episode.start}, dataset_to_index={episode.stop}; expected 0 <= from <= to <= {total} "
-                    f"(total_frames in {self.root / INFO_FILE}). Restore meta/episodes from the original dataset"
+                    f"(total_frames in {self.root / INFO_FILE}). Restore meta/episodes from the original "
+                    "dataset"
                 )
         ordered = sorted(range(len(episodes)), key=lambda i: episodes[i].start)
         for before, after in itertools.pairwise(ordered):
@@ -455,8 +460,8 @@ class LeRobotSource:
                 raise ValueError(
                     f"{self._episodes_file(after)}: episode {b.index} (frames {b.start}..{b.stop - 1}, "
                     f"dataset_from_index/dataset_to_index) overlaps episode {a.index} (frames {a.start}.."
-                    f"{a.stop - 1}); each frame belongs to one episode. Restore meta/episodes from the original "
-                    "dataset"
+                    f"{a.stop - 1}); each frame belongs to one episode. Restore meta/episodes from the "
+                    "original dataset"
                 )
 
     def _check_window_fits(self) -> None:
@@ -470,7 +475,8 @@ class LeRobotSource:
         longest = max(self.episodes, key=lambda e: e.stop - e.start)
         if longest.stop - longest.start < needed:
             raise ValueError(
-                f"{self.root}: every episode is shorter than one window. A window of history={config.history} "
+                f"{self.root}: every episode is shorter than one window. A window of "
+                f"history={config.history} "
                 f"and horizon={config.horizon} at stride={config.stride} spans "
                 f"(history + horizon - 1) * stride + 1 = {needed} frames, but the longest episode "
                 f"(episode {longest.index}) has {longest.stop - longest.start} frames. Lower `history`, "
@@ -513,8 +519,8 @@ class LeRobotSource:
                 declared = f"dtype {ft['dtype']!r} shape {list(ft['shape'])}"
                 if column not in schema.names:
                     raise ValueError(
-                        f"{path}: no column {column!r}, which {info_path} declares ({declared}); found columns "
-                        f"{schema.names}. Restore the data file, or fix `features` in info.json"
+                        f"{path}: no column {column!r}, which {info_path} declares ({declared}); found "
+                        f"columns {schema.names}. Restore the data file, or fix `features` in info.json"
                     )
                 if not _is_numeric(ft["dtype"]):
                     continue
@@ -544,8 +550,10 @@ class LeRobotSource:
                     )
         if rows != self.meta.total_frames:
             raise ValueError(
-                f"{info_path}: `total_frames` is {self.meta.total_frames}, but the data files hold {rows} frames "
-                f"({len(paths)} file(s) under {self.root / 'data'}); fix total_frames, or restore the data files"
+                f"{info_path}: `total_frames` is {self.meta.total_frames}, but the data files hold {rows} "
+                "frames "
+                f"({len(paths)} file(s) under {self.root / 'data'}); fix total_frames, or restore the data "
+                "files"
             )
 
     def _resolve(self, name: str) -> ResolvedModality:
@@ -604,7 +612,8 @@ class LeRobotSource:
             frame = int(np.flatnonzero(steps <= 0)[0]) + 1
             stamps = columns["timestamp"][episode.start + frame - 1 : episode.start + frame + 1].tolist()
             warnings.warn(
-                f"{self.data_file(episode.index)}: `timestamp` of episode {episode.index} does not increase at frame "
+                f"{self.data_file(episode.index)}: `timestamp` of episode {episode.index} does not "
+                "increase at frame "
                 f"{frame} ({stamps[0]} then {stamps[1]}); the episode is skipped (no window uses it)",
                 stacklevel=2,
             )
@@ -627,7 +636,8 @@ class LeRobotSource:
         return missing
 
     def read_columns(self) -> dict[str, np.ndarray]:
-        """The per-frame columns the pipeline needs, rows in cache order (selected episodes by frame ``index``).
+        """The per-frame columns the pipeline needs, rows in cache order (selected episodes by frame
+        ``index``).
 
         Keeps the dataset open for :meth:`read_images`.
         """
@@ -694,7 +704,10 @@ def load_frame_columns(meta, columns, episodes: list[Episode] | None = None):
 
 
 def read_frame_columns(meta, columns) -> dict[str, np.ndarray]:
-    """Per-frame ``columns`` of the whole dataset ``meta`` describes, ordered by the global frame ``index``."""
+    """Per-frame ``columns`` of the whole dataset ``meta`` describes.
+
+    Ordered by the global frame ``index``.
+    """
     return load_frame_columns(meta, columns)[0]
 
 

@@ -150,7 +150,8 @@ class WindowDataset:
             if "FrameTimestampError" in error:
                 return cause, (
                     "The dataset's `timestamp` column does not match its video frames (`mmf-rl inspect "
-                    f"{source.root}` reports the drift from frame_index/fps): set data.video_sync=frame_index "
+                    f"{source.root}` reports the drift from frame_index/fps): set "
+                    "data.video_sync=frame_index "
                     "to decode frame k of an episode at k/fps (a larger data.tolerance_s would decode, but "
                     "pair rows with frames as far apart as the drift)"
                 )

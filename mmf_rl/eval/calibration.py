@@ -299,7 +299,9 @@ def save_calibration(model, source: TrainedModelSource) -> list[Path]:
 
 def calibrate_after_training(model, data, checkpoint: Path, device: torch.device | str = "cpu") -> str:
     """``mmf-rl train calibrate=true``: fit the trained ``model`` on its run's val split (``data``, a
-    ``WindowDataset``) and re-save its last ``checkpoint`` with the factors; the message saying what was done."""
+    ``WindowDataset``) and re-save its last ``checkpoint`` with the factors; the message saying what
+    was done.
+    """
     if len(data.split_windows["val"]) == 0:
         return "forecast scale not recalibrated: the val split has no window"
     fits = fit_scale_calibration(model, data.loader("val", 256), DEFAULT_MIN_WINDOWS, device)

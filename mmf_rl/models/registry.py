@@ -52,7 +52,8 @@ def register_model(name: str, config_class: type, *, loss: Sequence[str]):
     def register(cls: type) -> type:
         if name in MODELS and MODELS[name].model_cls is not cls:
             raise ValueError(
-                f"model {name!r} is already registered ({MODELS[name].model_cls.__qualname__}); pick another name"
+                f"model {name!r} is already registered ({MODELS[name].model_cls.__qualname__}); pick "
+                "another name"
             )
         cls.model_name, cls.config_class = name, config_class
         MODELS[name] = ModelEntry(cls, tuple(loss))

@@ -17,7 +17,8 @@ def compute_on_rows(
     compute: Callable[[torch.Tensor | None], Sequence[torch.Tensor]],
     defaults: Sequence[torch.Tensor],
 ) -> tuple[torch.Tensor, ...]:
-    """``compute`` on the rows where ``mask`` (``[B]`` bool) is True; ``defaults`` (each ``[B, ...]``) elsewhere.
+    """``compute`` on the rows where ``mask`` (``[B]`` bool) is True; ``defaults`` (each ``[B, ...]``)
+    elsewhere.
 
     ``compute(rows)`` returns one tensor per default, for the selected rows: ``rows`` is an index
     tensor, or ``None`` when every row is selected, so the caller passes its inputs whole (no gather

@@ -31,7 +31,8 @@ def register_loss_term(name: str):
             )
         if LOSS_TERMS.get(name, cls) is not cls:
             raise ValueError(
-                f"loss term {name!r} is already registered ({LOSS_TERMS[name].__qualname__}); pick another name"
+                f"loss term {name!r} is already registered ({LOSS_TERMS[name].__qualname__}); pick another "
+                "name"
             )
         LOSS_TERMS[name] = cls
         return cls

@@ -246,7 +246,8 @@ class BCPolicy(TensorDictModule):
         if forecast.denormalize:
             raise ValueError(
                 "BCPolicy.transforms: the policy reads forecasts in the forecaster's normalised frame, as it "
-                "was trained; build the transform with ForecastTransform.from_checkpoint(..., denormalize=False)"
+                "was trained; build the transform with ForecastTransform.from_checkpoint(..., "
+                "denormalize=False)"
             )
         if (forecast.horizon, forecast.target_dim) != tuple(wants):
             raise ValueError(

@@ -261,7 +261,8 @@ class ForecastTransform(_WindowTransform):
             env has is skipped, and one present in some envs only runs eagerly on those (as the
             model's own encode). Each graph is traced on its first use (a step that takes a
             few hundred ms). An in-place update of the weights or the scale factors
-            (``load_state_dict``, an optimizer step, a calibration fit) is detected and re-traces them. ``False``, and any other model, run
+            (``load_state_dict``, an optimizer step, a calibration fit) is detected and re-traces
+            them. ``False``, and any other model, run
             the model's eager TensorDict forward; both write the same forecasts (to float
             rounding).
 
@@ -450,7 +451,8 @@ class _TracedForecaster:
 
     The eager forward's forecasts (to float rounding) for every presence pattern, because no
     graph branches on presence: the first one serves a single pattern and is used for it only,
-    an encoder sees one modality's rows, and the presence mask is an input of the last graph. The presence branches of the model's own
+    an encoder sees one modality's rows, and the presence mask is an input of the last graph. The
+    presence branches of the model's own
     ``encode`` are taken here in Python, the same way: a modality present nowhere gets zero
     tokens (its encoder does not run), one present in some rows only runs the eager encoder on
     those rows (`compute_on_rows`; no graph per row count, so there are at most M + 2 graphs

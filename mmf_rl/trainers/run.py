@@ -56,7 +56,8 @@ RUN_CONFIG = "config.yaml"
 PRETRAINED_DIR = RUN_EXPORT_DIR  # run_dir/model: the final weights as save_pretrained writes them
 EXAMPLES = [
     "mmf-rl train data=so101 trainer.total_steps=500 run_dir=runs/so101",
-    "mmf-rl train data=/path/to/mine.yaml run_dir=runs/mine      # your own data config (mmf-rl inspect writes one)",
+    "mmf-rl train data=/path/to/mine.yaml run_dir=runs/mine      # your own data config (mmf-rl inspect "
+    "writes one)",
     "mmf-rl train --cfg data.root=/data/mine data.modalities='{cam: observation.images.top}' "
     "data.target=observation.state   # print the composed config only",
 ]

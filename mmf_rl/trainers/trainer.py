@@ -432,8 +432,10 @@ class Trainer:
             bad = [k for k, v in loss_terms.items() if not torch.isfinite(v)]
             if self.nonfinite_in_a_row > self.config.max_nonfinite_steps:
                 raise TrainingStopped(
-                    f"{self.nonfinite_in_a_row} steps in a row had a non-finite loss ({bad or 'on another rank'}); "
-                    f"last at step {self.step}, epoch {self.epoch}, batch {self.batch_in_epoch - 1}. Check that batch "
+                    f"{self.nonfinite_in_a_row} steps in a row had a non-finite loss "
+                    f"({bad or 'on another rank'}); "
+                    f"last at step {self.step}, epoch {self.epoch}, batch {self.batch_in_epoch - 1}. Check "
+                    "that batch "
                     f"for NaN/Inf inputs, or lower trainer.lr. Last good checkpoint: {self.last_checkpoint}"
                 )
             return None
@@ -441,8 +443,8 @@ class Trainer:
         if worst > self.config.loss_explosion_threshold:
             raise TrainingStopped(
                 f"loss exploded to {worst:.3g} at step {self.step} (threshold "
-                f"trainer.loss_explosion_threshold={self.config.loss_explosion_threshold:g}); lower trainer.lr or "
-                f"enable gradient clipping. Last good checkpoint: {self.last_checkpoint}"
+                f"trainer.loss_explosion_threshold={self.config.loss_explosion_threshold:g}); lower "
+                f"trainer.lr or enable gradient clipping. Last good checkpoint: {self.last_checkpoint}"
             )
         self.nonfinite_in_a_row = 0
         self.optimizer.zero_grad(set_to_none=True)

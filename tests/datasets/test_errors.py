@@ -105,8 +105,8 @@ def test_window_longer_than_every_episode(synthetic_root, tmp_path, stride):
     needed = (history + horizon) * stride + 1
     raises_clearly(
         ValueError,
-        rf"history={history + 1} and horizon={horizon} at stride={stride} spans .* = {needed} frames, but the "
-        rf"longest episode \(episode 0\) has {longest} frames\. Lower `history`, `horizon` or `stride`",
+        rf"history={history + 1} and horizon={horizon} at stride={stride} spans .* = {needed} frames, but "
+        rf"the longest episode \(episode 0\) has {longest} frames\. Lower `history`, `horizon` or `stride`",
         synthetic_config(synthetic_root, tmp_path, history=history + 1, horizon=horizon, stride=stride),
     )
     fits = open_quietly(
@@ -148,8 +148,8 @@ def test_info_json_missing_keys_and_shapes_disagreeing_with_the_data(synthetic_c
     edit_info(synthetic_copy, lambda info: info["features"][STATE_FEATURE].update(shape=[5]))
     raises_clearly(
         ValueError,
-        rf"{data_file}: column '{STATE_FEATURE}' holds fixed_size_list<element: float>\[4\] \(4 value\(s\) per "
-        rf"frame\), but {info_path} declares dtype 'float32' shape \[5\]; fix",
+        rf"{data_file}: column '{STATE_FEATURE}' holds fixed_size_list<element: float>\[4\] \(4 value\(s\) "
+        rf"per frame\), but {info_path} declares dtype 'float32' shape \[5\]; fix",
         config,
     )
 

@@ -30,7 +30,8 @@ def test_episodes_and_exclusions_select_what_is_cached(synthetic_root, tmp_path)
     assert [e[0] for e in chosen.report["episodes"]] == [0, 2, 3]
     assert chosen.report["n_frames"] == sum(EPISODE_LENGTHS[e] for e in (0, 2, 3))
     assert sorted(e for eps in chosen.split_episodes.values() for e in eps) == [0, 2, 3]
-    # Rows were remapped, not shifted: each window's target is its own episode's (pose[0] = episode + frame/1000).
+    # Rows were remapped, not shifted: each window's target is its own episode's
+    # (pose[0] = episode + frame/1000).
     for split in ("train", "val", "test"):
         ids = chosen.split_windows[split]
         target = chosen.normalizer.denormalize_target(chosen.batch(ids).get("target"))

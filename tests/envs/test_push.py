@@ -96,7 +96,8 @@ def test_importing_the_envs_prints_no_adroit_note():
     """gymnasium-robotics' note on its Adroit envs is held back; its other output is not."""
     code = (
         "import sys, mmf_rl.envs, farama_notifications; "
-        "print('kept' if 'gymnasium_robotics' in farama_notifications.notifications else 'lost', file=sys.stderr)"
+        "print('kept' if 'gymnasium_robotics' in farama_notifications.notifications else 'lost', "
+        "file=sys.stderr)"
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert "Adroit" not in result.stderr and result.stderr.endswith("kept\n")

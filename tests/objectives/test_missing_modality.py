@@ -170,7 +170,8 @@ def test_uniform_drop_count_trains_single_modality_inputs(small_model, max_dropp
     counts = drop[full].sum(1)
     assert set(counts.tolist()) == {1, 2}
     assert abs(float((counts == 2).float().mean()) - 0.5) < 0.05
-    # Single-modality inputs occur in the rows that had all three; each modality is dropped about half the time.
+    # Single-modality inputs occur in the rows that had all three; each modality is dropped about
+    # half the time.
     assert (kept[full].sum(1) == 1).any()
     torch.testing.assert_close(drop[full].float().mean(0), torch.full((3,), 0.5), atol=0.06, rtol=0)
 

@@ -53,7 +53,8 @@ def test_a_reader_during_a_rebuild_after_a_dataset_change_waits_for_the_complete
     edit_frames(push_copy, change_one_force_value)  # a new fingerprint: a new cache directory
     script = (
         "import sys; from mmf_rl.datasets import WindowDataset; from tests.reliability.conftest import "
-        f"push_data_config; WindowDataset(push_data_config({str(push_copy)!r}, {str(cache_dir)!r}), num_workers=1)"
+        f"push_data_config; WindowDataset(push_data_config({str(push_copy)!r}, {str(cache_dir)!r}), "
+        "num_workers=1)"
     )
     with background([cli_command()[0], "-c", script]) as builder:
         wait_for(lambda: any(cache_dir.glob(".building-*")), builder, 300, "a build in progress")

@@ -64,7 +64,8 @@ def test_a_path_template_escaping_the_root_is_refused(push_copy, tmp_path, key, 
         ),
         (
             lambda info: info["features"][CAMERA].__setitem__("shape", [10**6, 10**6, 3]),
-            rf"info.json: feature '{CAMERA}' declares `shape` \[1000000, 1000000, 3\], 3e\+12 values per frame",
+            rf"info.json: feature '{CAMERA}' declares `shape` \[1000000, 1000000, 3\], 3e\+12 values per "
+            r"frame",
         ),
         (
             lambda info: info["features"]["observation.force"].__setitem__("shape", [10**12]),

@@ -80,7 +80,8 @@ def test_a_run_saved_before_a_setting_existed_resumes_with_a_warning_naming_it(o
         (["+data.modalities.sonar.encoder=mlp"], "data config: `modalities.sonar` gives no feature"),
         (
             ["data.modalities.force={feature: observation.force, encoder: resnet}"],
-            "modality 'force': encoder 'resnet' is not available; expected one of ['conv', 'conv_frames', 'conv_gru', 'conv_patches', 'deepsets', 'gru',",
+            "modality 'force': encoder 'resnet' is not available; expected one of ['conv', 'conv_frames', "
+            "'conv_gru', 'conv_patches', 'deepsets', 'gru',",
         ),
         (["device=cuda"] if not torch.cuda.is_available() else ["device=tpu"], "device="),
     ],

@@ -164,8 +164,8 @@ class ForecasterConfig:
             )
         if self.action_dim < 0 or self.action_steps < 0 or (self.action_dim > 0) != (self.action_steps > 0):
             raise ValueError(
-                f"ForecasterConfig: action_dim={self.action_dim} and action_steps={self.action_steps} must both be "
-                "> 0 (an action-conditioned world model) or both 0 (no action input)"
+                f"ForecasterConfig: action_dim={self.action_dim} and action_steps={self.action_steps} must "
+                "both be > 0 (an action-conditioned world model) or both 0 (no action input)"
             )
         if self.nonfinite not in NONFINITE_RULES:
             raise ValueError(

@@ -259,7 +259,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         if self.decoder.fusion is None or not any(key.startswith("decoder.aggregate.") for key in state):
             return None
         return (
-            f"these are weights of the fusion={self.config.fusion!r} ablation saved when an ablation replaced "
+            f"these are weights of the fusion={self.config.fusion!r} ablation saved when an ablation "
+            "replaced "
             "only the posterior's fusion; the decoder now aggregates with the same fusion, so retrain "
             f"with model.fusion={self.config.fusion}"
         )
