@@ -102,9 +102,8 @@ NonFiniteRule = Literal["raise", "absent"]
 NONFINITE_RULES = ("raise", "absent")
 
 # The encoder each kind gets unless the spec names another one. Sequences: the flattened window
-# through an MLP, which keeps each step's detail a GRU summary loses (issue #13: 0.567 vs 0.721
-# normalised MSE with every sensor on the full G1 recording; tied on the push benchmark and on
-# the 6-episode G1 slice, and never worse). The encoders themselves, and which
+# through an MLP, which keeps each step's detail a GRU summary loses (measured better or tied on
+# every recording tried; see docs/results.md). The encoders themselves, and which
 # kinds each accepts, are registered in mmf_rl.models.encoders (checked when a model is built).
 DEFAULT_ENCODER: dict[str, str] = {"image": "conv", "sequence": "mlp", "vector": "mlp"}
 

@@ -1,9 +1,9 @@
 """Post-hoc recalibration of the forecast's scale, one factor per presence pattern.
 
 A model's Gaussian scale head can be over- or under-confident, and differently for each set of
-present sensors (issue #13: on the push data the 90% interval of the paper's model covers ~0.87
-of test futures with every sensor but 0.74-0.83 with one modality left). One global temperature
-cannot fix subsets that err both ways, so every registered model holds a
+present sensors (on push the paper model's intervals are too narrow mostly when a single
+modality is left; see docs/results.md). One global temperature cannot fix subsets that err both
+ways, so every registered model holds a
 :class:`PresenceScaleCalibration`: ``2^M`` factors, one per presence pattern (``M`` modalities in
 the model's spec order; pattern ``sum_i present_i << i``; pattern 0, nothing present, is never
 used), that multiply ``("forecast", "scale")``. All ones (what a model is built with, and what a

@@ -19,7 +19,7 @@ clear of the block (`BEHIND_MARGIN` beyond the contact distance); once it is low
 block, it aims for contact (`CONTACT_DISTANCE`) and pushes. With a single mode
 (contact distance throughout), traces of the agent showed it descending onto the block's back
 edge from above and then pushing from on top: the block tipped or was pressed into the table,
-moved a few millimetres per step, and long pushes ran out of time (issue #15's note).
+moved a few millimetres per step, and long pushes ran out of time.
 """
 
 from __future__ import annotations

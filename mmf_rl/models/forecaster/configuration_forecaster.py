@@ -35,13 +35,10 @@ class ForecasterConfig:
             conditional prior ``p(z|X)`` computed by a head on the multimodal encoder's fused
             representation of the present modalities, so the fusion shapes every test-time
             forecast (the latent is drawn from it at test time). ``loss_kl`` becomes
-            ``KL(q(z|X, y) || p(z|X))``. The default stays ``"standard"`` by measurement
-            (``benchmarks/accuracy.py --standard``, issue #13): the learned prior was tied on MSE
-            in every subset (all sensors 0.375 vs 0.362) but its forecast scale, trained on
-            posterior draws that know ``y``, is overconfident when decoded at the prior's mean
-            (90% intervals covered 53-63% of test futures vs 75-88%), and with the unnormalised
-            ablation fusions (linear, sum, cross-attention) its training collapsed to the mean
-            (measured before those fusions ended in a LayerNorm; see :mod:`mmf_rl.models.fusion`).
+            ``KL(q(z|X, y) || p(z|X))``. The default stays ``"standard"`` by measurement (see
+            docs/results.md): the learned prior is no more accurate, and its forecast scale,
+            trained on posterior draws that know ``y``, is overconfident when decoded at the
+            prior's mean.
         posterior_uses_target: whether the future ``y`` enters the posterior head in training
             (a CVAE's ``q(z|X, y)``). ``None`` (default): ``True`` with the learned prior (which
             needs it: a posterior that sees only ``X`` can copy the prior), ``False`` with the
@@ -57,11 +54,11 @@ class ForecasterConfig:
             ``z_k = μ_p + σ_p ε_k`` decoded in one batched pass, and the forecast is the
             moment-matched Gaussian of their mixture, ``loc = mean_k μ_k``,
             ``scale = sqrt(mean_k σ_k² + var_k μ_k)``: the spread of the prior samples enters the
-            forecast's scale. It is the fix of the learned prior's overconfident scale (issue #13)
-            without retraining (``mmf-rl eval ... eval_latent=predictive``). The ``ε_k`` are
-            fixed (seeded, antithetic pairs), so the forecast is deterministic and leaves the
-            global RNG alone. ``"posterior"``: the mean of ``q(z | X)``, the fusion's posterior
-            (the paper's eqs. 10 and 15 read literally; needs a posterior that does not read the
+            forecast's scale: it fixes the learned prior's overconfident scale without retraining
+            (``mmf-rl eval ... eval_latent=predictive``). The ``ε_k`` are fixed (seeded, antithetic
+            pairs), so the forecast is deterministic and leaves the global RNG alone.
+            ``"posterior"``: the mean of ``q(z | X)``, the fusion's posterior (the paper's eqs. 10
+            and 15 read literally; needs a posterior that does not read the
             target). Cost of ``"predictive"``: every eval decode runs on ``K×`` the rows (a planner's
             ``decode_under_actions`` decodes ``B × N × K`` rows for ``N`` candidates). It also
             applies to a validation loss computed in eval mode. :meth:`MultimodalForecaster.sample`
