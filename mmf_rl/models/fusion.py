@@ -114,9 +114,14 @@ class ModalityAgnosticEncoder(nn.Module):
         return x + self.mlp(self.norm_mlp(x))
 
     def forward(
-        self, tokens: torch.Tensor, absent: torch.Tensor, token_modality: torch.Tensor
+        self,
+        tokens: torch.Tensor,
+        absent: torch.Tensor,
+        token_modality: torch.Tensor,
+        mixed: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        return self.pool(self.mix(tokens, absent, token_modality), absent)
+        """``mixed``: :meth:`mix` of these tokens when the caller has it already (the decoder reads it)."""
+        return self.pool(self.mix(tokens, absent, token_modality) if mixed is None else mixed, absent)
 
 
 @register_fusion("agnostic")

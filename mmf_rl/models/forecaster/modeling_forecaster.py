@@ -313,21 +313,42 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         """Presence ``[N, M]`` -> the key-padding mask ``[N, num_tokens]`` (True: absent token)."""
         return ~present[:, self.token_modality]
 
-    def fuse(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+    def fuse(self, tokens: torch.Tensor, present: torch.Tensor, decoder_tokens: torch.Tensor | None = None):
         """The multimodal encoder: the flattened fused representation ``[N, out_rows × d]`` of ``N``
-        rows of tokens ``[N, num_tokens, d]`` and presence ``[N, M]``."""
-        return self.fusion(tokens, self.token_absent(present), self.token_modality).flatten(1)
+        rows of tokens ``[N, num_tokens, d]`` and presence ``[N, M]``. ``decoder_tokens``
+        (:meth:`decoder_tokens` of the same rows), when given, spares mixing the tokens again."""
+        absent = self.token_absent(present)
+        if decoder_tokens is not None and self.decoder_reads_mixed:
+            return self.fusion(tokens, absent, self.token_modality, mixed=decoder_tokens).flatten(1)
+        return self.fusion(tokens, absent, self.token_modality).flatten(1)
+
+    @property
+    def decoder_reads_mixed(self) -> bool:
+        """Whether the decoder reads the fusion's mixed tokens (``decoder_input="mixed"`` and a fusion
+        with self-attention layers)."""
+        return self.config.decoder_input == "mixed" and hasattr(self.fusion, "mix")
+
+    def decoder_tokens(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        """What the decoder reads of ``N`` rows of tokens and presence: the tokens after the multimodal
+        encoder's self-attention layers when :attr:`decoder_reads_mixed` (so the fusion shapes every
+        forecast), else the tokens themselves. Computed once a row, before rows are repeated for
+        several latents or action sequences."""
+        if self.decoder_reads_mixed:
+            return self.fusion.mix(tokens, self.token_absent(present), self.token_modality)
+        return tokens
 
     def posterior(self, tokens: torch.Tensor, present: torch.Tensor, target: torch.Tensor | None):
         """``q(z | X[, y])``: ``loc``, ``scale`` ``[B, d_z]``."""
         return self._posterior_from(self.fuse(tokens, present), target)
 
-    def prior(self, tokens: torch.Tensor, present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def prior(
+        self, tokens: torch.Tensor, present: torch.Tensor, decoder_tokens: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """``p(z | X)``: ``loc``, ``scale`` ``[N, d_z]`` (``0``, ``1`` under the standard prior, where
         the multimodal encoder does not run)."""
         if self.prior_head is None:
             return self._prior_from(None, tokens.shape[0], tokens.device)
-        return self._prior_from(self.fuse(tokens, present), tokens.shape[0], tokens.device)
+        return self._prior_from(self.fuse(tokens, present, decoder_tokens), tokens.shape[0], tokens.device)
 
     def _posterior_from(self, features: torch.Tensor, target: torch.Tensor | None):
         if self.target_encoder is not None:
@@ -350,14 +371,14 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     def decode(
         self, tokens: torch.Tensor, present: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None = None
     ):
-        """``p(y | X, z[, a])``: ``loc``, ``scale`` ``[N, T, D]`` for ``N`` rows of tokens, presence, ``z``
-        and, for a world model, the embedded action sequence (:meth:`embed_actions`). With
-        ``decoder_input="mixed"`` the decoder reads the tokens after the multimodal encoder's
-        self-attention layers, so the fusion shapes every forecast."""
-        absent = self.token_absent(present)
-        if self.config.decoder_input == "mixed" and hasattr(self.fusion, "mix"):
-            tokens = self.fusion.mix(tokens, absent, self.token_modality)
-        return self.decoder(tokens, absent, self.token_modality, z, action)
+        """``p(y | X, z[, a])``: ``loc``, ``scale`` ``[N, T, D]`` for ``N`` rows of tokens (as
+        :meth:`encode` gives them), presence, ``z`` and, for a world model, the embedded action
+        sequence (:meth:`embed_actions`)."""
+        return self._decode_prepared(self.decoder_tokens(tokens, present), present, z, action)
+
+    def _decode_prepared(self, decoder_tokens, present, z, action=None):
+        """:meth:`decode` of rows whose :meth:`decoder_tokens` are already computed."""
+        return self.decoder(decoder_tokens, self.token_absent(present), self.token_modality, z, action)
 
     def forecast_from_tokens(
         self, tokens: torch.Tensor, present: torch.Tensor
@@ -375,10 +396,11 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             raise ValueError(
                 "forecast_from_tokens: a world model forecasts under given actions; use decode_under_actions"
             )
-        z = self._eval_latent(*self.eval_distribution(tokens, present))
+        prepared = self.decoder_tokens(tokens, present)
+        z = self._eval_latent(*self.eval_distribution(tokens, present, prepared))
         draws = z.shape[0] // tokens.shape[0]  # K with eval_latent="predictive", else 1
         loc, scale = moment_match(
-            *self.decode(tokens.repeat(draws, 1, 1), present.repeat(draws, 1), z), draws
+            *self._decode_prepared(prepared.repeat(draws, 1, 1), present.repeat(draws, 1), z), draws
         )
         return loc, self.scale_calibration(scale, present)
 
@@ -415,18 +437,21 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                 )
         learned = self.prior_head is not None
         wants_posterior = target is not None or self.target_encoder is None
+        prepared = self.decoder_tokens(tokens, present)
+        prepared_kept = None if kept is None else self.decoder_tokens(tokens, kept)
         features = None
         if learned and kept is not None:
             # The learned prior of the degraded input: the fusion of the kept modalities, in the
             # same pass (2B rows) as the full input's.
-            features, features_kept = self.fuse(tokens.repeat(2, 1, 1), torch.cat([present, kept])).split(
-                batch
-            )
+            both = torch.cat([present, kept])
+            features, features_kept = self.fuse(
+                tokens.repeat(2, 1, 1), both, torch.cat([prepared, prepared_kept])
+            ).split(batch)
             prior_kept = self._prior_from(features_kept, batch, device)
             td.set(keys.PRIOR_DROPPED_LOC, prior_kept[0])
             td.set(keys.PRIOR_DROPPED_SCALE, prior_kept[1])
         elif learned or wants_posterior:
-            features = self.fuse(tokens, present)
+            features = self.fuse(tokens, present, prepared)
         prior_loc, prior_scale = self._prior_from(features, batch, device)
         td.set(keys.PRIOR_LOC, prior_loc)
         td.set(keys.PRIOR_SCALE, prior_scale)
@@ -444,23 +469,23 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         td.set(keys.LATENT, z if z.shape[0] == batch else prior_loc)
 
         # Every decode of this pass (full input; degraded input; from the prior) in one decoder call;
-        # a decode is a presence [B, M] and its latents, B rows or K blocks of B rows.
-        decodes = [(present, z)]
+        # a decode is a presence [B, M], its decoder tokens and its latents, B rows or K blocks of B.
+        decodes = [(present, prepared, z)]
         if kept is not None:  # teacher and student share tokens and z
-            decodes.append((kept, z))
+            decodes.append((kept, prepared_kept, z))
         from_prior = keys.DECODE_FROM_PRIOR in td.keys()
         if from_prior:  # the GSNN term: a reparameterised prior draw, so the prior head learns from it
-            decodes.append((present, prior_loc + prior_scale * torch.randn_like(prior_scale)))
+            decodes.append((present, prepared, prior_loc + prior_scale * torch.randn_like(prior_scale)))
         action = self.embed_actions(td)
-        rows = [latent.shape[0] for _, latent in decodes]
+        rows = [latent.shape[0] for *_, latent in decodes]
         copies = sum(rows) // batch
         if copies == 1:
-            loc, scale = self.decode(tokens, present, z, action)
+            loc, scale = self._decode_prepared(prepared, present, z, action)
         else:
-            loc, scale = self.decode(
-                tokens.repeat(copies, 1, 1),
-                torch.cat([presence.repeat(latent.shape[0] // batch, 1) for presence, latent in decodes]),
-                torch.cat([latent for _, latent in decodes]),
+            loc, scale = self._decode_prepared(
+                torch.cat([t.repeat(latent.shape[0] // batch, 1, 1) for _, t, latent in decodes]),
+                torch.cat([p.repeat(latent.shape[0] // batch, 1) for p, _, latent in decodes]),
+                torch.cat([latent for *_, latent in decodes]),
                 None if action is None else action.repeat(copies, 1),
             )
         forecasts = [
@@ -489,13 +514,14 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.validate(td)
         tokens, present = self.encode(td)
         batch = present.shape[0]
-        prior_loc, prior_scale = self.eval_distribution(tokens, present)
+        prepared = self.decoder_tokens(tokens, present)
+        prior_loc, prior_scale = self.eval_distribution(tokens, present, prepared)
         # Row k * B + b is sample k of batch element b.
         noise = torch.randn(num_samples * batch, self.config.d_latent, device=present.device)
         z = prior_loc.repeat(num_samples, 1) + prior_scale.repeat(num_samples, 1) * noise
         action = self.embed_actions(td)
-        loc, _ = self.decode(
-            tokens.repeat(num_samples, 1, 1),
+        loc, _ = self._decode_prepared(
+            prepared.repeat(num_samples, 1, 1),
             present.repeat(num_samples, 1),
             z,
             None if action is None else action.repeat(num_samples, 1),
@@ -534,14 +560,15 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                 f"found {list(actions.shape)}"
             )
         batch, candidates = actions.shape[:2]
-        loc, scale = self.eval_distribution(tokens, present)  # once per history, not per candidate
+        prepared = self.decoder_tokens(tokens, present)  # once per history, not per candidate
+        loc, scale = self.eval_distribution(tokens, present, prepared)
         z = self._eval_latent(loc.repeat_interleave(candidates, 0), scale.repeat_interleave(candidates, 0))
         draws = z.shape[0] // (batch * candidates)  # K with eval_latent="predictive", else 1
         embedded = self.action_encoder(actions.reshape(batch * candidates, -1))
         present = present.repeat_interleave(candidates, 0)
         loc, scale = moment_match(
-            *self.decode(
-                tokens.repeat_interleave(candidates, 0).repeat(draws, 1, 1),
+            *self._decode_prepared(
+                prepared.repeat_interleave(candidates, 0).repeat(draws, 1, 1),
                 present.repeat(draws, 1),
                 z,
                 embedded.repeat(draws, 1),
@@ -552,13 +579,13 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         return loc.view(batch, candidates, *loc.shape[1:]), scale.view(batch, candidates, *scale.shape[1:])
 
     def eval_distribution(
-        self, tokens: torch.Tensor, present: torch.Tensor
+        self, tokens: torch.Tensor, present: torch.Tensor, decoder_tokens: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The latent distribution eval decodes from: ``q(z | X)`` with ``eval_latent="posterior"``
         (eqs. 10 and 15 read literally), else the prior ``p(z | X)``."""
         if self.config.eval_latent == "posterior":
-            return self._posterior_from(self.fuse(tokens, present), None)
-        return self.prior(tokens, present)
+            return self._posterior_from(self.fuse(tokens, present, decoder_tokens), None)
+        return self.prior(tokens, present, decoder_tokens)
 
     def _eval_latent(self, prior_loc: torch.Tensor, prior_scale: torch.Tensor) -> torch.Tensor:
         """The eval-mode latents of ``N`` prior rows by ``eval_latent``: ``[N, d_z]``, the prior's mean
