@@ -553,9 +553,9 @@ def run_one(
     """Train one model, evaluate it, keep its per-window errors in ``window_errors.json`` (written last:
     its presence marks the run complete)."""
     from mmf_rl.configuration import compose_config
+    from mmf_rl.eval.eval_command import run_evaluation
     from mmf_rl.eval.report import write_json
-    from mmf_rl.eval.run import run_evaluation
-    from mmf_rl.trainers.run import train
+    from mmf_rl.trainers.train_command import train
 
     errors_path = run_dir / "eval" / "window_errors.json"
     if run_dir.exists():  # an interrupted run: start it again

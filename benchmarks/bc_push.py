@@ -154,7 +154,7 @@ def merged_overrides(base: list[str], extra: list[str]) -> list[str]:
 def build_forecaster(args, data: Path, phases: dict[str, float]) -> Path:
     """The default push forecaster trained on ``data`` (resumed or skipped when already there)."""
     from mmf_rl.configuration import compose_config
-    from mmf_rl.trainers.run import train
+    from mmf_rl.trainers.train_command import train
 
     overrides = [
         "name=bc_forecaster",

@@ -54,7 +54,7 @@ def evaluate(run_dir: Path, latent: str, args, out_dir: Path | None = None) -> d
     """``run_evaluation``'s summary of ``run_dir`` (a run or a saved model) under ``latent`` (reused
     when already written), into ``out_dir`` (default ``--out/<group>/<run>/<latent>``)."""
     from mmf_rl.configuration import compose_config
-    from mmf_rl.eval.run import run_evaluation
+    from mmf_rl.eval.eval_command import run_evaluation
 
     out_dir = out_dir or args.out / run_dir.parent.name / run_dir.name / latent
     done = out_dir / "results.json"
@@ -86,7 +86,7 @@ def recalibrated_copies(run_dir: Path, latent: str, args) -> dict[str, Path]:
     """The run's model under ``latent`` as the ``raw`` and ``recalibrated`` copies (see the module
     docstring), written once under ``--out``; the run is only read."""
     from mmf_rl.configuration import compose_config
-    from mmf_rl.eval.calibrate import run_calibration
+    from mmf_rl.eval.calibrate_command import run_calibration
     from mmf_rl.models import load_trained_model
     from mmf_rl.models.hub import CALIBRATION_FILE
 

@@ -197,7 +197,7 @@ def table(rows: dict[str, dict]) -> str:
 def train_world_model(args, run_dir: Path, data: Path, seed: int, extra: list[str] = ()) -> None:
     """``mmf-rl train experiment=world_model`` on ``data`` into ``run_dir``; resumes an interrupted run."""
     from mmf_rl.configuration import compose_config
-    from mmf_rl.trainers.run import train
+    from mmf_rl.trainers.train_command import train
 
     overrides = [
         "experiment=world_model",
@@ -267,7 +267,7 @@ def aggregate_data(args, checkpoints: list[Path], phases: dict[str, float]) -> t
     reuses finished recordings, unions and trainings, and resumes an interrupted training."""
     from mmf_rl.record import RecordConfig, merge_recordings, record
     from mmf_rl.rl import PushMPCAgent
-    from mmf_rl.trainers.run import PRETRAINED_DIR
+    from mmf_rl.trainers.train_command import PRETRAINED_DIR
 
     base = args.work / "push_explore"
     first = recording_summary(base)

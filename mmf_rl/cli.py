@@ -22,10 +22,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "mmf_rl.cli:record",
         "record a multimodal push dataset (LeRobot v3.0), scripted or by an MPC agent; merge recordings",
     ),
-    "train": ("mmf_rl.trainers.run", "train a forecaster on a LeRobot dataset (Hydra overrides)"),
-    "eval": ("mmf_rl.eval.run", "evaluate a checkpoint on every presence subset: table and plots"),
+    "train": ("mmf_rl.trainers.train_command", "train a forecaster on a LeRobot dataset (Hydra overrides)"),
+    "eval": ("mmf_rl.eval.eval_command", "evaluate a checkpoint on every presence subset: table and plots"),
     "calibrate": (
-        "mmf_rl.eval.calibrate",
+        "mmf_rl.eval.calibrate_command",
         "fit a trained model's forecast scale per presence pattern on its val split; store it with the model",
     ),
     "inspect": (

@@ -17,9 +17,9 @@ from pathlib import Path
 
 from mmf_rl.checkpoint import CheckpointError, list_checkpoints
 from mmf_rl.configuration import ConfigError, compose_config
-from mmf_rl.eval.run import run_evaluation
+from mmf_rl.eval.eval_command import run_evaluation
 from mmf_rl.record import RecordConfig, record
-from mmf_rl.trainers.run import train
+from mmf_rl.trainers.train_command import train
 
 logger = logging.getLogger(__name__)
 

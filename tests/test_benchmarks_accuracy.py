@@ -252,8 +252,8 @@ def test_window_errors_average_to_the_evaluations_mse_on_recorded_push_data(reco
     the same windows the same way as `mmf-rl eval`, on data recorded by the project's recorder."""
     from mmf_rl.configuration import compose_config
     from mmf_rl.datasets import DataConfig, WindowDataset
-    from mmf_rl.eval.run import run_evaluation
-    from mmf_rl.trainers.run import train
+    from mmf_rl.eval.eval_command import run_evaluation
+    from mmf_rl.trainers.train_command import train
     from tests.conftest import push_train_overrides
 
     run = tmp_path / "run"

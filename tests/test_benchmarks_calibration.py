@@ -22,7 +22,7 @@ calibration = load_benchmark("calibration")
 def learned_runs(recorded_push_root, tmp_path_factory):
     """Two seeds of a tiny learned-prior forecaster, as a benchmark entry's ``<entry>/seed<k>``."""
     from mmf_rl.configuration import compose_config
-    from mmf_rl.trainers.run import train
+    from mmf_rl.trainers.train_command import train
     from tests.conftest import push_train_overrides
 
     base = tmp_path_factory.mktemp("calibration")
@@ -64,12 +64,12 @@ def test_finished_evaluations_are_reused(learned_runs, tmp_path, monkeypatch, ca
     out = tmp_path / "out"
     argv = [str(learned_runs[0]), "--out", str(out), "--num-samples", "0", "--latents", "mean"]
     assert calibration.main(argv) == 0
-    import mmf_rl.eval.run
+    import mmf_rl.eval.eval_command
 
     def refuse(cfg):
         raise AssertionError("a finished evaluation was run again")
 
-    monkeypatch.setattr(mmf_rl.eval.run, "run_evaluation", refuse)
+    monkeypatch.setattr(mmf_rl.eval.eval_command, "run_evaluation", refuse)
     assert calibration.main(argv) == 0
 
 

@@ -71,7 +71,7 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
 
     normalization_stats: dict | None = None
     data_config: dict | None = None
-    calibration: dict | None = None  # how the scale factors were fitted (mmf_rl.eval.calibration)
+    calibration: dict | None = None  # how the scale factors were fitted (mmf_rl.eval.scale_fit)
 
     def _save_pretrained(self, save_directory: Path) -> None:
         from safetensors.torch import save_file

@@ -14,7 +14,7 @@ from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.configuration import compose_config
 from mmf_rl.datasets import WindowDataset, lerobot_source
 from mmf_rl.keys import obs_key, present_key
-from mmf_rl.trainers.run import train
+from mmf_rl.trainers.train_command import train
 from tests.datasets.conftest import (
     CAMERA_EPISODES,
     CAMERA_HEIGHT,

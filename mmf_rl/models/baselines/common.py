@@ -3,7 +3,7 @@
 Every baseline follows the batch contract of :mod:`mmf_rl.keys`: it reads ``("obs", m)`` and
 ``("present", m)`` and writes a diagonal Gaussian ``("forecast", "loc"/"scale")`` ``[B, T, D]``,
 whose scale is multiplied in eval mode by its presence pattern's factor (``scale_calibration``,
-:mod:`mmf_rl.models.calibration`).
+:mod:`mmf_rl.models.scale_calibration`).
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ from torch import nn
 from mmf_rl import keys
 from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
-from mmf_rl.models.calibration import PresenceScaleCalibration
 from mmf_rl.models.encoders import ImageWindowEncoder, check_encoder
 from mmf_rl.models.hub import PretrainedModel
+from mmf_rl.models.scale_calibration import PresenceScaleCalibration
 
 
 @dataclass

@@ -31,10 +31,10 @@ from torch import nn
 
 from mmf_rl import keys
 from mmf_rl.models.baselines.common import BaselineConfig, gaussian_head_output, presence
-from mmf_rl.models.calibration import PresenceScaleCalibration
 from mmf_rl.models.encoders import build_encoder, mlp
 from mmf_rl.models.hub import PretrainedModel
 from mmf_rl.models.registry import register_model
+from mmf_rl.models.scale_calibration import PresenceScaleCalibration
 
 
 @dataclass

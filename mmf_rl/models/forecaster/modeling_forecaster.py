@@ -83,13 +83,13 @@ from torch import nn
 
 from mmf_rl import keys
 from mmf_rl.models.attention import FixedQueryAttention
-from mmf_rl.models.calibration import PresenceScaleCalibration
 from mmf_rl.models.encoders import build_encoder, mlp, num_tokens
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.fusion import FusionShape, build_fusion
 from mmf_rl.models.hub import PretrainedModel
 from mmf_rl.models.registry import register_model
 from mmf_rl.models.rows import compute_on_rows
+from mmf_rl.models.scale_calibration import PresenceScaleCalibration
 
 
 def antithetic_normal(num: int, dim: int) -> torch.Tensor:
@@ -180,7 +180,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     (``"predictive"``; ``"latent"`` is then the prior's mean). In eval mode the eval forecast's
     scale (``forward``, :meth:`forecast_from_tokens`, :meth:`decode_under_actions`) is multiplied
     by its presence pattern's factor (``scale_calibration``: ones until ``mmf-rl calibrate`` fits
-    them; see :mod:`mmf_rl.models.calibration`).
+    them; see :mod:`mmf_rl.models.scale_calibration`).
 
     Example:
         >>> cfg = ForecasterConfig(modalities=[ModalitySpec("force", "sequence", (6,))], history=10)

@@ -10,8 +10,8 @@ import torch
 from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.eval.eval_command import data_config_for_eval
 from mmf_rl.eval.report import constant_velocity_warning
-from mmf_rl.eval.run import data_config_for_eval
 from mmf_rl.models import load_trained_model
 from tests.conftest import push_train_overrides
 

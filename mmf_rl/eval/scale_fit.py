@@ -1,6 +1,6 @@
 """Fit a trained model's per-presence-pattern scale factors on held-out windows, and store them.
 
-The factors (:class:`~mmf_rl.models.calibration.PresenceScaleCalibration`) are fitted in closed
+The factors (:class:`~mmf_rl.models.scale_calibration.PresenceScaleCalibration`) are fitted in closed
 form: for each presence pattern ``p``, the NLL-optimal scalar temperature of the Gaussian forecast,
 
     s_p² = mean over the windows with pattern p and over the T × D future values of ((y - loc) / scale)²,
@@ -42,8 +42,8 @@ from mmf_rl.checkpoint import (
 from mmf_rl.datasets import apply_presence_subset, presence_subsets
 from mmf_rl.eval.metrics import COVERAGE_LEVELS
 from mmf_rl.models import TrainedModelSource
-from mmf_rl.models.calibration import pattern_name
 from mmf_rl.models.loading import RUN_EXPORT_DIR
+from mmf_rl.models.scale_calibration import pattern_name
 
 DEFAULT_MIN_WINDOWS = 32
 FACTORS_KEY = "scale_calibration.factors"  # the factors' name in a registered model's state dict

@@ -7,7 +7,7 @@ forecast scale per presence pattern, on held-out windows, and store the factors 
 ``checkpoint`` is what ``mmf-rl eval`` takes (a run directory, its ``checkpoints/``, one checkpoint
 or a ``save_pretrained`` directory), opened on its own data config and normalisation statistics
 (``data_root`` when the dataset is elsewhere). The factors are fitted in closed form from the
-uncalibrated scale (:mod:`mmf_rl.eval.calibration`; a refit replaces earlier factors), printed as
+uncalibrated scale (:mod:`mmf_rl.eval.scale_fit`; a refit replaces earlier factors), printed as
 a table (pattern, windows, factor, 90% coverage on the split before -> after), and written
 atomically into the checkpoint (re-saved at its step) or the ``save_pretrained`` directory, and
 into the run's other copy of the same weights (``RUN_DIR/model`` or the last checkpoint). A later
@@ -26,8 +26,8 @@ from mmf_rl.configuration import ConfigError, parse_config_command, report_comma
 from mmf_rl.datasets import WindowDataset
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.devices import resolve_device
-from mmf_rl.eval.calibration import calibration_record, fit_scale_calibration, fit_table, save_calibration
-from mmf_rl.eval.run import check_modalities_match, data_config_for_eval
+from mmf_rl.eval.eval_command import check_modalities_match, data_config_for_eval
+from mmf_rl.eval.scale_fit import calibration_record, fit_scale_calibration, fit_table, save_calibration
 from mmf_rl.models import load_trained_model, locate_trained_model
 from mmf_rl.models.loading import TRAINED_MODEL_KINDS
 

@@ -54,7 +54,6 @@ from mmf_rl.configuration import ConfigError, parse_config_command, report_comma
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.devices import resolve_device
-from mmf_rl.eval.calibration import calibration_header, calibration_in_use, unfit_for_latent
 from mmf_rl.eval.metrics import evaluate_presence_subsets, scorable_windows
 from mmf_rl.eval.report import (
     constant_velocity_warning,
@@ -65,6 +64,7 @@ from mmf_rl.eval.report import (
     write_json,
     write_text,
 )
+from mmf_rl.eval.scale_fit import calibration_header, calibration_in_use, unfit_for_latent
 from mmf_rl.models import TrainedModelSource, load_trained_model, locate_trained_model
 from mmf_rl.models.loading import TRAINED_MODEL_KINDS
 

@@ -1,4 +1,4 @@
-"""The per-presence-pattern scale factors every registered model holds (mmf_rl.models.calibration)."""
+"""The per-presence-pattern scale factors every registered model holds (mmf_rl.models.scale_calibration)."""
 
 import json
 import re
@@ -16,8 +16,8 @@ from mmf_rl.models import (
     from_pretrained,
     saved_config,
 )
-from mmf_rl.models.calibration import PresenceScaleCalibration, pattern_name
 from mmf_rl.models.hub import check_state_dict
+from mmf_rl.models.scale_calibration import PresenceScaleCalibration, pattern_name
 from tests.conftest import (
     HORIZON,
     SMALL_MODALITIES,

@@ -10,7 +10,7 @@ used), that multiply ``("forecast", "scale")``. All ones (what a model is built 
 model saved before the factors existed loads with) is exactly the uncalibrated forecast.
 
 The factors apply in eval mode only. They are fitted after training, on held-out windows
-(:func:`mmf_rl.eval.calibration.fit_scale_calibration`, ``mmf-rl calibrate``), for the weights
+(:func:`mmf_rl.eval.scale_fit.fit_scale_calibration`, ``mmf-rl calibrate``), for the weights
 they were fitted with: the training losses must see the head's own scale, so that factors carried
 into further training (a resumed or fine-tuned run) cannot bias its gradients.
 """

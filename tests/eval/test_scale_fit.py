@@ -1,4 +1,4 @@
-"""Fitting the per-presence-pattern scale factors (mmf_rl.eval.calibration), and `mmf-rl calibrate`
+"""Fitting the per-presence-pattern scale factors (mmf_rl.eval.scale_fit), and `mmf-rl calibrate`
 end to end on a recorded push dataset: train, calibrate, eval."""
 
 import json
@@ -11,7 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from mmf_rl import keys
 from mmf_rl.checkpoint import LAST_POINTER, list_checkpoints, load_checkpoint
 from mmf_rl.cli import main as cli
-from mmf_rl.eval.calibration import (
+from mmf_rl.eval.scale_fit import (
     HALF_WIDTH_90,
     calibration_header,
     calibration_in_use,
@@ -20,7 +20,7 @@ from mmf_rl.eval.calibration import (
     unfit_for_latent,
 )
 from mmf_rl.models import load_trained_model
-from mmf_rl.models.calibration import PresenceScaleCalibration, pattern_name
+from mmf_rl.models.scale_calibration import PresenceScaleCalibration, pattern_name
 from tests.conftest import HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch, push_train_overrides
 
 NAMES = [s.name for s in SMALL_MODALITIES]

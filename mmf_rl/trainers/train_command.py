@@ -42,8 +42,8 @@ from mmf_rl.configuration import (
 )
 from mmf_rl.datasets import AugmentConfig, DataConfig, ImageAugmentation, WindowDataset
 from mmf_rl.devices import resolve_device
-from mmf_rl.eval.calibration import calibrate_after_training
 from mmf_rl.eval.metrics import evaluate_forecasts
+from mmf_rl.eval.scale_fit import calibrate_after_training
 from mmf_rl.models import build_loss, build_model, init_weights_from, saved_config
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.loading import RUN_EXPORT_DIR
