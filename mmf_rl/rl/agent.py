@@ -46,12 +46,12 @@ class MPCActor:
     @torch.no_grad()
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         observation = push_observation(obs)
-        # The transform's TorchRL hooks, called as TransformedEnv calls them at a reset and a step:
-        # the recorder steps the gymnasium env, not a TorchRL one.
+        # The recorder steps the gymnasium env, not a TorchRL one: the window is fed as
+        # TransformedEnv feeds it at a reset and a step.
         if self._new_episode:
-            observation = self.history._reset(observation.empty(), observation)
+            observation = self.history.observe_reset(observation)
         else:
-            observation = self.history._call(observation)
+            observation = self.history.observe_step(observation)
         observation.set(IS_INIT, torch.tensor([self._new_episode]))
         self._new_episode = False
         return self.planner(observation).get("action").numpy()

@@ -47,6 +47,11 @@ class _WindowTransform(Transform):
     """Keeps each env's last ``(H - 1) * stride + 1`` frames of every modality in a ring buffer and
     builds the model's input window from them, as the data pipeline does (see `ForecastTransform`
     for the rules). Subclasses say what to write each step (:meth:`_emit`) and add its specs.
+
+    The history is module state, as torchrl's ``CatFrames`` keeps its frames: buffers that follow
+    ``.to(device)`` (so a step never copies it between host and device) and ``state_dict`` /
+    ``load_state_dict`` (with the ring position and the env batch size, the module's extra state).
+    The buffers are shaped by the env batch at the first reset; a state dict restores that shape.
     """
 
     def __init__(
@@ -56,6 +61,7 @@ class _WindowTransform(Transform):
         history: int,
         stride: int,
         out_keys: list,
+        device: torch.device | str = "cpu",
     ):
         self.specs: list[ModalitySpec] = list(specs)
         if stride < 1:
@@ -69,16 +75,62 @@ class _WindowTransform(Transform):
             )
         in_keys = [s.obs_key for s in self.specs] + [s.present_key for s in self.specs]
         super().__init__(in_keys=in_keys, out_keys=out_keys)
-        self.normalizer = Normalizer(dict(stats))
         self.history, self.stride = history, stride
         self.buffer_length = (history - 1) * stride + 1
-        self._frames: dict[str, torch.Tensor] = {}
-        self._present: dict[str, torch.Tensor] = {}
-        self._newest = 0  # ring slot of the newest frame, shared by all envs (a reset fills every slot)
+        # The statistics are the checkpoint's constants (not state): buffers for the device only.
+        self._stat_names = sorted(stats)
+        for i, name in enumerate(self._stat_names):
+            self.register_buffer(f"_stat_{i}", stats[name].float().to(device), persistent=False)
         # Ring slots of the H window steps, oldest first, for each slot of the newest frame.
         steps = torch.arange(history - 1, -1, -1) * stride
-        self._slots = [(newest - steps) % self.buffer_length for newest in range(self.buffer_length)]
+        slots = torch.stack([(newest - steps) % self.buffer_length for newest in range(self.buffer_length)])
+        self.register_buffer("_slots", slots.to(device), persistent=False)
+        for i, spec in enumerate(self.specs):
+            frames = torch.zeros(0, self.buffer_length, *spec.shape, dtype=spec.dtype, device=device)
+            self.register_buffer(f"_frames_{i}", frames)
+            self.register_buffer(
+                f"_present_{i}", torch.zeros(0, self.buffer_length, dtype=torch.bool, device=device)
+            )
+        self._newest = 0  # ring slot of the newest frame, shared by all envs (a reset fills every slot)
         self._batch_size: torch.Size | None = None
+
+    @property
+    def normalizer(self) -> Normalizer:
+        """The normalisation statistics of the model's training run, on the transform's device."""
+        return Normalizer({name: getattr(self, f"_stat_{i}") for i, name in enumerate(self._stat_names)})
+
+    # -- state ---------------------------------------------------------------------------------
+
+    def _frames(self, i: int) -> torch.Tensor:
+        """The ring buffer of modality ``i``'s frames, ``[n, buffer_length, *shape]``."""
+        return getattr(self, f"_frames_{i}")
+
+    def _presence(self, i: int) -> torch.Tensor:
+        """The ring buffer of modality ``i``'s presence flags, ``[n, buffer_length]``."""
+        return getattr(self, f"_present_{i}")
+
+    def get_extra_state(self) -> dict:
+        """What the history buffers need besides their values: the ring position and the env batch."""
+        batch_size = None if self._batch_size is None else list(self._batch_size)
+        return {"newest": self._newest, "batch_size": batch_size}
+
+    def set_extra_state(self, state: dict) -> None:
+        self._newest = int(state["newest"])
+        batch_size = state["batch_size"]
+        self._batch_size = None if batch_size is None else torch.Size(batch_size)
+        self._batch_size_changed()
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        # The buffers are shaped by the env batch of the saved transform: take its shape first.
+        for name in [f"_{kind}_{i}" for kind in ("frames", "present") for i in range(len(self.specs))]:
+            saved = state_dict.get(prefix + name)
+            current = getattr(self, name)
+            if saved is not None and saved.shape != current.shape:
+                setattr(self, name, current.new_empty(saved.shape))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def _batch_size_changed(self) -> None:
+        """Called when the history is set up for a new env batch (at a reset or a state load)."""
 
     # -- specs ---------------------------------------------------------------------------------
 
@@ -121,7 +173,9 @@ class _WindowTransform(Transform):
 
     # -- history -------------------------------------------------------------------------------
 
-    def _frame(self, spec: ModalitySpec, tensordict: TensorDictBase, n: int) -> torch.Tensor:
+    def _frame(
+        self, spec: ModalitySpec, tensordict: TensorDictBase, n: int, normalizer: Normalizer
+    ) -> torch.Tensor:
         """One step of ``spec`` for all envs, as the model's window stores it: ``[n, *shape]``."""
         try:
             value = tensordict.get(spec.obs_key)
@@ -130,6 +184,7 @@ class _WindowTransform(Transform):
                 f"{type(self).__name__}: the env output has no {spec.obs_key}; the model reads "
                 f"{[s.obs_key for s in self.specs]}"
             ) from None
+        value = value.to(self._slots.device)
         if spec.kind == "image":
             value = value.reshape(n, *value.shape[-3:])
             if tuple(value.shape[-2:]) != spec.shape[-2:]:
@@ -143,16 +198,17 @@ class _WindowTransform(Transform):
                 )
                 value = (value * 255).round_().clamp_(0, 255).to(torch.uint8)
             return value
-        return self.normalizer.normalize(spec.name, value.reshape(n, *spec.shape).float())
+        return normalizer.normalize(spec.name, value.reshape(n, *spec.shape).float())
 
     def _push(self, tensordict: TensorDictBase, rows: torch.Tensor | None) -> None:
         """Append this step's frame: to every env (``rows=None``), or fill the history of ``rows``."""
         n = self._batch_size.numel()
         if rows is None:
             self._newest = (self._newest + 1) % self.buffer_length
-        for spec in self.specs:
-            frame = self._frame(spec, tensordict, n)
-            present = tensordict.get(spec.present_key).reshape(n)
+        normalizer = self.normalizer
+        for i, spec in enumerate(self.specs):
+            frame = self._frame(spec, tensordict, n, normalizer)
+            present = tensordict.get(spec.present_key).reshape(n).to(frame.device)
             # A sensor reading NaN/Inf is absent for every window holding it, as in the data
             # pipeline: the model never sees it, so no forecast or action turns NaN. (One check
             # of the whole frame first: the rows are looked for only when one is unreadable.)
@@ -161,19 +217,20 @@ class _WindowTransform(Transform):
                 frame = frame.masked_fill(unreadable.view(-1, *[1] * (frame.dim() - 1)), 0)
                 present = present & ~unreadable
             if rows is None:
-                self._frames[spec.name][:, self._newest] = frame
-                self._present[spec.name][:, self._newest] = present
+                self._frames(i)[:, self._newest] = frame
+                self._presence(i)[:, self._newest] = present
             else:
-                self._frames[spec.name][rows] = frame[rows].unsqueeze(1)
-                self._present[spec.name][rows] = present[rows].unsqueeze(1)
+                self._frames(i)[rows] = frame[rows].unsqueeze(1)
+                self._presence(i)[rows] = present[rows].unsqueeze(1)
 
     def _allocate(self, batch_size: torch.Size) -> None:
         n, length = batch_size.numel(), self.buffer_length
-        self._batch_size = batch_size
+        for i, spec in enumerate(self.specs):
+            setattr(self, f"_frames_{i}", self._frames(i).new_zeros(n, length, *spec.shape))
+            setattr(self, f"_present_{i}", self._presence(i).new_zeros(n, length))
         self._newest = 0
-        for spec in self.specs:
-            self._frames[spec.name] = torch.zeros(n, length, *spec.shape, dtype=spec.dtype)
-            self._present[spec.name] = torch.zeros(n, length, dtype=torch.bool)
+        self._batch_size = batch_size
+        self._batch_size_changed()
 
     def window(self) -> TensorDict:
         """The model's input for every env, ``[n]`` (flattened env batch), as the data pipeline builds it."""
@@ -188,13 +245,13 @@ class _WindowTransform(Transform):
         """:meth:`window` as plain tensors, one per modality: observations and presence flags."""
         slots = self._slots[self._newest]
         observations, presence = [], []
-        for spec in self.specs:
+        for i, spec in enumerate(self.specs):
             if spec.kind == "vector":
-                values = self._frames[spec.name][:, self._newest]
-                present = self._present[spec.name][:, self._newest]
+                values = self._frames(i)[:, self._newest]
+                present = self._presence(i)[:, self._newest]
             else:
-                values = self._frames[spec.name].index_select(1, slots)
-                present = self._present[spec.name].index_select(1, slots).all(1)
+                values = self._frames(i).index_select(1, slots)
+                present = self._presence(i).index_select(1, slots).all(1)
             if spec.kind != "image":
                 values = values * present.view(-1, *[1] * (values.dim() - 1))
             observations.append(values)
@@ -202,6 +259,17 @@ class _WindowTransform(Transform):
         return observations, presence
 
     # -- env hooks -----------------------------------------------------------------------------
+
+    def observe_reset(self, observation: TensorDictBase) -> TensorDictBase:
+        """Fill every env's history with a reset's ``observation`` (env batch ``[*batch]``) and write
+        this transform's output into it, as ``env.reset()`` does in a `TransformedEnv`: for a caller
+        that steps an env of its own (the recorder's `mmf_rl.rl.agent.MPCActor`)."""
+        return self._reset(observation.empty(), observation)
+
+    def observe_step(self, observation: TensorDictBase) -> TensorDictBase:
+        """Append a step's ``observation`` to every env's history and write this transform's output
+        into it, as ``env.step()`` does in a `TransformedEnv` (see :meth:`observe_reset`)."""
+        return self._call(observation)
 
     def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise NotImplementedError
@@ -211,7 +279,7 @@ class _WindowTransform(Transform):
         rows = reset_rows(tensordict, batch_size, self._batch_size, type(self).__name__)
         if self._batch_size != batch_size:
             self._allocate(batch_size)
-        self._push(tensordict_reset, rows)
+        self._push(tensordict_reset, rows.to(self._slots.device))
         return self._emit(tensordict_reset)
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
@@ -283,7 +351,10 @@ class ForecastTransform(_WindowTransform):
     ``target/std`` in target units).
 
     The history is a fixed ring buffer per env: the cost per step does not grow with time
-    (`benchmarks/forecast_transform_cost.py` measures it against the env step).
+    (`benchmarks/forecast_transform_cost.py` measures it against the env step). It starts on the
+    model's device; ``transform.to(device)`` moves the model, the history and the statistics
+    together (buffers), so a step copies nothing but the env's observation onto that device, and
+    ``state_dict`` carries the history of a running transform.
     """
 
     def __init__(
@@ -312,14 +383,14 @@ class ForecastTransform(_WindowTransform):
         out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.FORECAST_VALID]
         if num_samples:
             out_keys.append(keys.FORECAST_SAMPLES)
-        super().__init__(config.modalities, stats, config.history, stride, out_keys)
+        device = next(model.parameters()).device
+        super().__init__(config.modalities, stats, config.history, stride, out_keys, device)
         self.model = model.eval()
         self.horizon, self.target_dim = config.horizon, config.target_dim
         self.num_samples, self.denormalize = num_samples, denormalize
         self.trace = trace and isinstance(model, MultimodalForecaster)
         self._model_keys = [s.obs_key for s in self.specs] + [s.present_key for s in self.specs]
-        self._traced: _TracedForecaster | None = None  # for the current batch size (see _allocate)
-        self._device: torch.device | None = None  # the model's, read at each allocation
+        self._traced: _TracedForecaster | None = None  # for the current batch size
 
     @classmethod
     def from_checkpoint(
@@ -365,27 +436,29 @@ class ForecastTransform(_WindowTransform):
 
     # -- forecast ------------------------------------------------------------------------------
 
-    def _allocate(self, batch_size: torch.Size) -> None:
-        super()._allocate(batch_size)
-        self._device = next(self.model.parameters()).device
+    def _batch_size_changed(self) -> None:
         # Graphs are traced for one batch size: the previous ones go (memory stays bounded).
-        self._traced = _TracedForecaster(self.model, self.specs, batch_size.numel()) if self.trace else None
+        batch_size = self._batch_size
+        traced = self.trace and batch_size is not None
+        self._traced = _TracedForecaster(self.model, self.specs, batch_size.numel()) if traced else None
+
+    def _apply(self, fn, *args, **kwargs):
+        module = super()._apply(fn, *args, **kwargs)
+        # The graphs hold the weights as constants where they were traced: trace them again.
+        self._batch_size_changed()
+        return module
 
     def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
         observations, presence = self._window_tensors()
         present = torch.stack(presence, 1)
         valid = present.any(1)
-        device = self._device
         if self._traced is not None:
             # No grad, not inference mode: a policy trained on the forecasts saves them for backward.
             with torch.no_grad():
-                loc, scale = self._traced(
-                    [o.to(device) for o in observations], present.to(device), valid.to(device)
-                )
-            loc, scale = loc.cpu(), scale.cpu()
-            samples = self._samples(observations, presence, valid, device) if self.num_samples else None
+                loc, scale = self._traced(observations, present, valid)
+            samples = self._samples(observations, presence, valid) if self.num_samples else None
         else:
-            loc, scale, *samples = self._eager(observations, presence, valid, device)
+            loc, scale, *samples = self._eager(observations, presence, valid)
             samples = samples[0] if samples else None
         if self.denormalize:
             loc = self.normalizer.denormalize_target(loc)
@@ -406,17 +479,17 @@ class ForecastTransform(_WindowTransform):
     def _prior(self, n: int) -> list[torch.Tensor]:
         """The target's training prior (zero mean, unit scale) for ``n`` envs with no present sensor:
         ``loc``, ``scale``, and its samples (its mean) when ``num_samples > 0``."""
-        shape = (n, self.horizon, self.target_dim)
-        prior = [torch.zeros(shape), torch.ones(shape)]
+        shape, device = (n, self.horizon, self.target_dim), self._slots.device
+        prior = [torch.zeros(shape, device=device), torch.ones(shape, device=device)]
         if self.num_samples:
-            prior.append(torch.zeros(n, self.num_samples, *shape[1:]))
+            prior.append(torch.zeros(n, self.num_samples, *shape[1:], device=device))
         return prior
 
-    def _eager(self, observations, presence, valid, device) -> tuple[torch.Tensor, ...]:
+    def _eager(self, observations, presence, valid) -> tuple[torch.Tensor, ...]:
         """``loc``, ``scale`` (and the samples) of the model's eager TensorDict forward on the valid rows."""
 
         def predict(rows: torch.Tensor | None) -> list[torch.Tensor]:
-            window = self._model_window(observations, presence, rows, device)
+            window = self._model_window(observations, presence, rows)
             with torch.inference_mode():
                 out = self.model(window.clone(False))
                 predicted = [out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)]
@@ -424,22 +497,22 @@ class ForecastTransform(_WindowTransform):
                     predicted.append(self.model.sample(window, self.num_samples).get(keys.FORECAST_SAMPLES))
             # Copied out of inference mode: a policy trained on the forecasts must be able to
             # save them for backward.
-            return [p.to("cpu", copy=True) for p in predicted]
+            return [p.clone() for p in predicted]
 
         return compute_on_rows(valid, predict, self._prior(valid.shape[0]))
 
-    def _samples(self, observations, presence, valid, device) -> torch.Tensor:
+    def _samples(self, observations, presence, valid) -> torch.Tensor:
         """``("forecast", "samples")`` in the model's frame, by its eager ``sample`` on the valid rows."""
 
         def sample(rows: torch.Tensor | None) -> list[torch.Tensor]:
-            window = self._model_window(observations, presence, rows, device)
+            window = self._model_window(observations, presence, rows)
             with torch.no_grad():
-                return [self.model.sample(window, self.num_samples).get(keys.FORECAST_SAMPLES).cpu()]
+                return [self.model.sample(window, self.num_samples).get(keys.FORECAST_SAMPLES)]
 
         return compute_on_rows(valid, sample, self._prior(valid.shape[0])[2:])[0]
 
-    def _model_window(self, observations, presence, rows, device) -> TensorDict:
-        inputs = [(t if rows is None else t[rows]).to(device) for t in observations + presence]
+    def _model_window(self, observations, presence, rows) -> TensorDict:
+        inputs = [t if rows is None else t[rows] for t in observations + presence]
         return TensorDict(dict(zip(self._model_keys, inputs, strict=True)), batch_size=inputs[0].shape[:1])
 
 

@@ -212,14 +212,13 @@ def with_outages(steps: list[TensorDict], num_envs: int, nan_as_absent: bool = F
 def replay(forecast: ForecastTransform, steps: list[TensorDict]) -> list[TensorDict]:
     """The transform's outputs for a reset on ``steps[0]`` then a step on each of the others (the
     transform alone, fed what an env would emit)."""
-    first = steps[0].clone()
-    outputs = [forecast._reset(first.empty(), first)]  # noqa: SLF001 - the transform alone, no env around it
-    outputs += [forecast._call(step.clone()) for step in steps[1:]]  # noqa: SLF001
+    outputs = [forecast.observe_reset(steps[0].clone())]
+    outputs += [forecast.observe_step(step.clone()) for step in steps[1:]]
     return outputs
 
 
 def graphs(forecast: ForecastTransform) -> int:
-    traced = forecast._traced  # noqa: SLF001
+    traced = forecast._traced
     return len(traced.encoders) + (traced.everywhere is not None) + (traced.head is not None)
 
 
@@ -245,7 +244,7 @@ def test_lean_forecast_equals_the_eager_forward_on_recorded_pushes(recorded_step
     valid = torch.stack([out[FORECAST_VALID] for out in lean])
     assert valid[0].all() and not valid.all(), "the replay should hold windows without any sensor"
     assert all(torch.isfinite(out[keys.FORECAST_LOC]).all() for out in lean), "a NaN reading is absent"
-    traced = lean_transform._traced  # noqa: SLF001
+    traced = lean_transform._traced
     assert traced.everywhere is not None and traced.head is not None, "both traced paths should run"
     assert not lean[-1][keys.FORECAST_LOC].is_inference(), "a policy can train on the forecasts"
 
@@ -265,7 +264,7 @@ def test_lean_forecast_follows_a_new_batch_size_and_refuses_an_unannounced_one(r
     lean = replay(forecast, steps)  # a reset of a batch of 3: new history, graphs traced again
     assert_same_forecasts(lean, replay(ForecastTransform.from_checkpoint(checkpoint, trace=False), steps))
     with pytest.raises(RuntimeError, match=r"env batch is \[2\] but was \[3\] at the last reset"):
-        forecast._call(steps[1][:2].clone())  # noqa: SLF001
+        forecast.observe_step(steps[1][:2].clone())
 
 
 def test_a_running_lean_forecast_transform_pickles(recorded_steps, checkpoint):
@@ -275,7 +274,7 @@ def test_a_running_lean_forecast_transform_pickles(recorded_steps, checkpoint):
     replay(forecast, steps[:8])
     copied = pickle.loads(pickle.dumps(forecast))
     for step in steps[8:12]:
-        assert_same_forecasts([copied._call(step.clone())], [forecast._call(step.clone())])  # noqa: SLF001
+        assert_same_forecasts([copied.observe_step(step.clone())], [forecast.observe_step(step.clone())])
 
 
 def test_lean_forecast_follows_in_place_weight_updates(recorded_steps, tmp_path, checkpoint):
@@ -287,7 +286,7 @@ def test_lean_forecast_follows_in_place_weight_updates(recorded_steps, tmp_path,
     expected = replay(eager_other, steps)
     assert not torch.allclose(before[-1][keys.FORECAST_LOC], expected[4][keys.FORECAST_LOC])
     forecast.model.load_state_dict(eager_other.model.state_dict())
-    after = [forecast._call(step.clone()) for step in steps[5:]]  # noqa: SLF001
+    after = [forecast.observe_step(step.clone()) for step in steps[5:]]
     assert_same_forecasts(after, expected[5:])
 
 
@@ -302,7 +301,7 @@ def test_lean_forecast_applies_and_follows_the_scale_factors(recorded_steps, che
     for transform in (forecast, eager):
         transform.model.scale_calibration.factors.copy_(factors)
     expected = replay(eager, steps)
-    assert_same_forecasts([forecast._call(step.clone()) for step in steps[5:]], expected[5:])  # noqa: SLF001
+    assert_same_forecasts([forecast.observe_step(step.clone()) for step in steps[5:]], expected[5:])
     assert not torch.allclose(before[-1][keys.FORECAST_SCALE], expected[4][keys.FORECAST_SCALE])
 
 
@@ -321,6 +320,86 @@ def test_lean_forecast_keeps_a_bounded_set_of_graphs_whatever_the_outages(record
     lean = replay(forecast, steps)
     assert graphs(forecast) <= len(PUSH_SPECS) + 2
     assert_same_forecasts(lean, replay(ForecastTransform.from_checkpoint(checkpoint, trace=False), steps))
+
+
+# -- the history is module state ------------------------------------------------------------------
+
+
+def synthetic_steps(num_envs: int = RECORDED_ENVS, length: int = 32, seed: int = 0) -> list[TensorDict]:
+    """Seeded random observations of ``num_envs`` envs, every sensor flagged present."""
+    generator = torch.Generator().manual_seed(seed)
+    steps = []
+    for _ in range(length):
+        image = torch.randint(0, 256, (num_envs, 3, IMAGE_SIZE, IMAGE_SIZE), generator=generator)
+        step = {keys.obs_key("image"): image.to(torch.uint8)}
+        for name, dim in VECTOR_DIMS.items():
+            step[keys.obs_key(name)] = torch.randn(num_envs, dim, generator=generator)
+        for name in MODALITIES:
+            step[keys.present_key(name)] = torch.ones(num_envs, dtype=torch.bool)
+        steps.append(TensorDict(step, batch_size=[num_envs]))
+    return steps
+
+
+# Sums over horizon and target dims of the forecasts per env at steps 0, 11, 21 and 31 of
+# `synthetic_steps` with `with_outages`, written by the transform whose history was a host-side
+# dict of tensors (before it became buffers): the forecasts must not change.
+HOST_HISTORY_FORECASTS = {
+    0: ([-8.4109, -8.2584, -8.3146], [7.6015, 7.4677, 7.5475]),
+    11: ([-8.6139, -8.3611, -8.2798], [7.73, 7.5582, 7.6711]),
+    21: ([-7.8392, -8.6183, -8.4913], [10.4431, 7.5034, 7.8245]),
+    31: ([-8.4768, -8.4823, -7.8392], [7.4101, 7.5015, 10.4431]),
+}
+
+
+@pytest.mark.parametrize("trace", [True, False])
+def test_forecasts_are_unchanged_by_keeping_the_history_in_buffers(tmp_path, trace):
+    checkpoint = write_checkpoint(tmp_path, PUSH_SPECS)
+    outputs = replay(
+        ForecastTransform.from_checkpoint(checkpoint, trace=trace),
+        with_outages(synthetic_steps(), RECORDED_ENVS),
+    )
+    for t, (loc, scale) in HOST_HISTORY_FORECASTS.items():
+        torch.testing.assert_close(
+            outputs[t][keys.FORECAST_LOC].sum((1, 2)), torch.tensor(loc), rtol=0, atol=2e-4
+        )
+        torch.testing.assert_close(
+            outputs[t][keys.FORECAST_SCALE].sum((1, 2)), torch.tensor(scale), rtol=0, atol=2e-4
+        )
+
+
+def test_history_and_statistics_follow_the_transform_to_a_device(checkpoint):
+    forecast = ForecastTransform.from_checkpoint(checkpoint)
+    replay(forecast, synthetic_steps(length=4))
+    history = {name for name, _ in forecast.named_buffers() if name.startswith(("_frames_", "_present_"))}
+    assert len(history) == 2 * len(PUSH_SPECS), "one frame and one presence buffer per modality"
+    forecast.to("meta")
+    assert {t.device.type for t in forecast.buffers()} == {"meta"}
+    assert {t.device.type for t in forecast.normalizer.stats.values()} == {"meta"}
+    assert next(forecast.model.parameters()).device.type == "meta"
+
+
+@pytest.mark.parametrize("transform", ["forecast", "history"])
+def test_history_round_trips_through_the_state_dict(checkpoint, transform):
+    """A fresh transform loaded with a running one's state dict continues its history: same
+    windows and forecasts from the next step on, without a reset of its own."""
+
+    def build():
+        forecast = ForecastTransform.from_checkpoint(checkpoint)
+        if transform == "forecast":
+            return forecast
+        return HistoryWindow.for_model(forecast.model, forecast.normalizer.stats)
+
+    steps = with_outages(synthetic_steps(), RECORDED_ENVS)
+    running, restored = build(), build()
+    replay(running, steps[:9])
+    restored.load_state_dict(running.state_dict())
+    for step in steps[9:14]:
+        expected, got = running.observe_step(step.clone()), restored.observe_step(step.clone())
+        for key in expected.keys(True, True):  # the observations hold NaN readings
+            torch.testing.assert_close(
+                got[key], expected[key], equal_nan=True, msg=lambda m, k=key: f"{k}: {m}"
+            )
+    assert (restored.window() == running.window()).all()
 
 
 def test_forecast_history_resets_with_the_envs_that_reset(checkpoint):
