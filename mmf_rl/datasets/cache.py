@@ -85,13 +85,13 @@ FREE_SPACE_MARGIN = 64 * 2**20
 # host whose PID is alive is stale only after a day without writes (the PID was reused).
 STALE_BUILD_AGE_S = 3600
 STALE_REUSED_PID_AGE_S = 24 * 3600
-# Checksums: files up to this size are hashed whole (measured: ~80 ms for 64 MiB on a loaded core);
+# Checksums: files up to this size are hashed whole (cheap next to opening the cache; see docs/results.md);
 # larger ones (image frames) by their size plus CHECKSUM_SAMPLES blocks of CHECKSUM_BLOCK bytes
 # spread from the first to the last byte, so an open stays cheap for a cache of any size.
 FULL_CHECKSUM_MAX_BYTES = 64 * 2**20
 CHECKSUM_BLOCK = 2**20
 CHECKSUM_SAMPLES = 16
-# A spawned decode worker pays ~10 s of imports (torch, torchvision via lerobot): below this
+# A spawned decode worker pays seconds of imports (torch, torchvision via lerobot): below this
 # many frames, decoding in-process is faster than starting a pool.
 POOL_MIN_FRAMES = 3000
 
@@ -318,37 +318,8 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
         frames = _allocate_frames(source, per_frame, directory / "frames")
         (directory / FRAMES_READY).touch()
 
-    finished = _finished_jobs(directory / PROGRESS_FILE)
-    todo = [job for job in jobs if _job_key(job) not in finished]
-    failed = [
-        (job, *finished[_job_key(job)])
-        for job in jobs
-        if _job_key(job) in finished and finished[_job_key(job)][0] is not None
-    ]
-    if finished:
-        logger.info(
-            "resuming an interrupted window cache build in %s: %d of %d video jobs already decoded",
-            directory,
-            len(jobs) - len(todo),
-            len(jobs),
-        )
-    failed += _decode(
-        todo,
-        num_workers,
-        directory / PROGRESS_FILE,
-        done_frames=sum(len(j.timestamps) for j in jobs) - sum(len(j.timestamps) for j in todo),
-    )
-    undecodable: dict[str, dict[str, str]] = _decode_parquet_images(source, frames)
-    for job, error, decoded in failed:
-        undecodable.setdefault(job.modality, {})[job.video_path] = error
-        frames.get(keys.present_key(job.modality))[
-            job.row_start + decoded : job.row_start + len(job.timestamps)
-        ] = False
-    for name, paths in missing.items():
-        absent = {str(p) for p in paths}
-        for episode in source.episodes:
-            if str(source.video_path(episode.index, source.modalities[name].feature)) in absent:
-                frames.get(keys.present_key(name))[episode.start : episode.stop] = False
+    failed = _decode_videos(jobs, directory, num_workers)
+    undecodable = _mark_undecodable_and_missing(source, frames, failed, missing)
 
     windows, skipped = _windows(source, frames)
     skipped["episodes_timestamps_not_increasing"] = unordered
@@ -373,6 +344,50 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
     report["files"] = _file_records(directory)
     (directory / CACHE_META).write_text(json.dumps(report, indent=2))
     return report
+
+
+def _decode_videos(jobs: list, directory: Path, num_workers: int | None) -> list:
+    """Decode the video jobs a killed build did not finish; ``(job, error, frames decoded)`` of
+    every job that failed, in this build or the killed one."""
+    finished = _finished_jobs(directory / PROGRESS_FILE)
+    todo = [job for job in jobs if _job_key(job) not in finished]
+    failed = [
+        (job, *finished[_job_key(job)])
+        for job in jobs
+        if _job_key(job) in finished and finished[_job_key(job)][0] is not None
+    ]
+    if finished:
+        logger.info(
+            "resuming an interrupted window cache build in %s: %d of %d video jobs already decoded",
+            directory,
+            len(jobs) - len(todo),
+            len(jobs),
+        )
+    return failed + _decode(
+        todo,
+        num_workers,
+        directory / PROGRESS_FILE,
+        done_frames=sum(len(j.timestamps) for j in jobs) - sum(len(j.timestamps) for j in todo),
+    )
+
+
+def _mark_undecodable_and_missing(
+    source: LeRobotSource, frames: TensorDict, failed: list, missing: dict
+) -> dict:
+    """Clear the presence of the frames that a failed job did not decode and of the episodes whose
+    video file is missing; the undecodable files per modality, with their errors."""
+    undecodable: dict[str, dict[str, str]] = _decode_parquet_images(source, frames)
+    for job, error, decoded in failed:
+        undecodable.setdefault(job.modality, {})[job.video_path] = error
+        frames.get(keys.present_key(job.modality))[
+            job.row_start + decoded : job.row_start + len(job.timestamps)
+        ] = False
+    for name, paths in missing.items():
+        absent = {str(p) for p in paths}
+        for episode in source.episodes:
+            if str(source.video_path(episode.index, source.modalities[name].feature)) in absent:
+                frames.get(keys.present_key(name))[episode.start : episode.stop] = False
+    return undecodable
 
 
 def _allocate_frames(source: LeRobotSource, per_frame: dict, frames_dir: Path) -> TensorDict:

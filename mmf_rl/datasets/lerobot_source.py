@@ -218,7 +218,28 @@ def _check_info(path: Path, info: dict) -> None:
             f"{path}: missing key(s) {missing}; a LeRobot v3.0 info.json has {list(REQUIRED_INFO_KEYS)}. "
             "Restore it from the original dataset or re-record it"
         )
-    # A dataset from the hub is untrusted input: its templates must not lead out of the root.
+    _check_path_templates(path, info)
+    total = info["total_frames"]
+    if not isinstance(total, int) or isinstance(total, bool) or total < 0:
+        raise ValueError(f"{path}: `total_frames` should be a non-negative integer, found {total!r}")
+    features = info["features"]
+    if not isinstance(features, dict) or not features:
+        raise ValueError(
+            f"{path}: `features` should map feature names to {{dtype, shape, names}}, found {features!r}"
+        )
+    for name, ft in features.items():
+        _check_feature(path, name, ft)
+    absent = [c for c in FRAME_COLUMNS if c not in features]
+    if absent:
+        raise ValueError(
+            f"{path}: `features` lacks the per-frame column(s) {absent} every LeRobot dataset has"
+        )
+    if any(ft["dtype"] == "video" for ft in features.values()) and not info.get("video_path"):
+        raise ValueError(f"{path}: the dataset has video features but no `video_path` pattern")
+
+
+def _check_path_templates(path: Path, info: dict) -> None:
+    """A dataset from the hub is untrusted input: its path templates must not lead out of the root."""
     for key in PATH_TEMPLATE_KEYS:
         template = info.get(key)
         if template is None:
@@ -235,50 +256,38 @@ def _check_info(path: Path, info: dict) -> None:
                 f"relative to the root without '..' (like {DEFAULT_TEMPLATES[key]!r}). Restore info.json "
                 "from the original dataset"
             )
-    total = info["total_frames"]
-    if not isinstance(total, int) or isinstance(total, bool) or total < 0:
-        raise ValueError(f"{path}: `total_frames` should be a non-negative integer, found {total!r}")
-    features = info["features"]
-    if not isinstance(features, dict) or not features:
+
+
+def _check_feature(path: Path, name: str, ft) -> None:
+    """One entry of ``features``: a dtype and a plausible shape for its kind."""
+    if not isinstance(ft, dict) or "dtype" not in ft or "shape" not in ft:
+        found = sorted(ft) if isinstance(ft, dict) else repr(ft)
+        raise ValueError(f"{path}: feature {name!r} needs `dtype` and `shape`, found {found}")
+    shape = ft["shape"]
+    if (
+        not isinstance(shape, list)
+        or not shape
+        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in shape)
+    ):
         raise ValueError(
-            f"{path}: `features` should map feature names to {{dtype, shape, names}}, found {features!r}"
+            f"{path}: feature {name!r} `shape` should be a list of positive integers, found {shape!r}"
         )
-    for name, ft in features.items():
-        if not isinstance(ft, dict) or "dtype" not in ft or "shape" not in ft:
-            found = sorted(ft) if isinstance(ft, dict) else repr(ft)
-            raise ValueError(f"{path}: feature {name!r} needs `dtype` and `shape`, found {found}")
-        shape = ft["shape"]
-        if (
-            not isinstance(shape, list)
-            or not shape
-            or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in shape)
-        ):
-            raise ValueError(
-                f"{path}: feature {name!r} `shape` should be a list of positive integers, found {shape!r}"
-            )
-        if ft["dtype"] == "video" and len(shape) != 3:
-            raise ValueError(
-                f"{path}: video feature {name!r} `shape` should be [height, width, channels], found {shape}"
-            )
-        if int(np.prod(shape, dtype=object)) > MAX_FRAME_VALUES:
-            raise ValueError(
-                f"{path}: feature {name!r} declares `shape` {shape}, "
-                f"{int(np.prod(shape, dtype=object)):.3g} values "
-                f"per frame (more than {MAX_FRAME_VALUES}); this is not a real sensor. Restore info.json "
-                "from the original dataset"
-            )
-        if ft["dtype"] == "image" and len(shape) not in (2, 3):
-            raise ValueError(
-                f"{path}: image feature {name!r} `shape` should be [height, width, channels] or [height, "
-                f"width], found {shape}"
-            )
-    absent = [c for c in FRAME_COLUMNS if c not in features]
-    if absent:
+    if ft["dtype"] == "video" and len(shape) != 3:
         raise ValueError(
-            f"{path}: `features` lacks the per-frame column(s) {absent} every LeRobot dataset has"
+            f"{path}: video feature {name!r} `shape` should be [height, width, channels], found {shape}"
         )
-    if any(ft["dtype"] == "video" for ft in features.values()) and not info.get("video_path"):
-        raise ValueError(f"{path}: the dataset has video features but no `video_path` pattern")
+    if int(np.prod(shape, dtype=object)) > MAX_FRAME_VALUES:
+        raise ValueError(
+            f"{path}: feature {name!r} declares `shape` {shape}, "
+            f"{int(np.prod(shape, dtype=object)):.3g} values "
+            f"per frame (more than {MAX_FRAME_VALUES}); this is not a real sensor. Restore info.json "
+            "from the original dataset"
+        )
+    if ft["dtype"] == "image" and len(shape) not in (2, 3):
+        raise ValueError(
+            f"{path}: image feature {name!r} `shape` should be [height, width, channels] or [height, "
+            f"width], found {shape}"
+        )
 
 
 def _read_parquet_schema(path: Path) -> pa.Schema:

@@ -72,26 +72,45 @@ def make_synthetic_dataset(
         start = rng.uniform(half, image_size - half, size=2)
         velocity = rng.uniform(-1.0, 1.0, size=2)
         for frame in range(length):
-            xy = np.clip(start + velocity * frame, half, image_size - half - 1)
-            image = np.zeros((image_size, image_size, 3), dtype=np.uint8)
-            col, row = int(xy[0]), int(xy[1])
-            image[row - half : row + half, col - half : col + half] = (255, 128, 32)
-            pose = np.array([episode + frame / 1000.0, xy[1], np.sin(frame / 10.0)], dtype=np.float32)
-            state = np.array([xy[0], xy[1], velocity[0], velocity[1]], dtype=np.float32)
-            force = rng.normal(size=3).astype(np.float32)
             in_span = 5 <= frame < 10
-            if episode in nan_force_episodes and in_span:
-                force[:] = np.nan
-            dataset.add_frame(
-                {
-                    IMAGE_FEATURE: image,
-                    IMAGE_VALID_FEATURE: np.array([not (episode in invalid_image_episodes and in_span)]),
-                    STATE_FEATURE: state,
-                    FORCE_FEATURE: force,
-                    POSE_FEATURE: pose,
-                    "task": "push the square",
-                }
+            faults = (
+                episode in nan_force_episodes and in_span,
+                episode in invalid_image_episodes and in_span,
             )
+            dataset.add_frame(_synthetic_frame(episode, frame, (start, velocity), image_size, rng, faults))
         dataset.save_episode()
     dataset.finalize()
     return dataset
+
+
+def _synthetic_frame(
+    episode: int,
+    frame: int,
+    motion: tuple,
+    image_size: int,
+    rng: np.random.Generator,
+    faults: tuple[bool, bool],
+) -> dict:
+    """Frame ``frame`` of ``episode``: a square moving at constant velocity from ``motion``'s
+    ``(start, velocity)``, random force (NaN when ``faults[0]``), the camera flagged invalid when
+    ``faults[1]``."""
+    half = 4
+    start, velocity = motion
+    xy = np.clip(start + velocity * frame, half, image_size - half - 1)
+    image = np.zeros((image_size, image_size, 3), dtype=np.uint8)
+    col, row = int(xy[0]), int(xy[1])
+    image[row - half : row + half, col - half : col + half] = (255, 128, 32)
+    pose = np.array([episode + frame / 1000.0, xy[1], np.sin(frame / 10.0)], dtype=np.float32)
+    state = np.array([xy[0], xy[1], velocity[0], velocity[1]], dtype=np.float32)
+    force = rng.normal(size=3).astype(np.float32)
+    force_nan, image_invalid = faults
+    if force_nan:
+        force[:] = np.nan
+    return {
+        IMAGE_FEATURE: image,
+        IMAGE_VALID_FEATURE: np.array([not image_invalid]),
+        STATE_FEATURE: state,
+        FORCE_FEATURE: force,
+        POSE_FEATURE: pose,
+        "task": "push the square",
+    }

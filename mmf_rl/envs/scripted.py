@@ -121,6 +121,30 @@ class ExploringActor:
         return action if burst is None else burst
 
 
+@dataclass(frozen=True)
+class _PushScene:
+    """One observation seen by `ScriptedPusher`: positions, and the gripper's offset from the object
+    along the push ``direction`` (``along``) and across it (``lateral``)."""
+
+    grip: np.ndarray
+    obj: np.ndarray
+    to_goal: np.ndarray
+    distance: float
+    direction: np.ndarray
+    lateral_axis: np.ndarray
+    offset: np.ndarray
+    along: float
+    lateral: float
+
+    @property
+    def push_height(self) -> float:
+        return self.obj[2]
+
+    @property
+    def travel_height(self) -> float:
+        return self.obj[2] + CLEARANCE
+
+
 class ScriptedPusher:
     """Pushes the object to the goal; call `reset` with the episode's generator, then `act`.
 
@@ -149,10 +173,28 @@ class ScriptedPusher:
         burst = self.bursts.draw(self.rng)
         if burst is not None:
             return burst
-        grip = obs["proprio"][:3]
-        obj = obs["object_pose"][:3]
-        goal = obs["desired_goal"]
-        to_goal = goal[:2] - obj[:2]
+        scene = self._scene(obs)
+        if self.pause_steps > 0:
+            self.pause_steps -= 1
+            return self._noisy(np.zeros(3))
+        if self.phase != "hold" and self.rng.random() < self.style.pause_rate:
+            self.pause_steps = int(self.rng.integers(2, 7))
+        self._leave_push_if_done_or_lost(scene)
+        action = self._lift_off(scene) if self.phase in ("hold", "retreat") else None
+        if action is None and self.phase in ("approach", "descend"):
+            action = self._get_behind(scene)
+        if action is not None:
+            return action
+        # push: aim just inside the block, on the push line, so the lateral error steers back onto
+        # it; ease off near the goal, where a fast block slides past (or off the table).
+        lead = self.style.push_lead * np.clip(scene.distance / SLOW_DOWN_DISTANCE, 0.3, 1.0)
+        target = scene.obj[:2] - scene.direction * (CONTACT_DISTANCE - lead)
+        return self._move(scene.grip, np.r_[target, scene.push_height], speed=1.0)
+
+    def _scene(self, obs: dict[str, np.ndarray]) -> _PushScene:
+        """Where gripper, object and goal are, in the frame of the push direction (updated here)."""
+        grip, obj = obs["proprio"][:3], obs["object_pose"][:3]
+        to_goal = obs["desired_goal"][:2] - obj[:2]
         distance = np.linalg.norm(to_goal)
         # Near the goal the object->goal bearing swings with every millimetre of lateral error;
         # pushing along the last bearing taken from afar keeps the push straight.
@@ -161,55 +203,65 @@ class ScriptedPusher:
         direction = self.direction
         lateral_axis = np.array([-direction[1], direction[0]])
         offset = grip[:2] - obj[:2]  # gripper relative to the object, in the plane
-        along, lateral = offset @ direction, offset @ lateral_axis
-        push_height, travel_height = obj[2], obj[2] + CLEARANCE
+        return _PushScene(
+            grip,
+            obj,
+            to_goal,
+            distance,
+            direction,
+            lateral_axis,
+            offset,
+            offset @ direction,
+            offset @ lateral_axis,
+        )
 
-        if self.pause_steps > 0:
-            self.pause_steps -= 1
-            return self._noisy(np.zeros(3))
-        if self.phase != "hold" and self.rng.random() < self.style.pause_rate:
-            self.pause_steps = int(self.rng.integers(2, 7))
-
+    def _leave_push_if_done_or_lost(self, scene: _PushScene) -> None:
+        """Push -> hold at the goal, push -> retreat when the contact is lost (or on a whim), hold ->
+        retreat when the object drifted off the goal."""
         if self.phase == "push":
-            lost = abs(lateral) > 0.03 or along > -0.02 or along < -0.12
-            if distance < self.style.stop_radius or to_goal @ direction < 0.005:
+            lost = abs(scene.lateral) > 0.03 or scene.along > -0.02 or scene.along < -0.12
+            if scene.distance < self.style.stop_radius or scene.to_goal @ scene.direction < 0.005:
                 self.phase = "hold"
             elif lost or self.rng.random() < self.style.reapproach_rate:
                 self.phase = "retreat"
-        if self.phase == "hold" and distance > RESUME_DISTANCE:
+        if self.phase == "hold" and scene.distance > RESUME_DISTANCE:
             self.phase = "retreat"
-        if self.phase in ("hold", "retreat"):
-            if grip[2] < travel_height - 0.01:
-                if np.linalg.norm(offset) < BACK_OFF_DISTANCE:
-                    # Step away before lifting: lifting fingers pressed against the block can
-                    # drag it up and tip it over.
-                    away = offset / max(np.linalg.norm(offset), 1e-6)
-                    return self._move(grip, np.r_[obj[:2] + away * (BACK_OFF_DISTANCE + 0.01), grip[2]])
-                return self._move(grip, np.r_[grip[:2], travel_height])
-            if self.phase == "hold":
-                return self._move(grip, grip)  # done: wait above the table
-            self.phase = "approach"
 
+    def _lift_off(self, scene: _PushScene) -> np.ndarray | None:
+        """Hold or retreat: back off and rise to travel height; then wait (hold) or approach anew
+        (retreat, ``None``: the approach acts this step)."""
+        grip, obj, offset = scene.grip, scene.obj, scene.offset
+        if grip[2] < scene.travel_height - 0.01:
+            if np.linalg.norm(offset) < BACK_OFF_DISTANCE:
+                # Step away before lifting: lifting fingers pressed against the block can
+                # drag it up and tip it over.
+                away = offset / max(np.linalg.norm(offset), 1e-6)
+                return self._move(grip, np.r_[obj[:2] + away * (BACK_OFF_DISTANCE + 0.01), grip[2]])
+            return self._move(grip, np.r_[grip[:2], scene.travel_height])
+        if self.phase == "hold":
+            return self._move(grip, grip)  # done: wait above the table
+        self.phase = "approach"
+        return None
+
+    def _get_behind(self, scene: _PushScene) -> np.ndarray | None:
+        """Approach the pre-push point at travel height, then descend behind the object; ``None``
+        once at pushing height (the push acts this step)."""
+        grip, obj, direction = scene.grip, scene.obj, scene.direction
         if self.phase == "approach":
-            pre_push = obj[:2] - direction * PRE_PUSH_DISTANCE + lateral_axis * self.style.approach_error
+            pre_push = (
+                obj[:2] - direction * PRE_PUSH_DISTANCE + scene.lateral_axis * self.style.approach_error
+            )
             if np.linalg.norm(grip[:2] - pre_push) > 0.015:
-                if grip[2] < travel_height - 0.02:
+                if grip[2] < scene.travel_height - 0.02:
                     # Lift straight up first: a diagonal move from pushing height can clip the block.
-                    return self._move(grip, np.r_[grip[:2], travel_height])
-                return self._move(grip, np.r_[pre_push, travel_height])
+                    return self._move(grip, np.r_[grip[:2], scene.travel_height])
+                return self._move(grip, np.r_[pre_push, scene.travel_height])
             self.phase = "descend"
-
-        if self.phase == "descend":
-            behind = obj[:2] - direction * PRE_PUSH_DISTANCE
-            if grip[2] > push_height + 0.008:
-                return self._move(grip, np.r_[behind, push_height])
-            self.phase = "push"
-
-        # push: aim just inside the block, on the push line, so the lateral error steers back onto
-        # it; ease off near the goal, where a fast block slides past (or off the table).
-        lead = self.style.push_lead * np.clip(distance / SLOW_DOWN_DISTANCE, 0.3, 1.0)
-        target = obj[:2] - direction * (CONTACT_DISTANCE - lead)
-        return self._move(grip, np.r_[target, push_height], speed=1.0)
+        behind = obj[:2] - direction * PRE_PUSH_DISTANCE
+        if grip[2] > scene.push_height + 0.008:
+            return self._move(grip, np.r_[behind, scene.push_height])
+        self.phase = "push"
+        return None
 
     def _move(self, grip: np.ndarray, target: np.ndarray, speed: float | None = None) -> np.ndarray:
         step = TRACKING_GAIN * (target - grip) / ACTION_SCALE

@@ -183,29 +183,34 @@ def evaluation_notes(
     return notes
 
 
+def load_for_evaluation(cfg, source: TrainedModelSource, overrides: dict, device):
+    """The trained model on ``device`` in eval mode and its data (scored with the model's training
+    statistics); refuses data whose modalities differ or whose split has no window."""
+    # Applied to the saved config before building: the model's fixed draws follow predictive_samples.
+    model, stats, data_config = load_trained_model(source.path, config_overrides=overrides)
+    data = WindowDataset(data_config_for_eval(data_config, cfg.data_root, source))
+    # Normalise with the statistics the model was trained with, whatever data it is scored on.
+    data.normalizer = Normalizer(stats)
+    check_modalities_match(model.modalities, data.specs, source.path, data.config.root)
+    model.to(device).eval()
+    if len(data.split_windows[cfg.split]) == 0:
+        raise ValueError(
+            f"the {cfg.split!r} split of {data.config.root} has no window; evaluate another split "
+            "(split=val|train) or record more episodes"
+        )
+    return model, data
+
+
 def run_evaluation(cfg) -> dict:
     device = resolve_device(cfg.device)
     source = locate_trained_model(cfg.checkpoint)
     # Checked before the slow part: a refused out_dir fails in a second, not after the scoring.
     out_dir = output_directory(cfg, source)
     overrides = {name: cfg[name] for name in LATENT_SETTINGS if cfg[name] is not None}
-    # Applied to the saved config before building: the model's fixed draws follow predictive_samples.
-    model, stats, data_config = load_trained_model(source.path, config_overrides=overrides)
+    model, data = load_for_evaluation(cfg, source, overrides, device)
     unfit = unfit_for_latent(model)
-    data = WindowDataset(data_config_for_eval(data_config, cfg.data_root, source))
-    # Normalise with the statistics the model was trained with, whatever data it is scored on.
-    data.normalizer = Normalizer(stats)
-    check_modalities_match(model.modalities, data.specs, source.path, data.config.root)
-    model.to(device).eval()
-
-    if len(data.split_windows[cfg.split]) == 0:
-        raise ValueError(
-            f"the {cfg.split!r} split of {data.config.root} has no window; evaluate another split "
-            "(split=val|train) or record more episodes"
-        )
     loader = data.loader(cfg.split, cfg.batch_size)
     denormalize = data.normalizer.denormalize_target
-    with_baseline = data.config.include_target_past
     torch.manual_seed(cfg.seed)  # best-of-K draws are repeatable
 
     subsets = list(presence_subsets([s.name for s in data.specs]))
@@ -215,7 +220,7 @@ def run_evaluation(cfg) -> dict:
         subsets,
         lambda t: denormalize(t.cpu()).to(t),
         num_samples=cfg.num_samples,
-        with_baseline=with_baseline,
+        with_baseline=data.config.include_target_past,
         device=device,
     )
     skipped = [name for name, _ in subsets if name not in results]
@@ -244,15 +249,24 @@ def run_evaluation(cfg) -> dict:
         )
         notes += plot_notes
     summary["notes"] = notes
+    write_results(out_dir, summary, source, data, cfg)
+    summary["plots"] = [str(p) for p in plots]
+    return summary
+
+
+def write_results(out_dir: Path, summary: dict, source: TrainedModelSource, data, cfg) -> None:
+    """``results.json`` (the summary) and ``results.md`` (headers, table, notes); the table goes
+    into ``summary["table"]``."""
     write_json(out_dir / "results.json", summary)
+    results, baseline = summary["subsets"], summary["constant_velocity"]
+    units = f"units of {data.config.target.feature}"
     table = markdown_table(results, baseline, units, cfg.num_samples)
-    table += "".join(f"\nNote: {note}\n" for note in notes)
+    table += "".join(f"\nNote: {note}\n" for note in summary["notes"])
     write_text(
         out_dir / "results.md",
         f"# {source.path} on {data.config.root} ({cfg.split} split)\n\n{headers(summary)}{table}",
     )
-    summary["table"], summary["plots"] = table, [str(p) for p in plots]
-    return summary
+    summary["table"] = table
 
 
 @torch.no_grad()

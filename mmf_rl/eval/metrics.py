@@ -209,6 +209,37 @@ def evaluate_presence_subsets(
     Raises ``ValueError`` if the scored subsets share no window.
     """
     subsets = list(subsets)
+    masks, scored, baseline = _score_subsets(
+        model, batches, subsets, denormalize, num_samples, with_baseline, device
+    )
+    available = {name: torch.cat(m) if m else torch.zeros(0, dtype=torch.bool) for name, m in masks.items()}
+    scored_names = [name for name, _ in subsets if available[name].any()]
+    if not scored_names:
+        return {}, None
+    shared = torch.stack([available[name] for name in scored_names]).all(0)
+    if not shared.any():
+        counts = {name: int(available[name].sum()) for name in scored_names}
+        raise ValueError(
+            f"no window can be scored in every presence subset (windows per subset: {counts}): a "
+            "paired comparison needs windows where each subset keeps a present modality"
+        )
+    results = {name: _shared_row(scored[name], available[name], shared) for name in scored_names}
+    if "all" in results:
+        reference_mse = results["all"]["mse"]
+        for row in results.values():
+            row["degradation"] = row["mse"] / reference_mse - 1 if reference_mse > 0 else float("nan")
+    reference = None
+    if with_baseline:
+        reference = {
+            metric.removeprefix(BASELINE_PREFIX): float(torch.cat(parts)[shared].mean())
+            for metric, parts in baseline.items()
+        } | {"windows": float(shared.sum())}
+    return results, reference
+
+
+def _score_subsets(model, batches, subsets, denormalize, num_samples, with_baseline, device):
+    """One pass over ``batches``: per subset, the scorable-window masks and the per-window metrics
+    of each batch (``{}`` where it has no scorable window), and the constant-velocity reference's."""
     masks: dict[str, list[torch.Tensor]] = {name: [] for name, _ in subsets}
     scored: dict[str, list[dict[str, torch.Tensor]]] = {name: [] for name, _ in subsets}
     baseline: dict[str, list[torch.Tensor]] = defaultdict(list)
@@ -228,38 +259,16 @@ def evaluate_presence_subsets(
         if with_baseline:
             for metric, per_window in baseline_metrics(batch, denormalize).items():
                 baseline[metric].append(per_window.detach().float().cpu())
-    available = {name: torch.cat(m) if m else torch.zeros(0, dtype=torch.bool) for name, m in masks.items()}
-    scored_names = [name for name, _ in subsets if available[name].any()]
-    if not scored_names:
-        return {}, None
-    shared = torch.stack([available[name] for name in scored_names]).all(0)
-    if not shared.any():
-        counts = {name: int(available[name].sum()) for name in scored_names}
-        raise ValueError(
-            f"no window can be scored in every presence subset (windows per subset: {counts}): a "
-            "paired comparison needs windows where each subset keeps a present modality"
-        )
-    results = {}
-    for name in scored_names:
-        metrics = next(part for part in scored[name] if part).keys()
-        row = {}
-        for metric in metrics:
-            # Back to one value per window of the pass (NaN where the subset has no present modality).
-            per_window = torch.full((len(shared),), float("nan"))
-            per_window[available[name]] = torch.cat([part[metric] for part in scored[name] if part])
-            row[metric] = float(per_window[shared].mean())
-        results[name] = row | {
-            "windows": float(shared.sum()),
-            "windows_available": float(available[name].sum()),
-        }
-    if "all" in results:
-        reference_mse = results["all"]["mse"]
-        for row in results.values():
-            row["degradation"] = row["mse"] / reference_mse - 1 if reference_mse > 0 else float("nan")
-    reference = None
-    if with_baseline:
-        reference = {
-            metric.removeprefix(BASELINE_PREFIX): float(torch.cat(parts)[shared].mean())
-            for metric, parts in baseline.items()
-        } | {"windows": float(shared.sum())}
-    return results, reference
+    return masks, scored, baseline
+
+
+def _shared_row(parts: list[dict[str, torch.Tensor]], available: torch.Tensor, shared: torch.Tensor) -> dict:
+    """A subset's row: each metric averaged over the ``shared`` windows, and the window counts."""
+    metrics = next(part for part in parts if part).keys()
+    row = {}
+    for metric in metrics:
+        # Back to one value per window of the pass (NaN where the subset has no present modality).
+        per_window = torch.full((len(shared),), float("nan"))
+        per_window[available] = torch.cat([part[metric] for part in parts if part])
+        row[metric] = float(per_window[shared].mean())
+    return row | {"windows": float(shared.sum()), "windows_available": float(available.sum())}

@@ -103,13 +103,40 @@ def fit_scale_calibration(
     if min_windows < 1:
         raise ValueError(f"min_windows must be >= 1, found {min_windows}")
     names = [s.name for s in model.modalities]
-    subsets = list(presence_subsets(names))
     calibration.reset()
     model.to(device).eval()
+    squared, windows, residuals = _standardised_residuals(model, calibration, batches, names, device)
+    if not windows:
+        raise ValueError("no window to fit the scale factors on: the batches are empty")
+    fits = []
+    for index in sorted(windows):
+        fitted = windows[index] >= min_windows
+        factor = math.sqrt(squared[index] / windows[index]) if fitted else 1.0
+        calibration.factors[index] = factor
+        magnitudes = torch.cat(residuals[index])
+        fits.append(
+            PatternFit(
+                pattern=pattern_name(index, names),
+                index=index,
+                windows=windows[index],
+                factor=float(calibration.factors[index]),
+                fitted=fitted,
+                coverage_90_before=float((magnitudes <= HALF_WIDTH_90).double().mean()),
+                coverage_90_after=float((magnitudes <= HALF_WIDTH_90 * factor).double().mean()),
+            )
+        )
+    return fits
+
+
+def _standardised_residuals(model, calibration, batches, names: list[str], device):
+    """Per presence pattern: the sum over windows of each window's mean ``z²`` (``z = (y - loc) /
+    scale``), the window count, and every ``|z|`` (for the coverage), over every (window, pattern)
+    pair the evaluation's presence subsets give, each once."""
+    subsets = list(presence_subsets(names))
     bits = calibration.bits.cpu()
-    squared = defaultdict(float)  # pattern -> sum over windows of the window's mean z²
+    squared = defaultdict(float)
     windows = defaultdict(int)
-    residuals: dict[int, list[torch.Tensor]] = defaultdict(list)  # |z| of each value, for the coverage
+    residuals: dict[int, list[torch.Tensor]] = defaultdict(list)
     for batch in batches:
         if batch.shape[0] == 0:
             continue
@@ -136,26 +163,7 @@ def fit_scale_calibration(
                 squared[index] += float(z[mine].square().mean(1).sum())
                 windows[index] += int(mine.sum())
                 residuals[index].append(z[mine].abs().flatten())
-    if not windows:
-        raise ValueError("no window to fit the scale factors on: the batches are empty")
-    fits = []
-    for index in sorted(windows):
-        fitted = windows[index] >= min_windows
-        factor = math.sqrt(squared[index] / windows[index]) if fitted else 1.0
-        calibration.factors[index] = factor
-        magnitudes = torch.cat(residuals[index])
-        fits.append(
-            PatternFit(
-                pattern=pattern_name(index, names),
-                index=index,
-                windows=windows[index],
-                factor=float(calibration.factors[index]),
-                fitted=fitted,
-                coverage_90_before=float((magnitudes <= HALF_WIDTH_90).double().mean()),
-                coverage_90_after=float((magnitudes <= HALF_WIDTH_90 * factor).double().mean()),
-            )
-        )
-    return fits
+    return squared, windows, residuals
 
 
 def calibration_record(model, fits: list[PatternFit], split: str, min_windows: int, data_root) -> dict:

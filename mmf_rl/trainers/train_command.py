@@ -161,12 +161,9 @@ def check_name(name: str) -> None:
         )
 
 
-def train(cfg) -> Path:
-    check_name(str(cfg.name))
-    device = resolve_device(cfg.device)
-    rank, world_size = init_distributed(device)
-    trainer_cfg = TrainerConfig.from_dict(to_container(cfg.trainer))
-    loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
+def prepare_run_dir(cfg, rank: int) -> Path:
+    """The run directory, resolved into ``cfg.run_dir``; on rank 0, cleaned of a killed save's
+    leftovers, checked against the run it would resume or overwrite, and given the config."""
     # Relative paths and '..' are the user's choice; the saved config and the messages show where
     # they really lead.
     run_dir = Path(cfg.run_dir).resolve()
@@ -182,8 +179,11 @@ def train(cfg) -> Path:
                 "choose another run_dir (nothing was overwritten)"
             )
         save_config(cfg, run_dir / RUN_CONFIG)
+    return run_dir
 
-    data_cfg = DataConfig.from_dict(to_container(cfg.data))
+
+def open_windows(cfg, data_cfg: DataConfig, world_size: int) -> WindowDataset:
+    """The window cache of ``data_cfg``, built by one process per machine."""
     for name, modality in data_cfg.modalities.items():  # before the window cache is built
         if modality.encoder is not None:
             check_encoder(name, modality.encoder, modality.kind)
@@ -199,14 +199,21 @@ def train(cfg) -> Path:
         with warnings.catch_warnings():  # the builder already warned about absent modalities
             warnings.simplefilter("ignore")
             data = WindowDataset(data_cfg)
+    return data
 
+
+def build_model_and_loss(
+    cfg, data: WindowDataset, trainer_cfg: TrainerConfig, loss_cfg: LossConfig, rank, device
+):
+    """The model on ``device`` (the same initial weights on every rank, or those of ``init_from``),
+    its name and its loss module."""
     seed_everything(trainer_cfg.seed)  # same initial weights on every rank
     model_cfg = to_container(cfg.model)
     model = build_model(
         model_cfg,
         data.specs,
-        data_cfg.history,
-        data_cfg.horizon,
+        data.config.history,
+        data.config.horizon,
         data.target_dim,
         action_shape=data.action_shape,
     ).to(device)
@@ -216,6 +223,13 @@ def train(cfg) -> Path:
         if rank == 0:
             logger.info("fine-tuning from %s: weights copied, new optimizer, step 0", source)
     loss = build_loss(model_name, model, loss_cfg)
+    return model, model_name, loss
+
+
+def make_trainer(cfg, model, model_name: str, loss, data: WindowDataset, trainer_cfg, run_dir, ranks, device):
+    """The `Trainer` of the run: its train loader (augmented if configured), validation on the val
+    split, checkpoints that carry the config and the normalisation statistics."""
+    rank, world_size = ranks
     seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents
     augment_cfg = AugmentConfig.from_dict(to_container(cfg.augment) if "augment" in cfg else None)
     augment = ImageAugmentation(augment_cfg, data.specs, trainer_cfg.seed) if augment_cfg.enable else None
@@ -236,7 +250,7 @@ def train(cfg) -> Path:
         )
         return {f"val/{k}": v for k, v in metrics.items() if k != "windows"}
 
-    trainer = Trainer(
+    return Trainer(
         model,
         loss,
         loader,
@@ -256,6 +270,37 @@ def train(cfg) -> Path:
         # Augmentation seeds the global RNG through fork_rng: a second thread would interleave it.
         prefetch_in_thread=augment is None,
     )
+
+
+def save_trained_model(cfg, model, data: WindowDataset, trainer: Trainer, metrics: dict, device) -> None:
+    """The trained model with what it needs to forecast (statistics, data config, scale factors
+    unless ``calibrate=false``), ready for from_pretrained / push_to_hub, in ``run_dir/model``."""
+    run_dir = Path(cfg.run_dir)
+    model.normalization_stats, model.data_config = data.normalizer.stats, data.config.to_dict()
+    if cfg.calibrate:
+        logger.info("%s", calibrate_after_training(model, data, trainer.last_checkpoint, device))
+    model.save_pretrained(run_dir / PRETRAINED_DIR)
+    summary = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
+    logger.info(
+        "trained %d steps -> %s%s",
+        trainer.step,
+        trainer.last_checkpoint,
+        f" ({summary})" if summary else "",
+    )
+
+
+def train(cfg) -> Path:
+    check_name(str(cfg.name))
+    device = resolve_device(cfg.device)
+    rank, world_size = init_distributed(device)
+    trainer_cfg = TrainerConfig.from_dict(to_container(cfg.trainer))
+    loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
+    run_dir = prepare_run_dir(cfg, rank)
+    data = open_windows(cfg, DataConfig.from_dict(to_container(cfg.data)), world_size)
+    model, model_name, loss = build_model_and_loss(cfg, data, trainer_cfg, loss_cfg, rank, device)
+    trainer = make_trainer(
+        cfg, model, model_name, loss, data, trainer_cfg, run_dir, (rank, world_size), device
+    )
     if cfg.resume:
         trainer.resume(run_dir / "checkpoints")
         if trainer.step < trainer_cfg.total_steps:
@@ -264,18 +309,8 @@ def train(cfg) -> Path:
         if rank == 0 and cfg.logger == "csv":
             truncate_csv_logs(run_dir / "logs", trainer.step)
     metrics = trainer.train()
-    if rank == 0:  # the trained model with what it needs to forecast, ready for from_pretrained / push_to_hub
-        model.normalization_stats, model.data_config = data.normalizer.stats, data_cfg.to_dict()
-        if cfg.calibrate:
-            logger.info("%s", calibrate_after_training(model, data, trainer.last_checkpoint, device))
-        model.save_pretrained(run_dir / PRETRAINED_DIR)
-        summary = ", ".join(f"{k}={v:.4g}" for k, v in metrics.items())
-        logger.info(
-            "trained %d steps -> %s%s",
-            trainer.step,
-            trainer.last_checkpoint,
-            f" ({summary})" if summary else "",
-        )
+    if rank == 0:
+        save_trained_model(cfg, model, data, trainer, metrics, device)
     if world_size > 1:
         dist.destroy_process_group()
     return run_dir

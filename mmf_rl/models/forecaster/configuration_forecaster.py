@@ -42,10 +42,9 @@ class ForecasterConfig:
         posterior_uses_target: whether the future ``y`` enters the posterior head in training
             (a CVAE's ``q(z|X, y)``). ``None`` (default): ``True`` with the learned prior (which
             needs it: a posterior that sees only ``X`` can copy the prior), ``False`` with the
-            standard prior (the paper's literal ``q(z|X)``). With the standard prior, measured on
-            the push benchmark (``benchmarks/accuracy.py --quick``), ``True`` lets ``z`` carry the
-            future (KL ~6 nats) that the ``N(0, I)`` draws at test time do not know, so forecasts
-            got much worse and seed-dependent; ``False`` was best in 5/7 presence subsets.
+            standard prior (the paper's literal ``q(z|X)``): with the standard prior, ``True``
+            lets ``z`` carry the future that the ``N(0, I)`` draws at test time do not know, so
+            forecasts get worse and seed-dependent (see docs/results.md).
         eval_latent: the latent(s) ``forward`` and
             :meth:`~MultimodalForecaster.decode_under_actions` decode in eval mode: ``"mean"``
             (default: the prior's mean, a deterministic forecast; ``z = 0`` under the standard
@@ -107,6 +106,12 @@ class ForecasterConfig:
         self.modalities = [
             m if isinstance(m, ModalitySpec) else ModalitySpec.from_dict(m) for m in self.modalities
         ]
+        self._check_modalities()
+        self._check_sizes()
+        self._check_latent()
+        self._check_options()
+
+    def _check_modalities(self) -> None:
         if not self.modalities:
             raise ValueError(
                 "ForecasterConfig.modalities is empty: the forecaster needs at least one modality"
@@ -116,6 +121,8 @@ class ForecasterConfig:
             raise ValueError(f"ForecasterConfig.modalities: duplicate names in {names}")
         for spec in self.modalities:
             check_encoder(spec.name, spec.encoder, spec.kind)
+
+    def _check_sizes(self) -> None:
         for name in (
             "history",
             "horizon",
@@ -133,6 +140,9 @@ class ForecasterConfig:
             raise ValueError(
                 f"ForecasterConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}"
             )
+
+    def _check_latent(self) -> None:
+        """The prior, posterior and eval latent must fit together."""
         if self.prior not in ("standard", "learned"):
             raise ValueError(f"ForecasterConfig.prior must be 'standard' or 'learned', found {self.prior!r}")
         if self.prior == "learned" and self.posterior_uses_target is False:
@@ -159,6 +169,8 @@ class ForecasterConfig:
                 "ForecasterConfig.predictive_samples must be an even integer >= 2 (the latents of "
                 f"eval_latent='predictive' come in antithetic pairs), found {self.predictive_samples!r}"
             )
+
+    def _check_options(self) -> None:
         if self.action_dim < 0 or self.action_steps < 0 or (self.action_dim > 0) != (self.action_steps > 0):
             raise ValueError(
                 f"ForecasterConfig: action_dim={self.action_dim} and action_steps={self.action_steps} must "

@@ -233,8 +233,12 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             persistent=False,
         )
 
+        self._declare_keys()
+
+    def _declare_keys(self) -> None:
+        """``in_keys`` and ``out_keys``: the batch contract's inputs and everything forward writes."""
         self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
-        if config.action_dim:
+        if self.config.action_dim:
             self.in_keys.append(keys.FUTURE_ACTION)
         self.out_keys = [
             keys.FORECAST_LOC,
@@ -425,20 +429,53 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         self.validate(td, require_target=self.training and self.target_encoder is not None)
         tokens, present = self.encode(td)
-        batch, device = present.shape[0], present.device
+        kept = self._kept_presence(td, present)
         target = td.get(keys.TARGET, None)
-        drop = self._drop_mask(td)
-        kept = None
-        if drop is not None:
-            kept = present & ~drop
-            if not bool(kept.any(1).all()):
-                raise ValueError(
-                    "('drop', m) removes every present modality of some sample; keep at least one"
-                )
-        learned = self.prior_head is not None
         wants_posterior = target is not None or self.target_encoder is None
         prepared = self.decoder_tokens(tokens, present)
         prepared_kept = None if kept is None else self.decoder_tokens(tokens, kept)
+        features, prior_loc, prior_scale = self._fuse_with_prior(
+            td, tokens, (present, prepared), (kept, prepared_kept), wants_posterior
+        )
+        z = self._forward_latent(td, features, target, wants_posterior, (prior_loc, prior_scale))
+
+        # Every decode of this pass (full input; degraded input; from the prior) in one decoder call;
+        # a decode is a presence [B, M], its decoder tokens and its latents, B rows or K blocks of B.
+        decodes = [(present, prepared, z)]
+        if kept is not None:  # teacher and student share tokens and z
+            decodes.append((kept, prepared_kept, z))
+        from_prior = keys.DECODE_FROM_PRIOR in td.keys()
+        if from_prior:  # the GSNN term: a reparameterised prior draw, so the prior head learns from it
+            decodes.append((present, prepared, prior_loc + prior_scale * torch.randn_like(prior_scale)))
+        forecasts = self._decode_all(decodes, self.embed_actions(td), present.shape[0])
+        td.set(keys.FORECAST_LOC, forecasts[0][0])
+        td.set(keys.FORECAST_SCALE, self.scale_calibration(forecasts[0][1], present))
+        if kept is not None:
+            td.set(keys.FORECAST_DROPPED_LOC, forecasts[1][0])
+            td.set(keys.FORECAST_DROPPED_SCALE, forecasts[1][1])
+        if from_prior:
+            td.set(keys.FORECAST_FROM_PRIOR_LOC, forecasts[-1][0])
+            td.set(keys.FORECAST_FROM_PRIOR_SCALE, forecasts[-1][1])
+        return td
+
+    def _kept_presence(self, td: TensorDictBase, present: torch.Tensor) -> torch.Tensor | None:
+        """The presence after the batch's ``("drop", m)`` masks (the L_mis student's input), if any."""
+        drop = self._drop_mask(td)
+        if drop is None:
+            return None
+        kept = present & ~drop
+        if not bool(kept.any(1).all()):
+            raise ValueError("('drop', m) removes every present modality of some sample; keep at least one")
+        return kept
+
+    def _fuse_with_prior(self, td: TensorDictBase, tokens, full, degraded, wants_posterior: bool):
+        """The fused features (``None`` when neither a learned prior nor the posterior reads them)
+        and the prior ``(loc, scale)``, written to ``td``; with a learned prior and ``("drop", m)``
+        masks, the degraded input's prior too. ``full`` and ``degraded`` are (presence, decoder
+        tokens) of the input and of the kept modalities (``(None, None)`` without masks)."""
+        (present, prepared), (kept, prepared_kept) = full, degraded
+        batch, device = present.shape[0], present.device
+        learned = self.prior_head is not None
         features = None
         if learned and kept is not None:
             # The learned prior of the degraded input: the fusion of the kept modalities, in the
@@ -455,6 +492,14 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         prior_loc, prior_scale = self._prior_from(features, batch, device)
         td.set(keys.PRIOR_LOC, prior_loc)
         td.set(keys.PRIOR_SCALE, prior_scale)
+        return features, prior_loc, prior_scale
+
+    def _forward_latent(
+        self, td: TensorDictBase, features, target, wants_posterior: bool, prior
+    ) -> torch.Tensor:
+        """The latent the forward decodes (a posterior draw in training, else ``eval_latent``'s),
+        with the posterior written to ``td`` when it is computed."""
+        prior_loc, prior_scale = prior
         if wants_posterior:
             post_loc, post_scale = self._posterior_from(features, target)
             td.set(keys.POSTERIOR_LOC, post_loc)
@@ -466,17 +511,13 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         else:
             z = self._eval_latent(prior_loc, prior_scale)
         # K latents per sample (rows k * B + b) with eval_latent="predictive", else one.
-        td.set(keys.LATENT, z if z.shape[0] == batch else prior_loc)
+        td.set(keys.LATENT, z if z.shape[0] == prior_loc.shape[0] else prior_loc)
+        return z
 
-        # Every decode of this pass (full input; degraded input; from the prior) in one decoder call;
-        # a decode is a presence [B, M], its decoder tokens and its latents, B rows or K blocks of B.
-        decodes = [(present, prepared, z)]
-        if kept is not None:  # teacher and student share tokens and z
-            decodes.append((kept, prepared_kept, z))
-        from_prior = keys.DECODE_FROM_PRIOR in td.keys()
-        if from_prior:  # the GSNN term: a reparameterised prior draw, so the prior head learns from it
-            decodes.append((present, prepared, prior_loc + prior_scale * torch.randn_like(prior_scale)))
-        action = self.embed_actions(td)
+    def _decode_all(self, decodes: list, action: torch.Tensor | None, batch: int) -> list:
+        """``(loc, scale)`` of each decode ``(presence, decoder tokens, latents)``, in one decoder call,
+        moment-matched over the latents of a decode."""
+        present, prepared, z = decodes[0]
         rows = [latent.shape[0] for *_, latent in decodes]
         copies = sum(rows) // batch
         if copies == 1:
@@ -488,19 +529,10 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                 torch.cat([latent for *_, latent in decodes]),
                 None if action is None else action.repeat(copies, 1),
             )
-        forecasts = [
+        return [
             moment_match(*parts, n // batch)
             for *parts, n in zip(loc.split(rows), scale.split(rows), rows, strict=True)
         ]
-        td.set(keys.FORECAST_LOC, forecasts[0][0])
-        td.set(keys.FORECAST_SCALE, self.scale_calibration(forecasts[0][1], present))
-        if kept is not None:
-            td.set(keys.FORECAST_DROPPED_LOC, forecasts[1][0])
-            td.set(keys.FORECAST_DROPPED_SCALE, forecasts[1][1])
-        if from_prior:
-            td.set(keys.FORECAST_FROM_PRIOR_LOC, forecasts[-1][0])
-            td.set(keys.FORECAST_FROM_PRIOR_SCALE, forecasts[-1][1])
-        return td
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
         """Decode ``num_samples`` latents drawn from :meth:`eval_distribution` (the prior ``p(z | X)``,
