@@ -154,6 +154,27 @@ def dataset_features(image_size: int) -> dict[str, dict]:
 
 @dataclass(frozen=True)
 class RecordConfig:
+    """What `record` records: ``mmf-rl record``'s options.
+
+    Args:
+        out: the dataset directory to create.
+        episodes: how many episodes to record.
+        workers: recording processes; episode ``i`` is the same whatever the number.
+        seed: episode ``i`` depends only on ``(seed, i)``, so a recording can be repeated or extended.
+        image_size: the camera image's side in pixels.
+        steps: steps per episode, at the env's 25 Hz.
+        camera: ``"front"``, ``"top"``, or a camera of the model XML.
+        faults: write seeded sensor outages (force dropouts, black and frozen frames, with the
+            camera's validity flag) into the data, for training on faults the data really has.
+        exploration: the per-step probability of a random-move burst of the pusher, so a world
+            model also sees moves that miss or bump the block.
+        overwrite: replace an existing ``out`` instead of refusing.
+        repo_id: the LeRobot ``repo_id`` stored in the metadata.
+        vcodec: the video codec lerobot encodes the camera with.
+        policy: ``None``: the scripted pusher. Else a picklable factory of the `Actor` that records
+            (called once per worker process): e.g. `mmf_rl.rl.PushMPCAgent`.
+    """
+
     out: Path
     episodes: int
     workers: int = 1
@@ -166,8 +187,6 @@ class RecordConfig:
     overwrite: bool = False
     repo_id: str = "local/mmf-push"
     vcodec: str = "libsvtav1"
-    # None: the scripted pusher. Else a picklable factory of the `Actor` that records (called once
-    # per worker process): e.g. `mmf_rl.rl.PushMPCAgent`.
     policy: Callable[[], Actor] | None = None
 
 

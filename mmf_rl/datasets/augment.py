@@ -36,7 +36,13 @@ def lerobot_default_transforms() -> dict[str, dict]:
 class AugmentConfig:
     """lerobot's ``ImageTransformsConfig`` (same fields, same meaning), off by default.
 
-    ``modalities``: the image modalities to augment (default: every image modality).
+    Args:
+        enable: augment the training images (never val or test).
+        max_num_transforms: how many of ``tfs`` are applied to an image at most (drawn by weight).
+        random_order: apply them in random order instead of the order of ``tfs``.
+        tfs: name → lerobot ``ImageTransformConfig`` (``weight``, ``type``, ``kwargs``); lerobot's
+            defaults (brightness, contrast, saturation, hue, sharpness, affine).
+        modalities: the image modalities to augment (default: every image modality).
     """
 
     enable: bool = False

@@ -20,18 +20,21 @@ SPLIT_NAMES = ("train", "val", "test")
 class ModalityConfig:
     """One modality read from one dataset feature.
 
-    ``kind`` defaults from the feature's dtype: video/image features → ``"image"``, vector
-    features → ``"sequence"`` (``"vector"`` keeps only the last step of the window).
-    ``valid_feature`` names a per-frame boolean feature saying when this modality is valid; when
-    unset, ``"<feature>_valid"`` (or, for a camera ``observation.images.<cam>``,
-    ``observation.<cam>_camera_valid`` as the recorder writes it) is used if the dataset has it.
-    ``dims`` selects feature dims.
-    ``required`` turns "absent" from a warning into an error. ``allow_absent`` accepts losing the
-    modality on most frames: without it, a modality absent on more than half of the frames
-    (missing or undecodable video, NaN spans, validity flags) is an error, since the model would
-    silently train without it (e.g. a declared camera whose video files were never recorded).
-    ``raw_dims`` (indices after ``dims``) are left unnormalised: flags such as a per-slot
-    ``valid`` keep their exact 0/1 meaning, which a mean/std shift would make data-dependent.
+    Args:
+        feature: the dataset feature it reads (a camera ``observation.images.<cam>`` or a vector).
+        kind: ``"image"``, ``"sequence"`` (a vector window) or ``"vector"`` (the window's last step
+            only). Unset: from the feature's dtype, video/image → ``"image"``, vector → ``"sequence"``.
+        dims: the feature dims to keep (all when unset), for a vector that mixes several sensors.
+        valid_feature: a per-frame boolean feature saying when this modality is valid. Unset:
+            ``"<feature>_valid"`` (for a camera ``observation.images.<cam>``,
+            ``observation.<cam>_camera_valid``, as the recorder writes it) if the dataset has it.
+        required: an absent modality (missing video, NaN span) is an error, not a warning.
+        encoder: the unimodal encoder (``mmf_rl.models.encoders``); unset: the kind's default.
+        raw_dims: indices (after ``dims``) left unnormalised, so flags such as a per-slot
+            ``valid`` keep their exact 0/1 meaning, which a mean/std shift would make data-dependent.
+        allow_absent: accept losing the modality on more than half of the frames; without it that
+            is an error, since the model would silently train without it (e.g. a declared camera
+            whose video files were never recorded).
     """
 
     feature: str
@@ -57,13 +60,16 @@ class ModalityConfig:
 
 @dataclass
 class TargetConfig:
-    """The forecast variable: a vector feature and optionally which of its dims.
+    """The forecast variable.
 
-    ``relative``: forecast the change from the window's last observed frame (that frame's value
-    is subtracted from the future and from ``target_past``) instead of absolute values; the
-    normalisation statistics then describe those displacements. A model then predicts motion,
-    not where things are, which is what a forecaster needs when the target's current value is
-    not one of its inputs (the push task's object position).
+    Args:
+        feature: a vector feature of the dataset.
+        dims: which of its dims to forecast (all when unset).
+        relative: forecast the change from the window's last observed frame (subtracted from the
+            future and from ``target_past``; the normalisation statistics then describe those
+            displacements) instead of absolute values. The model then predicts motion, not where
+            things are, which is what it needs when the target's current value is not one of its
+            inputs (the push task's object position).
     """
 
     feature: str
@@ -82,6 +88,10 @@ class ActionConfig:
     A window at ``t`` carries the actions of frames ``t .. t + T·stride - 1``: in LeRobot a frame's
     ``action`` is the command sent after that frame's observation, so these are exactly the
     commands that move the system from the last observed frame to the last forecast one.
+
+    Args:
+        feature: the action feature (LeRobot's ``"action"`` by default).
+        dims: which of its dims condition the model (all when unset).
     """
 
     feature: str = "action"
@@ -94,9 +104,13 @@ class ActionConfig:
 
 @dataclass
 class OutageConfig:
-    """Replayed sensor outages for one modality (``missing: {m: {fraction: f, mean_burst: L}}``):
-    simulated bursts of about ``L`` frames covering about ``f`` of the training frames, so a
-    model trains for the outages its sensor shows (``mmf-rl inspect`` measures both)."""
+    """Replayed sensor outages for one modality (``missing: {m: {fraction: f, mean_burst: L}}``),
+    so a model trains for the outages its sensor shows (``mmf-rl inspect`` measures both).
+
+    Args:
+        fraction: about this share of the training frames are out (in ``[0, 1)``).
+        mean_burst: the mean length of a simulated outage, in frames (``>= 1``).
+    """
 
     fraction: float
     mean_burst: float
@@ -123,25 +137,42 @@ class DataConfig:
     A sample at window index ``t`` observes frames ``t-(H-1)s .. t`` and forecasts
     ``t+s .. t+Ts`` (``s = stride``), all inside one episode.
 
-    ``missing`` is the training missingness protocol: ``{modality: p}`` removes modality ``m`` from
-    a fixed, ``missing_seed``-seeded fraction ``p`` of the training windows;
-    ``{modality: {fraction: f, mean_burst: L}}`` replays outages (:class:`OutageConfig`) on top of
-    the data's own; ``"observed"`` replays, for every modality, the outages measured in the
-    training split (``WindowDataset.observed_outages``).
-
-    ``action`` (optional) adds the actions applied over the horizon to every window, for an
-    action-conditioned world model (see :class:`ActionConfig`).
-
-    Episodes, as lerobot selects them: ``episodes`` (a list of episode indices; default all) minus
-    ``exclude_episodes``; only those are decoded into the window cache. The split is by episode:
-    ``split_fractions`` cut the selected episodes at random (``split_seed``), or ``split`` names
-    them, ``{train: [...], val: [...], test: [...]}`` (a split left out is empty; without
-    ``episodes``, the union of the lists is the selection).
-
-    ``video_sync`` matches video frames to parquet rows: ``"timestamp"`` decodes each row's
-    ``timestamp`` within ``tolerance_s`` (as lerobot does), ``"frame_index"`` decodes the row's
-    frame ``k`` of its episode at ``k / fps`` of the episode's video segment, for recordings whose
-    ``timestamp`` holds wall-clock stamps that drift from ``k / fps`` (``mmf-rl inspect`` measures it).
+    Args:
+        modalities: the model's inputs, name → :class:`ModalityConfig` (or just a feature name).
+        target: the forecast variable (:class:`TargetConfig`).
+        root: the dataset's directory; ``None`` fetches ``repo_id`` from the Hugging Face hub.
+        repo_id: the dataset's hub name (its window cache is named after it when ``root`` is unset).
+        history: ``H``, observed steps per window.
+        horizon: ``T``, forecast steps per window.
+        stride: ``s``, frames between two steps of a window (subsamples a high frame rate).
+        image_size: ``[height, width]`` the camera frames are resized to in the cache.
+        include_target_past: add ``"target_past"``, the target's own history, to every window: the
+            input of the constant-velocity reference that ``eval`` reports.
+        split_fractions: train/val/test shares of the selected episodes, cut at random.
+        split_seed: the seed of that cut.
+        std_floor: the smallest normalisation std, so a constant feature does not blow up.
+        missing: the training missingness protocol. ``{modality: p}`` removes ``m`` from a fixed
+            fraction ``p`` of the training windows; ``{modality: {fraction, mean_burst}}`` replays
+            outages (:class:`OutageConfig`) on top of the data's own; ``"observed"`` replays, for
+            every modality, the outages measured in the training split
+            (``WindowDataset.observed_outages``).
+        missing_seed: the seed of those removals and replays.
+        tolerance_s: how far a decoded video frame may be from a row's ``timestamp`` (lerobot's
+            ``tolerance_s``).
+        cache_dir: where window caches live; unset: ``windows/`` under ``$MMF_RL_CACHE``, else
+            under ``~/.cache/mmf_rl``.
+        action: the actions applied over the horizon, added to every window for an
+            action-conditioned world model (:class:`ActionConfig`; none when unset).
+        episodes: the episode indices to use, as lerobot selects them (all when unset); only the
+            selected episodes are decoded into the window cache.
+        exclude_episodes: episodes removed from that selection (e.g. damaged ones).
+        split: ``{train: [...], val: [...], test: [...]}`` names the split instead of
+            ``split_fractions`` (a split left out is empty; without ``episodes``, the union of the
+            lists is the selection). The split is always by episode, so no window leaks across.
+        video_sync: how video frames are matched to parquet rows: ``"timestamp"`` decodes each
+            row's ``timestamp`` within ``tolerance_s`` (as lerobot does); ``"frame_index"`` decodes
+            frame ``k`` of an episode at ``k / fps`` of its video segment, for recordings whose
+            timestamps are wall-clock stamps drifting from ``k / fps`` (``mmf-rl inspect`` measures it).
     """
 
     modalities: dict[str, ModalityConfig]

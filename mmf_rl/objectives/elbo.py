@@ -50,6 +50,26 @@ class ELBOLoss(ForecasterLossBase):
 
     @dataclass
     class _AcceptedKeys:
+        """The tensordict keys the loss reads; ``set_keys(name=key)`` renames one.
+
+        Attributes:
+            target (NestedKey): the future ``y``, ``[B, T, D]``. Defaults to ``"target"``.
+            forecast_loc (NestedKey): the mean of ``p(y | X, z)`` at the posterior draw, ``[B, T, D]``.
+                Defaults to ``("forecast", "loc")``.
+            forecast_scale (NestedKey): its standard deviation. Defaults to ``("forecast", "scale")``.
+            posterior_loc (NestedKey): the mean of ``q(z | X, y)``, ``[B, d_z]``. Defaults to
+                ``("posterior", "loc")``.
+            posterior_scale (NestedKey): its standard deviation. Defaults to ``("posterior", "scale")``.
+            prior_loc (NestedKey): the mean of ``p(z | X)``, ``[B, d_z]``; absent: ``N(0, I)``.
+                Defaults to ``("prior", "loc")``.
+            prior_scale (NestedKey): its standard deviation. Defaults to ``("prior", "scale")``.
+            from_prior_loc (NestedKey): the mean of the forecast decoded from a prior draw (the GSNN
+                term's, read only with ``gsnn_weight > 0``). Defaults to
+                ``("forecast_from_prior", "loc")``.
+            from_prior_scale (NestedKey): its standard deviation. Defaults to
+                ``("forecast_from_prior", "scale")``.
+        """
+
         target: NestedKey = keys.TARGET
         forecast_loc: NestedKey = keys.FORECAST_LOC
         forecast_scale: NestedKey = keys.FORECAST_SCALE

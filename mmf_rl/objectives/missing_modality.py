@@ -51,17 +51,38 @@ class MissingModalityLoss(ForecasterLossBase):
     Returns ``loss_mis`` (weighted), ``loss_mis_nll`` and ``loss_mis_prior`` when they apply, and
     the detached diagnostics ``mis_kl`` (unweighted), ``mis_fraction`` (share of samples that had
     a modality dropped) and ``mis_dropped`` (mean number dropped over those samples).
-
-    Keys: ``present`` maps each of the forecaster's modalities to the mask :meth:`prepare` picks
-    the dropped modality from (default ``("present", m)``, resolved from the forecaster's
-    modalities). ``set_keys(present={"image": "image_may_drop"})`` points some of them elsewhere,
-    e.g. to limit ``L_mis`` to the sensors that can fail; such a mask must be False wherever the
-    modality is absent. The ``("drop", m)`` masks it writes are the forecaster's input, so their
-    names are the contract's.
     """
 
     @dataclass
     class _AcceptedKeys:
+        """The tensordict keys the loss reads; ``set_keys(name=key)`` renames one.
+
+        Attributes:
+            target (NestedKey): the future ``y``, ``[B, T, D]`` (read for ``loss_mis_nll``).
+                Defaults to ``"target"``.
+            forecast_loc (NestedKey): the teacher's forecast mean (all present modalities),
+                ``[B, T, D]``. Defaults to ``("forecast", "loc")``.
+            forecast_scale (NestedKey): its standard deviation. Defaults to ``("forecast", "scale")``.
+            dropped_loc (NestedKey): the student's forecast mean (``S`` removed, same ``z``).
+                Defaults to ``("forecast_dropped", "loc")``.
+            dropped_scale (NestedKey): its standard deviation. Defaults to
+                ``("forecast_dropped", "scale")``.
+            present (dict[str, NestedKey]): for each of the forecaster's modalities, the mask
+                :meth:`prepare` picks the dropped modalities from. Defaults to ``("present", m)``,
+                resolved from the forecaster's modalities; ``set_keys(present={"image":
+                "image_may_drop"})`` points some elsewhere, e.g. to limit ``L_mis`` to the sensors
+                that can fail (such a mask must be False wherever the modality is absent). The
+                ``("drop", m)`` masks it writes are the forecaster's input: their names are the
+                contract's, not keys of the loss.
+            prior_loc (NestedKey): the learned prior's mean of the full input, ``[B, d_z]`` (read
+                for ``loss_mis_prior``). Defaults to ``("prior", "loc")``.
+            prior_scale (NestedKey): its standard deviation. Defaults to ``("prior", "scale")``.
+            prior_dropped_loc (NestedKey): the learned prior's mean of the degraded input. Defaults
+                to ``("prior_dropped", "loc")``.
+            prior_dropped_scale (NestedKey): its standard deviation. Defaults to
+                ``("prior_dropped", "scale")``.
+        """
+
         target: NestedKey = keys.TARGET
         forecast_loc: NestedKey = keys.FORECAST_LOC
         forecast_scale: NestedKey = keys.FORECAST_SCALE
@@ -169,7 +190,7 @@ class MissingModalityLoss(ForecasterLossBase):
         # Uniform scores over the present modalities (absent ones last): the k top-ranked are a
         # uniformly random k-subset of the present ones.
         scores = torch.rand(present.shape, device=present.device).masked_fill(~present, -1.0)
-        if self.max_dropped == 1:  # k = 1 where possible; no draw for k (the paper's setting, as before)
+        if self.max_dropped == 1:  # k = 1 where possible (the paper's setting): no draw for k
             number = droppable
         else:
             number = (torch.rand(count.shape, device=present.device) * droppable).long() + 1

@@ -28,6 +28,16 @@ class GaussianNLLLoss(ForecasterLossBase):
 
     @dataclass
     class _AcceptedKeys:
+        """The tensordict keys the loss reads; ``set_keys(name=key)`` renames one.
+
+        Attributes:
+            target (NestedKey): the future ``y``, ``[B, T, D]``. Defaults to ``"target"``.
+            forecast_loc (NestedKey): the forecast's mean, ``[B, T, D]``. Defaults to
+                ``("forecast", "loc")``.
+            forecast_scale (NestedKey): the forecast's standard deviation, ``[B, T, D]``. Defaults
+                to ``("forecast", "scale")``.
+        """
+
         target: NestedKey = keys.TARGET
         forecast_loc: NestedKey = keys.FORECAST_LOC
         forecast_scale: NestedKey = keys.FORECAST_SCALE

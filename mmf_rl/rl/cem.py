@@ -5,9 +5,7 @@ Why not only torchrl's `CEMPlanner`: it scores candidates by rolling a model-bas
 one step at a time, so a forecaster that predicts all T steps in one decode would be decoded T
 times per candidate batch (and re-encoded, unless the env caches tokens, as
 `ForecasterWorldModelEnv` does). Here each CEM iteration is one decoder pass over all candidates
-of all envs. Measured by `benchmarks/mpc_push.py` (push world model, 128 candidates × 4
-iterations × 10 steps, 2 CPU threads): 12 ms per decision here, 369 ms with `CEMPlanner` on
-`ForecasterWorldModelEnv`, with similar success on the same episodes (8/10 and 6/10).
+of all envs (`benchmarks/mpc_push.py` compares the two; its results are in docs/results.md).
 """
 
 from __future__ import annotations

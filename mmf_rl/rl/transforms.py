@@ -540,8 +540,8 @@ class _TracedForecaster:
     distribution, but other draws when some env has none.
 
     Why `torch.jit.trace`, deprecated in torch 2.x: torch.export refuses the presence branches
-    of the whole forward, and ``torch.compile`` (inductor) took 83 s to compile the image
-    encoder alone on a loaded 2-core machine and ran it slower than this trace.
+    of the whole forward, and ``torch.compile`` (inductor) compiled the image encoder alone for
+    over a minute and ran it slower than this trace (see docs/results.md).
     """
 
     def __init__(self, model: MultimodalForecaster, specs: Sequence[ModalitySpec], n: int):

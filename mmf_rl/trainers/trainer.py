@@ -47,17 +47,33 @@ class TrainingStopped(RuntimeError):
 class TrainerConfig:
     """Optimisation and bookkeeping of one run.
 
-    ``batch_size`` is per rank and is used by whoever builds the loader.
-    ``max_nonfinite_steps``: a step whose loss is NaN/Inf is skipped (no update) and counted;
-    more than this many in a row stop the run. ``loss_explosion_threshold``: a finite total loss
-    above it stops the run, naming the last good checkpoint. ``early_stopping_patience``: stop
-    after this many evaluations in a row without a lower ``early_stopping_metric``, which must be
-    one of the metrics the evaluation returns.
-
-    ``precision``: ``fp32``, or ``bf16``/``fp16`` autocast of the model's forward (the losses
-    stay fp32; ``fp16`` is CUDA-only and scales the loss with a ``GradScaler``). ``compile``:
-    ``torch.compile`` the training forward. ``prefetch``: make the next batch (and copy it to the
-    device) while the current step runs; the batches and results are the same either way.
+    Args:
+        total_steps: optimizer updates of the run.
+        batch_size: windows per update, per rank (used by whoever builds the loader).
+        lr: AdamW's peak learning rate.
+        weight_decay: AdamW's decoupled weight decay.
+        lr_schedule: ``"cosine"`` (decay to zero over the run after the warmup) or ``"constant"``.
+        warmup_steps: updates of linear warmup to ``lr``, so the first steps of a fresh model do
+            not take full-size updates.
+        grad_clip_norm: the gradients' global norm is clipped to this (``None``: no clipping).
+        log_every: updates between two logged lines of the losses.
+        eval_every: updates between two evaluations (and at the end of the run).
+        checkpoint_every: updates between two checkpoints (and at the end of the run).
+        keep_checkpoints: the newest checkpoints kept; older ones are pruned.
+        early_stopping_patience: stop after this many evaluations in a row without a lower
+            ``early_stopping_metric`` (``None``: never).
+        early_stopping_metric: the metric that decides it; one of those the evaluation returns.
+        max_nonfinite_steps: a step whose loss is NaN/Inf is skipped (no update) and counted; more
+            than this many in a row stop the run.
+        loss_explosion_threshold: a finite total loss above it stops the run, naming the last good
+            checkpoint.
+        seed: seeds the initial weights, the loader's order and the latent draws.
+        progress_bar: show tqdm's bar on rank 0.
+        precision: ``"fp32"``, or ``"bf16"``/``"fp16"`` autocast of the model's forward (the losses
+            stay fp32; ``"fp16"`` is CUDA-only and scales the loss with a ``GradScaler``).
+        compile: ``torch.compile`` the training forward.
+        prefetch: make the next batch (and copy it to the device) while the current step runs;
+            the batches and results are the same either way.
     """
 
     total_steps: int = 1000

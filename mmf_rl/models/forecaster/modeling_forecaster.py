@@ -33,8 +33,7 @@ Open points of the paper, and what this implementation does:
   ``y`` as input". By default we follow the equations: ``q(z|X)``. With
   ``posterior_uses_target=True``, ``y`` (flattened ``T × D``) goes through an MLP to a
   ``d``-vector concatenated to the flattened modality-agnostic output before the posterior head
-  (a CVAE's ``q(z|X, y)``). On the push data that variant lets ``z`` carry the future and the
-  forecast decoded from the prior at test time degrades (see ``ForecasterConfig``).
+  (a CVAE's ``q(z|X, y)``; ``ForecasterConfig`` says why it is not the default).
 * **Inference.** ``z`` from the prior: ``forward`` in eval mode uses the prior's mean by
   default (deterministic forecasts for RL and metrics); :meth:`sample` draws ``K`` latents for
   best-of-K. ``eval_latent="predictive"`` decodes ``K`` fixed prior draws in one batched pass
@@ -44,11 +43,11 @@ Open points of the paper, and what this implementation does:
   prior decoded at its mean is overconfident). No retraining: ``mmf-rl eval`` can apply it to
   any checkpoint. With the paper's standard prior ``N(0, I)`` (``prior="standard"``) the multimodal
   encoder feeds only the posterior, so a forecast decoded from the prior does not depend on it:
-  it shapes the model through training alone (on the push benchmark its fusion ablations land
-  within noise of it). The paper's eq. (15) integrates over ``p(z | X)`` and says the prior can
-  be learned: ``prior="learned"`` is that conditional prior, a head on the fused representation
-  of the present modalities, so the fusion acts on every test-time forecast. Its posterior
-  reads the target (``q(z | X, y)``) and ``loss_kl = KL(q(z | X, y) || p(z | X))``.
+  it shapes the model through training alone (see docs/results.md). The paper's eq. (15)
+  integrates over ``p(z | X)`` and says the prior can be learned: ``prior="learned"`` is that
+  conditional prior, a head on the fused representation of the present modalities, so the
+  fusion acts on every test-time forecast. Its posterior reads the target (``q(z | X, y)``)
+  and ``loss_kl = KL(q(z | X, y) || p(z | X))``.
 * **World model (action conditioning, not in the paper).** With ``action_dim > 0`` the model
   forecasts the future *under a given action sequence*: ``"future_action"`` ``[B, S, A]``
   (``S = T × stride`` actions, from the last observed frame on) is flattened and mapped by an
