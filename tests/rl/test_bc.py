@@ -108,8 +108,8 @@ def test_offline_windows_and_forecasts_are_what_the_transforms_build_online(
         absent = {"image": torch.full((len(episode),), image_absent)}
         expected = demonstrations.window(episode, absent)
         for t, step in enumerate(recorded_steps(demonstrations, episode, image_absent)):
-            out = history._reset(None, step.clone()) if t == 0 else history._call(step.clone())
-            out = forecast._reset(None, out) if t == 0 else forecast._call(out)
+            out = history.observe_reset(step.clone()) if t == 0 else history.observe_step(step.clone())
+            out = forecast.observe_reset(out) if t == 0 else forecast.observe_step(out)
             window = out.get(keys.HISTORY)
             for spec in demonstrations.specs:
                 present = bool(expected.get(spec.present_key)[t])
