@@ -49,7 +49,7 @@ from pathlib import Path
 from mmf_rl.compare import entries as catalogue
 from mmf_rl.compare import report
 from mmf_rl.compare.bootstrap import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, LEVEL, Table, build_table
-from mmf_rl.compare.collect import Collected, collect, timing
+from mmf_rl.compare.collect import Collected, collect_runs, timing
 from mmf_rl.compare.entries import Entry, Study, select_entries, subsets
 from mmf_rl.compare.runs import check_entries, open_data, run_pending
 from mmf_rl.compare.summary import paired_comparisons, summarize
@@ -356,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     open_data(study)  # the window cache, built once before the first training
     cache_seconds = time.perf_counter() - cache_start
     runs, reused = run_pending(study)  # the wall time covers the runs not reused
-    collected = collect(study)
+    collected = collect_runs(study)
     seconds = time.perf_counter() - start
     names = [name for name, _ in subsets(MODALITIES)]
     table, episodes = build_table(

@@ -59,7 +59,7 @@ from mmf_rl.compare.bootstrap import (
     bootstrap_unit,
     build_table,
 )
-from mmf_rl.compare.collect import collect
+from mmf_rl.compare.collect import collect_runs
 from mmf_rl.compare.entries import Entry, Study, select_entries, subsets
 from mmf_rl.compare.runs import check_entries, check_reused, open_data, run_pending
 from mmf_rl.compare.summary import paired_comparisons, summarize_against_best_baseline
@@ -314,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     data = open_data(study)
     cache_seconds = time.perf_counter() - start
     needed, reused = run_pending(study)
-    collected = collect(study)
+    collected = collect_runs(study)
     seconds = time.perf_counter() - start
     unit = bootstrap_unit(collected.errors, BLOCK, MIN_EPISODES)
     names = [name for name, _ in subsets(MODALITIES)]

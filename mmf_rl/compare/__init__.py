@@ -15,7 +15,7 @@ from mmf_rl.compare.bootstrap import (
     build_table,
     episode_totals,
 )
-from mmf_rl.compare.collect import Collected, collect, timing
+from mmf_rl.compare.collect import Collected, collect_runs, timing
 from mmf_rl.compare.entries import CATALOGUE, DEFAULT_ENTRIES, Budget, Entry, Study, run_plan, subsets
 from mmf_rl.compare.runs import check_entries, check_reused, open_data, run_one, run_pending, window_errors
 from mmf_rl.compare.summary import paired_comparisons, summarize, summarize_against_best_baseline
@@ -38,7 +38,7 @@ __all__ = [
     "build_table",
     "check_entries",
     "check_reused",
-    "collect",
+    "collect_runs",
     "episode_totals",
     "open_data",
     "paired_comparisons",

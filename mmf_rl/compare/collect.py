@@ -93,7 +93,7 @@ class Collected:
         )
 
 
-def collect(study: Study) -> Collected:
+def collect_runs(study: Study) -> Collected:
     out = Collected()
     for entry in study.entries:
         out.errors[entry.label], out.runs[entry.label] = entry_results(entry, study)

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from mmf_rl.compare.bootstrap import bootstrap_unit, build_table
-from mmf_rl.compare.collect import collect, timing
+from mmf_rl.compare.collect import collect_runs, timing
 from mmf_rl.compare.entries import CATALOGUE, DEFAULT_ENTRIES, Budget, Study, select_entries, subsets
 from mmf_rl.compare.report import cells_json, intervals_text, results_sections, run_time_section, subset_title
 from mmf_rl.compare.runs import check_entries, check_reused, open_data, run_pending
@@ -105,7 +105,7 @@ def run(study: Study, target_ratio: float) -> str:
     data = open_data(study)
     cache_seconds = time.perf_counter() - start
     needed, reused = run_pending(study)
-    collected = collect(study)
+    collected = collect_runs(study)
     seconds = time.perf_counter() - start
     block = data.config.history + data.config.horizon  # one window's span of frames (stride 1)
     unit = bootstrap_unit(collected.errors, block)
