@@ -58,7 +58,7 @@ REPO = Path(__file__).resolve().parents[1]
 MODALITIES = ["force", "image", "proprio"]
 # MuJoCo Push subsets reported in the paper (Table 3): image+force+proprio, image+force, image+proprio.
 PAPER_SUBSETS = ("all", "without_proprio", "without_force")
-title = partial(report.subset_title, modalities=("image", "force", "proprio"))
+push_subset_title = partial(report.subset_title, modalities=("image", "force", "proprio"))
 
 
 @dataclass(frozen=True)
@@ -256,7 +256,7 @@ def markdown(
     return (
         header(budget, mode, info)
         + report.results_sections(
-            table, collected, comparisons, title, intervals, reference, "Issue #13's target"
+            table, collected, comparisons, push_subset_title, intervals, reference, "Issue #13's target"
         )
         + report.run_time_section(info["cache_seconds"], measured)
         + projections_text(measured)

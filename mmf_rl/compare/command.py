@@ -17,8 +17,8 @@ import os
 import time
 from pathlib import Path
 
-from mmf_rl.compare.bootstrap import bootstrap_unit, build_table
-from mmf_rl.compare.collect import collect_runs, timing
+from mmf_rl.compare.bootstrap import Table, bootstrap_unit, build_table
+from mmf_rl.compare.collect import Collected, collect_runs, timing
 from mmf_rl.compare.entries import CATALOGUE, DEFAULT_ENTRIES, Budget, Study, select_entries, subsets
 from mmf_rl.compare.report import cells_json, intervals_text, results_sections, run_time_section, subset_title
 from mmf_rl.compare.runs import check_entries, check_reused, open_data, run_pending
@@ -147,7 +147,9 @@ def run(study: Study, target_ratio: float) -> str:
     return text
 
 
-def markdown(study: Study, table, collected, comparisons: dict, info: dict, measured: dict) -> str:
+def markdown(
+    study: Study, table: Table, collected: Collected, comparisons: dict, info: dict, measured: dict
+) -> str:
     budget = study.budget
     split = info["split"]
     cv = info["constant_velocity_mse"]

@@ -74,3 +74,18 @@ def test_compare_runs_from_an_installed_wheel_on_a_recorded_dataset(recorded_pus
     results = json.loads((out / "results.json").read_text())
     assert set(results["cells"]) == {"paper", "LF-LSTM"} and len(results["subsets"]) == 7
     assert (out / "paper" / "seed0" / "eval" / "window_errors.json").is_file()
+
+
+def test_bad_arguments_are_clear_errors_before_any_training(tmp_path, capsys):
+    from mmf_rl.cli import main as cli
+
+    out = tmp_path / "out"
+    assert cli(["compare", "--entries", "paper", "Mult", "--out", str(out)]) == 1
+    assert "entries: unknown ['Mult']" in capsys.readouterr().err
+    assert cli(["compare", "--entries", "MulT", "--out", str(out)]) == 1
+    assert "'paper' missing" in capsys.readouterr().err
+    assert cli(["compare", "model.fusoin=sum", "--out", str(out)]) == 1
+    assert "model.fusoin" in capsys.readouterr().err
+    assert cli(["compare", "--jobs", "0"]) == 2
+    assert "--jobs must be >= 1" in capsys.readouterr().err
+    assert not out.exists()
