@@ -249,12 +249,24 @@ def run_in_processes(tasks: Sequence[tuple], jobs: int) -> None:
     from concurrent.futures import ProcessPoolExecutor
 
     threads = max(1, (os.cpu_count() or 1) // jobs)
+    shown = logging.getLogger("mmf_rl")
+    log_level = shown.getEffectiveLevel() if shown.handlers else None
     with ProcessPoolExecutor(
         jobs,
         mp_context=multiprocessing.get_context("spawn"),
-        initializer=torch.set_num_threads,
-        initargs=(threads,),
+        initializer=start_worker,
+        initargs=(threads, log_level),
     ) as pool:
         futures = [pool.submit(run_one, *task) for task in tasks]
         for future in futures:
             future.result()  # a failed run stops the comparison with its error
+
+
+def start_worker(threads: int, log_level: int | None) -> None:
+    """A worker of ``run_in_processes``: ``threads`` torch threads, and the parent's progress messages
+    shown as the parent shows them (a spawned process starts without the CLI's logging setup)."""
+    torch.set_num_threads(threads)
+    if log_level is not None:
+        from mmf_rl.cli import configure_logging
+
+        configure_logging(log_level)
