@@ -115,7 +115,7 @@ def run(study: Study, target_ratio: float) -> str:
     comparisons = paired_comparisons(table)
     measured = timing(collected.runs)
     info = {
-        "data": data.config.root or data.config.repo_id,
+        "data": str(data.config.root or data.config.repo_id),
         "episodes": len({int(e) for eps in data.split_episodes.values() for e in eps}),
         "split": {name: list(map(int, eps)) for name, eps in data.split_episodes.items()},
         "unit": unit,
