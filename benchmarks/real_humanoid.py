@@ -20,8 +20,8 @@ each trained once on every sensor and seeing an absent sensor as its own absence
 (zero-fill; MVAE drops the expert). Every entry: ``--steps`` steps of batch ``--batch-size`` for each
 seed, trained with ``mmf-rl train``'s ``train(cfg)`` and scored on every presence subset of the test
 split with ``mmf-rl eval``'s ``run_evaluation(cfg)``. The machinery (training, per-window errors,
-the paired bootstrap, the tables) is benchmarks/accuracy.py's; only the data, the entries, the
-bootstrap unit and the report are this file's.
+the paired bootstrap, the tables, the summary) is ``mmf_rl.compare``'s; only the data, the entries and
+the report are this file's.
 
 Each cell: normalised test MSE, mean over seeds, with a 95% paired bootstrap interval (the same
 resamples for every entry, seed and sensor subset). With at least ``MIN_EPISODES`` test episodes the
@@ -45,16 +45,24 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
-# accuracy.py's machinery is shared, not copied; its directory goes on the path so that workers
-# spawned by --jobs import it by name too.
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import accuracy as bench  # noqa: E402
+from mmf_rl.compare import entries as catalogue
+from mmf_rl.compare import report
+from mmf_rl.compare.bootstrap import (
+    BOOTSTRAP_RESAMPLES,
+    BOOTSTRAP_SEED,
+    LEVEL,
+    Table,
+    bootstrap_unit,
+    build_table,
+)
+from mmf_rl.compare.collect import collect_runs
+from mmf_rl.compare.entries import Entry, Study, select_entries, subsets
+from mmf_rl.compare.runs import check_entries, check_reused, open_data, run_pending
+from mmf_rl.compare.summary import paired_comparisons, summarize_against_best_baseline
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("MMF_RL_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -68,7 +76,7 @@ MIN_EPISODES = 10  # fewer test episodes: bootstrap blocks of windows instead of
 BLOCK = HISTORY + HORIZON  # windows a block: one window's span of frames (stride 1)
 
 # The data config `mmf-rl inspect` suggests for the recording (its three sensors), with the target and
-# window of issue #13's protocol. The root, cache and image size come from accuracy.train_overrides.
+# window of issue #13's protocol. The root, cache and image size come from mmf_rl.compare's train_overrides.
 DATA = (
     "data.repo_id=local/g1_pick_bottle_small",
     "data.target={feature:observation.state,relative:true}",
@@ -88,16 +96,16 @@ SENSOR_FEATURES_GRU = (
     "state:{feature:observation.state,encoder:gru},action:{feature:action,encoder:gru}}"
 )
 ENTRIES = [
-    bench.Entry("paper", "paper", (*DATA, SENSOR_FEATURES, "model=forecaster")),
-    bench.Entry(
+    Entry("paper", "paper", (*DATA, SENSOR_FEATURES, "model=forecaster")),
+    Entry(
         "paper prior=learned",
         "variant",
         (*DATA, SENSOR_FEATURES, "model=forecaster", "model.prior=learned"),
     ),
-    bench.Entry(
+    Entry(
         "paper GRU vector encoders (issue #6)", "variant", (*DATA, SENSOR_FEATURES_GRU, "model=forecaster")
     ),
-    bench.Entry(
+    Entry(
         "paper, mixed tokens, per-frame camera tokens",
         "variant",
         (
@@ -108,9 +116,9 @@ ENTRIES = [
             "data.modalities.cam_high.encoder=conv_frames",
         ),
     ),
-    bench.Entry("LF-LSTM", "zero-fill", (*DATA, SENSOR_FEATURES, "model=lf_lstm")),
-    bench.Entry("MulT", "zero-fill", (*DATA, SENSOR_FEATURES, "model=mult")),
-    bench.Entry("MVAE", "zero-fill", (*DATA, SENSOR_FEATURES, "model=mvae")),
+    Entry("LF-LSTM", "zero-fill", (*DATA, SENSOR_FEATURES, "model=lf_lstm")),
+    Entry("MulT", "zero-fill", (*DATA, SENSOR_FEATURES, "model=mult")),
+    Entry("MVAE", "zero-fill", (*DATA, SENSOR_FEATURES, "model=mvae")),
 ]
 
 
@@ -124,132 +132,32 @@ def subset_title(name: str) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-# The bootstrap unit: test episodes, or blocks of consecutive windows when there are too few.
-# ---------------------------------------------------------------------------------------------
-
-
-def all_rows(errors: dict[str, dict[str, list[dict]]]) -> list[dict]:
-    return [rows for per_subset in errors.values() for seeds in per_subset.values() for rows in seeds]
-
-
-def add_blocks(errors: dict[str, dict[str, list[dict]]], block: int = BLOCK) -> None:
-    """Give every scored window a ``"block"``: ``(episode, (window - the episode's first test window)
-    // block)``, the same block for a window in every entry, seed and subset."""
-    first: dict[int, int] = {}
-    for rows in all_rows(errors):
-        for window, episode in zip(rows["window"], rows["episode"], strict=True):
-            first[episode] = min(first.get(episode, window), window)
-    for rows in all_rows(errors):
-        rows["block"] = [
-            (episode, (window - first[episode]) // block)
-            for window, episode in zip(rows["window"], rows["episode"], strict=True)
-        ]
-
-
-def bootstrap_unit(errors: dict[str, dict[str, list[dict]]]) -> str:
-    """``"episode"`` with at least ``MIN_EPISODES`` test episodes, else ``"block"`` (added to the rows)."""
-    episodes = {e for rows in all_rows(errors) for e in rows["episode"]}
-    if len(episodes) >= MIN_EPISODES:
-        return "episode"
-    add_blocks(errors)
-    return "block"
-
-
-# ---------------------------------------------------------------------------------------------
-# The summary (tested in tests/test_benchmarks_real_humanoid.py).
-# ---------------------------------------------------------------------------------------------
-
-
-def without_subsets(table: bench.Table) -> list[str]:
-    return [s for s in table.subsets if s.startswith("without_")]
-
-
-def mean_degradation_without_a_sensor(table: bench.Table, label: str) -> float | None:
-    """Mean relative MSE increase over the ``without_<sensor>`` subsets (None if one is not scored)."""
-    subsets = without_subsets(table)
-    if not subsets or any(s not in table.cells[label] for s in subsets) or "all" not in table.cells[label]:
-        return None
-    return statistics.fmean(table.degradation(label, s) for s in subsets)
-
-
-def summarize(table: bench.Table) -> tuple[str, dict]:
-    baselines = [label for label in table.labels("zero-fill") if "all" in table.cells[label]]
-    paper = table.cells["paper"]["all"].mean
-    best = min(baselines, key=lambda label: table.cells[label]["all"].mean, default=None)
-    best_mse = None if best is None else table.cells[best]["all"].mean
-    ratio = None if best_mse is None else paper / best_mse
-    paper_deg = mean_degradation_without_a_sensor(table, "paper")
-    baseline_degs = {
-        label: d for label in baselines if (d := mean_degradation_without_a_sensor(table, label)) is not None
-    }
-    robust = min(baseline_degs, key=baseline_degs.get, default=None)
-
-    def percent(x: float | None) -> str:
-        return "-" if x is None else f"{100 * x:.0f}%"
-
-    line = (
-        f"summary: all sensors paper MSE {paper:.4f} vs best baseline "
-        f"{'-' if best_mse is None else f'{best_mse:.4f}'} ({best or '-'}): "
-        f"paper/best = {'-' if ratio is None else f'{ratio:.3f}'} (target <= {TARGET_RATIO}); "
-        f"mean degradation without a sensor paper {percent(paper_deg)}, "
-        f"best baseline {percent(None if robust is None else baseline_degs[robust])}"
-    )
-    return line, {
-        "paper_all_mse": paper,
-        "best_baseline": best,
-        "best_baseline_all_mse": best_mse,
-        "paper_over_best": ratio,
-        "target_ratio": TARGET_RATIO,
-        "ratio_target_met": None if ratio is None else ratio <= TARGET_RATIO,
-        "paper_mean_degradation_without_a_sensor": paper_deg,
-        "most_robust_baseline": robust,
-        "best_baseline_mean_degradation_without_a_sensor": baseline_degs.get(robust),
-    }
-
-
-# ---------------------------------------------------------------------------------------------
 # Report.
 # ---------------------------------------------------------------------------------------------
 
 
-def interval_text(unit: str, groups: list, test_episodes: list[int]) -> str:
-    resampling = (
-        f"percentile bootstrap over the {len(groups)} test episodes"
-        if unit == "episode"
-        else f"percentile bootstrap over {len(groups)} blocks of {BLOCK} consecutive test windows "
-        f"(one window's span, H + T frames) of the {len(test_episodes)} test episode(s) "
-        f"{test_episodes}: fewer than {MIN_EPISODES} test episodes make an episode bootstrap meaningless. "
-        "The interval covers the variation over stretches of this test motion, not over episodes, "
-        "operators or recordings: read it as a lower bound on the uncertainty"
-    )
-    return (
-        f"Intervals: {resampling} ({bench.BOOTSTRAP_RESAMPLES} resamples, one generator seeded "
-        f"{bench.BOOTSTRAP_SEED}, the same resamples for every entry, seed and subset); they do not cover "
-        "seed variation (per-seed values in results.json). Bold: lowest mean among the paper model and "
-        "the baselines; `=`: interval overlaps the bold one (tied)."
-    )
-
-
-def run_times(runs: dict[str, list[dict]], seeds: list[int]) -> str:
+def run_times(runs: dict[str, list[dict]], info: dict) -> str:
     lines = [
         "| entry | seed | training (s) | run with setup and evaluation (s) | training ms/step |",
         "|---|---|---|---|---|",
     ]
     for label, results in runs.items():
-        for seed, r in zip(seeds, results, strict=True):
+        for seed, r in zip(info["seeds"], results, strict=True):
             lines.append(
                 f"| {label} | {seed} | {r['train_seconds']:.0f} | {r['seconds']:.0f} | "
                 f"{1e3 * r['step_seconds']:.0f} |"
             )
-    return "\n".join(lines)
+    return (
+        "## Run time\n\n"
+        "Measured on the machine that wrote this file; window cache built or opened before the trainings "
+        f"in {info['cache_seconds']:.0f} s. A reused run keeps the times of the invocation that trained "
+        "it.\n\n" + "\n".join(lines) + "\n\n"
+    )
 
 
-def markdown(table: bench.Table, info: dict, runs: dict, summary: dict, comparisons: dict) -> str:
-    labels = list(table.kinds)
-    contenders = table.labels("paper", "zero-fill")
+def intro(info: dict) -> str:
     split = info["split"]
-    cv = info["constant_velocity_mse"]
-    text = (
+    return (
         "# Missing-sensor benchmark on a real humanoid recording\n\n"
         f"Data {info['root']}: {info['episodes']} episodes, split by episode (split_fractions 0.8 / 0.1 / "
         f"0.1, split_seed 0): train {split['train']}, val {split['val']}, test {split['test']} "
@@ -261,10 +169,39 @@ def markdown(table: bench.Table, info: dict, runs: dict, summary: dict, comparis
         f"{info['seconds'] / 60:.1f} min"
         + (f" ({info['reused']} of {info['runs']} runs reused from an earlier one)" if info["reused"] else "")
         + ".\n\n"
-        "## Test MSE (normalised target): mean over seeds [95% interval]\n\n"
-        + interval_text(info["unit"], info["groups"], split["test"])
+    )
+
+
+def target_text(summary: dict) -> str:
+    ratio = summary["paper_over_best"]
+    paper_deg = summary["paper_mean_degradation_without_a_sensor"]
+    baseline_deg = summary["best_baseline_mean_degradation_without_a_sensor"]
+    text = "## Target (issue #13)\n\n"
+    if ratio is None:
+        return text + "No baseline in this run: the target cannot be judged.\n\n"
+    text += (
+        f"All sensors: paper / best baseline ({summary['best_baseline']}) = {ratio:.3f}, target <= "
+        f"{TARGET_RATIO}: {'met' if summary['ratio_target_met'] else 'NOT met'}. "
+    )
+    if paper_deg is not None and baseline_deg is not None:
+        text += (
+            f"Robustness, mean degradation without one sensor: paper {100 * paper_deg:+.0f}%, most "
+            f"robust baseline ({summary['most_robust_baseline']}) {100 * baseline_deg:+.0f}%: the "
+            f"paper model {'keeps' if paper_deg <= baseline_deg else 'does NOT keep'} its robustness "
+            "advantage."
+        )
+    return text + "\n\n"
+
+
+def markdown(table: Table, info: dict, runs: dict, summary: dict, comparisons: dict) -> str:
+    labels = list(table.kinds)
+    cv = info["constant_velocity_mse"]
+    text = (
+        intro(info)
+        + "## Test MSE (normalised target): mean over seeds [95% interval]\n\n"
+        + report.intervals_text(info["unit"], info["groups"], info["split"]["test"], BLOCK)
         + "\n\n"
-        + bench.mse_table(table, labels, contenders, title=subset_title)
+        + report.mse_table(table, labels, table.labels("paper", "zero-fill"), title=subset_title)
         + "\n\n"
         + (
             f"Reference: constant-velocity extrapolation of the joints, MSE {cv:.4f}; predicting the "
@@ -273,41 +210,16 @@ def markdown(table: bench.Table, info: dict, runs: dict, summary: dict, comparis
             else ""
         )
         + "## Relative degradation (MSE / MSE with all sensors - 1)\n\n"
-        + bench.degradation_table(table, labels, title=subset_title)
+        + report.degradation_table(table, labels, title=subset_title)
         + "\n\nThe mean row averages every subset above; the summary line's degradation averages the "
         "three without-one-sensor rows.\n\n"
     )
     paper_all = comparisons.get("all", {})
     if paper_all:
         text += (
-            "Paired difference paper - baseline, all sensors: " + bench.differences_text(paper_all) + ".\n\n"
+            "Paired difference paper - baseline, all sensors: " + report.differences_text(paper_all) + ".\n\n"
         )
-    ratio = summary["paper_over_best"]
-    paper_deg = summary["paper_mean_degradation_without_a_sensor"]
-    baseline_deg = summary["best_baseline_mean_degradation_without_a_sensor"]
-    text += "## Target (issue #13)\n\n"
-    if ratio is None:
-        text += "No baseline in this run: the target cannot be judged.\n\n"
-    else:
-        text += (
-            f"All sensors: paper / best baseline ({summary['best_baseline']}) = {ratio:.3f}, target <= "
-            f"{TARGET_RATIO}: {'met' if summary['ratio_target_met'] else 'NOT met'}. "
-        )
-        if paper_deg is not None and baseline_deg is not None:
-            text += (
-                f"Robustness, mean degradation without one sensor: paper {100 * paper_deg:+.0f}%, most "
-                f"robust baseline ({summary['most_robust_baseline']}) {100 * baseline_deg:+.0f}%: the "
-                f"paper model {'keeps' if paper_deg <= baseline_deg else 'does NOT keep'} its robustness "
-                "advantage."
-            )
-        text += "\n\n"
-    text += (
-        "## Run time\n\n"
-        f"Measured on the machine that wrote this file; window cache built or opened before the trainings "
-        f"in {info['cache_seconds']:.0f} s. A reused run keeps the times of the invocation that trained "
-        "it.\n\n" + run_times(runs, info["seeds"]) + "\n\n"
-    )
-    return text
+    return text + target_text(summary) + run_times(runs, info)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -315,32 +227,7 @@ def markdown(table: bench.Table, info: dict, runs: dict, summary: dict, comparis
 # ---------------------------------------------------------------------------------------------
 
 
-def open_data(entry: bench.Entry, budget: bench.Budget, args):
-    """Build (or open) the window cache once before the trainings (no run's time includes it)."""
-    from mmf_rl.configuration import compose_config, to_container
-    from mmf_rl.datasets import DataConfig, WindowDataset
-
-    cfg = compose_config("train", bench.train_overrides(entry, 0, budget, args, args.out / "cache"))
-    return WindowDataset(DataConfig.from_dict(to_container(cfg.data)), num_workers=2)
-
-
-def check_reused(entries: list[bench.Entry], budget: bench.Budget, out: Path) -> None:
-    """A completed run of another budget in ``out`` would silently mix budgets in one table."""
-    stale = [
-        f"{run_dir} ({r['steps']} steps of batch {r['batch_size']})"
-        for entry in entries
-        for _, _, run_dir, _, _ in bench.run_plan(entry, budget, out)
-        if (r := bench.completed(run_dir)) is not None
-        and (r["steps"], r["batch_size"]) != (budget.steps, budget.batch_size)
-    ]
-    if stale:
-        raise SystemExit(
-            f"real humanoid benchmark: {out} holds runs of another budget than {budget.steps} steps of "
-            f"batch {budget.batch_size}:\n  " + "\n  ".join(stale) + "\nuse another --out or delete them"
-        )
-
-
-def main(argv: list[str] | None = None) -> int:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "--root", type=Path, default=DEFAULT_ROOT, help=f"the G1 recording (default {DEFAULT_ROOT})"
@@ -367,88 +254,94 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--entries: unknown {unknown}; the entries are {labels}")
     if "paper" not in args.entries:
         parser.error("--entries: 'paper' is missing; every comparison is against it")
-    root = args.root.expanduser().resolve()
-    if not (root / "meta" / "info.json").is_file():
+    args.root = args.root.expanduser().resolve()
+    if not (args.root / "meta" / "info.json").is_file():
         parser.error(
-            f"--root {root}: no LeRobot dataset there (meta/info.json missing); pass the G1 recording's "
+            f"--root {args.root}: no LeRobot dataset there (meta/info.json missing); pass the G1 recording's "
             "directory, or set MMF_RL_SHARED_DATA to the shared data directory holding g1_pick_bottle_small"
         )
-    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    return args
+
+
+def study_of(args: argparse.Namespace) -> Study:
+    return Study(
+        out=args.out.resolve(),
+        budget=catalogue.Budget(args.steps, args.batch_size, tuple(args.seeds), IMAGE_SIZE),
+        entries=tuple(select_entries(ENTRIES, args.entries)),
+        modalities=tuple(MODALITIES),
+        data_overrides=(f"data.root={args.root}",),
+        device=args.device,
+        jobs=args.jobs,
+    )
+
+
+def results_json(
+    study: Study, table: Table, info: dict, runs: dict, comparisons: dict, summary: dict
+) -> dict:
+    return {
+        "info": info,
+        "entries": {e.label: {"kind": e.kind, "overrides": list(e.overrides)} for e in study.entries},
+        "subsets": table.subsets,
+        "bootstrap": {
+            "unit": info["unit"],
+            "block_windows": BLOCK if info["unit"] == "block" else None,
+            "resamples": BOOTSTRAP_RESAMPLES,
+            "seed": BOOTSTRAP_SEED,
+            "level": LEVEL,
+        },
+        "cells": report.cells_json(table),
+        "paired_differences": comparisons,
+        "runs": {
+            label: [{k: v for k, v in r.items() if k != "subsets"} for r in rs] for label, rs in runs.items()
+        },
+        "summary": summary,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
     from mmf_rl.eval.report import write_json, write_text
 
-    episodes = json.loads((root / "meta" / "info.json").read_text()).get("total_episodes")
-    budget = bench.Budget(
-        image_size=IMAGE_SIZE,
-        batch_size=args.batch_size,
-        steps=args.steps,
-        seeds=tuple(args.seeds),
-        entries=tuple(args.entries),
-        episodes=episodes,
-    )
-    # What accuracy.py's run machinery reads (train_overrides, run_one, run_pending).
-    run_args = SimpleNamespace(data=root, out=args.out.resolve(), device=args.device, jobs=args.jobs)
-    entries = [e for e in ENTRIES if e.label in args.entries]
-    bench.check_entries(entries, budget, run_args)
-    check_reused(entries, budget, run_args.out)
-
+    args = parse_args(argv)
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    episodes = json.loads((args.root / "meta" / "info.json").read_text()).get("total_episodes")
+    study = study_of(args)
+    try:
+        check_entries(study)
+        check_reused(study)
+    except ValueError as err:
+        raise SystemExit(f"real humanoid benchmark: {err}") from None
     start = time.perf_counter()
-    data = open_data(entries[0], budget, run_args)
+    data = open_data(study)
     cache_seconds = time.perf_counter() - start
-    needed, reused = bench.run_pending(entries, budget, run_args)
-    errors, runs = {}, {}
-    for entry in entries:
-        errors[entry.label], runs[entry.label] = bench.entry_results(entry, budget, run_args.out)
+    needed, reused = run_pending(study)
+    collected = collect_runs(study)
     seconds = time.perf_counter() - start
-
-    unit = bootstrap_unit(errors)
-    table, groups = bench.build_table(errors, {e.label: e.kind for e in entries}, MODALITIES, unit=unit)
-    line, summary = summarize(table)
-    comparisons = bench.paired_comparisons(table)
+    unit = bootstrap_unit(collected.errors, BLOCK, MIN_EPISODES)
+    names = [name for name, _ in subsets(MODALITIES)]
+    table, groups = build_table(collected.errors, collected.kinds, names, unit=unit)
+    line, summary = summarize_against_best_baseline(table, TARGET_RATIO)
+    comparisons = paired_comparisons(table)
     info = {
-        "root": str(root),
+        "root": str(args.root),
         "episodes": episodes,
         "split": {name: list(map(int, eps)) for name, eps in data.split_episodes.items()},
         "test_windows": len(data.split_windows["test"]),
         "unit": unit,
         "groups": groups,
-        "steps": budget.steps,
-        "batch_size": budget.batch_size,
-        "seeds": list(budget.seeds),
+        "steps": args.steps,
+        "batch_size": args.batch_size,
+        "seeds": list(args.seeds),
         "cache_seconds": cache_seconds,
         "seconds": seconds,
         "runs": needed,
         "reused": reused,
-        "constant_velocity_mse": next(
-            (r["constant_velocity"]["mse"] for rs in runs.values() for r in rs if r.get("constant_velocity")),
-            None,
-        ),
+        "constant_velocity_mse": collected.constant_velocity_mse(),
     }
-    text = markdown(table, info, runs, summary, comparisons) + f"{line}\n"
-    run_args.out.mkdir(parents=True, exist_ok=True)
-    write_text(run_args.out / "results.md", text)
+    text = markdown(table, info, collected.runs, summary, comparisons) + f"{line}\n"
+    study.out.mkdir(parents=True, exist_ok=True)
+    write_text(study.out / "results.md", text)
     write_json(
-        run_args.out / "results.json",
-        {
-            "info": info,
-            "entries": {e.label: {"kind": e.kind, "overrides": list(e.overrides)} for e in entries},
-            "subsets": table.subsets,
-            "bootstrap": {
-                "unit": unit,
-                "block_windows": BLOCK if unit == "block" else None,
-                "resamples": bench.BOOTSTRAP_RESAMPLES,
-                "seed": bench.BOOTSTRAP_SEED,
-                "level": bench.LEVEL,
-            },
-            "cells": {
-                label: {s: c.to_dict() for s, c in cells.items()} for label, cells in table.cells.items()
-            },
-            "paired_differences": comparisons,
-            "runs": {
-                label: [{k: v for k, v in r.items() if k != "subsets"} for r in rs]
-                for label, rs in runs.items()
-            },
-            "summary": summary,
-        },
+        study.out / "results.json", results_json(study, table, info, collected.runs, comparisons, summary)
     )
     print(text)
     return 0

@@ -4,29 +4,25 @@
     .venv/bin/python benchmarks/step_cost.py --threads 1 --rounds 6
 
 The variants (``VARIANTS``: the default, the paper's raw-token decoder, per-frame image tokens)
-and MulT train in turn, ``--steps`` steps each per round, on the push-like batch of
-``model_throughput.py``; the first round warms up and is dropped. Interleaving the models round by
-round means a machine that slows down slows every model alike, so the printed ratios hold where
-the absolute times do not. Prints each model's median ms per step and its ratio to MulT's.
+and MulT train in turn, ``--steps`` steps each per round, on the push-like batch
+(``mmf_rl.datasets.synthetic.push_like_batch``); the first round warms up and is dropped.
+Interleaving the models round by round means a machine that slows down slows every model alike,
+so the printed ratios hold where the absolute times do not. Prints each model's median ms per
+step and its ratio to MulT's.
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
 
 from mmf_rl.configuration import compose_config, to_container
+from mmf_rl.datasets.synthetic import push_like_batch, push_modalities
 from mmf_rl.models import build_loss, build_model
 from mmf_rl.objectives import LossConfig
-
-# The push-like batch of model_throughput.py, shared rather than copied (benchmarks are scripts).
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from model_throughput import push_like_batch, push_modalities  # noqa: E402
 
 # label -> (train overrides, image encoder)
 VARIANTS = {
@@ -57,7 +53,7 @@ def run_steps(model_loss_optimizer, batch, steps: int) -> float:
     return (time.perf_counter() - start) / steps * 1e3
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -66,7 +62,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=10, help="steps per model per round")
     parser.add_argument("--rounds", type=int, default=6, help="rounds; the first warms up")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     models = {label: build(*variant, args.image_size) for label, variant in VARIANTS.items()}
     batch = push_like_batch(args.batch_size, image_size=args.image_size)

@@ -3,7 +3,8 @@ command line.
 
 Each runs ``benchmarks/<script>.py`` of the repository checkout with the arguments that follow
 (``mmf-rl bench data --help`` shows them) and ends with that script's summary line. The scripts
-ship with the repository, not with the package: a wheel install has none.
+ship with the repository, not with the package: a wheel install has none. The comparison protocol
+of ``accuracy`` ships with the package: ``mmf-rl compare`` runs it on any data config.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ EXAMPLES = [
     "mmf-rl bench model --steps 5",
     "mmf-rl bench data --root /data/mine --data-config mine.yaml   # your dataset, your data config",
     "mmf-rl bench accuracy --quick",
+    "mmf-rl compare data=/path/to/mine.yaml      # the accuracy protocol on your data (installed package)",
 ]
 
 

@@ -36,6 +36,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "mmf_rl.datasets.ethucy",
         "convert a public dataset to LeRobot v3.0 with its data config (ethucy: ETH/UCY pedestrians)",
     ),
+    "compare": (
+        "mmf_rl.compare.command",
+        "train and compare the paper model with baselines on any data config, every presence subset",
+    ),
     "bench": ("mmf_rl.bench", "run a benchmark of benchmarks/ (accuracy, data, model, mpc)"),
     "demo": ("mmf_rl.demo", "record a push dataset, train the default model on CPU, evaluate (make demo)"),
 }

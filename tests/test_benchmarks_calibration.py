@@ -1,21 +1,37 @@
-"""benchmarks/calibration.py: re-evaluating trained runs under each eval latent, on recorded push data."""
+"""benchmarks/calibration.py, run as a script: re-evaluating trained runs under each eval latent, on
+recorded push data."""
 
 from __future__ import annotations
 
 import json
+import os
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
-from tests.conftest import load_benchmark
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "calibration.py"
 
 SUMMARY = re.compile(
     r"summary: (\S+) (\S+): MSE all (\S+); coverage 50% (\S+)-(\S+), 90% (\S+)-(\S+) over (\d+) subsets"
 )
 
 
-calibration = load_benchmark("calibration")
+def calibration(argv: list[str]) -> int:
+    """Run the script on ``argv``; its stdout is printed here, so ``capsys`` sees it as before."""
+    run = subprocess.run(
+        [sys.executable, str(SCRIPT), *argv],
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    print(run.stdout, end="")
+    print(run.stderr, end="", file=sys.stderr)
+    return run.returncode
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +54,7 @@ def learned_runs(recorded_push_root, tmp_path_factory):
 def test_each_latent_is_scored_on_the_same_windows_and_summarised(learned_runs, tmp_path, capsys):
     out = tmp_path / "out"
     argv = [*map(str, learned_runs), "--out", str(out), "--num-samples", "3", "--predictive-samples", "4"]
-    assert calibration.main(argv) == 0
+    assert calibration(argv) == 0
     lines = [m.groups() for m in map(SUMMARY.match, capsys.readouterr().out.splitlines()) if m]
     assert [(group, latent) for group, latent, *_ in lines] == [
         ("learned", "mean"),
@@ -60,22 +76,19 @@ def test_each_latent_is_scored_on_the_same_windows_and_summarised(learned_runs, 
         assert table[latent]["all"]["coverage_90"] == pytest.approx(expected)
 
 
-def test_finished_evaluations_are_reused(learned_runs, tmp_path, monkeypatch, capsys):
+def test_finished_evaluations_are_reused(learned_runs, tmp_path):
     out = tmp_path / "out"
     argv = [str(learned_runs[0]), "--out", str(out), "--num-samples", "0", "--latents", "mean"]
-    assert calibration.main(argv) == 0
-    import mmf_rl.eval.eval_command
-
-    def refuse(cfg):
-        raise AssertionError("a finished evaluation was run again")
-
-    monkeypatch.setattr(mmf_rl.eval.eval_command, "run_evaluation", refuse)
-    assert calibration.main(argv) == 0
+    assert calibration(argv) == 0
+    written = out / "learned" / learned_runs[0].name / "mean" / "results.json"
+    before = (written.stat().st_mtime_ns, written.read_bytes())
+    assert calibration(argv) == 0
+    assert (written.stat().st_mtime_ns, written.read_bytes()) == before  # read back, not evaluated again
 
 
-def test_a_directory_that_is_not_a_run_is_refused(tmp_path):
-    with pytest.raises(SystemExit):
-        calibration.main([str(tmp_path), "--out", str(tmp_path / "out")])
+def test_a_directory_that_is_not_a_run_is_refused(tmp_path, capsys):
+    assert calibration([str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    assert "not `mmf-rl train` run directories (no checkpoints/ inside)" in capsys.readouterr().err
 
 
 def test_recalibrate_scores_raw_and_val_recalibrated_copies_and_leaves_the_run_alone(
@@ -88,7 +101,7 @@ def test_recalibrate_scores_raw_and_val_recalibrated_copies_and_leaves_the_run_a
     before = {p: p.read_bytes() for p in stored}
     out = tmp_path / "out"
     argv = [str(run), "--out", str(out), "--num-samples", "0", "--latents", "mean"]
-    assert calibration.main([*argv, "--recalibrate", "--min-windows", "4"]) == 0
+    assert calibration([*argv, "--recalibrate", "--min-windows", "4"]) == 0
     lines = [m.groups() for m in map(SUMMARY.match, capsys.readouterr().out.splitlines()) if m]
     assert [(group, latent) for group, latent, *_ in lines] == [
         ("learned", "mean:raw"),

@@ -19,7 +19,7 @@ LAYERS: list[set[str]] = [
     {"models"},
     {"trainers", "eval"},
     {"rl"},
-    {"cli", "demo", "bench"},
+    {"cli", "demo", "bench", "compare"},
 ]
 RANK = {name: rank for rank, layer in enumerate(LAYERS) for name in layer}
 

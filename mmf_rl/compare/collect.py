@@ -1,0 +1,105 @@
+"""Read what the completed runs wrote: per-window errors, timings, coverage and the latent's KL."""
+
+from __future__ import annotations
+
+import json
+import statistics
+from dataclasses import dataclass, field
+
+from mmf_rl.compare.bootstrap import EntryErrors
+from mmf_rl.compare.entries import Entry, Study, run_plan
+from mmf_rl.compare.runs import completed
+
+
+def entry_results(entry: Entry, study: Study) -> tuple[dict[str, list[dict]], list[dict]]:
+    """``({subset: [errors of each seed]}, [the entry's own runs' window_errors.json])``."""
+    per_subset: dict[str, list[dict]] = {}
+    runs = []
+    for trained, _, run_dir, _, subset in run_plan(entry, study):
+        result = completed(run_dir)
+        if trained is entry:
+            runs.append(result)
+        for name, rows in result["subsets"].items():
+            if subset in ("", name):
+                per_subset.setdefault(name, []).append(rows)
+    return per_subset, runs
+
+
+def entry_coverage(entry: Entry, study: Study) -> tuple[dict[str, float], bool]:
+    """``({subset: 90% interval coverage, mean over seeds}, every run recalibrated)`` from the
+    evaluations ``run_one`` wrote (``<run>/eval/results.json``), with each run's scale as it stored it
+    (recalibrated per presence pattern on val when its training did: ``mmf-rl train calibrate=true``)."""
+    per_subset: dict[str, list[float]] = {}
+    recalibrated = True
+    for _, _, run_dir, _, subset in run_plan(entry, study):
+        scores = json.loads((run_dir / "eval" / "results.json").read_text())
+        recalibrated &= scores.get("scale_calibration") is not None
+        for name, row in scores["subsets"].items():
+            if subset in ("", name) and row.get("coverage_90") is not None:
+                per_subset.setdefault(name, []).append(row["coverage_90"])
+    return {name: statistics.fmean(values) for name, values in per_subset.items()}, recalibrated
+
+
+def entry_kl(entry: Entry, study: Study) -> float | None:
+    """The KL of the posterior to the prior in nats with every sensor, mean over seeds (``None`` for a
+    model without a latent): near zero, the latent has collapsed."""
+    values = []
+    for _, _, run_dir, _, subset in run_plan(entry, study):
+        row = json.loads((run_dir / "eval" / "results.json").read_text())["subsets"].get("all", {})
+        if subset in ("", "all") and row.get("kl") is not None:
+            values.append(row["kl"])
+    return statistics.fmean(values) if values else None
+
+
+def timing(runs: dict[str, list[dict]]) -> dict[str, dict[str, float]]:
+    """Per entry: measured ms per training step (the training loop), the rest of a run (data and model
+    setup, validation, checkpoint, evaluation) in seconds, and how many runs were trained at once while
+    they were measured (``jobs``; results written before it was recorded count as 1)."""
+    out = {}
+    for label, results in runs.items():
+        if results:
+            out[label] = {
+                "ms_per_step": 1e3 * statistics.fmean(r["step_seconds"] for r in results),
+                "other_seconds": statistics.fmean(
+                    r["seconds"] - r["steps"] * r["step_seconds"] for r in results
+                ),
+                "runs": len(results),
+                "batch_size": results[0]["batch_size"],
+                "jobs": statistics.fmean(r.get("jobs", 1) for r in results),
+            }
+    return out
+
+
+@dataclass
+class Collected:
+    """Everything the report reads, per entry label."""
+
+    errors: EntryErrors = field(default_factory=dict)
+    runs: dict[str, list[dict]] = field(default_factory=dict)
+    kinds: dict[str, str] = field(default_factory=dict)
+    bases: dict[str, str] = field(default_factory=dict)
+    coverage: dict[str, tuple[dict[str, float], bool]] = field(default_factory=dict)
+    kl: dict[str, float | None] = field(default_factory=dict)
+
+    def constant_velocity_mse(self) -> float | None:
+        return next(
+            (
+                r["constant_velocity"]["mse"]
+                for rs in self.runs.values()
+                for r in rs
+                if r.get("constant_velocity")
+            ),
+            None,
+        )
+
+
+def collect_runs(study: Study) -> Collected:
+    out = Collected()
+    for entry in study.entries:
+        out.errors[entry.label], out.runs[entry.label] = entry_results(entry, study)
+        out.kinds[entry.label] = entry.kind
+        if entry.base is not None:
+            out.bases[entry.label] = entry.base.label
+        out.coverage[entry.label] = entry_coverage(entry, study)
+        out.kl[entry.label] = entry_kl(entry, study)
+    return out

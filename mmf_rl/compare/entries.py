@@ -1,0 +1,150 @@
+"""What a comparison trains: entries (a name and its config overrides), the budget, presence subsets,
+and the runs behind each entry's cells.
+
+An entry's ``kind`` says how its cells are read: ``paper`` (the model every row is compared with),
+``variant`` (an option of the paper model), ``zero-fill`` (a baseline trained once on every modality,
+seeing an absent one through its own absence handling), ``retrained`` (a baseline trained anew for
+each presence subset with only that subset present: the paper's protocol), ``fusion`` /
+``learned fusion`` (the paper model with another fusion, under the standard / learned prior) and
+``ablation``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+KINDS = ("paper", "variant", "zero-fill", "retrained", "fusion", "learned fusion", "ablation")
+BASELINE_KINDS = ("zero-fill", "retrained")
+
+
+@dataclass(frozen=True)
+class Entry:
+    label: str
+    kind: str  # one of KINDS
+    overrides: tuple[str, ...]
+    # retrained: the zero-fill entry whose all-modality run gives its "all" cell; learned fusion: the
+    # entry it is compared with (the same prior with the paper's fusion)
+    base: Entry | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"entry {self.label!r}: kind {self.kind!r} is not one of {KINDS}")
+        if (self.base is not None) != (self.kind in ("retrained", "learned fusion")):
+            raise ValueError(
+                f"entry {self.label!r}: a base is given exactly for retrained and learned fusion"
+            )
+
+
+@dataclass(frozen=True)
+class Budget:
+    """What every run of a comparison trains with."""
+
+    steps: int
+    batch_size: int
+    seeds: tuple[int, ...]
+    image_size: int | None = None  # square images of this size; None: the data config's
+
+
+@dataclass(frozen=True)
+class Study:
+    """One comparison: its entries on one data config, its budget, where its runs go. Picklable, so
+    that worker processes (``jobs`` > 1) receive it whole."""
+
+    out: Path
+    budget: Budget
+    entries: tuple[Entry, ...]
+    modalities: tuple[str, ...]  # the data config's modalities, in the order the subsets are named
+    data_overrides: tuple[str, ...] = ()  # Hydra overrides choosing the data, after each entry's own
+    config_dirs: tuple[Path, ...] = ()
+    device: str = "cpu"
+    jobs: int = 1
+    # the subsets a retrained baseline is trained for; None: every subset but "all"
+    retrained_for: tuple[str, ...] | None = None
+
+
+LEARNED = ("model.prior=learned",)
+PAPER = Entry("paper", "paper", ("model=forecaster",))
+PAPER_LEARNED = Entry("paper prior=learned", "variant", ("model=forecaster", *LEARNED))
+LF_LSTM = Entry("LF-LSTM", "zero-fill", ("model=lf_lstm",))
+MVAE = Entry("MVAE", "zero-fill", ("model=mvae",))
+MULT = Entry("MulT", "zero-fill", ("model=mult",))
+ZERO_FILL = (LF_LSTM, MVAE, MULT)
+RETRAINED = tuple(Entry(f"{e.label} (retrained)", "retrained", e.overrides, base=e) for e in ZERO_FILL)
+FUSIONS = ("linear", "average", "sum", "cross_attention")
+FUSION_ABLATIONS = tuple(
+    Entry(f"paper fusion={fusion}", "fusion", ("model=forecaster", f"model.fusion={fusion}"))
+    for fusion in FUSIONS
+)
+# Under the standard prior a forecast is decoded at z = 0 and the fusion only shapes training; under the
+# learned prior it gives p(z|X), so only there does the fusion act at test time.
+LEARNED_FUSION_ABLATIONS = tuple(
+    Entry(
+        f"paper prior=learned, fusion={fusion}",
+        "learned fusion",
+        ("model=forecaster", *LEARNED, f"model.fusion={fusion}"),
+        base=PAPER_LEARNED,
+    )
+    for fusion in FUSIONS
+)
+NO_MIS = Entry("paper w/o L_mis", "ablation", ("model=forecaster", "loss=no_mis"))
+# The entries `mmf-rl compare` offers on any data: none names a modality.
+CATALOGUE = (
+    PAPER,
+    PAPER_LEARNED,
+    *ZERO_FILL,
+    *RETRAINED,
+    *FUSION_ABLATIONS,
+    *LEARNED_FUSION_ABLATIONS,
+    NO_MIS,
+)
+DEFAULT_ENTRIES = ("paper", *(e.label for e in ZERO_FILL))
+
+
+def select_entries(catalogue: Sequence[Entry], labels: Sequence[str] | None) -> list[Entry]:
+    """The ``catalogue``'s entries named by ``labels`` (all for None), in catalogue order; the paper
+    model must be among them, as every comparison is against it."""
+    known = [e.label for e in catalogue]
+    if labels is not None:
+        unknown = sorted(set(labels) - set(known))
+        if unknown or "paper" not in labels:
+            raise ValueError(f"entries: unknown {unknown} or 'paper' missing; the entries are {known}")
+    return [e for e in catalogue if labels is None or e.label in labels]
+
+
+def subsets(modalities: Sequence[str]) -> list[tuple[str, dict[str, bool]]]:
+    from mmf_rl.datasets import presence_subsets
+
+    return list(presence_subsets(list(modalities)))
+
+
+def slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in text).strip("_").lower()
+
+
+def retrained_subsets(study: Study) -> list[tuple[str, dict[str, bool]]]:
+    return [
+        (name, subset)
+        for name, subset in subsets(study.modalities)[1:]
+        if study.retrained_for is None or name in study.retrained_for
+    ]
+
+
+Run = tuple[Entry, int, Path, tuple[str, ...], str]
+
+
+def run_plan(entry: Entry, study: Study) -> list[Run]:
+    """The runs behind one entry's cells: ``(entry trained, seed, run_dir, extra overrides, subset)``;
+    ``subset`` is the one a retrained run's cell comes from, ``""`` when every subset counts."""
+    plan = []
+    for seed in study.budget.seeds:
+        if entry.kind != "retrained":
+            plan.append((entry, seed, study.out / slug(entry.label) / f"seed{seed}", (), ""))
+            continue
+        base = entry.base
+        plan.append((base, seed, study.out / slug(base.label) / f"seed{seed}", (), "all"))
+        for name, subset in retrained_subsets(study):
+            dropped = tuple(f"+data.missing.{m}=1.0" for m, kept in subset.items() if not kept)
+            plan.append((entry, seed, study.out / slug(entry.label) / name / f"seed{seed}", dropped, name))
+    return plan

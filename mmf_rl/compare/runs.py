@@ -1,0 +1,272 @@
+"""Train and score the runs of a comparison, resuming: a run whose ``eval/window_errors.json`` exists
+is complete and reused.
+
+Each run is trained with ``mmf-rl train``'s ``train(cfg)``, evaluated on every presence subset of its
+test split with ``mmf-rl eval``'s ``run_evaluation(cfg)``, and then run over the test windows once
+more to keep every window's squared error with its episode, which the paired bootstrap needs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import statistics
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+from mmf_rl.compare.entries import Entry, Study, run_plan, subsets
+
+logger = logging.getLogger(__name__)
+
+
+def train_overrides(
+    entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[str, ...] = ()
+) -> list[str]:
+    budget = study.budget
+    size = [] if budget.image_size is None else [f"data.image_size=[{budget.image_size},{budget.image_size}]"]
+    return [
+        *entry.overrides,
+        *extra,
+        *study.data_overrides,
+        f"data.cache_dir={study.out / 'cache'}",
+        *size,
+        f"run_dir={run_dir}",
+        f"trainer.total_steps={budget.steps}",
+        f"trainer.batch_size={budget.batch_size}",
+        f"trainer.seed={seed}",
+        f"trainer.eval_every={budget.steps}",
+        f"trainer.checkpoint_every={budget.steps}",
+        f"trainer.warmup_steps={min(100, budget.steps // 10)}",
+        f"loss.kl_warmup_steps={min(200, budget.steps // 5)}",
+        "trainer.keep_checkpoints=1",
+        "trainer.progress_bar=false",
+        "logger=csv",
+        "num_workers=2",
+        f"device={study.device}",
+    ]
+
+
+def compose_train(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[str, ...] = ()):
+    from mmf_rl.configuration import compose_config
+
+    return compose_config(
+        "train", train_overrides(entry, seed, study, run_dir, extra), list(study.config_dirs)
+    )
+
+
+def open_data(study: Study):
+    """Build (or open) the window cache once before the first training, so no run's time includes it;
+    returns the dataset (its splits name the test episodes)."""
+    from mmf_rl.configuration import to_container
+    from mmf_rl.datasets import DataConfig, WindowDataset
+
+    cfg = compose_train(study.entries[0], 0, study, study.out / "cache")
+    return WindowDataset(DataConfig.from_dict(to_container(cfg.data)), num_workers=2)
+
+
+def check_entries(study: Study) -> None:
+    """Compose every entry's training config before the first training: an option this build lacks
+    fails here in seconds, naming the entry, not after an hour of runs."""
+    from mmf_rl.configuration import ConfigError
+
+    problems = []
+    for entry in study.entries:
+        try:
+            compose_train(entry, 0, study, study.out / "check")
+        except ConfigError as err:
+            problems.append(f"{entry.label!r} ({' '.join(entry.overrides)}): {' '.join(str(err).split())}")
+    if problems:
+        raise ValueError(
+            "these entries do not compose with this build's configs:\n  "
+            + "\n  ".join(problems)
+            + "\nleave them out with --entries, or add the option they set"
+        )
+
+
+def check_reused(study: Study) -> None:
+    """A completed run of another budget in ``study.out`` would silently mix budgets in one table."""
+    budget = study.budget
+    stale = [
+        f"{run_dir} ({r['steps']} steps of batch {r['batch_size']})"
+        for entry in study.entries
+        for _, _, run_dir, _, _ in run_plan(entry, study)
+        if (r := completed(run_dir)) is not None
+        and (r["steps"], r["batch_size"]) != (budget.steps, budget.batch_size)
+    ]
+    if stale:
+        raise ValueError(
+            f"{study.out} holds runs of another budget than {budget.steps} steps of "
+            f"batch {budget.batch_size}:\n  " + "\n  ".join(stale) + "\nuse another --out or delete them"
+        )
+
+
+@torch.no_grad()
+def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str, dict[str, list]]:
+    """Every test window's squared error (mean over ``T x D``, normalised target) per presence subset,
+    with its window id and episode: ``{subset: {"window", "episode", "squared_error"}}``.
+
+    The windows and normalisation are those of ``run_evaluation`` (the test split in order, the
+    checkpoint's statistics); ``run_one`` checks the means agree with its MSE."""
+    from mmf_rl.datasets import DataConfig, WindowDataset
+    from mmf_rl.datasets.splits import Normalizer
+    from mmf_rl.models import load_trained_model
+
+    model, stats, data_config = load_trained_model(run_dir / "checkpoints", map_location=device)
+    data = WindowDataset(DataConfig.from_dict(data_config))
+    data.normalizer = Normalizer(stats)
+    out = {}
+    for name, subset in subsets([s.name for s in data.specs]):  # the trained data's modalities
+        rows = subset_errors(model, data, subset, device, batch_size)
+        if rows["window"]:
+            out[name] = rows
+    return out
+
+
+def subset_errors(model, data, subset: dict[str, bool], device: str, batch_size: int) -> dict[str, list]:
+    from mmf_rl import keys
+    from mmf_rl.datasets import apply_presence_subset
+
+    rows: dict[str, list] = {"window": [], "episode": [], "squared_error": []}
+    for chunk in data.split_windows["test"].split(batch_size):
+        batch = data.batch(chunk, "test")
+        # apply_presence_subset keeps the windows that still have one of the subset's modalities.
+        kept = torch.zeros(len(chunk), dtype=torch.bool)
+        for m, keep in subset.items():
+            kept |= batch.get(keys.present_key(m)) & keep
+        batch = apply_presence_subset(batch, subset).to(device)
+        if batch.shape[0] == 0:
+            continue
+        loc = model(batch.clone(False)).get(keys.FORECAST_LOC)
+        rows["window"] += chunk[kept].tolist()
+        rows["episode"] += data.window_episode[chunk[kept]].tolist()
+        rows["squared_error"] += ((loc - batch.get(keys.TARGET)) ** 2).mean((1, 2)).cpu().tolist()
+    return rows
+
+
+def evaluate(run_dir: Path, seed: int, device: str) -> dict:
+    from mmf_rl.configuration import compose_config
+    from mmf_rl.eval.eval_command import run_evaluation
+
+    overrides = [
+        f"checkpoint={run_dir}",
+        "plots=false",
+        "num_samples=0",
+        f"device={device}",
+        f"out_dir={run_dir / 'eval'}",
+        f"seed={seed}",
+    ]
+    return run_evaluation(compose_config("eval", overrides))
+
+
+def check_agreement(run_dir: Path, errors: dict[str, dict[str, list]], summary: dict) -> None:
+    for name, rows in errors.items():
+        mse = statistics.fmean(rows["squared_error"])
+        reported = summary["subsets"][name]["mse"]
+        if abs(mse - reported) > 1e-4 * max(abs(reported), 1e-8) + 1e-7:
+            raise RuntimeError(
+                f"{run_dir}: subset {name}: the per-window errors average {mse:.6g} but "
+                f"run_evaluation reports MSE {reported:.6g}; the two passes disagree on windows "
+                "or normalisation"
+            )
+
+
+def run_one(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[str, ...] = ()) -> dict:
+    """Train one model, evaluate it, keep its per-window errors in ``window_errors.json`` (written last:
+    its presence marks the run complete)."""
+    from mmf_rl.eval.report import write_json
+    from mmf_rl.trainers.train_command import train
+
+    if run_dir.exists():  # an interrupted run: start it again
+        shutil.rmtree(run_dir)
+    start = time.perf_counter()
+    train(compose_train(entry, seed, study, run_dir, extra))
+    trained = time.perf_counter() - start
+    summary = evaluate(run_dir, seed, study.device)
+    errors = window_errors(run_dir, study.device)
+    check_agreement(run_dir, errors, summary)
+    total = time.perf_counter() - start
+    budget = study.budget
+    step_seconds = budget.batch_size / training_rate(run_dir)
+    result = {
+        "train_seconds": trained,
+        "seconds": total,
+        "step_seconds": step_seconds,
+        "jobs": study.jobs,  # runs trained at once: their per-run times overlap
+        "steps": budget.steps,
+        "batch_size": budget.batch_size,
+        "constant_velocity": summary.get("constant_velocity"),
+        "subsets": errors,
+    }
+    write_json(run_dir / "eval" / "window_errors.json", result)  # last: its presence marks the run complete
+    logger.info(
+        "%s %s seed %d: trained %d steps in %.0f s (%.0f ms/step in the training loop), total with setup "
+        "and evaluation %.0f s",
+        entry.label, " ".join(extra), seed, budget.steps, trained, 1e3 * step_seconds, total,
+    )  # fmt: skip
+    return result
+
+
+def training_rate(run_dir: Path) -> float:
+    """Samples per second of the whole training loop: the last ``train/samples_per_s`` the trainer
+    logged (csv logger), which counts from the first step to the last."""
+    path = run_dir / "logs" / "scalars" / "train" / "samples_per_s.csv"
+    rows = path.read_text().split()
+    if not rows:
+        raise RuntimeError(f"{path} is empty: the training logged no throughput")
+    return float(rows[-1].split(",")[1])
+
+
+def completed(run_dir: Path) -> dict | None:
+    path = run_dir / "eval" / "window_errors.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def run_pending(study: Study) -> tuple[int, int]:
+    """Train and score every run the entries need that no earlier invocation completed, ``study.jobs``
+    at a time; returns (runs needed, runs reused)."""
+    runs = {}
+    for entry in study.entries:
+        for trained, seed, run_dir, extra, _ in run_plan(entry, study):
+            runs.setdefault(run_dir, (trained, seed, study, run_dir, extra))
+    pending = [task for run_dir, task in runs.items() if completed(run_dir) is None]
+    if study.jobs == 1:
+        for task in pending:
+            run_one(*task)
+    else:
+        run_in_processes(pending, study.jobs)
+    return len(runs), len(runs) - len(pending)
+
+
+def run_in_processes(tasks: Sequence[tuple], jobs: int) -> None:
+    """``run_one`` over ``tasks``, ``jobs`` processes at once. Small models use two threads poorly: one
+    thread a run and one run a core keeps the cores busy. Each run writes only its own run_dir."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    threads = max(1, (os.cpu_count() or 1) // jobs)
+    shown = logging.getLogger("mmf_rl")
+    log_level = shown.getEffectiveLevel() if shown.handlers else None
+    with ProcessPoolExecutor(
+        jobs,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=start_worker,
+        initargs=(threads, log_level),
+    ) as pool:
+        futures = [pool.submit(run_one, *task) for task in tasks]
+        for future in futures:
+            future.result()  # a failed run stops the comparison with its error
+
+
+def start_worker(threads: int, log_level: int | None) -> None:
+    """A worker of ``run_in_processes``: ``threads`` torch threads, and the parent's progress messages
+    shown as the parent shows them (a spawned process starts without the CLI's logging setup)."""
+    torch.set_num_threads(threads)
+    if log_level is not None:
+        from mmf_rl.cli import configure_logging
+
+        configure_logging(log_level)

@@ -1,0 +1,91 @@
+"""`mmf-rl compare` from an installed wheel: no repository checkout, any data config."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+SUMMARY = re.compile(
+    r"summary: all sensors paper MSE (\S+) vs best baseline (\S+) \((.+)\): paper/best = (\S+) "
+    r"\(target <= 1\.05\); mean degradation without a sensor paper (\S+), best baseline (\S+)"
+)
+
+
+def installed_wheel(tmp: Path) -> Path:
+    """Build the wheel from a copy of the sources (the build leaves the checkout alone) with uv, which
+    the README's setup installs, and install it without dependencies (the venv has them) into a
+    directory of its own; returns that directory."""
+    source = tmp / "source"
+    ignore = shutil.ignore_patterns("__pycache__", "*.egg-info")
+    shutil.copytree(REPO / "mmf_rl", source / "mmf_rl", symlinks=True, ignore=ignore)
+    shutil.copytree(REPO / "configs", source / "configs", ignore=ignore)
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, source / name)
+    env = {**os.environ, "UV_OFFLINE": "1"}
+    build = ["uv", "build", "--wheel", "--no-build-isolation", "--python", sys.executable]
+    subprocess.run([*build, "-o", str(tmp / "dist"), str(source)], check=True, env=env, capture_output=True)
+    (wheel,) = (tmp / "dist").glob("mmf_rl-*.whl")
+    site = tmp / "site"
+    install = ["uv", "pip", "install", "--no-deps", "--python", sys.executable, "--target", str(site)]
+    subprocess.run([*install, str(wheel)], check=True, env=env, capture_output=True)
+    return site
+
+
+@pytest.mark.skipif(shutil.which("uv") is None, reason="uv (installed by `make setup`) is not on PATH")
+def test_compare_runs_from_an_installed_wheel_on_a_recorded_dataset(recorded_push_root, tmp_path):
+    site = installed_wheel(tmp_path)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MMF_RL_")}
+    env.update(PYTHONPATH=str(site), OMP_NUM_THREADS="1", HF_HUB_OFFLINE="1")
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+
+    def compare(*args: str) -> subprocess.CompletedProcess:
+        cmd = [sys.executable, "-m", "mmf_rl.cli", "compare", *args]
+        return subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=300)
+
+    probe = "import mmf_rl.compare, mmf_rl.configuration as c; print(mmf_rl.compare.__file__, c.config_dir())"
+    where = subprocess.run(
+        [sys.executable, "-c", probe], cwd=work, env=env, capture_output=True, text=True, check=True
+    ).stdout.split()
+    assert all(Path(p).is_relative_to(site) for p in where), where  # the wheel, not the checkout
+    usage = compare("--help")
+    assert usage.returncode == 0 and "'LF-LSTM (retrained)'" in usage.stdout and "data=" in usage.stdout
+    data = [
+        f"data.root={recorded_push_root}",
+        "data.history=4",
+        "data.horizon=3",
+        "data.split_fractions=[0.5,0.25,0.25]",
+    ]
+    budget = ["--entries", "paper", "LF-LSTM", "--seeds", "0", "--steps", "2", "--batch-size", "8"]
+    run = compare(*data, *budget, "--image-size", "32", "--out", "out")
+    assert run.returncode == 0, run.stderr[-3000:]
+    line = run.stdout.strip().splitlines()[-1]
+    assert SUMMARY.fullmatch(line), line
+    out = work / "out"
+    assert (out / "results.md").read_text().strip().splitlines()[-1] == line
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["cells"]) == {"paper", "LF-LSTM"} and len(results["subsets"]) == 7
+    assert (out / "paper" / "seed0" / "eval" / "window_errors.json").is_file()
+
+
+def test_bad_arguments_are_clear_errors_before_any_training(tmp_path, capsys):
+    from mmf_rl.cli import main as cli
+
+    out = tmp_path / "out"
+    assert cli(["compare", "--entries", "paper", "Mult", "--out", str(out)]) == 1
+    assert "entries: unknown ['Mult']" in capsys.readouterr().err
+    assert cli(["compare", "--entries", "MulT", "--out", str(out)]) == 1
+    assert "'paper' missing" in capsys.readouterr().err
+    assert cli(["compare", "model.fusoin=sum", "--out", str(out)]) == 1
+    assert "model.fusoin" in capsys.readouterr().err
+    assert cli(["compare", "--jobs", "0"]) == 2
+    assert "--jobs must be >= 1" in capsys.readouterr().err
+    assert not out.exists()

@@ -1,0 +1,95 @@
+"""mmf_rl.compare.runs: the training overrides, the checks before any training, the per-window errors
+and the training rate of a run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from mmf_rl.compare import entries, runs
+from mmf_rl.compare.entries import Budget, Entry, Study
+from tests.compare.helpers import PUSH_MODALITIES
+
+
+def study(tmp_path: Path, chosen=(entries.PAPER,), image_size: int | None = 32) -> Study:
+    return Study(
+        out=tmp_path / "out",
+        budget=Budget(steps=1000, batch_size=32, seeds=(0,), image_size=image_size),
+        entries=tuple(chosen),
+        modalities=tuple(PUSH_MODALITIES),
+        data_overrides=(f"data.root={tmp_path / 'data'}",),
+    )
+
+
+def test_the_data_overrides_follow_the_entrys_and_the_budget_follows_them(tmp_path):
+    s = study(tmp_path)
+    overrides = runs.train_overrides(entries.MULT, 3, s, tmp_path / "run", ("+data.missing.image=1.0",))
+    assert overrides[:4] == [
+        "model=mult",
+        "+data.missing.image=1.0",
+        f"data.root={tmp_path / 'data'}",
+        f"data.cache_dir={tmp_path / 'out' / 'cache'}",
+    ]
+    cfg = runs.compose_train(entries.MULT, 3, s, tmp_path / "run")
+    assert (cfg.trainer.total_steps, cfg.trainer.batch_size, cfg.trainer.seed) == (1000, 32, 3)
+    assert list(cfg.data.image_size) == [32, 32] and cfg.model.name == "mult"
+    default_size = runs.compose_train(entries.PAPER, 0, study(tmp_path, image_size=None), tmp_path / "run")
+    assert list(default_size.data.image_size) == [64, 64]  # the data config's
+
+
+def test_entries_are_checked_against_the_configs_before_any_training(tmp_path):
+    runs.check_entries(study(tmp_path, entries.CATALOGUE))
+    bogus = Entry("paper typo", "variant", ("model=forecaster", "model.fusoin=sum"))
+    with pytest.raises(ValueError, match=r"'paper typo' \(model=forecaster model.fusoin=sum\)"):
+        runs.check_entries(study(tmp_path, (entries.PAPER, bogus)))
+
+
+def test_completed_runs_of_another_budget_are_refused(tmp_path):
+    s = study(tmp_path)
+    result = s.out / "paper" / "seed0" / "eval" / "window_errors.json"
+    result.parent.mkdir(parents=True)
+    result.write_text(json.dumps({"steps": 1000, "batch_size": 32, "subsets": {}}))
+    runs.check_reused(s)
+    result.write_text(json.dumps({"steps": 3, "batch_size": 32, "subsets": {}}))
+    with pytest.raises(ValueError, match=r"holds runs of another budget than 1000 steps of batch 32"):
+        runs.check_reused(s)
+
+
+def test_training_rate_is_the_last_logged_throughput(tmp_path):
+    path = tmp_path / "logs" / "scalars" / "train" / "samples_per_s.csv"
+    path.parent.mkdir(parents=True)
+    path.write_text("25,410.5\n50,402.25\n")
+    assert runs.training_rate(tmp_path) == 402.25
+
+
+def test_window_errors_average_to_the_evaluations_mse_on_recorded_push_data(recorded_push_root, tmp_path):
+    """The comparison's own pass over the test windows (per-window errors, with their episodes) scores
+    the same windows the same way as `mmf-rl eval`, on data recorded by the project's recorder."""
+    from mmf_rl.checkpoint import load_checkpoint
+    from mmf_rl.configuration import compose_config
+    from mmf_rl.datasets import DataConfig, WindowDataset
+    from mmf_rl.eval.eval_command import run_evaluation
+    from mmf_rl.trainers.train_command import train
+    from tests.conftest import push_train_overrides
+
+    run = tmp_path / "run"
+    train(compose_config("train", push_train_overrides(recorded_push_root, tmp_path / "cache", run)))
+    summary = run_evaluation(compose_config("eval", [f"checkpoint={run}", "plots=false", "num_samples=0"]))
+    errors = runs.window_errors(run, "cpu", batch_size=7)  # batches that do not divide the split
+    assert set(errors) == set(summary["subsets"])
+    trained = load_checkpoint(run / "checkpoints", with_trainer_state=False).meta["config"]["data"]
+    data = WindowDataset(DataConfig.from_dict(trained))
+    for name, rows in errors.items():
+        metrics = summary["subsets"][name]
+        assert len(rows["squared_error"]) == metrics["windows"]
+        mean = sum(rows["squared_error"]) / len(rows["squared_error"])
+        assert mean == pytest.approx(metrics["mse"], rel=1e-5)
+        assert set(rows["episode"]) <= set(data.split_episodes["test"])
+        assert rows["episode"] == data.window_episode[torch.tensor(rows["window"])].tolist()
+    runs.check_agreement(run, errors, summary)
+    summary["subsets"]["all"]["mse"] *= 1.01
+    with pytest.raises(RuntimeError, match="subset all: the per-window errors average"):
+        runs.check_agreement(run, errors, summary)
