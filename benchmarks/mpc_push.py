@@ -102,8 +102,10 @@ from mmf_rl.rl.aggregation import (
     FIRST_RECORDING,
     SUCCESS_DISTANCE,
     AggregationConfig,
+    add_aggregation_arguments,
     aggregate_data,
     aggregation_table,
+    check_aggregation_arguments,
     train_world_model,
 )
 from mmf_rl.rl.closed_loop import OUTAGES
@@ -208,36 +210,6 @@ def add_planner_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reach-weight", type=float, default=0.5)
 
 
-def add_aggregation_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--aggregate",
-        type=int,
-        default=0,
-        metavar="ROUNDS",
-        help="rounds of data aggregation with the MPC agent before playing (0: none)",
-    )
-    parser.add_argument("--aggregate-episodes", type=int, default=100, help="episodes recorded per round")
-    parser.add_argument(
-        "--aggregate-exploration",
-        type=float,
-        default=0.1,
-        help="per-step probability of a random-move burst while the agent records (mmf-rl record "
-        "--exploration)",
-    )
-    parser.add_argument(
-        "--early-stopping-patience",
-        type=int,
-        default=2,
-        help="retrainings of the aggregation rounds stop after this many evaluations without a better "
-        "val/mse",
-    )
-    parser.add_argument(
-        "--aggregate-warm-start",
-        action="store_true",
-        help="retrain from the last round's weights (init_from) instead of from scratch",
-    )
-
-
 def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_common_arguments(parser, "mpc")
@@ -245,13 +217,7 @@ def parse_args() -> argparse.Namespace:
     add_planner_arguments(parser)
     add_aggregation_arguments(parser)
     args = parser.parse_args()
-    if args.aggregate < 0 or args.aggregate_episodes < 1 or args.early_stopping_patience < 0:
-        parser.error("--aggregate must be >= 0, --aggregate-episodes >= 1, --early-stopping-patience >= 0")
-    if args.aggregate and args.checkpoint:
-        parser.error(
-            "--aggregate retrains on the data the world models were trained on: build them here "
-            "(drop --checkpoint)"
-        )
+    check_aggregation_arguments(parser, args, world_models_given=bool(args.checkpoint))
     return resolve_budget(args, BUDGETS, "mpc")
 
 

@@ -10,6 +10,7 @@ not) and an interrupted one resumes.
 
 from __future__ import annotations
 
+import argparse
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -43,6 +44,51 @@ class AggregationConfig:
     agent: dict = field(default_factory=dict)
     # more Hydra overrides for every training (after the experiment's own)
     train_overrides: list[str] = field(default_factory=list)
+
+
+def add_aggregation_arguments(parser: argparse.ArgumentParser) -> None:
+    """The command-line arguments of `AggregationConfig` (``--aggregate ROUNDS`` and its options)."""
+    parser.add_argument(
+        "--aggregate",
+        type=int,
+        default=0,
+        metavar="ROUNDS",
+        help="rounds of data aggregation with the MPC agent before playing (0: none)",
+    )
+    parser.add_argument("--aggregate-episodes", type=int, default=100, help="episodes recorded per round")
+    parser.add_argument(
+        "--aggregate-exploration",
+        type=float,
+        default=0.1,
+        help="per-step probability of a random-move burst while the agent records (mmf-rl record "
+        "--exploration)",
+    )
+    parser.add_argument(
+        "--early-stopping-patience",
+        type=int,
+        default=2,
+        help="retrainings of the aggregation rounds stop after this many evaluations without a better "
+        "val/mse",
+    )
+    parser.add_argument(
+        "--aggregate-warm-start",
+        action="store_true",
+        help="retrain from the last round's weights (init_from) instead of from scratch",
+    )
+
+
+def check_aggregation_arguments(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, world_models_given: bool
+) -> None:
+    """Exits through ``parser.error`` on values out of range, or on aggregation with world models
+    given on the command line (``--checkpoint``): it retrains on the data they were trained on."""
+    if args.aggregate < 0 or args.aggregate_episodes < 1 or args.early_stopping_patience < 0:
+        parser.error("--aggregate must be >= 0, --aggregate-episodes >= 1, --early-stopping-patience >= 0")
+    if args.aggregate and world_models_given:
+        parser.error(
+            "--aggregate retrains on the data the world models were trained on: build them here "
+            "(drop --checkpoint)"
+        )
 
 
 def train_world_model(run_dir: Path, data: Path, seed: int, overrides: Sequence[str] = ()) -> Path:
