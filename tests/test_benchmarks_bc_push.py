@@ -1,21 +1,17 @@
-"""benchmarks/bc_push.py end to end with tiny budgets, as a user runs it: builds the forecaster and
+"""benchmarks/bc_push.py end to end with tiny budgets, run as a user runs it (``mmf-rl bench bc``, in
+this process: a subprocess would add its imports to the test's time): builds the forecaster and
 both policies, plays, writes the results and ends with the summary line."""
 
 from __future__ import annotations
 
 import json
-import os
 import re
-import subprocess
-import sys
-from pathlib import Path
 
+from mmf_rl.cli import main as cli
 from tests.conftest import push_train_overrides
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "bc_push.py"
 
-
-def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_root, tmp_path):
+def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_root, tmp_path, capsys):
     work = tmp_path / "work"
     tiny_forecaster = push_train_overrides(
         recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
@@ -25,19 +21,10 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_ro
         *("--forecaster-override", *tiny_forecaster),
         *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
         *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
-        *("--episodes", "1", "--outage", "episode", "--threads", "1"),
+        *("--episodes", "1", "--outage", "episode"),
     ]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    run = subprocess.run(
-        [sys.executable, str(SCRIPT), *argv],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-        check=False,
-    )
-    assert run.returncode == 0, run.stderr[-3000:]
-    last = run.stdout.strip().splitlines()[-1]
+    assert cli(["bench", "bc", *argv]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
     pct = r"\d+%/\d+%"
     assert re.fullmatch(
         rf"summary: BC success all {pct}, no-camera {pct}, no-force {pct} \(without/with forecasts\); "
