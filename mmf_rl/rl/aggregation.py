@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from mmf_rl.checkpoint import load_checkpoint
+from mmf_rl.models import RUN_EXPORT_DIR
 from mmf_rl.record import CAMERA_KEY, GOAL_KEY, OBJECT_POSE_KEY, RecordConfig, merge_recordings, record
 from mmf_rl.rl.agent import PushMPCAgent
 from mmf_rl.rl.experiment import timed_phase, train_or_resume
-from mmf_rl.trainers.run import PRETRAINED_DIR
 
 logger = logging.getLogger(__name__)
 
@@ -194,7 +194,7 @@ def aggregation_round(
     if not (union / "meta" / "info.json").is_file():
         merge_recordings([data, recording], union)
     run_dir = work / f"world_model_seed{seed}_round{round_}"
-    if not (run_dir / PRETRAINED_DIR).is_dir():  # written when a training ends, early or not
+    if not (run_dir / RUN_EXPORT_DIR).is_dir():  # written when a training ends, early or not
         extra = [f"trainer.early_stopping_patience={config.early_stopping_patience}"]
         if config.warm_start:
             extra.append(f"init_from={Path(checkpoint).parent}")
