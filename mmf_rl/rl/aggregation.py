@@ -32,6 +32,8 @@ SUCCESS_DISTANCE = 0.05  # FetchPush's distance_threshold, metres (3-D, object t
 
 @dataclass
 class AggregationConfig:
+    """What `aggregate_data` builds, and where."""
+
     work: Path  # holds push_explore/ (the first recording) and everything the rounds build
     seeds: list[int]  # the world models' trainer.seed, one world model each
     rounds: int
