@@ -8,7 +8,7 @@
     # a recording and a forecaster of your own (nothing recorded or trained but the policies)
     MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py --data data/push --forecaster runs/push/checkpoints
 
-The question (issue #15): does a policy that reads the forecaster's forecast of the object's
+The question: does a policy that reads the forecaster's forecast of the object's
 motion stay up when a sensor fails, better than the same policy without it? Target: the policy
 with forecasts loses at most half the success the policy without them loses when the camera is
 off.
@@ -84,32 +84,42 @@ to lose everything there, by construction.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
 import time
 from pathlib import Path
 
 import torch
-from torchrl.envs import TransformedEnv
 
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.cli import configure_logging
 from mmf_rl.datasets import DataConfig, WindowDataset
-from mmf_rl.eval.report import write_json, write_text
 from mmf_rl.models.loading import load_trained_model
-from mmf_rl.rl import (
-    BCPolicy,
-    Demonstrations,
-    EncoderChoice,
-    ForecastTable,
-    ForecastTransform,
-    train_bc,
-    validation_errors,
+from mmf_rl.record import RecordConfig, record
+from mmf_rl.rl import BCPolicy, Demonstrations, EncoderChoice, ForecastTable, train_bc, validation_errors
+from mmf_rl.rl.bc_evaluation import (
+    VARIANTS,
+    camera_loss,
+    camera_target_met,
+    evaluate_bc,
+    loss_table,
+    success_table,
+    summary_line,
+    validation_table,
 )
-from mmf_rl.rl.closed_loop import OUTAGES, SENSORS, ScriptedPolicy, over_seeds, play, push_env, summarise
-from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
+from mmf_rl.rl.closed_loop import OUTAGES
+from mmf_rl.rl.experiment import (
+    add_common_arguments,
+    merged_overrides,
+    resolve_budget,
+    run_header,
+    timed_phase,
+    train_or_resume,
+    write_results,
+)
+from mmf_rl.rl.outage_evaluation import outage_conditions
+from mmf_rl.trainers import TrainerConfig, seed_everything
 
-VARIANTS = ("without", "with")  # forecasts
+DROPPABLE = ("image", "force")  # the sensors a training sample may lose
 BUDGETS = {
     "quick": {
         "record_episodes": 200,
@@ -133,29 +143,16 @@ BUDGETS = {
 
 
 def build_recording(args, phases: dict[str, float]) -> Path:
-    from mmf_rl.record import RecordConfig, record
-
     data = (args.work / "push").resolve()
     if not (data / "meta" / "info.json").is_file():
         print(f"bc_push: recording {args.record_episodes} scripted episodes into {data}")
-        start = time.perf_counter()
-        record(RecordConfig(out=data, episodes=args.record_episodes, workers=args.workers, seed=0))
-        phases["record"] = time.perf_counter() - start
+        with timed_phase(phases, "record"):
+            record(RecordConfig(out=data, episodes=args.record_episodes, workers=args.workers, seed=0))
     return data
-
-
-def merged_overrides(base: list[str], extra: list[str]) -> list[str]:
-    """``base`` Hydra overrides with those of ``extra`` replacing the same keys (Hydra refuses a key
-    given twice)."""
-    extra_keys = {o.split("=", 1)[0] for o in extra}
-    return [o for o in base if o.split("=", 1)[0] not in extra_keys] + list(extra)
 
 
 def build_forecaster(args, data: Path, phases: dict[str, float]) -> Path:
     """The default push forecaster trained on ``data`` (resumed or skipped when already there)."""
-    from mmf_rl.configuration import compose_config
-    from mmf_rl.trainers.train_command import train
-
     overrides = [
         "name=bc_forecaster",
         f"run_dir={(args.work / 'forecaster').resolve()}",
@@ -167,14 +164,8 @@ def build_forecaster(args, data: Path, phases: dict[str, float]) -> Path:
         overrides.append(f"trainer.total_steps={args.forecaster_steps}")
     if args.forecaster_batch_size is not None:
         overrides.append(f"trainer.batch_size={args.forecaster_batch_size}")
-    cfg = compose_config("train", merged_overrides(overrides, args.forecaster_override))
-    checkpoints = Path(cfg.run_dir) / "checkpoints"
-    if list_checkpoints(checkpoints):
-        cfg.resume = True  # finishes an interrupted training; nothing to do if it had ended
-    start = time.perf_counter()
-    train(cfg)
-    phases["train forecaster"] = time.perf_counter() - start
-    return checkpoints
+    with timed_phase(phases, "train forecaster"):
+        return train_or_resume(merged_overrides(overrides, args.forecaster_override))
 
 
 def bc_trainer_config(args, seed: int) -> TrainerConfig:
@@ -208,99 +199,23 @@ def build_policy(args, variant: str, seed: int, demonstrations, forecasts, phase
         hidden=args.bc_hidden,
     )
     print(f"bc_push: training the BC policy {variant} forecasts, seed {seed} ({config.total_steps} steps)")
-    start = time.perf_counter()
-    train_bc(
-        policy,
-        demonstrations,
-        config,
-        dropout=dict.fromkeys(("image", "force"), args.dropout),
-        forecasts=table,
-        run_dir=run_dir,
-        resume=bool(checkpoints),
-    )
-    phases[f"train BC {variant} seed {seed}"] = time.perf_counter() - start
+    with timed_phase(phases, f"train BC {variant} seed {seed}"):
+        train_bc(
+            policy,
+            demonstrations,
+            config,
+            dropout=dict.fromkeys(DROPPABLE, args.dropout),
+            forecasts=table,
+            run_dir=run_dir,
+            resume=bool(checkpoints),
+        )
     return BCPolicy.from_checkpoint(run_dir / "checkpoints")
 
 
-def make_env(
-    policy: BCPolicy | None, forecaster, image_size: int, sensor: str | None, outage: str | None, seed: int
-) -> TransformedEnv:
-    """The push env with ``sensor`` failing the ``outage`` way, then what ``policy`` reads (none:
-    the raw observation, for the scripted pusher)."""
-    readers = []
-    if policy is not None:
-        model, stats, data_config = forecaster
-        forecast = (
-            ForecastTransform(model, stats, stride=int(data_config.get("stride", 1)), denormalize=False)
-            if policy.config.forecast_shape is not None
-            else None
-        )
-        readers = policy.transforms(forecast)
-    return push_env(image_size, sensor, outage, seed, readers)
-
-
-def success_table(rows: dict[str, dict]) -> str:
-    lines = [
-        "| policy | condition | episodes | seeds | success % (mean) | spread (min-max) | per BC seed | "
-        "final distance (m) | steps |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for name, r in rows.items():
-        policy, condition = name.split(" | ")
-        seeds = r.get("seeds", "-")
-        spread = f"{r['success_min']:.0f}-{r['success_max']:.0f}" if "success_min" in r else "-"
-        per_seed = " / ".join(f"{x:.0f}" for x in r["success_per_seed"]) if "success_per_seed" in r else "-"
-        lines.append(
-            f"| {policy} | {condition} | {r['episodes']} | {seeds} | {r['success']:.0f} | {spread} | "
-            f"{per_seed} | {r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | "
-            f"{r['steps_mean']:.1f} |"
-        )
-    return "\n".join(lines)
-
-
-def loss_table(rows: dict[str, dict], conditions: list[str]) -> str:
-    lines = [
-        "| condition | success lost without forecasts (pts) | success lost with forecasts (pts) |",
-        "|---|---|---|",
-    ]
-    for condition in conditions[1:]:
-        lost = [
-            rows[f"BC {v} forecasts | all"]["success"] - rows[f"BC {v} forecasts | {condition}"]["success"]
-            for v in VARIANTS
-        ]
-        lines.append(f"| {condition} | {lost[0]:.0f} | {lost[1]:.0f} |")
-    return "\n".join(lines)
-
-
-def validation_table(errors: dict[str, list[dict]]) -> str:
-    if not all(errors.values()):
-        return "(no validation episodes)"
-    names = list(next(iter(errors.values()))[0])
-    lines = [
-        "| policy | " + " | ".join(f"val {n}" for n in names) + " |",
-        "|---|" + "---|" * len(names),
-    ]
-    for variant, per_seed in errors.items():
-        means = [statistics.mean(e[n] for e in per_seed) for n in names]
-        lines.append(f"| BC {variant} forecasts | " + " | ".join(f"{m:.4f}" for m in means) + " |")
-    return "\n".join(lines)
-
-
-def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true", help="the small budget (see the table above)")
-    parser.add_argument("--work", type=Path, default=None, help="default runs/bench_bc_{quick,full}")
+def add_training_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=None, help="a push recording (default: record one)")
     parser.add_argument(
         "--forecaster", type=Path, default=None, help="a trained push forecaster (default: train one)"
-    )
-    parser.add_argument("--record-episodes", type=int, default=None)
-    parser.add_argument("--workers", type=int, default=2, help="recording processes")
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=2,
-        help="torch threads; use 1 on a shared machine (OpenMP threads spin-wait for a busy core)",
     )
     parser.add_argument("--forecaster-steps", type=int, default=None)
     parser.add_argument("--forecaster-batch-size", type=int, default=None)
@@ -319,38 +234,18 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--dropout", type=float, default=0.3, help="training outage probability of camera and force"
     )
-    parser.add_argument(
-        "--episodes", type=int, default=None, help="episodes per condition (quick 20, full 50)"
-    )
-    parser.add_argument(
-        "--outage",
-        nargs="+",
-        choices=list(OUTAGES),
-        default=None,
-        help=(
-            "how the sensor fails (quick: episode bursts; full: all); the summary's success figures use "
-            "the first"
-        ),
-    )
-    parser.add_argument("--seed", type=int, default=1000, help="episode i is reset with seed + i")
-    parser.add_argument("--out", type=Path, default=None, help="default: --work")
-    args = parser.parse_args(argv)
-    mode = "quick" if args.quick else "full"
-    for key, value in BUDGETS[mode].items():
-        if getattr(args, key) is None:
-            setattr(args, key, value)
-    args.work = args.work or Path(f"runs/bench_bc_{mode}")
-    args.out = args.out or args.work
-    return args
 
 
-def main(argv: list[str] | None = None) -> None:
-    args = parse_args(argv)
-    torch.set_num_threads(args.threads)
-    started = time.perf_counter()
-    phases: dict[str, float] = {}
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_common_arguments(parser, "bc")
+    add_training_arguments(parser)
+    return resolve_budget(parser.parse_args(argv), BUDGETS, "bc")
 
-    # 1. The recording, the forecaster, and the demonstrations with the forecaster's forecasts.
+
+def forecaster_and_demonstrations(args, phases: dict[str, float]):
+    """The recording, the forecaster (built when not given), the demonstrations and the
+    forecaster's forecasts of them."""
     if args.forecaster is not None:
         checkpoints = args.forecaster
     else:
@@ -360,15 +255,22 @@ def main(argv: list[str] | None = None) -> None:
     model, stats, data_config = forecaster
     if args.data is not None:
         data_config = {**data_config, "root": str(args.data.resolve())}
-    start = time.perf_counter()
-    demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
-    droppable = ("image", "force")
-    forecasts = ForecastTable.compute(
-        demonstrations, model, stats, droppable, stride=int(data_config.get("stride", 1))
-    )
-    phases["forecast the demonstrations"] = time.perf_counter() - start
+    with timed_phase(phases, "forecast the demonstrations"):
+        demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
+        forecasts = ForecastTable.compute(
+            demonstrations, model, stats, DROPPABLE, stride=int(data_config.get("stride", 1))
+        )
+    return checkpoints, forecaster, demonstrations, forecasts
 
-    # 2. Two policies per BC seed, with and without the forecast input; their offline errors.
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads)
+    started = time.perf_counter()
+    phases: dict[str, float] = {}
+    checkpoints, forecaster, demonstrations, forecasts = forecaster_and_demonstrations(args, phases)
+
+    # Two policies per BC seed, with and without the forecast input; their offline errors.
     policies: dict[str, list[BCPolicy]] = {v: [] for v in VARIANTS}
     errors: dict[str, list[dict]] = {v: [] for v in VARIANTS}
     for seed in args.bc_seeds:
@@ -377,97 +279,41 @@ def main(argv: list[str] | None = None) -> None:
             policies[variant].append(policy)
             if len(demonstrations.split_frames["val"]):
                 table = forecasts if variant == "with" else None
-                errors[variant].append(validation_errors(policy, demonstrations, "val", droppable, table))
+                errors[variant].append(validation_errors(policy, demonstrations, "val", DROPPABLE, table))
 
-    # 3. Closed loop: every policy, every condition, the same seeded episodes and outages.
-    image_size = next(s for s in model.config.modalities if s.name == "image").shape[-1]
-    conditions = [("all", None, None)] + [
-        (f"{name} ({outage})", sensor, outage) for outage in args.outage for name, sensor in SENSORS.items()
-    ]
-    per_seed: dict[str, list[dict]] = {}
-    raw: dict[str, list] = {}
-    play_start = time.perf_counter()
-    with torch.no_grad():
-        for variant in VARIANTS:
-            for index, policy in enumerate(policies[variant]):
-                for label, sensor, outage in conditions:
-                    name = f"BC {variant} forecasts | {label}"
-                    env = make_env(policy, forecaster, image_size, sensor, outage, args.seed)
-                    try:
-                        tag = f"[seed {args.bc_seeds[index]}] {name}"
-                        results = play(env, policy.eval(), args.episodes, args.seed, tag)
-                    finally:
-                        env.close()
-                    per_seed.setdefault(name, []).append(summarise(results))
-                    raw.setdefault(name, []).append(results)
-        env = make_env(None, forecaster, image_size, None, None, args.seed)
-        try:
-            raw["scripted | all"] = play(env, ScriptedPolicy(args.seed), args.episodes, args.seed, "scripted")
-        finally:
-            env.close()
-    phases["play"] = time.perf_counter() - play_start
-    rows = {name: over_seeds(r) for name, r in per_seed.items()} | {
-        "scripted | all": summarise(raw["scripted | all"])
-    }
+    # Closed loop: every policy, every condition, the same seeded episodes and outages.
+    conditions = outage_conditions(args.outage)
+    with timed_phase(phases, "play"):
+        rows, raw = evaluate_bc(policies, args.bc_seeds, forecaster, conditions, args.episodes, args.seed)
 
-    # 4. Tables, results files, summary.
-    labels = [label for label, _, _ in conditions]
-    first = args.outage[0]
-
-    def success(variant: str, label: str) -> float:
-        return rows[f"BC {variant} forecasts | {label}"]["success"]
-
-    # The target is judged for every outage type: a camera off for the whole episode leaves no
-    # sensor that locates the object (the observation has no object pose), unlike bursts and a
-    # camera that dies mid-episode, which a forecaster might bridge.
-    camera_loss = {
-        outage: [success(v, "all") - success(v, f"no-camera ({outage})") for v in VARIANTS]
-        for outage in args.outage
-    }
-    met = {outage: lost[1] <= lost[0] / 2 for outage, lost in camera_loss.items()}
-    minutes = (time.perf_counter() - started) / 60
-    timing = ", ".join(f"{name} {seconds / 60:.1f} min" for name, seconds in phases.items())
-    command = " ".join(["benchmarks/bc_push.py", *(sys.argv[1:] if argv is None else argv)])
+    header = run_header("benchmarks/bc_push.py", sys.argv[1:] if argv is None else argv, started, phases)
     budget = (
         f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, BC seeds {args.bc_seeds}, "
         f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; forecaster "
         f"`{checkpoints}`; {len(demonstrations.split_frames['train'])} training frames"
     )
-    text = (
-        f"# Behaviour cloning with and without forecasts on the multimodal push task\n\n`{command}` — "
-        f"{minutes:.1f} min on {torch.get_num_threads()} threads ({timing})\n\n{budget}\n\n"
-        f"{success_table(rows)}\n\nSuccess lost against all sensors:\n\n{loss_table(rows, labels)}\n\n"
-        f"Offline: mean squared action error on the validation episodes, with each sensor subset removed "
+    text = report(rows, errors, conditions, args.outage, f"{header}\n\n{budget}")
+    write_results(args, text, {"rows": rows, "episodes": raw, "validation_errors": errors}, phases)
+    print(text)
+    print(summary_line(rows, args.outage))
+
+
+def report(rows: dict, errors: dict, conditions: list, outages: list[str], run: str) -> str:
+    """The results page: the run and its budget, the success and loss tables, the offline errors
+    and the camera-loss target."""
+    loss = camera_loss(rows, outages)
+    met = camera_target_met(loss)
+    return (
+        f"# Behaviour cloning with and without forecasts on the multimodal push task\n\n{run}\n\n"
+        f"{success_table(rows)}\n\nSuccess lost against all sensors:\n\n{loss_table(rows, conditions)}\n\n"
+        "Offline: mean squared action error on the validation episodes, with each sensor subset removed "
         f"(mean over BC seeds):\n\n{validation_table(errors)}\n\n"
         "Camera-loss target (success lost with forecasts <= half of that lost without): "
         + "; ".join(
             f"{outage} {'met' if met[outage] else 'not met'} ({lost[1]:.0f} vs {lost[0]:.0f} pts)"
-            for outage, lost in camera_loss.items()
+            for outage, lost in loss.items()
         )
         + "\n"
-    )
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_text(args.out / "results.md", text)
-    write_json(
-        args.out / "results.json",
-        {
-            "rows": rows,
-            "episodes": raw,
-            "validation_errors": errors,
-            "phases_s": phases,
-            "args": {k: str(v) for k, v in vars(args).items()},
-        },
-    )
-    print(text)
-    print(
-        f"summary: BC success all {success('without', 'all'):.0f}%/{success('with', 'all'):.0f}%, "
-        f"no-camera {success('without', f'no-camera ({first})'):.0f}%/"
-        f"{success('with', f'no-camera ({first})'):.0f}%, "
-        f"no-force {success('without', f'no-force ({first})'):.0f}%/"
-        f"{success('with', f'no-force ({first})'):.0f}% "
-        f"(without/with forecasts); camera loss without/with forecasts "
-        + ", ".join(f"{outage} {lost[0]:.0f}/{lost[1]:.0f} pts" for outage, lost in camera_loss.items())
-        + f" (target with <= without/2: met for {sum(met.values())} of {len(met)} outage types)"
     )
 
 

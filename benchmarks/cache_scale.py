@@ -8,7 +8,7 @@ For each N a synthetic LeRobot v3.0 dataset (`mmf_rl.datasets.synthetic`, lerobo
 a 64x64 video camera, state, force and pose vectors, episodes of 250 frames) is written once
 under ``--work-dir`` and reused by later runs. Its cache is built in a fresh subprocess, which
 reports its wall time and peak RSS (``ru_maxrss`` of itself and of its decode workers); batches
-of 256 train windows are then read from the cache in this process. Targets (issue #16): build
+of 256 train windows are then read from the cache in this process. Targets: build
 time linear in N, peak RSS < 2 GB at 500k frames, throughput flat.
 
 Then the largest N (or ``--resume-size``) is built again and SIGKILLed once ~90% of its video jobs

@@ -83,7 +83,7 @@ def lerobot_throughput(config: DataConfig, frame_indices: list[int], batch_size:
     return windows / elapsed
 
 
-def main(argv: list[str] | None = None) -> None:
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -122,44 +122,47 @@ def main(argv: list[str] | None = None) -> None:
         default=None,
         help="cache build decode processes (default: a pool only for large datasets)",
     )
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
 
+
+def data_config(args: argparse.Namespace, scratch: Path) -> DataConfig:
+    """The user's data config (``--data-config``) or the push features of ``--root`` or of a dataset
+    recorded into ``scratch``; every window in the train split, cached in ``scratch``."""
+    if args.data_config is not None:
+        from omegaconf import OmegaConf
+
+        data = OmegaConf.to_container(OmegaConf.load(args.data_config), resolve=True)
+        data.pop("defaults", None)
+        root = args.root or data.get("root")
+        if root is None:
+            raise SystemExit(f"{args.data_config} has no `root`: pass --root DATASET")
+    else:
+        root = args.root
+        if root is None:
+            root = scratch / "push"
+            made = make_dataset(root, args.episodes, args.steps, args.image_size, args.workers)
+            print(f"dataset: {made} at {root}")
+        data = {
+            "image_size": [args.image_size, args.image_size],
+            "modalities": {"image": IMAGE_FEATURE, "force": FORCE_FEATURE, "proprio": STATE_FEATURE},
+            "target": {"feature": POSE_FEATURE, "dims": [0, 1]},
+        }
+    data.update(
+        {
+            "root": str(root),
+            "cache_dir": str(scratch / "cache"),
+            "split_fractions": [1.0, 0.0, 0.0],
+            "missing": {},
+        }
+    )
+    data.update({k: v for k, v in [("history", args.history), ("horizon", args.horizon)] if v is not None})
+    return DataConfig.from_dict(data)
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="mmf_rl_bench_") as scratch:
-        scratch = Path(scratch)
-        if args.data_config is not None:
-            from omegaconf import OmegaConf
-
-            data = OmegaConf.to_container(OmegaConf.load(args.data_config), resolve=True)
-            data.pop("defaults", None)
-            root = args.root or data.get("root")
-            if root is None:
-                raise SystemExit(f"{args.data_config} has no `root`: pass --root DATASET")
-        else:
-            root = args.root
-            if root is None:
-                root = scratch / "push"
-                print(
-                    "dataset: "
-                    f"{make_dataset(root, args.episodes, args.steps, args.image_size, args.workers)} "
-                    f"at {root}"
-                )
-            data = {
-                "image_size": [args.image_size, args.image_size],
-                "modalities": {"image": IMAGE_FEATURE, "force": FORCE_FEATURE, "proprio": STATE_FEATURE},
-                "target": {"feature": POSE_FEATURE, "dims": [0, 1]},
-            }
-        data.update(
-            {
-                "root": str(root),
-                "cache_dir": str(scratch / "cache"),
-                "split_fractions": [1.0, 0.0, 0.0],
-                "missing": {},
-            }
-        )
-        data.update(
-            {k: v for k, v in [("history", args.history), ("horizon", args.horizon)] if v is not None}
-        )
-        config = DataConfig.from_dict(data)
+        config = data_config(args, Path(scratch))
 
         import lerobot.datasets.lerobot_dataset  # noqa: F401  (both sides need lerobot: keep its import out of the timing)
 

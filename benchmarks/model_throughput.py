@@ -18,7 +18,7 @@ loss scaling for fp16 (CUDA only); one training line per precision.
 
 Speed-up candidates, off by default, to compare on a quiet machine against a run without them:
 ``--channels-last`` stores the ConvNets' weights NHWC, so oneDNN runs the convolutions in that
-layout (same forecasts and gradients: tests/test_model_throughput.py); ``--compile`` wraps the
+layout (same forecasts and gradients: tests/models/test_push_like.py); ``--compile`` wraps the
 loss module in ``torch.compile`` (the first steps, excluded from the timing, pay the compilation).
 """
 
@@ -32,54 +32,11 @@ import torch
 from tensordict import TensorDict
 from torch.utils.flop_counter import FlopCounterMode
 
-from mmf_rl import keys
-from mmf_rl.configuration import compose_config, to_container
+from mmf_rl.datasets.synthetic import push_like_batch
 from mmf_rl.devices import resolve_device
-from mmf_rl.keys import ModalitySpec
-from mmf_rl.models import MODELS, build_loss, build_model
-from mmf_rl.objectives import LossConfig
+from mmf_rl.models import MODELS
+from mmf_rl.models.push_like import build_for_push
 from mmf_rl.trainers.trainer import PRECISIONS, check_precision, outputs_to_fp32
-
-
-def push_modalities(image_size: int = 64) -> list[ModalitySpec]:
-    return [
-        ModalitySpec("image", "image", (3, image_size, image_size)),
-        ModalitySpec("force", "sequence", (6,)),
-        ModalitySpec("proprio", "sequence", (20,)),
-    ]
-
-
-PUSH_MODALITIES = push_modalities()
-
-
-def push_like_batch(
-    batch_size: int, history: int = 10, horizon: int = 10, seed: int = 0, image_size: int = 64
-) -> TensorDict:
-    g = torch.Generator().manual_seed(seed)
-    data = {
-        keys.obs_key("image"): torch.randint(
-            0, 256, (batch_size, history, 3, image_size, image_size), generator=g, dtype=torch.uint8
-        ),
-        keys.obs_key("force"): torch.randn(batch_size, history, 6, generator=g),
-        keys.obs_key("proprio"): torch.randn(batch_size, history, 20, generator=g),
-        keys.TARGET: torch.randn(batch_size, horizon, 2, generator=g),
-    }
-    # Mostly complete samples, some with one sensor out: the mix the model trains on.
-    for spec in PUSH_MODALITIES:
-        data[spec.present_key] = torch.rand(batch_size, generator=g) > 0.15
-    data[keys.present_key("proprio")] |= ~(data[keys.present_key("image")] | data[keys.present_key("force")])
-    return TensorDict(data, batch_size=[batch_size])
-
-
-def build(name: str, image_size: int = 64, channels_last: bool = False):
-    """The model ``name`` and its training loss, as ``mmf-rl train model=<name>`` builds them for push."""
-    cfg = compose_config("train", [f"model={name}"])
-    model = build_model(
-        to_container(cfg.model), push_modalities(image_size), history=10, horizon=10, target_dim=2
-    )
-    if channels_last:  # only 4-D tensors (the conv weights) change layout; values stay the same
-        model = model.to(memory_format=torch.channels_last)
-    return model, build_loss(name, model, LossConfig.from_dict(to_container(cfg.loss)))
 
 
 def synchronize(device: torch.device | None) -> None:
@@ -130,7 +87,7 @@ def training_step(model, loss, batch: TensorDict, precision: str, device: torch.
 def measure_training(args, precision: str, device: torch.device) -> dict[str, float]:
     """Samples/s and achieved GFLOP/s of training in ``precision``, on a freshly built model."""
     torch.manual_seed(0)
-    model, loss = build(args.model, args.image_size, args.channels_last)
+    model, loss = build_for_push(args.model, args.image_size, args.channels_last)
     model.to(device)
     if args.compile:
         loss = torch.compile(loss)

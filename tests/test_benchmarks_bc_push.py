@@ -1,11 +1,14 @@
-"""benchmarks/bc_push.py end to end with tiny budgets: builds the forecaster and both policies, plays."""
+"""benchmarks/bc_push.py end to end with tiny budgets, run as a user runs it (``mmf-rl bench bc``, in
+this process: a subprocess would add its imports to the test's time): builds the forecaster and
+both policies, plays, writes the results and ends with the summary line."""
 
 from __future__ import annotations
 
 import json
 import re
 
-from tests.conftest import load_benchmark, push_train_overrides
+from mmf_rl.cli import main as cli
+from tests.conftest import push_train_overrides
 
 
 def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_root, tmp_path, capsys):
@@ -14,32 +17,13 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_ro
         recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
     )
     argv = [
-        "--quick",
-        "--work",
-        str(work),
-        "--data",
-        str(recorded_push_root),
-        "--forecaster-override",
-        *tiny_forecaster,
-        "--bc-steps",
-        "3",
-        "--bc-batch-size",
-        "16",
-        "--bc-seeds",
-        "0",
-        "--bc-d-model",
-        "8",
-        "--bc-hidden",
-        "16",
-        "--bc-image-channels",
-        "8",
-        "16",
-        "--episodes",
-        "1",
-        "--outage",
-        "episode",
+        *("--quick", "--work", str(work), "--data", str(recorded_push_root)),
+        *("--forecaster-override", *tiny_forecaster),
+        *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
+        *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
+        *("--episodes", "1", "--outage", "episode"),
     ]
-    load_benchmark("bc_push").main(argv)
+    assert cli(["bench", "bc", *argv]) == 0
     last = capsys.readouterr().out.strip().splitlines()[-1]
     pct = r"\d+%/\d+%"
     assert re.fullmatch(

@@ -1,4 +1,5 @@
-"""benchmarks/model_throughput.py: its speed-up candidates compute the same forecasts and gradients."""
+"""The push-like model build: its channels-last layout (a speed-up candidate of
+benchmarks/model_throughput.py) computes the same forecasts and gradients."""
 
 from __future__ import annotations
 
@@ -6,15 +7,14 @@ import pytest
 import torch
 
 from mmf_rl import keys
-from tests.conftest import load_benchmark
-
-throughput = load_benchmark("model_throughput")
+from mmf_rl.datasets.synthetic import push_like_batch
+from mmf_rl.models.push_like import build_for_push
 
 
 def forecast_and_gradients(name: str, channels_last: bool):
     torch.manual_seed(0)
-    model, loss = throughput.build(name, image_size=16, channels_last=channels_last)
-    batch = throughput.push_like_batch(6, image_size=16, seed=3)
+    model, loss = build_for_push(name, image_size=16, channels_last=channels_last)
+    batch = push_like_batch(6, image_size=16, seed=3)
     torch.manual_seed(1)  # the same latent draws and dropped modalities in both layouts
     terms = loss(batch.clone())
     sum(v for k, v in terms.items() if k.startswith("loss_")).backward()

@@ -1,0 +1,158 @@
+"""Behaviour-cloning policies with and without the forecaster's forecast, in closed loop under
+sensor outages: every policy in every condition on the same seeded episodes and outages, the
+scripted pusher for reference, and the tables and summary that compare the two variants."""
+
+from __future__ import annotations
+
+import statistics
+
+import torch
+from torchrl.envs import TransformedEnv
+
+from mmf_rl.rl.bc import BCPolicy
+from mmf_rl.rl.closed_loop import ScriptedPolicy, over_seeds, play, push_env, summarise
+from mmf_rl.rl.outage_evaluation import Condition, play_conditions
+from mmf_rl.rl.transforms import ForecastTransform
+
+VARIANTS = ("without", "with")  # forecasts
+
+
+def bc_env(
+    policy: BCPolicy | None, forecaster: tuple, image_size: int, condition: Condition, seed: int
+) -> TransformedEnv:
+    """The push env in ``condition``, then what ``policy`` reads (none: the raw observation, for
+    the scripted pusher). ``forecaster``: `mmf_rl.models.loading.load_trained_model`'s triple."""
+    readers = []
+    if policy is not None:
+        model, stats, data_config = forecaster
+        forecast = (
+            ForecastTransform(model, stats, stride=int(data_config.get("stride", 1)), denormalize=False)
+            if policy.config.forecast_shape is not None
+            else None
+        )
+        readers = policy.transforms(forecast)
+    return push_env(image_size, condition.sensor, condition.outage, seed, readers)
+
+
+@torch.no_grad()
+def evaluate_bc(
+    policies: dict[str, list[BCPolicy]],
+    bc_seeds: list[int],
+    forecaster: tuple,
+    conditions: list[Condition],
+    episodes: int,
+    seed: int,
+) -> tuple[dict[str, dict], dict[str, list]]:
+    """Every policy of each variant (one per BC seed) in every condition, then the scripted pusher
+    with all sensors. Returns the rows (``"BC <variant> forecasts | <condition>"``: mean and spread
+    over the BC seeds, `over_seeds`; ``"scripted | all"``) and the episodes of each row."""
+    model = forecaster[0]
+    image_size = next(s for s in model.config.modalities if s.name == "image").shape[-1]
+    per_seed: dict[str, list[dict]] = {}
+    raw: dict[str, list] = {}
+    for variant in VARIANTS:
+        for bc_seed, policy in zip(bc_seeds, policies[variant], strict=True):
+            played = play_conditions(
+                lambda condition, p=policy: bc_env(p, forecaster, image_size, condition, seed),
+                lambda env, p=policy: p.eval(),
+                conditions,
+                episodes,
+                seed,
+                f"[seed {bc_seed}] BC {variant} forecasts | ",
+            )
+            for label, (row, results) in played.items():
+                per_seed.setdefault(f"BC {variant} forecasts | {label}", []).append(row)
+                raw.setdefault(f"BC {variant} forecasts | {label}", []).append(results)
+    env = bc_env(None, forecaster, image_size, Condition("all", None, None), seed)
+    try:
+        raw["scripted | all"] = play(env, ScriptedPolicy(seed), episodes, seed, "scripted")
+    finally:
+        env.close()
+    rows = {name: over_seeds(r) for name, r in per_seed.items()}
+    return rows | {"scripted | all": summarise(raw["scripted | all"])}, raw
+
+
+def success(rows: dict[str, dict], variant: str, label: str) -> float:
+    return rows[f"BC {variant} forecasts | {label}"]["success"]
+
+
+def camera_loss(rows: dict[str, dict], outages: list[str]) -> dict[str, list[float]]:
+    """Per outage type, the success points each variant (`VARIANTS` order) loses when the camera
+    fails that way, against all sensors up."""
+    return {
+        outage: [success(rows, v, "all") - success(rows, v, f"no-camera ({outage})") for v in VARIANTS]
+        for outage in outages
+    }
+
+
+def camera_target_met(loss: dict[str, list[float]]) -> dict[str, bool]:
+    """Per outage type: does the policy with forecasts lose at most half what the one without loses?
+    Judged per type: a camera off for the whole episode leaves no sensor that locates the object
+    (the observation has no object pose), unlike bursts and a camera that dies mid-episode, which a
+    forecaster might bridge."""
+    return {outage: lost[1] <= lost[0] / 2 for outage, lost in loss.items()}
+
+
+def summary_line(rows: dict[str, dict], outages: list[str]) -> str:
+    """``summary: BC success all A%/A2%, ...``: success without/with forecasts for the first outage
+    type, the camera loss for each, and for how many the target is met."""
+    first = outages[0]
+    loss = camera_loss(rows, outages)
+    met = camera_target_met(loss)
+
+    def pair(label: str) -> str:
+        return f"{success(rows, 'without', label):.0f}%/{success(rows, 'with', label):.0f}%"
+
+    return (
+        f"summary: BC success all {pair('all')}, no-camera {pair(f'no-camera ({first})')}, "
+        f"no-force {pair(f'no-force ({first})')} (without/with forecasts); camera loss without/with "
+        "forecasts "
+        + ", ".join(f"{outage} {lost[0]:.0f}/{lost[1]:.0f} pts" for outage, lost in loss.items())
+        + f" (target with <= without/2: met for {sum(met.values())} of {len(met)} outage types)"
+    )
+
+
+def success_table(rows: dict[str, dict]) -> str:
+    lines = [
+        "| policy | condition | episodes | seeds | success % (mean) | spread (min-max) | per BC seed | "
+        "final distance (m) | steps |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in rows.items():
+        policy, condition = name.split(" | ")
+        seeds = r.get("seeds", "-")
+        spread = f"{r['success_min']:.0f}-{r['success_max']:.0f}" if "success_min" in r else "-"
+        per_seed = " / ".join(f"{x:.0f}" for x in r["success_per_seed"]) if "success_per_seed" in r else "-"
+        lines.append(
+            f"| {policy} | {condition} | {r['episodes']} | {seeds} | {r['success']:.0f} | {spread} | "
+            f"{per_seed} | {r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | "
+            f"{r['steps_mean']:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def loss_table(rows: dict[str, dict], conditions: list[Condition]) -> str:
+    """Success lost by each variant in each condition but the first (all sensors)."""
+    lines = [
+        "| condition | success lost without forecasts (pts) | success lost with forecasts (pts) |",
+        "|---|---|---|",
+    ]
+    for condition in conditions[1:]:
+        lost = [success(rows, v, "all") - success(rows, v, condition.label) for v in VARIANTS]
+        lines.append(f"| {condition.label} | {lost[0]:.0f} | {lost[1]:.0f} |")
+    return "\n".join(lines)
+
+
+def validation_table(errors: dict[str, list[dict]]) -> str:
+    """The offline errors of `mmf_rl.rl.validation_errors`, per variant, mean over BC seeds."""
+    if not all(errors.values()):
+        return "(no validation episodes)"
+    names = list(next(iter(errors.values()))[0])
+    lines = [
+        "| policy | " + " | ".join(f"val {n}" for n in names) + " |",
+        "|---|" + "---|" * len(names),
+    ]
+    for variant, per_seed in errors.items():
+        means = [statistics.mean(e[n] for e in per_seed) for n in names]
+        lines.append(f"| BC {variant} forecasts | " + " | ".join(f"{m:.4f}" for m in means) + " |")
+    return "\n".join(lines)

@@ -1,0 +1,145 @@
+"""MPC with push world models under sensor outages: `SequenceCEMPlanner` with `PushObjective` on
+each world model in every outage condition, the same planner on a world model that forecasts no
+object motion, and the references (the scripted pusher, random actions, torchrl's step-wise
+`CEMPlanner`), all on the same seeded episodes; the results table."""
+
+from __future__ import annotations
+
+import torch
+from torchrl.envs import TransformedEnv
+from torchrl.modules.planners import CEMPlanner
+
+from mmf_rl.rl.cem import SequenceCEMPlanner
+from mmf_rl.rl.closed_loop import RandomPolicy, ScriptedPolicy, over_seeds, play, push_env, summarise
+from mmf_rl.rl.outage_evaluation import Condition, Timed, play_conditions
+from mmf_rl.rl.push_objective import PushObjective
+from mmf_rl.rl.world_model import WorldModel
+from mmf_rl.rl.world_model_env import ForecasterWorldModelEnv, ImaginedPlanningPolicy
+
+
+class StaticObjectModel(WorldModel):
+    """The ablation: forecasts that the object stays where it is, whatever the actions."""
+
+    def __init__(self, world_model: WorldModel):
+        self.__dict__.update(world_model.__dict__)
+
+    def forecast(self, tokens, present, valid, actions):
+        return torch.zeros(*actions.shape[:2], self.horizon, self.target_dim)
+
+
+def cem_policy(world_model: WorldModel, objective: PushObjective, sizes: dict[str, int], seed: int):
+    """A maker of the `Timed` `SequenceCEMPlanner` for an env (its action spec)."""
+    return lambda env: Timed(SequenceCEMPlanner(world_model, objective, env.action_spec, seed=seed, **sizes))
+
+
+def world_model_env(world_model: WorldModel, condition: Condition, seed: int) -> TransformedEnv:
+    """The push env in ``condition``, with the history window the world model reads."""
+    size = next(s for s in world_model.model.modalities if s.name == "image").shape[-1]
+    return push_env(size, condition.sensor, condition.outage, seed, [world_model.history_window()])
+
+
+def evaluate_mpc(
+    checkpoints: list,
+    objective: PushObjective,
+    conditions: list[Condition],
+    sizes: dict[str, int],
+    episodes: int,
+    seed: int,
+    stepwise_episodes: int = 0,
+) -> tuple[dict[str, dict], dict[str, list]]:
+    """Every world model's MPC in every condition and with the static model, then (once) the
+    references. ``sizes``: the CEM's ``num_candidates``, ``num_iterations``, ``num_elites``.
+    Returns the rows (an MPC row: mean and spread over the world models, `over_seeds`) and the
+    episodes of each row (MPC: one list per world model)."""
+    per_seed: dict[str, list[dict]] = {}
+    raw: dict[str, list] = {}
+    references: dict[str, dict] = {}
+    for index, checkpoint in enumerate(checkpoints):
+        world_model = WorldModel.from_checkpoint(checkpoint)
+        tag = f"[world model {index + 1}/{len(checkpoints)}]"
+        played = play_conditions(
+            lambda condition, model=world_model: world_model_env(model, condition, seed),
+            cem_policy(world_model, objective, sizes, seed),
+            conditions,
+            episodes,
+            seed,
+            f"{tag} mpc ",
+        )
+        # The static model and the references play in one env with every sensor up.
+        env = world_model_env(world_model, Condition("all", None, None), seed)
+        try:
+            static = cem_policy(StaticObjectModel(world_model), objective, sizes, seed)(env)
+            results = play(env, static, episodes, seed, f"{tag} mpc static model")
+            played["static model"] = (summarise(results, static.seconds), results)
+            for label, (row, results) in played.items():
+                per_seed.setdefault(f"mpc {label}", []).append(row)
+                raw.setdefault(f"mpc {label}", []).append(results)
+            if index == 0:  # the references do not depend on the world model: played once
+                references = play_references(env, episodes, seed, raw)
+                if stepwise_episodes:
+                    n = min(stepwise_episodes, episodes)
+                    references |= play_stepwise(env, world_model, objective, sizes, n, seed, raw)
+        finally:
+            env.close()
+    return {name: over_seeds(rows) for name, rows in per_seed.items()} | references, raw
+
+
+def play_references(env: TransformedEnv, episodes: int, seed: int, raw: dict) -> dict[str, dict]:
+    """The scripted pusher and random actions; their episodes go to ``raw``."""
+    rows = {}
+    for name, policy in [("scripted", ScriptedPolicy(seed)), ("random", RandomPolicy(seed))]:
+        raw[name] = play(env, policy, episodes, seed, name)
+        rows[name] = summarise(raw[name])
+    return rows
+
+
+def play_stepwise(
+    env: TransformedEnv,
+    world_model: WorldModel,
+    objective: PushObjective,
+    sizes: dict[str, int],
+    n: int,
+    seed: int,
+    raw: dict,
+) -> dict[str, dict]:
+    """torchrl's `CEMPlanner` rolling out `ForecasterWorldModelEnv` step by step with the same
+    candidates, iterations and elites, on the first ``n`` episodes, beside the vectorised MPC's
+    row on the same episodes (``raw["mpc all"][0]``: the first world model's)."""
+    imagined = ForecasterWorldModelEnv(world_model, objective, env.action_spec, env.observation_spec)
+    cem = CEMPlanner(
+        imagined,
+        planning_horizon=world_model.action_steps,
+        optim_steps=sizes["num_iterations"],
+        num_candidates=sizes["num_candidates"],
+        top_k=sizes["num_elites"],
+    )
+    torch.manual_seed(seed)
+    stepwise = Timed(ImaginedPlanningPolicy(cem, imagined))
+    raw["torchrl CEMPlanner all"] = play(env, stepwise, n, seed, "torchrl CEMPlanner all")
+    return {
+        f"torchrl CEMPlanner all (first {n}, world model 1)": summarise(
+            raw["torchrl CEMPlanner all"], stepwise.seconds
+        ),
+        f"mpc all (first {n}, world model 1)": summarise(raw["mpc all"][0][:n]),
+    }
+
+
+def results_table(rows: dict[str, dict]) -> str:
+    """One line per row: success (mean, spread and per world-model seed), final distance, steps and
+    the median decision time."""
+    lines = [
+        "| policy | episodes | seeds | success % (mean) | spread (min-max) | per world-model seed | "
+        "final distance (m) | steps | decision (ms/step, median) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in rows.items():
+        decision = f"{r['decision_ms']:.1f}" if "decision_ms" in r else "-"
+        seeds = r.get("seeds", "-")
+        spread = f"{r['success_min']:.0f}-{r['success_max']:.0f}" if "success_min" in r else "-"
+        per_seed = " / ".join(f"{x:.0f}" for x in r["success_per_seed"]) if "success_per_seed" in r else "-"
+        lines.append(
+            f"| {name} | {r['episodes']} | {seeds} | {r['success']:.0f} | {spread} | {per_seed} | "
+            f"{r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | {r['steps_mean']:.1f} | "
+            f"{decision} |"
+        )
+    return "\n".join(lines)
