@@ -7,7 +7,7 @@ import sys
 import torch
 
 from mmf_rl.cli import main as cli
-from tests.trainers.test_run import final_weights, free_port, subprocess_env
+from tests.trainers.test_train_command import final_weights, free_port, subprocess_env
 
 STEPS = 4
 
