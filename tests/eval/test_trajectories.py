@@ -44,6 +44,9 @@ def test_constant_velocity_scores_the_same_in_every_mode_and_its_error_is_the_ki
         assert scores[mode]["windows"] == 11
         assert scores[mode]["ade"] == pytest.approx(0.3) and scores[mode]["fde"] == pytest.approx(0.3)
         assert scores[mode]["min_ade_k"] == pytest.approx(scores[mode]["ade"])  # 20 equal samples
+    assert trajectories.score_modes(model, [_walks(6)], lambda t: t, deterministic=True)["all"][
+        "min_fde_k"
+    ] == pytest.approx(0.3)
 
 
 def test_averages_are_over_scenes_and_the_summary_line_has_the_documented_form():
@@ -54,10 +57,13 @@ def test_averages_are_over_scenes_and_the_summary_line_has_the_documented_form()
         "eth": {"paper": model(0.2), "cv": model(0.5), "lstm": model(0.4), "mult": model(0.6)},
         "hotel": {"paper": model(0.4), "cv": model(0.7), "lstm": model(0.2), "mult": model(0.2)},
     }
+    assert trajectories.average_over_scenes(per_scene, ["hotel"])["lstm"]["all"]["ade"] == pytest.approx(0.2)
+    per_scene["hotel"].pop("mult")
     average = trajectories.average_over_scenes(per_scene)
+    assert "mult" not in average
     assert average["paper"]["all"]["min_ade_k"] == pytest.approx(0.15)
     average["paper"]["without_scene"]["min_ade_k"] = 0.2
-    line = trajectories.summary_line(average, "paper", "cv", ["lstm", "mult", "cv"], "quick mode")
+    line = trajectories.summary_line(average, "paper", "cv", ["lstm", "cv"], "quick mode")
     assert line == (
         "summary: paper model minADE20/minFDE20 avg 0.15/0.30 (without scene 0.20/0.30, without "
         "neighbours 0.15/0.30); constant velocity 0.30/0.60; best baseline lstm 0.15/0.30 (quick mode)"
