@@ -23,12 +23,14 @@ BENCHMARKS = {
     "mpc": ("mpc_push.py", "MPC with the push world model vs the scripted pusher and a random policy"),
     "bc": ("bc_push.py", "behaviour cloning with vs without the forecast, camera or force off"),
     "humanoid": ("real_humanoid.py", "the paper model vs the baselines on the real G1 humanoid recording"),
+    "ethucy": ("ethucy.py", "ETH/UCY pedestrians, 5 leave-one-scene-out folds: minADE20/minFDE20 in metres"),
 }
 EXAMPLES = [
     "mmf-rl bench model --steps 5",
     "mmf-rl bench data --root /data/mine --data-config mine.yaml   # your dataset, your data config",
     "mmf-rl bench accuracy --quick",
     "mmf-rl compare data=/path/to/mine.yaml      # the accuracy protocol on your data (installed package)",
+    "mmf-rl bench ethucy --quick --data data/ethucy --out runs/bench_ethucy_quick",
 ]
 
 

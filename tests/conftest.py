@@ -40,6 +40,7 @@ SMALL_MODEL_SIZES = {
     "lf_lstm": {"d_model": 16, "head_hidden": 32},
     "mvae": {"d_model": 16, "d_latent": 4, "head_hidden": 32},
     "mult": {"d_model": 16, "head_hidden": 32},
+    "constant_velocity": {},
 }
 
 
@@ -77,6 +78,7 @@ def make_batch(
         mask = None if present is None else present.get(spec.name)
         data[spec.present_key] = torch.ones(batch_size, dtype=torch.bool) if mask is None else mask.clone()
     data[keys.TARGET] = torch.randn(batch_size, horizon, target_dim, generator=g)
+    data[keys.TARGET_PAST] = torch.randn(batch_size, history, target_dim, generator=g)
     return TensorDict(data, batch_size=[batch_size])
 
 

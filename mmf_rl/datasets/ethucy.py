@@ -1,4 +1,10 @@
-"""ETH/UCY pedestrian trajectories -> LeRobot v3.0 datasets, one per leave-one-scene-out fold.
+"""ETH/UCY pedestrian trajectories -> one LeRobot v3.0 dataset, the five leave-one-scene-out folds
+as five data configs over it.
+
+Every file a fold reads (each sequence's ``_train`` and ``_val`` file, and the whole file of each
+test sequence) is converted once; a fold's data config names its train/val/test episodes and
+selects every episode of the dataset, so the five folds share one window cache build too (the
+cache key covers the selection, not the split).
 
 Each LeRobot episode is one agent's track segment: consecutive annotated steps of one agent in
 one file. An agent that leaves and re-enters gives two episodes, so no window spans the frames
@@ -18,7 +24,6 @@ where it was not annotated and nothing is interpolated or zero-filled there. Per
   windows then train with the scene absent.
 
 The target is ``observation.trajectory`` dims ``[0, 1]``, relative to the last observed step.
-The fold's data config (episode split included) is written beside the dataset.
 """
 
 from __future__ import annotations
@@ -47,6 +52,7 @@ SCENE_VALID_KEY = "observation.scene_camera_valid"
 AGENT_KEY = "ethucy.agent"
 FRAME_KEY = "ethucy.frame"
 HISTORY, HORIZON = 8, 12
+DATASET_NAME = "ethucy"  # the dataset folder under --out
 
 # Leave-one-scene-out: the test scene's whole files; every other sequence's _train/_val files.
 FOLDS: dict[str, tuple[str, ...]] = {
@@ -273,7 +279,8 @@ def write_dataset(
     crop: CropConfig = CropConfig(),
     min_length: int = HISTORY + HORIZON,
 ) -> dict[str, list[int]]:
-    """Write ``{split: [(sequence, table)]}`` as one LeRobot dataset at ``root``; its episodes per split.
+    """Write ``{part: [(sequence, table)]}`` as one LeRobot dataset at ``root``; its episodes per part
+    (a part is a split, or one converted file).
 
     Segments shorter than ``min_length`` steps give no window and are left out (they still serve as
     neighbours). Scene crops are stored as images in the parquet files (no video encoding).
@@ -291,9 +298,9 @@ def write_dataset(
         use_videos=False,
     )
     scenes: dict[str, Scene] = {}
-    split: dict[str, list[int]] = {}
+    parts: dict[str, list[int]] = {}
     for name, entries in tables.items():
-        split[name] = []
+        parts[name] = []
         for sequence, table in entries:
             scene_name = SCENE_OF.get(sequence)
             if scene_name is not None and scene_name not in scenes:
@@ -304,17 +311,25 @@ def write_dataset(
                     dataset.add_frame(
                         {key: values[t] for key, values in episode.items()} | {"task": sequence}
                     )
-                split[name].append(dataset.meta.total_episodes)
+                parts[name].append(dataset.meta.total_episodes)
                 dataset.save_episode()
             logger.info("%s: %s -> %d episodes", name, sequence, len(episodes))
     dataset.finalize()
-    return split
+    return parts
 
 
-def data_config(root: Path, split: dict[str, list[int]], num_slots: int, crop: CropConfig) -> dict:
-    """The fold's data config: the protocol's window geometry, the modalities and the episode split.
+def data_config(
+    root: Path,
+    split: dict[str, list[int]],
+    num_slots: int,
+    crop: CropConfig,
+    episodes: list[int] | None = None,
+) -> dict:
+    """A fold's data config: the protocol's window geometry, the modalities and the episode split.
 
-    Every key is written (defaults included), so any of them can be overridden on the command line.
+    ``episodes`` (default: the split's union) is the selection decoded into the window cache:
+    configs that select the same episodes share one cache build. Every key is written (defaults
+    included), so any of them can be overridden on the command line.
     """
     config = {
         "root": str(Path(root).resolve()),
@@ -323,6 +338,7 @@ def data_config(root: Path, split: dict[str, list[int]], num_slots: int, crop: C
         "horizon": HORIZON,
         "image_size": [crop.pixels, crop.pixels],
         "include_target_past": True,  # the constant-velocity reference of eval
+        "episodes": episodes,
         "split": split,
         "modalities": {
             "trajectory": {"feature": TRAJECTORY_KEY},
@@ -338,27 +354,47 @@ def data_config(root: Path, split: dict[str, list[int]], num_slots: int, crop: C
     return DataConfig.from_dict(config).to_dict()
 
 
-def convert_fold(
-    raw_dir: Path, fold: str, out: Path, num_slots: int = 8, crop: CropConfig = CropConfig()
-) -> Path:
-    """Write fold ``fold`` to ``out/<fold>/`` and its data config to ``out/<fold>.yaml`` (returned)."""
-    root = Path(out) / fold
-    if root.exists():
-        raise FileExistsError(
-            f"{root} exists; remove it or choose another --out to convert fold {fold!r} again"
-        )
-    tables = {
-        name: [(sequence, read_sequence(path)) for sequence, path in entries]
+def part_files(raw_dir: Path, folds: list[str]) -> dict[str, tuple[str, Path]]:
+    """``{part: (sequence, file)}``: every file the ``folds`` read, once; a part is the file's stem
+    (``biwi_eth_train``, ``biwi_eth_val``, ``biwi_eth`` for the whole file)."""
+    parts = {}
+    for fold in folds:
+        for entries in fold_files(raw_dir, fold).values():
+            parts.update({path.stem: (sequence, path) for sequence, path in entries})
+    return parts
+
+
+def fold_split(raw_dir: Path, fold: str, parts: dict[str, list[int]]) -> dict[str, list[int]]:
+    """Fold ``fold``'s ``{split: episodes}`` from the episodes of each converted part."""
+    return {
+        name: sorted(e for _, path in entries for e in parts[path.stem])
         for name, entries in fold_files(raw_dir, fold).items()
     }
-    split = write_dataset(root, tables, raw_dir, num_slots, crop)
-    path = Path(out) / f"{fold}.yaml"
-    header = f"# ETH/UCY fold {fold!r} (test: {', '.join(FOLDS[fold])}), written by `mmf-rl import ethucy`\n"
-    path.write_text(
-        header
-        + yaml.safe_dump(data_config(root, split, num_slots, crop), sort_keys=False, default_flow_style=None)
-    )
-    return path
+
+
+def convert(
+    raw_dir: Path, folds: list[str], out: Path, num_slots: int = 8, crop: CropConfig = CropConfig()
+) -> list[Path]:
+    """Convert the files of ``folds`` once into ``out/ethucy/``; write each fold's data config to
+    ``out/<fold>.yaml`` (returned), every config selecting all the dataset's episodes."""
+    root = Path(out) / DATASET_NAME
+    if root.exists():
+        raise FileExistsError(f"{root} exists; remove it or choose another --out to convert ETH/UCY again")
+    files = part_files(raw_dir, folds)  # checks every file before anything is written
+    tables = {part: [(sequence, read_sequence(path))] for part, (sequence, path) in files.items()}
+    parts = write_dataset(root, tables, raw_dir, num_slots, crop)
+    everything = sorted(e for episodes in parts.values() for e in episodes)
+    paths = []
+    for fold in folds:
+        config = data_config(root, fold_split(raw_dir, fold, parts), num_slots, crop, everything)
+        path = Path(out) / f"{fold}.yaml"
+        header = (
+            f"# ETH/UCY fold {fold!r} (test: {', '.join(FOLDS[fold])}) over the dataset {root}, "
+            "written by `mmf-rl import ethucy`\n"
+        )
+        path.write_text(header + yaml.safe_dump(config, sort_keys=False, default_flow_style=None))
+        paths.append(path)
+    return paths
 
 
 EXAMPLES = (
@@ -379,16 +415,19 @@ def build_parser() -> argparse.ArgumentParser:
     sources = parser.add_subparsers(dest="source", required=True)
     ethucy = sources.add_parser(
         "ethucy",
-        help="ETH/UCY pedestrians: one dataset + data config per leave-one-scene-out fold",
-        description="ETH/UCY pedestrians -> OUT/<fold>/ (LeRobot v3.0) and OUT/<fold>.yaml (data config: "
-        "train with `mmf-rl train data=OUT/<fold>.yaml`)",
+        help="ETH/UCY pedestrians: one dataset, a data config per leave-one-scene-out fold",
+        description="ETH/UCY pedestrians -> OUT/ethucy/ (LeRobot v3.0, every file converted once) and "
+        "OUT/<fold>.yaml per fold (data config: train with `mmf-rl train data=OUT/<fold>.yaml`)",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=EXAMPLES,
     )
     ethucy.add_argument("raw_dir", type=Path, help="the folder holding trajectories/ and scenes/")
     ethucy.add_argument("--out", type=Path, required=True, help="output folder")
     ethucy.add_argument(
-        "--fold", choices=sorted(FOLDS), action="append", help="a fold (repeatable; default all)"
+        "--fold",
+        choices=sorted(FOLDS),
+        action="append",
+        help="a fold (repeatable; default all): converts only the files it reads",
     )
     ethucy.add_argument("--neighbours", type=int, default=8, help="K nearest agents per step")
     ethucy.add_argument("--crop-pixels", type=int, default=64, help="scene crop side in pixels")
@@ -404,9 +443,9 @@ def main(argv: list[str]) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     crop = CropConfig(args.crop_pixels, args.crop_metres, args.crop_heading)
     try:
-        for fold in args.fold or sorted(FOLDS):
-            path = convert_fold(args.raw_dir, fold, args.out, args.neighbours, crop)
-            logger.info("fold %s: train with `mmf-rl train data=%s`", fold, path)
+        paths = convert(args.raw_dir, args.fold or sorted(FOLDS), args.out, args.neighbours, crop)
+        for path in paths:
+            logger.info("fold %s: train with `mmf-rl train data=%s`", path.stem, path)
     except (OSError, ValueError) as error:
         return report_command_error("mmf-rl import ethucy", error)
     return 0

@@ -195,13 +195,55 @@ def test_folds_follow_the_protocol_table():
         ethucy.fold_files(RAW, "mars")
 
 
+def test_every_file_is_converted_once_and_each_fold_splits_the_parts():
+    files = ethucy.part_files(RAW, sorted(ethucy.FOLDS))
+    # Each sequence's _train and _val file, and the whole file of the six test sequences.
+    assert len(files) == 2 * len(ethucy.SEQUENCES) + 6
+    assert files["biwi_eth"] == ("biwi_eth", RAW / "trajectories" / "all_data" / "biwi_eth.txt")
+    parts = {part: [10 * i, 10 * i + 1] for i, part in enumerate(sorted(files))}
+    split = ethucy.fold_split(RAW, "univ", parts)
+    assert split["test"] == sorted(parts["students001"] + parts["students003"])
+    assert set(parts["crowds_zara03_train"]) <= set(split["train"])
+    assert not set(parts["students001_train"]) & set(split["train"])
+    assert not set(split["train"]) & set(split["val"]) and not set(split["val"]) & set(split["test"])
+    assert set(ethucy.part_files(RAW, ["eth"])) == {
+        *(f"{s}_{kind}" for s in ethucy.SEQUENCES if s != "biwi_eth" for kind in ("train", "val")),
+        "biwi_eth",
+    }
+
+
+def test_fold_configs_over_one_dataset_share_one_cache_build(converted):
+    from mmf_rl.datasets.cache import cache_path
+    from mmf_rl.datasets.lerobot_source import LeRobotSource
+
+    root, config, _ = converted
+    everything = sorted(e for ids in config["split"].values() for e in ids)
+    split = config["split"]
+    swapped = {"train": split["train"], "val": split["test"], "test": split["val"]}
+    paths = []
+    for fold_split in (split, swapped):
+        fold = ethucy.data_config(root, fold_split, 8, ethucy.CropConfig(), everything)
+        paths.append(
+            cache_path(LeRobotSource(DataConfig.from_dict(fold | {"cache_dir": config["cache_dir"]})))
+        )
+    assert paths[0] == paths[1]
+    # Without the explicit selection, a split that leaves episodes out would key its own build.
+    partial = ethucy.data_config(
+        root, {"train": split["train"], "test": split["test"]}, 8, ethucy.CropConfig()
+    )
+    assert (
+        cache_path(LeRobotSource(DataConfig.from_dict(partial | {"cache_dir": config["cache_dir"]})))
+        != paths[0]
+    )
+
+
 def test_import_command_names_the_missing_files(tmp_path, capsys):
     from mmf_rl.cli import main
 
     assert main(["import", "ethucy", str(tmp_path), "--out", str(tmp_path / "out"), "--fold", "eth"]) == 1
     error = capsys.readouterr().err
     assert "biwi_hotel_train.txt" in error and "trajectories/{train,val,all_data}/" in error
-    assert not (tmp_path / "out" / "eth").exists()
+    assert not (tmp_path / "out" / ethucy.DATASET_NAME).exists()
 
 
 def test_train_and_eval_through_the_cli_report_metres_and_best_of_20(converted, tmp_path):

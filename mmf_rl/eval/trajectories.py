@@ -1,0 +1,190 @@
+"""Human-trajectory scoring as the ETH/UCY literature reports it: the four test modes, per-scene and
+average tables in metres, the published reference table, forecasts drawn on a scene image.
+
+A mode is a presence subset over the trajectory data's modalities: ``all``, ``without_scene``,
+``without_neighbours`` and ``trajectory_only``. Every model is scored in every mode on the same
+test windows (:func:`~mmf_rl.eval.metrics.evaluate_presence_subsets`); ADE/FDE are those of the
+point forecast, minADE20/minFDE20 the per-agent minimum over 20 samples.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only: no display on training machines
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from mmf_rl import keys  # noqa: E402
+from mmf_rl.eval.metrics import evaluate_presence_subsets  # noqa: E402
+
+logger = logging.getLogger(__name__)
+
+MODES = {
+    "all": {"trajectory": True, "neighbours": True, "scene": True},
+    "without_scene": {"trajectory": True, "neighbours": True, "scene": False},
+    "without_neighbours": {"trajectory": True, "neighbours": False, "scene": True},
+    "trajectory_only": {"trajectory": True, "neighbours": False, "scene": False},
+}
+METRICS = {"ade": "ADE", "fde": "FDE", "min_ade_k": "minADE20", "min_fde_k": "minFDE20"}
+NUM_SAMPLES = 20
+# minADE20 / minFDE20 in metres, average of the five scenes (leak-free versions): method, value, source.
+PUBLISHED = (
+    ("constant velocity (deterministic)", "0.52 / 1.14", "Schöller et al. 2020; re-measured on these files"),
+    ("Social-GAN (20V-20)", "0.61 / 1.21", "Gupta et al. 2018, Table 1"),
+    ("Social-STGCNN", "0.44 / 0.75", "Mohamed et al. 2020, Table 1"),
+    (
+        "Trajectron++ (velocity leak fixed)",
+        "0.27–0.32 / 0.50–0.55",
+        "its repo's issue #53; SocialVAE's table",
+    ),
+    ("PECNet", "0.29 / 0.48", "Mangalam et al. 2020"),
+    ("AgentFormer (leak fixed)", "0.23 / 0.39", "its README"),
+    ("SocialVAE", "0.24 / 0.42", "Xu et al. 2022"),
+    ("LED", "0.21 / 0.33", "Mao et al. 2023, Table 4"),
+)
+
+Scores = dict[str, dict[str, float]]  # mode -> metric -> value
+
+
+def score_modes(
+    model, loader, denormalize: Callable, device="cpu", num_samples: int = NUM_SAMPLES, deterministic=False
+) -> Scores:
+    """``{mode: {ade, fde, min_ade_k, min_fde_k, windows}}`` of ``model`` on ``loader``'s windows,
+    every mode on the same windows (metres when ``denormalize`` gives metres).
+
+    ``deterministic``: the model's samples all equal its point forecast, so its minimum over them is
+    the point error; they are not drawn (half the cost of a slow baseline)."""
+    rows, _ = evaluate_presence_subsets(
+        model,
+        loader,
+        list(MODES.items()),
+        denormalize,
+        num_samples=0 if deterministic else num_samples,
+        device=device,
+    )
+    missing = [mode for mode in MODES if mode not in rows]
+    if missing:
+        raise ValueError(f"no test window can be scored in mode(s) {missing}: the trajectory is absent")
+    if deterministic:
+        for row in rows.values():
+            row |= {"min_ade_k": row["ade"], "min_fde_k": row["fde"]}
+    return {mode: {k: rows[mode][k] for k in (*METRICS, "windows")} for mode in MODES}
+
+
+def average_over_scenes(
+    per_scene: Mapping[str, Mapping[str, Scores]], scenes: Sequence[str] | None = None
+) -> dict[str, Scores]:
+    """``{model: {mode: {metric: mean over the scenes}}}`` from ``{scene: {model: scores}}``, over
+    ``scenes`` (default all); only the models scored in each of them (the literature's average is
+    over the five scenes, unweighted)."""
+    scenes = list(per_scene if scenes is None else scenes)
+    models = [m for m in per_scene[scenes[0]] if all(m in per_scene[s] for s in scenes)] if scenes else []
+    return {
+        model: {
+            mode: {k: float(np.mean([per_scene[s][model][mode][k] for s in scenes])) for k in METRICS}
+            for mode in MODES
+        }
+        for model in models
+    }
+
+
+def pair(scores: Mapping[str, float], point: bool = False) -> str:
+    """``"A/F"`` (minADE20/minFDE20, or ADE/FDE with ``point``) at two decimals."""
+    a, f = ("ade", "fde") if point else ("min_ade_k", "min_fde_k")
+    return f"{scores[a]:.2f}/{scores[f]:.2f}"
+
+
+def summary_line(
+    average: Mapping[str, Scores], paper: str, cv: str, baselines: Sequence[str], mode: str
+) -> str:
+    """The benchmark's last line: the paper model's minADE20/minFDE20 in three modes, constant velocity
+    and the best baseline (lowest all-modality minADE20), then the run mode it came from."""
+    best = min(baselines, key=lambda name: average[name]["all"]["min_ade_k"])
+    p = average[paper]
+    return (
+        f"summary: paper model minADE20/minFDE20 avg {pair(p['all'])} "
+        f"(without scene {pair(p['without_scene'])}, "
+        f"without neighbours {pair(p['without_neighbours'])}); constant velocity {pair(average[cv]['all'])}; "
+        f"best baseline {best} {pair(average[best]['all'])} ({mode})"
+    )
+
+
+def scores_table(rows: Mapping[str, Scores], deterministic: Sequence[str] = ()) -> str:
+    """Markdown: one row per model, for each mode ``minADE20/minFDE20`` and ``ADE/FDE`` (metres)."""
+    head = " | ".join(f"{mode} minADE20/minFDE20 | {mode} ADE/FDE" for mode in MODES)
+    lines = [f"| model | {head} |", "|---" * (1 + 2 * len(MODES)) + "|"]
+    for model, scores in rows.items():
+        mark = " †" if model in deterministic else ""
+        cells = " | ".join(f"{pair(scores[m])}{mark} | {pair(scores[m], point=True)}" for m in MODES)
+        lines.append(f"| {model} | {cells} |")
+    return "\n".join(lines)
+
+
+def relative_rise(scores: Scores, mode: str) -> float:
+    """How much ``mode``'s minADE20 exceeds the all-modality one (0.1 = 10% worse)."""
+    return scores[mode]["min_ade_k"] / scores["all"]["min_ade_k"] - 1
+
+
+def published_table() -> str:
+    lines = ["| method | avg minADE20 / minFDE20 (m) | source |", "|---|---|---|"]
+    lines += [f"| {method} | {value} | {source} |" for method, value, source in PUBLISHED]
+    return "\n".join(lines)
+
+
+def plot_forecasts_on_image(
+    image: np.ndarray,
+    to_pixel: Callable[[np.ndarray], np.ndarray],
+    examples: Sequence[Mapping[str, np.ndarray]],
+    path: Path,
+    title: str,
+) -> Path:
+    """Draw each example's observed past, ground truth and samples (world metres, ``[*, 2]`` arrays
+    under ``past``, ``future``, ``samples`` ``[K, T, 2]``) on ``image`` through ``to_pixel`` (world ->
+    ``(row, col)``)."""
+    fig, ax = plt.subplots(figsize=(image.shape[1] / 80, image.shape[0] / 80), dpi=100)
+    ax.imshow(image)
+    for i, example in enumerate(examples):
+        for k, sample in enumerate(example["samples"]):
+            rc = to_pixel(np.concatenate([example["past"][-1:], sample]))
+            ax.plot(
+                rc[:, 1],
+                rc[:, 0],
+                color="tab:orange",
+                lw=0.8,
+                alpha=0.6,
+                label="20 samples" if i + k == 0 else None,
+            )
+        truth = to_pixel(np.concatenate([example["past"][-1:], example["future"]]))
+        past = to_pixel(example["past"])
+        ax.plot(truth[:, 1], truth[:, 0], color="lime", lw=2, label="ground truth" if i == 0 else None)
+        ax.plot(past[:, 1], past[:, 0], color="white", lw=2, marker=".", label="observed" if i == 0 else None)
+    ax.set_xlim(0, image.shape[1])
+    ax.set_ylim(image.shape[0], 0)
+    ax.set_axis_off()
+    ax.set_title(title, fontsize=8)
+    ax.legend(loc="lower right", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def world_examples(batch, samples: torch.Tensor, position_of: Callable, denormalize: Callable) -> list[dict]:
+    """Per window of ``batch``: observed past, ground truth and samples in world metres.
+
+    ``position_of(batch)`` gives the ``[B, H, 2]`` absolute observed positions; the target and the
+    samples ``[B, K, T, 2]`` are normalised displacements from the last observed one."""
+    past = position_of(batch)
+    origin = past[:, -1:, :]
+    future = denormalize(batch.get(keys.TARGET)) + origin
+    drawn = denormalize(samples) + origin[:, None]
+    return [
+        {"past": past[i].numpy(), "future": future[i].numpy(), "samples": drawn[i].numpy()}
+        for i in range(past.shape[0])
+    ]

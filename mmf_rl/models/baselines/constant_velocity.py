@@ -1,0 +1,101 @@
+"""Constant velocity: the parameter-free reference of trajectory forecasting (Schöller et al. 2020).
+
+It extrapolates the last step of the target's own past (``"target_past"``, which a data config
+with ``include_target_past: true`` adds to every batch) over the horizon. As a registered model
+it goes through the same windows, presence subsets and metric code as the trained models, so its
+score checks the evaluation protocol itself. It reads no modality (its forecast is the same in
+every presence subset) and has nothing to train.
+
+``sample`` draws ``K`` forecasts: with ``heading_noise = 0`` all equal to the point forecast; with
+``heading_noise = σ > 0`` (planar targets) each turns the last velocity by an angle drawn from
+``N(0, σ²)`` and keeps its speed: the sampled variant of Schöller et al. Targets are normalised
+per dim, so the turn is made in the target's units: ``target_scale`` is the data's per-dim target
+std (``Normalizer.stats["target/std"]``; default 1, a target in units).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+
+from mmf_rl import keys
+from mmf_rl.models.baselines.common import BaselineConfig, DeterministicForecaster
+from mmf_rl.models.registry import register_model
+
+
+@dataclass
+class ConstantVelocityConfig(BaselineConfig):
+    """:class:`BaselineConfig` plus the sampler's ``heading_noise`` (radians, std of the turn of
+    each sample) and ``target_scale`` (per-dim std of the normalised target; ``None``: 1)."""
+
+    heading_noise: float = 0.0
+    target_scale: list[float] | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not self.heading_noise >= 0:
+            raise ValueError(f"ConstantVelocityConfig.heading_noise must be >= 0, found {self.heading_noise}")
+        if self.heading_noise > 0 and self.target_dim != 2:
+            raise ValueError(
+                f"ConstantVelocityConfig.heading_noise turns a planar velocity: target_dim must be 2, found "
+                f"{self.target_dim}; set heading_noise=0"
+            )
+        if self.target_scale is not None:
+            self.target_scale = [float(s) for s in self.target_scale]
+            if len(self.target_scale) != self.target_dim or min(self.target_scale) <= 0:
+                raise ValueError(
+                    f"ConstantVelocityConfig.target_scale must be {self.target_dim} positive stds (one per "
+                    f"target dim), found {self.target_scale}"
+                )
+
+
+@register_model("constant_velocity", ConstantVelocityConfig, loss=("nll",))
+class ConstantVelocity(DeterministicForecaster):
+    """Extrapolates the last step of ``"target_past"``; unit scale (see module docstring)."""
+
+    def __init__(self, config: ConstantVelocityConfig):
+        super().__init__(config)
+        self.in_keys = [*self.in_keys, keys.TARGET_PAST]
+        scale = config.target_scale or [1.0] * config.target_dim
+        self.register_buffer("target_scale", torch.tensor(scale))
+
+    def _last_step(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        past = td.get(keys.TARGET_PAST, None)
+        if past is None or past.dim() != 3 or past.shape[1] < 2:
+            raise KeyError(
+                f"constant velocity needs {keys.TARGET_PAST!r} [B, H >= 2, D] in the batch, found "
+                f"{None if past is None else list(past.shape)}; set include_target_past: true in the data "
+                "config"
+            )
+        return past[:, -1], past[:, -1] - past[:, -2]
+
+    def _extrapolate(self, position: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
+        """``[..., D]`` position and velocity -> ``[..., T, D]`` positions."""
+        steps = torch.arange(1, self.config.horizon + 1, dtype=position.dtype, device=position.device)
+        return position.unsqueeze(-2) + velocity.unsqueeze(-2) * steps[:, None]
+
+    def forecast(self, td):
+        position, velocity = self._last_step(td)
+        loc = self._extrapolate(position, velocity)
+        return loc, torch.ones_like(loc)
+
+    def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
+        if self.config.heading_noise == 0:
+            return super().sample(td, num_samples)
+        if num_samples < 1:
+            raise ValueError(f"num_samples must be >= 1, found {num_samples}")
+        self.validate(td)
+        position, velocity = self._last_step(td)
+        angle = (
+            torch.randn(velocity.shape[0], num_samples, device=velocity.device) * self.config.heading_noise
+        )
+        cos, sin = angle.cos(), angle.sin()
+        vx, vy = (velocity * self.target_scale).unbind(-1)  # [B] each, in the target's units
+        turned = torch.stack(
+            [cos * vx[:, None] - sin * vy[:, None], sin * vx[:, None] + cos * vy[:, None]], -1
+        )
+        samples = self._extrapolate(position[:, None].expand_as(turned), turned / self.target_scale)
+        td.set(keys.FORECAST_SAMPLES, samples)
+        return td
