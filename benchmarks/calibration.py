@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/calibration.py RUN_DIR [RUN_DIR ...] --out /tmp/calibration
     .venv/bin/python benchmarks/calibration.py bench/acc_std/paper*/seed* --latents mean predictive
 
-The question (issue #13): the learned prior's point forecast, decoded at the prior's mean, is as
+The question: the learned prior's point forecast, decoded at the prior's mean, is as
 accurate as the standard prior's, but its Gaussian scale was trained on posterior draws that know
 the future and its 90% intervals cover far less than 90% of test futures. Does the moment-matched
 predictive (``eval_latent=predictive``: the mean and variance of the mixture of the decodes of
@@ -18,8 +18,8 @@ by their parent directory's name (``acc_std/paper_prior_learned/seed0`` -> ``pap
 the seeds of one benchmark entry); each cell is the mean over the group's runs. The evaluations
 are written under ``--out/<group>/<run>/<latent>/``; a re-run reuses the finished ones.
 
-``--recalibrate`` answers the next question (issue #13's target: the 90% interval covers 80-97%
-of test futures in every presence subset): does a per-presence-pattern scale recalibration on the
+``--recalibrate`` answers the next question (the target: the 90% interval covers 80-97% of
+test futures in every presence subset): does a per-presence-pattern scale recalibration on the
 validation split (``mmf-rl calibrate``) get there? For each run and latent it writes two copies of
 the model under ``--out/<group>/<run>/<latent>/`` (``save_pretrained``; the run itself is not
 touched): ``raw``, its scale factors reset to ones (the scale as trained), and ``recalibrated``,

@@ -1,4 +1,4 @@
-"""Missing-sensor accuracy on a real humanoid recording: the paper model against the baselines (issue #13).
+"""Missing-sensor accuracy on a real humanoid recording: the paper model against the baselines.
 
     .venv/bin/python benchmarks/real_humanoid.py --jobs 2    # 6 entries x 2 seeds, two runs at once
     .venv/bin/python benchmarks/real_humanoid.py --steps 2 --seeds 0 --entries paper LF-LSTM --batch-size 4
@@ -14,8 +14,8 @@ the next T = 10 frames from H = 10 frames of history. One split by episode (spli
 / 0.1, split_seed 0) for every model.
 
 Entries (``ENTRIES``): the paper model with the configuration defaults, and with the other prior;
-the same model as issue #6
-had it (GRU encoders for joints and commands); the baselines LF-LSTM, MulT and MVAE,
+the same model with GRU encoders for
+joints and commands; the baselines LF-LSTM, MulT and MVAE,
 each trained once on every sensor and seeing an absent sensor as its own absence handling
 (zero-fill; MVAE drops the expert). Every entry: ``--steps`` steps of batch ``--batch-size`` for each
 seed, trained with ``mmf-rl train``'s ``train(cfg)`` and scored on every presence subset of the test
@@ -71,12 +71,12 @@ IMAGE_SIZE = 32
 HISTORY = HORIZON = 10
 MODALITIES = ["cam_high", "state", "action"]
 SENSORS = {"cam_high": "camera", "state": "joints", "action": "commands"}
-TARGET_RATIO = 1.05  # issue #13: paper all-sensor MSE within 5% of the best baseline's
+TARGET_RATIO = 1.05  # the target: paper all-sensor MSE within 5% of the best baseline's
 MIN_EPISODES = 10  # fewer test episodes: bootstrap blocks of windows instead of episodes
 BLOCK = HISTORY + HORIZON  # windows a block: one window's span of frames (stride 1)
 
 # The data config `mmf-rl inspect` suggests for the recording (its three sensors), with the target and
-# window of issue #13's protocol. The root, cache and image size come from mmf_rl.compare's train_overrides.
+# window of the humanoid protocol. The root, cache and image size come from mmf_rl.compare's train_overrides.
 DATA = (
     "data.repo_id=local/g1_pick_bottle_small",
     "data.target={feature:observation.state,relative:true}",
@@ -89,7 +89,7 @@ SENSOR_FEATURES = (
     "data.modalities={cam_high:{feature:observation.images.cam_high},"
     "state:{feature:observation.state},action:{feature:action}}"
 )
-# The same with issue #6's sequence encoder for the vector sensors (the default is now "mlp"), as one
+# The same with the GRU sequence encoder for the vector sensors (the default is now "mlp"), as one
 # mapping (SENSOR_FEATURES + data.modalities.state.encoder=gru ... composes the same config).
 SENSOR_FEATURES_GRU = (
     "data.modalities={cam_high:{feature:observation.images.cam_high},"
