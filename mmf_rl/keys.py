@@ -7,7 +7,11 @@ key                                  shape                meaning
 ===================================  ===================  ==================================================
 ``("obs", m)``                       ``[B, H, *feat_m]``  past window of modality ``m`` (``[B, *feat_m]`` for
                                                           a single-vector modality)
-``("present", m)``                   ``[B]`` bool         modality ``m`` is available for this sample
+``("present", m)``                   ``[B]`` bool         modality ``m`` is available for this sample (at
+                                                          one step of its window at least)
+``("present_steps", m)``             ``[B, H]`` bool      optional: the steps of the window where ``m`` is
+                                                          available; without it, every step of a present
+                                                          modality is
 ``"target"``                         ``[B, T, D]``        future of the forecast variable (normalised frame)
 ``"target_past"``                    ``[B, H, D]``        its history, when the data provides it
 ``"future_action"``                  ``[B, S, A]``        actions applied over the horizon (``S = T·stride``
@@ -30,13 +34,13 @@ key                                  shape                meaning
 ``"loss_*"``                         scalar               one loss term each, summed by the trainer
 ===================================  ===================  ==================================================
 
-Rules: a sample needs at least one present modality; the value stored under an absent modality
-never changes any output; output shapes never depend on presence. A batch has at least one sample
-(an empty batch is a clear error, not empty outputs: a loss or metric over zero samples has no
-value, so the caller skips it). NaN or ±Inf under a *present* modality is an error naming the key
-and the samples, or, with a model's ``nonfinite="absent"``, makes that modality absent for those
-samples (:func:`validate_batch` checks, :func:`mark_nonfinite_absent` applies); the RL glue always
-does the latter.
+Rules: a sample needs at least one present modality; the value stored under an absent modality (or
+under an absent step of a present one) never changes any output; output shapes never depend on
+presence. A batch has at least one sample (an empty batch is a clear error, not empty outputs: a
+loss or metric over zero samples has no value, so the caller skips it). NaN or ±Inf under a
+*present* modality is an error naming the key and the samples, or, with a model's
+``nonfinite="absent"``, makes that modality absent for those samples (:func:`validate_batch` checks,
+:func:`mark_nonfinite_absent` applies); the RL glue always does the latter.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ import torch
 
 OBS = "obs"
 PRESENT = "present"
+PRESENT_STEPS = "present_steps"
 DROP = "drop"
 TARGET = "target"
 TARGET_PAST = "target_past"
@@ -89,6 +94,22 @@ def obs_key(modality: str) -> tuple[str, str]:
 
 def present_key(modality: str) -> tuple[str, str]:
     return (PRESENT, modality)
+
+
+def present_steps_key(modality: str) -> tuple[str, str]:
+    return (PRESENT_STEPS, modality)
+
+
+def zero_absent_steps(obs: torch.Tensor, present_steps: torch.Tensor) -> torch.Tensor:
+    """A window ``[B, H, *feat]`` with its absent steps (``present_steps`` ``[B, H]`` False) zeroed, so
+    the value stored under an absent step never reaches an encoder."""
+    if obs.dim() < 2 or tuple(present_steps.shape) != tuple(obs.shape[:2]):
+        raise ValueError(
+            f"present_steps {tuple(present_steps.shape)} must be [B, H] of the window {tuple(obs.shape)}; "
+            "per-step presence applies to a windowed modality (sequence or image), not a single vector"
+        )
+    mask = present_steps.view(*present_steps.shape, *[1] * (obs.dim() - 2))
+    return torch.where(mask, obs, torch.zeros((), dtype=obs.dtype, device=obs.device))
 
 
 def drop_key(modality: str) -> tuple[str, str]:

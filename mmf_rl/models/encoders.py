@@ -10,6 +10,12 @@ plus one ``@register_encoder(name, kinds)``; a :class:`~mmf_rl.keys.ModalitySpec
 in ``encoder`` (a data config's ``modalities.<m>.encoder``), and every model that encodes
 whole windows builds it through :func:`build_encoder`.
 
+With ``("present_steps", m)`` the forecaster zeroes a window's absent steps before any encoder
+reads them. A step-token encoder (``tokens_are_steps``: ``steps``, ``conv_frames``) then has the
+tokens of those steps masked out of attention. A whole-window encoder (``mlp``, ``gru``, ``conv``,
+``conv_gru``, ``conv_patches``, ``deepsets``) sees the zeroed steps only: its input layout has no
+slot for a step mask without changing its weights' shapes (and so every saved checkpoint).
+
 No BatchNorm anywhere: the forecaster encodes only the samples where a modality is present,
 and batch statistics would make one sample's output depend on which others are present.
 """
@@ -192,6 +198,9 @@ class StepTokens(nn.Module):
     """One token per step of a vector window ``[N, H, d_in]`` -> ``[N, H, d]``: a per-step MLP plus a
     learned step embedding (so attention can tell the steps apart, as MulT's tokens do)."""
 
+    # One token per step: an absent step (``("present_steps", m)``) is an absent token.
+    tokens_are_steps = True
+
     def __init__(self, spec: ModalitySpec, history: int, d_model: int, hidden_dim: int | None = None):
         super().__init__()
         self.num_tokens = history
@@ -210,6 +219,9 @@ def steps_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> S
 class FrameTokens(nn.Module):
     """One token per frame of an image window ``uint8 [N, H, C, h, w]`` -> ``[N, H, d]``: the
     ConvNet on each frame plus a learned step embedding (``H`` times the cost of ``conv``)."""
+
+    # One token per step: an absent step (``("present_steps", m)``) is an absent token.
+    tokens_are_steps = True
 
     def __init__(self, spec: ModalitySpec, history: int, d_model: int, **kwargs):
         super().__init__()

@@ -83,7 +83,8 @@ class WorldModel:
 
     @torch.no_grad()
     def encode(self, window: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Tokens ``[n, M, d]``, presence ``[n, M]`` and ``valid`` ``[n]`` of ``n`` history windows."""
+        """Tokens ``[n, N, d]``, token presence ``[n, N]`` and ``valid`` ``[n]`` of ``n`` history windows
+        (``N`` tokens: see :meth:`MultimodalForecaster.encode`)."""
         specs = self.model.modalities
         # NaN/Inf under a present modality (a window built by hand) reads as absent, as in HistoryWindow.
         window = window.clone(False)
@@ -92,11 +93,13 @@ class WorldModel:
             window.set(spec.present_key, window.get(spec.present_key) & readable)
         present = torch.stack([window.get(s.present_key) for s in specs], dim=1).to(self.device)
         valid = present.any(1)
-        no_tokens = torch.zeros(present.shape[0], len(specs), self.model.config.d_model, device=self.device)
+        token_modality = self.model.token_modality
+        d_model = self.model.config.d_model
+        no_tokens = torch.zeros(present.shape[0], len(token_modality), d_model, device=self.device)
         tokens, present = compute_on_rows(
             valid,
             lambda rows: self.model.encode((window if rows is None else window[rows.cpu()]).to(self.device)),
-            (no_tokens, present),
+            (no_tokens, present[:, token_modality]),
         )
         return tokens, present, valid
 

@@ -36,7 +36,7 @@ def test_step_encoders_emit_one_token_per_step(small_config):
     assert [num_tokens(model.encoders[s.name]) for s in STEP_MODALITIES] == [HISTORY] * 3
     assert model.token_modality.tolist() == [0] * HISTORY + [1] * HISTORY + [2] * HISTORY
     tokens, present = model.encode(make_batch(4, STEP_MODALITIES))
-    assert tokens.shape == (4, 3 * HISTORY, small_config.d_model) and present.shape == (4, 3)
+    assert tokens.shape == (4, 3 * HISTORY, small_config.d_model) and present.shape == (4, 3 * HISTORY)
 
 
 def test_a_step_token_depends_on_its_step_only(small_config):
@@ -145,3 +145,69 @@ def test_eval_reports_the_kl_of_the_posterior_to_the_prior(small_config, prior):
     prior_dist = torch.distributions.Normal(full.get(keys.PRIOR_LOC), full.get(keys.PRIOR_SCALE))
     torch.testing.assert_close(kl, torch.distributions.kl_divergence(post, prior_dist).sum(-1))
     assert bool((kl > 0).all())
+
+
+def with_step_presence(batch, seed: int = 2):
+    """``batch`` with random ``("present_steps", m)``: every sample keeps its last step of each
+    modality, so a present modality stays present, and loses some earlier steps."""
+    g = torch.Generator().manual_seed(seed)
+    out = batch.clone()
+    for spec in SMALL_MODALITIES:
+        steps = torch.rand(batch.shape[0], HISTORY, generator=g) > 0.4
+        steps[:, -1] = True
+        out.set(keys.present_steps_key(spec.name), steps)
+    return out
+
+
+def garble_absent_steps(batch):
+    out = batch.clone()
+    for spec in SMALL_MODALITIES:
+        absent, obs = ~out.get(keys.present_steps_key(spec.name)), out.get(spec.obs_key)
+        obs[absent] = (255 if spec.kind == "image" else 1e6) - obs[absent]
+    return out
+
+
+@pytest.mark.parametrize("modalities", [SMALL_MODALITIES, STEP_MODALITIES], ids=["window", "steps"])
+def test_per_step_presence_keeps_the_invariants(small_config, mixed_batch, modalities):
+    """With ``present_steps``: every step present changes nothing, what is stored under an absent step
+    changes nothing, and a mixed batch gives each sample its own result."""
+    torch.manual_seed(0)
+    model = MultimodalForecaster(dataclasses.replace(small_config, modalities=modalities)).eval()
+    batch = make_batch(mixed_batch.shape[0], modalities, seed=1)
+    for spec in modalities:
+        batch.set(spec.present_key, mixed_batch.get(spec.present_key))
+    all_steps = batch.clone()
+    every_step = torch.ones(batch.shape[0], HISTORY, dtype=torch.bool)
+    for spec in modalities:
+        all_steps.set(keys.present_steps_key(spec.name), every_step)
+    partial = with_step_presence(batch)
+    with torch.no_grad():
+        today, every, some = model(batch.clone()), model(all_steps), model(partial.clone())
+        garbled = model(garble_absent_steps(partial))
+    for key in OUTPUTS:
+        assert torch.equal(every.get(key), today.get(key)), key
+        assert torch.equal(garbled.get(key), some.get(key)), key
+        assert not torch.equal(some.get(key), today.get(key)), key
+    assert_each_sample_alone_gives_its_batch_result(model, partial, OUTPUTS)
+
+
+def test_an_absent_step_is_an_absent_token_of_a_step_encoder(small_config):
+    model = step_model(small_config)
+    batch = with_step_presence(make_batch(3, STEP_MODALITIES))
+    tokens, present = model.encode(batch)
+    steps = torch.cat([batch.get(keys.present_steps_key(s.name)) for s in STEP_MODALITIES], dim=1)
+    assert torch.equal(present, steps)
+    assert not bool(tokens[~steps].any())
+
+
+def test_a_window_with_every_step_absent_is_an_absent_modality(small_config):
+    model = step_model(small_config)
+    batch = make_batch(2, STEP_MODALITIES)
+    batch.set(keys.present_steps_key("image"), torch.zeros(2, HISTORY, dtype=torch.bool))
+    _, present = model.encode(batch)
+    assert torch.equal(model.modality_presence(present), torch.tensor([[False, True, True]] * 2))
+
+
+def test_per_step_presence_of_a_single_vector_is_a_clear_error():
+    with pytest.raises(ValueError, match="windowed modality"):
+        keys.zero_absent_steps(torch.zeros(3, 5), torch.ones(3, HISTORY, dtype=torch.bool))

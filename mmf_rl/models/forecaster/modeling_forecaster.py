@@ -288,11 +288,20 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
 
     def encode(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Unimodal encoders -> tokens ``[B, N, d]`` (zeros where absent; ``N`` is the sum of the
-        encoders' token counts, in modality order) and presence ``[B, M]``."""
+        encoders' token counts, in modality order) and token presence ``[B, N]``.
+
+        With ``("present_steps", m)`` in ``td``, the absent steps of a present window are zeroed before
+        the encoder reads them; a step-token encoder's token of an absent step is also absent (a
+        key-padding mask for the fusion and the decoder). Without it every step of a present modality
+        is present."""
         present = torch.stack([td.get(s.present_key) for s in self.modalities], dim=1)
-        columns = []
+        columns, token_present = [], []
         for i, spec in enumerate(self.modalities):
             obs, encoder = td.get(spec.obs_key), self.encoders[spec.name]
+            steps = td.get(keys.present_steps_key(spec.name), None)
+            if steps is not None:
+                present[:, i] &= steps.any(1)
+                obs = keys.zero_absent_steps(obs, steps)
             absent = self.absent_tokens(i, present.shape[0], present.device)
             columns += compute_on_rows(
                 present[:, i],
@@ -301,7 +310,22 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                 ),
                 (absent,),
             )
-        return torch.cat(columns, dim=1), present
+            token_present.append(self._token_presence(i, present[:, i], steps))
+        tokens, token_present = torch.cat(columns, dim=1), torch.cat(token_present, dim=1)
+        return tokens * token_present.unsqueeze(-1), token_present
+
+    def _token_presence(self, modality: int, present: torch.Tensor, steps: torch.Tensor | None):
+        """Presence ``[B, L_m]`` of one modality's tokens: per step for a step-token encoder given
+        ``present_steps``, else the modality's presence for every token."""
+        encoder = self.encoders[self.modalities[modality].name]
+        if steps is not None and getattr(encoder, "tokens_are_steps", False):
+            return steps & present.unsqueeze(1)
+        return present.unsqueeze(1).expand(-1, self.token_counts[modality])
+
+    def modality_presence(self, token_present: torch.Tensor) -> torch.Tensor:
+        """Token presence ``[N, num_tokens]`` -> modality presence ``[N, M]`` (any token present)."""
+        one_hot = F.one_hot(self.token_modality, len(self.modalities)).bool()
+        return (token_present.unsqueeze(-1) & one_hot).any(1)
 
     @staticmethod
     def as_tokens(encoded: torch.Tensor) -> torch.Tensor:
@@ -312,9 +336,10 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         """The zero tokens ``[rows, L_m, d]`` of an absent modality."""
         return torch.zeros(rows, self.token_counts[modality], self.config.d_model, device=device)
 
-    def token_absent(self, present: torch.Tensor) -> torch.Tensor:
-        """Presence ``[N, M]`` -> the key-padding mask ``[N, num_tokens]`` (True: absent token)."""
-        return ~present[:, self.token_modality]
+    @staticmethod
+    def token_absent(present: torch.Tensor) -> torch.Tensor:
+        """Token presence ``[N, num_tokens]`` -> the key-padding mask (True: absent token)."""
+        return ~present
 
     def fuse(self, tokens: torch.Tensor, present: torch.Tensor, decoder_tokens: torch.Tensor | None = None):
         """The multimodal encoder: the flattened fused representation ``[N, out_rows × d]`` of ``N``
@@ -405,7 +430,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         loc, scale = moment_match(
             *self._decode_prepared(prepared.repeat(draws, 1, 1), present.repeat(draws, 1), z), draws
         )
-        return loc, self.scale_calibration(scale, present)
+        return loc, self.scale_calibration(scale, self.modality_presence(present))
 
     def embed_actions(self, td: TensorDictBase) -> torch.Tensor | None:
         """The action-sequence embedding ``[B, d]`` of a world model, ``None`` for a plain forecaster."""
@@ -448,7 +473,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             decodes.append((present, prepared, prior_loc + prior_scale * torch.randn_like(prior_scale)))
         forecasts = self._decode_all(decodes, self.embed_actions(td), present.shape[0])
         td.set(keys.FORECAST_LOC, forecasts[0][0])
-        td.set(keys.FORECAST_SCALE, self.scale_calibration(forecasts[0][1], present))
+        td.set(keys.FORECAST_SCALE, self.scale_calibration(forecasts[0][1], self.modality_presence(present)))
         if kept is not None:
             td.set(keys.FORECAST_DROPPED_LOC, forecasts[1][0])
             td.set(keys.FORECAST_DROPPED_SCALE, forecasts[1][1])
@@ -462,7 +487,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         drop = self._drop_mask(td)
         if drop is None:
             return None
-        kept = present & ~drop
+        kept = present & ~drop[:, self.token_modality]
         if not bool(kept.any(1).all()):
             raise ValueError("('drop', m) removes every present modality of some sample; keep at least one")
         return kept
@@ -606,7 +631,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             ),
             draws,
         )
-        scale = self.scale_calibration(scale, present)
+        scale = self.scale_calibration(scale, self.modality_presence(present))
         return loc.view(batch, candidates, *loc.shape[1:]), scale.view(batch, candidates, *scale.shape[1:])
 
     def eval_distribution(
