@@ -173,6 +173,9 @@ class DataConfig:
             row's ``timestamp`` within ``tolerance_s`` (as lerobot does); ``"frame_index"`` decodes
             frame ``k`` of an episode at ``k / fps`` of its video segment, for recordings whose
             timestamps are wall-clock stamps drifting from ``k / fps`` (``mmf-rl inspect`` measures it).
+        partial_windows: a windowed modality present at some steps of a window (not all) is present
+            for it, with ``("present_steps", m)`` marking its steps, instead of absent for the whole
+            window. Applies to the windows the cache keeps (those with a modality present throughout).
     """
 
     modalities: dict[str, ModalityConfig]
@@ -196,6 +199,7 @@ class DataConfig:
     exclude_episodes: list[int] = field(default_factory=list)
     split: dict[str, list[int]] | None = None
     video_sync: str = "timestamp"
+    partial_windows: bool = False
 
     def __post_init__(self):
         self._check_episode_lists()

@@ -15,7 +15,14 @@ from mmf_rl.datasets.config import OBSERVED, SPLIT_NAMES, DataConfig
 from mmf_rl.datasets.lerobot_source import LeRobotSource
 from mmf_rl.datasets.protocols import outage_statistics, replay_outages, training_dropout
 from mmf_rl.datasets.splits import Normalizer, episode_splits, mean_std
-from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, ModalitySpec
+from mmf_rl.keys import (
+    FUTURE_ACTION,
+    TARGET,
+    TARGET_PAST,
+    ModalitySpec,
+    present_steps_key,
+    zero_absent_steps,
+)
 
 # A modality absent on more of the frames than this is an error unless its config sets `allow_absent`.
 MAX_ABSENT_FRACTION = 0.5
@@ -78,8 +85,9 @@ class WindowDataset:
         self.frame_episode = _plain(frames.get("episode"))
         self.window_start = _plain(windows.get("start"))
         self.window_episode = _plain(windows.get("episode"))
-        self.presence = {s.name: _plain(windows.get(s.present_key)) for s in self.specs}
         self._observed, self._future = window_offsets(config.history, config.horizon, config.stride)
+        self.presence = {s.name: _plain(windows.get(s.present_key)) for s in self.specs}
+        self._frame_present = self._partial_presence(frames) if config.partial_windows else {}
         self._action = _plain(frames.get("action")) if self.action_shape is not None else None
         self._action_offsets = action_offsets(config.history, config.horizon, config.stride)
 
@@ -100,6 +108,17 @@ class WindowDataset:
         self.normalizer = Normalizer(self._train_stats(frames))
         self.observed_outages = self._observed_outages(frames)
         self.train_presence = self._train_presence()
+
+    def _partial_presence(self, frames: TensorDict) -> dict[str, torch.Tensor]:
+        """Per-frame presence of the windowed modalities; their window presence becomes "present at
+        some step" (``data.partial_windows``)."""
+        observed = self.window_start[:, None] + self._observed
+        frame_present = {}
+        for spec in self.specs:
+            if spec.kind != "vector":
+                frame_present[spec.name] = _plain(frames.get(spec.present_key))
+                self.presence[spec.name] = frame_present[spec.name][observed].any(1)
+        return frame_present
 
     def _check_presence(self, source: LeRobotSource, frames: TensorDict) -> None:
         problems = {}
@@ -263,6 +282,10 @@ class WindowDataset:
                 values = self.normalizer.normalize(spec.name, values)
                 # Absent samples carry zeros, not the stored placeholder: never NaN, never data.
                 values = values * present.view(-1, *[1] * (values.dim() - 1))
+            if spec.name in self._frame_present:
+                steps = self._frame_present[spec.name][rows] & present[:, None]
+                batch.set(present_steps_key(spec.name), steps)
+                values = zero_absent_steps(values, steps)
             batch.set(spec.obs_key, values)
             batch.set(spec.present_key, present)
         future, past = self._targets(start, with_past=self.config.include_target_past)

@@ -14,7 +14,15 @@ from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
-from mmf_rl.keys import FUTURE_ACTION, TARGET, TARGET_PAST, obs_key, present_key, validate_batch
+from mmf_rl.keys import (
+    FUTURE_ACTION,
+    TARGET,
+    TARGET_PAST,
+    obs_key,
+    present_key,
+    present_steps_key,
+    validate_batch,
+)
 from tests.datasets.conftest import (
     EPISODE_LENGTHS,
     INVALID_IMAGE_EPISODE,
@@ -496,3 +504,23 @@ def test_drifting_timestamps_lose_the_camera_with_an_error_unless_synced_by_fram
     original = WindowDataset(g1_config(g1_root))
     frames = [TensorDict.load_memmap(d.cache_path / "frames") for d in (synced, original)]
     assert torch.equal(*(f.get(obs_key("cam")).as_subclass(torch.Tensor) for f in frames))
+
+
+def test_partial_windows_keep_a_modality_present_at_some_steps(synthetic_root, tmp_path):
+    whole = open_quietly(synthetic_config(synthetic_root, tmp_path))
+    partial = open_quietly(synthetic_config(synthetic_root, tmp_path, partial_windows=True))
+    assert torch.equal(partial.window_start, whole.window_start)
+    batch, before = all_windows(partial), all_windows(whole)
+    steps = batch.get(present_steps_key("force"))
+    present = batch.get(present_key("force"))
+    # Present throughout before -> every step present now; a window with a NaN step is kept.
+    assert steps[before.get(present_key("force"))].all()
+    assert torch.equal(present, steps.any(1)) and bool((present & ~steps.all(1)).any())
+    assert bool((present & ~before.get(present_key("force"))).any())
+    force = batch.get(obs_key("force"))
+    assert torch.isfinite(force).all() and not force[~steps].any()
+    assert torch.equal(
+        force[before.get(present_key("force"))],
+        before.get(obs_key("force"))[before.get(present_key("force"))],
+    )
+    assert present_steps_key("force") not in before.keys(True)
