@@ -62,6 +62,7 @@ class _WindowTransform(Transform):
         stride: int,
         out_keys: list,
         device: torch.device | str = "cpu",
+        per_step_presence: bool = False,
     ):
         self.specs: list[ModalitySpec] = list(specs)
         if stride < 1:
@@ -76,6 +77,7 @@ class _WindowTransform(Transform):
         in_keys = [s.obs_key for s in self.specs] + [s.present_key for s in self.specs]
         super().__init__(in_keys=in_keys, out_keys=out_keys)
         self.history, self.stride = history, stride
+        self.per_step_presence = per_step_presence
         self.buffer_length = (history - 1) * stride + 1
         # The statistics are the checkpoint's constants (not state): buffers for the device only.
         self._stat_names = sorted(stats)
@@ -234,29 +236,44 @@ class _WindowTransform(Transform):
 
     def window(self) -> TensorDict:
         """The model's input for every env, ``[n]`` (flattened env batch), as the data pipeline builds it."""
-        observations, presence = self._window_tensors()
+        observations, presence, steps = self._window_tensors()
         window = TensorDict(batch_size=[self._batch_size.numel()])
         for spec, values, present in zip(self.specs, observations, presence, strict=True):
             window.set(spec.obs_key, values)
             window.set(spec.present_key, present)
+        for key, step_present in zip(self._step_keys, steps, strict=True):
+            window.set(key, step_present)
         return window
 
-    def _window_tensors(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        """:meth:`window` as plain tensors, one per modality: observations and presence flags."""
+    @property
+    def _step_keys(self) -> list[tuple[str, str]]:
+        """The ``("present_steps", m)`` keys the windows carry (windowed modalities, when per step)."""
+        if not self.per_step_presence:
+            return []
+        return [keys.present_steps_key(s.name) for s in self.specs if s.kind != "vector"]
+
+    def _window_tensors(self) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
+        """:meth:`window` as plain tensors: observations and presence flags, one per modality, and
+        the step presence ``[n, H]`` of each windowed modality (none unless ``per_step_presence``: a
+        windowed modality is then present when present at one step at least, else at every step)."""
         slots = self._slots[self._newest]
-        observations, presence = [], []
+        observations, presence, steps = [], [], []
         for i, spec in enumerate(self.specs):
             if spec.kind == "vector":
                 values = self._frames(i)[:, self._newest]
                 present = self._presence(i)[:, self._newest]
             else:
                 values = self._frames(i).index_select(1, slots)
-                present = self._presence(i).index_select(1, slots).all(1)
+                step_present = self._presence(i).index_select(1, slots)
+                present = step_present.any(1) if self.per_step_presence else step_present.all(1)
+                if self.per_step_presence:
+                    steps.append(step_present & present.unsqueeze(1))
+                    values = keys.zero_absent_steps(values, steps[-1])
             if spec.kind != "image":
                 values = values * present.view(-1, *[1] * (values.dim() - 1))
             observations.append(values)
             presence.append(present)
-        return observations, presence
+        return observations, presence, steps
 
     # -- env hooks -----------------------------------------------------------------------------
 
@@ -311,6 +328,9 @@ class ForecastTransform(_WindowTransform):
             ``"<m>/mean"``, ``"<m>/std"`` for every non-image modality, ``"target/mean"``,
             ``"target/std"``.
         stride: frames between two window steps (the data config's ``stride``).
+        per_step_presence: ``True`` keeps a windowed modality present while present at one step of
+            the window at least, with ``("present_steps", m)`` marking its steps (the model masks the
+            absent ones), instead of absent unless present at every step. Runs the eager forward.
         num_samples: ``K > 0`` also writes ``("forecast", "samples")`` ``[*batch, K, T, D]``, one
             forecast per prior latent draw (costs a second, eager forward).
         denormalize: ``True`` writes forecasts in the target's units (for the push data: metres,
@@ -366,6 +386,7 @@ class ForecastTransform(_WindowTransform):
         num_samples: int = 0,
         denormalize: bool = True,
         trace: bool = True,
+        per_step_presence: bool = False,
     ):
         config = model.config
         if getattr(config, "action_dim", 0):
@@ -384,12 +405,16 @@ class ForecastTransform(_WindowTransform):
         if num_samples:
             out_keys.append(keys.FORECAST_SAMPLES)
         device = next(model.parameters()).device
-        super().__init__(config.modalities, stats, config.history, stride, out_keys, device)
+        super().__init__(
+            config.modalities, stats, config.history, stride, out_keys, device, per_step_presence
+        )
         self.model = model.eval()
         self.horizon, self.target_dim = config.horizon, config.target_dim
         self.num_samples, self.denormalize = num_samples, denormalize
-        self.trace = trace and isinstance(model, MultimodalForecaster)
+        # The traced graphs take modality presence only: step masks go through the eager forward.
+        self.trace = trace and not per_step_presence and isinstance(model, MultimodalForecaster)
         self._model_keys = [s.obs_key for s in self.specs] + [s.present_key for s in self.specs]
+        self._model_keys += self._step_keys
         self._traced: _TracedForecaster | None = None  # for the current batch size
 
     @classmethod
@@ -401,6 +426,7 @@ class ForecastTransform(_WindowTransform):
         denormalize: bool = True,
         trace: bool = True,
         map_location: str | torch.device = "cpu",
+        per_step_presence: bool = False,
     ) -> ForecastTransform:
         """Load the model, its weights, normalisation stats and window stride from a checkpoint.
 
@@ -415,6 +441,7 @@ class ForecastTransform(_WindowTransform):
             num_samples=num_samples,
             denormalize=denormalize,
             trace=trace,
+            per_step_presence=per_step_presence,
         )
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
@@ -449,8 +476,9 @@ class ForecastTransform(_WindowTransform):
         return module
 
     def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
-        observations, presence = self._window_tensors()
+        observations, presence, steps = self._window_tensors()
         present = torch.stack(presence, 1)
+        presence = presence + steps  # the model's presence keys, in the order of _model_keys
         valid = present.any(1)
         if self._traced is not None:
             # No grad, not inference mode: a policy trained on the forecasts saves them for backward.
@@ -625,7 +653,7 @@ class _ForecastFromWindows(nn.Module):
         tokens = torch.cat(
             [as_tokens(encoders[m](obs)) for m, obs in zip(self.names, observations, strict=True)], 1
         )
-        return self.model.forecast_from_tokens(tokens, present)
+        return self.model.forecast_from_tokens(tokens, present[:, self.model.token_modality])
 
 
 class _ForecastFromTokens(nn.Module):
@@ -636,7 +664,8 @@ class _ForecastFromTokens(nn.Module):
         self.model = model
 
     def forward(self, tokens: torch.Tensor, present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.model.forecast_from_tokens(tokens, present)
+        """``present``: modality presence ``[n, M]``, spread to the model's token presence."""
+        return self.model.forecast_from_tokens(tokens, present[:, self.model.token_modality])
 
 
 def _trace(module: nn.Module, example: tuple[torch.Tensor, ...]) -> torch.jit.ScriptModule:
@@ -664,16 +693,25 @@ class HistoryWindow(_WindowTransform):
         stats: the normalisation statistics of its training run.
         history: ``H``, window steps.
         stride: frames between two window steps.
+        per_step_presence: ``True`` also writes ``("history", "present_steps", m)`` ``bool
+            [*batch, H]`` of each windowed modality, present when present at one step at least.
     """
 
     def __init__(
-        self, specs: Sequence[ModalitySpec], stats: Mapping[str, torch.Tensor], history: int, stride: int = 1
+        self,
+        specs: Sequence[ModalitySpec],
+        stats: Mapping[str, torch.Tensor],
+        history: int,
+        stride: int = 1,
+        per_step_presence: bool = False,
     ):
         specs = list(specs)
         out_keys = [(keys.HISTORY, *s.obs_key) for s in specs] + [
             (keys.HISTORY, *s.present_key) for s in specs
         ]
-        super().__init__(specs, stats, history, stride, out_keys)
+        if per_step_presence:
+            out_keys += [(keys.HISTORY, keys.PRESENT_STEPS, s.name) for s in specs if s.kind != "vector"]
+        super().__init__(specs, stats, history, stride, out_keys, per_step_presence=per_step_presence)
 
     @classmethod
     def for_model(cls, model: nn.Module, stats: Mapping[str, torch.Tensor], stride: int = 1) -> HistoryWindow:
@@ -693,9 +731,13 @@ class HistoryWindow(_WindowTransform):
                 else Unbounded(shape, dtype=torch.float32)
             )
             presence[spec.name] = Categorical(2, batch, dtype=torch.bool)
-        observation_spec[keys.HISTORY] = Composite(
-            {keys.OBS: observations, keys.PRESENT: presence}, shape=batch
-        )
+        history = {keys.OBS: observations, keys.PRESENT: presence}
+        if self.per_step_presence:
+            history[keys.PRESENT_STEPS] = Composite(
+                {k[1]: Categorical(2, (*batch, self.history), dtype=torch.bool) for k in self._step_keys},
+                shape=batch,
+            )
+        observation_spec[keys.HISTORY] = Composite(history, shape=batch)
         return observation_spec
 
     def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:

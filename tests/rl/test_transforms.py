@@ -558,3 +558,29 @@ def test_forecast_transform_refuses_a_world_model_and_names_the_way_to_plan(tmp_
     )
     with pytest.raises(ValueError, match="action-conditioned world model.*HistoryWindow.*SequenceCEMPlanner"):
         ForecastTransform(model, make_stats())
+
+
+def test_per_step_presence_keeps_a_camera_through_the_first_steps_of_its_outage(recorded_steps, checkpoint):
+    """The camera dies at step 6: with per-step presence the window after it still holds the camera
+    (its last step absent, zeroed) and the forecast is the model's on that window; without, the
+    camera is absent from the window at once."""
+    steps = with_outages(recorded_steps, 1)[:7]
+    per_step = ForecastTransform.from_checkpoint(checkpoint, per_step_presence=True)
+    whole = ForecastTransform.from_checkpoint(checkpoint)
+    out = replay(per_step, steps)[-1]
+    replay(whole, steps)
+    window = per_step.window()
+    assert (
+        window.get(keys.present_key("image")).all()
+        and not whole.window().get(keys.present_key("image")).any()
+    )
+    assert window.get(keys.present_steps_key("image")).tolist() == [[True, True, False]]
+    assert not window.get(keys.obs_key("image"))[:, -1].any()
+    with torch.no_grad():
+        expected = per_step.model(window.clone()).get(keys.FORECAST_LOC)
+    torch.testing.assert_close(out[keys.FORECAST_LOC], per_step.normalizer.denormalize_target(expected))
+    history = HistoryWindow(PUSH_SPECS, per_step.normalizer.stats, HISTORY, per_step_presence=True)
+    replay(history, steps)
+    assert torch.equal(
+        history.window().get(keys.present_steps_key("image")), window.get(keys.present_steps_key("image"))
+    )
