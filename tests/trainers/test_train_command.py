@@ -1,18 +1,23 @@
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import torch
 from safetensors.torch import load_file
 
+from mmf_rl import keys
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.cli import main as cli
+from mmf_rl.datasets import WindowDataset
 from mmf_rl.models import load_trained_model
 from tests.conftest import push_train_overrides
+from tests.reliability.conftest import edit_frames, push_data_config
 
 
 @pytest.fixture
@@ -174,3 +179,29 @@ def test_two_gloo_ranks_train_in_lockstep_and_agree(overrides, tmp_path):
     assert checkpoint.step == 6 and checkpoint.meta["world_size"] == 2
     assert len(checkpoint.trainer_state["rng"]) == 2
     load_trained_model(tmp_path / "ddp" / "checkpoints")  # the plain model's weights, no DDP wrapper names
+
+
+def camera_outage_mid_episode(frames) -> None:
+    """The camera dies for frames 10-12 of every episode: windows over them hold it for some steps."""
+    from mmf_rl.record import CAMERA_VALID_KEY
+
+    frames.loc[frames["frame_index"].between(10, 12), CAMERA_VALID_KEY] = False
+
+
+@pytest.mark.parametrize("encoder", ["conv", "conv_frames"])
+def test_training_on_partial_windows_through_a_camera_outage_has_a_finite_loss(
+    recorded_push_root, tmp_path, encoder
+):
+    root = Path(shutil.copytree(recorded_push_root, tmp_path / "push"))
+    edit_frames(root, camera_outage_mid_episode)
+    run = tmp_path / "run"
+    overrides = push_train_overrides(root, tmp_path / "cache", run, steps=4)
+    extra = ["data.partial_windows=true", f"data.modalities.image.encoder={encoder}"]
+    assert cli(["train", *overrides, *extra]) == 0
+    rows = (run / "logs" / "scalars" / "train" / "loss.csv").read_text().splitlines()[1:]
+    losses = torch.tensor([float(row.split(",")[-1]) for row in rows])
+    assert len(losses) and torch.isfinite(losses).all()
+    dataset = WindowDataset(push_data_config(root, tmp_path / "cache", partial_windows=True))
+    batch = dataset.batch(torch.arange(len(dataset)))
+    steps, present = batch.get(keys.present_steps_key("image")), batch.get(keys.present_key("image"))
+    assert bool((present & ~steps.all(1)).any()), "some windows hold the camera for some steps only"
