@@ -1,4 +1,4 @@
-"""`mmf-rl bench accuracy|bc|data|humanoid|model|mpc [args]`: the scripts of benchmarks/ from the
+"""`mmf-rl bench accuracy|bc|calibration|data|ethucy|humanoid|model|mpc|step_cost [args]`: the scripts of
 command line.
 
 Each runs ``benchmarks/<script>.py`` of the repository checkout with the arguments that follow
@@ -23,6 +23,11 @@ BENCHMARKS = {
     "mpc": ("mpc_push.py", "MPC with the push world model vs the scripted pusher and a random policy"),
     "bc": ("bc_push.py", "behaviour cloning with vs without the forecast, camera or force off"),
     "humanoid": ("real_humanoid.py", "the paper model vs the baselines on the real G1 humanoid recording"),
+    "calibration": (
+        "calibration.py",
+        "interval coverage of trained runs under each eval latent, recalibrated",
+    ),
+    "step_cost": ("step_cost.py", "training-step cost of forecaster variants against MulT, side by side"),
     "ethucy": ("ethucy.py", "ETH/UCY pedestrians, 5 leave-one-scene-out folds: minADE20/minFDE20 in metres"),
 }
 EXAMPLES = [
@@ -40,7 +45,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         description=__doc__.split("\n\n")[0].split(": ", 1)[1],
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="benchmarks:\n"
-        + "\n".join(f"  {name:<9} {what}" for name, (_, what) in BENCHMARKS.items())
+        + "\n".join(f"  {name:<12} {what}" for name, (_, what) in BENCHMARKS.items())
         + "\n\nexamples:\n"
         + "\n".join(f"  {example}" for example in EXAMPLES),
     )

@@ -154,8 +154,11 @@ def main(argv: list[str] | None = None) -> int:
     command = getattr(importlib.import_module(module), function or "main")
     try:
         return int(command(rest) or 0)
-    except SystemExit as exit_:  # argparse's --help (0) and usage errors (2)
-        return exit_.code if isinstance(exit_.code, int) else 1
+    except SystemExit as exit_:  # argparse's --help (0) and usage errors (2), a script's error message
+        if exit_.code is None or isinstance(exit_.code, int):
+            return exit_.code or 0
+        print(exit_.code, file=sys.stderr)  # as the interpreter shows `raise SystemExit("message")`
+        return 1
 
 
 if __name__ == "__main__":

@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import itertools
 import os
+import subprocess
+import traceback
+from pathlib import Path
 
 import pytest
 import torch
@@ -16,6 +21,25 @@ from mmf_rl.models import ForecasterConfig, MultimodalForecaster
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("MUJOCO_GL", "egl")
 torch.set_num_threads(min(2, os.cpu_count() or 1))
+
+
+def run_bench(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """``mmf-rl bench NAME ARGS`` from ``cwd``, in this process as the CLI runs it (a subprocess would
+    spend seconds importing torch again): its exit code, stdout and stderr, as a subprocess gives them.
+    torch's thread count is restored after (a script may set its own)."""
+    from mmf_rl.cli import main as cli
+
+    stdout, stderr, threads = io.StringIO(), io.StringIO(), torch.get_num_threads()
+    with contextlib.chdir(cwd), contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        try:
+            code = cli(["bench", name, *args])
+        except Exception:  # noqa: BLE001 - a crash is exit code 1 with its traceback, as in a subprocess
+            traceback.print_exc()
+            code = 1
+    torch.set_num_threads(threads)
+    return subprocess.CompletedProcess(
+        ["mmf-rl", "bench", name, *args], code, stdout.getvalue(), stderr.getvalue()
+    )
 
 
 HISTORY = 4

@@ -5,13 +5,12 @@ tiny run of the push data recorded by the fixtures."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import subprocess
-import sys
 from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
+from tests.conftest import run_bench
+
 SUMMARY = re.compile(
     r"summary: paper model best or tied in (\S+)/(\d+) subsets \(zero-fill baselines\), (\S+)/3 paper "
     r"subsets vs retrained; fusion spread (\S+); mean degradation paper (-?\d+)%, best baseline (\S+)"
@@ -19,9 +18,7 @@ SUMMARY = re.compile(
 
 
 def accuracy(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, str(SCRIPT), *args]
-    return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    return run_bench("accuracy", *args, cwd=cwd)
 
 
 def test_a_tiny_run_writes_the_report_and_the_summary_line(recorded_push_root, tmp_path):

@@ -4,16 +4,14 @@ recorded push data."""
 from __future__ import annotations
 
 import json
-import os
 import re
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "calibration.py"
+from tests.conftest import run_bench
 
 SUMMARY = re.compile(
     r"summary: (\S+) (\S+): MSE all (\S+); coverage 50% (\S+)-(\S+), 90% (\S+)-(\S+) over (\d+) subsets"
@@ -21,14 +19,8 @@ SUMMARY = re.compile(
 
 
 def calibration(argv: list[str]) -> int:
-    """Run the script on ``argv``; its stdout is printed here, so ``capsys`` sees it as before."""
-    run = subprocess.run(
-        [sys.executable, str(SCRIPT), *argv],
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    """Run the script on ``argv``; its stdout is printed here, so ``capsys`` sees it."""
+    run = run_bench("calibration", *argv, cwd=Path.cwd())
     print(run.stdout, end="")
     print(run.stderr, end="", file=sys.stderr)
     return run.returncode

@@ -7,13 +7,13 @@ import json
 import os
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.conftest import run_bench
+
 REPO = Path(__file__).resolve().parents[1]
-SCRIPT = REPO / "benchmarks" / "real_humanoid.py"
 G1 = Path(os.environ.get("MMF_RL_SHARED_DATA", REPO.parent / "shared" / "data")) / "g1_pick_bottle_small"
 SUMMARY = re.compile(
     r"summary: all sensors paper MSE (\S+) vs best baseline (\S+) \((.+)\): paper/best = (\S+) "
@@ -31,9 +31,7 @@ SUBSETS = {
 
 
 def humanoid(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, str(SCRIPT), *args]
-    return subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    return run_bench("humanoid", *args, cwd=cwd)
 
 
 def test_a_missing_recording_is_a_clear_error(tmp_path):

@@ -2,12 +2,8 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-from pathlib import Path
+from tests.conftest import run_bench
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "step_cost.py"
 VARIANTS = [
     "forecaster (default)",
     "forecaster, raw tokens (the paper)",
@@ -18,14 +14,7 @@ VARIANTS = [
 
 def test_prints_one_ratio_per_model(tmp_path):
     argv = ["--batch-size", "4", "--image-size", "16", "--steps", "1", "--rounds", "2", "--threads", "1"]
-    run = subprocess.run(
-        [sys.executable, str(SCRIPT), *argv],
-        cwd=tmp_path,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    run = run_bench("step_cost", *argv, cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]
     lines = run.stdout.splitlines()
     assert [line.split(":")[0] for line in lines] == VARIANTS
