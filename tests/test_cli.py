@@ -140,3 +140,13 @@ def test_a_script_run_by_the_cli_keeps_its_level_and_run_alone_shows_progress():
         assert sum(isinstance(h, cli._ProgressSafeHandler) for h in logger.handlers) == 1
     finally:
         cli.configure_logging(logging.INFO)
+
+
+def refuse(argv):
+    raise SystemExit(f"echo: cannot use {argv[0]}")
+
+
+def test_a_commands_exit_message_is_shown_and_its_code_is_one(monkeypatch, capsys):
+    monkeypatch.setattr(cli, "COMMANDS", {"refuse": ("tests.test_cli:refuse", "exit with a message")})
+    assert cli.main(["refuse", "this"]) == 1
+    assert capsys.readouterr().err.strip().endswith("echo: cannot use this")
