@@ -41,7 +41,7 @@ PUBLISHED = (
     (
         "Trajectron++ (velocity leak fixed)",
         "0.27–0.32 / 0.50–0.55",
-        "its repo's issue #53; SocialVAE's table",
+        "github.com/StanfordASL/Trajectron-plus-plus/issues/53; SocialVAE's table",
     ),
     ("PECNet", "0.29 / 0.48", "Mangalam et al. 2020"),
     ("AgentFormer (leak fixed)", "0.23 / 0.39", "its README"),

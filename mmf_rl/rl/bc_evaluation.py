@@ -11,7 +11,7 @@ from torchrl.envs import TransformedEnv
 
 from mmf_rl.rl.bc import BCPolicy
 from mmf_rl.rl.closed_loop import ScriptedPolicy, over_seeds, play, push_env, summarise
-from mmf_rl.rl.outage_evaluation import Condition, play_conditions
+from mmf_rl.rl.outage_evaluation import Condition, play_conditions, success_cells
 from mmf_rl.rl.transforms import ForecastTransform
 
 VARIANTS = ("without", "with")  # forecasts
@@ -120,14 +120,7 @@ def success_table(rows: dict[str, dict]) -> str:
     ]
     for name, r in rows.items():
         policy, condition = name.split(" | ")
-        seeds = r.get("seeds", "-")
-        spread = f"{r['success_min']:.0f}-{r['success_max']:.0f}" if "success_min" in r else "-"
-        per_seed = " / ".join(f"{x:.0f}" for x in r["success_per_seed"]) if "success_per_seed" in r else "-"
-        lines.append(
-            f"| {policy} | {condition} | {r['episodes']} | {seeds} | {r['success']:.0f} | {spread} | "
-            f"{per_seed} | {r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | "
-            f"{r['steps_mean']:.1f} |"
-        )
+        lines.append("| " + " | ".join([policy, condition, *success_cells(r)]) + " |")
     return "\n".join(lines)
 
 

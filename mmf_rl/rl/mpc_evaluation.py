@@ -11,7 +11,7 @@ from torchrl.modules.planners import CEMPlanner
 
 from mmf_rl.rl.cem import SequenceCEMPlanner
 from mmf_rl.rl.closed_loop import RandomPolicy, ScriptedPolicy, over_seeds, play, push_env, summarise
-from mmf_rl.rl.outage_evaluation import Condition, Timed, play_conditions
+from mmf_rl.rl.outage_evaluation import Condition, Timed, play_conditions, success_cells
 from mmf_rl.rl.push_objective import PushObjective
 from mmf_rl.rl.world_model import WorldModel
 from mmf_rl.rl.world_model_env import ForecasterWorldModelEnv, ImaginedPlanningPolicy
@@ -134,12 +134,5 @@ def results_table(rows: dict[str, dict]) -> str:
     ]
     for name, r in rows.items():
         decision = f"{r['decision_ms']:.1f}" if "decision_ms" in r else "-"
-        seeds = r.get("seeds", "-")
-        spread = f"{r['success_min']:.0f}-{r['success_max']:.0f}" if "success_min" in r else "-"
-        per_seed = " / ".join(f"{x:.0f}" for x in r["success_per_seed"]) if "success_per_seed" in r else "-"
-        lines.append(
-            f"| {name} | {r['episodes']} | {seeds} | {r['success']:.0f} | {spread} | {per_seed} | "
-            f"{r['final_distance_mean']:.3f} ± {r['final_distance_std']:.3f} | {r['steps_mean']:.1f} | "
-            f"{decision} |"
-        )
+        lines.append("| " + " | ".join([name, *success_cells(r), decision]) + " |")
     return "\n".join(lines)

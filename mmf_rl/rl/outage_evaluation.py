@@ -64,3 +64,20 @@ def play_conditions(
         seconds = policy.seconds if isinstance(policy, Timed) else None
         played[condition.label] = (summarise(results, seconds), results)
     return played
+
+
+def success_cells(row: dict) -> list[str]:
+    """A played row's cells of the push experiments' success tables: episodes, seeds, success %
+    (mean), spread (min-max), per seed, final distance (m), steps; ``-`` where the row has no seeds."""
+    spread = f"{row['success_min']:.0f}-{row['success_max']:.0f}" if "success_min" in row else "-"
+    per_seed = " / ".join(f"{x:.0f}" for x in row["success_per_seed"]) if "success_per_seed" in row else "-"
+    distance = f"{row['final_distance_mean']:.3f} ± {row['final_distance_std']:.3f}"
+    return [
+        str(row["episodes"]),
+        str(row.get("seeds", "-")),
+        f"{row['success']:.0f}",
+        spread,
+        per_seed,
+        distance,
+        f"{row['steps_mean']:.1f}",
+    ]
