@@ -1,0 +1,316 @@
+"""A forecast that carries a policy through a sensor outage: `LatchedForecastTransform`.
+
+When the camera dies, a `ForecastTransform` forecasts from the sensors left, which may not locate
+the object at all. This transform also keeps, per env, the last forecast made while a chosen set
+of sensors (by default every camera) was present for the whole window, and while they stay off
+serves that forecast advanced by the time elapsed, with its age, so a policy knows how old it is::
+
+    env = TransformedEnv(SerialEnv(4, make_env), Compose(
+        ModalityDropout(["image"], outage="dies", seed=0),
+        LatchedForecastTransform.from_checkpoint("runs/push/checkpoints"),
+    ))
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping, Sequence
+
+import torch
+from tensordict import NestedKey, TensorDictBase
+from torch import nn
+from torchrl.data import Composite, Unbounded
+
+from mmf_rl import keys
+from mmf_rl.envs.modality_dropout import reset_rows
+from mmf_rl.models.loading import load_trained_model
+from mmf_rl.rl.transforms import ForecastTransform
+
+logger = logging.getLogger(__name__)
+
+# How a latched forecast and a fresh one (from the sensors left) are combined during an outage.
+RULES = ("latched", "fresh", "scale", "precision")
+# The per-env latch: its forecast and reference (target units), its age, whether there is one.
+_LATCH_BUFFERS = ("_latched_loc", "_latched_scale", "_latched_reference", "_age", "_has_latch")
+
+
+class LatchedForecastTransform(ForecastTransform):
+    """A `ForecastTransform` that, per env, latches the forecast made with ``latch_on`` present and
+    serves it advanced through their outage; writes ``("forecast", "age")`` besides the forecast.
+
+    Every step the fresh forecast is computed as `ForecastTransform` does. An env whose
+    ``latch_on`` sensors are all present for the whole window (at every step, whatever
+    ``per_step_presence`` says) latches it: the forecast is served as is, with age 0. While one
+    of them is absent, the latched forecast is advanced by the env steps elapsed since it was made,
+    in whole forecast steps (``age // stride``): the step ``k`` served is the latched step
+    ``shift + k``. Past the latched horizon the last latched step is held; ``age >= T * stride``
+    says that the whole forecast served is that held step. The served forecast is re-based to the
+    current step:
+
+    * absolute target: as is;
+    * ``relative`` target (a displacement from the current value): minus the latched forecast's
+      own prediction of the current value, so it stays a displacement from now;
+    * a target ``relative_to`` a reference (the object minus the gripper): plus the reference's
+      motion since the latch, read from the env (``reference``: its key and dims; the gripper
+      position is proprioception, present through a camera outage).
+
+    The scale served is the latched scale at the same latched step. ``rule`` chooses, per env in
+    an outage, between the advanced latch and the fresh forecast: ``"latched"``, ``"fresh"``,
+    ``"scale"`` (the one whose mean predicted scale is smaller) or ``"precision"`` (their
+    precision-weighted combination per step and dim, scale ``(1/s1² + 1/s2²)^-1/2``). The age
+    written is the latch's where the latched forecast is served or combined, else 0. A reset
+    clears the latch of the envs it resets. The latch is module state like the history (buffers:
+    ``state_dict`` carries it, ``.to(device)`` moves it).
+
+    Args:
+        model, stats, stride, denormalize, trace, per_step_presence: as `ForecastTransform`
+            (``per_step_presence`` applies to the fresh forecast).
+        latch_on: the modalities whose presence makes a forecast worth latching (default: every
+            image modality).
+        rule: one of ``RULES``. The default, ``"precision"``, forecasts the object best through a
+            camera outage on held-out push episodes, for a relative target and one relative to
+            the gripper alike (`benchmarks/latched_forecast_outage.py`).
+        relative: the model forecasts displacements from the target's current value
+            (``data.target.relative``).
+        reference: ``(env key, dims)`` of the reference a ``data.target.relative_to`` target is
+            measured from, read raw (in the target's units) from the env's output.
+    """
+
+    def __init__(
+        self,
+        model: nn.Module,
+        stats: Mapping[str, torch.Tensor],
+        *,
+        stride: int = 1,
+        latch_on: Sequence[str] | None = None,
+        rule: str = "precision",
+        relative: bool = False,
+        reference: tuple[NestedKey, Sequence[int]] | None = None,
+        denormalize: bool = True,
+        trace: bool = True,
+        per_step_presence: bool = False,
+    ):
+        super().__init__(
+            model,
+            stats,
+            stride=stride,
+            denormalize=denormalize,
+            trace=trace,
+            per_step_presence=per_step_presence,
+        )
+        self.out_keys.append(keys.FORECAST_AGE)
+        self._latch_modalities = self._latch_indices(latch_on)
+        if rule not in RULES:
+            raise ValueError(
+                f"LatchedForecastTransform: unknown rule {rule!r}; expected one of {list(RULES)}"
+            )
+        if relative and reference is not None:
+            raise ValueError(
+                "LatchedForecastTransform: a target is relative to its own current value (relative=True) "
+                "or to a reference, not both (data.target.relative / data.target.relative_to)"
+            )
+        self.rule, self.relative = rule, relative
+        self.reference_key = None if reference is None else reference[0]
+        device, shape = self._slots.device, (0, self.horizon, self.target_dim)
+        if reference is not None:
+            dims = torch.as_tensor(list(reference[1]), dtype=torch.long)
+            if dims.numel() != self.target_dim:
+                raise ValueError(
+                    f"LatchedForecastTransform: reference dims {dims.tolist()} give {dims.numel()} values, "
+                    f"the target has {self.target_dim}; give one reference dim per target dim"
+                )
+            self.register_buffer("_reference_dims", dims.to(device), persistent=False)
+        self.register_buffer(
+            "_forecast_steps", torch.arange(1, self.horizon + 1, device=device), persistent=False
+        )
+        self.register_buffer("_latched_loc", torch.zeros(shape, device=device))
+        self.register_buffer("_latched_scale", torch.ones(shape, device=device))
+        self.register_buffer("_latched_reference", torch.zeros(0, self.target_dim, device=device))
+        self.register_buffer("_age", torch.zeros(0, dtype=torch.long, device=device))
+        self.register_buffer("_has_latch", torch.zeros(0, dtype=torch.bool, device=device))
+        self._age_increment = 1  # 1 on a step, 0 on a reset (the envs not reset did not move)
+
+    def _latch_indices(self, latch_on: Sequence[str] | None) -> list[int]:
+        names = [s.name for s in self.specs]
+        if latch_on is None:
+            latch_on = [s.name for s in self.specs if s.kind == "image"]
+        unknown = sorted(set(latch_on) - set(names))
+        if unknown or not latch_on:
+            raise ValueError(
+                f"LatchedForecastTransform: latch_on must name some of the model's modalities {names}, "
+                f"found {list(latch_on)}"
+                + (" (the model has no image modality: name one)" if not latch_on else "")
+            )
+        return [names.index(name) for name in latch_on]
+
+    @classmethod
+    def from_checkpoint(
+        cls,
+        path: str | os.PathLike,
+        *,
+        latch_on: Sequence[str] | None = None,
+        rule: str = "precision",
+        denormalize: bool = True,
+        trace: bool = True,
+        map_location: str | torch.device = "cpu",
+        per_step_presence: bool = False,
+    ) -> LatchedForecastTransform:
+        """Load the model, stats, stride and target frame (``relative`` / ``relative_to``, whose
+        feature must be one of the model's modalities: the env emits it) from a checkpoint."""
+        model, stats, data_config = load_trained_model(path, map_location)
+        target = data_config.get("target", {})
+        return cls(
+            model,
+            stats,
+            stride=int(data_config.get("stride", 1)),
+            latch_on=latch_on,
+            rule=rule,
+            relative=bool(target.get("relative", False)),
+            reference=_reference_in_env(
+                target.get("relative_to"), data_config.get("modalities", {}), model.config.target_dim
+            ),
+            denormalize=denormalize,
+            trace=trace,
+            per_step_presence=per_step_presence,
+        )
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        observation_spec = super().transform_observation_spec(observation_spec)
+        batch = observation_spec.shape
+        observation_spec[keys.FORECAST_AGE] = Unbounded(batch, dtype=torch.float32)
+        return observation_spec
+
+    # -- state ---------------------------------------------------------------------------------
+
+    def _batch_size_changed(self) -> None:
+        super()._batch_size_changed()
+        n = 0 if self._batch_size is None else self._batch_size.numel()
+        if self._age.shape[0] != n:  # a state load of the same batch keeps the loaded latch
+            for name in _LATCH_BUFFERS:
+                current = getattr(self, name)
+                setattr(self, name, current.new_zeros(n, *current.shape[1:]))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        # The latch is shaped by the env batch of the saved transform: take its shape first.
+        for name in _LATCH_BUFFERS:
+            saved = state_dict.get(prefix + name)
+            if saved is not None and saved.shape != getattr(self, name).shape:
+                setattr(self, name, getattr(self, name).new_empty(saved.shape))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        if self._batch_size == tensordict_reset.batch_size:
+            rows = reset_rows(tensordict, self._batch_size, self._batch_size, type(self).__name__)
+            rows = rows.to(self._age.device)
+            self._has_latch.masked_fill_(rows, False)
+            self._age.masked_fill_(rows, 0)
+        self._age_increment = 0
+        try:
+            return super()._reset(tensordict, tensordict_reset)
+        finally:
+            self._age_increment = 1
+
+    # -- forecast ------------------------------------------------------------------------------
+
+    def _emit(self, tensordict: TensorDictBase) -> TensorDictBase:
+        tensordict = super()._emit(tensordict)
+        batch, n = self._batch_size, self._batch_size.numel()
+        loc = tensordict.get(keys.FORECAST_LOC).reshape(n, self.horizon, self.target_dim)
+        scale = tensordict.get(keys.FORECAST_SCALE).reshape(n, self.horizon, self.target_dim)
+        normalizer = self.normalizer
+        if not self.denormalize:  # the latch is kept in the target's units (where re-basing is a sum)
+            loc, scale = normalizer.denormalize_target(loc), normalizer.denormalize_target_scale(scale)
+        reference = self._reference(tensordict, n)
+        fresh = self._latch(loc, scale, reference)
+        held_loc, held_scale = self.advanced(reference)
+        loc, scale, age, latched = self._choose(~fresh & self._has_latch, loc, scale, held_loc, held_scale)
+        if not self.denormalize:
+            loc = normalizer.normalize("target", loc)
+            scale = scale / normalizer.stats["target/std"]
+        tensordict.set(keys.FORECAST_LOC, loc.reshape(*batch, self.horizon, self.target_dim))
+        tensordict.set(keys.FORECAST_SCALE, scale.reshape(*batch, self.horizon, self.target_dim))
+        tensordict.set(keys.FORECAST_VALID, tensordict.get(keys.FORECAST_VALID) | latched.reshape(batch))
+        tensordict.set(keys.FORECAST_AGE, age.reshape(batch))
+        return tensordict
+
+    def _reference(self, tensordict: TensorDictBase, n: int) -> torch.Tensor | None:
+        """The reference's current value ``[n, D]`` (target units), when the target has one."""
+        if self.reference_key is None:
+            return None
+        values = tensordict.get(self.reference_key).reshape(n, -1).to(self._age.device)
+        return values.index_select(1, self._reference_dims).float()
+
+    def _latch(self, loc: torch.Tensor, scale: torch.Tensor, reference: torch.Tensor | None) -> torch.Tensor:
+        """Latch the fresh forecast of the envs whose ``latch_on`` sensors fill the window; age the
+        others. Returns those envs ``[n]``."""
+        slots = self._slots[self._newest]
+        fresh = torch.ones_like(self._has_latch)
+        for i in self._latch_modalities:
+            if self.specs[i].kind == "vector":  # a vector modality's window is its last step
+                fresh &= self._presence(i)[:, self._newest]
+            else:
+                fresh &= self._presence(i).index_select(1, slots).all(1)
+        keep = fresh.view(-1, 1, 1)
+        self._latched_loc.copy_(torch.where(keep, loc, self._latched_loc))
+        self._latched_scale.copy_(torch.where(keep, scale, self._latched_scale))
+        if reference is not None:
+            self._latched_reference.copy_(torch.where(fresh.view(-1, 1), reference, self._latched_reference))
+        self._age.copy_(torch.where(fresh, 0, self._age + self._age_increment))
+        self._has_latch |= fresh
+        return fresh
+
+    def advanced(self, reference: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every env's latched forecast advanced by its age and re-based to the current step:
+        ``loc``, ``scale`` ``[n, T, D]`` in the target's units (see the class doc). ``reference``:
+        its current value ``[n, D]`` for a ``relative_to`` target."""
+        shift = torch.div(self._age, self.stride, rounding_mode="floor").clamp_(max=self.horizon)
+        index = (shift[:, None] + self._forecast_steps).clamp_(max=self.horizon) - 1
+        index = index[:, :, None].expand(-1, -1, self.target_dim)
+        loc, scale = self._latched_loc.gather(1, index), self._latched_scale.gather(1, index)
+        if self.relative:
+            # The latched forecast's own prediction of the current value (0 when the latch is fresh).
+            now = self._latched_loc.gather(
+                1, (shift - 1).clamp(min=0).view(-1, 1, 1).expand(-1, 1, self.target_dim)
+            )
+            loc = loc - now * (shift > 0).view(-1, 1, 1)
+        elif reference is not None:
+            loc = loc + (self._latched_reference - reference)[:, None, :]
+        return loc, scale
+
+    def _choose(self, outage, loc, scale, held_loc, held_scale) -> tuple[torch.Tensor, ...]:
+        """``loc``, ``scale``, age (float ``[n]``) and where the latch was used ``[n]``, by the rule."""
+        if self.rule == "fresh":
+            use = torch.zeros_like(outage)
+        elif self.rule == "scale":
+            use = outage & (held_scale.mean((1, 2)) < scale.mean((1, 2)))
+        else:
+            use = outage
+        age = torch.where(use, self._age, 0).float()
+        keep = use.view(-1, 1, 1)
+        if self.rule == "precision":
+            fresh_precision, held_precision = scale.pow(-2), held_scale.pow(-2)
+            total = fresh_precision + held_precision
+            combined_loc = (loc * fresh_precision + held_loc * held_precision) / total
+            return combined_loc.where(keep, loc), total.rsqrt().where(keep, scale), age, use
+        return held_loc.where(keep, loc), held_scale.where(keep, scale), age, use
+
+
+def _reference_in_env(
+    relative_to: Mapping | None, modalities: Mapping, target_dim: int
+) -> tuple[NestedKey, list[int]] | None:
+    """``data.target.relative_to`` as the env key and dims it is read from: the ``("obs", m)`` of the
+    modality that reads the same feature (its dims mapped through the modality's ``dims``)."""
+    if not relative_to:
+        return None
+    feature = relative_to["feature"]
+    dims = relative_to.get("dims") or list(range(target_dim))  # unset: the whole feature
+    for name, modality in modalities.items():
+        modality = {"feature": modality} if isinstance(modality, str) else modality
+        kept = modality.get("dims") or list(range(max(dims) + 1))
+        if modality["feature"] == feature and set(dims) <= set(kept):
+            return keys.obs_key(name), [kept.index(d) for d in dims]
+    raise ValueError(
+        f"LatchedForecastTransform: the target is relative to {feature!r} dims {dims}, which no model "
+        f"modality reads ({dict(modalities)}), so the env does not emit it; pass reference=(env key, dims)"
+    )
