@@ -31,8 +31,16 @@ logger = logging.getLogger(__name__)
 
 # How a latched forecast and a fresh one (from the sensors left) are combined during an outage.
 RULES = ("latched", "fresh", "scale", "precision")
-# The per-env latch: its forecast and reference (target units), its age, whether there is one.
-_LATCH_BUFFERS = ("_latched_loc", "_latched_scale", "_latched_reference", "_age", "_has_latch")
+# The per-env latch: its forecast and reference (target units), its age, whether there is one; and
+# the reference's last readable value.
+_LATCH_BUFFERS = (
+    "_latched_loc",
+    "_latched_scale",
+    "_latched_reference",
+    "_age",
+    "_has_latch",
+    "_last_reference",
+)
 
 
 class LatchedForecastTransform(ForecastTransform):
@@ -53,7 +61,8 @@ class LatchedForecastTransform(ForecastTransform):
       own prediction of the current value, so it stays a displacement from now;
     * a target ``relative_to`` a reference (the object minus the gripper): plus the reference's
       motion since the latch, read from the env (``reference``: its key and dims; the gripper
-      position is proprioception, present through a camera outage).
+      position is proprioception, present through a camera outage). While the reference is
+      unreadable (its ``("present", m)`` flag off, or NaN/Inf) its last readable value stands in.
 
     The scale served is the latched scale at the same latched step. ``rule`` chooses, per env in
     an outage, between the advanced latch and the fresh forecast: ``"latched"``, ``"fresh"``,
@@ -111,25 +120,35 @@ class LatchedForecastTransform(ForecastTransform):
                 "or to a reference, not both (data.target.relative / data.target.relative_to)"
             )
         self.rule, self.relative = rule, relative
-        self.reference_key = None if reference is None else reference[0]
+        self._set_reference(reference)
         device, shape = self._slots.device, (0, self.horizon, self.target_dim)
-        if reference is not None:
-            dims = torch.as_tensor(list(reference[1]), dtype=torch.long)
-            if dims.numel() != self.target_dim:
-                raise ValueError(
-                    f"LatchedForecastTransform: reference dims {dims.tolist()} give {dims.numel()} values, "
-                    f"the target has {self.target_dim}; give one reference dim per target dim"
-                )
-            self.register_buffer("_reference_dims", dims.to(device), persistent=False)
         self.register_buffer(
             "_forecast_steps", torch.arange(1, self.horizon + 1, device=device), persistent=False
         )
         self.register_buffer("_latched_loc", torch.zeros(shape, device=device))
         self.register_buffer("_latched_scale", torch.ones(shape, device=device))
         self.register_buffer("_latched_reference", torch.zeros(0, self.target_dim, device=device))
+        self.register_buffer("_last_reference", torch.zeros(0, self.target_dim, device=device))
         self.register_buffer("_age", torch.zeros(0, dtype=torch.long, device=device))
         self.register_buffer("_has_latch", torch.zeros(0, dtype=torch.bool, device=device))
         self._age_increment = 1  # 1 on a step, 0 on a reset (the envs not reset did not move)
+
+    def _set_reference(self, reference: tuple[NestedKey, Sequence[int]] | None) -> None:
+        self.reference_key = None if reference is None else reference[0]
+        # The presence flag of an ("obs", m) reference: an absent sensor's values are no reading.
+        self._reference_present_key = None
+        key = self.reference_key
+        if isinstance(key, tuple) and len(key) == 2 and key[0] == keys.OBS:
+            self._reference_present_key = keys.present_key(key[1])
+        if reference is None:
+            return
+        dims = torch.as_tensor(list(reference[1]), dtype=torch.long)
+        if dims.numel() != self.target_dim:
+            raise ValueError(
+                f"LatchedForecastTransform: reference dims {dims.tolist()} give {dims.numel()} values, "
+                f"the target has {self.target_dim}; give one reference dim per target dim"
+            )
+        self.register_buffer("_reference_dims", dims.to(self._slots.device), persistent=False)
 
     def _latch_indices(self, latch_on: Sequence[str] | None) -> list[int]:
         names = [s.name for s in self.specs]
@@ -235,11 +254,17 @@ class LatchedForecastTransform(ForecastTransform):
         return tensordict
 
     def _reference(self, tensordict: TensorDictBase, n: int) -> torch.Tensor | None:
-        """The reference's current value ``[n, D]`` (target units), when the target has one."""
+        """The reference's current value ``[n, D]`` (target units; its last readable value where it
+        cannot be read now), when the target has one."""
         if self.reference_key is None:
             return None
         values = tensordict.get(self.reference_key).reshape(n, -1).to(self._age.device)
-        return values.index_select(1, self._reference_dims).float()
+        values = values.index_select(1, self._reference_dims).float()
+        readable = torch.isfinite(values).all(1)
+        if self._reference_present_key is not None:
+            readable &= tensordict.get(self._reference_present_key).reshape(n).to(readable.device)
+        self._last_reference.copy_(torch.where(readable[:, None], values, self._last_reference))
+        return self._last_reference
 
     def _latch(self, loc: torch.Tensor, scale: torch.Tensor, reference: torch.Tensor | None) -> torch.Tensor:
         """Latch the fresh forecast of the envs whose ``latch_on`` sensors fill the window; age the
