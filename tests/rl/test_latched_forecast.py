@@ -275,3 +275,15 @@ def test_the_normalised_frame_serves_the_same_forecast(recorded_steps, tmp_path)
             normalizer.denormalize_target_scale(normalised[t][keys.FORECAST_SCALE]),
             units[t][keys.FORECAST_SCALE],
         )
+
+
+def test_the_latch_follows_the_transform_to_a_device(recorded_steps, tmp_path):  # noqa: F811
+    transform = LatchedForecastTransform.from_checkpoint(
+        target_checkpoint(tmp_path, {"relative_to": GRIPPER})
+    )
+    replay(transform, camera_outages(recorded_steps, {0: range(2, 8), 1: range(3, 8), 2: range(4, 8)})[:8])
+    latch = {"_latched_loc", "_latched_scale", "_latched_reference", "_last_reference", "_age", "_has_latch"}
+    assert latch <= set(transform.state_dict()), "the latch is state"
+    transform.to("meta")
+    assert {t.device.type for t in transform.buffers()} == {"meta"}
+    assert transform._age.shape == (RECORDED_ENVS,), "moved, not reallocated"  # noqa: SLF001
