@@ -122,9 +122,6 @@ class LatchedForecastTransform(ForecastTransform):
         self.rule, self.relative = rule, relative
         self._set_reference(reference)
         device, shape = self._slots.device, (0, self.horizon, self.target_dim)
-        self.register_buffer(
-            "_forecast_steps", torch.arange(1, self.horizon + 1, device=device), persistent=False
-        )
         self.register_buffer("_latched_loc", torch.zeros(shape, device=device))
         self.register_buffer("_latched_scale", torch.ones(shape, device=device))
         self.register_buffer("_latched_reference", torch.zeros(0, self.target_dim, device=device))
@@ -243,7 +240,8 @@ class LatchedForecastTransform(ForecastTransform):
         reference = self._reference(tensordict, n)
         fresh = self._latch(loc, scale, reference)
         held_loc, held_scale = self.advanced(reference)
-        loc, scale, age, latched = self._choose(~fresh & self._has_latch, loc, scale, held_loc, held_scale)
+        outage = ~fresh & self._has_latch
+        loc, scale, age, latched = choose(self.rule, outage, self._age, loc, scale, held_loc, held_scale)
         if not self.denormalize:
             loc = normalizer.normalize("target", loc)
             scale = scale / normalizer.stats["target/std"]
@@ -289,36 +287,64 @@ class LatchedForecastTransform(ForecastTransform):
         """Every env's latched forecast advanced by its age and re-based to the current step:
         ``loc``, ``scale`` ``[n, T, D]`` in the target's units (see the class doc). ``reference``:
         its current value ``[n, D]`` for a ``relative_to`` target."""
-        shift = torch.div(self._age, self.stride, rounding_mode="floor").clamp_(max=self.horizon)
-        index = (shift[:, None] + self._forecast_steps).clamp_(max=self.horizon) - 1
-        index = index[:, :, None].expand(-1, -1, self.target_dim)
-        loc, scale = self._latched_loc.gather(1, index), self._latched_scale.gather(1, index)
-        if self.relative:
-            # The latched forecast's own prediction of the current value (0 when the latch is fresh).
-            now = self._latched_loc.gather(
-                1, (shift - 1).clamp(min=0).view(-1, 1, 1).expand(-1, 1, self.target_dim)
-            )
-            loc = loc - now * (shift > 0).view(-1, 1, 1)
-        elif reference is not None:
-            loc = loc + (self._latched_reference - reference)[:, None, :]
-        return loc, scale
+        motion = None if reference is None else reference - self._latched_reference
+        return advance(self._latched_loc, self._latched_scale, self._age, self.stride, self.relative, motion)
 
-    def _choose(self, outage, loc, scale, held_loc, held_scale) -> tuple[torch.Tensor, ...]:
-        """``loc``, ``scale``, age (float ``[n]``) and where the latch was used ``[n]``, by the rule."""
-        if self.rule == "fresh":
-            use = torch.zeros_like(outage)
-        elif self.rule == "scale":
-            use = outage & (held_scale.mean((1, 2)) < scale.mean((1, 2)))
-        else:
-            use = outage
-        age = torch.where(use, self._age, 0).float()
-        keep = use.view(-1, 1, 1)
-        if self.rule == "precision":
-            fresh_precision, held_precision = scale.pow(-2), held_scale.pow(-2)
-            total = fresh_precision + held_precision
-            combined_loc = (loc * fresh_precision + held_loc * held_precision) / total
-            return combined_loc.where(keep, loc), total.rsqrt().where(keep, scale), age, use
-        return held_loc.where(keep, loc), held_scale.where(keep, scale), age, use
+
+def advance(
+    loc: torch.Tensor,
+    scale: torch.Tensor,
+    age: torch.Tensor,
+    stride: int,
+    relative: bool,
+    reference_motion: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forecasts ``loc``, ``scale`` ``[n, T, D]`` (target units) made ``age`` ``[n]`` env steps ago,
+    served for now (`LatchedForecastTransform`'s rules): shifted by ``age // stride`` forecast steps,
+    the last step held past the horizon; a ``relative`` target minus the forecast's own prediction
+    of the current value; a target relative to a reference minus the reference's motion since
+    (``reference_motion`` ``[n, D]``: now minus then)."""
+    horizon, dim = loc.shape[1:]
+    shift = torch.div(age, stride, rounding_mode="floor").clamp(max=horizon)
+    steps = torch.arange(1, horizon + 1, device=loc.device)
+    index = ((shift[:, None] + steps).clamp(max=horizon) - 1)[:, :, None].expand(-1, -1, dim)
+    held_loc, held_scale = loc.gather(1, index), scale.gather(1, index)
+    if relative:
+        # The forecast's own prediction of the current value (0 when it is fresh).
+        now = loc.gather(1, (shift - 1).clamp(min=0).view(-1, 1, 1).expand(-1, 1, dim))
+        held_loc = held_loc - now * (shift > 0).view(-1, 1, 1)
+    elif reference_motion is not None:
+        held_loc = held_loc - reference_motion[:, None, :]
+    return held_loc, held_scale
+
+
+def choose(
+    rule: str,
+    outage: torch.Tensor,
+    age: torch.Tensor,
+    loc: torch.Tensor,
+    scale: torch.Tensor,
+    held_loc: torch.Tensor,
+    held_scale: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per row where ``outage`` ``[n]``, the fresh forecast (``loc``, ``scale``), the advanced latch
+    (``held_*``) or their combination by ``rule`` (`RULES`); elsewhere the fresh one. Returns
+    ``loc``, ``scale``, the age served (float ``[n]``: ``age`` where the latch is used, else 0) and
+    where it is used ``[n]``."""
+    if rule == "fresh":
+        use = torch.zeros_like(outage)
+    elif rule == "scale":
+        use = outage & (held_scale.mean((1, 2)) < scale.mean((1, 2)))
+    else:
+        use = outage
+    served_age = torch.where(use, age, 0).float()
+    keep = use.view(-1, 1, 1)
+    if rule == "precision":
+        fresh_precision, held_precision = scale.pow(-2), held_scale.pow(-2)
+        total = fresh_precision + held_precision
+        combined_loc = (loc * fresh_precision + held_loc * held_precision) / total
+        return combined_loc.where(keep, loc), total.rsqrt().where(keep, scale), served_age, use
+    return held_loc.where(keep, loc), held_scale.where(keep, scale), served_age, use
 
 
 def _reference_in_env(
