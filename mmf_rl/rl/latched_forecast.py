@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import torch
 from tensordict import NestedKey, TensorDictBase
@@ -23,8 +24,10 @@ from torch import nn
 from torchrl.data import Composite, Unbounded
 
 from mmf_rl import keys
+from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.envs.modality_dropout import reset_rows
 from mmf_rl.models.loading import load_trained_model
+from mmf_rl.rl.demonstrations import Demonstrations, ForecastTable
 from mmf_rl.rl.transforms import ForecastTransform
 
 logger = logging.getLogger(__name__)
@@ -162,34 +165,22 @@ class LatchedForecastTransform(ForecastTransform):
 
     @classmethod
     def from_checkpoint(
-        cls,
-        path: str | os.PathLike,
-        *,
-        latch_on: Sequence[str] | None = None,
-        rule: str = "precision",
-        denormalize: bool = True,
-        trace: bool = True,
-        map_location: str | torch.device = "cpu",
-        per_step_presence: bool = False,
+        cls, path: str | os.PathLike, *, map_location: str | torch.device = "cpu", **options
     ) -> LatchedForecastTransform:
-        """Load the model, stats, stride and target frame (``relative`` / ``relative_to``, whose
-        feature must be one of the model's modalities: the env emits it) from a checkpoint."""
-        model, stats, data_config = load_trained_model(path, map_location)
-        target = data_config.get("target", {})
-        return cls(
-            model,
-            stats,
-            stride=int(data_config.get("stride", 1)),
-            latch_on=latch_on,
-            rule=rule,
-            relative=bool(target.get("relative", False)),
-            reference=_reference_in_env(
-                target.get("relative_to"), data_config.get("modalities", {}), model.config.target_dim
-            ),
-            denormalize=denormalize,
-            trace=trace,
-            per_step_presence=per_step_presence,
-        )
+        """Load the model, stats, stride and target frame from a checkpoint (`for_trained`);
+        ``options``: ``latch_on``, ``rule``, ``denormalize``, ``trace``, ``per_step_presence``."""
+        return cls.for_trained(*load_trained_model(path, map_location), **options)
+
+    @classmethod
+    def for_trained(
+        cls, model: nn.Module, stats: Mapping[str, torch.Tensor], data_config: Mapping, **options
+    ) -> LatchedForecastTransform:
+        """The transform of a trained model (`load_trained_model`'s triple): the stride and the
+        target frame (``relative`` / ``relative_to``, whose feature must be one of the model's
+        modalities: the env emits it) from its data config."""
+        relative, reference = target_frame(data_config, model.config.target_dim)
+        stride = int(data_config.get("stride", 1))
+        return cls(model, stats, stride=stride, relative=relative, reference=reference, **options)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         observation_spec = super().transform_observation_spec(observation_spec)
@@ -345,6 +336,127 @@ def choose(
         combined_loc = (loc * fresh_precision + held_loc * held_precision) / total
         return combined_loc.where(keep, loc), total.rsqrt().where(keep, scale), served_age, use
     return held_loc.where(keep, loc), held_scale.where(keep, scale), served_age, use
+
+
+@dataclass
+class LatchedForecastTable:
+    """What `LatchedForecastTransform` serves a policy at each demonstration frame, for training
+    it offline: a `ForecastTable`'s forecasts, latched and advanced as the transform does.
+
+    A sample whose ``latch_on`` sensors are out (the loader's outage) is given an age ``a``: its
+    camera died ``a`` env steps before, so the latch is the forecast of frame ``f - a`` with those
+    sensors present (and the sample's other outages), advanced and re-based by `advance`, then
+    chosen or combined with the sample's fresh forecast by ``rule`` (`choose`). The age is drawn
+    per sample: with probability ``never_latched`` none (the sensor was never seen in the episode:
+    the fresh forecast, age 0), else uniform in ``1 .. min(max_age, f - episode start)``. The
+    frames before an outage are assumed to have had the sensors (true of the recorded pushes).
+    Batches carry ``("forecast", "loc"/"scale")`` in the forecaster's normalised frame and
+    ``("forecast", "age")``.
+
+    Args:
+        table: the forecaster's `ForecastTable`; ``latch_on`` must be among its ``droppable``.
+        demonstrations: its demonstrations (episode starts, the reference's raw values).
+        stats: the forecaster's normalisation statistics (the latch is re-based in target units).
+        rule, stride, relative, reference, latch_on: as `LatchedForecastTransform`
+            (`target_frame` reads ``relative`` and ``reference`` from a run's data config).
+    """
+
+    table: ForecastTable
+    demonstrations: Demonstrations
+    stats: Mapping[str, torch.Tensor]
+    rule: str = "precision"
+    stride: int = 1
+    relative: bool = False
+    reference: tuple[NestedKey, Sequence[int]] | None = None
+    latch_on: tuple[str, ...] = ("image",)
+    max_age: int = 50
+    never_latched: float = 0.2
+
+    def __post_init__(self):
+        if self.rule not in RULES:
+            raise ValueError(
+                f"LatchedForecastTable: unknown rule {self.rule!r}; expected one of {list(RULES)}"
+            )
+        if not self.latch_on or set(self.latch_on) - set(self.table.droppable):
+            raise ValueError(
+                f"LatchedForecastTable: latch_on {list(self.latch_on)} must be outages the ForecastTable "
+                f"covers ({list(self.table.droppable)}); compute it with droppable including them"
+            )
+        self.latch_on = tuple(self.latch_on)
+        if self.max_age < 1 or not 0.0 <= self.never_latched <= 1.0:
+            raise ValueError(
+                f"LatchedForecastTable: max_age must be >= 1 and never_latched in [0, 1], found "
+                f"{self.max_age}, {self.never_latched}"
+            )
+        key = self.reference[0] if self.reference is not None else None
+        if key is not None and not (isinstance(key, tuple) and len(key) == 2 and key[0] == keys.OBS):
+            raise ValueError(
+                f"LatchedForecastTable: the reference must be a modality the demonstrations hold, an "
+                f"('obs', m) key, found {key!r}"
+            )
+        self.normalizer = Normalizer(dict(self.stats))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.table.shape
+
+    @property
+    def droppable(self) -> tuple[str, ...]:
+        return self.table.droppable
+
+    def served(
+        self, frames: torch.Tensor, absent: Mapping[str, torch.Tensor], ages: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``loc``, ``scale`` (normalised) and age (float) served at ``frames`` whose latch is
+        ``ages`` ``[B]`` env steps old (0: none, the fresh forecast)."""
+        loc, scale = self.table.lookup(frames, absent)
+        source = frames - ages
+        with_sensors = {m: a for m, a in absent.items() if m not in self.latch_on}
+        latched_loc, latched_scale = self.table.lookup(source, with_sensors)
+        units = self.normalizer
+        motion = None
+        if self.reference is not None:
+            name, dims = self.reference[0][1], list(self.reference[1])
+            observed = self.demonstrations.observation
+            motion = observed(name, frames)[:, dims] - observed(name, source)[:, dims]
+        held = advance(
+            units.denormalize_target(latched_loc),
+            units.denormalize_target_scale(latched_scale),
+            ages,
+            self.stride,
+            self.relative,
+            motion,
+        )
+        fresh = units.denormalize_target(loc), units.denormalize_target_scale(scale)
+        loc, scale, age, _ = choose(self.rule, ages > 0, ages, *fresh, *held)
+        return units.normalize("target", loc), scale / units.stats["target/std"], age
+
+    def draw_ages(
+        self, frames: torch.Tensor, absent: Mapping[str, torch.Tensor], generator: torch.Generator
+    ) -> torch.Tensor:
+        """The latch ages of ``frames`` (see the class doc): 0 unless a ``latch_on`` sensor is out."""
+        n = len(frames)
+        none = torch.zeros(n, dtype=torch.bool)
+        out = torch.stack([absent.get(m, none) for m in self.latch_on]).any(0)
+        # Drawn for every sample: the stream does not depend on outcomes.
+        never, uniform = torch.rand(n, generator=generator), torch.rand(n, generator=generator)
+        longest = (frames - self.demonstrations.episode_start(frames)).clamp(max=self.max_age)
+        ages = (uniform * longest).long() + 1
+        return torch.where(out & (never >= self.never_latched) & (longest > 0), ages, 0)
+
+    def entries(
+        self, frames: torch.Tensor, absent: Mapping[str, torch.Tensor], generator: torch.Generator
+    ) -> dict[tuple[str, str], torch.Tensor]:
+        """``("forecast", "loc"/"scale"/"age")`` of ``frames`` (`DemonstrationLoader`)."""
+        loc, scale, age = self.served(frames, absent, self.draw_ages(frames, absent, generator))
+        return {keys.FORECAST_LOC: loc, keys.FORECAST_SCALE: scale, keys.FORECAST_AGE: age}
+
+
+def target_frame(data_config: Mapping, target_dim: int) -> tuple[bool, tuple[NestedKey, list[int]] | None]:
+    """``relative`` and ``reference`` (env key, dims) of a run's target, from its data config."""
+    target = data_config.get("target", {})
+    reference = _reference_in_env(target.get("relative_to"), data_config.get("modalities", {}), target_dim)
+    return bool(target.get("relative", False)), reference
 
 
 def _reference_in_env(
