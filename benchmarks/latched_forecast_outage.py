@@ -15,12 +15,12 @@ with the camera never lost: the ceiling. Errors are also split by the latch's ag
 from __future__ import annotations
 
 import argparse
-import logging
 
 import torch
 from tensordict import TensorDict
 
 from mmf_rl import keys
+from mmf_rl.cli import configure_logging
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.windows import WindowDataset
 from mmf_rl.models.loading import load_trained_model
@@ -102,7 +102,6 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    logging.basicConfig(level=logging.WARNING)
 
     model, stats, data_config = load_trained_model(args.checkpoint)
     dataset = WindowDataset(DataConfig.from_dict(data_config))
@@ -134,4 +133,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
     main()

@@ -13,7 +13,6 @@ serves that forecast advanced by the time elapsed, with its age, so a policy kno
 
 from __future__ import annotations
 
-import logging
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -29,8 +28,6 @@ from mmf_rl.envs.modality_dropout import reset_rows
 from mmf_rl.models.loading import load_trained_model
 from mmf_rl.rl.demonstrations import Demonstrations, ForecastTable
 from mmf_rl.rl.transforms import ForecastTransform
-
-logger = logging.getLogger(__name__)
 
 # How a latched forecast and a fresh one (from the sensors left) are combined during an outage.
 RULES = ("latched", "fresh", "scale", "precision")
