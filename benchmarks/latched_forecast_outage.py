@@ -31,7 +31,7 @@ AGE_BUCKETS = ((1, 5), (6, 10), (11, 1000))
 
 def episode_frames(
     dataset: WindowDataset, episodes: list[int]
-) -> tuple[TensorDict, torch.Tensor, torch.Tensor]:
+) -> tuple[TensorDict, torch.Tensor, torch.Tensor | None]:
     """The episodes' frames as env steps ``[L, n]`` (cut to the shortest), the target ``[L, n, D]`` and
     the target's anchor reference ``[L, n, D]`` (None for an absolute or self-relative target)."""
     frames = TensorDict.load_memmap(dataset.cache_path / "frames")
