@@ -7,7 +7,7 @@ from mmf_rl.rl.agent import MPCActor, PushMPCAgent
 from mmf_rl.rl.bc import DEFAULT_DROPOUT, BCConfig, BCPolicy, EncoderChoice, train_bc, validation_errors
 from mmf_rl.rl.cem import SequenceCEMPlanner
 from mmf_rl.rl.demonstrations import DemonstrationLoader, Demonstrations, ForecastTable, drop_sets
-from mmf_rl.rl.latched_forecast import LatchedForecastTransform
+from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.push_objective import PushObjective
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.rl.world_model import WorldModel
@@ -25,6 +25,7 @@ __all__ = [
     "ForecasterWorldModelEnv",
     "HistoryWindow",
     "ImaginedPlanningPolicy",
+    "LatchedForecastTable",
     "LatchedForecastTransform",
     "MPCActor",
     "PushMPCAgent",
