@@ -7,9 +7,10 @@ Replays the held-out (test) episodes of the checkpoint's own dataset through
 (camera frames from the window cache, raw force and proprioception). The camera dies at step
 ``d`` for the rest of the episode (each ``--die-at``); from then on, at every step with a full
 future in the episode, the forecast is scored against the truth in the target's own frame (ADE
-and FDE in the target's units, metres for the push data) for each rule (`RULES`), and for the
-fresh forecast with per-step presence (the partial window). ``camera on`` scores the same steps
-with the camera never lost: the ceiling. Errors are also split by the latch's age.
+and FDE in the target's units, metres for the push data; the Gaussian NLL) for each rule
+(`RULES`), and for the fresh forecast with per-step presence (the partial window). ``camera on``
+scores the same steps with the camera never lost: the ceiling. Errors are also split by the
+latch's age.
 """
 
 from __future__ import annotations
@@ -73,16 +74,20 @@ def replay(transform, steps: TensorDict, die_at: int | None) -> list[TensorDict]
 
 
 def score(dataset, outputs, target, reference, die_at) -> dict[str, float]:
-    """ADE, FDE over the outage steps with a full future, and ADE per age bucket (of the latch)."""
+    """ADE, FDE and the Gaussian NLL per step and dim (of the truth under the forecast's ``loc``,
+    ``scale``) over the outage steps with a full future, and ADE per age bucket (of the latch)."""
     span = dataset.config.stride * dataset.config.horizon
-    ade, fde, ages = [], [], []
+    ade, fde, nll, ages = [], [], [], []
     for t in range(die_at, target.shape[0] - span):
-        error = (outputs[t].get(keys.FORECAST_LOC) - truth(dataset, target, reference, t)).norm(dim=-1)
+        loc, scale = outputs[t].get(keys.FORECAST_LOC), outputs[t].get(keys.FORECAST_SCALE)
+        future = truth(dataset, target, reference, t)
+        error = (loc - future).norm(dim=-1)
         ade.append(error.mean(1))
         fde.append(error[:, -1])
+        nll.append(-torch.distributions.Normal(loc, scale).log_prob(future).mean((1, 2)))
         ages.append(torch.full_like(error[:, 0], t - die_at + 1))
-    ade, fde, ages = torch.cat(ade), torch.cat(fde), torch.cat(ages)
-    result = {"ade": ade.mean().item(), "fde": fde.mean().item()}
+    ade, fde, nll, ages = torch.cat(ade), torch.cat(fde), torch.cat(nll), torch.cat(ages)
+    result = {"ade": ade.mean().item(), "fde": fde.mean().item(), "nll": nll.mean().item()}
     for low, high in AGE_BUCKETS:
         chosen = (ages >= low) & (ages <= high)
         if chosen.any():

@@ -52,9 +52,10 @@ class LatchedForecastTransform(ForecastTransform):
     ``per_step_presence`` says) latches it: the forecast is served as is, with age 0. While one
     of them is absent, the latched forecast is advanced by the env steps elapsed since it was made,
     in whole forecast steps (``age // stride``): the step ``k`` served is the latched step
-    ``shift + k``. Past the latched horizon the last latched step is held; ``age >= T * stride``
-    says that the whole forecast served is that held step. The served forecast is re-based to the
-    current step:
+    ``shift + k``. Past the latched horizon the last latched step is held, its variance growing
+    per forecast step as much as over the latched forecast's last step (it gets no surer);
+    ``age >= T * stride`` says that the whole forecast served is that held step. The served
+    forecast is re-based to the current step:
 
     * absolute target: as is;
     * ``relative`` target (a displacement from the current value): minus the latched forecast's
@@ -289,14 +290,21 @@ def advance(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Forecasts ``loc``, ``scale`` ``[n, T, D]`` (target units) made ``age`` ``[n]`` env steps ago,
     served for now (`LatchedForecastTransform`'s rules): shifted by ``age // stride`` forecast steps,
-    the last step held past the horizon; a ``relative`` target minus the forecast's own prediction
-    of the current value; a target relative to a reference minus the reference's motion since
-    (``reference_motion`` ``[n, D]``: now minus then)."""
+    the last step held past the horizon (its variance growing); a ``relative`` target minus the
+    forecast's own prediction of the current value; a target relative to a reference minus the
+    reference's motion since (``reference_motion`` ``[n, D]``: now minus then)."""
     horizon, dim = loc.shape[1:]
-    shift = torch.div(age, stride, rounding_mode="floor").clamp(max=horizon)
-    steps = torch.arange(1, horizon + 1, device=loc.device)
-    index = ((shift[:, None] + steps).clamp(max=horizon) - 1)[:, :, None].expand(-1, -1, dim)
+    forecast_steps = torch.div(age, stride, rounding_mode="floor")
+    latched_step = forecast_steps[:, None] + torch.arange(1, horizon + 1, device=loc.device)  # [n, T]
+    shift = forecast_steps.clamp(max=horizon)
+    index = (latched_step.clamp(max=horizon) - 1)[:, :, None].expand(-1, -1, dim)
     held_loc, held_scale = loc.gather(1, index), scale.gather(1, index)
+    # Past the horizon the held step grows no surer: its variance keeps growing at the rate of the
+    # forecast's own last step.
+    before_last = scale[:, -2] if horizon > 1 else torch.zeros_like(scale[:, -1])
+    growth = (scale[:, -1].square() - before_last.square()).clamp(min=0)  # [n, D] per forecast step
+    excess = (latched_step - horizon).clamp(min=0)[:, :, None]
+    held_scale = (held_scale.square() + excess * growth[:, None, :]).sqrt()
     if relative:
         # The forecast's own prediction of the current value (0 when it is fresh).
         now = loc.gather(1, (shift - 1).clamp(min=0).view(-1, 1, 1).expand(-1, 1, dim))

@@ -81,6 +81,17 @@ def advanced_by_hand(loc: torch.Tensor, age: int, stride: int = 1) -> torch.Tens
     return torch.stack([loc[min(shift + k, HORIZON) - 1] for k in range(1, HORIZON + 1)])
 
 
+def scale_by_hand(scale: torch.Tensor, age: int, stride: int = 1) -> torch.Tensor:
+    """The latched ``scale`` ``[T, D]`` served ``age`` env steps later: each forecast step past the
+    horizon adds the variance the forecast gained over its last step."""
+    growth = (scale[-1] ** 2 - scale[-2] ** 2).clamp(min=0)
+    shift, rows = age // stride, []
+    for k in range(1, HORIZON + 1):
+        past = max(0, shift + k - HORIZON)
+        rows.append((scale[min(shift + k, HORIZON) - 1] ** 2 + past * growth).sqrt())
+    return torch.stack(rows)
+
+
 def test_latch_holds_and_ages_through_a_camera_outage_and_relatches_when_it_returns(
     recorded_steps,  # noqa: F811
     absolute_checkpoint,
@@ -94,8 +105,9 @@ def test_latch_holds_and_ages_through_a_camera_outage_and_relatches_when_it_retu
         age = ages[t]
         assert served[keys.FORECAST_AGE].tolist() == [float(age)], f"step {t}"
         latch = plain[t - age]
-        for key in (keys.FORECAST_LOC, keys.FORECAST_SCALE):
-            expected = advanced_by_hand(latch[key][0], age)
+        expected_loc = advanced_by_hand(latch[keys.FORECAST_LOC][0], age)
+        expected_scale = scale_by_hand(latch[keys.FORECAST_SCALE][0], age)
+        for key, expected in ((keys.FORECAST_LOC, expected_loc), (keys.FORECAST_SCALE, expected_scale)):
             torch.testing.assert_close(
                 served[key][0], expected, msg=lambda m, t=t, k=key: f"step {t} {k}: {m}"
             )
@@ -138,6 +150,7 @@ def synthetic_latch(transform: LatchedForecastTransform, ages: list[int]) -> tor
     latched = torch.arange(n * HORIZON * TARGET_DIM, dtype=torch.float32).reshape(n, HORIZON, TARGET_DIM)
     latched = latched.pow(1.5)  # not linear in the step: a wrong shift cannot pass by accident
     transform._latched_loc.copy_(latched)  # noqa: SLF001
+    transform._latched_scale.copy_(latched.sqrt() + 1)  # noqa: SLF001 - growing with the step
     transform._age.copy_(torch.tensor(ages))  # noqa: SLF001
     transform._has_latch.fill_(True)  # noqa: SLF001
     return latched
@@ -146,20 +159,26 @@ def synthetic_latch(transform: LatchedForecastTransform, ages: list[int]) -> tor
 @pytest.mark.parametrize("stride", [1, 2])
 def test_a_relative_forecast_is_rebased_to_the_current_step(recorded_steps, tmp_path, stride):  # noqa: F811
     """A displacement from the latch step, advanced by ``s`` forecast steps, is the displacement from
-    the latched forecast's own position at ``s``: ``L[s + k] - L[s]`` (``L[0] = 0``, held past T)."""
+    the latched forecast's own position at ``s``: ``L[s + k] - L[s]`` (``L[0] = 0``, held past T);
+    past T the held step's variance keeps growing."""
     checkpoint = target_checkpoint(tmp_path, {"relative": True}, stride=stride)
     transform = LatchedForecastTransform.from_checkpoint(checkpoint)
     assert transform.relative
     transform.observe_reset(recorded_steps[0].clone())
     ages = [1, 3, 40]  # with stride 2, shifts 0, 1 and past the horizon
     latched = synthetic_latch(transform, ages)
-    loc, _ = transform.advanced()
+    loc, scale = transform.advanced()
     zero = torch.zeros(1, TARGET_DIM)
     for env, age in enumerate(ages):
         path = torch.cat([zero, latched[env]])  # L[0] = 0: the displacement at the latch step
         shift = min(age // stride, HORIZON)
         expected = torch.stack([path[min(shift + k, HORIZON)] - path[shift] for k in range(1, HORIZON + 1)])
         torch.testing.assert_close(loc[env], expected, msg=lambda m, e=env: f"env {e}: {m}")
+        expected_scale = scale_by_hand(latched[env].sqrt() + 1, age, stride)
+        torch.testing.assert_close(scale[env], expected_scale, msg=lambda m, e=env: f"env {e}: {m}")
+    assert bool((scale[2, -1] > scale[2, 0]).all()), (
+        "an outage past the horizon: the held step grows less sure"
+    )
 
 
 def test_a_target_relative_to_the_gripper_follows_the_gripper(recorded_steps, tmp_path):  # noqa: F811
