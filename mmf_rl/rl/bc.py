@@ -55,7 +55,7 @@ from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.encoders import build_encoder
 from mmf_rl.models.rows import compute_on_rows
 from mmf_rl.rl.demonstrations import ACTION, DemonstrationLoader, Demonstrations, ForecastTable, drop_sets
-from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
+from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig
 
@@ -97,6 +97,11 @@ class BCConfig:
             self.forecast_shape = tuple(int(s) for s in self.forecast_shape)
         if self.latched_forecast is not None and self.forecast_shape is None:
             raise ValueError("BCConfig: latched_forecast needs a forecast input (forecast_shape)")
+        if self.latched_forecast not in (None, *RULES):
+            raise ValueError(
+                f"BCConfig: latched_forecast must be one of {list(RULES)} or None, found "
+                f"{self.latched_forecast!r}"
+            )
 
     def to_dict(self) -> dict:
         return {
