@@ -13,15 +13,8 @@ from mmf_rl.checkpoint import META_FILE
 from mmf_rl.rl.latched_forecast import LatchedForecastTransform
 from mmf_rl.rl.transforms import ForecastTransform
 from tests.envs.stamp_env import stamp_envs
-from tests.rl.test_transforms import (
-    HISTORY,
-    HORIZON,
-    PUSH_SPECS,
-    RECORDED_ENVS,
-    TARGET_DIM,
-    recorded_steps,  # noqa: F401 - a fixture: the recorded push episodes as env steps
-    write_checkpoint,
-)
+from tests.rl.conftest import RECORDED_ENVS
+from tests.rl.test_transforms import HISTORY, HORIZON, PUSH_SPECS, TARGET_DIM, write_checkpoint
 
 GRIPPER = {"feature": "observation.state", "dims": [0, 1]}
 
@@ -93,7 +86,7 @@ def scale_by_hand(scale: torch.Tensor, age: int, stride: int = 1) -> torch.Tenso
 
 
 def test_latch_holds_and_ages_through_a_camera_outage_and_relatches_when_it_returns(
-    recorded_steps,  # noqa: F811
+    recorded_steps,
     absolute_checkpoint,
 ):
     steps = camera_outages(recorded_steps, {0: range(6, 18)})
@@ -118,7 +111,7 @@ def test_latch_holds_and_ages_through_a_camera_outage_and_relatches_when_it_retu
 
 
 def test_each_env_of_a_batch_keeps_its_own_latch_and_a_reset_clears_it(
-    recorded_steps,  # noqa: F811
+    recorded_steps,
     absolute_checkpoint,
 ):
     """Three envs, three outages; env 1 is reset mid-outage (its camera still off)."""
@@ -157,7 +150,7 @@ def synthetic_latch(transform: LatchedForecastTransform, ages: list[int]) -> tor
 
 
 @pytest.mark.parametrize("stride", [1, 2])
-def test_a_relative_forecast_is_rebased_to_the_current_step(recorded_steps, tmp_path, stride):  # noqa: F811
+def test_a_relative_forecast_is_rebased_to_the_current_step(recorded_steps, tmp_path, stride):
     """A displacement from the latch step, advanced by ``s`` forecast steps, is the displacement from
     the latched forecast's own position at ``s``: ``L[s + k] - L[s]`` (``L[0] = 0``, held past T);
     past T the held step's variance keeps growing."""
@@ -181,7 +174,7 @@ def test_a_relative_forecast_is_rebased_to_the_current_step(recorded_steps, tmp_
     )
 
 
-def test_a_target_relative_to_the_gripper_follows_the_gripper(recorded_steps, tmp_path):  # noqa: F811
+def test_a_target_relative_to_the_gripper_follows_the_gripper(recorded_steps, tmp_path):
     """For the object minus the gripper, the latched offset moves by the gripper's own motion since
     the latch (read from proprioception, dims 0-1 as in the data config)."""
     checkpoint = target_checkpoint(tmp_path, {"relative_to": GRIPPER})
@@ -205,7 +198,7 @@ def test_a_target_relative_to_the_gripper_follows_the_gripper(recorded_steps, tm
     assert any(not torch.equal(gripper[latch_step], g) for g in gripper[6:12]), "the gripper moved"
 
 
-def test_rules_fresh_scale_and_precision(recorded_steps, absolute_checkpoint):  # noqa: F811
+def test_rules_fresh_scale_and_precision(recorded_steps, absolute_checkpoint):
     steps = camera_outages(recorded_steps, {0: range(6, 40), 1: range(6, 40), 2: range(6, 40)})
     fresh = replay(ForecastTransform.from_checkpoint(absolute_checkpoint), steps)
     by_rule = {
@@ -232,7 +225,7 @@ def test_rules_fresh_scale_and_precision(recorded_steps, absolute_checkpoint):  
     assert by_rule["precision"][t][keys.FORECAST_AGE].tolist() == [float(t - 5)] * RECORDED_ENVS
 
 
-def test_the_latch_round_trips_through_the_state_dict(recorded_steps, absolute_checkpoint):  # noqa: F811
+def test_the_latch_round_trips_through_the_state_dict(recorded_steps, absolute_checkpoint):
     steps = camera_outages(recorded_steps, {0: range(5, 30), 1: range(9, 30), 2: range(2, 4)})
     running = LatchedForecastTransform.from_checkpoint(absolute_checkpoint)
     restored = LatchedForecastTransform.from_checkpoint(absolute_checkpoint)
@@ -276,7 +269,7 @@ def test_a_reference_no_modality_reads_is_refused(tmp_path):
         LatchedForecastTransform.from_checkpoint(checkpoint)
 
 
-def test_the_normalised_frame_serves_the_same_forecast(recorded_steps, tmp_path):  # noqa: F811
+def test_the_normalised_frame_serves_the_same_forecast(recorded_steps, tmp_path):
     """``denormalize=False`` (what a BC policy reads): the latch is re-based in the target's units."""
     checkpoint = target_checkpoint(tmp_path, {"relative": True})
     steps = camera_outages(recorded_steps, {0: range(4, 40), 1: range(9, 40), 2: range(2, 6)})
@@ -296,7 +289,7 @@ def test_the_normalised_frame_serves_the_same_forecast(recorded_steps, tmp_path)
         )
 
 
-def test_the_latch_follows_the_transform_to_a_device(recorded_steps, tmp_path):  # noqa: F811
+def test_the_latch_follows_the_transform_to_a_device(recorded_steps, tmp_path):
     transform = LatchedForecastTransform.from_checkpoint(
         target_checkpoint(tmp_path, {"relative_to": GRIPPER})
     )
