@@ -64,6 +64,10 @@ Design (what the policies see, and why):
   is). Training uses the forecaster's forecasts of the training frames under the same outage
   each sample is under, built by the same window rules (tests/rl/test_bc.py checks that the
   offline windows and forecasts equal the transforms' online ones).
+* ``--latched-forecast RULE``: the ``with`` policies read instead what `LatchedForecastTransform`
+  serves with that rule (the last forecast made with the camera, advanced through its outage,
+  and its age), trained on the `LatchedForecastTable` of the same forecasts (their runs are
+  ``bc_with_latched_<RULE>_forecasts_seed<S>``).
 
 Every policy plays the same seeded episodes (episode ``i`` reset with seed ``--seed + i``;
 success is FetchPush's: the object within 5 cm of the goal within the 50-step time limit) under
@@ -116,6 +120,7 @@ from mmf_rl.rl.experiment import (
     train_or_resume,
     write_results,
 )
+from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, target_frame
 from mmf_rl.rl.outage_evaluation import outage_conditions
 from mmf_rl.trainers import TrainerConfig, seed_everything
 
@@ -184,7 +189,8 @@ def bc_trainer_config(args, seed: int) -> TrainerConfig:
 
 def build_policy(args, variant: str, seed: int, demonstrations, forecasts, phases) -> BCPolicy:
     """The ``variant`` policy of BC seed ``seed``: trained under ``args.work`` unless already done."""
-    run_dir = args.work / f"bc_{variant}_forecasts_seed{seed}"
+    latched = f"_latched_{args.latched_forecast}" if variant == "with" and args.latched_forecast else ""
+    run_dir = args.work / f"bc_{variant}{latched}_forecasts_seed{seed}"
     config = bc_trainer_config(args, seed)
     table = forecasts if variant == "with" else None
     checkpoints = list_checkpoints(run_dir / "checkpoints")
@@ -234,6 +240,12 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--dropout", type=float, default=0.3, help="training outage probability of camera and force"
     )
+    parser.add_argument(
+        "--latched-forecast",
+        choices=list(RULES),
+        default=None,
+        help="the `with` policies read the latched forecast of this rule and its age (default: not latched)",
+    )
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -257,8 +269,18 @@ def forecaster_and_demonstrations(args, phases: dict[str, float]):
         data_config = {**data_config, "root": str(args.data.resolve())}
     with timed_phase(phases, "forecast the demonstrations"):
         demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
-        forecasts = ForecastTable.compute(
-            demonstrations, model, stats, DROPPABLE, stride=int(data_config.get("stride", 1))
+        stride = int(data_config.get("stride", 1))
+        forecasts = ForecastTable.compute(demonstrations, model, stats, DROPPABLE, stride=stride)
+    if args.latched_forecast:
+        relative, reference = target_frame(data_config, model.config.target_dim)
+        forecasts = LatchedForecastTable(
+            forecasts,
+            demonstrations,
+            stats,
+            rule=args.latched_forecast,
+            stride=stride,
+            relative=relative,
+            reference=reference,
         )
     return checkpoints, forecaster, demonstrations, forecasts
 
@@ -289,7 +311,9 @@ def main(argv: list[str] | None = None) -> None:
     header = run_header("benchmarks/bc_push.py", sys.argv[1:] if argv is None else argv, started, phases)
     budget = (
         f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, BC seeds {args.bc_seeds}, "
-        f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; forecaster "
+        f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; "
+        + (f"latched forecasts (rule {args.latched_forecast}); " if args.latched_forecast else "")
+        + "forecaster "
         f"`{checkpoints}`; {len(demonstrations.split_frames['train'])} training frames"
     )
     text = report(rows, errors, conditions, args.outage, f"{header}\n\n{budget}")

@@ -13,6 +13,9 @@ transform alone (timed: history update, normalisation, one batched forward, outp
 costs are measured separately in the same run: with the lean traced forward (the default,
 ``trace=True``) and with the eager TensorDict forward (``trace=False``), beside the eager model
 forward alone. Medians over the timed steps; the reset before them traces the graphs.
+`LatchedForecastTransform` (traced, its default rule) is timed on the same steps, and both
+transforms again on the same steps with the camera lost from the middle on (the latch serves
+then): its cost over the plain transform's in the same run.
 Run it on a quiet machine: the figures are wall-clock times.
 """
 
@@ -28,10 +31,12 @@ import torch
 import yaml
 from torchrl.envs import SerialEnv
 
+from mmf_rl import keys
 from mmf_rl.checkpoint import save_checkpoint
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models import build_model, saved_config
+from mmf_rl.rl.latched_forecast import LatchedForecastTransform
 from mmf_rl.rl.transforms import ForecastTransform
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -107,7 +112,30 @@ def measure(num_envs: int, checkpoint: Path, image_size: int, steps: int, warmup
                     model_times.append(time.perf_counter() - start)
         if model_times:
             times["model"] = model_times
+    times["latched"] = time_steps(LatchedForecastTransform.from_checkpoint(checkpoint), reset, frames)
+    outage = camera_lost_midway(frames)
+    times["lean_outage"] = time_steps(ForecastTransform.from_checkpoint(checkpoint), reset, outage)
+    times["latched_outage"] = time_steps(LatchedForecastTransform.from_checkpoint(checkpoint), reset, outage)
     return {name: statistics.median(values[warmup:]) for name, values in times.items()}
+
+
+def time_steps(transform: ForecastTransform, reset, frames) -> list[float]:
+    """Seconds of each of ``transform``'s steps on ``frames`` after a reset on ``reset``."""
+    transform._reset(reset.empty(), reset.clone())  # noqa: SLF001 - the transform alone, no env around it
+    seconds = []
+    for frame in frames:
+        start = time.perf_counter()
+        transform._call(frame)  # noqa: SLF001
+        seconds.append(time.perf_counter() - start)
+    return seconds
+
+
+def camera_lost_midway(frames: list) -> list:
+    """``frames`` with the camera flagged absent in every env from the middle step on."""
+    lost = [frame.clone() for frame in frames]
+    for frame in lost[len(lost) // 2 :]:
+        frame[keys.present_key("image")] = torch.zeros_like(frame[keys.present_key("image")])
+    return lost
 
 
 def main() -> None:
@@ -138,6 +166,15 @@ def main() -> None:
             f"batch {b:>3}: env step {r['env'] * 1e3:7.2f} ms, ForecastTransform {r['lean'] * 1e3:7.2f} ms "
             f"({r['lean'] / b * 1e3:.2f} ms/env; eager forward {r['eager'] * 1e3:.2f} ms, model forward "
             f"alone {r['model'] * 1e3:.2f} ms), transform/env = {r['lean'] / r['env']:.2f}"
+        )
+    for b, r in results.items():
+        print(
+            f"batch {b:>3}: LatchedForecastTransform {r['latched'] * 1e3:7.2f} ms "
+            f"(+{(r['latched'] - r['lean']) * 1e3:.2f} ms, latched/plain = {r['latched'] / r['lean']:.2f}); "
+            f"camera lost midway: latched "
+            f"{r['latched_outage'] * 1e3:.2f} ms, plain {r['lean_outage'] * 1e3:.2f} ms (+"
+            f"{(r['latched_outage'] - r['lean_outage']) * 1e3:.2f} ms, latched/plain = "
+            f"{r['latched_outage'] / r['lean_outage']:.2f})"
         )
     # The first and the last batch size (once when they are the same, e.g. ``--batches 1``).
     parts = [

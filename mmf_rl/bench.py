@@ -1,5 +1,5 @@
-"""`mmf-rl bench accuracy|bc|calibration|data|ethucy|humanoid|model|mpc|step_cost [args]`: the scripts of
-command line.
+"""`mmf-rl bench accuracy|bc|calibration|data|ethucy|humanoid|latch|model|mpc|step_cost [args]`: the
+scripts of command line.
 
 Each runs ``benchmarks/<script>.py`` of the repository checkout with the arguments that follow
 (``mmf-rl bench data --help`` shows them) and ends with that script's summary line. The scripts
@@ -22,6 +22,10 @@ BENCHMARKS = {
     "model": ("model_throughput.py", "training samples/s and inference latency of the forecaster"),
     "mpc": ("mpc_push.py", "MPC with the push world model vs the scripted pusher and a random policy"),
     "bc": ("bc_push.py", "behaviour cloning with vs without the forecast, camera or force off"),
+    "latch": (
+        "latched_forecast_outage.py",
+        "latched vs fresh forecasts of a trained run through a camera outage",
+    ),
     "humanoid": ("real_humanoid.py", "the paper model vs the baselines on the real G1 humanoid recording"),
     "calibration": (
         "calibration.py",

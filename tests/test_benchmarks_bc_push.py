@@ -7,11 +7,17 @@ from __future__ import annotations
 import json
 import re
 
+import pytest
+
 from mmf_rl.cli import main as cli
+from mmf_rl.rl import BCPolicy
 from tests.conftest import push_train_overrides
 
 
-def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_root, tmp_path, capsys):
+@pytest.mark.parametrize("latched", [None, "precision"])
+def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
+    recorded_push_root, tmp_path, capsys, latched
+):
     work = tmp_path / "work"
     tiny_forecaster = push_train_overrides(
         recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
@@ -22,6 +28,7 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_ro
         *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
         *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
         *("--episodes", "1", "--outage", "episode"),
+        *(("--latched-forecast", latched) if latched else ()),
     ]
     assert cli(["bench", "bc", *argv]) == 0
     last = capsys.readouterr().out.strip().splitlines()[-1]
@@ -39,5 +46,7 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(recorded_push_ro
     }
     assert set(results["rows"]) == expected
     assert set(results["validation_errors"]) == {"without", "with"}
-    for variant in ("without", "with"):
-        assert (work / f"bc_{variant}_forecasts_seed0" / "checkpoints" / "last").is_file()
+    with_run = f"bc_with_latched_{latched}_forecasts_seed0" if latched else "bc_with_forecasts_seed0"
+    for run in ("bc_without_forecasts_seed0", with_run):
+        assert (work / run / "checkpoints" / "last").is_file()
+    assert BCPolicy.from_checkpoint(work / with_run / "checkpoints").config.latched_forecast == latched

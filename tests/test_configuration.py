@@ -49,7 +49,12 @@ def test_a_whole_mapping_replaces_the_base_configs():
     assert data["missing"] == "observed"
     # A dotted key still edits one entry of the base config's mapping.
     data = data_of(["data.target.dims=[0]"])
-    assert data["target"] == {"feature": "observation.object_pose", "dims": [0], "relative": True}
+    assert data["target"] == {
+        "feature": "observation.object_pose",
+        "dims": [0],
+        "relative": True,
+        "relative_to": None,
+    }
     # The same over a data config that lacks the key (push_world_model has `action`, push has none).
     assert data_of(["data=push_world_model", "data.action=null"])["action"] is None
 

@@ -5,7 +5,8 @@ Layout of one cache directory (``<cache_dir>/<dataset>-<fingerprint>/``):
 * ``frames/`` (batch ``[N]``, one row per dataset frame, never duplicated per window):
   ``("obs", m)`` images ``uint8 [N, C, h, w]`` (resized) or raw vectors ``float32 [N, d]`` (NaN
   and ±Inf stored as 0 and marked absent), ``("present", m)`` bool, ``target`` raw ``float32
-  [N, D]`` (non-finite stored as 0, ``target_valid`` False), ``target_valid``, ``episode``.
+  [N, D]`` (non-finite stored as 0, ``target_valid`` False), ``target_valid``, ``episode``; with
+  ``target.relative_to``, ``target_reference`` ``[N, D]`` and ``target_reference_valid`` likewise.
 * ``windows/`` (batch ``[W]``): ``start`` (first observed frame), ``episode``, ``("present", m)``.
 * ``cache.json``: the fingerprint, the config fields it covers, what was missing (files,
   undecodable videos with the decoder's error), what was skipped, and the size and checksum
@@ -160,6 +161,10 @@ def _frame_columns(source: LeRobotSource, columns: dict[str, np.ndarray]) -> dic
         "target_valid": target_valid,
         "episode": torch.from_numpy(np.asarray(columns["episode_index"], dtype=np.int64)),
     }
+    if source.reference_feature is not None:
+        per_frame["target_reference"], per_frame["target_reference_valid"] = _vector_column(
+            columns[source.reference_feature], source.config.target.relative_to.dims, n
+        )
     if source.action_feature is not None:
         per_frame["action"], per_frame["action_valid"] = _vector_column(
             columns[source.action_feature], source.config.action.dims, n
@@ -405,6 +410,10 @@ def _allocate_frames(source: LeRobotSource, per_frame: dict, frames_dir: Path) -
         "episode": per_frame["episode"],
     }
     vector_keys = ["target", "target_valid", "episode"]
+    for key in ("target_reference", "target_reference_valid"):
+        if key in per_frame:
+            vector_keys.append(key)
+            layout[key] = per_frame[key]
     if "action" in per_frame:
         vector_keys += ["action", "action_valid"]
         layout.update(action=per_frame["action"], action_valid=per_frame["action_valid"])
@@ -423,8 +432,9 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
     """Every in-episode window that has a finite target and at least one present modality.
 
     The target must be finite at the forecast steps and at the last observed frame: a relative
-    target is measured from that frame (``relative`` is applied at batch time, not cached). With
-    an action feature, the actions over the horizon must be finite too.
+    target is measured from that frame (``relative`` is applied at batch time, not cached); so
+    must ``target.relative_to``'s feature at that frame. With an action feature, the actions over
+    the horizon must be finite too.
     """
     config = source.config
     observed, future = window_offsets(config.history, config.horizon, config.stride)
@@ -448,6 +458,8 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
     target_ok = target_valid[starts[:, None] + future].all(1) & target_valid[last_rows]
     if config.include_target_past:
         target_ok &= target_valid[observed_rows].all(1)
+    if source.reference_feature is not None:
+        target_ok &= frames.get("target_reference_valid").as_subclass(torch.Tensor)[last_rows]
     if source.action_feature is not None:
         action_valid = frames.get("action_valid").as_subclass(torch.Tensor)
         action_ok = action_valid[
@@ -620,6 +632,8 @@ def _resumable_build(destination: Path) -> Path | None:
 def estimated_size(source: LeRobotSource) -> int:
     """Bytes of the frame table of ``source``'s cache (the windows add a few bytes per frame)."""
     per_frame = 8 + 4 * source.target_dim + 1  # episode, target, target_valid
+    if source.reference_feature is not None:
+        per_frame += 4 * source.target_dim + 1
     if source.action_dim is not None:
         per_frame += 4 * source.action_dim + 1
     for m in source.modalities.values():

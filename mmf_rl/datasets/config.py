@@ -59,6 +59,25 @@ class ModalityConfig:
 
 
 @dataclass
+class TargetReference:
+    """The frame a target is forecast in: another vector feature's value at the window's last
+    observed frame (``target.relative_to``).
+
+    Args:
+        feature: a vector feature of the dataset (for the push data the gripper position,
+            ``observation.state`` dims ``[0, 1]``).
+        dims: which of its dims, one per target dim, in the target's order (all when unset).
+    """
+
+    feature: str
+    dims: list[int] | None = None
+
+    def __post_init__(self):
+        if self.dims is not None:
+            self.dims = [int(i) for i in self.dims]
+
+
+@dataclass
 class TargetConfig:
     """The forecast variable.
 
@@ -70,15 +89,34 @@ class TargetConfig:
             displacements) instead of absolute values. The model then predicts motion, not where
             things are, which is what it needs when the target's current value is not one of its
             inputs (the push task's object position).
+        relative_to: forecast the target minus another feature's dims at the window's last
+            observed frame (:class:`TargetReference`, e.g. the object's position relative to the
+            gripper: where the object is, in a frame a policy acts in). Subtracted from the future
+            and from ``target_past``; the normalisation statistics describe the offsets. Excludes
+            ``relative``.
     """
 
     feature: str
     dims: list[int] | None = None
     relative: bool = False
+    relative_to: TargetReference | None = None
 
     def __post_init__(self):
         if self.dims is not None:
             self.dims = [int(i) for i in self.dims]
+        if self.relative_to is not None and not isinstance(self.relative_to, TargetReference):
+            self.relative_to = _entry(TargetReference, self.relative_to, "target.relative_to")
+        if self.relative and self.relative_to is not None:
+            raise ValueError(
+                "data config: `target.relative` and `target.relative_to` both set; a target is measured "
+                "either from its own last observed value (relative: true) or from another feature's "
+                "(relative_to): keep one"
+            )
+
+    @property
+    def anchored(self) -> bool:
+        """The forecast is an offset from a value at the window's last observed frame."""
+        return self.relative or self.relative_to is not None
 
 
 @dataclass
@@ -355,6 +393,9 @@ class DataConfig:
             "image_size": list(self.image_size),
             "tolerance_s": self.tolerance_s,
         }
+        reference = self.target.relative_to
+        if reference is not None:  # only when set: caches built before it existed stay valid
+            fields["target"]["relative_to"] = {"feature": reference.feature, "dims": reference.dims}
         if self.action is not None:  # only when set: caches built before actions existed stay valid
             fields["action"] = {"feature": self.action.feature, "dims": self.action.dims}
         if self.video_sync != "timestamp":  # likewise: caches synced by timestamp keep their key

@@ -372,6 +372,7 @@ class LeRobotSource:
         self.target_feature, self.target_dim = self._resolve_vector(
             config.target.feature, config.target.dims, "target"
         )
+        self.reference_feature = self._resolve_reference(config.target)
         self.action_feature, self.action_dim = None, None
         if config.action is not None:
             self.action_feature, self.action_dim = self._resolve_vector(
@@ -441,6 +442,20 @@ class LeRobotSource:
         _check_dims(dims, width, f"{what} {feature!r}")
         return feature, len(dims) if dims is not None else width
 
+    def _resolve_reference(self, target) -> str | None:
+        """``target.relative_to``'s feature, checked to give one value per target dim."""
+        reference = target.relative_to
+        if reference is None:
+            return None
+        feature, width = self._resolve_vector(reference.feature, reference.dims, "target.relative_to")
+        if width != self.target_dim:
+            raise ValueError(
+                f"target.relative_to: {reference.feature!r} dims {reference.dims} give {width} values, the "
+                f"target ({target.feature!r} dims {target.dims}) has {self.target_dim}; give one reference "
+                "dim per target dim, in the target's order (e.g. the gripper's x, y for the object's x, y)"
+            )
+        return feature
+
     def _episodes_file(self, position: int) -> Path:
         """The meta/episodes parquet file that lists the episode at ``position`` of ``meta.episodes``."""
         from lerobot.datasets.utils import DEFAULT_EPISODES_PATH
@@ -495,6 +510,8 @@ class LeRobotSource:
     def _columns(self) -> set[str]:
         """The per-frame parquet columns the pipeline reads."""
         columns = {*FRAME_COLUMNS, self.target_feature}
+        if self.reference_feature is not None:
+            columns.add(self.reference_feature)
         if self.action_feature is not None:
             columns.add(self.action_feature)
         for m in self.modalities.values():

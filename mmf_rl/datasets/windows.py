@@ -82,6 +82,12 @@ class WindowDataset:
             values = _plain(frames.get(spec.obs_key))
             self._obs[spec.name] = _wide_rows(values) if spec.kind == "image" else values
         self._target = _plain(frames.get("target"))
+        # The value each window's target is measured from, at its last observed frame (None: absolute).
+        self._anchor = None
+        if config.target.relative_to is not None:
+            self._anchor = _plain(frames.get("target_reference"))
+        elif config.target.relative:
+            self._anchor = self._target
         self.frame_episode = _plain(frames.get("episode"))
         self.window_start = _plain(windows.get("start"))
         self.window_episode = _plain(windows.get("episode"))
@@ -201,7 +207,7 @@ class WindowDataset:
                     )
                 mean[raw], std[raw] = 0.0, 1.0
                 stats[f"{spec.name}/mean"], stats[f"{spec.name}/std"] = mean, std
-        if self.config.target.relative:
+        if self._anchor is not None:
             future, _ = self._targets(self.window_start[self.split_windows["train"]], with_past=False)
             rows = future.reshape(-1, future.shape[-1])
             valid = torch.ones(rows.shape[0], dtype=torch.bool)
@@ -217,11 +223,12 @@ class WindowDataset:
 
     def _targets(self, start: torch.Tensor, with_past: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Future ``[N, T, D]`` (and past ``[N, H, D]``) target values of the windows at ``start``,
-        unnormalised, relative to the last observed frame when the config says so."""
+        unnormalised, measured from the anchor at the last observed frame when the config sets one
+        (``target.relative``: the target itself; ``target.relative_to``: another feature)."""
         future = self._target[start[:, None] + self._future]
         past = self._target[start[:, None] + self._observed] if with_past else None
-        if self.config.target.relative:
-            anchor = self._target[start + self._observed[-1]][:, None]
+        if self._anchor is not None:
+            anchor = self._anchor[start + self._observed[-1]][:, None]
             future = future - anchor
             past = past - anchor if past is not None else None
         return future, past

@@ -228,7 +228,7 @@ def run_evaluation(cfg) -> dict:
     out_dir.mkdir(parents=True, exist_ok=True)
     units = f"units of {data.config.target.feature}"
     notes = evaluation_notes(
-        cfg.split, skipped, unfit, source, data.config.target.relative, results, baseline
+        cfg.split, skipped, unfit, source, data.config.target.anchored, results, baseline
     )
     summary = {
         "checkpoint": str(source.path),

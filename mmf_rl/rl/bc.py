@@ -12,7 +12,10 @@ an action in ``[-1, 1]``:
 * the goal (``"goal"``, normalised), which a FetchPush policy is always given;
 * with ``forecast_shape``: ``("forecast", "loc")`` and the log of ``("forecast", "scale")``,
   the object's motion over the next T steps as a trained forecaster sees it from the present
-  sensors (`ForecastTransform` with ``denormalize=False``: the forecaster's normalised frame).
+  sensors (`ForecastTransform` with ``denormalize=False``: the forecaster's normalised frame);
+* with ``latched_forecast`` (a rule, off by default): that forecast as a
+  `LatchedForecastTransform` serves it through a camera outage, and ``log(1 + age)`` of
+  ``("forecast", "age")``; trained on a `LatchedForecastTable`.
 
 A torchrl `MLP` maps the concatenation to the action (``tanh``). It is trained offline on the
 recorded demonstrations (`mmf_rl.rl.demonstrations`) with torchrl's `BCLoss` (mean squared error
@@ -52,6 +55,7 @@ from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.encoders import build_encoder
 from mmf_rl.models.rows import compute_on_rows
 from mmf_rl.rl.demonstrations import ACTION, DemonstrationLoader, Demonstrations, ForecastTable, drop_sets
+from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig
 
@@ -68,8 +72,10 @@ class BCConfig:
     ``modalities``: the sensor windows (their ``encoder`` and ``encoder_kwargs`` are the
     policy's own); ``history``, ``stride``: the window (`HistoryWindow`); ``goal_dim``,
     ``action_dim``; ``forecast_shape``: ``(T, D)`` of the forecast input, ``None`` for a policy
-    without it; ``d_model``: size of each modality's embedding; ``hidden``, ``depth``: the MLP
-    head's width and number of hidden layers.
+    without it; ``latched_forecast``: the rule of the `LatchedForecastTransform` whose forecast
+    and age it reads (``None``: a `ForecastTransform`'s forecast, no age); ``d_model``: size of
+    each modality's embedding; ``hidden``, ``depth``: the MLP head's width and number of hidden
+    layers.
     """
 
     modalities: list[ModalitySpec]
@@ -78,6 +84,7 @@ class BCConfig:
     goal_dim: int = 3
     action_dim: int = 4
     forecast_shape: tuple[int, int] | None = None
+    latched_forecast: str | None = None
     d_model: int = 64
     hidden: int = 256
     depth: int = 2
@@ -88,6 +95,13 @@ class BCConfig:
         ]
         if self.forecast_shape is not None:
             self.forecast_shape = tuple(int(s) for s in self.forecast_shape)
+        if self.latched_forecast is not None and self.forecast_shape is None:
+            raise ValueError("BCConfig: latched_forecast needs a forecast input (forecast_shape)")
+        if self.latched_forecast not in (None, *RULES):
+            raise ValueError(
+                f"BCConfig: latched_forecast must be one of {list(RULES)} or None, found "
+                f"{self.latched_forecast!r}"
+            )
 
     def to_dict(self) -> dict:
         return {
@@ -97,6 +111,7 @@ class BCConfig:
             "goal_dim": self.goal_dim,
             "action_dim": self.action_dim,
             "forecast_shape": None if self.forecast_shape is None else list(self.forecast_shape),
+            "latched_forecast": self.latched_forecast,
             "d_model": self.d_model,
             "hidden": self.hidden,
             "depth": self.depth,
@@ -143,6 +158,7 @@ class BCNetwork(nn.Module):
         self.register_buffer("goal_mean", stats[f"{GOAL}/mean"].float().clone())
         self.register_buffer("goal_std", stats[f"{GOAL}/std"].float().clone())
         forecast = 2 * config.forecast_shape[0] * config.forecast_shape[1] if config.forecast_shape else 0
+        forecast += config.latched_forecast is not None  # the age
         self.head = MLP(
             in_features=len(config.modalities) * (config.d_model + 1) + config.goal_dim + forecast,
             out_features=config.action_dim,
@@ -170,8 +186,10 @@ class BCNetwork(nn.Module):
             features += [embedding, present.unsqueeze(1).float()]
         features.append((goal.reshape(n, -1) - self.goal_mean) / self.goal_std)
         if config.forecast_shape is not None:
-            loc, scale = inputs[2 * m + 1 :]
+            loc, scale = inputs[2 * m + 1 : 2 * m + 3]
             features += [loc.reshape(n, -1), scale.reshape(n, -1).clamp_min(1e-6).log()]
+        if config.latched_forecast is not None:
+            features.append(inputs[2 * m + 3].reshape(n, 1).float().log1p())
         return torch.tanh(self.head(torch.cat(features, -1))).reshape(*batch, config.action_dim)
 
 
@@ -194,6 +212,8 @@ class BCPolicy(TensorDictModule):
         )
         if config.forecast_shape is not None:
             in_keys += [keys.FORECAST_LOC, keys.FORECAST_SCALE]
+        if config.latched_forecast is not None:
+            in_keys.append(keys.FORECAST_AGE)
         super().__init__(network, in_keys=in_keys, out_keys=[ACTION])
         self.config = config
         self.stats = {k: v.detach().float().clone() for k, v in stats.items()}
@@ -207,8 +227,8 @@ class BCPolicy(TensorDictModule):
         **sizes,
     ) -> BCPolicy:
         """A policy for the windows, goal and action of ``demonstrations``; it reads forecasts of
-        ``forecasts``' shape when given. ``sizes``: `BCConfig` fields (``d_model``, ``hidden``,
-        ``depth``)."""
+        ``forecasts``' shape when given (and their age, from a `LatchedForecastTable`). ``sizes``:
+        `BCConfig` fields (``d_model``, ``hidden``, ``depth``)."""
         encoders = encoders or EncoderChoice()
         config = BCConfig(
             modalities=[encoders.spec(s) for s in demonstrations.specs],
@@ -217,6 +237,7 @@ class BCPolicy(TensorDictModule):
             goal_dim=demonstrations.goal_dim,
             action_dim=demonstrations.action_dim,
             forecast_shape=None if forecasts is None else forecasts.shape,
+            latched_forecast=forecasts.rule if isinstance(forecasts, LatchedForecastTable) else None,
             **sizes,
         )
         return cls(config, demonstrations.normalizer.stats)
@@ -255,7 +276,23 @@ class BCPolicy(TensorDictModule):
                 f"ForecastTransform writes {[forecast.horizon, forecast.target_dim]}; pass the forecaster "
                 "the policy was trained with"
             )
+        self._check_latch(forecast)
         return [self.history_window(), forecast]
+
+    def _check_latch(self, forecast: ForecastTransform) -> None:
+        """A policy reads the latched forecast (and its age) iff it was trained on one, same rule."""
+        rule = self.config.latched_forecast
+        if rule is None and isinstance(forecast, LatchedForecastTransform):
+            raise ValueError(
+                "BCPolicy.transforms: this policy was trained on fresh forecasts, without their age: pass a "
+                "ForecastTransform, not a LatchedForecastTransform"
+            )
+        if rule is not None and getattr(forecast, "rule", None) != rule:
+            raise ValueError(
+                f"BCPolicy.transforms: this policy reads the latched forecast (rule {rule!r}) and its age, "
+                f"as it was trained: pass LatchedForecastTransform.for_trained(model, stats, data_config, "
+                f"rule={rule!r}, denormalize=False)"
+            )
 
     # -- checkpoints -----------------------------------------------------------------------------
 
@@ -293,7 +330,7 @@ def validation_errors(
     demonstrations: Demonstrations,
     split: str = "val",
     droppable: Sequence[str] = tuple(DEFAULT_DROPOUT),
-    forecasts: ForecastTable | None = None,
+    forecasts: ForecastTable | LatchedForecastTable | None = None,
     batch_size: int = 256,
 ) -> dict[str, float]:
     """Mean squared action error on ``split``, with all sensors (``mse_all``) and with each subset
@@ -324,7 +361,7 @@ def train_bc(
     config: TrainerConfig,
     *,
     dropout: Mapping[str, float] = DEFAULT_DROPOUT,
-    forecasts: ForecastTable | None = None,
+    forecasts: ForecastTable | LatchedForecastTable | None = None,
     run_dir: str | os.PathLike | None = None,
     logger=None,
     resume: bool = False,
@@ -344,6 +381,13 @@ def train_bc(
                 if forecasts is None
                 else "the policy was built without a forecast input: pass no ForecastTable"
             )
+        )
+    latched = forecasts.rule if isinstance(forecasts, LatchedForecastTable) else None
+    if forecasts is not None and latched != policy.config.latched_forecast:
+        raise ValueError(
+            f"train_bc: the policy reads latched forecasts of rule {policy.config.latched_forecast} (None: "
+            f"fresh ones), the table serves rule {latched}; build the policy with "
+            "BCPolicy.for_demonstrations(demonstrations, forecasts)"
         )
     if forecasts is not None and set(dropout) - set(forecasts.droppable):
         raise ValueError(

@@ -11,6 +11,7 @@ from torchrl.envs import TransformedEnv
 
 from mmf_rl.rl.bc import BCPolicy
 from mmf_rl.rl.closed_loop import ScriptedPolicy, over_seeds, play, push_env, summarise
+from mmf_rl.rl.latched_forecast import LatchedForecastTransform
 from mmf_rl.rl.outage_evaluation import Condition, play_conditions, success_cells
 from mmf_rl.rl.transforms import ForecastTransform
 
@@ -21,15 +22,21 @@ def bc_env(
     policy: BCPolicy | None, forecaster: tuple, image_size: int, condition: Condition, seed: int
 ) -> TransformedEnv:
     """The push env in ``condition``, then what ``policy`` reads (none: the raw observation, for
-    the scripted pusher). ``forecaster``: `mmf_rl.models.loading.load_trained_model`'s triple."""
+    the scripted pusher; the latched forecast for a policy trained on it, ``latched_forecast``).
+    ``forecaster``: `mmf_rl.models.loading.load_trained_model`'s triple."""
     readers = []
     if policy is not None:
         model, stats, data_config = forecaster
-        forecast = (
-            ForecastTransform(model, stats, stride=int(data_config.get("stride", 1)), denormalize=False)
-            if policy.config.forecast_shape is not None
-            else None
-        )
+        forecast = None
+        if policy.config.latched_forecast is not None:
+            rule = policy.config.latched_forecast
+            forecast = LatchedForecastTransform.for_trained(
+                model, stats, data_config, rule=rule, denormalize=False
+            )
+        elif policy.config.forecast_shape is not None:
+            forecast = ForecastTransform(
+                model, stats, stride=int(data_config.get("stride", 1)), denormalize=False
+            )
         readers = policy.transforms(forecast)
     return push_env(image_size, condition.sensor, condition.outage, seed, readers)
 

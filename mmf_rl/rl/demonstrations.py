@@ -130,6 +130,14 @@ class Demonstrations:
         back = torch.arange(history - 1, -1, -1) * stride
         return torch.maximum(frames[:, None] - back, self._episode_start[frames][:, None])
 
+    def observation(self, name: str, frames: torch.Tensor) -> torch.Tensor:
+        """Modality ``name`` at ``frames`` as the env emits it (vectors raw, images resized)."""
+        return self._obs[name][frames]
+
+    def episode_start(self, frames: torch.Tensor) -> torch.Tensor:
+        """The cache row of the first frame of each of ``frames``' episodes."""
+        return self._episode_start[frames]
+
     def _window_presence(self, spec: ModalitySpec, step_rows: torch.Tensor) -> torch.Tensor:
         present = self._present[spec.name][step_rows]
         return present.all(1) if spec.kind != "vector" else present
@@ -235,6 +243,14 @@ class ForecastTable:
             raise ValueError("ForecastTable: some frames have no forecast; compute the table for their split")
         return loc, scale
 
+    def entries(
+        self, frames: torch.Tensor, absent: Mapping[str, torch.Tensor], generator: torch.Generator
+    ) -> dict[tuple[str, str], torch.Tensor]:
+        """What a policy reads of the forecast at ``frames`` (``("forecast", "loc"/"scale")``), as
+        `DemonstrationLoader` sets it in a batch (``generator``: for a table that draws)."""
+        loc, scale = self.lookup(frames, absent)
+        return {keys.FORECAST_LOC: loc, keys.FORECAST_SCALE: scale}
+
     @classmethod
     @torch.no_grad()
     def compute(
@@ -303,7 +319,8 @@ class DemonstrationLoader:
             modalities: the draws that would are not applied).
         absent: modalities removed from every sample (an evaluation under a fixed outage).
         forecasts: a `ForecastTable` covering the outages: batches then carry
-            ``("forecast", "loc"/"scale")`` of the outage each sample is under.
+            ``("forecast", "loc"/"scale")`` of the outage each sample is under (a
+            `mmf_rl.rl.latched_forecast.LatchedForecastTable`: the latched forecast and its age).
         shuffle: default: for ``"train"``; ``seed`` orders the epochs (``(seed, epoch)``).
         drop_last: default: when shuffled.
     """
@@ -374,8 +391,7 @@ class DemonstrationLoader:
             absent = self._absent(chunk, generator)
             batch = self.demonstrations.batch(chunk, absent)
             if self.forecasts is not None:
-                loc, scale = self.forecasts.lookup(chunk, absent)
-                batch.set(keys.FORECAST_LOC, loc)
-                batch.set(keys.FORECAST_SCALE, scale)
+                for key, value in self.forecasts.entries(chunk, absent, generator).items():
+                    batch.set(key, value)
             yield batch
         self.epoch += 1

@@ -335,8 +335,9 @@ class ForecastTransform(_WindowTransform):
             forecast per prior latent draw (costs a second, eager forward).
         denormalize: ``True`` writes forecasts in the target's units (for the push data: metres,
             world frame; a run trained with ``data.target.relative`` forecasts displacements from
-            the current step, as the push config does), ``False`` in the normalised frame the
-            model was trained in.
+            the current step, as the push config does, one with ``data.target.relative_to`` offsets
+            from a reference at the current step), ``False`` in the normalised frame the model was
+            trained in.
         trace: ``True`` (the default) runs the paper's forecaster (`MultimodalForecaster`) as
             frozen `torch.jit.trace` graphs on plain tensors: the whole forecast when every env
             has every sensor, else one graph per modality encoder and one for the rest

@@ -1,6 +1,7 @@
 """The LeRobot → windows pipeline: reading, presence, windows, splits, cache, loaders."""
 
 import os
+import re
 import warnings
 
 import numpy as np
@@ -524,3 +525,72 @@ def test_partial_windows_keep_a_modality_present_at_some_steps(synthetic_root, t
         before.get(obs_key("force"))[before.get(present_key("force"))],
     )
     assert present_steps_key("force") not in before.keys(True)
+
+
+def recorded_push_config(root, cache_dir, target: dict) -> DataConfig:
+    """The push data config (configs/data/push.yaml) on the tiny recorded push dataset."""
+    from mmf_rl.record import CAMERA_KEY, FORCE_KEY, STATE_KEY
+
+    return DataConfig.from_dict(
+        {
+            "root": str(root),
+            "cache_dir": str(cache_dir),
+            "history": 4,
+            "horizon": 3,
+            "image_size": [16, 16],
+            "include_target_past": True,
+            "split_fractions": [0.5, 0.25, 0.25],
+            "modalities": {"image": CAMERA_KEY, "force": FORCE_KEY, "proprio": STATE_KEY},
+            "target": target,
+        }
+    )
+
+
+def test_target_relative_to_the_gripper_on_recorded_pushes(recorded_push_root, tmp_path):
+    """The object's position minus the gripper's (x, y) at the last observed frame, read from the
+    recorder's own columns."""
+    from mmf_rl.record import OBJECT_POSE_KEY, STATE_KEY
+
+    gripper = {"feature": STATE_KEY, "dims": [0, 1]}
+    absolute = open_quietly(
+        recorded_push_config(recorded_push_root, tmp_path, {"feature": OBJECT_POSE_KEY, "dims": [0, 1]})
+    )
+    offset = open_quietly(
+        recorded_push_config(
+            recorded_push_root, tmp_path, {"feature": OBJECT_POSE_KEY, "dims": [0, 1], "relative_to": gripper}
+        )
+    )
+    frames = raw_frames(recorded_push_root)
+    ids = torch.arange(len(offset))
+    last = offset.window_start[ids] + 3  # the last observed frame (history 4, stride 1)
+    grip = torch.from_numpy(column(frames, STATE_KEY)[:, :2])[last][:, None]
+    future_abs = absolute.normalizer.denormalize_target(absolute.batch(ids).get(TARGET))
+    batch = offset.batch(ids)
+    torch.testing.assert_close(offset.normalizer.denormalize_target(batch.get(TARGET)), future_abs - grip)
+    past_abs = absolute.normalizer.denormalize_target(absolute.batch(ids).get(TARGET_PAST))
+    torch.testing.assert_close(offset.normalizer.denormalize_target(batch.get(TARGET_PAST)), past_abs - grip)
+    train = offset.split_windows["train"]
+    torch.testing.assert_close(
+        offset.normalizer.stats["target/mean"], (future_abs - grip)[train].reshape(-1, 2).mean(0)
+    )
+    # The reference is part of the cache's content: its own cache, not the absolute one's.
+    assert offset.cache_path != absolute.cache_path
+
+
+@pytest.mark.parametrize(
+    "relative_to, extra, message",
+    [
+        ({"feature": "observation.gripper"}, {}, "'observation.gripper' is not in the dataset"),
+        ({"feature": "observation.state", "dims": [0, 40]}, {}, "dims [0, 40] out of range"),
+        ({"feature": "observation.state", "dims": [0, 1, 2]}, {}, "give one reference dim per target dim"),
+        ({"feature": "observation.state", "dims": [0, 1]}, {"relative": True}, "keep one"),
+    ],
+)
+def test_target_relative_to_errors_name_the_problem(
+    recorded_push_root, tmp_path, relative_to, extra, message
+):
+    from mmf_rl.record import OBJECT_POSE_KEY
+
+    target = {"feature": OBJECT_POSE_KEY, "dims": [0, 1], "relative_to": relative_to, **extra}
+    with pytest.raises(ValueError, match=re.escape(message)):
+        open_quietly(recorded_push_config(recorded_push_root, tmp_path, target))

@@ -24,6 +24,9 @@ from mmf_rl.rl import (
     train_bc,
     validation_errors,
 )
+from mmf_rl.rl.bc_evaluation import bc_env
+from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform, target_frame
+from mmf_rl.rl.outage_evaluation import Condition
 from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
 from tests.conftest import push_train_overrides
 
@@ -251,3 +254,89 @@ def test_a_goal_or_action_feature_the_recording_lacks_is_named(forecaster):
         Demonstrations(data, goal_feature="observation.gaol")
     with pytest.raises(ValueError, match="no vector feature 'observation.images.front'"):
         Demonstrations(data, action_feature="observation.images.front")
+
+
+# -- the latched forecast as an input ---------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def latched_forecasts(demonstrations, forecasts, forecaster) -> LatchedForecastTable:
+    model, stats, data_config = forecaster
+    relative, reference = target_frame(data_config, model.config.target_dim)
+    return LatchedForecastTable(forecasts, demonstrations, stats, relative=relative, reference=reference)
+
+
+def test_offline_latched_forecasts_are_what_the_latched_transform_serves_online(
+    demonstrations, latched_forecasts, forecaster
+):
+    """Stepping `LatchedForecastTransform` through a recorded episode whose camera dies at step 6
+    serves, at each step, the table's forecast for that frame with the latch's age."""
+    model, stats, data_config = forecaster
+    assert latched_forecasts.relative, "the push forecaster's target is relative: the re-basing is exercised"
+    dies = 6
+    episode = demonstrations.split_frames["train"][: dies + 8]
+    online = LatchedForecastTransform.for_trained(model, stats, data_config, denormalize=False)
+    steps = recorded_steps(demonstrations, episode, image_absent=False)
+    for step in steps[dies:]:
+        step.get(keys.obs_key("image")).zero_()
+        step.set(keys.present_key("image"), torch.tensor(False))
+    served = [online.observe_reset(steps[0])] + [online.observe_step(s) for s in steps[1:]]
+    camera_out = torch.arange(len(episode)) >= dies
+    ages = torch.where(camera_out, torch.arange(len(episode)) - (dies - 1), 0)
+    loc, scale, age = latched_forecasts.served(episode, {"image": camera_out}, ages)
+    for t, out in enumerate(served):
+        torch.testing.assert_close(out.get(keys.FORECAST_LOC), loc[t], msg=lambda m, t=t: f"step {t}: {m}")
+        torch.testing.assert_close(
+            out.get(keys.FORECAST_SCALE), scale[t], msg=lambda m, t=t: f"step {t}: {m}"
+        )
+        assert out.get(keys.FORECAST_AGE).item() == age[t].item() == ages[t].item()
+
+
+def test_latch_ages_are_drawn_within_the_episode_for_the_samples_without_a_camera(
+    demonstrations, latched_forecasts
+):
+    frames = demonstrations.split_frames["train"]
+    camera_out = torch.rand(len(frames), generator=torch.Generator().manual_seed(123)) < 0.5
+
+    def draw(seed: int) -> torch.Tensor:
+        generator = torch.Generator().manual_seed(seed)
+        return latched_forecasts.draw_ages(frames, {"image": camera_out}, generator)
+
+    ages = draw(0)
+    assert torch.equal(ages, draw(0)) and not torch.equal(ages, draw(1))
+    assert not ages[~camera_out].any(), "a sample with its camera has a fresh forecast"
+    since_start = frames - demonstrations.episode_start(frames)
+    assert bool((ages <= since_start.clamp(max=latched_forecasts.max_age)).all())
+    never = (ages[camera_out] == 0).float().mean().item()
+    assert 0.1 < never < 0.4, "about never_latched (and the episodes' first frames) have no latch"
+
+
+def test_a_policy_on_latched_forecasts_reads_their_age_and_acts_through_a_dying_camera(
+    demonstrations, forecasts, latched_forecasts, forecaster, tmp_path
+):
+    model, stats, data_config = forecaster
+    policy = make_policy(demonstrations, latched_forecasts)
+    assert policy.config.latched_forecast == "precision" and keys.FORECAST_AGE in policy.in_keys
+    config = TrainerConfig(total_steps=4, batch_size=16, eval_every=4, checkpoint_every=4, progress_bar=False)
+    metrics = train_bc(policy, demonstrations, config, forecasts=latched_forecasts, run_dir=tmp_path)
+    assert all(torch.isfinite(torch.tensor(v)) for v in metrics.values())
+    loaded = BCPolicy.from_checkpoint(tmp_path / "checkpoints")
+    assert loaded.config == policy.config
+    with pytest.raises(ValueError, match="reads the latched forecast"):
+        policy.transforms(ForecastTransform(model, stats, denormalize=False))
+    with pytest.raises(ValueError, match="not a LatchedForecastTransform"):
+        make_policy(demonstrations, forecasts).transforms(
+            LatchedForecastTransform.for_trained(model, stats, data_config, denormalize=False)
+        )
+    with pytest.raises(ValueError, match="the table serves rule precision"):
+        train_bc(make_policy(demonstrations, forecasts), demonstrations, config, forecasts=latched_forecasts)
+    env = bc_env(loaded.eval(), forecaster, IMAGE_SIZE, Condition("dies", "image", "dies"), seed=0)
+    try:
+        env.set_seed(0)
+        with torch.no_grad():
+            rollout = env.rollout(50, loaded, break_when_any_done=False)
+    finally:
+        env.close()
+    age = rollout.get(("next", *keys.FORECAST_AGE))
+    assert age.max() > 0, "the camera died: the latch serves and ages"
+    assert torch.isfinite(rollout.get("action")).all()

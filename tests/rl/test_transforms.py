@@ -19,6 +19,7 @@ from mmf_rl.models import build_model, saved_config
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from tests.envs.conftest import IMAGE_SIZE
 from tests.envs.stamp_env import MODALITIES, VECTOR_DIMS, stamp_envs
+from tests.rl.conftest import RECORDED_ENVS
 
 HISTORY, HORIZON, TARGET_DIM = 3, 4, 2
 MODEL_IMAGE = 16  # smaller than the env's frames: the transform resizes them
@@ -151,38 +152,6 @@ def test_forecast_equals_the_model_on_the_window_built_by_hand(checkpoint):
 
 
 # -- the lean (traced) path, on the project's recorded pushes -------------------------------------
-
-RECORDED_ENVS = 3
-
-
-@pytest.fixture(scope="module")
-def recorded_steps(recorded_push_root) -> list[TensorDict]:
-    """The first recorded push episodes as the steps of a batch of envs (one episode each): what
-    the env emits, camera frames decoded from the recording's video."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    from mmf_rl.record import CAMERA_KEY, CAMERA_VALID_KEY, FORCE_KEY, STATE_KEY, RecordConfig
-
-    dataset = LeRobotDataset(RecordConfig.repo_id, root=recorded_push_root)
-    episodes = [dataset.meta.episodes[e] for e in range(RECORDED_ENVS)]
-    length = min(e["dataset_to_index"] - e["dataset_from_index"] for e in episodes)
-    frames = [[dataset[e["dataset_from_index"] + t] for e in episodes] for t in range(length)]
-    return [
-        TensorDict(
-            {
-                keys.obs_key("image"): torch.stack(
-                    [(f[CAMERA_KEY] * 255).round().to(torch.uint8) for f in step]
-                ),
-                keys.obs_key("force"): torch.stack([f[FORCE_KEY] for f in step]),
-                keys.obs_key("proprio"): torch.stack([f[STATE_KEY] for f in step]),
-                keys.present_key("image"): torch.stack([f[CAMERA_VALID_KEY].reshape(()) for f in step]),
-                keys.present_key("force"): torch.ones(RECORDED_ENVS, dtype=torch.bool),
-                keys.present_key("proprio"): torch.ones(RECORDED_ENVS, dtype=torch.bool),
-            },
-            batch_size=[RECORDED_ENVS],
-        )
-        for step in frames
-    ]
 
 
 def with_outages(steps: list[TensorDict], num_envs: int, nan_as_absent: bool = False) -> list[TensorDict]:
