@@ -52,6 +52,7 @@ from mmf_rl.models.forecaster.modeling_forecaster import ModalitySpecificDecoder
 from mmf_rl.models.fusion import FusionShape
 from mmf_rl.models.registry import register_model
 
+# Under mmf_rl, so `mmf-rl bench` and this script's own logging setup show it as the library's messages.
 logger = logging.getLogger("mmf_rl.benchmarks.mult_gap")
 
 # --- hybrids of MulT ---------------------------------------------------------------------------------
@@ -219,7 +220,8 @@ class ForecasterWithoutJoint(MultimodalForecaster):
 
 @register_model("gap_fc_pm", ForecasterConfig, loss=("elbo", "mis"))
 class ForecasterPerModalityJoint(MultimodalForecaster):
-    """The paper model with one decoder joint MLP per modality instead of one shared by all."""
+    """The paper model with one decoder joint MLP per modality instead of one shared by all; its
+    tokens, attentions and head stay."""
 
     def __init__(self, config: ForecasterConfig):
         super().__init__(config)
@@ -229,7 +231,8 @@ class ForecasterPerModalityJoint(MultimodalForecaster):
 
 @register_model("gap_fc_res", ForecasterConfig, loss=("elbo", "mis"))
 class ForecasterResidualJoint(MultimodalForecaster):
-    """The paper model whose decoder joint MLP is residual (a token keeps its own features)."""
+    """The paper model whose decoder joint MLP is a residual branch (a token keeps its own features);
+    everything else stays."""
 
     def __init__(self, config: ForecasterConfig):
         super().__init__(config)
@@ -328,14 +331,16 @@ class ForecasterWideDecoder(MultimodalForecaster):
 
 @register_model("gap_fc_q4", ForecasterConfig, loss=("elbo", "mis"))
 class ForecasterFourQueries(ForecasterWideDecoder):
-    """The paper model whose decoder aggregates with 4 queries per modality instead of 1."""
+    """The paper model whose decoder aggregates with 4 learned queries per modality instead of ``P^D``'s
+    one (the head reads ``4 M`` rows); everything before the decoder's attentions stays."""
 
     queries_per_modality = 4
 
 
 @register_model("gap_fc_post", ForecasterConfig, loss=("elbo", "mis"))
 class ForecasterPostAggregationMLP(ForecasterWideDecoder):
-    """The paper model whose decoder has a residual MLP after each of its two attentions."""
+    """The paper model whose decoder has a residual MLP after each of its two attentions (its queries
+    learned apart from ``P^D``); everything before the decoder's attentions stays."""
 
     post_mlp = True
 
@@ -527,7 +532,7 @@ def markdown(study: Study, table: Table, info: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     from mmf_rl.compare.collect import collect_runs
-    from mmf_rl.compare.runs import check_entries, open_data, run_pending
+    from mmf_rl.compare.runs import check_entries, check_reused, open_data, run_pending
     from mmf_rl.eval.report import write_json, write_text
 
     args = parse_args(argv)
@@ -535,6 +540,7 @@ def main(argv: list[str] | None = None) -> int:
     study = study_of(args.mode, args.data, args.out, args.device, args.jobs)
     try:
         check_entries(study)
+        check_reused(study)
     except ValueError as err:
         raise SystemExit(f"mult_gap benchmark: {err}") from None
     start = time.perf_counter()
