@@ -391,6 +391,8 @@ SUBSET_COLUMNS = {
 
 @dataclass(frozen=True)
 class Mode:
+    """The budget every row of a run is trained with, and the rows."""
+
     steps: int
     batch_size: int
     seeds: tuple[int, ...]
