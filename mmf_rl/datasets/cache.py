@@ -47,6 +47,7 @@ import os
 import re
 import shutil
 import socket
+import sys
 import tempfile
 import time
 import warnings
@@ -601,6 +602,22 @@ def _discard(directory: Path) -> None:
     shutil.rmtree(trash, ignore_errors=True)
 
 
+def _refuse_reimported_main(cache_dir: Path) -> None:
+    """A spawned worker re-imports the parent's main script; if that script opens the cache at module
+    level (no ``if __name__ == "__main__":`` guard), the worker would wait forever for the lock its own
+    parent holds while the parent waits for the worker."""
+    frame = sys._getframe()  # "__mp_main__" is the name a spawned process runs the parent's script under
+    while frame is not None:
+        if frame.f_code.co_name == "<module>" and frame.f_globals.get("__name__") == "__mp_main__":
+            raise RuntimeError(
+                f"a worker process re-ran your script {frame.f_globals.get('__file__')} and reached the "
+                f"window cache in {cache_dir}, which its parent holds: it would wait forever. Put the "
+                'script\'s top-level code under `if __name__ == "__main__":` (worker processes are '
+                "spawned and import the main script again)"
+            )
+        frame = frame.f_back
+
+
 @contextlib.contextmanager
 def _locked(cache_dir: Path):
     """An exclusive ``flock`` on the cache directory itself: no lock file to leave behind, and the
@@ -610,6 +627,7 @@ def _locked(cache_dir: Path):
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
+            _refuse_reimported_main(cache_dir)
             logger.info("waiting for another process to finish with the window caches in %s ...", cache_dir)
             fcntl.flock(fd, fcntl.LOCK_EX)
         yield

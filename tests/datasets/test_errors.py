@@ -5,6 +5,7 @@ import json
 import os
 import re
 import subprocess
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -278,3 +279,28 @@ def test_cache_changed_on_disk_is_detected_and_rebuilt(synthetic_root, tmp_path,
     meta = path / cache.CACHE_META
     meta.write_text(meta.read_text()[:50])
     reopen_expecting(rf"{meta} is unreadable \(JSONDecodeError: .*\)")
+
+
+UNGUARDED_SCRIPT = """
+import multiprocessing
+from pathlib import Path
+from mmf_rl.datasets.cache import _locked
+
+with _locked(Path({cache_dir!r})):  # no main guard: a spawned worker runs this again
+    worker = multiprocessing.get_context("spawn").Process(target=print)
+    worker.start()
+    worker.join(timeout=120)
+    print("worker exit code", worker.exitcode)
+"""
+
+
+def test_a_worker_re_running_an_unguarded_script_is_refused_not_deadlocked(tmp_path):
+    cache_dir = tmp_path / "cache"
+    cache_dir.mkdir()
+    script = tmp_path / "unguarded.py"
+    script.write_text(UNGUARDED_SCRIPT.format(cache_dir=str(cache_dir)))
+    done = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=240, cwd=tmp_path
+    )
+    assert "worker exit code 1" in done.stdout, done.stdout + done.stderr
+    assert 'if __name__ == "__main__":' in done.stderr and str(script) in done.stderr
