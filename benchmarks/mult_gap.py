@@ -289,16 +289,8 @@ class WideDecoder(ModalitySpecificDecoder):
         )
 
     def forward(self, tokens, absent, token_modality, z, action=None):
-        n, num_tokens, _ = tokens.shape
-        conditions = z if action is None else torch.cat([z, action], dim=-1)
-        joint = torch.cat(
-            [
-                tokens + self.modality_embedding[token_modality],
-                conditions.unsqueeze(1).expand(n, num_tokens, -1),
-            ],
-            dim=-1,
-        )
-        h0 = self.joint(joint)
+        n = tokens.shape[0]
+        h0 = self.joint_tokens(tokens, token_modality, z, action)
         queries = self.queries.expand(n, -1, -1)
         h1 = self.aggregate(queries, h0, absent, residual=queries)
         h1 = h1 if self.post is None else h1 + self.post[0](h1)

@@ -133,14 +133,10 @@ class ModalitySpecificDecoder(nn.Module):
         self.out_shape = (cfg.horizon, cfg.target_dim)
         self.min_scale = cfg.min_scale
 
-    def forward(
-        self,
-        tokens: torch.Tensor,
-        absent: torch.Tensor,
-        token_modality: torch.Tensor,
-        z: torch.Tensor,
-        action: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def joint_tokens(
+        self, tokens: torch.Tensor, token_modality: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None
+    ) -> torch.Tensor:
+        """``H0``: the shared MLP on every token with ``p^D`` of its modality, ``z`` (and the actions)."""
         n, num_tokens, _ = tokens.shape
         conditions = z if action is None else torch.cat([z, action], dim=-1)
         joint = torch.cat(
@@ -150,7 +146,18 @@ class ModalitySpecificDecoder(nn.Module):
             ],
             dim=-1,
         )
-        h0 = self.joint(joint)
+        return self.joint(joint)
+
+    def forward(
+        self,
+        tokens: torch.Tensor,
+        absent: torch.Tensor,
+        token_modality: torch.Tensor,
+        z: torch.Tensor,
+        action: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        n = tokens.shape[0]
+        h0 = self.joint_tokens(tokens, token_modality, z, action)
         if self.fusion is None:
             queries = self.modality_embedding.expand(n, -1, -1)
             h1 = self.aggregate(queries, h0, absent, residual=queries)
