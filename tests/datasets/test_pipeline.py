@@ -34,6 +34,7 @@ from tests.datasets.conftest import (
     so101_config,
     synthetic_config,
 )
+from tests.reliability.conftest import push_data_config
 
 
 def raw_frames(root) -> pd.DataFrame:
@@ -528,22 +529,8 @@ def test_partial_windows_keep_a_modality_present_at_some_steps(synthetic_root, t
 
 
 def recorded_push_config(root, cache_dir, target: dict) -> DataConfig:
-    """The push data config (configs/data/push.yaml) on the tiny recorded push dataset."""
-    from mmf_rl.record import CAMERA_KEY, FORCE_KEY, STATE_KEY
-
-    return DataConfig.from_dict(
-        {
-            "root": str(root),
-            "cache_dir": str(cache_dir),
-            "history": 4,
-            "horizon": 3,
-            "image_size": [16, 16],
-            "include_target_past": True,
-            "split_fractions": [0.5, 0.25, 0.25],
-            "modalities": {"image": CAMERA_KEY, "force": FORCE_KEY, "proprio": STATE_KEY},
-            "target": target,
-        }
-    )
+    """The push data config on the tiny recorded push dataset, at 16 px, with this ``target``."""
+    return push_data_config(root, cache_dir, image_size=[16, 16], target=target)
 
 
 def test_target_relative_to_the_gripper_on_recorded_pushes(recorded_push_root, tmp_path):
