@@ -180,9 +180,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     (and, if present, in eval, to report the posterior), optional ``("present_steps", m)``,
     ``("drop", m)``, ``("drop_steps", m)`` and ``"decode_from_prior"``; writes ``("forecast",
     "loc"/"scale")``, ``"latent"``, ``("prior", ...)``, ``("posterior", ...)`` (when ``"target"``
-    is given or not needed),
-    ``("forecast_dropped", ...)`` and, with the learned prior, ``("prior_dropped", ...)`` (when
-    ``("drop", m)`` is given), and ``("forecast_from_prior", ...)`` (when requested).
+    is given or not needed), ``("forecast_dropped", ...)`` and, with the learned prior,
+    ``("prior_dropped", ...)`` (when ``("drop", m)`` is given), and ``("forecast_from_prior", ...)``
+    (when requested).
 
     In train mode ``z`` is sampled from the posterior (reparameterised); in eval mode it is the
     prior's mean (``eval_latent="mean"``; ``0`` under the standard prior), a prior draw
