@@ -1,4 +1,6 @@
 import dataclasses
+import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -6,9 +8,13 @@ from tensordict import TensorDict
 from torch.distributions import Normal, kl_divergence
 
 from mmf_rl import keys
+from mmf_rl.cli import main as cli
+from mmf_rl.configuration import compose_config, to_container
+from mmf_rl.datasets import WindowDataset
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster
-from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
-from tests.conftest import HISTORY, SMALL_MODALITIES, make_batch
+from mmf_rl.objectives import CombinedLoss, ELBOLoss, LossConfig, MissingModalityLoss
+from tests.conftest import HISTORY, SMALL_MODALITIES, make_batch, push_train_overrides
+from tests.reliability.conftest import edit_frames, push_data_config
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 
@@ -349,9 +355,6 @@ def test_tail_cut_samples_count_and_train_the_student(small_model, batch):
 
 
 def test_tail_cut_options_come_from_the_loss_config():
-    from mmf_rl.configuration import compose_config, to_container
-    from mmf_rl.objectives import LossConfig
-
     overrides = ["loss.step_drop_prob=0.25", "loss.max_dropped_steps=2"]
     loss_cfg = LossConfig.from_dict(to_container(compose_config("train", overrides).loss))
     torch.manual_seed(0)
@@ -361,3 +364,31 @@ def test_tail_cut_options_come_from_the_loss_config():
     loss = MissingModalityLoss.from_config(model, loss_cfg)
     assert (loss.step_drop_prob, loss.max_dropped_steps) == (0.25, 2)
     assert (LossConfig().step_drop_prob, LossConfig().max_dropped_steps) == (0.0, None)
+
+
+def camera_dies_mid_episode(frames) -> None:
+    """The camera is lost from frame 34 of every episode on: windows over frame 34 hold it for some steps."""
+    from mmf_rl.record import CAMERA_VALID_KEY
+
+    frames.loc[frames["frame_index"] >= 34, CAMERA_VALID_KEY] = False
+
+
+def test_training_with_tail_cuts_on_partial_windows_of_recorded_push_data(recorded_push_root, tmp_path):
+    root = Path(shutil.copytree(recorded_push_root, tmp_path / "push"))
+    edit_frames(root, camera_dies_mid_episode)
+    run = tmp_path / "run"
+    overrides = push_train_overrides(root, tmp_path / "cache", run, steps=4)
+    assert cli(["train", *overrides, "data.partial_windows=true", "loss.step_drop_prob=0.5"]) == 0
+    scalars = run / "logs" / "scalars" / "train"
+    values = {
+        name: torch.tensor(
+            [float(row.split(",")[-1]) for row in (scalars / f"{name}.csv").read_text().splitlines()]
+        )
+        for name in ("loss", "loss_mis", "mis_tail_fraction")
+    }
+    assert all(len(v) and torch.isfinite(v).all() for v in values.values())
+    assert bool((values["mis_tail_fraction"] > 0).all())
+    dataset = WindowDataset(push_data_config(root, tmp_path / "cache", partial_windows=True))
+    batch = dataset.batch(torch.arange(len(dataset)))
+    steps, present = batch.get(keys.present_steps_key("image")), batch.get(keys.present_key("image"))
+    assert bool((present & ~steps.all(1)).any()), "some windows hold the camera for some steps only"
