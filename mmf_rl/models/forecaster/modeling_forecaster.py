@@ -560,8 +560,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             tokens, kept = self._cut_steps(td, tokens, kept, cuts)
         if not bool(kept.any(1).all()):
             raise ValueError(
-                "('drop', m) and ('drop_steps', m) remove every present modality of some sample; keep at "
-                "least one modality with one present step"
+                "('drop', m) with ('drop_steps', m) removes every present modality of some sample; keep "
+                "at least one modality with one present step"
             )
         return tokens, kept
 
