@@ -24,6 +24,8 @@ key                                  shape                meaning
 ``("forecast_dropped", ...)``        ``[B, T, D]``        forecast with the modalities in ``("drop", m)``
                                                           removed
 ``("drop", m)``                      ``[B]`` bool         modality removed for the missing-modality loss
+``("drop_steps", m)``                ``[B, H]`` bool      optional: steps of ``m`` removed for that loss's
+                                                          degraded input only (a tail cut)
 ``("posterior" | "prior", ...)``     ``[B, d_z]``         latent distributions (``loc``/``scale``)
 ``("prior_dropped", ...)``           ``[B, d_z]``         learned prior ``p(z|X)`` of the input without the
                                                           ``("drop", m)`` modalities
@@ -54,6 +56,7 @@ OBS = "obs"
 PRESENT = "present"
 PRESENT_STEPS = "present_steps"
 DROP = "drop"
+DROP_STEPS = "drop_steps"
 TARGET = "target"
 TARGET_PAST = "target_past"
 FUTURE_ACTION = "future_action"
@@ -115,6 +118,10 @@ def zero_absent_steps(obs: torch.Tensor, present_steps: torch.Tensor) -> torch.T
 
 def drop_key(modality: str) -> tuple[str, str]:
     return (DROP, modality)
+
+
+def drop_steps_key(modality: str) -> tuple[str, str]:
+    return (DROP_STEPS, modality)
 
 
 ModalityKind = Literal["image", "sequence", "vector"]

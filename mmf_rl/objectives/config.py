@@ -27,6 +27,9 @@ class LossConfig:
             sample; 1 is the paper's setting, ``None`` up to ``M_i - 1`` (single-modality inputs trained).
         dropped_nll_weight: > 0 adds the target's NLL under the degraded forecast beside ``L_mis``.
         dropped_prior_weight: learned prior only: weight of ``KL(p(z|X) || p(z|X without the dropped))``.
+        step_drop_prob: probability that ``L_mis`` cuts the last steps of one windowed modality of a
+            sample instead of dropping whole modalities (a sensor dying mid-window); 0: never.
+        max_dropped_steps: the most steps such a tail cut removes; ``None``: all but one present step.
         terms: the loss terms to train with, by registered name (``mmf_rl.objectives.LOSS_TERMS``,
             ``@register_loss_term``); null: the model's own.
     """
@@ -39,6 +42,8 @@ class LossConfig:
     max_dropped: int | None = 1
     dropped_nll_weight: float = 0.0
     dropped_prior_weight: float = 1.0
+    step_drop_prob: float = 0.0
+    max_dropped_steps: int | None = None
     terms: list[str] | None = None
 
     def __post_init__(self):
@@ -50,6 +55,17 @@ class LossConfig:
             raise ValueError(
                 f"loss.max_dropped must be a whole number >= 1 or null, found {self.max_dropped!r}"
             )
+        if self.max_dropped_steps is not None and (
+            isinstance(self.max_dropped_steps, bool)
+            or not isinstance(self.max_dropped_steps, int)
+            or self.max_dropped_steps < 1
+        ):
+            raise ValueError(
+                "loss.max_dropped_steps must be a whole number >= 1 or null (all but one present step), "
+                f"found {self.max_dropped_steps!r}"
+            )
+        if not 0 <= self.step_drop_prob <= 1:
+            raise ValueError(f"loss.step_drop_prob must be in [0, 1], found {self.step_drop_prob}")
         for name in (
             "kl_weight",
             "kl_warmup_steps",

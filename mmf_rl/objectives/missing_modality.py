@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import torch
+import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 
@@ -27,6 +28,19 @@ class MissingModalityLoss(ForecasterLossBase):
     ``max_dropped=None`` lets any sample be reduced to a single modality, so single-modality
     inputs are trained.
 
+    **Tail cuts** (``step_drop_prob > 0``, not in the paper): a sensor that dies part-way through a
+    window leaves its last steps absent. With probability ``step_drop_prob`` a sample's drop is a
+    tail cut instead: one of its present windowed (image or sequence) modalities, uniformly among
+    those with at least two present steps, loses its last ``k`` present steps for the student
+    (``k`` uniform in ``1..min(max_dropped_steps, n - 1)``, ``n`` its present steps: ``1..H-1`` for
+    a full window), so the student still holds it for at least one step. The cut is written as
+    ``("drop_steps", m)`` ``[B, H]`` masks (True: a step the student loses) beside all-False
+    ``("drop", m)``; the forecaster removes those steps from the student's ``("present_steps", m)``
+    only (the teacher sees everything). A sample with a single present modality can get a tail cut
+    (the modality stays present); a sample drawn for one with no modality to cut gets the whole
+    drop it would have had. ``step_drop_prob=0`` (the default) writes no ``("drop_steps", m)`` and
+    draws nothing more from the RNG: the paper's ``L_mis`` exactly.
+
     With a learned prior (``ForecasterConfig.prior="learned"``) the forecaster also computes the
     prior of the degraded input from the fusion of the kept modalities, and ``loss_mis_prior =
     prior_weight · KL(p(z | X) || p(z | X \\ S))`` ties it to the full input's prior (teacher
@@ -45,12 +59,17 @@ class MissingModalityLoss(ForecasterLossBase):
         dropped_nll_weight: weight of ``loss_mis_nll``, the Gaussian NLL of the target under the
             degraded forecast (0, the default: no such term).
         prior_weight: weight of ``loss_mis_prior`` (used only with a learned prior).
+        step_drop_prob: probability (in ``[0, 1]``) that a sample's drop is a tail cut of one
+            windowed modality instead of whole modalities (0, the default: never).
+        max_dropped_steps: the most steps a tail cut removes (``>= 1``); ``None``: up to all but
+            one of the modality's present steps.
         reduction: ``"mean"`` (over eligible samples) | ``"sum"`` | ``"none"`` (per sample, 0
             where nothing was dropped).
 
     Returns ``loss_mis`` (weighted), ``loss_mis_nll`` and ``loss_mis_prior`` when they apply, and
     the detached diagnostics ``mis_kl`` (unweighted), ``mis_fraction`` (share of samples that had
-    a modality dropped) and ``mis_dropped`` (mean number dropped over those samples).
+    a modality or steps dropped), ``mis_dropped`` (mean number of whole modalities dropped over the
+    samples that had some) and, with tail cuts, ``mis_tail_fraction`` (share of samples cut).
     """
 
     @dataclass
@@ -105,6 +124,8 @@ class MissingModalityLoss(ForecasterLossBase):
         max_dropped: int | None = 1,
         dropped_nll_weight: float = 0.0,
         prior_weight: float = 1.0,
+        step_drop_prob: float = 0.0,
+        max_dropped_steps: int | None = None,
         reduction: str = "mean",
     ):
         super().__init__(forecaster, reduction)
@@ -119,6 +140,24 @@ class MissingModalityLoss(ForecasterLossBase):
             raise ValueError(
                 f"max_dropped must be >= 1 (or None: up to all but one modality), found {max_dropped}"
             )
+        if not 0.0 <= step_drop_prob <= 1.0:
+            raise ValueError(
+                f"step_drop_prob must be in [0, 1] (the probability that a sample's drop is a tail cut), "
+                f"found {step_drop_prob}"
+            )
+        if max_dropped_steps is not None and max_dropped_steps < 1:
+            raise ValueError(
+                f"max_dropped_steps must be >= 1 (or None: up to all but one present step), "
+                f"found {max_dropped_steps}"
+            )
+        self.windowed = [spec.name for spec in forecaster.modalities if spec.kind != "vector"]
+        if step_drop_prob > 0 and not self.windowed:
+            raise ValueError(
+                "step_drop_prob > 0 cuts the last steps of a windowed (image or sequence) modality, and "
+                "this forecaster has none; set step_drop_prob=0"
+            )
+        self.step_drop_prob = step_drop_prob
+        self.max_dropped_steps = max_dropped_steps
         self.weight = weight
         self.detach_teacher = detach_teacher
         self.max_dropped = max_dropped
@@ -141,6 +180,8 @@ class MissingModalityLoss(ForecasterLossBase):
             max_dropped=loss_cfg.max_dropped,
             dropped_nll_weight=loss_cfg.dropped_nll_weight,
             prior_weight=loss_cfg.dropped_prior_weight,
+            step_drop_prob=loss_cfg.step_drop_prob,
+            max_dropped_steps=loss_cfg.max_dropped_steps,
         )
 
     def default_tensor_keys(self) -> _AcceptedKeys:
@@ -163,14 +204,21 @@ class MissingModalityLoss(ForecasterLossBase):
         extra = [k.target] if self.dropped_nll_weight else []
         if self.prior_weight:
             extra += [k.prior_loc, k.prior_scale, k.prior_dropped_loc, k.prior_dropped_scale]
-        return [
-            k.forecast_loc,
-            k.forecast_scale,
-            k.dropped_loc,
-            k.dropped_scale,
-            *k.present.values(),
-            *extra,
-        ] + [keys.drop_key(m) for m in self.modality_names]
+        return (
+            [
+                k.forecast_loc,
+                k.forecast_scale,
+                k.dropped_loc,
+                k.dropped_scale,
+                *k.present.values(),
+                *extra,
+            ]
+            + [keys.drop_key(m) for m in self.modality_names]
+            + self._drop_steps_keys()
+        )
+
+    def _drop_steps_keys(self) -> list:
+        return [keys.drop_steps_key(m) for m in self.windowed] if self.step_drop_prob else []
 
     @property
     def out_keys(self):
@@ -179,7 +227,11 @@ class MissingModalityLoss(ForecasterLossBase):
             + (["loss_mis_nll"] if self.dropped_nll_weight else [])
             + (["loss_mis_prior"] if self.prior_weight else [])
         )
-        return terms + ["mis_kl", "mis_fraction", "mis_dropped"]
+        return (
+            terms
+            + ["mis_kl", "mis_fraction", "mis_dropped"]
+            + (["mis_tail_fraction"] if self.step_drop_prob else [])
+        )
 
     def prepare(self, td: TensorDictBase) -> TensorDictBase:
         present = torch.stack([td.get(self.tensor_keys.present[m]) for m in self.modality_names], dim=1)
@@ -197,9 +249,44 @@ class MissingModalityLoss(ForecasterLossBase):
             number = number * (droppable > 0)
         rank = scores.argsort(1, descending=True).argsort(1)
         drop = present & (rank < number.unsqueeze(1))
+        if self.step_drop_prob:
+            cut = self._tail_cuts(td, present)
+            drop &= ~cut.flatten(1).any(1, keepdim=True)  # a tail cut instead of the whole drop
+            for i, name in enumerate(self.windowed):
+                td.set(keys.drop_steps_key(name), cut[:, i])
         for i, name in enumerate(self.modality_names):
             td.set(keys.drop_key(name), drop[:, i])
         return td
+
+    def _tail_cuts(self, td: TensorDictBase, present: torch.Tensor) -> torch.Tensor:
+        """The steps each sample's student loses, ``[B, W, H]`` for the ``W`` windowed modalities:
+        with probability ``step_drop_prob``, the last ``k`` present steps of one of them."""
+        windowed_present = present[:, [self.modality_names.index(m) for m in self.windowed]]
+        steps = torch.stack(
+            [self._present_steps(td, m, windowed_present[:, i]) for i, m in enumerate(self.windowed)], 1
+        )
+        count = steps.sum(-1)  # [B, W]
+        cuttable = count >= 2  # a cut keeps one present step at least
+        chosen = torch.rand(cuttable.shape, device=steps.device).masked_fill(~cuttable, -1.0).argmax(1)
+        cut_row = (torch.rand(count.shape[0], device=steps.device) < self.step_drop_prob) & cuttable.any(1)
+        most = count.gather(1, chosen.unsqueeze(1)).squeeze(1) - 1
+        if self.max_dropped_steps is not None:
+            most = most.clamp_max(self.max_dropped_steps)
+        length = (torch.rand(most.shape, device=steps.device) * most).long() + 1
+        # Present steps counted from the window's end: the last k of them are those numbered <= k.
+        from_end = steps.flip(-1).cumsum(-1).flip(-1)
+        picked = F.one_hot(chosen, len(self.windowed)).bool() & cut_row.unsqueeze(1)
+        return steps & (from_end <= length.view(-1, 1, 1)) & picked.unsqueeze(-1)
+
+    def _present_steps(self, td: TensorDictBase, modality: str, present: torch.Tensor) -> torch.Tensor:
+        """``[B, H]``: the steps where ``modality`` is present (every step of a present window without
+        ``("present_steps", m)``)."""
+        steps = td.get(keys.present_steps_key(modality), None)
+        if steps is None:
+            steps = torch.ones(
+                td.get(keys.obs_key(modality)).shape[:2], dtype=torch.bool, device=present.device
+            )
+        return steps & present.unsqueeze(1)
 
     def _per_eligible(self, per_sample: torch.Tensor, eligible: torch.Tensor) -> torch.Tensor:
         per_sample = per_sample * eligible
@@ -215,7 +302,10 @@ class MissingModalityLoss(ForecasterLossBase):
         student_loc, student_scale = self._get(td, k.dropped_loc), self._get(td, k.dropped_scale)
         kl = gaussian_kl(teacher_loc, teacher_scale, student_loc, student_scale).flatten(1).sum(-1)
         dropped = torch.stack([self._get(td, keys.drop_key(m)) for m in self.modality_names], dim=1)
-        eligible = dropped.any(1)
+        cut = torch.zeros_like(dropped[:, 0])  # samples whose student lost steps (tail cuts)
+        for key in self._drop_steps_keys():
+            cut = cut | self._get(td, key).any(1)
+        eligible = dropped.any(1) | cut
         loss = self._per_eligible(kl, eligible)
         out = TensorDict(loss_mis=self.weight * loss)
         if self.dropped_nll_weight:
@@ -235,6 +325,8 @@ class MissingModalityLoss(ForecasterLossBase):
         out.update(
             mis_kl=(kl * eligible).sum().detach() / eligible.sum().clamp_min(1),
             mis_fraction=eligible.float().mean(),
-            mis_dropped=dropped.sum(1).float().sum() / eligible.sum().clamp_min(1),
+            mis_dropped=dropped.sum(1).float().sum() / dropped.any(1).sum().clamp_min(1),
         )
+        if self.step_drop_prob:
+            out.set("mis_tail_fraction", cut.float().mean())
         return out

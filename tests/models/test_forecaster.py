@@ -12,6 +12,7 @@ from mmf_rl.keys import ModalitySpec
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster
 from mmf_rl.objectives import LossConfig
 from tests.conftest import (
+    HISTORY,
     HORIZON,
     SMALL_MODALITIES,
     TARGET_DIM,
@@ -759,3 +760,95 @@ def test_forecast_from_tokens_moment_matches_like_the_eval_forward(predictive_mo
         loc, scale = predictive_model.forecast_from_tokens(*predictive_model.encode(mixed_batch))
     torch.testing.assert_close(loc, expected.get(keys.FORECAST_LOC))
     torch.testing.assert_close(scale, expected.get(keys.FORECAST_SCALE))
+
+
+# -- tail cuts: ("drop_steps", m) removes a window's last steps from the L_mis student only -------
+
+STEP_TOKEN_MODALITIES = [
+    dataclasses.replace(s, encoder="conv_frames" if s.kind == "image" else "steps") for s in SMALL_MODALITIES
+]
+
+
+def tail_cut_batch(modalities, batch_size: int = 12):
+    """A mixed-presence batch with partial windows (step 0 always present) and all-False ``("drop", m)``;
+    returns it and the ``("drop_steps", m)`` masks it cuts: image rows 0, 3, 6, ... lose their last two
+    steps, force rows 1, 4, 7, ... their last step."""
+    g = torch.Generator().manual_seed(4)
+    td = make_batch(batch_size, modalities, seed=3)
+    td.set(keys.present_key("proprio"), torch.arange(batch_size) % 2 == 0)
+    cuts = {}
+    for offset, (name, length) in enumerate((("image", 2), ("force", 1))):
+        steps = torch.rand(batch_size, HISTORY, generator=g) > 0.3
+        steps[:, 0] = True
+        td.set(keys.present_steps_key(name), steps)
+        cut = torch.zeros(batch_size, HISTORY, dtype=torch.bool)
+        cut[offset::3, HISTORY - length :] = True
+        cuts[name] = cut
+    for name in NAMES:
+        td.set(keys.drop_key(name), torch.zeros(batch_size, dtype=torch.bool))
+    return td, cuts
+
+
+def with_cuts(td, cuts):
+    td = td.clone()
+    for name, cut in cuts.items():
+        td.set(keys.drop_steps_key(name), cut)
+    return td
+
+
+@pytest.mark.parametrize("prior", PRIORS)
+@pytest.mark.parametrize("modalities", [SMALL_MODALITIES, STEP_TOKEN_MODALITIES], ids=["window", "steps"])
+def test_a_tail_cut_is_the_student_of_a_window_with_those_steps_absent(small_config, modalities, prior):
+    torch.manual_seed(0)
+    model = MultimodalForecaster(dataclasses.replace(small_config, modalities=modalities, prior=prior)).eval()
+    td, cuts = tail_cut_batch(modalities)
+    uncut = td.clone()
+    # The same windows with the cut steps marked absent in ("present_steps", m), no masks.
+    absent = td.clone().exclude(keys.DROP)
+    for name, cut in cuts.items():
+        absent.set(keys.present_steps_key(name), td.get(keys.present_steps_key(name)) & ~cut)
+    with torch.no_grad():
+        out, plain = model(with_cuts(td, cuts)), model(uncut)
+        tokens, present = model.encode(absent)
+        student, _ = model.decode(tokens, present, out.get(keys.LATENT))
+        reference = model(absent.clone())
+    for key in (keys.FORECAST_LOC, keys.FORECAST_SCALE, keys.LATENT, keys.PRIOR_LOC):
+        assert torch.equal(out.get(key), plain.get(key)), key  # the teacher is unchanged
+    torch.testing.assert_close(out.get(keys.FORECAST_DROPPED_LOC), student, rtol=1e-4, atol=1e-5)
+    if prior == "learned":
+        torch.testing.assert_close(
+            out.get(keys.PRIOR_DROPPED_LOC), reference.get(keys.PRIOR_LOC), rtol=1e-4, atol=1e-5
+        )
+    cut_rows = torch.stack([c.any(1) for c in cuts.values()], 1).any(1)
+    teacher, dropped = out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_DROPPED_LOC)
+    torch.testing.assert_close(
+        dropped[~cut_rows], plain.get(keys.FORECAST_DROPPED_LOC)[~cut_rows], rtol=1e-4, atol=1e-5
+    )
+    assert not torch.allclose(teacher[cut_rows], dropped[cut_rows])
+
+
+def test_all_false_step_cuts_change_nothing(model):
+    td, cuts = tail_cut_batch(SMALL_MODALITIES)
+    none_cut = {name: torch.zeros_like(cut) for name, cut in cuts.items()}
+    model.train()
+    torch.manual_seed(1)
+    plain = model(td.clone())
+    torch.manual_seed(1)
+    masked = model(with_cuts(td, none_cut))
+    for key in [*OUTPUTS, keys.FORECAST_DROPPED_LOC, keys.FORECAST_DROPPED_SCALE]:
+        assert torch.equal(masked.get(key), plain.get(key)), key
+
+
+def test_bad_step_cuts_are_clear_errors(small_model):
+    td, cuts = tail_cut_batch(SMALL_MODALITIES)
+    with pytest.raises(KeyError, match=r"without the \('drop', m\) masks"):
+        small_model(with_cuts(td.exclude(keys.DROP), cuts))
+    with pytest.raises(ValueError, match=r"expected bool \[12, 4\] for a windowed modality"):
+        small_model(with_cuts(td, {"image": cuts["image"][:, :2]}))
+    alone = make_batch(
+        2, present={"force": torch.zeros(2, dtype=torch.bool), "proprio": torch.zeros(2).bool()}
+    )
+    for name in NAMES:
+        alone.set(keys.drop_key(name), torch.zeros(2, dtype=torch.bool))
+    with pytest.raises(ValueError, match="removes every present modality of some sample"):
+        small_model(with_cuts(alone, {"image": torch.ones(2, HISTORY, dtype=torch.bool)}))

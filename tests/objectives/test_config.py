@@ -37,3 +37,17 @@ def test_max_dropped_must_be_a_whole_number_of_at_least_one_or_null(value):
     with pytest.raises(ValueError, match="loss.max_dropped must be a whole number >= 1 or null"):
         LossConfig(max_dropped=value)
     assert LossConfig(max_dropped=None).max_dropped is None
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("step_drop_prob", 1.5, r"loss.step_drop_prob must be in \[0, 1\], found 1.5"),
+        ("step_drop_prob", -0.5, r"loss.step_drop_prob must be in \[0, 1\], found -0.5"),
+        ("max_dropped_steps", 0, "loss.max_dropped_steps must be a whole number >= 1 or null"),
+        ("max_dropped_steps", 2.5, "loss.max_dropped_steps must be a whole number >= 1 or null"),
+    ],
+)
+def test_bad_tail_cut_options_name_the_key(field, value, message):
+    with pytest.raises(ValueError, match=message):
+        LossConfig(**{field: value})

@@ -1,4 +1,6 @@
 import dataclasses
+import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -6,9 +8,13 @@ from tensordict import TensorDict
 from torch.distributions import Normal, kl_divergence
 
 from mmf_rl import keys
-from mmf_rl.models import MultimodalForecaster
-from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
-from tests.conftest import SMALL_MODALITIES, make_batch
+from mmf_rl.cli import main as cli
+from mmf_rl.configuration import compose_config, to_container
+from mmf_rl.datasets import WindowDataset
+from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+from mmf_rl.objectives import CombinedLoss, ELBOLoss, LossConfig, MissingModalityLoss
+from tests.conftest import HISTORY, SMALL_MODALITIES, make_batch, push_train_overrides
+from tests.reliability.conftest import edit_frames, push_data_config
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 
@@ -240,3 +246,149 @@ def test_standard_prior_has_no_prior_tie(small_model, batch):
     loss = MissingModalityLoss(small_model, prior_weight=1.0)
     assert "loss_mis_prior" not in loss.out_keys
     assert "loss_mis_prior" not in loss(batch).keys()
+
+
+# -- tail cuts: a sensor dying mid-window ---------------------------------------------------------
+
+
+def with_gaps(td, seed: int = 5):
+    """``td`` with ``("present_steps", "force")`` losing some steps (never every one of a window)."""
+    steps = torch.rand(td.shape[0], HISTORY, generator=torch.Generator().manual_seed(seed)) > 0.3
+    steps[:, 0] = True
+    td.set(keys.present_steps_key("force"), steps)
+    return td
+
+
+def drawn_cuts(loss, seed=0):
+    """``prepare`` on a mixed batch with partial force windows: the whole drops ``[B, M]``, the cuts
+    ``[B, M, H]`` (all False for a modality without one) and the present steps ``[B, M, H]``."""
+    td = with_gaps(make_batch(2000, present=THREE_PATTERNS))
+    torch.manual_seed(seed)
+    loss.prepare(td)
+    drop = torch.stack([td.get(keys.drop_key(n)) for n in NAMES], 1)
+    cut = torch.stack([td.get(keys.drop_steps_key(n)) for n in NAMES], 1)
+    steps = torch.stack(
+        [td.get(keys.present_steps_key(n), torch.ones(2000, HISTORY).bool()) for n in NAMES], 1
+    )
+    present = torch.stack([THREE_PATTERNS[n] for n in NAMES], 1)
+    return drop, cut, steps & present.unsqueeze(-1)
+
+
+def test_a_tail_cut_removes_the_last_present_steps_of_one_modality_and_keeps_one(small_model):
+    drop, cut, steps = drawn_cuts(MissingModalityLoss(small_model, max_dropped=None, step_drop_prob=0.5))
+    cut_rows = cut.flatten(1).any(1)
+    assert not (cut & ~steps).any()  # only present steps are cut
+    assert torch.equal(cut.any(-1).sum(1), cut_rows.long())  # of one modality
+    assert not (drop[cut_rows]).any()  # instead of the whole drop
+    kept = steps & ~cut
+    assert bool(kept.any(-1)[cut.any(-1)].all())  # the cut modality keeps a present step
+    # The last ones: no step the student keeps comes after a cut step.
+    index = torch.arange(HISTORY).expand_as(cut)
+    last_kept = torch.where(kept, index, -1).amax(-1)
+    first_cut = torch.where(cut, index, HISTORY).amin(-1)
+    assert bool((last_kept < first_cut).all())
+    # Every sample has a windowed modality with two present steps here: half get a cut, single-modality
+    # samples included (rows 2, 4, 7, ...), whose modality stays present.
+    assert abs(float(cut_rows.float().mean()) - 0.5) < 0.05
+    single = steps.any(-1).sum(1) == 1
+    assert bool(cut_rows[single].any()) and bool(kept.any(-1)[single].any(1).all())
+    # A full window of H steps loses k uniform in 1..H-1.
+    lengths = cut.sum(-1)[cut.any(-1) & steps.all(-1)]
+    assert set(lengths.tolist()) == set(range(1, HISTORY))
+
+
+def test_max_dropped_steps_caps_the_cut_and_the_draw_repeats_under_a_seed(small_model):
+    loss = MissingModalityLoss(small_model, step_drop_prob=0.5, max_dropped_steps=1)
+    _, cut, _ = drawn_cuts(loss)
+    assert set(cut.sum(-1)[cut.any(-1)].tolist()) == {1}
+    for first, again in zip(drawn_cuts(loss, seed=3), drawn_cuts(loss, seed=3), strict=True):
+        assert torch.equal(first, again)
+    assert not torch.equal(drawn_cuts(loss, seed=3)[1], drawn_cuts(loss, seed=4)[1])
+
+
+@pytest.mark.parametrize("max_dropped", [1, None])
+def test_no_tail_cuts_by_default_and_the_same_random_draws_as_the_whole_drop(small_model, max_dropped):
+    td = with_gaps(make_batch(64, present={n: p[:64] for n, p in THREE_PATTERNS.items()}))
+    loss = MissingModalityLoss(small_model, max_dropped=max_dropped)
+    assert loss.step_drop_prob == 0 and "mis_tail_fraction" not in loss.out_keys
+    assert not any(k[0] == keys.DROP_STEPS for k in loss.in_keys if isinstance(k, tuple))
+    torch.manual_seed(0)
+    loss.prepare(td)
+    after = torch.rand(3)
+    assert keys.DROP_STEPS not in td.keys()
+    # The paper's drop draws one score per modality (and, above one dropped, one count) per sample.
+    torch.manual_seed(0)
+    torch.rand(64, len(NAMES))
+    if max_dropped is None:
+        torch.rand(64)
+    assert torch.equal(after, torch.rand(3))
+
+
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        ({"step_drop_prob": -0.1}, r"step_drop_prob must be in \[0, 1\]"),
+        ({"step_drop_prob": 1.5}, r"step_drop_prob must be in \[0, 1\]"),
+        ({"max_dropped_steps": 0}, r"max_dropped_steps must be >= 1 \(or None: up to all but one"),
+    ],
+)
+def test_bad_tail_cut_options_name_the_argument(small_model, option, message):
+    with pytest.raises(ValueError, match=message):
+        MissingModalityLoss(small_model, **option)
+
+
+def test_tail_cuts_need_a_windowed_modality(small_config):
+    vectors = dataclasses.replace(small_config, modalities=[keys.ModalitySpec("goal", "vector", (3,))])
+    with pytest.raises(ValueError, match="has none; set step_drop_prob=0"):
+        MissingModalityLoss(MultimodalForecaster(vectors), step_drop_prob=0.5)
+
+
+def test_tail_cut_samples_count_and_train_the_student(small_model, batch):
+    loss = MissingModalityLoss(small_model, step_drop_prob=1.0)
+    assert {keys.drop_steps_key(n) for n in NAMES} <= set(loss.in_keys)
+    small_model.train()
+    out = loss(batch)
+    assert out["mis_tail_fraction"] == 1 and out["mis_fraction"] == 1 and out["loss_mis"] > 0
+    out["loss_mis"].backward()
+    grads = [p.grad for p in small_model.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_tail_cut_options_come_from_the_loss_config():
+    overrides = ["loss.step_drop_prob=0.25", "loss.max_dropped_steps=2"]
+    loss_cfg = LossConfig.from_dict(to_container(compose_config("train", overrides).loss))
+    torch.manual_seed(0)
+    model = MultimodalForecaster(
+        ForecasterConfig(modalities=list(SMALL_MODALITIES), history=HISTORY, horizon=5, target_dim=2)
+    )
+    loss = MissingModalityLoss.from_config(model, loss_cfg)
+    assert (loss.step_drop_prob, loss.max_dropped_steps) == (0.25, 2)
+    assert (LossConfig().step_drop_prob, LossConfig().max_dropped_steps) == (0.0, None)
+
+
+def camera_dies_mid_episode(frames) -> None:
+    """The camera is lost from frame 34 of every episode on: windows over frame 34 hold it for some steps."""
+    from mmf_rl.record import CAMERA_VALID_KEY
+
+    frames.loc[frames["frame_index"] >= 34, CAMERA_VALID_KEY] = False
+
+
+def test_training_with_tail_cuts_on_partial_windows_of_recorded_push_data(recorded_push_root, tmp_path):
+    root = Path(shutil.copytree(recorded_push_root, tmp_path / "push"))
+    edit_frames(root, camera_dies_mid_episode)
+    run = tmp_path / "run"
+    overrides = push_train_overrides(root, tmp_path / "cache", run, steps=4)
+    assert cli(["train", *overrides, "data.partial_windows=true", "loss.step_drop_prob=0.5"]) == 0
+    scalars = run / "logs" / "scalars" / "train"
+    values = {
+        name: torch.tensor(
+            [float(row.split(",")[-1]) for row in (scalars / f"{name}.csv").read_text().splitlines()]
+        )
+        for name in ("loss", "loss_mis", "mis_tail_fraction")
+    }
+    assert all(len(v) and torch.isfinite(v).all() for v in values.values())
+    assert bool((values["mis_tail_fraction"] > 0).all())
+    dataset = WindowDataset(push_data_config(root, tmp_path / "cache", partial_windows=True))
+    batch = dataset.batch(torch.arange(len(dataset)))
+    steps, present = batch.get(keys.present_steps_key("image")), batch.get(keys.present_key("image"))
+    assert bool((present & ~steps.all(1)).any()), "some windows hold the camera for some steps only"

@@ -63,7 +63,10 @@ Open points of the paper, and what this implementation does:
   of ``2B`` rows (used by :class:`~mmf_rl.objectives.MissingModalityLoss`). With the learned
   prior the multimodal encoder also runs on both presence patterns in one pass of ``2B`` rows
   and writes the prior of the degraded input, ``("prior_dropped", ...)``, which the loss ties
-  to the full-input prior.
+  to the full-input prior. ``("drop_steps", m)`` masks ``[B, H]`` (a tail cut: a sensor dying
+  mid-window) make those steps absent for the student only: the cut modality is encoded again on
+  the cut rows as if the steps were absent in ``("present_steps", m)``, the teacher's tokens
+  unchanged.
 * **GSNN term (Sohn et al. 2015).** If the batch carries ``"decode_from_prior"`` (set by
   :class:`~mmf_rl.objectives.ELBOLoss` with ``gsnn_weight > 0``), every row is also decoded
   from a reparameterised ``z ~ p(z | X)`` in the same decoder pass, written to
@@ -174,11 +177,12 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     """Attention-based CVAE forecaster robust to missing modalities (see module docstring).
 
     Reads ``("obs", m)``, ``("present", m)`` for every modality, ``"target"`` when training
-    (and, if present, in eval, to report the posterior), optional ``("drop", m)`` and
-    ``"decode_from_prior"``; writes ``("forecast", "loc"/"scale")``, ``"latent"``,
-    ``("prior", ...)``, ``("posterior", ...)`` (when ``"target"`` is given or not needed),
-    ``("forecast_dropped", ...)`` and, with the learned prior, ``("prior_dropped", ...)`` (when
-    ``("drop", m)`` is given), and ``("forecast_from_prior", ...)`` (when requested).
+    (and, if present, in eval, to report the posterior), optional ``("present_steps", m)``,
+    ``("drop", m)``, ``("drop_steps", m)`` and ``"decode_from_prior"``; writes ``("forecast",
+    "loc"/"scale")``, ``"latent"``, ``("prior", ...)``, ``("posterior", ...)`` (when ``"target"``
+    is given or not needed), ``("forecast_dropped", ...)`` and, with the learned prior,
+    ``("prior_dropped", ...)`` (when ``("drop", m)`` is given), and ``("forecast_from_prior", ...)``
+    (when requested).
 
     In train mode ``z`` is sampled from the posterior (reparameterised); in eval mode it is the
     prior's mean (``eval_latent="mean"``; ``0`` under the standard prior), a prior draw
@@ -301,24 +305,30 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         the encoder reads them; a step-token encoder's token of an absent step is also absent (a
         key-padding mask for the fusion and the decoder). Without it every step of a present modality
         is present."""
-        present = torch.stack([td.get(s.present_key) for s in self.modalities], dim=1)
-        columns, token_present = [], []
-        for i, spec in enumerate(self.modalities):
-            obs, encoder = td.get(spec.obs_key), self.encoders[spec.name]
-            steps = td.get(keys.present_steps_key(spec.name), None)
-            if steps is not None:
-                present[:, i] &= steps.any(1)
-                obs = keys.zero_absent_steps(obs, steps)
-            absent = self.absent_tokens(i, present.shape[0], present.device)
-            columns += compute_on_rows(
-                present[:, i],
-                lambda rows, obs=obs, encoder=encoder: (
-                    self.as_tokens(encoder(obs if rows is None else obs[rows])),
-                ),
-                (absent,),
+        columns = [
+            self._encode_modality(
+                i,
+                td.get(spec.obs_key),
+                td.get(spec.present_key),
+                td.get(keys.present_steps_key(spec.name), None),
             )
-            token_present.append(self._token_presence(i, present[:, i], steps))
-        tokens, token_present = torch.cat(columns, dim=1), torch.cat(token_present, dim=1)
+            for i, spec in enumerate(self.modalities)
+        ]
+        return torch.cat([t for t, _ in columns], dim=1), torch.cat([p for _, p in columns], dim=1)
+
+    def _encode_modality(self, modality: int, obs: torch.Tensor, present: torch.Tensor, steps):
+        """One modality's tokens ``[B, L_m, d]`` (zeros where absent) and their presence ``[B, L_m]``,
+        from its window, presence ``[B]`` and, if given, step presence ``[B, H]``."""
+        encoder = self.encoders[self.modalities[modality].name]
+        if steps is not None:
+            present = present & steps.any(1)
+            obs = keys.zero_absent_steps(obs, steps)
+        (tokens,) = compute_on_rows(
+            present,
+            lambda rows: (self.as_tokens(encoder(obs if rows is None else obs[rows])),),
+            (self.absent_tokens(modality, present.shape[0], present.device),),
+        )
+        token_present = self._token_presence(modality, present, steps)
         return tokens * token_present.unsqueeze(-1), token_present
 
     def _token_presence(self, modality: int, present: torch.Tensor, steps: torch.Tensor | None):
@@ -455,25 +465,70 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             raise KeyError(f"batch has some ('drop', m) masks but not {missing}; give one for every modality")
         return torch.stack([td.get(k) for k in drop_keys], dim=1)
 
+    def _step_cuts(self, td: TensorDictBase) -> dict[int, torch.Tensor]:
+        """The batch's ``("drop_steps", m)`` masks ``[B, H]`` (a modality without one has no cut), by
+        modality index, checked."""
+        cuts = {}
+        for i, spec in enumerate(self.modalities):
+            cut = td.get(keys.drop_steps_key(spec.name), None)
+            if cut is None:
+                continue
+            expected = (td.batch_size[0], self.config.history)
+            if spec.kind == "vector" or cut.dtype != torch.bool or tuple(cut.shape) != expected:
+                raise ValueError(
+                    f"td[{keys.drop_steps_key(spec.name)}]: expected bool {list(expected)} for a windowed "
+                    f"modality, found {str(cut.dtype).removeprefix('torch.')} {list(cut.shape)} for "
+                    f"{spec.name!r} ({spec.kind}); a single-vector modality has no steps to cut"
+                )
+            cuts[i] = cut
+        return cuts
+
+    def _cut_steps(self, td: TensorDictBase, tokens, kept, cuts: dict[int, torch.Tensor]):
+        """The student's tokens and token presence with the ``("drop_steps", m)`` steps absent: each
+        cut modality is encoded again, on its cut rows only, as :meth:`encode` would encode it with
+        those steps absent in ``("present_steps", m)`` (zeroed for a whole-window encoder, masked
+        tokens for a step-token encoder)."""
+        token_columns, presence_columns = (
+            list(tokens.split(self.token_counts, 1)),
+            list(kept.split(self.token_counts, 1)),
+        )
+        for i, cut in cuts.items():
+            spec = self.modalities[i]
+            obs, present = td.get(spec.obs_key), td.get(spec.present_key)
+            steps = td.get(keys.present_steps_key(spec.name), None)
+            student_steps = ~cut if steps is None else steps & ~cut
+
+            def encode_cut(rows, i=i, obs=obs, present=present, student_steps=student_steps):
+                if rows is None:
+                    return self._encode_modality(i, obs, present, student_steps)
+                return self._encode_modality(i, obs[rows], present[rows], student_steps[rows])
+
+            cut_tokens, cut_presence = compute_on_rows(
+                cut.any(1), encode_cut, (token_columns[i], presence_columns[i])
+            )
+            token_columns[i] = cut_tokens
+            presence_columns[i] = cut_presence & presence_columns[i]
+        return torch.cat(token_columns, dim=1), torch.cat(presence_columns, dim=1)
+
     # -- TensorDict API --------------------------------------------------------------------------
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         self.validate(td, require_target=self.training and self.target_encoder is not None)
         tokens, present = self.encode(td)
-        kept = self._kept_presence(td, present)
+        tokens_kept, kept = self._student_input(td, tokens, present)
         target = td.get(keys.TARGET, None)
         wants_posterior = target is not None or self.target_encoder is None
         prepared = self.decoder_tokens(tokens, present)
-        prepared_kept = None if kept is None else self.decoder_tokens(tokens, kept)
+        prepared_kept = None if kept is None else self.decoder_tokens(tokens_kept, kept)
         features, prior_loc, prior_scale = self._fuse_with_prior(
-            td, tokens, (present, prepared), (kept, prepared_kept), wants_posterior
+            td, (tokens, present, prepared), (tokens_kept, kept, prepared_kept), wants_posterior
         )
         z = self._forward_latent(td, features, target, wants_posterior, (prior_loc, prior_scale))
 
         # Every decode of this pass (full input; degraded input; from the prior) in one decoder call;
         # a decode is a presence [B, M], its decoder tokens and its latents, B rows or K blocks of B.
         decodes = [(present, prepared, z)]
-        if kept is not None:  # teacher and student share tokens and z
+        if kept is not None:  # teacher and student share z (and the tokens of what was not cut)
             decodes.append((kept, prepared_kept, z))
         from_prior = keys.DECODE_FROM_PRIOR in td.keys()
         if from_prior:  # the GSNN term: a reparameterised prior draw, so the prior head learns from it
@@ -489,22 +544,33 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             td.set(keys.FORECAST_FROM_PRIOR_SCALE, forecasts[-1][1])
         return td
 
-    def _kept_presence(self, td: TensorDictBase, present: torch.Tensor) -> torch.Tensor | None:
-        """The presence after the batch's ``("drop", m)`` masks (the L_mis student's input), if any."""
-        drop = self._drop_mask(td)
+    def _student_input(self, td: TensorDictBase, tokens: torch.Tensor, present: torch.Tensor):
+        """The L_mis student's tokens and token presence: the ``("drop", m)`` modalities removed and
+        the ``("drop_steps", m)`` steps cut; ``(None, None)`` without masks."""
+        drop, cuts = self._drop_mask(td), self._step_cuts(td)
         if drop is None:
-            return None
+            if cuts:
+                raise KeyError(
+                    "batch has ('drop_steps', m) masks without the ('drop', m) masks; give a ('drop', m) "
+                    "for every modality (all False where only steps are cut)"
+                )
+            return None, None
         kept = present & ~drop[:, self.token_modality]
+        if cuts:
+            tokens, kept = self._cut_steps(td, tokens, kept, cuts)
         if not bool(kept.any(1).all()):
-            raise ValueError("('drop', m) removes every present modality of some sample; keep at least one")
-        return kept
+            raise ValueError(
+                "('drop', m) with ('drop_steps', m) removes every present modality of some sample; keep "
+                "at least one modality with one present step"
+            )
+        return tokens, kept
 
-    def _fuse_with_prior(self, td: TensorDictBase, tokens, full, degraded, wants_posterior: bool):
+    def _fuse_with_prior(self, td: TensorDictBase, full, degraded, wants_posterior: bool):
         """The fused features (``None`` when neither a learned prior nor the posterior reads them)
         and the prior ``(loc, scale)``, written to ``td``; with a learned prior and ``("drop", m)``
-        masks, the degraded input's prior too. ``full`` and ``degraded`` are (presence, decoder
-        tokens) of the input and of the kept modalities (``(None, None)`` without masks)."""
-        (present, prepared), (kept, prepared_kept) = full, degraded
+        masks, the degraded input's prior too. ``full`` and ``degraded`` are (tokens, presence,
+        decoder tokens) of the input and of the student's (``(None, None, None)`` without masks)."""
+        (tokens, present, prepared), (tokens_kept, kept, prepared_kept) = full, degraded
         batch, device = present.shape[0], present.device
         learned = self.prior_head is not None
         features = None
@@ -513,7 +579,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             # same pass (2B rows) as the full input's.
             both = torch.cat([present, kept])
             features, features_kept = self.fuse(
-                tokens.repeat(2, 1, 1), both, torch.cat([prepared, prepared_kept])
+                torch.cat([tokens, tokens_kept]), both, torch.cat([prepared, prepared_kept])
             ).split(batch)
             prior_kept = self._prior_from(features_kept, batch, device)
             td.set(keys.PRIOR_DROPPED_LOC, prior_kept[0])
