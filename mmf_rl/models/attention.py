@@ -110,11 +110,13 @@ class PairStreams(nn.Module):
     def forward(self, tokens: torch.Tensor, token_present: torch.Tensor) -> torch.Tensor:
         """Tokens ``[B, N, d]`` (in modality order, ``token_counts`` each) and their presence ``[B, N]``
         -> readouts ``[B, M × M, d]``, pair ``(i, j)`` at row ``i × M + j``."""
+        # Zeros under absent tokens: an absent pair's placeholder depends on nothing stored there either.
+        tokens = tokens.masked_fill(~token_present.unsqueeze(-1), 0.0)
         columns = tokens.split(self.token_counts, dim=1)
         presence = token_present.split(self.token_counts, dim=1)
         queries = [last_present_token(c, p) for c, p in zip(columns, presence, strict=True)]
         # A row whose j is absent attends to j's zero tokens instead of to no key (a NaN): its pair is
-        # absent, so the readout is never used.
+        # absent, so the readout is masked out downstream.
         hidden = [~p & p.any(1, keepdim=True) for p in presence]
         readouts = [
             layer(queries[i], columns[j], hidden[j])[:, 0]

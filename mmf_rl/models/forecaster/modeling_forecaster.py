@@ -55,7 +55,8 @@ Open points of the paper, and what this implementation does:
   forecasts the future *under a given action sequence*: ``"future_action"`` ``[B, S, A]``
   (``S = T × stride`` actions, from the last observed frame on) is flattened and mapped by an
   MLP to one ``d``-vector ``a``, concatenated beside ``z`` to every decoder token:
-  ``[(x̄_m + p^D_m) ⊕ z ⊕ a]``. The actions enter the decoder only: the posterior still
+  ``[(x̄_m + p^D_m) ⊕ z ⊕ a]`` (with ``decoder_latent="linear"`` or ``"none"``, added through the
+  linear map with ``z`` or alone). The actions enter the decoder only: the posterior still
   summarises the observed history, so the presence handling (masks, ``L_mis``) is unchanged,
   and a planner scores ``N`` candidate sequences for one history by encoding it once and
   decoding ``N`` rows (:meth:`MultimodalForecaster.forecast_under_actions`). One vector for the
