@@ -81,7 +81,8 @@ class ForecasterConfig:
         decoder_latent: how ``z`` (and a world model's actions) enter the decoder's tokens ``H0``:
             ``"joint"`` (default, the paper: the shared MLP over ``[x̄ + p^D, z (, a)]``),
             ``"linear"`` (``H0 = x̄ + p^D + W [z (, a)]``: no MLP over every token) or ``"none"`` (a
-            deterministic decoder that ignores ``z``; the actions still enter, linearly).
+            deterministic decoder that ignores ``z``; the actions still enter, linearly). A saved
+            config without it loads as ``"joint"``.
         action_dim: ``A``; with ``action_steps``, makes the model an action-conditioned world
             model that reads ``"future_action"`` ``[B, action_steps, A]`` (the actions applied
             over the horizon). ``0`` (default): no action input, the paper's forecaster.
