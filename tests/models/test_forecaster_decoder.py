@@ -244,3 +244,27 @@ def test_pair_streams_train_and_evaluate_on_recorded_push_data(recorded_push_roo
     model, _, _ = load_trained_model(run)
     assert (model.config.decoder_input, model.config.decoder_latent) == ("pair_streams", "linear")
     assert cli(["eval", f"checkpoint={run}", "num_samples=2", "plots=false"]) == 0
+
+
+class EvalForecast(torch.nn.Module):
+    """``forecast_from_tokens`` as a module, what ``torch.jit.trace`` takes (as `mmf_rl.rl` traces it)."""
+
+    def __init__(self, model: MultimodalForecaster):
+        super().__init__()
+        self.model = model
+
+    def forward(self, tokens: torch.Tensor, present: torch.Tensor):
+        return self.model.forecast_from_tokens(tokens, present)
+
+
+# The tracer warns of the Python branches on shapes (attention checks, the number of draws).
+@pytest.mark.filterwarnings("ignore::torch.jit.TracerWarning")
+def test_one_trace_of_the_pair_stream_forecast_serves_every_presence_pattern(small_config, mixed_batch):
+    """No Python branch on presence values: a trace made with every token present gives the eager
+    forecast for mixed modalities and windows that end absent."""
+    model = build(small_config, STEP_MODALITIES, decoder_input="pair_streams").eval()
+    batch = with_trailing_absent_steps(mixed(STEP_MODALITIES, mixed_batch), STEP_MODALITIES)
+    with torch.no_grad():
+        tokens, present = model.encode(batch)
+        traced = torch.jit.trace(EvalForecast(model), (tokens, torch.ones_like(present)), check_trace=False)
+        torch.testing.assert_close(traced(tokens, present), model.forecast_from_tokens(tokens, present))
