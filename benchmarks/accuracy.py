@@ -101,6 +101,12 @@ STEP_TOKENS = (
     "data.modalities.force.encoder=steps",
     "data.modalities.proprio.encoder=steps",
 )
+# The decoder reads MulT's pair streams, over one token per step of each vector modality.
+PAIR_STREAMS = (
+    "model.decoder_input=pair_streams",
+    "data.modalities.force.encoder=steps",
+    "data.modalities.proprio.encoder=steps",
+)
 ENTRIES = [
     catalogue.PAPER,
     # Options of the paper model. The defaults (standard prior, MLP window encoders for the vector
@@ -126,6 +132,19 @@ ENTRIES = [
     ),
     Entry(
         "paper, mixed tokens, per-step tokens", "variant", (*PAPER, "model.decoder_input=mixed", *STEP_TOKENS)
+    ),
+    # MulT's pair streams as the decoder's input, on per-step vector tokens (the image keeps its
+    # frame-stacked token), with each way z enters the decoder.
+    Entry("paper, pair-stream decoder, per-step vector tokens", "variant", (*PAPER, *PAIR_STREAMS)),
+    Entry(
+        "paper, pair-stream decoder, linear z, per-step vector tokens",
+        "variant",
+        (*PAPER, *PAIR_STREAMS, "model.decoder_latent=linear"),
+    ),
+    Entry(
+        "paper, pair-stream decoder, no z, per-step vector tokens",
+        "variant",
+        (*PAPER, *PAIR_STREAMS, "model.decoder_latent=none"),
     ),
     *catalogue.ZERO_FILL,
     *catalogue.RETRAINED,

@@ -1,4 +1,4 @@
-"""Attention blocks of the paper's multimodal encoder and decoder (pre-LN, key-padding masks).
+"""Attention blocks of the forecaster and the baselines (pre-LN, key-padding masks).
 
 Absent modalities are padded token slots: ``key_padding_mask`` is ``True`` where a token is
 absent, so one batch can mix presence patterns in a single pass.
@@ -56,3 +56,82 @@ class FixedQueryAttention(nn.Module):
             self.norm_query(query), kv, kv, key_padding_mask=key_padding_mask, need_weights=False
         )[0]
         return out + residual
+
+
+class CrossModalLayer(nn.Module):
+    """Pre-LN cross-modal block (MulT): ``Q = Q + MHA(LN(Q), LN(S), LN(S))``; ``Q = Q + MLP(LN(Q))``.
+
+    ``key_padding_mask`` ``[B, L_S]`` (True: an absent source token) hides source tokens; a row must
+    keep at least one (attention over no key is undefined)."""
+
+    def __init__(self, d_model: int, num_heads: int, mlp_hidden: int):
+        super().__init__()
+        self.norm_query = nn.LayerNorm(d_model)
+        self.norm_source = nn.LayerNorm(d_model)
+        self.attn = nn.MultiheadAttention(d_model, num_heads, batch_first=True)
+        self.norm_mlp = nn.LayerNorm(d_model)
+        self.mlp = mlp(d_model, mlp_hidden, d_model)
+
+    def forward(
+        self, query: torch.Tensor, source: torch.Tensor, key_padding_mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        kv = self.norm_source(source)
+        attended = self.attn(
+            self.norm_query(query), kv, kv, key_padding_mask=key_padding_mask, need_weights=False
+        )
+        query = query + attended[0]
+        return query + self.mlp(self.norm_mlp(query))
+
+
+class PairStreams(nn.Module):
+    """MulT's pair streams as tokens: one readout ``[B, d]`` per ordered modality pair ``(i, j)``.
+
+    For each of the ``M × M`` pairs (``i == j`` included, so a lone modality keeps a readout), a
+    cross-modal layer of its own lets modality ``i``'s **last present** token attend to ``j``'s present
+    tokens; its output is the pair's readout. One layer, so a query's output depends on its own token
+    and the keys only: computing the readout's query alone gives what the full stream gives there.
+    Absent tokens (an absent modality, or an absent step of a step-token encoder) are hidden from the
+    keys and never read as the query, so what is stored under them changes nothing. A pair is absent
+    (:meth:`presence`) when ``i`` or ``j`` has no present token; its readout is then a placeholder
+    the caller masks out.
+    """
+
+    def __init__(self, token_counts: list[int], d_model: int, num_heads: int, mlp_hidden: int):
+        super().__init__()
+        m = len(token_counts)
+        self.token_counts = list(token_counts)
+        self.pairs = [(i, j) for i in range(m) for j in range(m)]
+        self.layers = nn.ModuleList(CrossModalLayer(d_model, num_heads, mlp_hidden) for _ in self.pairs)
+        pair_index = torch.tensor(self.pairs)
+        # The query modality i of each pair: the modality embedding its readout gets in the decoder.
+        self.register_buffer("pair_modality", pair_index[:, 0].clone(), persistent=False)
+        self.register_buffer("pair_source", pair_index[:, 1].clone(), persistent=False)
+
+    def forward(self, tokens: torch.Tensor, token_present: torch.Tensor) -> torch.Tensor:
+        """Tokens ``[B, N, d]`` (in modality order, ``token_counts`` each) and their presence ``[B, N]``
+        -> readouts ``[B, M × M, d]``, pair ``(i, j)`` at row ``i × M + j``."""
+        # Zeros under absent tokens: an absent pair's placeholder depends on nothing stored there either.
+        tokens = tokens.masked_fill(~token_present.unsqueeze(-1), 0.0)
+        columns = tokens.split(self.token_counts, dim=1)
+        presence = token_present.split(self.token_counts, dim=1)
+        queries = [last_present_token(c, p) for c, p in zip(columns, presence, strict=True)]
+        # A row whose j is absent attends to j's zero tokens instead of to no key (a NaN): its pair is
+        # absent, so the readout is masked out downstream.
+        hidden = [~p & p.any(1, keepdim=True) for p in presence]
+        readouts = [
+            layer(queries[i], columns[j], hidden[j])[:, 0]
+            for layer, (i, j) in zip(self.layers, self.pairs, strict=True)
+        ]
+        return torch.stack(readouts, dim=1)
+
+    def presence(self, modality_present: torch.Tensor) -> torch.Tensor:
+        """Modality presence ``[B, M]`` -> pair presence ``[B, M × M]`` (both ``i`` and ``j`` present)."""
+        return modality_present[:, self.pair_modality] & modality_present[:, self.pair_source]
+
+
+def last_present_token(tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+    """``[B, 1, d]``: each row's last present token of ``tokens`` ``[B, L, d]`` (presence ``[B, L]``);
+    the first token where none is present."""
+    position = torch.arange(1, present.shape[1] + 1, device=present.device)
+    last = (present.long() * position).argmax(1)
+    return tokens.gather(1, last.view(-1, 1, 1).expand(-1, 1, tokens.shape[-1]))

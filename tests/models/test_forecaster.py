@@ -796,11 +796,17 @@ def with_cuts(td, cuts):
     return td
 
 
+@pytest.mark.parametrize("decoder_input", ["mixed", "pair_streams"])
 @pytest.mark.parametrize("prior", PRIORS)
 @pytest.mark.parametrize("modalities", [SMALL_MODALITIES, STEP_TOKEN_MODALITIES], ids=["window", "steps"])
-def test_a_tail_cut_is_the_student_of_a_window_with_those_steps_absent(small_config, modalities, prior):
+def test_a_tail_cut_is_the_student_of_a_window_with_those_steps_absent(
+    small_config, modalities, prior, decoder_input
+):
     torch.manual_seed(0)
-    model = MultimodalForecaster(dataclasses.replace(small_config, modalities=modalities, prior=prior)).eval()
+    config = dataclasses.replace(
+        small_config, modalities=modalities, prior=prior, decoder_input=decoder_input
+    )
+    model = MultimodalForecaster(config).eval()
     td, cuts = tail_cut_batch(modalities)
     uncut = td.clone()
     # The same windows with the cut steps marked absent in ("present_steps", m), no masks.

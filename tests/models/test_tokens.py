@@ -48,7 +48,7 @@ def test_a_step_token_depends_on_its_step_only(small_config):
     assert bool(moved[3] > 0) and not bool(moved[torch.arange(HISTORY) != 3].any())
 
 
-@pytest.mark.parametrize("decoder_input", ["tokens", "mixed"])
+@pytest.mark.parametrize("decoder_input", ["tokens", "mixed", "pair_streams"])
 @pytest.mark.parametrize("fusion", ["agnostic", "linear", "average", "sum", "cross_attention"])
 def test_step_tokens_keep_the_presence_invariants(small_config, mixed_batch, fusion, decoder_input):
     """A mixed batch gives each sample's own result, and what is stored under an absent modality
@@ -100,6 +100,9 @@ def perturbed_fusion_moves(model: MultimodalForecaster, batch) -> float:
         ({}, True),  # the default reads the mixed tokens
         ({"decoder_input": "tokens", "eval_latent": "posterior"}, True),
         ({"decoder_input": "tokens", "prior": "learned"}, True),
+        ({"decoder_input": "pair_streams"}, False),  # the pair streams read the raw tokens
+        ({"decoder_input": "pair_streams", "eval_latent": "posterior"}, True),
+        ({"decoder_input": "pair_streams", "eval_latent": "posterior", "decoder_latent": "none"}, False),
     ],
 )
 def test_whether_the_fusion_acts_on_eval_forecasts(small_config, changes, acts):
@@ -167,12 +170,14 @@ def garble_absent_steps(batch):
     return out
 
 
+@pytest.mark.parametrize("decoder_input", ["mixed", "pair_streams"])
 @pytest.mark.parametrize("modalities", [SMALL_MODALITIES, STEP_MODALITIES], ids=["window", "steps"])
-def test_per_step_presence_keeps_the_invariants(small_config, mixed_batch, modalities):
+def test_per_step_presence_keeps_the_invariants(small_config, mixed_batch, modalities, decoder_input):
     """With ``present_steps``: every step present changes nothing, what is stored under an absent step
     changes nothing, and a mixed batch gives each sample its own result."""
     torch.manual_seed(0)
-    model = MultimodalForecaster(dataclasses.replace(small_config, modalities=modalities)).eval()
+    config = dataclasses.replace(small_config, modalities=modalities, decoder_input=decoder_input)
+    model = MultimodalForecaster(config).eval()
     batch = make_batch(mixed_batch.shape[0], modalities, seed=1)
     for spec in modalities:
         batch.set(spec.present_key, mixed_batch.get(spec.present_key))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from mmf_rl.models.attention import CrossModalLayer
 from mmf_rl.models.baselines.common import (
     BaselineConfig,
     DeterministicForecaster,
@@ -42,23 +43,6 @@ class MulTConfig(BaselineConfig):
             raise ValueError(
                 f"MulTConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}"
             )
-
-
-class CrossModalLayer(nn.Module):
-    """Pre-LN cross-modal block: ``Q = Q + MHA(LN(Q), LN(S), LN(S))``; ``Q = Q + MLP(LN(Q))``."""
-
-    def __init__(self, d_model: int, num_heads: int, mlp_hidden: int):
-        super().__init__()
-        self.norm_query = nn.LayerNorm(d_model)
-        self.norm_source = nn.LayerNorm(d_model)
-        self.attn = nn.MultiheadAttention(d_model, num_heads, batch_first=True)
-        self.norm_mlp = nn.LayerNorm(d_model)
-        self.mlp = mlp(d_model, mlp_hidden, d_model)
-
-    def forward(self, query: torch.Tensor, source: torch.Tensor) -> torch.Tensor:
-        kv = self.norm_source(source)
-        query = query + self.attn(self.norm_query(query), kv, kv, need_weights=False)[0]
-        return query + self.mlp(self.norm_mlp(query))
 
 
 class CrossModalTransformer(nn.Module):

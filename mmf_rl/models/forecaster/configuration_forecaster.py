@@ -11,6 +11,8 @@ from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.fusion import check_fusion
 
 EVAL_LATENTS = ("mean", "sample", "predictive", "posterior")
+DECODER_INPUTS = ("tokens", "mixed", "pair_streams")
+DECODER_LATENTS = ("joint", "linear", "none")
 
 
 @dataclass
@@ -72,6 +74,15 @@ class ForecasterConfig:
             forecast whatever the prior; a fusion without such layers passes them through) or
             ``"tokens"`` (the paper read literally: the raw tokens, and under the standard prior
             the fusion shapes only training). A saved config without it loads as ``"tokens"``.
+            ``"pair_streams"`` (MulT's streams): for each ordered pair ``(i, j)`` of modalities, a
+            cross-modal layer of its own lets ``i``'s last present token attend to ``j``'s present
+            tokens; the decoder reads the ``M × M`` readouts (absent when ``i`` or ``j`` is), each
+            with ``p^D_i`` (:class:`~mmf_rl.models.attention.PairStreams`).
+        decoder_latent: how ``z`` (and a world model's actions) enter the decoder's tokens ``H0``:
+            ``"joint"`` (default, the paper: the shared MLP over ``[x̄ + p^D, z (, a)]``),
+            ``"linear"`` (``H0 = x̄ + p^D + W [z (, a)]``: no MLP over every token) or ``"none"`` (a
+            deterministic decoder that ignores ``z``; the actions still enter, linearly). A saved
+            config without it loads as ``"joint"``.
         action_dim: ``A``; with ``action_steps``, makes the model an action-conditioned world
             model that reads ``"future_action"`` ``[B, action_steps, A]`` (the actions applied
             over the horizon). ``0`` (default): no action input, the paper's forecaster.
@@ -97,7 +108,8 @@ class ForecasterConfig:
     eval_latent: Literal["mean", "sample", "predictive", "posterior"] = "mean"
     predictive_samples: int = 16
     fusion: str = "agnostic"
-    decoder_input: Literal["tokens", "mixed"] = "mixed"
+    decoder_input: Literal["tokens", "mixed", "pair_streams"] = "mixed"
+    decoder_latent: Literal["joint", "linear", "none"] = "joint"
     action_dim: int = 0
     action_steps: int = 0
     nonfinite: NonFiniteRule = "raise"
@@ -181,10 +193,9 @@ class ForecasterConfig:
                 f"ForecasterConfig.nonfinite must be one of {NONFINITE_RULES}, found {self.nonfinite!r}"
             )
         check_fusion(self.fusion)
-        if self.decoder_input not in ("tokens", "mixed"):
-            raise ValueError(
-                f"ForecasterConfig.decoder_input must be 'tokens' or 'mixed', found {self.decoder_input!r}"
-            )
+        for name, allowed in (("decoder_input", DECODER_INPUTS), ("decoder_latent", DECODER_LATENTS)):
+            if (value := getattr(self, name)) not in allowed:
+                raise ValueError(f"ForecasterConfig.{name} must be one of {allowed}, found {value!r}")
 
     @property
     def modality_names(self) -> list[str]:

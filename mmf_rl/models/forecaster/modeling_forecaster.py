@@ -19,7 +19,10 @@ Pipeline for a batch ``[B]`` with ``M`` modalities (paper, "Model Architecture")
    LN(H0), LN(H0)) + P^D``; ``H2 = MHA(LN(H1), LN(H0), LN(H0)) + H1``; flatten, MLP -> ``loc``,
    ``scale`` of a diagonal Gaussian over the ``T × D`` future, in the normalised frame of the
    target. With ``decoder_input="mixed"`` its tokens are those after the multimodal encoder's
-   Transformer layers, so the fusion shapes every forecast.
+   Transformer layers, so the fusion shapes every forecast; with ``"pair_streams"``, MulT's ``M × M``
+   pair readouts (:class:`~mmf_rl.models.attention.PairStreams`), each with ``p^D`` of its query
+   modality. ``decoder_latent`` chooses how ``z`` enters ``H0``: the shared MLP (the paper), a linear
+   map added to each token, or not at all.
 
 Open points of the paper, and what this implementation does:
 
@@ -52,7 +55,8 @@ Open points of the paper, and what this implementation does:
   forecasts the future *under a given action sequence*: ``"future_action"`` ``[B, S, A]``
   (``S = T × stride`` actions, from the last observed frame on) is flattened and mapped by an
   MLP to one ``d``-vector ``a``, concatenated beside ``z`` to every decoder token:
-  ``[(x̄_m + p^D_m) ⊕ z ⊕ a]``. The actions enter the decoder only: the posterior still
+  ``[(x̄_m + p^D_m) ⊕ z ⊕ a]`` (with ``decoder_latent="linear"`` or ``"none"``, added through the
+  linear map with ``z`` or alone). The actions enter the decoder only: the posterior still
   summarises the observed history, so the presence handling (masks, ``L_mis``) is unchanged,
   and a planner scores ``N`` candidate sequences for one history by encoding it once and
   decoding ``N`` rows (:meth:`MultimodalForecaster.forecast_under_actions`). One vector for the
@@ -84,7 +88,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from mmf_rl import keys
-from mmf_rl.models.attention import FixedQueryAttention
+from mmf_rl.models.attention import FixedQueryAttention, PairStreams
 from mmf_rl.models.encoders import build_encoder, mlp, num_tokens
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.fusion import FusionShape, build_fusion
@@ -126,7 +130,12 @@ class ModalitySpecificDecoder(nn.Module):
         super().__init__()
         m, d = len(cfg.modalities), cfg.d_model
         self.modality_embedding = nn.Parameter(torch.randn(m, d) * 0.02)  # P^D
-        self.joint = mlp(d + cfg.d_latent + (d if cfg.action_dim else 0), cfg.mlp_hidden, d)
+        self.latent = cfg.decoder_latent
+        conditions = (0 if self.latent == "none" else cfg.d_latent) + (d if cfg.action_dim else 0)
+        if self.latent == "joint":
+            self.joint = mlp(d + conditions, cfg.mlp_hidden, d)
+        else:  # "linear", or "none" (then only a world model's actions enter)
+            self.condition = nn.Linear(conditions, d) if conditions else None
         # The aggregation: the paper's two attentions from P^D, or the ablation fusion that replaces them.
         self.fusion = build_fusion(cfg.fusion, fusion_shape)
         if self.fusion is None:
@@ -139,17 +148,16 @@ class ModalitySpecificDecoder(nn.Module):
     def joint_tokens(
         self, tokens: torch.Tensor, token_modality: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None
     ) -> torch.Tensor:
-        """``H0``: the shared MLP on every token with ``p^D`` of its modality, ``z`` (and the actions)."""
-        n, num_tokens, _ = tokens.shape
-        conditions = z if action is None else torch.cat([z, action], dim=-1)
-        joint = torch.cat(
-            [
-                tokens + self.modality_embedding[token_modality],
-                conditions.unsqueeze(1).expand(n, num_tokens, -1),
-            ],
-            dim=-1,
-        )
-        return self.joint(joint)
+        """``H0``: every token with ``p^D`` of its modality, and ``z`` (and the actions) by
+        ``decoder_latent``: through the shared MLP (``"joint"``) or added by a linear map."""
+        x = tokens + self.modality_embedding[token_modality]
+        conditions = [c for c in (None if self.latent == "none" else z, action) if c is not None]
+        if not conditions:
+            return x
+        conditions = torch.cat(conditions, dim=-1)
+        if self.latent == "joint":
+            return self.joint(torch.cat([x, conditions.unsqueeze(1).expand(*x.shape[:2], -1)], dim=-1))
+        return x + self.condition(conditions).unsqueeze(1)
 
     def forward(
         self,
@@ -230,7 +238,18 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.prior_head = (
             mlp(fused, config.head_hidden, 2 * config.d_latent) if config.prior == "learned" else None
         )
-        self.decoder = ModalitySpecificDecoder(config, dataclasses.replace(shape, role="decoder"))
+        # decoder_input="pair_streams": MulT's pair streams, the decoder's M × M tokens.
+        self.pair_streams = (
+            PairStreams(self.token_counts, d, config.num_heads, config.mlp_hidden)
+            if config.decoder_input == "pair_streams"
+            else None
+        )
+        decoder_shape = dataclasses.replace(
+            shape,
+            role="decoder",
+            num_tokens=shape.num_tokens if self.pair_streams is None else len(self.pair_streams.pairs),
+        )
+        self.decoder = ModalitySpecificDecoder(config, decoder_shape)
         self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
         self.action_encoder = (
             mlp(config.action_steps * config.action_dim, config.head_hidden, d) if config.action_dim else None
@@ -376,8 +395,11 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     def decoder_tokens(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
         """What the decoder reads of ``N`` rows of tokens and presence: the tokens after the multimodal
         encoder's self-attention layers when :attr:`decoder_reads_mixed` (so the fusion shapes every
-        forecast), else the tokens themselves. Computed once a row, before rows are repeated for
-        several latents or action sequences."""
+        forecast), the ``M × M`` pair readouts with ``decoder_input="pair_streams"``, else the tokens
+        themselves. Computed once a row, before rows are repeated for several latents or action
+        sequences."""
+        if self.pair_streams is not None:
+            return self.pair_streams(tokens, present)
         if self.decoder_reads_mixed:
             return self.fusion.mix(tokens, self.token_absent(present), self.token_modality)
         return tokens
@@ -423,7 +445,16 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
 
     def _decode_prepared(self, decoder_tokens, present, z, action=None):
         """:meth:`decode` of rows whose :meth:`decoder_tokens` are already computed."""
-        return self.decoder(decoder_tokens, self.token_absent(present), self.token_modality, z, action)
+        return self.decoder(decoder_tokens, *self.decoder_layout(present), z, action)
+
+    def decoder_layout(self, present: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The key-padding mask ``[N, K]`` of the decoder's ``K`` tokens for token presence ``present``
+        and the modality of each (``p^D`` it gets): the tokens', or the pairs' (absent unless both
+        modalities are present; the query modality's ``p^D``)."""
+        if self.pair_streams is None:
+            return self.token_absent(present), self.token_modality
+        pair_present = self.pair_streams.presence(self.modality_presence(present))
+        return ~pair_present, self.pair_streams.pair_modality
 
     def forecast_from_tokens(
         self, tokens: torch.Tensor, present: torch.Tensor
@@ -519,7 +550,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         target = td.get(keys.TARGET, None)
         wants_posterior = target is not None or self.target_encoder is None
         prepared = self.decoder_tokens(tokens, present)
-        prepared_kept = None if kept is None else self.decoder_tokens(tokens_kept, kept)
+        prepared_kept = None
+        if kept is not None:
+            prepared_kept = self._kept_decoder_tokens(tokens, tokens_kept, kept, prepared)
         features, prior_loc, prior_scale = self._fuse_with_prior(
             td, (tokens, present, prepared), (tokens_kept, kept, prepared_kept), wants_posterior
         )
@@ -543,6 +576,14 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             td.set(keys.FORECAST_FROM_PRIOR_LOC, forecasts[-1][0])
             td.set(keys.FORECAST_FROM_PRIOR_SCALE, forecasts[-1][1])
         return td
+
+    def _kept_decoder_tokens(self, tokens, tokens_kept, kept: torch.Tensor, prepared: torch.Tensor):
+        """The decoder tokens of the L_mis student (``tokens_kept``, ``kept``: its tokens and token
+        presence). Without tail cuts the pair readouts are the full input's: a pair of two kept
+        modalities reads the same tokens, the other pairs are masked out (:meth:`decoder_layout`)."""
+        if self.pair_streams is not None and tokens_kept is tokens:
+            return prepared
+        return self.decoder_tokens(tokens_kept, kept)
 
     def _student_input(self, td: TensorDictBase, tokens: torch.Tensor, present: torch.Tensor):
         """The L_mis student's tokens and token presence: the ``("drop", m)`` modalities removed and
