@@ -22,14 +22,15 @@ Prints a table, then ``summary:`` with the ratios against the smallest N measure
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
-import resource
 import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -104,25 +105,59 @@ def build_command(root: Path, cache_dir: Path) -> list[str]:
     return [sys.executable, str(Path(__file__).resolve()), "--build", str(root), str(cache_dir)]
 
 
+def peak_rss_mb(pid: int | str = "self") -> float:
+    """A process's own peak RSS (``VmHWM``), 0 if it has exited.
+
+    Not ``ru_maxrss``: a process started by (v)fork + exec inherits its parent's peak into it, so
+    the build subprocess would report this script's peak (its pages of the previous size's cache).
+    """
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except (FileNotFoundError, ProcessLookupError):
+        return 0.0
+    return int(re.search(r"^VmHWM:\s+(\d+) kB", status, re.MULTILINE)[1]) / 1024
+
+
+def child_pids() -> set[int]:
+    """This process's children, whichever of its threads started them."""
+    pids = set()
+    for task in Path("/proc/self/task").iterdir():
+        with contextlib.suppress(FileNotFoundError):  # a thread that ended meanwhile
+            pids.update(int(pid) for pid in (task / "children").read_text().split())
+    return pids
+
+
+class WorkerPeaks:
+    """The largest own peak RSS of this process's children (the decode workers), polled until stopped."""
+
+    def __init__(self):
+        self.peaks: dict[int, float] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._poll, daemon=True)
+        self._thread.start()
+
+    def _poll(self) -> None:
+        while not self._stop.wait(POLL_S):
+            for pid in child_pids():
+                self.peaks[pid] = max(self.peaks.get(pid, 0.0), peak_rss_mb(pid))
+
+    def stop(self) -> float:
+        self._stop.set()
+        self._thread.join()
+        return max(self.peaks.values(), default=0.0)
+
+
 def build_in_this_process(root: Path, cache_dir: Path) -> None:
     """The subprocess side: build (or resume) the cache, print one JSON line with time and peak RSS."""
     from mmf_rl.datasets.windows import WindowDataset
 
+    workers = WorkerPeaks()
     started = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         WindowDataset(data_config(root, cache_dir))
     elapsed = time.perf_counter() - started
-    kib = 1024  # ru_maxrss is in KiB on Linux
-    print(
-        json.dumps(
-            {
-                "build_s": elapsed,
-                "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / kib,
-                "workers_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / kib,
-            }
-        )
-    )
+    print(json.dumps({"build_s": elapsed, "rss_mb": peak_rss_mb(), "workers_rss_mb": workers.stop()}))
 
 
 def subprocess_env() -> dict[str, str]:
