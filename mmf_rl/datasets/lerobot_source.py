@@ -665,10 +665,13 @@ class LeRobotSource:
         """The per-frame columns the pipeline needs, rows in cache order (selected episodes by frame
         ``index``).
 
-        Keeps the dataset open for :meth:`read_images`.
+        Keeps the dataset open for :meth:`read_images` if a camera is stored as images (otherwise
+        its memory-mapped pages that the read touched would stay resident for the whole build).
         """
         selection = None if self.selected_all else self.episodes
-        data, self._hf, self._row_order = load_frame_columns(self.meta, self._columns(), selection)
+        data, hf, row_order = load_frame_columns(self.meta, self._columns(), selection)
+        if any(m.storage == "image" for m in self.modalities.values()):
+            self._hf, self._row_order = hf, row_order
         return data
 
     def read_images(self, name: str, rows: slice) -> list:
