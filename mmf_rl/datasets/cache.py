@@ -96,6 +96,9 @@ CHECKSUM_SAMPLES = 16
 # A spawned decode worker pays seconds of imports (torch, torchvision via lerobot): below this
 # many frames, decoding in-process is faster than starting a pool.
 POOL_MIN_FRAMES = 3000
+# Windows checked at once when the cache's windows are listed: bounds the frame-index matrices
+# (history + horizon int64s per window) to a few tens of MB whatever the dataset's size.
+WINDOW_CHUNK = 2**16
 
 
 def fingerprint(source: LeRobotSource) -> str:
@@ -191,7 +194,7 @@ def _video_jobs(
                 VideoJob(
                     modality=name,
                     video_path=str(path),
-                    timestamps=tuple(stamps.tolist()),
+                    timestamps=stamps,
                     row_start=episode.start,
                     frames_dir=str(frames_dir),
                     image_size=tuple(source.config.image_size),
@@ -264,8 +267,11 @@ def _decode(
             # starts with its own empty decoder cache.
             context = multiprocessing.get_context("spawn")
             with ProcessPoolExecutor(max_workers=num_workers, mp_context=context) as pool:
-                for future in as_completed([pool.submit(run_video_job, job) for job in jobs]):
-                    finished(*future.result())
+                # Each finished future is dropped: kept, their results would hold every job twice.
+                pending = {pool.submit(run_video_job, job): job for job in jobs}
+                for future in as_completed(pending):
+                    _, error, decoded = future.result()
+                    finished(pending.pop(future), error, decoded)
         else:
             try:
                 for job in jobs:
@@ -310,20 +316,8 @@ def _decode_parquet_images(source: LeRobotSource, frames: TensorDict) -> dict[st
 
 def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> dict:
     """Build the cache's files in ``directory``; continue the build a killed process left there."""
-    columns = source.read_columns()
-    n = len(columns["index"])
-    # Synced by frame index, the (wall-clock) timestamps match no video frame: their order does not matter.
-    by_index = source.config.video_sync == "frame_index"
-    unordered = [] if by_index else source.drop_episodes_with_unordered_timestamps(columns)
-    per_frame = _frame_columns(source, columns)
-    missing = source.missing_videos()
-    jobs = _video_jobs(source, columns, directory / "frames", missing)
-    if (directory / FRAMES_READY).is_file():
-        frames = TensorDict.load_memmap(directory / "frames")
-    else:
-        frames = _allocate_frames(source, per_frame, directory / "frames")
-        (directory / FRAMES_READY).touch()
-
+    frames, unordered, missing, jobs = _frame_table(source, directory)
+    n = int(frames.batch_size[0])
     failed = _decode_videos(jobs, directory, num_workers)
     undecodable = _mark_undecodable_and_missing(source, frames, failed, missing)
 
@@ -350,6 +344,28 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
     report["files"] = _file_records(directory)
     (directory / CACHE_META).write_text(json.dumps(report, indent=2))
     return report
+
+
+def _frame_table(
+    source: LeRobotSource, directory: Path
+) -> tuple[TensorDict, list[int], dict, list[VideoJob]]:
+    """The frame table with its vector columns filled (a killed build's, or allocated now), the
+    episodes skipped for unordered timestamps, the missing videos and the video jobs.
+
+    The dataset's columns live only in this call: the decoding that follows holds none of them.
+    """
+    columns = source.read_columns()
+    # Synced by frame index, the (wall-clock) timestamps match no video frame: their order does not matter.
+    by_index = source.config.video_sync == "frame_index"
+    unordered = [] if by_index else source.drop_episodes_with_unordered_timestamps(columns)
+    missing = source.missing_videos()
+    jobs = _video_jobs(source, columns, directory / "frames", missing)
+    if (directory / FRAMES_READY).is_file():
+        frames = TensorDict.load_memmap(directory / "frames")
+    else:
+        frames = _allocate_frames(source, _frame_columns(source, columns), directory / "frames")
+        (directory / FRAMES_READY).touch()
+    return frames, unordered, missing, jobs
 
 
 def _decode_videos(jobs: list, directory: Path, num_workers: int | None) -> list:
@@ -438,8 +454,7 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
     the horizon must be finite too.
     """
     config = source.config
-    observed, future = window_offsets(config.history, config.horizon, config.stride)
-    span = int(future[-1])
+    span = int(window_offsets(config.history, config.horizon, config.stride)[1][-1])
     starts, too_short = [], []
     for episode in source.episodes:
         if episode.stop - episode.start > span:
@@ -447,27 +462,11 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
         else:
             too_short.append(episode.index)
     starts = torch.cat(starts) if starts else torch.zeros(0, dtype=torch.long)
-    observed_rows = starts[:, None] + observed
-    last_rows = starts + int(observed[-1])
-    present = {}
-    for name, m in source.modalities.items():
-        frame_present = frames.get(keys.present_key(name)).as_subclass(torch.Tensor)
-        present[name] = (
-            frame_present[last_rows] if m.spec.kind == "vector" else frame_present[observed_rows].all(1)
-        )
-    target_valid = frames.get("target_valid").as_subclass(torch.Tensor)
-    target_ok = target_valid[starts[:, None] + future].all(1) & target_valid[last_rows]
-    if config.include_target_past:
-        target_ok &= target_valid[observed_rows].all(1)
-    if source.reference_feature is not None:
-        target_ok &= frames.get("target_reference_valid").as_subclass(torch.Tensor)[last_rows]
-    if source.action_feature is not None:
-        action_valid = frames.get("action_valid").as_subclass(torch.Tensor)
-        action_ok = action_valid[
-            starts[:, None] + action_offsets(config.history, config.horizon, config.stride)
-        ].all(1)
-    else:
-        action_ok = torch.ones_like(target_ok)
+    # Per chunk of windows: their frame-index matrices are ~8 bytes per frame of every window.
+    chunks = [_window_checks(source, frames, chunk) for chunk in starts.split(WINDOW_CHUNK)]
+    present = {name: torch.cat([c[0][name] for c in chunks]) for name in source.modalities}
+    target_ok = torch.cat([c[1] for c in chunks])
+    action_ok = torch.cat([c[2] for c in chunks])
     any_present = torch.stack(list(present.values())).any(0)
     keep = target_ok & any_present & action_ok
     windows = TensorDict(
@@ -486,6 +485,36 @@ def _windows(source: LeRobotSource, frames: TensorDict) -> tuple[TensorDict, dic
         "windows_action_not_finite": int((target_ok & any_present & ~action_ok).sum()),
     }
     return windows, skipped
+
+
+def _window_checks(
+    source: LeRobotSource, frames: TensorDict, starts: torch.Tensor
+) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+    """For the windows at ``starts``: each modality's presence, whether the target (and its
+    reference) is finite where it must be, and whether the actions over the horizon are."""
+    config = source.config
+    observed, future = window_offsets(config.history, config.horizon, config.stride)
+    observed_rows = starts[:, None] + observed
+    last_rows = starts + int(observed[-1])
+    present = {}
+    for name, m in source.modalities.items():
+        frame_present = frames.get(keys.present_key(name)).as_subclass(torch.Tensor)
+        present[name] = (
+            frame_present[last_rows] if m.spec.kind == "vector" else frame_present[observed_rows].all(1)
+        )
+    target_valid = frames.get("target_valid").as_subclass(torch.Tensor)
+    target_ok = target_valid[starts[:, None] + future].all(1) & target_valid[last_rows]
+    if config.include_target_past:
+        target_ok &= target_valid[observed_rows].all(1)
+    if source.reference_feature is not None:
+        target_ok &= frames.get("target_reference_valid").as_subclass(torch.Tensor)[last_rows]
+    action_ok = torch.ones_like(target_ok)
+    if source.action_feature is not None:
+        action_valid = frames.get("action_valid").as_subclass(torch.Tensor)
+        action_ok = action_valid[
+            starts[:, None] + action_offsets(config.history, config.horizon, config.stride)
+        ].all(1)
+    return present, target_ok, action_ok
 
 
 def _checksum(path: Path) -> str:

@@ -665,10 +665,13 @@ class LeRobotSource:
         """The per-frame columns the pipeline needs, rows in cache order (selected episodes by frame
         ``index``).
 
-        Keeps the dataset open for :meth:`read_images`.
+        Keeps the dataset open for :meth:`read_images` if a camera is stored as images (otherwise
+        its memory-mapped pages that the read touched would stay resident for the whole build).
         """
         selection = None if self.selected_all else self.episodes
-        data, self._hf, self._row_order = load_frame_columns(self.meta, self._columns(), selection)
+        data, hf, row_order = load_frame_columns(self.meta, self._columns(), selection)
+        if any(m.storage == "image" for m in self.modalities.values()):
+            self._hf, self._row_order = hf, row_order
         return data
 
     def read_images(self, name: str, rows: slice) -> list:
@@ -705,11 +708,12 @@ def load_frame_columns(meta, columns, episodes: list[Episode] | None = None):
     root = Path(meta.root)
     try:
         hf = load_frame_data(meta, None if episodes is None else [e.index for e in episodes])
-        data = hf.select_columns(sorted({*columns, "index"})).with_format("numpy")[:]
+        table = hf.select_columns(sorted({*columns, "index"})).with_format("arrow")[:]
+        order = np.argsort(_numpy_column(table.column("index")), kind="stable")
+        # One column at a time: the memory-mapped table's pages are copied once, in frame order.
+        data = {name: _numpy_column(table.column(name))[order] for name in table.column_names}
     except Exception as error:  # noqa: BLE001 - footers and schemas were fine: a damaged page or a cast
         raise _data_error(root, error) from None
-    order = np.argsort(data["index"], kind="stable")
-    data = {k: np.asarray(v)[order] for k, v in data.items()}
     if episodes is None:
         expected = np.arange(meta.total_frames)
         declared = f"meta/info.json total_frames={len(expected)}"
@@ -727,6 +731,15 @@ def load_frame_columns(meta, columns, episodes: list[Episode] | None = None):
             f"{data['index'].max() if len(data['index']) else None}"
         )
     return data, hf, order
+
+
+def _numpy_column(column: pa.ChunkedArray) -> np.ndarray:
+    """An arrow column as numpy, a list column as ``[n, d]``: without the per-row arrays that
+    ``datasets``' numpy formatter builds for a list column (an object per frame)."""
+    array = column.combine_chunks()
+    if _arrow_layout(array.type)[2]:  # a list column
+        return array.flatten().to_numpy(zero_copy_only=False).reshape(len(array), -1)
+    return array.to_numpy(zero_copy_only=False)
 
 
 def read_frame_columns(meta, columns) -> dict[str, np.ndarray]:
@@ -757,7 +770,7 @@ class VideoJob:
 
     modality: str
     video_path: str
-    timestamps: tuple[float, ...]  # in the video file's time base
+    timestamps: np.ndarray  # float64, in the video file's time base (8 bytes a frame, pickled as one block)
     row_start: int
     frames_dir: str  # memory-mapped frames TensorDict to write into
     image_size: tuple[int, int]
@@ -806,21 +819,30 @@ def decode_images(entries: list, channels: int, root: Path) -> tuple[list, list[
 
 
 _decoder_cache = None
+_decoder_file: str | None = None  # the one video file whose decoder `_decoder_cache` holds
 
 
-def _decoders():
-    """One decoder cache per process: torchcodec decoders must not cross a fork."""
-    global _decoder_cache
+def _decoders(video_path: str):
+    """One decoder cache per process (torchcodec decoders must not cross a fork), holding only the
+    decoder of ``video_path``: each open decoder keeps its FFmpeg state, and a dataset has a video
+    file per few dozen episodes, so a cache of every file a worker met would grow with the dataset.
+    Jobs come in episode order, so consecutive jobs of a worker mostly share the one cached file."""
+    global _decoder_cache, _decoder_file
     if _decoder_cache is None:
         from lerobot.datasets.video_utils import VideoDecoderCache
 
         _decoder_cache = VideoDecoderCache()
+    if video_path != _decoder_file:
+        _decoder_cache.clear()
+        _decoder_file = video_path
     return _decoder_cache
 
 
 def clear_decoders() -> None:
+    global _decoder_file
     if _decoder_cache is not None:
         _decoder_cache.clear()
+    _decoder_file = None
 
 
 def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
@@ -841,10 +863,10 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
     except DECODE_ERRORS as error:  # an unreadable video means "camera absent", reported by file
         return job, _error_text(error), 0
     for offset in range(0, decoded, chunk):
-        stamps = list(job.timestamps[offset : min(offset + chunk, decoded)])
+        stamps = job.timestamps[offset : min(offset + chunk, decoded)].tolist()
         try:
             frames = decode_video_frames_torchcodec(
-                job.video_path, stamps, job.tolerance_s, decoder_cache=_decoders()
+                job.video_path, stamps, job.tolerance_s, decoder_cache=_decoders(job.video_path)
             )  # float32 [n, 3, h, w] in [0, 1]
         except DECODE_ERRORS as error:
             return job, _error_text(error), 0
@@ -856,7 +878,7 @@ def run_video_job(job: VideoJob) -> tuple[VideoJob, str | None, int]:
 def _frames_in_video(job: VideoJob) -> tuple[int, str | None]:
     """How many of the job's leading timestamps fall inside the video, and the error text for the
     rows past its end (``None`` when all are inside)."""
-    metadata = _decoders().get_decoder(job.video_path).metadata
+    metadata = _decoders(job.video_path).get_decoder(job.video_path).metadata
     if metadata.num_frames is None or not metadata.average_fps:
         return len(job.timestamps), None
     # The frame index lerobot's decoder looks up for each timestamp.

@@ -26,6 +26,10 @@ from mmf_rl.keys import (
 
 # A modality absent on more of the frames than this is an error unless its config sets `allow_absent`.
 MAX_ABSENT_FRACTION = 0.5
+# Image bytes gathered through one mapping of the cache's image columns before they are mapped
+# afresh (`WindowDataset._map_images`): what bounds the pages a reader keeps resident. Image
+# tables no larger than this stay mapped once.
+REMAP_IMAGE_BYTES = 64 * 2**20
 
 
 def _plain(tensor: torch.Tensor) -> torch.Tensor:
@@ -77,10 +81,8 @@ class WindowDataset:
         frames = TensorDict.load_memmap(self.cache_path / "frames")
         self._check_presence(source, frames)
         windows = TensorDict.load_memmap(self.cache_path / "windows")
-        self._obs = {}
-        for spec in self.specs:
-            values = _plain(frames.get(spec.obs_key))
-            self._obs[spec.name] = _wide_rows(values) if spec.kind == "image" else values
+        self._obs = {spec.name: _plain(frames.get(spec.obs_key)) for spec in self.specs}
+        self._map_images(frames)
         self._target = _plain(frames.get("target"))
         # The value each window's target is measured from, at its last observed frame (None: absolute).
         self._anchor = None
@@ -114,6 +116,22 @@ class WindowDataset:
         self.normalizer = Normalizer(self._train_stats(frames))
         self.observed_outages = self._observed_outages(frames)
         self.train_presence = self._train_presence()
+
+    def _map_images(self, frames: TensorDict) -> None:
+        """Take the image columns from ``frames`` (a fresh mapping of the cache).
+
+        Every page a gather reads stays resident in the mapping it was read through, so one mapping
+        kept for a whole run would hold as much of the image table as the run has read: up to all
+        of it. `batch` maps them afresh every ``REMAP_IMAGE_BYTES``; the pages dropped with the old
+        mapping stay in the page cache, so the next reads of them need no disk access.
+        """
+        images = [spec for spec in self.specs if spec.kind == "image"]
+        for spec in images:
+            self._obs[spec.name] = _wide_rows(_plain(frames.get(spec.obs_key)))
+        self._image_table_bytes = sum(
+            self._obs[s.name].numel() * self._obs[s.name].element_size() for s in images
+        )
+        self._image_bytes_read = 0
 
     def _partial_presence(self, frames: TensorDict) -> dict[str, torch.Tensor]:
         """Per-frame presence of the windowed modalities; their window presence becomes "present at
@@ -276,6 +294,8 @@ class WindowDataset:
     def batch(self, window_ids: torch.Tensor, split: str = "eval") -> TensorDict:
         """The batch of windows ``window_ids``; ``split="train"`` applies the missingness protocol."""
         presence = self.train_presence if split == "train" else self.presence
+        if self._image_table_bytes > REMAP_IMAGE_BYTES and self._image_bytes_read > REMAP_IMAGE_BYTES:
+            self._map_images(TensorDict.load_memmap(self.cache_path / "frames"))
         start = self.window_start[window_ids]
         observed = start[:, None] + self._observed
         batch = TensorDict(batch_size=[len(window_ids)])
@@ -285,6 +305,7 @@ class WindowDataset:
             values = self._obs[spec.name][rows]
             if spec.kind == "image":
                 values = values.view(torch.uint8).view(*rows.shape, *spec.shape)
+                self._image_bytes_read += values.numel()
             else:
                 values = self.normalizer.normalize(spec.name, values)
                 # Absent samples carry zeros, not the stored placeholder: never NaN, never data.

@@ -1,6 +1,6 @@
 """A window cache build SIGKILLed midway resumes where it stopped and gives the cache of a full build.
 
-The large-N version (kill at ~90% of 10k-500k frames) is `benchmarks/cache_scale.py`.
+The large-N version (kill at ~90% of 10k-1M frames) is `benchmarks/cache_scale.py`.
 """
 
 import logging
