@@ -134,7 +134,7 @@ ENTRIES = [
         "paper, mixed tokens, per-step tokens", "variant", (*PAPER, "model.decoder_input=mixed", *STEP_TOKENS)
     ),
     # MulT's pair streams as the decoder's input, on per-step vector tokens (the image keeps its
-    # frame-stacked token), with each way z enters the decoder.
+    # frame-stacked token), with each way z enters the decoder; and the streams over the mixed tokens.
     Entry("paper, pair-stream decoder, per-step vector tokens", "variant", (*PAPER, *PAIR_STREAMS)),
     Entry(
         "paper, pair-stream decoder, linear z, per-step vector tokens",
@@ -145,6 +145,11 @@ ENTRIES = [
         "paper, pair-stream decoder, no z, per-step vector tokens",
         "variant",
         (*PAPER, *PAIR_STREAMS, "model.decoder_latent=none"),
+    ),
+    Entry(
+        "paper, pair streams of mixed tokens, linear z, per-step vector tokens",
+        "variant",
+        (*PAPER, "model.decoder_input=mixed_pair_streams", *PAIR_STREAMS[1:], "model.decoder_latent=linear"),
     ),
     *catalogue.ZERO_FILL,
     *catalogue.RETRAINED,

@@ -116,6 +116,20 @@ def assert_each_sample_alone_gives_its_batch_result(model, batch, out_keys) -> N
                 torch.testing.assert_close(alone.get(key)[0], together.get(key)[i], rtol=1e-4, atol=1e-5)
 
 
+def assert_forecast_under_actions_is_one_forward_per_candidate(model, batch, actions) -> tuple:
+    """``model.forecast_under_actions(batch, actions)`` equals one eval forward per candidate ``k`` with
+    ``actions[:, k]`` as the future action; returns its ``(loc, scale)``."""
+    with torch.no_grad():
+        loc, scale = model.forecast_under_actions(batch, actions)
+        for k in range(actions.shape[1]):
+            td = batch.clone()
+            td.set(keys.FUTURE_ACTION, actions[:, k])
+            out = model(td)
+            torch.testing.assert_close(loc[:, k], out.get(keys.FORECAST_LOC), rtol=1e-4, atol=1e-5)
+            torch.testing.assert_close(scale[:, k], out.get(keys.FORECAST_SCALE), rtol=1e-4, atol=1e-5)
+    return loc, scale
+
+
 def assert_a_few_steps_reduce_the_loss(
     model, loss_module, action_shape: tuple[int, int] | None = None
 ) -> None:

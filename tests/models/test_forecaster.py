@@ -18,6 +18,7 @@ from tests.conftest import (
     TARGET_DIM,
     assert_a_few_steps_reduce_the_loss,
     assert_each_sample_alone_gives_its_batch_result,
+    assert_forecast_under_actions_is_one_forward_per_candidate,
     make_batch,
     presence_patterns,
 )
@@ -322,14 +323,7 @@ def test_world_model_forecast_depends_on_the_actions_only_through_them(world_mod
 def test_forecast_under_actions_equals_one_forward_per_candidate(world_model, mixed_batch):
     world_model.eval()
     actions = torch.randn(mixed_batch.shape[0], 4, *ACTION_SHAPE, generator=torch.Generator().manual_seed(5))
-    with torch.no_grad():
-        loc, scale = world_model.forecast_under_actions(mixed_batch, actions)
-        for k in range(actions.shape[1]):
-            td = mixed_batch.clone()
-            td.set(keys.FUTURE_ACTION, actions[:, k])
-            out = world_model(td)
-            torch.testing.assert_close(loc[:, k], out.get(keys.FORECAST_LOC), rtol=1e-4, atol=1e-5)
-            torch.testing.assert_close(scale[:, k], out.get(keys.FORECAST_SCALE), rtol=1e-4, atol=1e-5)
+    assert_forecast_under_actions_is_one_forward_per_candidate(world_model, mixed_batch, actions)
 
 
 def test_world_model_names_missing_or_malformed_actions(world_model, batch):
@@ -796,7 +790,7 @@ def with_cuts(td, cuts):
     return td
 
 
-@pytest.mark.parametrize("decoder_input", ["mixed", "pair_streams"])
+@pytest.mark.parametrize("decoder_input", ["mixed", "pair_streams", "mixed_pair_streams"])
 @pytest.mark.parametrize("prior", PRIORS)
 @pytest.mark.parametrize("modalities", [SMALL_MODALITIES, STEP_TOKEN_MODALITIES], ids=["window", "steps"])
 def test_a_tail_cut_is_the_student_of_a_window_with_those_steps_absent(

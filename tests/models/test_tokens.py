@@ -48,7 +48,7 @@ def test_a_step_token_depends_on_its_step_only(small_config):
     assert bool(moved[3] > 0) and not bool(moved[torch.arange(HISTORY) != 3].any())
 
 
-@pytest.mark.parametrize("decoder_input", ["tokens", "mixed", "pair_streams"])
+@pytest.mark.parametrize("decoder_input", ["tokens", "mixed", "pair_streams", "mixed_pair_streams"])
 @pytest.mark.parametrize("fusion", ["agnostic", "linear", "average", "sum", "cross_attention"])
 def test_step_tokens_keep_the_presence_invariants(small_config, mixed_batch, fusion, decoder_input):
     """A mixed batch gives each sample's own result, and what is stored under an absent modality
@@ -103,6 +103,7 @@ def perturbed_fusion_moves(model: MultimodalForecaster, batch) -> float:
         ({"decoder_input": "pair_streams"}, False),  # the pair streams read the raw tokens
         ({"decoder_input": "pair_streams", "eval_latent": "posterior"}, True),
         ({"decoder_input": "pair_streams", "eval_latent": "posterior", "decoder_latent": "none"}, False),
+        ({"decoder_input": "mixed_pair_streams", "decoder_latent": "none"}, True),  # streams of mixed tokens
     ],
 )
 def test_whether_the_fusion_acts_on_eval_forecasts(small_config, changes, acts):
@@ -170,7 +171,7 @@ def garble_absent_steps(batch):
     return out
 
 
-@pytest.mark.parametrize("decoder_input", ["mixed", "pair_streams"])
+@pytest.mark.parametrize("decoder_input", ["mixed", "pair_streams", "mixed_pair_streams"])
 @pytest.mark.parametrize("modalities", [SMALL_MODALITIES, STEP_MODALITIES], ids=["window", "steps"])
 def test_per_step_presence_keeps_the_invariants(small_config, mixed_batch, modalities, decoder_input):
     """With ``present_steps``: every step present changes nothing, what is stored under an absent step

@@ -11,7 +11,7 @@ from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.fusion import check_fusion
 
 EVAL_LATENTS = ("mean", "sample", "predictive", "posterior")
-DECODER_INPUTS = ("tokens", "mixed", "pair_streams")
+DECODER_INPUTS = ("tokens", "mixed", "pair_streams", "mixed_pair_streams")
 DECODER_LATENTS = ("joint", "linear", "none")
 
 
@@ -77,7 +77,8 @@ class ForecasterConfig:
             ``"pair_streams"`` (MulT's streams): for each ordered pair ``(i, j)`` of modalities, a
             cross-modal layer of its own lets ``i``'s last present token attend to ``j``'s present
             tokens; the decoder reads the ``M × M`` readouts (absent when ``i`` or ``j`` is), each
-            with ``p^D_i`` (:class:`~mmf_rl.models.attention.PairStreams`).
+            with ``p^D_i`` (:class:`~mmf_rl.models.attention.PairStreams`). ``"mixed_pair_streams"``:
+            the same streams over the mixed tokens, so the fusion acts on every forecast.
         decoder_latent: how ``z`` (and a world model's actions) enter the decoder's tokens ``H0``:
             ``"joint"`` (default, the paper: the shared MLP over ``[x̄ + p^D, z (, a)]``),
             ``"linear"`` (``H0 = x̄ + p^D + W [z (, a)]``: no MLP over every token) or ``"none"`` (a
@@ -108,7 +109,7 @@ class ForecasterConfig:
     eval_latent: Literal["mean", "sample", "predictive", "posterior"] = "mean"
     predictive_samples: int = 16
     fusion: str = "agnostic"
-    decoder_input: Literal["tokens", "mixed", "pair_streams"] = "mixed"
+    decoder_input: Literal["tokens", "mixed", "pair_streams", "mixed_pair_streams"] = "mixed"
     decoder_latent: Literal["joint", "linear", "none"] = "joint"
     action_dim: int = 0
     action_steps: int = 0

@@ -238,10 +238,11 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.prior_head = (
             mlp(fused, config.head_hidden, 2 * config.d_latent) if config.prior == "learned" else None
         )
-        # decoder_input="pair_streams": MulT's pair streams, the decoder's M × M tokens.
+        # decoder_input="pair_streams" or "mixed_pair_streams": MulT's pair streams, the decoder's M × M
+        # tokens.
         self.pair_streams = (
             PairStreams(self.token_counts, d, config.num_heads, config.mlp_hidden)
-            if config.decoder_input == "pair_streams"
+            if config.decoder_input.endswith("pair_streams")
             else None
         )
         decoder_shape = dataclasses.replace(
@@ -392,12 +393,20 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         with self-attention layers)."""
         return self.config.decoder_input == "mixed" and hasattr(self.fusion, "mix")
 
+    @property
+    def pair_streams_read_mixed(self) -> bool:
+        """Whether the pair streams read the fusion's mixed tokens (``"mixed_pair_streams"`` and a fusion
+        with self-attention layers)."""
+        return self.config.decoder_input == "mixed_pair_streams" and hasattr(self.fusion, "mix")
+
     def decoder_tokens(self, tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
         """What the decoder reads of ``N`` rows of tokens and presence: the tokens after the multimodal
         encoder's self-attention layers when :attr:`decoder_reads_mixed` (so the fusion shapes every
         forecast), the ``M × M`` pair readouts with ``decoder_input="pair_streams"``, else the tokens
         themselves. Computed once a row, before rows are repeated for several latents or action
         sequences."""
+        if self.pair_streams_read_mixed:
+            tokens = self.fusion.mix(tokens, self.token_absent(present), self.token_modality)
         if self.pair_streams is not None:
             return self.pair_streams(tokens, present)
         if self.decoder_reads_mixed:
@@ -581,7 +590,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         """The decoder tokens of the L_mis student (``tokens_kept``, ``kept``: its tokens and token
         presence). Without tail cuts the pair readouts are the full input's: a pair of two kept
         modalities reads the same tokens, the other pairs are masked out (:meth:`decoder_layout`)."""
-        if self.pair_streams is not None and tokens_kept is tokens:
+        # Over mixed tokens a dropped modality changes what the kept ones mixed in: no reuse there.
+        if self.pair_streams is not None and tokens_kept is tokens and not self.pair_streams_read_mixed:
             return prepared
         return self.decoder_tokens(tokens_kept, kept)
 
