@@ -20,6 +20,8 @@ Speed-up candidates, off by default, to compare on a quiet machine against a run
 ``--channels-last`` stores the ConvNets' weights NHWC, so oneDNN runs the convolutions in that
 layout (same forecasts and gradients: tests/models/test_push_like.py); ``--compile`` wraps the
 loss module in ``torch.compile`` (the first steps, excluded from the timing, pay the compilation).
+The optimizer is the trainer's (AdamW's fused kernel); ``--loop-optimizer`` times its per-parameter
+loop instead (``trainer.fused_optimizer=false``).
 """
 
 from __future__ import annotations
@@ -36,7 +38,15 @@ from mmf_rl.datasets.synthetic import push_like_batch
 from mmf_rl.devices import resolve_device
 from mmf_rl.models import MODELS
 from mmf_rl.models.push_like import build_for_push
-from mmf_rl.trainers.trainer import PRECISIONS, check_precision, outputs_to_fp32
+from mmf_rl.trainers.trainer import (
+    PRECISIONS,
+    TrainerConfig,
+    check_precision,
+    make_optimizer,
+    outputs_to_fp32,
+)
+
+CANDIDATE_FLAGS = ("channels_last", "compile", "loop_optimizer")  # printed on the model line
 
 
 def synchronize(device: torch.device | None) -> None:
@@ -64,10 +74,11 @@ def timed(fn, repeats: int, device: torch.device | None = None) -> list[float]:
     return times
 
 
-def training_step(model, loss, batch: TensorDict, precision: str, device: torch.device):
-    """One optimisation step as the trainer takes it in ``precision`` (autocast forward, fp32 losses)."""
+def training_step(model, loss, batch: TensorDict, precision: str, device: torch.device, fused: bool):
+    """One optimisation step as the trainer takes it in ``precision`` (autocast forward, fp32 losses;
+    the trainer's AdamW, ``fused`` or the per-parameter loop)."""
     dtype = PRECISIONS[precision]
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    optimizer = make_optimizer(model.parameters(), TrainerConfig(fused_optimizer=fused))
     scaler = torch.amp.GradScaler(device.type, enabled=precision == "fp16")
     if dtype is not None:
         model.register_forward_hook(outputs_to_fp32)
@@ -92,7 +103,7 @@ def measure_training(args, precision: str, device: torch.device) -> dict[str, fl
     if args.compile:
         loss = torch.compile(loss)
     batch = push_like_batch(args.batch_size, image_size=args.image_size).to(device)
-    step = training_step(model, loss, batch, precision, device)
+    step = training_step(model, loss, batch, precision, device, not args.loop_optimizer)
     for _ in range(3 if args.compile else 2):
         step()
     with FlopCounterMode(display=False) as counter:
@@ -122,6 +133,11 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--image-size", type=int, default=64)
     parser.add_argument("--channels-last", action="store_true", help="conv weights (and so activations) NHWC")
     parser.add_argument("--compile", action="store_true", help="torch.compile the loss module")
+    parser.add_argument(
+        "--loop-optimizer",
+        action="store_true",
+        help="AdamW's per-parameter loop (trainer.fused_optimizer=false), not the fused kernel",
+    )
     parser.add_argument("--device", default="cpu", help="cpu | cuda[:N] | auto")
     parser.add_argument(
         "--precision", nargs="+", default=["fp32"], choices=list(PRECISIONS), help="one training line each"
@@ -178,7 +194,7 @@ def main() -> None:
             if device.type == "cpu"
             else f" ({torch.cuda.get_device_name(device)})"
         )
-        + "".join(f"; {flag}" for flag in ("channels_last", "compile") if getattr(args, flag))
+        + "".join(f"; {flag}" for flag in CANDIDATE_FLAGS if getattr(args, flag))
     )
     for p, result in trained.items():
         step_time, gflops = result["step_time"], result["flops"] / result["step_time"] / 1e9

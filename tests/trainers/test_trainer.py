@@ -325,3 +325,16 @@ def test_two_gloo_ranks_average_gradients_skip_and_stop_together(tmp_path):
         torch.set_num_threads(threads)
     for name, value in expected.items():
         torch.testing.assert_close(ranks[0]["weights"][name], value, msg=name)
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_the_optimizer_is_adamw_fused_or_its_per_parameter_loop(fused):
+    model = small_forecaster()
+    optimizer = make_optimizer(model.parameters(), trainer_config(fused_optimizer=fused))
+    group = optimizer.param_groups[0]
+    assert isinstance(optimizer, torch.optim.AdamW)
+    assert bool(group["fused"]) is fused and group["foreach"] in (False, None)
+    before = [p.detach().clone() for p in model.parameters()]
+    sum(p.sum() for p in model.parameters()).backward()
+    optimizer.step()
+    assert all(not torch.equal(b, p) for b, p in zip(before, model.parameters(), strict=True))
