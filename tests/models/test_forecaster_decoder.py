@@ -183,7 +183,8 @@ def test_a_world_model_plans_with_each_decoder_option(small_config, mixed_batch,
 
 
 def test_unknown_decoder_options_are_clear_errors(small_config):
-    with pytest.raises(ValueError, match=r"decoder_input must be one of .*'mixed_pair_streams'\), found 'pairs'"):
+    unknown_input = r"decoder_input must be one of .*'mixed_pair_streams'\), found 'pairs'"
+    with pytest.raises(ValueError, match=unknown_input):
         dataclasses.replace(small_config, decoder_input="pairs")
     with pytest.raises(ValueError, match=r"decoder_latent must be one of \('joint', 'linear', 'none'\)"):
         dataclasses.replace(small_config, decoder_latent="additive")
