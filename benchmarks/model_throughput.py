@@ -20,8 +20,8 @@ Speed-up candidates, off by default, to compare on a quiet machine against a run
 ``--channels-last`` stores the ConvNets' weights NHWC, so oneDNN runs the convolutions in that
 layout (same forecasts and gradients: tests/models/test_push_like.py); ``--compile`` wraps the
 loss module in ``torch.compile`` (the first steps, excluded from the timing, pay the compilation).
-The optimizer is the trainer's (AdamW's fused kernel); ``--loop-optimizer`` times its per-parameter
-loop instead (``trainer.fused_optimizer=false``).
+The optimizer is the trainer's AdamW (its per-parameter loop); ``--fused-optimizer`` times its fused
+kernel instead (``trainer.fused_optimizer=true``).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ from mmf_rl.trainers.trainer import (
     outputs_to_fp32,
 )
 
-CANDIDATE_FLAGS = ("channels_last", "compile", "loop_optimizer")  # printed on the model line
+CANDIDATE_FLAGS = ("channels_last", "compile", "fused_optimizer")  # printed on the model line
 
 
 def synchronize(device: torch.device | None) -> None:
@@ -103,7 +103,7 @@ def measure_training(args, precision: str, device: torch.device) -> dict[str, fl
     if args.compile:
         loss = torch.compile(loss)
     batch = push_like_batch(args.batch_size, image_size=args.image_size).to(device)
-    step = training_step(model, loss, batch, precision, device, not args.loop_optimizer)
+    step = training_step(model, loss, batch, precision, device, args.fused_optimizer)
     for _ in range(3 if args.compile else 2):
         step()
     with FlopCounterMode(display=False) as counter:
@@ -134,9 +134,9 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--channels-last", action="store_true", help="conv weights (and so activations) NHWC")
     parser.add_argument("--compile", action="store_true", help="torch.compile the loss module")
     parser.add_argument(
-        "--loop-optimizer",
+        "--fused-optimizer",
         action="store_true",
-        help="AdamW's per-parameter loop (trainer.fused_optimizer=false), not the fused kernel",
+        help="AdamW's fused kernel (trainer.fused_optimizer=true), not the per-parameter loop",
     )
     parser.add_argument("--device", default="cpu", help="cpu | cuda[:N] | auto")
     parser.add_argument(
