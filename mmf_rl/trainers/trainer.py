@@ -75,7 +75,8 @@ class TrainerConfig:
         fused_optimizer: AdamW's fused kernel (one kernel for all parameters instead of a loop of
             small ops per parameter): a faster step at small batches, but its rounding differs from
             the loop's, and data-parallel ranks then drift apart from a one-process run by more than
-            the loop lets them. ``False`` (default): the per-parameter loop.
+            the loop lets them. ``False`` (default): torch's own choice (the per-parameter loop on
+            CPU, its multi-tensor ``foreach`` form on CUDA).
         prefetch: make the next batch (and copy it to the device) while the current step runs;
             the batches and results are the same either way.
     """
@@ -159,7 +160,7 @@ def set_rng_state(state: dict) -> None:
 def make_optimizer(params, config: TrainerConfig) -> torch.optim.Optimizer:
     # At small batches the per-parameter loop of small ops is a large share of a CPU step; the fused
     # kernel runs on CPU and CUDA for floating-point parameters.
-    fused = {"fused": True} if config.fused_optimizer else {"foreach": False}
+    fused = {"fused": True} if config.fused_optimizer else {}
     return torch.optim.AdamW(params, lr=config.lr, weight_decay=config.weight_decay, **fused)
 
 
