@@ -75,6 +75,15 @@ The order of the MPC conditions can flip from one world-model training to the ne
 every MPC row is given per world-model seed and as mean with its spread (min-max) over seeds,
 beside the median decision time per step (the planner's call, measured in the same run).
 
+Uncertainty penalty (``--uncertainty-weight W``, default 0): every planner above (and the
+aggregation's recording agent) scores a plan with ``PushObjective(uncertainty_weight=W)``, which
+takes from each forecast step's reward ``W`` times the norm of the world model's predictive
+standard deviation of the object's position (metres; the decoder's scale, calibrated when the
+checkpoint was): among plans forecast to push equally well it prefers the one the model is sure
+of, against pushes whose outcome it cannot tell (the block slipping sideways on a long push).
+At 0 the planner never asks for the scale and plans exactly as without the option. The results
+page records the weight beside the CEM sizes; the summary line is the same.
+
 Step-wise vs vectorised planning: the first
 ``--stepwise-episodes`` episodes are also played with torchrl's `CEMPlanner` rolling out
 `ForecasterWorldModelEnv` step by step with the first world model, with the same candidates,
@@ -169,6 +178,7 @@ def aggregation_config(args) -> AggregationConfig:
             "num_iterations": args.iterations,
             "num_elites": args.elites,
             "reach_weight": args.reach_weight,
+            "uncertainty_weight": args.uncertainty_weight,
         },
         train_overrides=training_overrides(args),
     )
@@ -208,6 +218,13 @@ def add_planner_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iterations", type=int, default=4)
     parser.add_argument("--elites", type=int, default=16)
     parser.add_argument("--reach-weight", type=float, default=0.5)
+    parser.add_argument(
+        "--uncertainty-weight",
+        type=float,
+        default=0.0,
+        help="PushObjective's uncertainty_weight: metres of goal distance per metre of the forecast's "
+        "std (0: no penalty, the planner as without it)",
+    )
 
 
 def parse_args() -> argparse.Namespace:
@@ -218,6 +235,8 @@ def parse_args() -> argparse.Namespace:
     add_aggregation_arguments(parser)
     args = parser.parse_args()
     check_aggregation_arguments(parser, args, world_models_given=bool(args.checkpoint))
+    if not args.uncertainty_weight >= 0.0:
+        parser.error(f"--uncertainty-weight must be >= 0 (a penalty), found {args.uncertainty_weight}")
     return resolve_budget(args, BUDGETS, "mpc")
 
 
@@ -236,7 +255,7 @@ def main() -> None:
     with timed_phase(phases, "play"):
         rows, raw = evaluate_mpc(
             checkpoints,
-            PushObjective(reach_weight=args.reach_weight),
+            PushObjective(reach_weight=args.reach_weight, uncertainty_weight=args.uncertainty_weight),
             conditions,
             sizes,
             args.episodes,
@@ -297,7 +316,8 @@ def report(args, rows: dict, aggregation: list[dict], checkpoints: list[Path], h
     text = (
         f"# MPC on the multimodal push task\n\n{header}\n\n{budget}; world models: "
         f"{', '.join(f'`{c}`' for c in checkpoints)}; CEM {args.candidates} candidates × {args.iterations} "
-        f"iterations, {args.elites} elites\n\n{results_table(rows)}\n"
+        f"iterations, {args.elites} elites; objective: reach weight {args.reach_weight}, uncertainty weight "
+        f"{args.uncertainty_weight}\n\n{results_table(rows)}\n"
     )
     if aggregation:
         text += (

@@ -66,8 +66,8 @@ class PushMPCAgent:
     Constructing it loads the checkpoint once and builds an agent, so a bad path or a model that
     is not a push world model fails here, in the caller, not in every recording worker.
     ``image_size`` is the recording's (the window resizes frames to the model's size).
-    The sizes and ``reach_weight`` are `SequenceCEMPlanner`'s and `PushObjective`'s, defaulting
-    to `benchmarks/mpc_push.py`'s.
+    The sizes, ``reach_weight`` and ``uncertainty_weight`` are `SequenceCEMPlanner`'s and
+    `PushObjective`'s, defaulting to `benchmarks/mpc_push.py`'s.
     """
 
     checkpoint: Path
@@ -76,6 +76,7 @@ class PushMPCAgent:
     num_iterations: int = 4
     num_elites: int = 16
     reach_weight: float = 0.5
+    uncertainty_weight: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "checkpoint", Path(self.checkpoint))
@@ -84,7 +85,7 @@ class PushMPCAgent:
     def __call__(self) -> MPCActor:
         return MPCActor(
             WorldModel.from_checkpoint(self.checkpoint),
-            PushObjective(reach_weight=self.reach_weight),
+            PushObjective(reach_weight=self.reach_weight, uncertainty_weight=self.uncertainty_weight),
             self.image_size,
             num_candidates=self.num_candidates,
             num_iterations=self.num_iterations,

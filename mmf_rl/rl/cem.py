@@ -22,7 +22,28 @@ from mmf_rl.rl.world_model import WorldModel
 
 IS_INIT = "is_init"  # torchrl's InitTracker flag: the first step of an episode
 
-Objective = Callable[[torch.Tensor, torch.Tensor, TensorDictBase], torch.Tensor]
+Objective = Callable[..., torch.Tensor]
+# An objective's attribute: when true, it is called with ``forecast_scale=`` as well (see
+# `SequenceCEMPlanner`); objectives without it keep the three-argument call.
+USES_FORECAST_SCALE = "uses_forecast_scale"
+
+
+def forecast_and_score(
+    world_model: WorldModel,
+    objective: Objective,
+    encoded: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    actions: torch.Tensor,
+    context: TensorDictBase,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The forecast ``[n, N, T, D]`` (on the CPU) of raw action sequences ``[n, N, S, A]`` from encoded
+    histories (`WorldModel.encode`) and the objective's rewards ``[n, N, T]``; the forecast's standard
+    deviation is computed and passed (``forecast_scale=``) only to an objective that asks for it."""
+    if not getattr(objective, USES_FORECAST_SCALE, False):
+        forecast = world_model.forecast(*encoded, actions).cpu()
+        return forecast, objective(forecast, actions, context)
+    forecast, scale = world_model.forecast_distribution(*encoded, actions)
+    forecast = forecast.cpu()
+    return forecast, objective(forecast, actions, context, forecast_scale=scale.cpu())
 
 
 class SequenceCEMPlanner(TensorDictModuleBase):
@@ -46,7 +67,12 @@ class SequenceCEMPlanner(TensorDictModuleBase):
     Args:
         world_model: a `WorldModel`.
         objective: ``(forecast [n, N, T, D], actions [n, N, S, A], context) -> rewards [n, N, T]``
-            with an ``in_keys`` attribute naming the context keys it reads.
+            with an ``in_keys`` attribute naming the context keys it reads. An objective that also
+            scores the forecast's uncertainty sets ``uses_forecast_scale = True``; it is then called
+            with ``forecast_scale=`` the forecast's standard deviation ``[n, N, T, D]`` in target
+            units (`WorldModel.forecast_distribution`, from the same decode). An objective without
+            the attribute (or with it false) is called with the three arguments alone, so a
+            user's objective needs nothing more.
         action_spec: the env's bounded action spec (``[A]``).
         num_candidates, num_iterations, num_elites: CEM sizes.
         init_std: standard deviation of the first sampling distribution, in units of the
@@ -119,15 +145,15 @@ class SequenceCEMPlanner(TensorDictModuleBase):
         n = batch.numel()
         window = tensordict.get(keys.HISTORY).reshape(n)
         context = tensordict.select(*self.objective.in_keys).reshape(n)
-        tokens, present, valid = self.world_model.encode(window)
+        encoded = self.world_model.encode(window)
         mean = self._initial_mean(tensordict, n)
         std = torch.full_like(mean, self.init_std)
         for _ in range(self.num_iterations):
             noise = torch.randn(n, self.num_candidates, *mean.shape[1:], generator=self.generator)
             noise[:, 0] = 0.0  # the current mean competes too
             actions = self._raw(mean[:, None] + std[:, None] * noise)
-            forecast = self.world_model.forecast(tokens, present, valid, actions).cpu()
-            returns = self.objective(forecast, actions, context).sum(-1)  # [n, N]
+            _, rewards = forecast_and_score(self.world_model, self.objective, encoded, actions, context)
+            returns = rewards.sum(-1)  # [n, N]
             elite = returns.topk(self.num_elites, dim=1).indices
             elites = actions.gather(1, elite[:, :, None, None].expand(-1, -1, *actions.shape[2:]))
             elites = (elites - self.center) / self.spread  # clipped values, back in the sampling frame

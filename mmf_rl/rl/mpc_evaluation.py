@@ -18,13 +18,18 @@ from mmf_rl.rl.world_model_env import ForecasterWorldModelEnv, ImaginedPlanningP
 
 
 class StaticObjectModel(WorldModel):
-    """The ablation: forecasts that the object stays where it is, whatever the actions."""
+    """The ablation: forecasts that the object stays where it is, whatever the actions, and is sure
+    of it (no spread, so an uncertainty penalty costs every plan the same: nothing)."""
 
     def __init__(self, world_model: WorldModel):
         self.__dict__.update(world_model.__dict__)
 
     def forecast(self, tokens, present, valid, actions):
         return torch.zeros(*actions.shape[:2], self.horizon, self.target_dim)
+
+    def forecast_distribution(self, tokens, present, valid, actions):
+        still = self.forecast(tokens, present, valid, actions)
+        return still, torch.zeros_like(still)
 
 
 def cem_policy(world_model: WorldModel, objective: PushObjective, sizes: dict[str, int], seed: int):

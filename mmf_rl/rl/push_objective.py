@@ -53,9 +53,17 @@ class PushObjective:
         reach_weight: weight of the gripper's distance to its target against the forecast
             object→goal distance.
         height_weight: weight of the gripper's height error against its planar distance.
+        uncertainty_weight: weight (>= 0) of the forecast's own uncertainty: each step's reward
+            loses ``uncertainty_weight`` times the norm of the forecast's 2-D standard deviation
+            of the object's position (metres). A plan whose outcome the world model cannot tell
+            (e.g. a long push that may slip sideways) then scores below an equally promising
+            plan it is sure of. Above 0 the objective sets ``uses_forecast_scale``, so the
+            planners (`SequenceCEMPlanner`, `ForecasterWorldModelEnv`) pass it
+            ``forecast_scale=``; at 0 (the default) it never asks, and plans as without the term.
 
     ``__call__(forecast [n, N, T, 2], actions [n, N, S, 4], context [n])`` returns rewards
-    ``[n, N, T]``: ``-(|object_t - goal| + reach_weight * reach_t)`` with the
+    ``[n, N, T]``: ``-(|object_t - goal| + reach_weight * reach_t + uncertainty_weight * |std_t|)``
+    (``forecast_scale [n, N, T, 2]``: ``std_t``, needed when ``uncertainty_weight > 0``) with the
     object's position ``object_t`` = now + the forecast displacement (the push world model
     forecasts displacements, `data.target.relative`) and ``target_t`` the point behind
     ``object_t`` on the current object→goal line (`PRE_PUSH_DISTANCE` behind while approaching,
@@ -67,11 +75,27 @@ class PushObjective:
 
     in_keys = [OBJECT_POSE, GOAL, keys.obs_key("proprio")]
 
-    def __init__(self, reach_weight: float = 0.5, height_weight: float = 2.0):
+    def __init__(
+        self, reach_weight: float = 0.5, height_weight: float = 2.0, uncertainty_weight: float = 0.0
+    ):
+        if not uncertainty_weight >= 0.0:  # NaN too
+            raise ValueError(
+                f"PushObjective: uncertainty_weight must be >= 0 (a penalty on the forecast's spread), "
+                f"found {uncertainty_weight}; use 0 to plan without it"
+            )
         self.reach_weight, self.height_weight = reach_weight, height_weight
+        self.uncertainty_weight = uncertainty_weight
+
+    @property
+    def uses_forecast_scale(self) -> bool:
+        return self.uncertainty_weight > 0.0
 
     def __call__(
-        self, forecast: torch.Tensor, actions: torch.Tensor, context: TensorDictBase
+        self,
+        forecast: torch.Tensor,
+        actions: torch.Tensor,
+        context: TensorDictBase,
+        forecast_scale: torch.Tensor | None = None,
     ) -> torch.Tensor:
         horizon, steps = forecast.shape[-2], actions.shape[-2]
         if steps % horizon:
@@ -106,7 +130,27 @@ class PushObjective:
         may_be_low = behind_on_line(gripper[..., :2] - obj, direction, low_from)
         height = pose[..., 2] + CLEARANCE * (~may_be_low).float()
         reach = planar + self.height_weight * (gripper[..., 2] - height).abs()
-        return -(goal_distance + self.reach_weight * reach)
+        rewards = -(goal_distance + self.reach_weight * reach)
+        if self.uses_forecast_scale:
+            rewards = rewards - self.uncertainty_weight * self._spread(forecast_scale, forecast.shape)
+        return rewards
+
+    @staticmethod
+    def _spread(forecast_scale: torch.Tensor | None, shape: torch.Size) -> torch.Tensor:
+        """The norm of each step's 2-D standard deviation ``[n, N, T]``: the root mean square distance
+        of the object from its forecast position, in metres like the goal distance (so the weight
+        has no unit), and the same whichever way the table's axes point."""
+        if forecast_scale is None:
+            raise ValueError(
+                "PushObjective(uncertainty_weight > 0) needs the forecast's standard deviation: call it "
+                "with forecast_scale= (the planners do, from WorldModel.forecast_distribution)"
+            )
+        if forecast_scale.shape != shape:
+            raise ValueError(
+                f"PushObjective: forecast_scale has shape {list(forecast_scale.shape)}, expected the "
+                f"forecast's {list(shape)}"
+            )
+        return forecast_scale.norm(dim=-1)
 
 
 def behind_on_line(

@@ -108,14 +108,32 @@ class WorldModel:
         self, tokens: torch.Tensor, present: torch.Tensor, valid: torch.Tensor, actions: torch.Tensor
     ) -> torch.Tensor:
         """Forecast ``[n, N, T, D]`` (target units) for raw action sequences ``[n, N, S, A]``."""
-        n, candidates = actions.shape[:2]
-        prior = torch.zeros(n, candidates, self.horizon, self.target_dim, device=self.device)
+        normalized, _ = self._decode(tokens, present, valid, actions)
+        return self.normalizer.denormalize_target(normalized)
 
-        def decode(rows: torch.Tensor | None) -> tuple[torch.Tensor]:
+    @torch.no_grad()
+    def forecast_distribution(
+        self, tokens: torch.Tensor, present: torch.Tensor, valid: torch.Tensor, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forecast` and its standard deviation, both ``[n, N, T, D]`` in target units, from the
+        same decode. The standard deviation is the decoder's predictive one (times the checkpoint's
+        ``scale_calibration`` factors when it was calibrated) scaled by the target's training std:
+        a forecast's spread has no offset, also for a target relative to now. Rows that cannot be
+        encoded get the target's training std (the marginal, beside the marginal mean)."""
+        normalized, scale = self._decode(tokens, present, valid, actions)
+        return self.normalizer.denormalize_target(normalized), self.normalizer.denormalize_target_scale(scale)
+
+    def _decode(
+        self, tokens: torch.Tensor, present: torch.Tensor, valid: torch.Tensor, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalised forecast location and scale ``[n, N, T, D]``: one decode of all candidates."""
+        n, candidates = actions.shape[:2]
+        prior_loc = torch.zeros(n, candidates, self.horizon, self.target_dim, device=self.device)
+
+        def decode(rows: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
             index = slice(None) if rows is None else rows
             scaled = self.normalizer.normalize(keys.FUTURE_ACTION, actions.to(self.device)[index])
             scaled = scaled.masked_fill(self.constant_action_dims, 0.0)
-            return (self.model.decode_under_actions(tokens[index], present[index], scaled)[0],)
+            return self.model.decode_under_actions(tokens[index], present[index], scaled)
 
-        (normalized,) = compute_on_rows(valid, decode, (prior,))
-        return self.normalizer.denormalize_target(normalized)
+        return compute_on_rows(valid, decode, (prior_loc, torch.ones_like(prior_loc)))

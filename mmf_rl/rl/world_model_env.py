@@ -22,7 +22,7 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.modules.planners import MPCPlannerBase
 
 from mmf_rl import keys
-from mmf_rl.rl.cem import Objective
+from mmf_rl.rl.cem import Objective, forecast_and_score
 from mmf_rl.rl.world_model import WorldModel
 
 IMAGINED = "imagined"
@@ -43,7 +43,8 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
     Args:
         world_model: the trained world model.
         objective: ``(forecast, actions, context) -> rewards [n, N, T]`` with ``in_keys`` (the
-            context keys it reads, carried unchanged through the imagined state).
+            context keys it reads, carried unchanged through the imagined state); one that sets
+            ``uses_forecast_scale`` also gets ``forecast_scale=``, as in `SequenceCEMPlanner`.
         action_spec: one real env's action spec (``[A]``; the imagined batch is whatever the
             reset tensordict's is).
         context_spec: specs of the objective's context keys (take them from the real env's
@@ -124,11 +125,12 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         # The new action replaces this step's and, until chosen, every later step's.
         later = torch.arange(steps)[None, :, None] >= step[:, :, None]
         actions = torch.where(later, flat.get("action")[:, None, :], flat.get(ACTIONS))
-        forecast = self.dynamics.forecast(
-            flat.get(TOKENS), flat.get(TOKEN_PRESENT), flat.get(VALID), actions[:, None]
-        ).cpu()
         context = flat.select(*self.objective.in_keys)
-        rewards = self.objective(forecast, actions[:, None], context)[:, 0]  # [n, T]
+        encoded = (flat.get(TOKENS), flat.get(TOKEN_PRESENT), flat.get(VALID))
+        forecast, rewards = forecast_and_score(
+            self.dynamics, self.objective, encoded, actions[:, None], context
+        )
+        rewards = rewards[:, 0]  # [n, T]
         index = step // (steps // self.dynamics.horizon)  # the forecast step of this action's frame
         reward = rewards.gather(1, index)
         predicted = forecast[:, 0].gather(1, index[:, :, None].expand(-1, -1, forecast.shape[-1]))[:, 0]

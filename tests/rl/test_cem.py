@@ -194,3 +194,88 @@ def test_world_model_ignores_action_dims_the_data_never_varied(push_world_model,
     actions[0, 1, :, 3] = -actions[0, 0, :, 3]  # the same moves, another finger command
     forecast = push_world_model.forecast(tokens, present, valid, actions)
     torch.testing.assert_close(forecast[0, 0], forecast[0, 1])
+
+
+def test_push_objective_ranks_the_wider_forecast_lower_when_the_means_are_equal():
+    objective = PushObjective(uncertainty_weight=2.0)
+    assert objective.uses_forecast_scale and not PushObjective().uses_forecast_scale
+    grip = torch.tensor([1.30 - CONTACT_DISTANCE, 0.75, 0.425])
+    context = push_context(torch.tensor([1.30, 0.75]), torch.tensor([1.40, 0.75]), grip)
+    steps = 3
+    forecast = torch.zeros(1, 2, steps, 2)
+    actions = torch.zeros(1, 2, steps, 4)
+    scale = torch.full((1, 2, steps, 2), 0.01)
+    scale[0, 1, :, 1] = 0.05  # the second candidate may slip sideways
+    rewards = objective(forecast, actions, context, forecast_scale=scale)
+    assert (rewards[0, 0] > rewards[0, 1]).all()
+    # Per step: the weight times the norm of the 2-D standard deviation (metres).
+    penalty = 2.0 * torch.tensor([0.01, 0.05]).norm() - 2.0 * torch.tensor([0.01, 0.01]).norm()
+    torch.testing.assert_close(rewards[0, 0] - rewards[0, 1], penalty.expand(steps))
+    without = PushObjective()(forecast, actions, context)
+    torch.testing.assert_close(rewards[0, 0], without[0, 0] - 2.0 * 0.01 * 2**0.5)
+
+
+def test_push_objective_refuses_a_negative_uncertainty_weight_or_a_missing_scale():
+    for weight in (-0.1, float("nan")):
+        with pytest.raises(ValueError, match="uncertainty_weight must be >= 0.*use 0 to plan without it"):
+            PushObjective(uncertainty_weight=weight)
+    context = push_context(
+        torch.tensor([1.30, 0.75]), torch.tensor([1.40, 0.75]), torch.tensor([1.2, 0.75, 0.5])
+    )
+    forecast, actions = torch.zeros(1, 2, 3, 2), torch.zeros(1, 2, 3, 4)
+    with pytest.raises(
+        ValueError, match="needs the forecast's standard deviation: call it with forecast_scale="
+    ):
+        PushObjective(uncertainty_weight=1.0)(forecast, actions, context)
+    with pytest.raises(ValueError, match=r"forecast_scale has shape \[1, 2, 3\], expected .*\[1, 2, 3, 2\]"):
+        PushObjective(uncertainty_weight=1.0)(forecast, actions, context, forecast_scale=torch.ones(1, 2, 3))
+
+
+class ThreeArgumentObjective:
+    """A user's objective as written before the forecast's scale existed: three arguments."""
+
+    in_keys = PushObjective.in_keys
+
+    def __call__(self, forecast, actions, context):
+        return PushObjective()(forecast, actions, context)
+
+
+class ScaleAskingObjective(PushObjective):
+    """`PushObjective` asking for the scale whatever its weight, recording what it is given."""
+
+    uses_forecast_scale = True
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.calls = []
+
+    def __call__(self, forecast, actions, context, forecast_scale=None):
+        self.calls.append((actions, forecast_scale))
+        return super().__call__(forecast, actions, context, forecast_scale)
+
+
+def test_a_zero_uncertainty_weight_plans_bit_identically(push_world_model, push_history_env):
+    td = push_history_env.reset()
+    sizes = {"num_candidates": 32, "num_iterations": 2, "num_elites": 4, "seed": 5}
+    plans = [
+        SequenceCEMPlanner(push_world_model, objective, ACTIONS, **sizes).plan(td)
+        for objective in (
+            ThreeArgumentObjective(),
+            PushObjective(uncertainty_weight=0.0),
+            ScaleAskingObjective(),
+        )
+    ]
+    # The third takes the scale path (forecast_distribution) and adds 0 times the spread.
+    assert torch.equal(plans[0], plans[1]) and torch.equal(plans[0], plans[2])
+
+
+def test_the_planner_gives_an_asking_objective_the_world_models_scale(push_world_model, push_history_env):
+    td = push_history_env.reset()
+    objective = ScaleAskingObjective(uncertainty_weight=1.0)
+    SequenceCEMPlanner(
+        push_world_model, objective, ACTIONS, num_candidates=8, num_iterations=2, num_elites=2
+    ).plan(td)
+    assert len(objective.calls) == 2
+    encoded = push_world_model.encode(td.get(keys.HISTORY).unsqueeze(0))
+    for actions, scale in objective.calls:
+        torch.testing.assert_close(scale, push_world_model.forecast_distribution(*encoded, actions)[1])

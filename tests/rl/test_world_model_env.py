@@ -73,3 +73,22 @@ def test_reset_without_history_names_what_is_missing(imagined):
     env, objective, real = imagined
     with pytest.raises(KeyError, match="needs a real env's tensordict with 'history'.*HistoryWindow"):
         env.reset(real.select(*objective.in_keys))
+
+
+def test_imagined_rewards_include_the_uncertainty_penalty(push_world_model, push_history_env, imagined):
+    _, _, real = imagined
+    objective = PushObjective(uncertainty_weight=1.0)
+    env = ForecasterWorldModelEnv(
+        push_world_model, objective, push_history_env.action_spec, push_history_env.observation_spec
+    )
+    state = env.reset(real.select(keys.HISTORY, *objective.in_keys))
+    action = torch.full((4,), 0.5)
+    reward = env.step(state.set("action", action)).get(("next", "reward"))
+
+    held = action.expand(push_world_model.action_steps, -1)[None, None]
+    encoded = push_world_model.encode(real.get(keys.HISTORY).unsqueeze(0))
+    forecast, scale = push_world_model.forecast_distribution(*encoded, held)
+    context = real.select(*objective.in_keys).unsqueeze(0)
+    expected = objective(forecast, held, context, forecast_scale=scale)[0, 0, 0]
+    torch.testing.assert_close(reward[0], expected)
+    assert reward[0] < PushObjective()(forecast, held, context)[0, 0, 0]

@@ -1,0 +1,52 @@
+"""`WorldModel`: forecasts and their spread in the target's units."""
+
+import torch
+
+from mmf_rl import keys
+from tests.conftest import assert_forecast_under_actions_is_one_forward_per_candidate
+
+CALIBRATION_FACTOR = 2.5
+
+
+def random_actions(world_model, candidates: int, seed: int = 0) -> torch.Tensor:
+    shape = (1, candidates, world_model.action_steps, world_model.action_dim)
+    return torch.rand(shape, generator=torch.Generator().manual_seed(seed)) * 2 - 1
+
+
+def test_forecast_distribution_is_the_calibrated_decoder_in_target_units(push_world_model, push_history_env):
+    window = push_history_env.reset().get(keys.HISTORY).unsqueeze(0)
+    actions = random_actions(push_world_model, 3)
+    encoded = push_world_model.encode(window)
+    _, as_trained = push_world_model.forecast_distribution(*encoded, actions)
+    # The training run calibrated the checkpoint; its factors scaled up must scale the spread up.
+    calibration = push_world_model.model.scale_calibration
+    saved = calibration.factors.clone()
+    calibration.factors.mul_(CALIBRATION_FACTOR)
+    try:
+        loc, scale = push_world_model.forecast_distribution(*encoded, actions)
+        normalized_actions = push_world_model.normalizer.normalize(keys.FUTURE_ACTION, actions).masked_fill(
+            push_world_model.constant_action_dims, 0.0
+        )
+        normalized_loc, normalized_scale = assert_forecast_under_actions_is_one_forward_per_candidate(
+            push_world_model.model, window, normalized_actions
+        )
+    finally:
+        calibration.factors.copy_(saved)
+    stats = push_world_model.normalizer.stats
+    # By hand: the location is shifted back by the target's mean, the spread only scaled by its std.
+    torch.testing.assert_close(loc, normalized_loc * stats["target/std"] + stats["target/mean"])
+    torch.testing.assert_close(scale, normalized_scale * stats["target/std"])
+    torch.testing.assert_close(scale, CALIBRATION_FACTOR * as_trained)
+    assert torch.equal(push_world_model.forecast(*encoded, actions), loc)
+
+
+def test_a_window_without_sensors_forecasts_the_marginal_mean_and_spread(push_world_model, push_history_env):
+    window = push_history_env.reset().get(keys.HISTORY).unsqueeze(0)
+    for spec in push_world_model.model.modalities:
+        window.set(spec.present_key, torch.zeros_like(window.get(spec.present_key)))
+    loc, scale = push_world_model.forecast_distribution(
+        *push_world_model.encode(window), random_actions(push_world_model, 2)
+    )
+    stats = push_world_model.normalizer.stats
+    assert torch.equal(loc, stats["target/mean"].expand_as(loc))
+    assert torch.equal(scale, stats["target/std"].expand_as(scale))
