@@ -65,11 +65,14 @@ def test_reset_makes_an_episode_depend_on_its_generator_only(push_world_model, p
 
 
 def test_agent_factory_pickles_and_builds_an_actor(push_world_model_run):
-    agent = PushMPCAgent(push_world_model_run / "checkpoints", image_size=IMAGE_SIZE, **SIZES)
+    agent = PushMPCAgent(
+        push_world_model_run / "checkpoints", image_size=IMAGE_SIZE, uncertainty_weight=0.3, **SIZES
+    )
     copy = pickle.loads(pickle.dumps(agent))
     assert copy == agent
     actor = copy()
     assert isinstance(actor, MPCActor) and actor.planner.num_candidates == SIZES["num_candidates"]
+    assert actor.planner.objective.uncertainty_weight == 0.3
     assert str(push_world_model_run / "checkpoints") in str(agent)
 
 

@@ -1,9 +1,14 @@
-"""The MPC results table: one line per row, '-' where a row has no seeds or decision time."""
+"""The MPC results table: one line per row, '-' where a row has no seeds or decision time; the
+static-object ablation."""
 
 from __future__ import annotations
 
+import torch
+
+from mmf_rl.rl.cem import SequenceCEMPlanner
 from mmf_rl.rl.closed_loop import over_seeds
-from mmf_rl.rl.mpc_evaluation import results_table
+from mmf_rl.rl.mpc_evaluation import StaticObjectModel, results_table
+from mmf_rl.rl.push_objective import PushObjective
 
 
 def row(success: float, decision_ms: float | None = None) -> dict:
@@ -23,3 +28,18 @@ def test_results_table_gives_the_spread_over_seeds_and_dashes_for_references():
     assert len(lines) == 4
     assert lines[2] == "| mpc all | 2 | 2 | 75 | 50-100 | 50 / 100 | 0.100 ± 0.020 | 40.0 | 4.0 |"
     assert lines[3] == "| scripted | 2 | - | 100 | - | - | 0.100 ± 0.020 | 40.0 | - |"
+
+
+def test_the_static_model_is_sure_so_the_uncertainty_penalty_changes_no_plan(
+    push_world_model, push_history_env
+):
+    td = push_history_env.reset()
+    static = StaticObjectModel(push_world_model)
+    sizes = {"num_candidates": 16, "num_iterations": 2, "num_elites": 4, "seed": 1}
+    plans = [
+        SequenceCEMPlanner(
+            static, PushObjective(uncertainty_weight=weight), push_history_env.action_spec, **sizes
+        ).plan(td)
+        for weight in (0.0, 1.0)
+    ]
+    assert torch.equal(plans[0], plans[1])
