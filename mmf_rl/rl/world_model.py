@@ -21,8 +21,9 @@ class WorldModel:
 
     Splits the forward in two so a planner pays for the encoders once per decision and for the
     decoder once per batch of candidates: :meth:`encode` a history window, then
-    :meth:`forecast` it under any number of raw action sequences. Forecasts are in the target's
-    units (for the push data: the object's planar displacement from now, metres).
+    :meth:`forecast` it under any number of raw action sequences (:meth:`forecast_distribution`: with
+    the forecast's standard deviation too). Forecasts are in the target's units (for the push data:
+    the object's planar displacement from now, metres).
 
     A window row with no present modality (NaN/Inf readings count as absent) cannot be encoded;
     its forecasts are the target's training mean (the marginal, as `ForecastTransform` does),
