@@ -7,11 +7,14 @@ windows, every frame of an episode is a sample, its first frames too: the histor
 frame ``t`` holds frames ``t - (H-1)·s .. t`` with the episode's first frame repeated where they
 would precede it, which is exactly the window `HistoryWindow` writes in an env after a reset. A
 policy cloned from these windows therefore sees in closed loop the windows it was trained on.
+`Demonstrations.with_episodes` adds episodes played in the env (DAgger's labelled states,
+`mmf_rl.rl.dagger`) to the training split.
 
 `ForecastTable` holds a trained forecaster's forecast of every demonstration frame, once per
 set of modalities a training outage may remove (:func:`drop_sets`), computed from the same
 windows `ForecastTransform` would build, so a policy that reads forecasts is trained on the
-forecasts it gets under the same outage in closed loop.
+forecasts it gets under the same outage in closed loop (`ForecastTable.extended`: the same for
+added episodes).
 
 `DemonstrationLoader` serves batches with the `WindowLoader` protocol (one epoch per iteration,
 deterministic given ``set_epoch``) for `mmf_rl.trainers.Trainer`, with seeded per-sample
