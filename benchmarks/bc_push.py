@@ -43,7 +43,8 @@ the trainings):
   forecasts computed as for the recording's, and both policies are trained again from scratch
   on the union, with the same budget and seed. Both variants so see the same data in every
   round. The episodes are kept (``WORK/dagger_seed<S>_round<r>/episodes``, beside the round's
-  policies), so a re-run does not play them again. The results report each policy's success on
+  policies; with ``--latched-forecast`` or ``--no-calibrate`` the directory's name says so), so
+  a re-run does not play them again. The results report each policy's success on
   its own DAgger episodes per round; the played conditions use the last round's policies.
   Cost of a round, per BC seed: two more BC trainings of the first ones' budget (training is
   the phase that dominates a run, so a round takes about as long again as all the first
