@@ -20,12 +20,37 @@ the trainings):
   --seed 0``): its ``action`` column is what the policies imitate;
 * the forecaster: the default push forecaster (``mmf-rl train data.root=WORK/push``), with
   ``--forecaster-steps`` steps of ``--forecaster-batch-size``;
+* its forecast scale calibrated per presence pattern on its validation split, as ``mmf-rl
+  calibrate`` fits it (`mmf_rl.eval.scale_fit`), before it forecasts anything: ``mmf-rl train``
+  fits it at the end of the training (``calibrate=true``, its default); a forecaster without a
+  recorded fit (one given with ``--forecaster``, or trained with ``calibrate=false``) is fitted
+  here with ``mmf-rl calibrate``'s own function, which writes the factors into its checkpoint,
+  so a re-run finds them and does not refit. The fit (factors, 90% coverage on val before and
+  after, per pattern) goes into ``results.md`` and ``results.json``. ``--no-calibrate``: the
+  forecasts use the scale as trained (factors set back to ones in memory; nothing is fitted or
+  written), for comparison; its ``with`` policies train in runs of their own (``_uncalibrated``);
 * its forecast of every training and validation frame under each training outage
   (`ForecastTable`, computed each run);
 * per ``--bc-seeds`` seed, two policies (`BCPolicy`, ``train_bc``): ``without`` forecasts and
   ``with`` them. Same encoders, sizes, steps, batch, optimiser; the same seed gives both the
   same initial encoder weights, the same batch order and the same training outages (the head's
-  first layer is wider by the 2·T·D forecast numbers, so its initial draw differs).
+  first layer is wider by the 2·T·D forecast numbers, so its initial draw differs);
+* with ``--dagger ROUNDS`` (default 0: none), per BC seed and round ``r``
+  (`mmf_rl.rl.dagger`): both policies of round ``r - 1`` each play ``--dagger-episodes``
+  episodes with every sensor (env seeds from ``--seed + 10000·r``, never a test episode's; both
+  policies play the same ones), the scripted pusher labels every state they visited with its
+  action, the labelled frames of both are added to that seed's training frames, with their
+  forecasts computed as for the recording's, and both policies are trained again from scratch
+  on the union, with the same budget and seed. Both variants so see the same data in every
+  round. The episodes are kept (``WORK/dagger_seed<S>_round<r>/episodes``, beside the round's
+  policies; with ``--latched-forecast`` or ``--no-calibrate`` the directory's name says so), so
+  a re-run does not play them again. The results report each policy's success on
+  its own DAgger episodes per round; the played conditions use the last round's policies.
+  Cost of a round, per BC seed: two more BC trainings of the first ones' budget (training is
+  the phase that dominates a run, so a round takes about as long again as all the first
+  trainings) and 2 x ``--dagger-episodes`` episodes played (each at the play phase's cost per
+  episode), plus their forecasts (seconds). The union grows by at most 50 frames per episode
+  played; a training's cost does not grow with it (a fixed number of steps).
 
 =============================  ===========  ===============================
 budget                         quick        full
@@ -37,6 +62,8 @@ BC seeds (each variant)        0 1          0 1
 episodes per condition         20           50
 outage types                   episode      episode bursts dies
                                bursts
+DAgger episodes (per policy,   20           50
+per round, with --dagger)
 =============================  ===========  ===============================
 
 The quick mode's size is estimated from the code, not measured: 200 recorded episodes (a third
@@ -90,18 +117,21 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from tqdm.auto import tqdm
 
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.cli import configure_logging
 from mmf_rl.datasets import DataConfig, WindowDataset
-from mmf_rl.models.loading import load_trained_model
+from mmf_rl.eval.scale_fit import PatternFit, fit_table
 from mmf_rl.record import RecordConfig, record
 from mmf_rl.rl import BCPolicy, Demonstrations, EncoderChoice, ForecastTable, train_bc, validation_errors
 from mmf_rl.rl.bc_evaluation import (
     VARIANTS,
+    bc_env,
     camera_loss,
     camera_target_met,
     evaluate_bc,
@@ -110,9 +140,18 @@ from mmf_rl.rl.bc_evaluation import (
     summary_line,
     validation_table,
 )
-from mmf_rl.rl.closed_loop import OUTAGES
+from mmf_rl.rl.closed_loop import OUTAGES, summarise
+from mmf_rl.rl.dagger import (
+    ROUND_SEEDS,
+    demonstration_frames,
+    labelled_episodes,
+    load_episodes,
+    round_seed,
+    save_episodes,
+)
 from mmf_rl.rl.experiment import (
     add_common_arguments,
+    calibrated_forecaster,
     merged_overrides,
     resolve_budget,
     run_header,
@@ -121,7 +160,7 @@ from mmf_rl.rl.experiment import (
     write_results,
 )
 from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, target_frame
-from mmf_rl.rl.outage_evaluation import outage_conditions
+from mmf_rl.rl.outage_evaluation import Condition, outage_conditions
 from mmf_rl.trainers import TrainerConfig, seed_everything
 
 DROPPABLE = ("image", "force")  # the sensors a training sample may lose
@@ -134,6 +173,7 @@ BUDGETS = {
         "bc_batch_size": 64,
         "episodes": 20,
         "outage": ["episode", "bursts"],
+        "dagger_episodes": 20,
     },
     "full": {
         "record_episodes": 300,
@@ -143,8 +183,39 @@ BUDGETS = {
         "bc_batch_size": 128,
         "episodes": 50,
         "outage": list(OUTAGES),
+        "dagger_episodes": 50,
     },
 }
+
+
+@dataclass
+class Forecaster:
+    """The trained forecaster (`load_trained_model`'s triple), where it is, and its scale's fit
+    (``calibration_in_use``; ``None``: the scale as trained)."""
+
+    checkpoints: Path
+    loaded: tuple
+    calibration: dict | None
+
+    def forecasts(self, args, table: ForecastTable, demonstrations: Demonstrations):
+        """What the ``with`` policies read of ``table``: its forecasts, or their latched form."""
+        if not args.latched_forecast:
+            return table
+        model, stats, data_config = self.loaded
+        relative, reference = target_frame(data_config, model.config.target_dim)
+        return LatchedForecastTable(
+            table,
+            demonstrations,
+            stats,
+            rule=args.latched_forecast,
+            stride=int(data_config.get("stride", 1)),
+            relative=relative,
+            reference=reference,
+        )
+
+    def extended(self, table: ForecastTable, demonstrations: Demonstrations) -> ForecastTable:
+        model, stats, data_config = self.loaded
+        return table.extended(demonstrations, model, stats, stride=int(data_config.get("stride", 1)))
 
 
 def build_recording(args, phases: dict[str, float]) -> Path:
@@ -187,10 +258,29 @@ def bc_trainer_config(args, seed: int) -> TrainerConfig:
     )
 
 
-def build_policy(args, variant: str, seed: int, demonstrations, forecasts, phases) -> BCPolicy:
-    """The ``variant`` policy of BC seed ``seed``: trained under ``args.work`` unless already done."""
-    latched = f"_latched_{args.latched_forecast}" if variant == "with" and args.latched_forecast else ""
-    run_dir = args.work / f"bc_{variant}{latched}_forecasts_seed{seed}"
+def forecast_tag(args) -> str:
+    """What the forecasts the ``with`` policies read are, in their run directories' names."""
+    latched = f"_latched_{args.latched_forecast}" if args.latched_forecast else ""
+    return latched + ("_uncalibrated" if args.no_calibrate else "")
+
+
+def dagger_dir(args, seed: int, round_: int) -> Path:
+    """Round ``round_``'s episodes and policies of BC seed ``seed``: they depend on both variants'
+    policies, so on the forecasts the ``with`` ones read."""
+    return args.work / f"dagger{forecast_tag(args)}_seed{seed}_round{round_}"
+
+
+def policy_run_dir(args, variant: str, seed: int, round_: int) -> Path:
+    if round_ == 0:
+        tag = forecast_tag(args) if variant == "with" else ""
+        return args.work / f"bc_{variant}{tag}_forecasts_seed{seed}"
+    return dagger_dir(args, seed, round_) / f"bc_{variant}_forecasts"
+
+
+def build_policy(args, variant: str, seed: int, round_: int, demonstrations, forecasts, phases) -> BCPolicy:
+    """The ``variant`` policy of BC seed ``seed`` trained on ``demonstrations`` (those of DAgger round
+    ``round_``; 0: the recording's): trained under ``args.work`` unless already done."""
+    run_dir = policy_run_dir(args, variant, seed, round_)
     config = bc_trainer_config(args, seed)
     table = forecasts if variant == "with" else None
     checkpoints = list_checkpoints(run_dir / "checkpoints")
@@ -204,8 +294,10 @@ def build_policy(args, variant: str, seed: int, demonstrations, forecasts, phase
         d_model=args.bc_d_model,
         hidden=args.bc_hidden,
     )
-    print(f"bc_push: training the BC policy {variant} forecasts, seed {seed} ({config.total_steps} steps)")
-    with timed_phase(phases, f"train BC {variant} seed {seed}"):
+    dagger = f", DAgger round {round_}" if round_ else ""
+    steps = config.total_steps
+    print(f"bc_push: training the BC policy {variant} forecasts, seed {seed}{dagger} ({steps} steps)")
+    with timed_phase(phases, f"train BC {variant} seed {seed}{dagger}"):
         train_bc(
             policy,
             demonstrations,
@@ -216,6 +308,72 @@ def build_policy(args, variant: str, seed: int, demonstrations, forecasts, phase
             resume=bool(checkpoints),
         )
     return BCPolicy.from_checkpoint(run_dir / "checkpoints")
+
+
+def dagger_episodes(args, seed: int, round_: int, policies: dict[str, BCPolicy], forecaster, specs, phases):
+    """Round ``round_``'s labelled episodes of both policies of BC seed ``seed`` (read back when a
+    run already played them) and one row per variant: its success on its own episodes."""
+    directory = dagger_dir(args, seed, round_) / "episodes"
+    saved = load_episodes(directory)
+    if saved is None:
+        model = forecaster.loaded[0]
+        image_size = next(s for s in model.config.modalities if s.name == "image").shape[-1]
+        first = round_seed(args.seed, round_)
+        episodes, results = [], []
+        with timed_phase(phases, f"DAgger seed {seed} round {round_} episodes"):
+            for variant in VARIANTS:
+                policy = policies[variant].eval()
+                env = bc_env(policy, forecaster.loaded, image_size, Condition("all", None, None), first)
+                played = labelled_episodes(env, policy, args.dagger_episodes, first)
+                desc = f"[seed {seed}] DAgger round {round_}, BC {variant} forecasts"
+                try:
+                    for rollout, result in tqdm(
+                        played, desc=desc, total=args.dagger_episodes, unit="episode"
+                    ):
+                        episodes.append(demonstration_frames(rollout, specs))
+                        results.append({**result, "variant": variant})
+                finally:
+                    env.close()
+        save_episodes(directory, episodes, results)
+    else:
+        episodes, results = saved
+    rows = []
+    for variant in VARIANTS:
+        own = [r for r in results if r["variant"] == variant]
+        rows.append(
+            {
+                "bc_seed": seed,
+                "round": round_,
+                "variant": variant,
+                "episodes": len(own),
+                "success": summarise(own)["success"],
+                "frames_added": sum(r["steps"] for r in own),
+            }
+        )
+    return episodes, rows
+
+
+def train_with_dagger(args, seed: int, forecaster: Forecaster, demonstrations, table, phases):
+    """Both policies of BC seed ``seed`` after ``--dagger`` rounds (none: trained on the recording),
+    the demonstrations of their last round with what the ``with`` policies read of them, and the
+    rounds' rows."""
+    forecasts = forecaster.forecasts(args, table, demonstrations)
+    policies = {v: build_policy(args, v, seed, 0, demonstrations, forecasts, phases) for v in VARIANTS}
+    rows = []
+    for round_ in range(1, args.dagger + 1):
+        episodes, played = dagger_episodes(
+            args, seed, round_, policies, forecaster, demonstrations.specs, phases
+        )
+        demonstrations = demonstrations.with_episodes(episodes)
+        with timed_phase(phases, f"forecast DAgger seed {seed} round {round_}"):
+            table = forecaster.extended(table, demonstrations)
+        forecasts = forecaster.forecasts(args, table, demonstrations)
+        policies = {
+            v: build_policy(args, v, seed, round_, demonstrations, forecasts, phases) for v in VARIANTS
+        }
+        trained_on = len(demonstrations.split_frames["train"])
+        rows += [{**row, "frames_trained_on": trained_on} for row in played]
+    return policies, demonstrations, forecasts, rows
 
 
 def add_training_arguments(parser: argparse.ArgumentParser) -> None:
@@ -230,6 +388,12 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
         nargs="+",
         default=[],
         help="more `mmf-rl train` overrides for the forecaster (key=value; they win over the above)",
+    )
+    parser.add_argument(
+        "--no-calibrate",
+        action="store_true",
+        help="the forecasts keep the forecaster's scale as trained (default: calibrated on val per presence "
+        "pattern, as mmf-rl calibrate fits it)",
     )
     parser.add_argument("--bc-steps", type=int, default=None)
     parser.add_argument("--bc-batch-size", type=int, default=None)
@@ -246,43 +410,57 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="the `with` policies read the latched forecast of this rule and its age (default: not latched)",
     )
+    parser.add_argument(
+        "--dagger",
+        type=int,
+        default=0,
+        metavar="ROUNDS",
+        help="rounds of DAgger with the scripted pusher as the expert before playing (default 0: none)",
+    )
+    parser.add_argument(
+        "--dagger-episodes",
+        type=int,
+        default=None,
+        help="episodes each policy plays per DAgger round (quick 20, full 50)",
+    )
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_common_arguments(parser, "bc")
     add_training_arguments(parser)
-    return resolve_budget(parser.parse_args(argv), BUDGETS, "bc")
+    args = resolve_budget(parser.parse_args(argv), BUDGETS, "bc")
+    if args.dagger < 0 or args.dagger_episodes < 1:
+        parser.error(
+            f"--dagger must be >= 0 and --dagger-episodes >= 1, found {args.dagger}, {args.dagger_episodes}"
+        )
+    if max(args.episodes, args.dagger_episodes) > ROUND_SEEDS:
+        parser.error(
+            f"--episodes and --dagger-episodes must be <= {ROUND_SEEDS}: beyond, DAgger's episodes would "
+            "replay the test's"
+        )
+    return args
 
 
 def forecaster_and_demonstrations(args, phases: dict[str, float]):
-    """The recording, the forecaster (built when not given), the demonstrations and the
-    forecaster's forecasts of them."""
+    """The recording, the forecaster (built when not given, calibrated), the demonstrations and the
+    forecaster's forecasts of them (a `ForecastTable`)."""
     if args.forecaster is not None:
         checkpoints = args.forecaster
     else:
         data = args.data.resolve() if args.data else build_recording(args, phases)
         checkpoints = build_forecaster(args, data, phases)
-    forecaster = load_trained_model(checkpoints)
-    model, stats, data_config = forecaster
+    with timed_phase(phases, "calibrate forecaster"):
+        loaded, calibration = calibrated_forecaster(checkpoints, not args.no_calibrate, args.data)
+    forecaster = Forecaster(checkpoints, loaded, calibration)
+    model, stats, data_config = forecaster.loaded
     if args.data is not None:
         data_config = {**data_config, "root": str(args.data.resolve())}
     with timed_phase(phases, "forecast the demonstrations"):
         demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
         stride = int(data_config.get("stride", 1))
-        forecasts = ForecastTable.compute(demonstrations, model, stats, DROPPABLE, stride=stride)
-    if args.latched_forecast:
-        relative, reference = target_frame(data_config, model.config.target_dim)
-        forecasts = LatchedForecastTable(
-            forecasts,
-            demonstrations,
-            stats,
-            rule=args.latched_forecast,
-            stride=stride,
-            relative=relative,
-            reference=reference,
-        )
-    return checkpoints, forecaster, demonstrations, forecasts
+        table = ForecastTable.compute(demonstrations, model, stats, DROPPABLE, stride=stride)
+    return forecaster, demonstrations, table
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -290,36 +468,90 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(args.threads)
     started = time.perf_counter()
     phases: dict[str, float] = {}
-    checkpoints, forecaster, demonstrations, forecasts = forecaster_and_demonstrations(args, phases)
+    forecaster, recorded, table = forecaster_and_demonstrations(args, phases)
 
-    # Two policies per BC seed, with and without the forecast input; their offline errors.
+    # Two policies per BC seed, with and without the forecast input (after the DAgger rounds); their
+    # offline errors.
     policies: dict[str, list[BCPolicy]] = {v: [] for v in VARIANTS}
     errors: dict[str, list[dict]] = {v: [] for v in VARIANTS}
+    dagger_rows = []
     for seed in args.bc_seeds:
+        trained, demonstrations, forecasts, rows = train_with_dagger(
+            args, seed, forecaster, recorded, table, phases
+        )
+        dagger_rows += rows
         for variant in VARIANTS:
-            policy = build_policy(args, variant, seed, demonstrations, forecasts, phases)
-            policies[variant].append(policy)
+            policies[variant].append(trained[variant])
             if len(demonstrations.split_frames["val"]):
-                table = forecasts if variant == "with" else None
-                errors[variant].append(validation_errors(policy, demonstrations, "val", DROPPABLE, table))
+                read = forecasts if variant == "with" else None
+                errors[variant].append(
+                    validation_errors(trained[variant], demonstrations, "val", DROPPABLE, read)
+                )
 
     # Closed loop: every policy, every condition, the same seeded episodes and outages.
     conditions = outage_conditions(args.outage)
     with timed_phase(phases, "play"):
-        rows, raw = evaluate_bc(policies, args.bc_seeds, forecaster, conditions, args.episodes, args.seed)
+        rows, raw = evaluate_bc(
+            policies, args.bc_seeds, forecaster.loaded, conditions, args.episodes, args.seed
+        )
 
     header = run_header("benchmarks/bc_push.py", sys.argv[1:] if argv is None else argv, started, phases)
     budget = (
         f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, BC seeds {args.bc_seeds}, "
         f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; "
         + (f"latched forecasts (rule {args.latched_forecast}); " if args.latched_forecast else "")
+        + (
+            f"DAgger {args.dagger} rounds of {args.dagger_episodes} episodes per policy; "
+            if args.dagger
+            else ""
+        )
         + "forecaster "
-        f"`{checkpoints}`; {len(demonstrations.split_frames['train'])} training frames"
+        f"`{forecaster.checkpoints}`; {len(recorded.split_frames['train'])} recorded training frames"
     )
-    text = report(rows, errors, conditions, args.outage, f"{header}\n\n{budget}")
-    write_results(args, text, {"rows": rows, "episodes": raw, "validation_errors": errors}, phases)
+    extra = calibration_section(forecaster.calibration) + dagger_section(dagger_rows)
+    text = report(rows, errors, conditions, args.outage, f"{header}\n\n{budget}") + extra
+    results = {
+        "rows": rows,
+        "episodes": raw,
+        "validation_errors": errors,
+        "forecaster_calibration": forecaster.calibration,
+        "dagger": dagger_rows,
+    }
+    write_results(args, text, results, phases)
     print(text)
     print(summary_line(rows, args.outage))
+
+
+def calibration_section(record: dict | None) -> str:
+    """The forecaster's scale calibration: its fit per presence pattern, or that there is none."""
+    if record is None:
+        return "\nForecast scale: as trained, not calibrated (--no-calibrate).\n"
+    if record["split"] is None:
+        return f"\nForecast scale: factors {record['factors']} (their fit is not recorded with the model).\n"
+    fits = [PatternFit(**fit) for fit in record["patterns"]]
+    return (
+        f"\nForecast scale: calibrated per presence pattern on the {record['split']} split before any "
+        f"forecast (as `mmf-rl calibrate`, min_windows={record['min_windows']}):\n\n"
+        f"{fit_table(fits, record['split'])}\n"
+    )
+
+
+def dagger_section(rows: list[dict]) -> str:
+    """Per BC seed, round and variant: the policy's success on its own DAgger episodes (those of the
+    policy of the round before) and the frames the round's policies are trained on."""
+    if not rows:
+        return ""
+    lines = [
+        "| BC seed | round | policy playing | episodes | success % (own episodes) | frames added | "
+        "training frames after |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['bc_seed']} | {r['round']} | BC {r['variant']} forecasts of round {r['round'] - 1} | "
+            f"{r['episodes']} | {r['success']:.0f} | {r['frames_added']} | {r['frames_trained_on']} |"
+        )
+    return "\nDAgger (expert: the scripted pusher; every sensor):\n\n" + "\n".join(lines) + "\n"
 
 
 def report(rows: dict, errors: dict, conditions: list, outages: list[str], run: str) -> str:

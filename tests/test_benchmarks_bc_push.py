@@ -50,3 +50,45 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     for run in ("bc_without_forecasts_seed0", with_run):
         assert (work / run / "checkpoints" / "last").is_file()
     assert BCPolicy.from_checkpoint(work / with_run / "checkpoints").config.latched_forecast == latched
+
+
+def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
+    recorded_push_root, tmp_path, capsys
+):
+    work = tmp_path / "work"
+    tiny_forecaster = push_train_overrides(
+        recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
+    )
+    argv = [
+        *("bench", "bc", "--quick", "--work", str(work), "--data", str(recorded_push_root)),
+        *("--forecaster-override", *tiny_forecaster),
+        *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
+        *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
+        *("--episodes", "1", "--outage", "episode", "--dagger", "1", "--dagger-episodes", "1"),
+    ]
+    assert cli(argv) == 0
+    first = json.loads((work / "results.json").read_text())
+    rows = first["dagger"]
+    assert [(r["bc_seed"], r["round"], r["variant"], r["episodes"]) for r in rows] == [
+        (0, 1, "without", 1),
+        (0, 1, "with", 1),
+    ]
+    recorded_frames = rows[0]["frames_trained_on"] - sum(r["frames_added"] for r in rows)
+    assert recorded_frames > 0 and all(0 < r["frames_added"] <= 50 for r in rows)
+    assert first["forecaster_calibration"]["split"] == "val"  # mmf-rl train fitted it
+    round_dir = work / "dagger_seed0_round1"
+    for variant in ("without", "with"):
+        assert (round_dir / f"bc_{variant}_forecasts" / "checkpoints" / "last").is_file()
+    assert "DAgger (expert: the scripted pusher" in (work / "results.md").read_text()
+    assert (
+        "Forecast scale: calibrated per presence pattern on the val split"
+        in (work / "results.md").read_text()
+    )
+
+    # A re-run trains and plays nothing it already has (the forecaster: `train_or_resume` leaves an
+    # ended run as it is): only the test episodes are played.
+    capsys.readouterr()
+    assert cli(argv) == 0
+    again = json.loads((work / "results.json").read_text())
+    assert again["dagger"] == rows
+    assert not [p for p in again["phases_s"] if p.startswith(("train BC", "DAgger"))], again["phases_s"]

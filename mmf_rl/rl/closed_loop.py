@@ -69,21 +69,30 @@ class RandomPolicy:
         return tensordict.set("action", torch.rand(4, generator=self.generator) * 2 - 1)
 
 
+def episode_steps(env: TransformedEnv) -> int:
+    """The push env's time limit (the registered one)."""
+    return env.base_env._env.spec.max_episode_steps
+
+
+def episode_result(rollout: TensorDictBase) -> dict:
+    """One played episode: success (FetchPush's, within the time limit), final object-goal distance,
+    steps."""
+    return {
+        "success": bool(rollout.get(("next", "terminated")).any()),
+        "final_distance": float(-rollout.get(("next", "reward"))[-1]),
+        "steps": rollout.shape[0],
+    }
+
+
 def play(env: TransformedEnv, policy, episodes: int, seed: int, label: str) -> list[dict]:
     """``episodes`` episodes of ``policy`` in ``env`` (episode ``i`` reset with seed ``seed + i``):
-    per episode, success (FetchPush's, within the time limit), final object-goal distance, steps."""
+    per episode, `episode_result`."""
     results = []
     bar = tqdm(range(episodes), desc=label, unit="episode", dynamic_ncols=True)
     for i in bar:
         env.set_seed(seed + i)  # applied at the next reset: the same start for every policy
-        rollout = env.rollout(env.base_env._env.spec.max_episode_steps, policy, break_when_any_done=True)
-        results.append(
-            {
-                "success": bool(rollout.get(("next", "terminated")).any()),
-                "final_distance": float(-rollout.get(("next", "reward"))[-1]),
-                "steps": rollout.shape[0],
-            }
-        )
+        rollout = env.rollout(episode_steps(env), policy, break_when_any_done=True)
+        results.append(episode_result(rollout))
         bar.set_postfix(success=f"{sum(r['success'] for r in results)}/{i + 1}")
     return results
 

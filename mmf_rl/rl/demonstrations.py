@@ -7,11 +7,14 @@ windows, every frame of an episode is a sample, its first frames too: the histor
 frame ``t`` holds frames ``t - (H-1)·s .. t`` with the episode's first frame repeated where they
 would precede it, which is exactly the window `HistoryWindow` writes in an env after a reset. A
 policy cloned from these windows therefore sees in closed loop the windows it was trained on.
+`Demonstrations.with_episodes` adds episodes played in the env (DAgger's labelled states,
+`mmf_rl.rl.dagger`) to the training split.
 
 `ForecastTable` holds a trained forecaster's forecast of every demonstration frame, once per
 set of modalities a training outage may remove (:func:`drop_sets`), computed from the same
 windows `ForecastTransform` would build, so a policy that reads forecasts is trained on the
-forecasts it gets under the same outage in closed loop.
+forecasts it gets under the same outage in closed loop (`ForecastTable.extended`: the same for
+added episodes).
 
 `DemonstrationLoader` serves batches with the `WindowLoader` protocol (one epoch per iteration,
 deterministic given ``set_epoch``) for `mmf_rl.trainers.Trainer`, with seeded per-sample
@@ -20,13 +23,14 @@ modality dropout.
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from torch import nn
 
 from mmf_rl import keys
@@ -39,6 +43,15 @@ from mmf_rl.models.rows import compute_on_rows
 from mmf_rl.record import ACTION_KEY, GOAL_KEY
 
 ACTION = "action"  # torchrl's action key: what a policy writes and `BCLoss` reads
+
+
+def _episode_starts(episode: torch.Tensor, first_row: int) -> torch.Tensor:
+    """The row of each frame's episode start, for frames numbered from ``first_row`` that follow
+    their episodes in order (an episode starts where its index changes)."""
+    starts = torch.ones(len(episode), dtype=torch.bool)
+    starts[1:] = episode[1:] != episode[:-1]
+    rows = torch.arange(first_row, first_row + len(episode))
+    return torch.cummax(torch.where(starts, rows, first_row), 0).values
 
 
 def drop_sets(droppable: Sequence[str]) -> list[tuple[str, ...]]:
@@ -73,11 +86,8 @@ class Demonstrations:
         columns = self._columns(source, [goal_feature, action_feature], episode)
         self.goal = columns[goal_feature]
         self.action = columns[action_feature]
-        # Cache rows follow the episodes' frames in order: an episode starts where its index changes.
-        starts = torch.ones(len(episode), dtype=torch.bool)
-        starts[1:] = episode[1:] != episode[:-1]
         rows = torch.arange(len(episode))
-        self._episode_start = torch.cummax(torch.where(starts, rows, 0), 0).values
+        self._episode_start = _episode_starts(episode, first_row=0)
         usable = torch.isfinite(self.goal).all(1) & torch.isfinite(self.action).all(1)
         self.split_frames = {
             name: rows[
@@ -123,6 +133,58 @@ class Demonstrations:
             )
         n = len(episode)
         return {f: torch.from_numpy(np.asarray(data[f], dtype=np.float32).reshape(n, -1)) for f in features}
+
+    def with_episodes(self, episodes: Sequence[TensorDictBase]) -> Demonstrations:
+        """These demonstrations with ``episodes`` added to the training split (DAgger's aggregation).
+
+        Each episode is a TensorDict ``[steps]`` of its frames as the env emits them: each
+        modality's ``("obs", m)`` and ``("present", m)``, ``"goal"``, and the ``"action"`` to
+        imitate. The recording's frames keep their rows (a `ForecastTable` of them stays valid:
+        `ForecastTable.extended` adds the new rows) and its normalisation statistics stay those of the
+        recording, so a policy's inputs mean the same whatever it is trained on.
+        """
+        if not episodes:
+            raise ValueError("Demonstrations.with_episodes: no episode to add")
+        for index, frames in enumerate(episodes):
+            self._check_episode(index, frames)
+        n = len(self.goal)
+        lengths = torch.tensor([len(frames) for frames in episodes])
+        episode = torch.repeat_interleave(torch.arange(len(episodes)), lengths)
+        added = copy.copy(self)
+
+        def joined(key) -> torch.Tensor:
+            return torch.cat([frames.get(key) for frames in episodes])
+
+        added._obs = {m: torch.cat([o, joined(keys.obs_key(m))]) for m, o in self._obs.items()}
+        added._present = {m: torch.cat([p, joined(keys.present_key(m))]) for m, p in self._present.items()}
+        added._episode_start = torch.cat([self._episode_start, _episode_starts(episode, first_row=n)])
+        added.goal = torch.cat([self.goal, joined(GOAL)])
+        added.action = torch.cat([self.action, joined(ACTION)])
+        new_rows = torch.arange(n, n + len(episode))
+        added.split_frames = {**self.split_frames, "train": torch.cat([self.split_frames["train"], new_rows])}
+        return added
+
+    def _check_episode(self, index: int, frames: TensorDictBase) -> None:
+        """An episode `with_episodes` can add: every entry the recording's frames have, same shapes
+        and dtypes, finite goal and action."""
+        expected = {keys.obs_key(m): o for m, o in self._obs.items()}
+        expected |= {keys.present_key(m): p for m, p in self._present.items()}
+        expected |= {GOAL: self.goal, ACTION: self.action}
+        found = frames.keys(include_nested=True)
+        for key, values in expected.items():
+            given = frames.get(key) if key in found else None
+            if given is None or given.shape[1:] != values.shape[1:] or given.dtype != values.dtype:
+                raise ValueError(
+                    f"Demonstrations.with_episodes: episode {index} has {key!r} "
+                    f"{None if given is None else (given.dtype, list(given.shape[1:]))}, the recording "
+                    f"{(values.dtype, list(values.shape[1:]))} per frame; add frames as the push env "
+                    "emits them (mmf_rl.rl.dagger.demonstration_frames)"
+                )
+        labels = torch.cat([frames.get(GOAL), frames.get(ACTION)], -1)
+        if len(frames) == 0 or not bool(labels.isfinite().all()):
+            raise ValueError(
+                f"Demonstrations.with_episodes: episode {index} is empty or has a non-finite goal or action"
+            )
 
     def rows(self, frames: torch.Tensor, history: int, stride: int) -> torch.Tensor:
         """``[B, history]`` cache rows of the windows ending at ``frames``, oldest first; steps
@@ -262,12 +324,13 @@ class ForecastTable:
         *,
         stride: int = 1,
         splits: Sequence[str] = ("train", "val"),
+        frames: torch.Tensor | None = None,
         batch_size: int = 256,
     ) -> ForecastTable:
         """Run ``forecaster`` (eval mode; normalisation ``stats`` and window ``stride`` of its run)
-        on the frames of ``splits``, once per subset of ``droppable`` removed. A window left with
-        no present modality gets the target's training prior (mean 0, scale 1), as in
-        `ForecastTransform`."""
+        on the frames of ``splits`` (or the cache rows ``frames``), once per subset of ``droppable``
+        removed. A window left with no present modality gets the target's training prior (mean 0,
+        scale 1), as in `ForecastTransform`."""
         config = forecaster.config
         unknown = sorted(set(droppable) - {s.name for s in config.modalities})
         if unknown:
@@ -281,7 +344,8 @@ class ForecastTable:
         n = len(demonstrations.goal)
         shape = (n, len(sets), config.horizon, config.target_dim)
         loc, scale = torch.full(shape, math.nan), torch.full(shape, math.nan)
-        frames = torch.cat([demonstrations.split_frames[s] for s in splits])
+        if frames is None:
+            frames = torch.cat([demonstrations.split_frames[s] for s in splits])
         for i, dropped in enumerate(sets):
             for chunk in frames.split(batch_size):
                 absent = {m: torch.ones(len(chunk), dtype=torch.bool) for m in dropped}
@@ -305,6 +369,37 @@ class ForecastTable:
 
                 loc[chunk, i], scale[chunk, i] = compute_on_rows(valid, predict, prior)
         return cls(loc, scale, tuple(droppable))
+
+    def extended(
+        self,
+        demonstrations: Demonstrations,
+        forecaster: nn.Module,
+        stats: Mapping[str, torch.Tensor],
+        *,
+        stride: int = 1,
+        batch_size: int = 256,
+    ) -> ForecastTable:
+        """This table of ``demonstrations``' first frames, with the forecasts of the frames added
+        after them (`Demonstrations.with_episodes`) computed as `compute` computes them (same
+        ``forecaster``, ``stats``, ``stride``, outages)."""
+        n, total = len(self.loc), len(demonstrations.goal)
+        if total < n:
+            raise ValueError(
+                f"ForecastTable.extended: the demonstrations hold {total} frames, fewer than the table's "
+                f"{n}; pass the demonstrations the table was computed for, with episodes added"
+            )
+        added = self.compute(
+            demonstrations,
+            forecaster,
+            stats,
+            self.droppable,
+            stride=stride,
+            frames=torch.arange(n, total),
+            batch_size=batch_size,
+        )
+        return ForecastTable(
+            torch.cat([self.loc, added.loc[n:]]), torch.cat([self.scale, added.scale[n:]]), self.droppable
+        )
 
 
 class DemonstrationLoader:

@@ -1,10 +1,12 @@
 """What the push experiment scripts (``benchmarks/mpc_push.py``, ``benchmarks/bc_push.py``) share: their
 common arguments and quick/full budgets, the trainings they build when absent (resumed when
-interrupted), the minutes of each phase, and the results files."""
+interrupted), a forecaster calibrated before it forecasts, the minutes of each phase, and the
+results files."""
 
 from __future__ import annotations
 
 import argparse
+import logging
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -12,11 +14,16 @@ from pathlib import Path
 
 import torch
 
-from mmf_rl.checkpoint import list_checkpoints
+from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.configuration import compose_config
+from mmf_rl.eval.calibrate_command import run_calibration
 from mmf_rl.eval.report import write_json, write_text
+from mmf_rl.eval.scale_fit import calibration_in_use
+from mmf_rl.models.loading import load_trained_model
 from mmf_rl.rl.closed_loop import OUTAGES
-from mmf_rl.trainers.train_command import train
+from mmf_rl.trainers.train_command import check_resumable, train
+
+logger = logging.getLogger(__name__)
 
 MODES = ("quick", "full")
 
@@ -74,14 +81,54 @@ def merged_overrides(base: list[str], extra: list[str]) -> list[str]:
 
 
 def train_or_resume(overrides: list[str]) -> Path:
-    """``mmf-rl train`` with ``overrides``; a run that already has checkpoints is resumed (nothing
-    to do if it had ended). Returns the run's checkpoints directory."""
+    """``mmf-rl train`` with ``overrides``; a run that already has checkpoints is resumed, and one
+    that had ended is left as it is (its config checked against ``overrides`` as a resume checks
+    it: not trained, calibrated or exported again). Returns the run's checkpoints directory."""
     cfg = compose_config("train", overrides)
-    checkpoints = Path(cfg.run_dir) / "checkpoints"
+    run_dir = Path(cfg.run_dir).resolve()
+    checkpoints = run_dir / "checkpoints"
     if list_checkpoints(checkpoints):
         cfg.resume = True
+        if load_checkpoint(checkpoints, with_trainer_state=False).step >= cfg.trainer.total_steps:
+            check_resumable(run_dir, cfg)
+            logger.info("%s has ended (%d steps): used as it is", run_dir, cfg.trainer.total_steps)
+            return checkpoints
     train(cfg)
     return checkpoints
+
+
+def calibrated_forecaster(
+    checkpoints: Path, calibrate: bool = True, data_root: Path | None = None
+) -> tuple[tuple, dict | None]:
+    """A trained forecaster (`load_trained_model`'s triple) with its forecast scale calibrated per
+    presence pattern on its val split, and the fit (`calibration_in_use`).
+
+    A forecaster with a recorded fit (``mmf-rl train`` fits one at the end of a run, by default) is
+    used as it is; one without is fitted by ``mmf-rl calibrate``'s own function, which writes the
+    factors into its checkpoint (and the run's export), so the next call finds them. ``data_root``:
+    where its dataset is, when not where it was trained. ``calibrate=False``: the scale as trained
+    (the factors set back to ones in memory, nothing fitted or written) and no fit (``None``).
+    """
+    loaded = load_trained_model(checkpoints)
+    if not calibrate:
+        loaded[0].scale_calibration.reset()
+        return loaded, None
+    if calibration_in_use(loaded[0]) is None:
+        overrides = [f"checkpoint={Path(checkpoints).resolve()}"]
+        if data_root is not None:
+            overrides.append(f"data_root={Path(data_root).resolve()}")
+        try:
+            fitted = run_calibration(compose_config("calibrate", overrides))
+        except ValueError as error:
+            raise ValueError(
+                f"the forecaster {checkpoints} cannot be calibrated: {error}; or use its scale as trained "
+                "(calibrate=False, --no-calibrate)"
+            ) from error
+        logger.info(
+            "forecast scale calibrated on val, written to %s:\n%s", fitted["written"], fitted["table"]
+        )
+        loaded = load_trained_model(checkpoints)
+    return loaded, calibration_in_use(loaded[0])
 
 
 @contextmanager

@@ -7,8 +7,13 @@ import torch
 from tensordict import TensorDict
 
 from mmf_rl import keys
+from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.models.loading import load_trained_model
+from mmf_rl.rl import Demonstrations, ForecastTable
+from tests.conftest import push_train_overrides
 
 RECORDED_ENVS = 3
+BC_DROPPABLE = ("image", "force")  # the sensors the BC tests' policies may lose
 
 
 @pytest.fixture(scope="module")
@@ -39,3 +44,31 @@ def recorded_steps(recorded_push_root) -> list[TensorDict]:
         )
         for step in frames
     ]
+
+
+@pytest.fixture(scope="module")
+def forecaster_run(recorded_push_root, tmp_path_factory):
+    """A tiny forecaster trained by `mmf-rl train` (data=push) on the recorded push data."""
+    from mmf_rl.cli import main as cli
+
+    base = tmp_path_factory.mktemp("bc_forecaster")
+    run = base / "run"
+    assert cli(["train", *push_train_overrides(recorded_push_root, base / "cache", run, steps=4)]) == 0
+    return run
+
+
+@pytest.fixture(scope="module")
+def forecaster(forecaster_run):
+    return load_trained_model(forecaster_run / "checkpoints")
+
+
+@pytest.fixture(scope="module")
+def demonstrations(forecaster) -> Demonstrations:
+    _, _, data_config = forecaster
+    return Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
+
+
+@pytest.fixture(scope="module")
+def forecasts(demonstrations, forecaster) -> ForecastTable:
+    model, stats, _ = forecaster
+    return ForecastTable.compute(demonstrations, model, stats, BC_DROPPABLE, splits=("train", "val", "test"))

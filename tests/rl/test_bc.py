@@ -12,13 +12,11 @@ from mmf_rl.checkpoint import CheckpointError
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.envs.modality_dropout import ModalityDropout
 from mmf_rl.envs.torchrl_env import GOAL, MultimodalPushTorchEnv
-from mmf_rl.models.loading import load_trained_model
 from mmf_rl.rl import (
     BCPolicy,
     DemonstrationLoader,
     Demonstrations,
     EncoderChoice,
-    ForecastTable,
     ForecastTransform,
     HistoryWindow,
     train_bc,
@@ -28,40 +26,11 @@ from mmf_rl.rl.bc_evaluation import bc_env
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform, target_frame
 from mmf_rl.rl.outage_evaluation import Condition
 from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
-from tests.conftest import push_train_overrides
 
 IMAGE_SIZE = 32  # as recorded by `recorded_push_root`
 DROPPABLE = ("image", "force")
 TINY = {"d_model": 16, "hidden": 32, "depth": 1}
 TINY_ENCODERS = EncoderChoice(image_channels=(8, 16))
-
-
-@pytest.fixture(scope="module")
-def forecaster_run(recorded_push_root, tmp_path_factory):
-    """A tiny forecaster trained by `mmf-rl train` (data=push) on the recorded push data."""
-    from mmf_rl.cli import main as cli
-
-    base = tmp_path_factory.mktemp("bc_forecaster")
-    run = base / "run"
-    assert cli(["train", *push_train_overrides(recorded_push_root, base / "cache", run, steps=4)]) == 0
-    return run
-
-
-@pytest.fixture(scope="module")
-def forecaster(forecaster_run):
-    return load_trained_model(forecaster_run / "checkpoints")
-
-
-@pytest.fixture(scope="module")
-def demonstrations(forecaster) -> Demonstrations:
-    _, _, data_config = forecaster
-    return Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
-
-
-@pytest.fixture(scope="module")
-def forecasts(demonstrations, forecaster) -> ForecastTable:
-    model, stats, _ = forecaster
-    return ForecastTable.compute(demonstrations, model, stats, DROPPABLE, splits=("train", "val", "test"))
 
 
 def make_policy(demonstrations, forecasts=None, seed: int = 0) -> BCPolicy:
