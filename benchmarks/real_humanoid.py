@@ -43,14 +43,12 @@ lowest mean degradation among the baselines (the most robust one, named in resul
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
-import time
 from pathlib import Path
 
 from mmf_rl.compare import entries as catalogue
-from mmf_rl.compare import report
+from mmf_rl.compare import report, script
 from mmf_rl.compare.bootstrap import (
     BOOTSTRAP_RESAMPLES,
     BOOTSTRAP_SEED,
@@ -59,9 +57,7 @@ from mmf_rl.compare.bootstrap import (
     bootstrap_unit,
     build_table,
 )
-from mmf_rl.compare.collect import collect_runs
 from mmf_rl.compare.entries import Entry, Study, select_entries, subsets
-from mmf_rl.compare.runs import check_entries, check_reused, open_data, run_pending
 from mmf_rl.compare.summary import paired_comparisons, summarize_against_best_baseline
 
 REPO = Path(__file__).resolve().parents[1]
@@ -242,18 +238,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--entries", nargs="+", default=labels, help=f"labels, 'paper' among them (default all: {labels})"
     )
-    parser.add_argument("--device", default="cpu", help="cpu | cuda | auto (passed to train and eval)")
-    parser.add_argument(
-        "--jobs", type=int, default=1, help="runs trained at once, each with cores/jobs threads"
-    )
+    script.add_run_flags(parser)
     args = parser.parse_args(argv)
-    if args.jobs < 1:
-        parser.error(f"--jobs must be >= 1, found {args.jobs}")
-    unknown = sorted(set(args.entries) - set(labels))
-    if unknown:
-        parser.error(f"--entries: unknown {unknown}; the entries are {labels}")
-    if "paper" not in args.entries:
-        parser.error("--entries: 'paper' is missing; every comparison is against it")
+    script.check_run_flags(parser, args, ENTRIES)
     args.root = args.root.expanduser().resolve()
     if not (args.root / "meta" / "info.json").is_file():
         parser.error(
@@ -299,23 +286,12 @@ def results_json(
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mmf_rl.eval.report import write_json, write_text
-
     args = parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    episodes = json.loads((args.root / "meta" / "info.json").read_text()).get("total_episodes")
     study = study_of(args)
-    try:
-        check_entries(study)
-        check_reused(study)
-    except ValueError as err:
-        raise SystemExit(f"real humanoid benchmark: {err}") from None
-    start = time.perf_counter()
-    data = open_data(study)
-    cache_seconds = time.perf_counter() - start
-    needed, reused = run_pending(study)
-    collected = collect_runs(study)
-    seconds = time.perf_counter() - start
+    script.check_study(study, "real humanoid benchmark")
+    outcome = script.run_study(study)
+    collected = outcome.collected
     unit = bootstrap_unit(collected.errors, BLOCK, MIN_EPISODES)
     names = [name for name, _ in subsets(MODALITIES)]
     table, groups = build_table(collected.errors, collected.kinds, names, unit=unit)
@@ -323,26 +299,19 @@ def main(argv: list[str] | None = None) -> int:
     comparisons = paired_comparisons(table)
     info = {
         "root": str(args.root),
-        "episodes": episodes,
-        "split": {name: list(map(int, eps)) for name, eps in data.split_episodes.items()},
-        "test_windows": len(data.split_windows["test"]),
+        "episodes": script.recorded_episodes(args.root),
+        "split": {name: list(map(int, eps)) for name, eps in outcome.data.split_episodes.items()},
+        "test_windows": len(outcome.data.split_windows["test"]),
         "unit": unit,
         "groups": groups,
         "steps": args.steps,
         "batch_size": args.batch_size,
         "seeds": list(args.seeds),
-        "cache_seconds": cache_seconds,
-        "seconds": seconds,
-        "runs": needed,
-        "reused": reused,
-        "constant_velocity_mse": collected.constant_velocity_mse(),
+        **outcome.info(),
     }
     text = markdown(table, info, collected.runs, summary, comparisons) + f"{line}\n"
-    study.out.mkdir(parents=True, exist_ok=True)
-    write_text(study.out / "results.md", text)
-    write_json(
-        study.out / "results.json", results_json(study, table, info, collected.runs, comparisons, summary)
-    )
+    results = results_json(study, table, info, collected.runs, comparisons, summary)
+    script.write_results(study.out, text, results)
     print(text)
     return 0
 
