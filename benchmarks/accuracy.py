@@ -59,6 +59,8 @@ push_subset_title = partial(report.subset_title, modalities=("image", "force", "
 
 @dataclass(frozen=True)
 class Budget(script.Mode):
+    """A mode of this benchmark, which also says the subsets its retrained baselines are trained for."""
+
     retrained_subsets: str = "all"  # "all" | "paper": the subsets the retrained baselines are trained for
 
 
@@ -329,8 +331,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     text = markdown(table, collected, args.budget, args.mode, info, measured, comparisons) + f"{line}\n"
     results = results_json(table, collected, args, info, episodes, measured, comparisons, summary)
-    script.write_results(args.out, text, results)
-    print(text)
+    script.report_results(args.out, text, results)
     return 0
 
 

@@ -17,11 +17,12 @@ The hybrids are models registered under ``gap_*`` names when this script is impo
 processes of ``--jobs``, which import it again, build them too). Their checkpoints load only where
 this script has registered them: in ``mmf-rl eval`` or ``load_trained_model`` they are unknown models.
 
-The recording is made if ``--data`` does not exist, as ``benchmarks/accuracy.py`` makes it (same
-default path, episodes and seed, so the two share it). Completed runs in ``--out`` are reused: an
-interrupted run resumes. Writes ``<out>/results.md`` (MSE per row and presence subset, mean over
-seeds; all-sensor 95% paired bootstrap intervals against MulT) and ``<out>/results.json``, and ends
-with one line: ``summary: MulT all A; MulT on the paper's tokens B (fixed-query readout C); paper D``
+The recording is made if ``--data`` does not exist, by ``mmf_rl.compare.script`` as for
+``benchmarks/accuracy.py`` (same default path, episodes and seed, so the two share it). Completed runs
+in ``--out`` are reused: an interrupted run resumes. Writes ``<out>/results.md`` (MSE per row and
+presence subset, mean over seeds; all-sensor 95% paired bootstrap intervals against MulT) and
+``<out>/results.json``, and ends with one line: ``summary: MulT all A; MulT on the paper's tokens B
+(fixed-query readout C); paper D``
 (all-sensor MSE means; ``-`` for a row not run).
 """
 
@@ -502,8 +503,7 @@ def main(argv: list[str] | None = None) -> int:
         "cells": report.cells_json(table),
         "summary": summary,
     }
-    script.write_results(args.out, text, results)
-    print(text, end="")
+    script.report_results(args.out, text, results)
     return 0
 
 

@@ -1,6 +1,6 @@
 """Missing-sensor accuracy on a real humanoid recording: the paper model against the baselines.
 
-    .venv/bin/python benchmarks/real_humanoid.py --jobs 2    # 6 entries x 2 seeds, two runs at once
+    .venv/bin/python benchmarks/real_humanoid.py --jobs 2    # every entry x 2 seeds, two runs at once
     .venv/bin/python benchmarks/real_humanoid.py --steps 2 --seeds 0 --entries paper LF-LSTM --batch-size 4
 
 Run time: see results.md (it records the measured wall time of every run and of the invocation).
@@ -13,15 +13,14 @@ is the joints' motion: ``observation.state`` relative to the last observed frame
 the next T = 10 frames from H = 10 frames of history. One split by episode (split_fractions 0.8 / 0.1
 / 0.1, split_seed 0) for every model.
 
-Entries (``ENTRIES``): the paper model with the configuration defaults, and with the other prior;
-the same model with GRU encoders for
-joints and commands; the baselines LF-LSTM, MulT and MVAE,
-each trained once on every sensor and seeing an absent sensor as its own absence handling
-(zero-fill; MVAE drops the expert). Every entry: ``--steps`` steps of batch ``--batch-size`` for each
-seed, trained with ``mmf-rl train``'s ``train(cfg)`` and scored on every presence subset of the test
-split with ``mmf-rl eval``'s ``run_evaluation(cfg)``. The machinery (training, per-window errors,
-the paired bootstrap, the tables, the summary) is ``mmf_rl.compare``'s; only the data, the entries and
-the report are this file's.
+Entries (``ENTRIES``): the paper model with the configuration defaults, with the other prior, with GRU
+encoders for joints and commands, and with its decoder reading the mixed tokens of per-frame camera
+tokens; the baselines LF-LSTM, MulT and MVAE, each trained once on every sensor and seeing an absent
+sensor as its own absence handling (zero-fill; MVAE drops the expert). Every entry: ``--steps`` steps of
+batch ``--batch-size`` for each seed, trained with ``mmf-rl train``'s ``train(cfg)`` and scored on every
+presence subset of the test split with ``mmf-rl eval``'s ``run_evaluation(cfg)``. The machinery
+(training, per-window errors, the paired bootstrap, the tables, the summary) is ``mmf_rl.compare``'s;
+only the data, the entries and the report are this file's.
 
 Each cell: normalised test MSE, mean over seeds, with a 95% paired bootstrap interval (the same
 resamples for every entry, seed and sensor subset). With at least ``MIN_EPISODES`` test episodes the
@@ -311,8 +310,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     text = markdown(table, info, collected.runs, summary, comparisons) + f"{line}\n"
     results = results_json(study, table, info, collected.runs, comparisons, summary)
-    script.write_results(study.out, text, results)
-    print(text)
+    script.report_results(study.out, text, results)
     return 0
 
 

@@ -21,7 +21,7 @@ from mmf_rl.compare.collect import Collected, timing
 from mmf_rl.compare.entries import CATALOGUE, DEFAULT_ENTRIES, Budget, Study, select_entries, subsets
 from mmf_rl.compare.report import cells_json, intervals_text, results_sections, run_time_section, subset_title
 from mmf_rl.compare.runs import check_entries, check_reused
-from mmf_rl.compare.script import add_run_flags, check_run_flags, run_study, write_results
+from mmf_rl.compare.script import add_run_flags, check_run_flags, report_results, run_study
 from mmf_rl.compare.summary import paired_comparisons, summarize_against_best_baseline
 
 logger = logging.getLogger(__name__)
@@ -92,8 +92,8 @@ def make_study(args: argparse.Namespace) -> Study:
     )
 
 
-def run(study: Study, target_ratio: float) -> str:
-    """Train what is missing, score, write ``results.md`` and ``results.json``; returns the report."""
+def run(study: Study, target_ratio: float) -> None:
+    """Train what is missing, score, write ``results.md`` and ``results.json`` and print the report."""
     check_entries(study)
     check_reused(study)
     outcome = run_study(study)
@@ -128,8 +128,7 @@ def run(study: Study, target_ratio: float) -> str:
         "kl": collected.kl,
         "summary": summary,
     }
-    write_results(study.out, text, results)
-    return text
+    report_results(study.out, text, results)
 
 
 def markdown(
@@ -174,8 +173,7 @@ def main(argv: list[str]) -> int:
 
     try:
         study = make_study(args)
-        text = run(study, args.target_ratio)
+        run(study, args.target_ratio)
     except (ConfigError, OSError, ValueError, KeyError) as err:
         return report_command_error(PROG, err)
-    print(text, end="")
     return 0

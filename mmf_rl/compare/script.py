@@ -9,6 +9,8 @@ import argparse
 import dataclasses
 import json
 import logging
+import subprocess
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -130,16 +132,18 @@ class PushRecording:
     episodes: int
 
     def make_if_absent(self) -> float | None:
-        """Record it with two workers unless ``root`` exists; the recording's wall seconds, None when
-        it existed."""
+        """Record it with ``mmf-rl record`` (two workers) unless ``root`` exists; the recording's wall
+        seconds, None when it existed. In a child process, as recording here would leave lerobot's
+        handler on the root logger behind, doubling every later progress message; its stdout is
+        dropped, as this process's stdout is the benchmark's report (its progress shows on stderr)."""
         if self.root.exists():
             return None
-        from mmf_rl.record import RecordConfig, record
-
-        logger.info("recording %d push episodes into %s", self.episodes, self.root)
+        command = [sys.executable, "-m", "mmf_rl.cli", "record", "--out", str(self.root)]
+        command += ["--episodes", str(self.episodes), "--workers", "2", "--image-size", "64"]
+        command += ["--steps", "50", "--seed", "0"]
+        logger.info("recording %d push episodes: %s", self.episodes, " ".join(command))
         start = time.perf_counter()
-        config = RecordConfig(self.root, self.episodes, workers=2, seed=0, image_size=64, steps=50)
-        record(config)
+        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
         return time.perf_counter() - start
 
 
@@ -192,10 +196,13 @@ def run_study(study: Study, recording: PushRecording | None = None) -> Outcome:
     return Outcome(data, collected, runs, reused, record_seconds, cache_seconds, seconds)
 
 
-def write_results(out: Path, text: str, results: dict) -> None:
-    """``<out>/results.md`` (the report) and ``<out>/results.json``, each replaced whole."""
+def report_results(out: Path, text: str, results: dict) -> None:
+    """Write the report ``text`` to ``<out>/results.md`` and ``results`` to ``<out>/results.json``
+    (each replaced whole), then print the report: the script's result on stdout, its summary line
+    last."""
     from mmf_rl.eval.report import write_json, write_text
 
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "results.md", text)
     write_json(out / "results.json", results)
+    print(text, end="")

@@ -60,15 +60,15 @@ def test_a_push_study_trains_the_modes_entries_on_the_recording(tmp_path):
 
 
 def test_the_push_recording_is_made_only_when_absent(tmp_path, monkeypatch):
-    import mmf_rl.record
-
     made = []
-    monkeypatch.setattr(mmf_rl.record, "record", made.append)
+    monkeypatch.setattr(script.subprocess, "run", lambda command, **_: made.append(command))
     absent = script.PushRecording(tmp_path / "push", 16)
     assert absent.make_if_absent() >= 0.0
-    assert made == [
-        mmf_rl.record.RecordConfig(tmp_path / "push", 16, workers=2, seed=0, image_size=64, steps=50)
-    ]
+    assert made[0][1:4] == ["-m", "mmf_rl.cli", "record"]
+    options = " ".join(made[0][4:])
+    assert (
+        options == f"--out {tmp_path / 'push'} --episodes 16 --workers 2 --image-size 64 --steps 50 --seed 0"
+    )
     (tmp_path / "push").mkdir()
     assert absent.make_if_absent() is None and len(made) == 1
     assert script.recorded_episodes(tmp_path / "push") is None
@@ -77,8 +77,9 @@ def test_the_push_recording_is_made_only_when_absent(tmp_path, monkeypatch):
     assert script.recorded_episodes(tmp_path / "push") == 16
 
 
-def test_the_results_are_written_into_a_new_out_directory(tmp_path):
-    script.write_results(tmp_path / "a" / "out", "# report\nsummary: x\n", {"summary": {"x": 1}})
+def test_the_results_are_written_into_a_new_out_directory_and_printed(tmp_path, capsys):
+    script.report_results(tmp_path / "a" / "out", "# report\nsummary: x\n", {"summary": {"x": 1}})
+    assert capsys.readouterr().out == "# report\nsummary: x\n"
     assert (tmp_path / "a" / "out" / "results.md").read_text() == "# report\nsummary: x\n"
     assert json.loads((tmp_path / "a" / "out" / "results.json").read_text()) == {"summary": {"x": 1}}
 
