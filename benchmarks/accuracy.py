@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -296,14 +295,9 @@ def results_json(
         "budget": args.budget.__dict__,
         "info": info,
         "kinds": collected.kinds,
-        "subsets": table.subsets,
         "test_episodes": episodes,
         "bootstrap": {"resamples": BOOTSTRAP_RESAMPLES, "seed": BOOTSTRAP_SEED, "level": LEVEL},
-        "cells": report.cells_json(table),
-        "paired_differences": comparisons,
-        "timing": measured,
-        "coverage_90": {label: cells for label, (cells, _) in collected.coverage.items()},
-        "kl": collected.kl,
+        **report.tables_json(table, collected, comparisons, measured),
         "summary": summary,
     }
 
@@ -336,7 +330,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from mmf_rl.cli import configure_logging
-
-    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
-    sys.exit(main())
+    script.run_as_script(main)

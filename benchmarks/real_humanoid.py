@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 from pathlib import Path
 
 from mmf_rl.compare import entries as catalogue
@@ -315,7 +314,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from mmf_rl.cli import configure_logging
-
-    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
-    sys.exit(main())
+    script.run_as_script(main)

@@ -19,7 +19,13 @@ from pathlib import Path
 from mmf_rl.compare.bootstrap import Table, bootstrap_unit, build_table
 from mmf_rl.compare.collect import Collected, timing
 from mmf_rl.compare.entries import CATALOGUE, DEFAULT_ENTRIES, Budget, Study, select_entries, subsets
-from mmf_rl.compare.report import cells_json, intervals_text, results_sections, run_time_section, subset_title
+from mmf_rl.compare.report import (
+    intervals_text,
+    results_sections,
+    run_time_section,
+    subset_title,
+    tables_json,
+)
 from mmf_rl.compare.runs import check_entries, check_reused
 from mmf_rl.compare.script import add_run_flags, check_run_flags, report_results, run_study
 from mmf_rl.compare.summary import paired_comparisons, summarize_against_best_baseline
@@ -120,12 +126,7 @@ def run(study: Study, target_ratio: float) -> None:
         "entries": {e.label: {"kind": e.kind, "overrides": list(e.overrides)} for e in study.entries},
         "data_overrides": list(study.data_overrides),
         "info": info,
-        "subsets": table.subsets,
-        "cells": cells_json(table),
-        "paired_differences": comparisons,
-        "timing": measured,
-        "coverage_90": {label: cells for label, (cells, _) in collected.coverage.items()},
-        "kl": collected.kl,
+        **tables_json(table, collected, comparisons, measured),
         "summary": summary,
     }
     report_results(study.out, text, results)

@@ -12,10 +12,10 @@ import logging
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from mmf_rl.compare.collect import Collected, collect_runs
 from mmf_rl.compare.entries import Budget, Entry, Study, select_entries
@@ -206,3 +206,12 @@ def report_results(out: Path, text: str, results: dict) -> None:
     write_text(out / "results.md", text)
     write_json(out / "results.json", results)
     print(text, end="")
+
+
+def run_as_script(main: Callable[[], int]) -> NoReturn:
+    """``python benchmarks/X.py``: ``main``'s exit code, with the library's progress messages on stderr
+    as ``mmf-rl bench X`` shows them."""
+    from mmf_rl.cli import configure_logging
+
+    configure_logging()
+    sys.exit(main())
