@@ -29,6 +29,7 @@ from mmf_rl.compare.report import (
 from mmf_rl.compare.runs import check_entries, check_reused
 from mmf_rl.compare.script import add_run_flags, check_run_flags, report_results, run_study
 from mmf_rl.compare.summary import paired_comparisons, summarize_against_best_baseline
+from mmf_rl.configuration import add_config_dir_flag
 
 logger = logging.getLogger(__name__)
 PROG = "mmf-rl compare"
@@ -69,14 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=Path("runs/compare"), help="runs and results")
     add_run_flags(parser)
     parser.add_argument("--target-ratio", type=float, default=1.05, help="paper/best baseline MSE target")
-    parser.add_argument(
-        "--config-dir",
-        action="append",
-        type=Path,
-        default=[],
-        metavar="DIR",
-        help="a directory of your configs",
-    )
+    add_config_dir_flag(parser)
     return parser
 
 
