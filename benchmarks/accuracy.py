@@ -37,21 +37,16 @@ lacks the entries a number needs).
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
-import sys
-import time
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
 from mmf_rl.compare import entries as catalogue
-from mmf_rl.compare import report
+from mmf_rl.compare import report, script
 from mmf_rl.compare.bootstrap import BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED, LEVEL, Table, build_table
-from mmf_rl.compare.collect import Collected, collect_runs, timing
-from mmf_rl.compare.entries import Entry, Study, select_entries, subsets
-from mmf_rl.compare.runs import check_entries, open_data, run_pending
+from mmf_rl.compare.collect import Collected, timing
+from mmf_rl.compare.entries import Entry, subsets
 from mmf_rl.compare.summary import paired_comparisons, summarize
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,13 +57,9 @@ push_subset_title = partial(report.subset_title, modalities=("image", "force", "
 
 
 @dataclass(frozen=True)
-class Budget:
-    image_size: int
-    batch_size: int
-    steps: int
-    seeds: tuple[int, ...]
-    entries: tuple[str, ...] | None  # None: every entry
-    episodes: int  # recorded when --data does not exist
+class Budget(script.Mode):
+    """A mode of this benchmark, which also says the subsets its retrained baselines are trained for."""
+
     retrained_subsets: str = "all"  # "all" | "paper": the subsets the retrained baselines are trained for
 
 
@@ -166,30 +157,6 @@ ENTRIES = [
         (*PAPER, "data.modalities.image={feature:observation.images.front,encoder:conv_gru}"),
     ),
 ]
-
-
-def record_dataset(root: Path, episodes: int) -> float:
-    """Record the benchmark's push dataset with ``mmf-rl record``; returns the wall time."""
-    start = time.perf_counter()
-    cmd = [sys.executable, "-m", "mmf_rl.cli", "record", "--out", str(root), "--episodes", str(episodes)]
-    cmd += ["--workers", "2", "--image-size", "64", "--steps", "50", "--seed", "0"]
-    print("recording:", " ".join(cmd), flush=True)
-    subprocess.run(cmd, check=True, env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
-    return time.perf_counter() - start
-
-
-def study_of(budget: Budget, data: Path, out: Path, device: str = "cpu", jobs: int = 1) -> Study:
-    """The ``mmf_rl.compare`` study of a budget on the push recording ``data``."""
-    return Study(
-        out=out,
-        budget=catalogue.Budget(budget.steps, budget.batch_size, budget.seeds, budget.image_size),
-        entries=tuple(select_entries(ENTRIES, budget.entries)),
-        modalities=tuple(MODALITIES),
-        data_overrides=(f"data.root={data}",),
-        device=device,
-        jobs=jobs,
-        retrained_for=None if budget.retrained_subsets == "all" else PAPER_SUBSETS,
-    )
 
 
 def runs_per_seed(entry: Entry, budget: Budget) -> int:
@@ -303,44 +270,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--out", type=Path, default=None, help="runs and results (default runs/bench_accuracy_<mode>)"
     )
-    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="override the mode's seeds")
-    parser.add_argument("--steps", type=int, default=None, help="override the mode's training steps")
-    parser.add_argument("--batch-size", type=int, default=None, help="override the mode's batch size")
+    script.add_override_flags(parser, "seeds", "steps", "batch-size")
     parser.add_argument(
         "--entries",
         nargs="+",
         default=None,
         help="override the mode's entries (labels; must include 'paper')",
     )
-    parser.add_argument("--device", default="cpu", help="cpu | cuda | auto (passed to train and eval)")
-    parser.add_argument(
-        "--jobs",
-        type=int,
-        default=1,
-        help="runs trained at once, each with cores/jobs threads (2 on 2 cores)",
-    )
+    script.add_run_flags(parser)
     args = parser.parse_args(argv)
-    if args.jobs < 1:
-        parser.error(f"--jobs must be >= 1, found {args.jobs}")
-    if args.entries is not None:
-        unknown = sorted(set(args.entries) - {e.label for e in ENTRIES})
-        if unknown or "paper" not in args.entries:
-            parser.error(
-                f"--entries: unknown {unknown} or 'paper' missing; entries are {[e.label for e in ENTRIES]}"
-            )
+    script.check_run_flags(parser, args, ENTRIES)
     args.mode = next((name for name in ("tiny", "quick", "standard") if getattr(args, name)), "full")
-    mode = MODES[args.mode]
-    args.budget = Budget(
-        mode.image_size,
-        args.batch_size or mode.batch_size,
-        args.steps or mode.steps,
-        tuple(args.seeds) if args.seeds else mode.seeds,
-        tuple(args.entries) if args.entries else mode.entries,
-        mode.episodes,
-        mode.retrained_subsets,
-    )
+    args.budget = MODES[args.mode].overridden(args)
     args.out = (args.out or REPO / "runs" / f"bench_accuracy_{args.mode}").resolve()
-    args.data = (args.data or REPO / "data" / f"push_bench_{mode.episodes}ep").resolve()
+    args.data = (args.data or script.push_recording_path(REPO, args.budget.episodes)).resolve()
     return args
 
 
@@ -352,36 +295,21 @@ def results_json(
         "budget": args.budget.__dict__,
         "info": info,
         "kinds": collected.kinds,
-        "subsets": table.subsets,
         "test_episodes": episodes,
         "bootstrap": {"resamples": BOOTSTRAP_RESAMPLES, "seed": BOOTSTRAP_SEED, "level": LEVEL},
-        "cells": report.cells_json(table),
-        "paired_differences": comparisons,
-        "timing": measured,
-        "coverage_90": {label: cells for label, (cells, _) in collected.coverage.items()},
-        "kl": collected.kl,
+        **report.tables_json(table, collected, comparisons, measured),
         "summary": summary,
     }
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mmf_rl.eval.report import write_json, write_text
-
     args = parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    study = study_of(args.budget, args.data, args.out, args.device, args.jobs)
-    try:
-        check_entries(study)
-    except ValueError as err:
-        raise SystemExit(f"accuracy benchmark: {err}") from None
-    start = time.perf_counter()
-    record_seconds = None if args.data.exists() else record_dataset(args.data, args.budget.episodes)
-    cache_start = time.perf_counter()
-    open_data(study)  # the window cache, built once before the first training
-    cache_seconds = time.perf_counter() - cache_start
-    runs, reused = run_pending(study)  # the wall time covers the runs not reused
-    collected = collect_runs(study)
-    seconds = time.perf_counter() - start
+    retrained_for = None if args.budget.retrained_subsets == "all" else PAPER_SUBSETS
+    study = script.push_study(args, ENTRIES, MODALITIES, retrained_for=retrained_for)
+    script.check_study(study, "accuracy benchmark", refuse_other_budgets=False)
+    outcome = script.run_study(study, script.PushRecording(args.data, args.budget.episodes))
+    collected = outcome.collected
     names = [name for name, _ in subsets(MODALITIES)]
     table, episodes = build_table(
         collected.errors, collected.kinds, names, lead=PAPER_SUBSETS, bases=collected.bases
@@ -390,32 +318,16 @@ def main(argv: list[str] | None = None) -> int:
     comparisons, measured = paired_comparisons(table), timing(collected.runs)
     info = {
         "data": str(args.data),
-        "episodes": _episode_count(args.data),
+        "episodes": script.recorded_episodes(args.data),
         "test_episodes": len(episodes),
-        "record_seconds": record_seconds,
-        "cache_seconds": cache_seconds,
-        "seconds": seconds,
-        "runs": runs,
-        "reused": reused,
-        "constant_velocity_mse": collected.constant_velocity_mse(),
+        "record_seconds": outcome.record_seconds,
+        **outcome.info(),
     }
     text = markdown(table, collected, args.budget, args.mode, info, measured, comparisons) + f"{line}\n"
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_text(args.out / "results.md", text)
     results = results_json(table, collected, args, info, episodes, measured, comparisons, summary)
-    write_json(args.out / "results.json", results)
-    print(text)
+    script.report_results(args.out, text, results)
     return 0
 
 
-def _episode_count(root: Path) -> int | None:
-    """``total_episodes`` of the LeRobot dataset's ``meta/info.json``."""
-    info = root / "meta" / "info.json"
-    return json.loads(info.read_text()).get("total_episodes") if info.is_file() else None
-
-
 if __name__ == "__main__":
-    from mmf_rl.cli import configure_logging
-
-    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
-    sys.exit(main())
+    script.run_as_script(main)

@@ -6,8 +6,8 @@
 
 For each N a synthetic LeRobot v3.0 dataset (`mmf_rl.datasets.synthetic`, lerobot's own writer:
 a 64x64 video camera, state, force and pose vectors, episodes of 250 frames) is written once
-under ``--work-dir`` and reused by later runs (lerobot's writer is slow: the 1M-frame dataset takes
-the better part of an hour, once). Its cache is built in a fresh subprocess, which reports its wall
+under ``--work-dir`` and reused by later runs (lerobot's writer is slow at 1M frames: docs/results.md
+gives its time). Its cache is built in a fresh subprocess, which reports its wall
 time and peak RSS (``VmHWM`` of itself and of its decode workers); batches of 256 train windows are
 then read from the cache in another fresh subprocess, which reports their throughput and its peak
 RSS (what a training process's loader holds). Targets: build time linear in N, peak RSS (build,

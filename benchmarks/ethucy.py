@@ -34,6 +34,9 @@ from pathlib import Path
 
 import torch
 
+# Under mmf_rl, so that the library's logging setup (`mmf-rl bench`, or this script's own) shows it; a
+# handler of its own on the root logger would print every library message a second time.
+logger = logging.getLogger("mmf_rl.benchmarks.ethucy")
 REPO = Path(__file__).resolve().parents[1]
 PAPER, CV, CV_NOISE = "paper model", "constant velocity", "constant velocity + heading noise"
 TRAINED = {  # label -> model overrides
@@ -188,7 +191,7 @@ def run_trained(args, budget: Budget, fold: str, label: str, data) -> dict:
     }
     result["seconds"] = time.perf_counter() - start
     write_json(run_dir / "scores.json", result)
-    logging.info(
+    logger.info(
         "%s %s: trained in %.0f s, scored in %.0f s", fold, label, trained, result["seconds"] - trained
     )
     return result
@@ -329,7 +332,6 @@ def main(argv: list[str] | None = None) -> int:
     from mmf_rl.eval.trajectories import average_over_scenes, summary_line
 
     args = parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     budget = QUICK if args.quick else FULL
     args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -356,4 +358,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from mmf_rl.cli import configure_logging
+
+    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
     raise SystemExit(main())

@@ -17,23 +17,20 @@ The hybrids are models registered under ``gap_*`` names when this script is impo
 processes of ``--jobs``, which import it again, build them too). Their checkpoints load only where
 this script has registered them: in ``mmf-rl eval`` or ``load_trained_model`` they are unknown models.
 
-The recording is made if ``--data`` does not exist, as ``benchmarks/accuracy.py`` makes it (same
-default path, episodes and seed, so the two share it). Completed runs in ``--out`` are reused: an
-interrupted run resumes. Writes ``<out>/results.md`` (MSE per row and presence subset, mean over
-seeds; all-sensor 95% paired bootstrap intervals against MulT) and ``<out>/results.json``, and ends
-with one line: ``summary: MulT all A; MulT on the paper's tokens B (fixed-query readout C); paper D``
+The recording is made if ``--data`` does not exist, by ``mmf_rl.compare.script`` as for
+``benchmarks/accuracy.py`` (same default path, episodes and seed, so the two share it). Completed runs
+in ``--out`` are reused: an interrupted run resumes. Writes ``<out>/results.md`` (MSE per row and
+presence subset, mean over seeds; all-sensor 95% paired bootstrap intervals against MulT) and
+``<out>/results.json``, and ends with one line: ``summary: MulT all A; MulT on the paper's tokens B
+(fixed-query readout C); paper D``
 (all-sensor MSE means; ``-`` for a row not run).
 """
 
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import statistics
-import sys
-import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -41,6 +38,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from mmf_rl.compare import entries as catalogue
+from mmf_rl.compare import report, script
 from mmf_rl.compare.bootstrap import Table, build_table, difference_interval
 from mmf_rl.compare.entries import Entry, Study, subsets
 from mmf_rl.models.attention import FixedQueryAttention
@@ -51,9 +49,6 @@ from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.forecaster.modeling_forecaster import ModalitySpecificDecoder, MultimodalForecaster
 from mmf_rl.models.fusion import FusionShape
 from mmf_rl.models.registry import register_model
-
-# Under mmf_rl, so `mmf-rl bench` and this script's own logging setup show it as the library's messages.
-logger = logging.getLogger("mmf_rl.benchmarks.mult_gap")
 
 # --- hybrids of MulT ---------------------------------------------------------------------------------
 
@@ -381,22 +376,18 @@ SUBSET_COLUMNS = {
 }
 
 
-@dataclass(frozen=True)
-class Mode:
-    """The budget every row of a run is trained with, and the rows."""
-
-    steps: int
-    batch_size: int
-    seeds: tuple[int, ...]
-    entries: tuple[str, ...] | None  # None: every row
-    episodes: int  # recorded when --data does not exist (benchmarks/accuracy.py's count for the mode)
-    image_size: int = 32
-
-
-STANDARD = Mode(1000, 32, (0, 1, 2), None, 200)
+# Every row, 3 seeds, 1000 steps of batch 32 at 32x32 on accuracy.py's recording of 200 episodes.
+STANDARD = script.Mode(image_size=32, batch_size=32, steps=1000, seeds=(0, 1, 2), entries=None, episodes=200)
 # Tiny: the code paths (a paper hybrid with pair tokens, a MulT hybrid with both swaps) in seconds;
 # the numbers mean nothing.
-TINY = Mode(4, 8, (0,), ("paper", MULT_TOKENS_FQ, "paper, pair tokens"), 16)
+TINY = script.Mode(
+    image_size=32,
+    batch_size=8,
+    steps=4,
+    seeds=(0,),
+    entries=("paper", MULT_TOKENS_FQ, "paper, pair tokens"),
+    episodes=16,
+)
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -412,52 +403,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--out", type=Path, default=None, help="runs and results (default runs/bench_mult_gap_<mode>)"
     )
-    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="override the mode's seeds")
+    script.add_override_flags(parser, "seeds")
     parser.add_argument("--entries", nargs="+", default=None, help="the rows to run (labels; default all)")
-    parser.add_argument("--device", default="cpu", help="cpu | cuda | auto (passed to train and eval)")
-    parser.add_argument(
-        "--jobs", type=int, default=1, help="runs trained at once, each with cores/jobs threads"
-    )
+    script.add_run_flags(parser)
     args = parser.parse_args(argv)
-    if args.jobs < 1:
-        parser.error(f"--jobs must be >= 1, found {args.jobs}")
-    known = [e.label for e in ENTRIES]
-    if args.entries is not None and (unknown := sorted(set(args.entries) - set(known))):
-        parser.error(f"--entries: unknown {unknown}; the rows are {known}")
-    args.mode_name = "tiny" if args.tiny else "standard"
-    mode = TINY if args.tiny else STANDARD
-    args.mode = Mode(
-        mode.steps,
-        mode.batch_size,
-        tuple(args.seeds) if args.seeds else mode.seeds,
-        tuple(args.entries) if args.entries else mode.entries,
-        mode.episodes,
-    )
-    args.data = (args.data or REPO / "data" / f"push_bench_{mode.episodes}ep").resolve()
-    args.out = (args.out or REPO / "runs" / f"bench_mult_gap_{args.mode_name}").resolve()
+    script.check_run_flags(parser, args, ENTRIES, paper_required=False)
+    args.mode = "tiny" if args.tiny else "standard"
+    args.budget = (TINY if args.tiny else STANDARD).overridden(args)
+    args.data = (args.data or script.push_recording_path(REPO, args.budget.episodes)).resolve()
+    args.out = (args.out or REPO / "runs" / f"bench_mult_gap_{args.mode}").resolve()
     return args
-
-
-def study_of(mode: Mode, data: Path, out: Path, device: str, jobs: int) -> Study:
-    return Study(
-        out=out,
-        budget=catalogue.Budget(mode.steps, mode.batch_size, mode.seeds, mode.image_size),
-        entries=tuple(e for e in ENTRIES if mode.entries is None or e.label in mode.entries),
-        modalities=MODALITIES,
-        data_overrides=(f"data.root={data}",),
-        device=device,
-        jobs=jobs,
-    )
-
-
-def ensure_recording(data: Path, episodes: int) -> None:
-    """Record the push dataset as ``benchmarks/accuracy.py`` does when ``data`` does not exist."""
-    if data.exists():
-        return
-    from mmf_rl.record import RecordConfig, record
-
-    logger.info("recording %d push episodes into %s", episodes, data)
-    record(RecordConfig(out=data, episodes=episodes, workers=2, seed=0, image_size=64, steps=50))
 
 
 def mse_table(table: Table, labels: list[str], seeds: int) -> str:
@@ -525,46 +480,31 @@ def markdown(study: Study, table: Table, info: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mmf_rl.compare.collect import collect_runs
-    from mmf_rl.compare.runs import check_entries, check_reused, open_data, run_pending
-    from mmf_rl.eval.report import write_json, write_text
-
     args = parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    study = study_of(args.mode, args.data, args.out, args.device, args.jobs)
-    try:
-        check_entries(study)
-        check_reused(study)
-    except ValueError as err:
-        raise SystemExit(f"mult_gap benchmark: {err}") from None
-    start = time.perf_counter()
-    ensure_recording(args.data, args.mode.episodes)
-    open_data(study)  # the window cache, built once before the first training
-    runs, reused = run_pending(study)
-    collected = collect_runs(study)
+    study = script.push_study(args, ENTRIES, MODALITIES, paper_required=False)
+    script.check_study(study, "mult_gap benchmark")
+    outcome = script.run_study(study, script.PushRecording(args.data, args.budget.episodes))
+    collected = outcome.collected
     table, episodes = build_table(collected.errors, collected.kinds, [n for n, _ in subsets(MODALITIES)])
     info = {
         "data": str(args.data),
         "test_episodes": len(episodes),
-        "seconds": time.perf_counter() - start,
-        "runs": runs,
-        "reused": reused,
+        "seconds": outcome.seconds,
+        "runs": outcome.runs,
+        "reused": outcome.reused,
     }
     line, summary = summary_line(table)
     text = markdown(study, table, info) + f"{line}\n"
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_text(args.out / "results.md", text)
-    cells = {label: {s: c.to_dict() for s, c in row.items()} for label, row in table.cells.items()}
-    write_json(
-        args.out / "results.json",
-        {"mode": args.mode.__dict__, "info": info, "cells": cells, "summary": summary},
-    )
-    print(text, end="")
+    results = {
+        "mode": args.budget.__dict__,
+        "info": info,
+        "cells": report.cells_json(table),
+        "summary": summary,
+    }
+    script.report_results(args.out, text, results)
     return 0
 
 
 if __name__ == "__main__":
-    from mmf_rl.cli import configure_logging
-
-    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
-    sys.exit(main())
+    script.run_as_script(main)

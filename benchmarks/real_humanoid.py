@@ -1,6 +1,6 @@
 """Missing-sensor accuracy on a real humanoid recording: the paper model against the baselines.
 
-    .venv/bin/python benchmarks/real_humanoid.py --jobs 2    # 6 entries x 2 seeds, two runs at once
+    .venv/bin/python benchmarks/real_humanoid.py --jobs 2    # every entry x 2 seeds, two runs at once
     .venv/bin/python benchmarks/real_humanoid.py --steps 2 --seeds 0 --entries paper LF-LSTM --batch-size 4
 
 Run time: see results.md (it records the measured wall time of every run and of the invocation).
@@ -13,15 +13,14 @@ is the joints' motion: ``observation.state`` relative to the last observed frame
 the next T = 10 frames from H = 10 frames of history. One split by episode (split_fractions 0.8 / 0.1
 / 0.1, split_seed 0) for every model.
 
-Entries (``ENTRIES``): the paper model with the configuration defaults, and with the other prior;
-the same model with GRU encoders for
-joints and commands; the baselines LF-LSTM, MulT and MVAE,
-each trained once on every sensor and seeing an absent sensor as its own absence handling
-(zero-fill; MVAE drops the expert). Every entry: ``--steps`` steps of batch ``--batch-size`` for each
-seed, trained with ``mmf-rl train``'s ``train(cfg)`` and scored on every presence subset of the test
-split with ``mmf-rl eval``'s ``run_evaluation(cfg)``. The machinery (training, per-window errors,
-the paired bootstrap, the tables, the summary) is ``mmf_rl.compare``'s; only the data, the entries and
-the report are this file's.
+Entries (``ENTRIES``): the paper model with the configuration defaults, with the other prior, with GRU
+encoders for joints and commands, and with its decoder reading the fusion's mixed tokens and the camera
+as one token per frame; the baselines LF-LSTM, MulT and MVAE, each trained once on every sensor and
+seeing an absent sensor as its own absence handling (zero-fill; MVAE drops the expert). Every entry:
+``--steps`` steps of batch ``--batch-size`` for each seed, trained with ``mmf-rl train``'s
+``train(cfg)`` and scored on every presence subset of the test split with ``mmf-rl eval``'s
+``run_evaluation(cfg)``. The machinery (training, per-window errors, the paired bootstrap, the tables,
+the summary) is ``mmf_rl.compare``'s; only the data, the entries and the report are this file's.
 
 Each cell: normalised test MSE, mean over seeds, with a 95% paired bootstrap interval (the same
 resamples for every entry, seed and sensor subset). With at least ``MIN_EPISODES`` test episodes the
@@ -43,14 +42,11 @@ lowest mean degradation among the baselines (the most robust one, named in resul
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
-import time
 from pathlib import Path
 
 from mmf_rl.compare import entries as catalogue
-from mmf_rl.compare import report
+from mmf_rl.compare import report, script
 from mmf_rl.compare.bootstrap import (
     BOOTSTRAP_RESAMPLES,
     BOOTSTRAP_SEED,
@@ -59,9 +55,7 @@ from mmf_rl.compare.bootstrap import (
     bootstrap_unit,
     build_table,
 )
-from mmf_rl.compare.collect import collect_runs
 from mmf_rl.compare.entries import Entry, Study, select_entries, subsets
-from mmf_rl.compare.runs import check_entries, check_reused, open_data, run_pending
 from mmf_rl.compare.summary import paired_comparisons, summarize_against_best_baseline
 
 REPO = Path(__file__).resolve().parents[1]
@@ -242,18 +236,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--entries", nargs="+", default=labels, help=f"labels, 'paper' among them (default all: {labels})"
     )
-    parser.add_argument("--device", default="cpu", help="cpu | cuda | auto (passed to train and eval)")
-    parser.add_argument(
-        "--jobs", type=int, default=1, help="runs trained at once, each with cores/jobs threads"
-    )
+    script.add_run_flags(parser)
     args = parser.parse_args(argv)
-    if args.jobs < 1:
-        parser.error(f"--jobs must be >= 1, found {args.jobs}")
-    unknown = sorted(set(args.entries) - set(labels))
-    if unknown:
-        parser.error(f"--entries: unknown {unknown}; the entries are {labels}")
-    if "paper" not in args.entries:
-        parser.error("--entries: 'paper' is missing; every comparison is against it")
+    script.check_run_flags(parser, args, ENTRIES)
     args.root = args.root.expanduser().resolve()
     if not (args.root / "meta" / "info.json").is_file():
         parser.error(
@@ -299,23 +284,12 @@ def results_json(
 
 
 def main(argv: list[str] | None = None) -> int:
-    from mmf_rl.eval.report import write_json, write_text
-
     args = parse_args(argv)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    episodes = json.loads((args.root / "meta" / "info.json").read_text()).get("total_episodes")
     study = study_of(args)
-    try:
-        check_entries(study)
-        check_reused(study)
-    except ValueError as err:
-        raise SystemExit(f"real humanoid benchmark: {err}") from None
-    start = time.perf_counter()
-    data = open_data(study)
-    cache_seconds = time.perf_counter() - start
-    needed, reused = run_pending(study)
-    collected = collect_runs(study)
-    seconds = time.perf_counter() - start
+    script.check_study(study, "real humanoid benchmark")
+    outcome = script.run_study(study)
+    collected = outcome.collected
     unit = bootstrap_unit(collected.errors, BLOCK, MIN_EPISODES)
     names = [name for name, _ in subsets(MODALITIES)]
     table, groups = build_table(collected.errors, collected.kinds, names, unit=unit)
@@ -323,32 +297,21 @@ def main(argv: list[str] | None = None) -> int:
     comparisons = paired_comparisons(table)
     info = {
         "root": str(args.root),
-        "episodes": episodes,
-        "split": {name: list(map(int, eps)) for name, eps in data.split_episodes.items()},
-        "test_windows": len(data.split_windows["test"]),
+        "episodes": script.recorded_episodes(args.root),
+        "split": {name: list(map(int, eps)) for name, eps in outcome.data.split_episodes.items()},
+        "test_windows": len(outcome.data.split_windows["test"]),
         "unit": unit,
         "groups": groups,
         "steps": args.steps,
         "batch_size": args.batch_size,
         "seeds": list(args.seeds),
-        "cache_seconds": cache_seconds,
-        "seconds": seconds,
-        "runs": needed,
-        "reused": reused,
-        "constant_velocity_mse": collected.constant_velocity_mse(),
+        **outcome.info(),
     }
     text = markdown(table, info, collected.runs, summary, comparisons) + f"{line}\n"
-    study.out.mkdir(parents=True, exist_ok=True)
-    write_text(study.out / "results.md", text)
-    write_json(
-        study.out / "results.json", results_json(study, table, info, collected.runs, comparisons, summary)
-    )
-    print(text)
+    results = results_json(study, table, info, collected.runs, comparisons, summary)
+    script.report_results(study.out, text, results)
     return 0
 
 
 if __name__ == "__main__":
-    from mmf_rl.cli import configure_logging
-
-    configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
-    sys.exit(main())
+    script.run_as_script(main)

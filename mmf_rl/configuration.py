@@ -310,6 +310,20 @@ def _settings_help(name: str, config_dirs: list[Path]) -> str:
     return "\n".join(lines)
 
 
+def add_config_dir_flag(parser: argparse.ArgumentParser) -> None:
+    """``--config-dir DIR``, repeatable: the user's own config directories, as every command composing
+    a Hydra config takes them."""
+    parser.add_argument(
+        "--config-dir",
+        action="append",
+        type=Path,
+        default=[],
+        metavar="DIR",
+        help="a directory of your own configs (<group>/<name>.yaml, e.g. data/mine.yaml -> data=mine); "
+        "repeatable",
+    )
+
+
 def parse_config_command(
     argv: list[str], name: str, prog: str, description: str, examples: list[str]
 ) -> ConfigCommand:
@@ -336,15 +350,7 @@ def parse_config_command(
         epilog=epilog,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument(
-        "--config-dir",
-        action="append",
-        type=Path,
-        default=[],
-        metavar="DIR",
-        help="a directory of your own configs (<group>/<name>.yaml, e.g. data/mine.yaml -> data=mine); "
-        "repeatable",
-    )
+    add_config_dir_flag(parser)
     parser.add_argument(
         "--cfg", action="store_true", help="print the composed config (YAML) and exit without running"
     )

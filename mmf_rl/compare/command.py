@@ -14,15 +14,22 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import time
 from pathlib import Path
 
 from mmf_rl.compare.bootstrap import Table, bootstrap_unit, build_table
-from mmf_rl.compare.collect import Collected, collect_runs, timing
+from mmf_rl.compare.collect import Collected, timing
 from mmf_rl.compare.entries import CATALOGUE, DEFAULT_ENTRIES, Budget, Study, select_entries, subsets
-from mmf_rl.compare.report import cells_json, intervals_text, results_sections, run_time_section, subset_title
-from mmf_rl.compare.runs import check_entries, check_reused, open_data, run_pending
+from mmf_rl.compare.report import (
+    intervals_text,
+    results_sections,
+    run_time_section,
+    subset_title,
+    tables_json,
+)
+from mmf_rl.compare.runs import check_entries, check_reused
+from mmf_rl.compare.script import add_run_flags, check_run_flags, report_results, run_study
 from mmf_rl.compare.summary import paired_comparisons, summarize_against_best_baseline
+from mmf_rl.configuration import add_config_dir_flag
 
 logger = logging.getLogger(__name__)
 PROG = "mmf-rl compare"
@@ -61,19 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--image-size", type=int, default=None, help="square image size (default: the data config's)"
     )
     parser.add_argument("--out", type=Path, default=Path("runs/compare"), help="runs and results")
-    parser.add_argument(
-        "--jobs", type=int, default=1, help="runs trained at once, each with cores/jobs threads"
-    )
-    parser.add_argument("--device", default="cpu", help="cpu | cuda | auto (passed to train and eval)")
+    add_run_flags(parser)
     parser.add_argument("--target-ratio", type=float, default=1.05, help="paper/best baseline MSE target")
-    parser.add_argument(
-        "--config-dir",
-        action="append",
-        type=Path,
-        default=[],
-        metavar="DIR",
-        help="a directory of your configs",
-    )
+    add_config_dir_flag(parser)
     return parser
 
 
@@ -95,18 +92,12 @@ def make_study(args: argparse.Namespace) -> Study:
     )
 
 
-def run(study: Study, target_ratio: float) -> str:
-    """Train what is missing, score, write ``results.md`` and ``results.json``; returns the report."""
-    from mmf_rl.eval.report import write_json, write_text
-
+def run(study: Study, target_ratio: float) -> None:
+    """Train what is missing, score, write ``results.md`` and ``results.json`` and print the report."""
     check_entries(study)
     check_reused(study)
-    start = time.perf_counter()
-    data = open_data(study)
-    cache_seconds = time.perf_counter() - start
-    needed, reused = run_pending(study)
-    collected = collect_runs(study)
-    seconds = time.perf_counter() - start
+    outcome = run_study(study)
+    data, collected = outcome.data, outcome.collected
     block = data.config.history + data.config.horizon  # one window's span of frames (stride 1)
     unit = bootstrap_unit(collected.errors, block)
     names = [name for name, _ in subsets(study.modalities)]
@@ -121,30 +112,18 @@ def run(study: Study, target_ratio: float) -> str:
         "unit": unit,
         "block": block,
         "groups": groups,
-        "cache_seconds": cache_seconds,
-        "seconds": seconds,
-        "runs": needed,
-        "reused": reused,
-        "constant_velocity_mse": collected.constant_velocity_mse(),
+        **outcome.info(),
     }
     text = markdown(study, table, collected, comparisons, info, measured) + f"{line}\n"
-    study.out.mkdir(parents=True, exist_ok=True)
-    write_text(study.out / "results.md", text)
     results = {
         "budget": study.budget.__dict__,
         "entries": {e.label: {"kind": e.kind, "overrides": list(e.overrides)} for e in study.entries},
         "data_overrides": list(study.data_overrides),
         "info": info,
-        "subsets": table.subsets,
-        "cells": cells_json(table),
-        "paired_differences": comparisons,
-        "timing": measured,
-        "coverage_90": {label: cells for label, (cells, _) in collected.coverage.items()},
-        "kl": collected.kl,
+        **tables_json(table, collected, comparisons, measured),
         "summary": summary,
     }
-    write_json(study.out / "results.json", results)
-    return text
+    report_results(study.out, text, results)
 
 
 def markdown(
@@ -183,15 +162,13 @@ def markdown(
 def main(argv: list[str]) -> int:
     parser = build_parser()
     args = parser.parse_intermixed_args(argv)
-    if args.jobs < 1:
-        parser.error(f"--jobs must be >= 1, found {args.jobs}")
+    check_run_flags(parser, args)  # --entries: make_study checks it, a command error (exit code 1)
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     from mmf_rl.configuration import ConfigError, report_command_error
 
     try:
         study = make_study(args)
-        text = run(study, args.target_ratio)
+        run(study, args.target_ratio)
     except (ConfigError, OSError, ValueError, KeyError) as err:
         return report_command_error(PROG, err)
-    print(text, end="")
     return 0

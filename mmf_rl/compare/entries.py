@@ -102,14 +102,18 @@ CATALOGUE = (
 DEFAULT_ENTRIES = ("paper", *(e.label for e in ZERO_FILL))
 
 
-def select_entries(catalogue: Sequence[Entry], labels: Sequence[str] | None) -> list[Entry]:
-    """The ``catalogue``'s entries named by ``labels`` (all for None), in catalogue order; the paper
-    model must be among them, as every comparison is against it."""
+def select_entries(
+    catalogue: Sequence[Entry], labels: Sequence[str] | None, paper_required: bool = True
+) -> list[Entry]:
+    """The ``catalogue``'s entries named by ``labels`` (all for None), in catalogue order. The paper
+    model must be among them when ``paper_required``: the summaries compare every entry with it."""
     known = [e.label for e in catalogue]
     if labels is not None:
-        unknown = sorted(set(labels) - set(known))
-        if unknown or "paper" not in labels:
-            raise ValueError(f"entries: unknown {unknown} or 'paper' missing; the entries are {known}")
+        problems = [f"unknown {unknown}"] if (unknown := sorted(set(labels) - set(known))) else []
+        if paper_required and "paper" not in labels:
+            problems.append("'paper' missing (every comparison is against it)")
+        if problems:
+            raise ValueError(f"entries: {' and '.join(problems)}; the entries are {known}")
     return [e for e in catalogue if labels is None or e.label in labels]
 
 

@@ -240,6 +240,19 @@ def cells_json(table: Table) -> dict:
     return {label: {s: c.to_dict() for s, c in cells.items()} for label, cells in table.cells.items()}
 
 
+def tables_json(table: Table, collected: Collected, comparisons: dict, measured: dict) -> dict:
+    """What the report's tables show, for a results.json: the subsets, every cell, the paired
+    differences, the run times, the coverage and the latent's KL."""
+    return {
+        "subsets": table.subsets,
+        "cells": cells_json(table),
+        "paired_differences": comparisons,
+        "timing": measured,
+        "coverage_90": {label: cells for label, (cells, _) in collected.coverage.items()},
+        "kl": collected.kl,
+    }
+
+
 def intervals_text(unit: str, groups: list, test_episodes: list[int], block: int) -> str:
     """What the intervals resample: test episodes, or (too few of them) blocks of ``block`` windows."""
     resampling = (

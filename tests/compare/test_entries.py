@@ -49,6 +49,10 @@ def test_selection_keeps_catalogue_order_and_needs_the_paper_model():
         entries.select_entries(entries.CATALOGUE, ["paper", "Mult"])
     with pytest.raises(ValueError, match="'paper' missing"):
         entries.select_entries(entries.CATALOGUE, ["MulT"])
+    chosen = entries.select_entries(entries.CATALOGUE, ["MulT"], paper_required=False)
+    assert [e.label for e in chosen] == ["MulT"]
+    with pytest.raises(ValueError, match=r"entries: unknown \['Mult'\]; the entries are"):
+        entries.select_entries(entries.CATALOGUE, ["Mult"], paper_required=False)
 
 
 def test_a_retrained_entry_reuses_its_base_run_and_trains_one_model_per_subset(tmp_path):
