@@ -47,6 +47,7 @@ from mmf_rl.trainers.trainer import (
 )
 
 CANDIDATE_FLAGS = ("channels_last", "compile", "fused_optimizer")  # printed on the model line
+COUNTED_OPS = ("copy_", "_to_copy", "transpose", "clone", "mm", "addmm")  # with --profile
 
 
 def synchronize(device: torch.device | None) -> None:
@@ -95,6 +96,14 @@ def training_step(model, loss, batch: TensorDict, precision: str, device: torch.
     return step
 
 
+def op_counts(prof: torch.profiler.profile) -> str:
+    """How many operators the profiled step called: at small batches the CPU step is made of many
+    small ops, and unlike their times the counts do not depend on the machine's load."""
+    counts = {event.key: event.count for event in prof.key_averages() if event.key.startswith("aten::")}
+    named = ", ".join(f"{op} {counts.get(f'aten::{op}', 0)}" for op in COUNTED_OPS)
+    return f"op counts of the step: {sum(counts.values())} aten ops; {named}"
+
+
 def measure_training(args, precision: str, device: torch.device) -> dict[str, float]:
     """Samples/s and achieved GFLOP/s of training in ``precision``, on a freshly built model."""
     torch.manual_seed(0)
@@ -113,6 +122,7 @@ def measure_training(args, precision: str, device: torch.device) -> dict[str, fl
         with torch.profiler.profile() as prof:
             step()
         print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=20))
+        print(op_counts(prof))
     return {
         "step_time": step_time,
         "flops": counter.get_total_flops(),
@@ -128,7 +138,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--batch-size", type=int, default=256)
     parser.add_argument("--steps", type=int, default=10, help="timed training steps")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    parser.add_argument("--profile", action="store_true", help="print the top operators of one training step")
+    parser.add_argument("--profile", action="store_true", help="print a step's top operators and op counts")
     parser.add_argument("--model", default="forecaster", choices=sorted(MODELS))
     parser.add_argument("--image-size", type=int, default=64)
     parser.add_argument("--channels-last", action="store_true", help="conv weights (and so activations) NHWC")

@@ -259,8 +259,9 @@ def validate_batch(
     made_absent = []
     for spec in modalities:
         nonfinite_present = _check_modality(td, spec, batch, history, nonfinite)
-        present = td.get(spec.present_key) & ~nonfinite_present
-        if bool(nonfinite_present.any()):
+        present = td.get(spec.present_key)
+        if nonfinite == "absent" and bool(nonfinite_present.any()):  # under "raise" there are none
+            present = present & ~nonfinite_present
             made_absent.append(spec.name)
         any_present = present if any_present is None else any_present | present
     if any_present is not None and not bool(any_present.all()):

@@ -7,7 +7,7 @@ import warnings
 from collections.abc import Iterator
 
 import torch
-from tensordict import TensorDict
+from tensordict import MemoryMappedTensor, TensorDict
 
 from mmf_rl.datasets.augment import ImageAugmentation
 from mmf_rl.datasets.cache import action_offsets, open_cache, window_offsets
@@ -82,7 +82,11 @@ class WindowDataset:
         self._check_presence(source, frames)
         windows = TensorDict.load_memmap(self.cache_path / "windows")
         self._obs = {spec.name: _plain(frames.get(spec.obs_key)) for spec in self.specs}
-        self._map_images(frames)
+        # Each image column's file, dtype and shape: what maps it afresh, alone (`_map_images`). Not the
+        # mapping itself, which would keep resident every page read through it.
+        columns = {spec.name: frames.get(spec.obs_key) for spec in self.specs if spec.kind == "image"}
+        self._image_columns = {name: (c.filename, c.dtype, c.shape) for name, c in columns.items()}
+        self._map_images()
         self._target = _plain(frames.get("target"))
         # The value each window's target is measured from, at its last observed frame (None: absolute).
         self._anchor = None
@@ -117,19 +121,18 @@ class WindowDataset:
         self.observed_outages = self._observed_outages(frames)
         self.train_presence = self._train_presence()
 
-    def _map_images(self, frames: TensorDict) -> None:
-        """Take the image columns from ``frames`` (a fresh mapping of the cache).
+    def _map_images(self) -> None:
+        """Map the cache's image columns afresh (their files only, not the other columns).
 
         Every page a gather reads stays resident in the mapping it was read through, so one mapping
         kept for a whole run would hold as much of the image table as the run has read: up to all
         of it. `batch` maps them afresh every ``REMAP_IMAGE_BYTES``; the pages dropped with the old
         mapping stay in the page cache, so the next reads of them need no disk access.
         """
-        images = [spec for spec in self.specs if spec.kind == "image"]
-        for spec in images:
-            self._obs[spec.name] = _wide_rows(_plain(frames.get(spec.obs_key)))
+        for name, (filename, dtype, shape) in self._image_columns.items():
+            self._obs[name] = _wide_rows(_plain(MemoryMappedTensor.from_filename(filename, dtype, shape)))
         self._image_table_bytes = sum(
-            self._obs[s.name].numel() * self._obs[s.name].element_size() for s in images
+            self._obs[name].numel() * self._obs[name].element_size() for name in self._image_columns
         )
         self._image_bytes_read = 0
 
@@ -295,7 +298,7 @@ class WindowDataset:
         """The batch of windows ``window_ids``; ``split="train"`` applies the missingness protocol."""
         presence = self.train_presence if split == "train" else self.presence
         if self._image_table_bytes > REMAP_IMAGE_BYTES and self._image_bytes_read > REMAP_IMAGE_BYTES:
-            self._map_images(TensorDict.load_memmap(self.cache_path / "frames"))
+            self._map_images()
         start = self.window_start[window_ids]
         observed = start[:, None] + self._observed
         batch = TensorDict(batch_size=[len(window_ids)])

@@ -7,9 +7,47 @@ absent, so one batch can mix presence patterns in a single pass.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from mmf_rl.models.encoders import mlp
+
+
+def batch_first_attention(
+    attn: nn.MultiheadAttention,
+    query: torch.Tensor,
+    source: torch.Tensor,
+    key_padding_mask: torch.Tensor | None,
+) -> torch.Tensor:
+    """``attn(query, source, source, key_padding_mask=..., need_weights=False)[0]`` for a module built
+    batch-first with the defaults (packed in-projection with biases, no dropout), computed in the
+    batch-first layout: ``query`` ``[B, L, d]`` attends to ``source`` ``[B, S, d]`` (``query`` itself
+    for self-attention); ``key_padding_mask`` ``[B, S]`` is True where a key is hidden.
+
+    The module's own path turns batch-first inputs sequence-first and back, so every projection
+    reads a transposed copy and every output is copied back, in the forward and again in the
+    backward: at small batches a large share of a training step's ops. Here the same weights, the
+    same projections and ``scaled_dot_product_attention`` run on the batch-first tensors: the same
+    forward values, and gradients equal up to float rounding (their sums run over the rows in
+    another order)."""
+    batch, length, width = query.shape
+    heads = attn.num_heads
+    split = (heads, width // heads)
+    if query is source:  # one packed projection, as the module does for self-attention
+        projected = F.linear(query, attn.in_proj_weight, attn.in_proj_bias)
+        q, k, v = projected.view(batch, length, 3, *split).permute(2, 0, 3, 1, 4)
+    else:
+        w_q, w_kv = attn.in_proj_weight.split([width, 2 * width])
+        b_q, b_kv = attn.in_proj_bias.split([width, 2 * width])
+        q = F.linear(query, w_q, b_q).view(batch, length, *split).transpose(1, 2)
+        projected = F.linear(source, w_kv, b_kv)
+        k, v = projected.view(batch, source.shape[1], 2, *split).permute(2, 0, 3, 1, 4)
+    mask = None
+    if key_padding_mask is not None:  # the additive mask the module makes of a boolean one
+        mask = torch.zeros(key_padding_mask.shape, dtype=query.dtype, device=query.device)
+        mask = mask.masked_fill_(key_padding_mask, float("-inf")).view(batch, 1, 1, -1)
+    out = F.scaled_dot_product_attention(q, k, v, mask)
+    return attn.out_proj(out.transpose(1, 2).reshape(batch, length, width))
 
 
 class PreLNTransformerLayer(nn.Module):
@@ -24,7 +62,7 @@ class PreLNTransformerLayer(nn.Module):
 
     def forward(self, x: torch.Tensor, key_padding_mask: torch.Tensor) -> torch.Tensor:
         h = self.norm_attn(x)
-        x = x + self.attn(h, h, h, key_padding_mask=key_padding_mask, need_weights=False)[0]
+        x = x + batch_first_attention(self.attn, h, h, key_padding_mask)
         return x + self.mlp(self.norm_mlp(x))
 
 
@@ -51,10 +89,7 @@ class FixedQueryAttention(nn.Module):
         key_padding_mask: torch.Tensor,
         residual: torch.Tensor,
     ) -> torch.Tensor:
-        kv = self.norm_kv(tokens)
-        out = self.attn(
-            self.norm_query(query), kv, kv, key_padding_mask=key_padding_mask, need_weights=False
-        )[0]
+        out = batch_first_attention(self.attn, self.norm_query(query), self.norm_kv(tokens), key_padding_mask)
         return out + residual
 
 
@@ -75,11 +110,10 @@ class CrossModalLayer(nn.Module):
     def forward(
         self, query: torch.Tensor, source: torch.Tensor, key_padding_mask: torch.Tensor | None = None
     ) -> torch.Tensor:
-        kv = self.norm_source(source)
-        attended = self.attn(
-            self.norm_query(query), kv, kv, key_padding_mask=key_padding_mask, need_weights=False
+        attended = batch_first_attention(
+            self.attn, self.norm_query(query), self.norm_source(source), key_padding_mask
         )
-        query = query + attended[0]
+        query = query + attended
         return query + self.mlp(self.norm_mlp(query))
 
 

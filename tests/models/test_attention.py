@@ -1,8 +1,11 @@
-"""The cross-modal layer's key-padding mask and MulT's pair streams (decoder_input="pair_streams")."""
+"""The batch-first attention, the cross-modal layer's key-padding mask and MulT's pair streams
+(decoder_input="pair_streams")."""
 
+import pytest
 import torch
+from torch import nn
 
-from mmf_rl.models.attention import CrossModalLayer, PairStreams, last_present_token
+from mmf_rl.models.attention import CrossModalLayer, PairStreams, batch_first_attention, last_present_token
 
 D = 8
 
@@ -17,6 +20,24 @@ def tokens_and_presence(batch: int = 4, seed: int = 0):
     tokens = torch.randn(batch, 8, D, generator=g)
     present = torch.ones(batch, 8, dtype=torch.bool)
     return tokens, present
+
+
+@pytest.mark.parametrize("self_attention", [True, False])
+def test_batch_first_attention_is_the_modules_own(self_attention):
+    torch.manual_seed(0)
+    attn = nn.MultiheadAttention(D, num_heads=2, batch_first=True)
+    source = torch.randn(5, 4, D, requires_grad=True)
+    query = source if self_attention else torch.randn(5, 3, D, requires_grad=True)
+    hidden = torch.rand(5, 4) < 0.4
+    hidden[:, 0] = False  # every row keeps a key
+    inputs = [source, *attn.parameters()] + ([] if self_attention else [query])
+    expected = attn(query, source, source, key_padding_mask=hidden, need_weights=False)[0]
+    out = batch_first_attention(attn, query, source, hidden)
+    assert torch.equal(out, expected)
+    grad_out = torch.randn_like(out)
+    grads = torch.autograd.grad(out, inputs, grad_out)
+    for got, want in zip(grads, torch.autograd.grad(expected, inputs, grad_out), strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
 
 
 def test_a_hidden_source_token_changes_nothing():

@@ -220,6 +220,12 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             torch.repeat_interleave(torch.arange(len(self.modalities)), torch.tensor(self.token_counts)),
             persistent=False,
         )
+        # [N, M]: built once, not per call (one_hot reads its input's range, a host sync).
+        self.register_buffer(
+            "token_modality_one_hot",
+            F.one_hot(self.token_modality, len(self.modalities)).bool(),
+            persistent=False,
+        )
         shape = FusionShape(
             num_modalities=len(self.modalities),
             num_tokens=sum(self.token_counts),
@@ -349,7 +355,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             (self.absent_tokens(modality, present.shape[0], present.device),),
         )
         token_present = self._token_presence(modality, present, steps)
-        return tokens * token_present.unsqueeze(-1), token_present
+        if steps is not None:  # absent rows are zeros already; the tokens of absent steps are not
+            tokens = tokens * token_present.unsqueeze(-1)
+        return tokens, token_present
 
     def _token_presence(self, modality: int, present: torch.Tensor, steps: torch.Tensor | None):
         """Presence ``[B, L_m]`` of one modality's tokens: per step for a step-token encoder given
@@ -361,8 +369,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
 
     def modality_presence(self, token_present: torch.Tensor) -> torch.Tensor:
         """Token presence ``[N, num_tokens]`` -> modality presence ``[N, M]`` (any token present)."""
-        one_hot = F.one_hot(self.token_modality, len(self.modalities)).bool()
-        return (token_present.unsqueeze(-1) & one_hot).any(1)
+        return (token_present.unsqueeze(-1) & self.token_modality_one_hot).any(1)
 
     @staticmethod
     def as_tokens(encoded: torch.Tensor) -> torch.Tensor:
