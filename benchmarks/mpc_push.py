@@ -81,6 +81,8 @@ takes from each forecast step's reward ``W`` times the norm of the world model's
 standard deviation of the object's position (metres; the decoder's scale, calibrated when the
 checkpoint was): among plans forecast to push equally well it prefers the one the model is sure
 of, against pushes whose outcome it cannot tell (the block slipping sideways on a long push).
+The push world model's scale is the outcome's own noise, largest for the plans that touch the
+object, so on push any weight that matters keeps the planner from pushing (docs/results.md).
 At 0 the planner never asks for the scale and plans exactly as without the option. The results
 page records the weight beside the CEM sizes; the summary line is the same.
 
