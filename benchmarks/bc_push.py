@@ -140,7 +140,7 @@ from mmf_rl.rl.bc_evaluation import (
     summary_line,
     validation_table,
 )
-from mmf_rl.rl.closed_loop import OUTAGES, summarise
+from mmf_rl.rl.closed_loop import OUTAGES, camera_size, summarise
 from mmf_rl.rl.dagger import (
     ROUND_SEEDS,
     demonstration_frames,
@@ -197,6 +197,11 @@ class Forecaster:
     loaded: tuple
     calibration: dict | None
 
+    @property
+    def stride(self) -> int:
+        """The window stride of the forecaster's run."""
+        return int(self.loaded[2].get("stride", 1))
+
     def forecasts(self, args, table: ForecastTable, demonstrations: Demonstrations):
         """What the ``with`` policies read of ``table``: its forecasts, or their latched form."""
         if not args.latched_forecast:
@@ -208,14 +213,14 @@ class Forecaster:
             demonstrations,
             stats,
             rule=args.latched_forecast,
-            stride=int(data_config.get("stride", 1)),
+            stride=self.stride,
             relative=relative,
             reference=reference,
         )
 
     def extended(self, table: ForecastTable, demonstrations: Demonstrations) -> ForecastTable:
-        model, stats, data_config = self.loaded
-        return table.extended(demonstrations, model, stats, stride=int(data_config.get("stride", 1)))
+        model, stats, _ = self.loaded
+        return table.extended(demonstrations, model, stats, stride=self.stride)
 
 
 def build_recording(args, phases: dict[str, float]) -> Path:
@@ -316,8 +321,7 @@ def dagger_episodes(args, seed: int, round_: int, policies: dict[str, BCPolicy],
     directory = dagger_dir(args, seed, round_) / "episodes"
     saved = load_episodes(directory)
     if saved is None:
-        model = forecaster.loaded[0]
-        image_size = next(s for s in model.config.modalities if s.name == "image").shape[-1]
+        image_size = camera_size(forecaster.loaded[0].config.modalities)
         first = round_seed(args.seed, round_)
         episodes, results = [], []
         with timed_phase(phases, f"DAgger seed {seed} round {round_} episodes"):
@@ -458,8 +462,7 @@ def forecaster_and_demonstrations(args, phases: dict[str, float]):
         data_config = {**data_config, "root": str(args.data.resolve())}
     with timed_phase(phases, "forecast the demonstrations"):
         demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
-        stride = int(data_config.get("stride", 1))
-        table = ForecastTable.compute(demonstrations, model, stats, DROPPABLE, stride=stride)
+        table = ForecastTable.compute(demonstrations, model, stats, DROPPABLE, stride=forecaster.stride)
     return forecaster, demonstrations, table
 
 

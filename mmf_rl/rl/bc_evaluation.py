@@ -10,7 +10,7 @@ import torch
 from torchrl.envs import TransformedEnv
 
 from mmf_rl.rl.bc import BCPolicy
-from mmf_rl.rl.closed_loop import ScriptedPolicy, over_seeds, play, push_env, summarise
+from mmf_rl.rl.closed_loop import ScriptedPolicy, camera_size, over_seeds, play, push_env, summarise
 from mmf_rl.rl.latched_forecast import LatchedForecastTransform
 from mmf_rl.rl.outage_evaluation import Condition, play_conditions, success_cells
 from mmf_rl.rl.transforms import ForecastTransform
@@ -54,7 +54,7 @@ def evaluate_bc(
     with all sensors. Returns the rows (``"BC <variant> forecasts | <condition>"``: mean and spread
     over the BC seeds, `over_seeds`; ``"scripted | all"``) and the episodes of each row."""
     model = forecaster[0]
-    image_size = next(s for s in model.config.modalities if s.name == "image").shape[-1]
+    image_size = camera_size(model.config.modalities)
     per_seed: dict[str, list[dict]] = {}
     raw: dict[str, list] = {}
     for variant in VARIANTS:

@@ -31,6 +31,12 @@ OUTAGES = {
 }
 
 
+def camera_size(modalities: list[keys.ModalitySpec]) -> int:
+    """The side of the square camera frames a push model was trained on: the size `push_env` renders
+    for it."""
+    return next(s for s in modalities if s.name == "image").shape[-1]
+
+
 def push_env(
     image_size: int, sensor: str | None, outage: str | None, seed: int, readers: list[Transform]
 ) -> TransformedEnv:

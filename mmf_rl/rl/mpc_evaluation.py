@@ -10,7 +10,15 @@ from torchrl.envs import TransformedEnv
 from torchrl.modules.planners import CEMPlanner
 
 from mmf_rl.rl.cem import SequenceCEMPlanner
-from mmf_rl.rl.closed_loop import RandomPolicy, ScriptedPolicy, over_seeds, play, push_env, summarise
+from mmf_rl.rl.closed_loop import (
+    RandomPolicy,
+    ScriptedPolicy,
+    camera_size,
+    over_seeds,
+    play,
+    push_env,
+    summarise,
+)
 from mmf_rl.rl.outage_evaluation import Condition, Timed, play_conditions, success_cells
 from mmf_rl.rl.push_objective import PushObjective
 from mmf_rl.rl.world_model import WorldModel
@@ -39,8 +47,13 @@ def cem_policy(world_model: WorldModel, objective: PushObjective, sizes: dict[st
 
 def world_model_env(world_model: WorldModel, condition: Condition, seed: int) -> TransformedEnv:
     """The push env in ``condition``, with the history window the world model reads."""
-    size = next(s for s in world_model.model.modalities if s.name == "image").shape[-1]
-    return push_env(size, condition.sensor, condition.outage, seed, [world_model.history_window()])
+    return push_env(
+        camera_size(world_model.model.modalities),
+        condition.sensor,
+        condition.outage,
+        seed,
+        [world_model.history_window()],
+    )
 
 
 def evaluate_mpc(
