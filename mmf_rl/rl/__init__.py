@@ -1,12 +1,13 @@
 """The forecaster in reinforcement learning: live-forecast (and latched-forecast) and history
-transforms, the world model, a model-based env for torchrl's planners, a vectorised CEM planner
-for model-predictive control, the MPC agent the recorder records with (`PushMPCAgent`), and
-behaviour cloning from recorded demonstrations with the forecast as a policy input."""
+transforms, the world model (and an ensemble of them), a model-based env for torchrl's planners,
+a vectorised CEM planner for model-predictive control, the MPC agent the recorder records with
+(`PushMPCAgent`), and behaviour cloning from recorded demonstrations with the forecast as a policy input."""
 
 from mmf_rl.rl.agent import MPCActor, PushMPCAgent
 from mmf_rl.rl.bc import DEFAULT_DROPOUT, BCConfig, BCPolicy, EncoderChoice, train_bc, validation_errors
 from mmf_rl.rl.cem import SequenceCEMPlanner
 from mmf_rl.rl.demonstrations import DemonstrationLoader, Demonstrations, ForecastTable, drop_sets
+from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.push_objective import PushObjective
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
@@ -20,6 +21,7 @@ __all__ = [
     "DemonstrationLoader",
     "Demonstrations",
     "EncoderChoice",
+    "EnsembleWorldModel",
     "ForecastTable",
     "ForecastTransform",
     "ForecasterWorldModelEnv",

@@ -10,6 +10,8 @@ reading the `HistoryWindow` of every sensor.
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +20,7 @@ import torch
 
 from mmf_rl.envs.torchrl_env import push_action_spec, push_observation, push_observation_spec
 from mmf_rl.rl.cem import IS_INIT, Objective, SequenceCEMPlanner
+from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
 from mmf_rl.rl.push_objective import PushObjective
 from mmf_rl.rl.world_model import WorldModel
 
@@ -31,7 +34,13 @@ class MPCActor:
     only on that generator.
     """
 
-    def __init__(self, world_model: WorldModel, objective: Objective, image_size: int, **planner_kwargs):
+    def __init__(
+        self,
+        world_model: WorldModel | EnsembleWorldModel,
+        objective: Objective,
+        image_size: int,
+        **planner_kwargs,
+    ):
         self.history = world_model.history_window()
         # What TransformedEnv checks when the window is appended to the env: the checkpoint's
         # modalities against the env's sensors (a clear error naming both).
@@ -60,8 +69,8 @@ class MPCActor:
 @dataclass(frozen=True)
 class PushMPCAgent:
     """A picklable factory of `MPCActor` on the world model at ``checkpoint`` (a run directory, its
-    ``checkpoints/``, one checkpoint or a ``save_pretrained`` directory): pass it as
-    `mmf_rl.record.RecordConfig.policy`.
+    ``checkpoints/``, one checkpoint or a ``save_pretrained`` directory; a sequence of them: their
+    `EnsembleWorldModel`): pass it as `mmf_rl.record.RecordConfig.policy`.
 
     Constructing it loads the checkpoint once and builds an agent, so a bad path or a model that
     is not a push world model fails here, in the caller, not in every recording worker.
@@ -70,7 +79,7 @@ class PushMPCAgent:
     `PushObjective`'s, defaulting to `benchmarks/mpc_push.py`'s.
     """
 
-    checkpoint: Path
+    checkpoint: Path | tuple[Path, ...]
     image_size: int = 64
     num_candidates: int = 128
     num_iterations: int = 4
@@ -79,12 +88,19 @@ class PushMPCAgent:
     uncertainty_weight: float = 0.0
 
     def __post_init__(self):
-        object.__setattr__(self, "checkpoint", Path(self.checkpoint))
+        given = self.checkpoint
+        several = isinstance(given, Sequence) and not isinstance(given, str | os.PathLike)
+        object.__setattr__(self, "checkpoint", tuple(map(Path, given)) if several else Path(given))
         self()
+
+    def world_model(self) -> WorldModel | EnsembleWorldModel:
+        if isinstance(self.checkpoint, tuple):
+            return EnsembleWorldModel.from_checkpoints(self.checkpoint)
+        return WorldModel.from_checkpoint(self.checkpoint)
 
     def __call__(self) -> MPCActor:
         return MPCActor(
-            WorldModel.from_checkpoint(self.checkpoint),
+            self.world_model(),
             PushObjective(reach_weight=self.reach_weight, uncertainty_weight=self.uncertainty_weight),
             self.image_size,
             num_candidates=self.num_candidates,
@@ -93,7 +109,12 @@ class PushMPCAgent:
         )
 
     def __str__(self) -> str:
+        world_model = (
+            f"the ensemble of {', '.join(map(str, self.checkpoint))}"
+            if isinstance(self.checkpoint, tuple)
+            else f"the world model {self.checkpoint}"
+        )
         return (
-            f"MPC on the world model {self.checkpoint} ({self.num_candidates} candidates x "
+            f"MPC on {world_model} ({self.num_candidates} candidates x "
             f"{self.num_iterations} iterations, {self.num_elites} elites)"
         )

@@ -18,6 +18,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.data import Bounded
 
 from mmf_rl import keys
+from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
 from mmf_rl.rl.world_model import WorldModel
 
 IS_INIT = "is_init"  # torchrl's InitTracker flag: the first step of an episode
@@ -29,15 +30,16 @@ USES_FORECAST_SCALE = "uses_forecast_scale"
 
 
 def forecast_and_score(
-    world_model: WorldModel,
+    world_model: WorldModel | EnsembleWorldModel,
     objective: Objective,
     encoded: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     actions: torch.Tensor,
     context: TensorDictBase,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The forecast ``[n, N, T, D]`` (on the CPU) of raw action sequences ``[n, N, S, A]`` from encoded
-    histories (`WorldModel.encode`) and the objective's rewards ``[n, N, T]``; the forecast's standard
-    deviation is computed and passed (``forecast_scale=``) only to an objective that asks for it."""
+    histories (the world model's ``encode``) and the objective's rewards ``[n, N, T]``; the forecast's
+    standard deviation is computed and passed (``forecast_scale=``) only to an objective that asks
+    for it."""
     if not getattr(objective, USES_FORECAST_SCALE, False):
         forecast = world_model.forecast(*encoded, actions).cpu()
         return forecast, objective(forecast, actions, context)
@@ -65,7 +67,8 @@ class SequenceCEMPlanner(TensorDictModuleBase):
     the model has no idea what changing it would do.
 
     Args:
-        world_model: a `WorldModel`.
+        world_model: a `WorldModel` or an `EnsembleWorldModel` (its ``forecast_scale`` is then the
+            members' disagreement).
         objective: ``(forecast [n, N, T, D], actions [n, N, S, A], context) -> rewards [n, N, T]``
             with an ``in_keys`` attribute naming the context keys it reads. An objective that also
             scores the forecast's uncertainty sets ``uses_forecast_scale = True``; it is then called
@@ -84,7 +87,7 @@ class SequenceCEMPlanner(TensorDictModuleBase):
 
     def __init__(
         self,
-        world_model: WorldModel,
+        world_model: WorldModel | EnsembleWorldModel,
         objective: Objective,
         action_spec: Bounded,
         *,

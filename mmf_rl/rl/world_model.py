@@ -79,6 +79,11 @@ class WorldModel:
         return HistoryWindow.for_model(self.model, self.normalizer.stats, self.stride)
 
     @property
+    def modalities(self) -> list[keys.ModalitySpec]:
+        """The sensors the model reads (its history window's)."""
+        return self.model.modalities
+
+    @property
     def device(self) -> torch.device:
         return next(self.model.parameters()).device
 

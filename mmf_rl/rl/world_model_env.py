@@ -60,6 +60,11 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
     def __init__(
         self, world_model: WorldModel, objective: Objective, action_spec: Bounded, context_spec: Composite
     ):
+        if not isinstance(world_model, WorldModel):
+            raise TypeError(
+                f"ForecasterWorldModelEnv rolls out one WorldModel, found {type(world_model).__name__}: plan "
+                "with an EnsembleWorldModel through SequenceCEMPlanner, or build this env on one member"
+            )
         if action_spec.shape != (world_model.action_dim,):
             raise ValueError(
                 f"ForecasterWorldModelEnv: action_spec must be one env's, shape [{world_model.action_dim}] "
