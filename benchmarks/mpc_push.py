@@ -8,6 +8,9 @@ world-model seeds.
     # given world models (one per training seed), nothing built
     MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py \
         --checkpoint runs/wm0/checkpoints runs/wm1/checkpoints
+    # one agent planning with both world models as an ensemble, penalising their disagreement
+    MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py --ensemble --uncertainty-weight 0.1 \
+        --checkpoint runs/wm0/checkpoints runs/wm1/checkpoints
     # PETS-style data aggregation: 2 rounds of 100 MPC episodes each, retraining on the union
     MUJOCO_GL=egl .venv/bin/python benchmarks/mpc_push.py --quick --aggregate 2 --aggregate-episodes 100
 
@@ -86,13 +89,23 @@ object, so on push any weight that matters keeps the planner from pushing (docs/
 At 0 the planner never asks for the scale and plans exactly as without the option. The results
 page records the weight beside the CEM sizes; the summary line is the same.
 
+Ensemble (``--ensemble``, PETS-style): instead of one MPC agent per world model, one agent plans
+with all of them (``--checkpoint`` or built) as an `mmf_rl.rl.EnsembleWorldModel`: the members'
+mean forecast, and as its scale their disagreement (the std over members of their forecasts),
+which is epistemic (largest where the data left the outcome open) where the decoder's scale is
+the outcome's own noise. ``--uncertainty-weight`` then penalises the disagreement. The ensemble
+counts as one world-model seed in the rows (spread and per-seed cells show that one agent), the
+static model plays on its first member, the step-wise `CEMPlanner` episodes are skipped (with a
+log line: `ForecasterWorldModelEnv` rolls out one world model), and aggregation rounds still
+record with each seed's own agent. The results page names the ensemble's checkpoints.
+
 Step-wise vs vectorised planning: the first
 ``--stepwise-episodes`` episodes are also played with torchrl's `CEMPlanner` rolling out
 `ForecasterWorldModelEnv` step by step with the first world model, with the same candidates,
 iterations and elites.
 
 Ends with ``summary: success all A%, no-camera B%, no-force C%, scripted S%, random R%`` (MPC:
-mean over world-model seeds, the first ``--outage`` type).
+mean over world-model seeds, or the ensemble's; the first ``--outage`` type).
 """
 
 from __future__ import annotations
@@ -198,6 +211,12 @@ def add_world_model_arguments(parser: argparse.ArgumentParser) -> None:
         "--world-model-seeds", type=int, nargs="+", default=[0, 1], help="trainer.seed of each"
     )
     parser.add_argument(
+        "--ensemble",
+        action="store_true",
+        help="one MPC agent planning with all world models as an ensemble (their disagreement is the "
+        "scale --uncertainty-weight penalises), instead of one agent per world model",
+    )
+    parser.add_argument(
         "--train-steps", type=int, default=None, help="default: quick 1500, full the config's"
     )
     parser.add_argument(
@@ -237,6 +256,8 @@ def parse_args() -> argparse.Namespace:
     add_aggregation_arguments(parser)
     args = parser.parse_args()
     check_aggregation_arguments(parser, args, world_models_given=bool(args.checkpoint))
+    if args.ensemble and len(args.checkpoint or args.world_model_seeds) < 2:
+        parser.error("--ensemble needs 2 world models at least (--checkpoint A B or --world-model-seeds 0 1)")
     if not args.uncertainty_weight >= 0.0:
         parser.error(f"--uncertainty-weight must be >= 0 (a penalty), found {args.uncertainty_weight}")
     return resolve_budget(args, BUDGETS, "mpc")
@@ -263,6 +284,7 @@ def main() -> None:
             args.episodes,
             args.seed,
             args.stepwise_episodes,
+            ensemble=args.ensemble,
         )
 
     text = report(
@@ -280,9 +302,10 @@ def main() -> None:
         for label in labels
     )
     decision = statistics.median(rows[f"mpc {label}"]["decision_ms"] for label in labels)
+    seeds = args.world_model_seeds if not args.checkpoint else len(checkpoints)
     print(
         "spread over world-model seeds "
-        f"{args.world_model_seeds if not args.checkpoint else len(checkpoints)}: "
+        f"{f'1 (the ensemble of {len(checkpoints)})' if args.ensemble else seeds}: "
         f"{spread}; MPC decision {decision:.1f} ms/step (median)"
     )
     first = args.outage[0]
@@ -315,11 +338,16 @@ def report(args, rows: dict, aggregation: list[dict], checkpoints: list[Path], h
         f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, "
         f"{len(checkpoints)} world models{built}{aggregated}"
     )
+    planned = (
+        " (planned with as one ensemble: one MPC agent, its uncertainty the members' disagreement)"
+        if args.ensemble
+        else ""
+    )
     text = (
         f"# MPC on the multimodal push task\n\n{header}\n\n{budget}; world models: "
-        f"{', '.join(f'`{c}`' for c in checkpoints)}; CEM {args.candidates} candidates × {args.iterations} "
-        f"iterations, {args.elites} elites; objective: reach weight {args.reach_weight}, uncertainty weight "
-        f"{args.uncertainty_weight}\n\n{results_table(rows)}\n"
+        f"{', '.join(f'`{c}`' for c in checkpoints)}{planned}; CEM {args.candidates} candidates × "
+        f"{args.iterations} iterations, {args.elites} elites; objective: reach weight {args.reach_weight}, "
+        f"uncertainty weight {args.uncertainty_weight}\n\n{results_table(rows)}\n"
     )
     if aggregation:
         text += (

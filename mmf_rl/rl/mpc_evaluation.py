@@ -1,9 +1,12 @@
 """MPC with push world models under sensor outages: `SequenceCEMPlanner` with `PushObjective` on
-each world model in every outage condition, the same planner on a world model that forecasts no
-object motion, and the references (the scripted pusher, random actions, torchrl's step-wise
-`CEMPlanner`), all on the same seeded episodes; the results table."""
+each world model (or on their `EnsembleWorldModel`) in every outage condition, the same planner on
+a world model that forecasts no object motion, and the references (the scripted pusher, random
+actions, torchrl's step-wise `CEMPlanner`), all on the same seeded episodes; the results table."""
 
 from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
 
 import torch
 from torchrl.envs import TransformedEnv
@@ -19,10 +22,15 @@ from mmf_rl.rl.closed_loop import (
     push_env,
     summarise,
 )
+from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
 from mmf_rl.rl.outage_evaluation import Condition, Timed, play_conditions, success_cells
 from mmf_rl.rl.push_objective import PushObjective
 from mmf_rl.rl.world_model import WorldModel
 from mmf_rl.rl.world_model_env import ForecasterWorldModelEnv, ImaginedPlanningPolicy
+
+logger = logging.getLogger(__name__)
+
+PlannedWorldModel = WorldModel | EnsembleWorldModel
 
 
 class StaticObjectModel(WorldModel):
@@ -40,20 +48,30 @@ class StaticObjectModel(WorldModel):
         return still, torch.zeros_like(still)
 
 
-def cem_policy(world_model: WorldModel, objective: PushObjective, sizes: dict[str, int], seed: int):
+def cem_policy(world_model: PlannedWorldModel, objective: PushObjective, sizes: dict[str, int], seed: int):
     """A maker of the `Timed` `SequenceCEMPlanner` for an env (its action spec)."""
     return lambda env: Timed(SequenceCEMPlanner(world_model, objective, env.action_spec, seed=seed, **sizes))
 
 
-def world_model_env(world_model: WorldModel, condition: Condition, seed: int) -> TransformedEnv:
+def world_model_env(world_model: PlannedWorldModel, condition: Condition, seed: int) -> TransformedEnv:
     """The push env in ``condition``, with the history window the world model reads."""
     return push_env(
-        camera_size(world_model.model.modalities),
+        camera_size(world_model.modalities),
         condition.sensor,
         condition.outage,
         seed,
         [world_model.history_window()],
     )
+
+
+def world_models(checkpoints: list, ensemble: bool) -> Iterator[tuple[str, PlannedWorldModel]]:
+    """The world models played, loaded one at a time with their progress tag: one per checkpoint,
+    or (``ensemble``) their `EnsembleWorldModel` alone."""
+    if ensemble:
+        yield f"[ensemble of {len(checkpoints)}]", EnsembleWorldModel.from_checkpoints(checkpoints)
+        return
+    for index, checkpoint in enumerate(checkpoints):
+        yield f"[world model {index + 1}/{len(checkpoints)}]", WorldModel.from_checkpoint(checkpoint)
 
 
 def evaluate_mpc(
@@ -64,17 +82,18 @@ def evaluate_mpc(
     episodes: int,
     seed: int,
     stepwise_episodes: int = 0,
+    ensemble: bool = False,
 ) -> tuple[dict[str, dict], dict[str, list]]:
     """Every world model's MPC in every condition and with the static model, then (once) the
     references. ``sizes``: the CEM's ``num_candidates``, ``num_iterations``, ``num_elites``.
+    ``ensemble``: one MPC agent plans with the `EnsembleWorldModel` of all ``checkpoints`` (one
+    "seed" in the rows; the static model on its first member: it ignores the forecaster).
     Returns the rows (an MPC row: mean and spread over the world models, `over_seeds`) and the
     episodes of each row (MPC: one list per world model)."""
     per_seed: dict[str, list[dict]] = {}
     raw: dict[str, list] = {}
     references: dict[str, dict] = {}
-    for index, checkpoint in enumerate(checkpoints):
-        world_model = WorldModel.from_checkpoint(checkpoint)
-        tag = f"[world model {index + 1}/{len(checkpoints)}]"
+    for index, (tag, world_model) in enumerate(world_models(checkpoints, ensemble)):
         played = play_conditions(
             lambda condition, model=world_model: world_model_env(model, condition, seed),
             cem_policy(world_model, objective, sizes, seed),
@@ -86,7 +105,8 @@ def evaluate_mpc(
         # The static model and the references play in one env with every sensor up.
         env = world_model_env(world_model, Condition("all", None, None), seed)
         try:
-            static = cem_policy(StaticObjectModel(world_model), objective, sizes, seed)(env)
+            single = world_model.members[0] if ensemble else world_model
+            static = cem_policy(StaticObjectModel(single), objective, sizes, seed)(env)
             results = play(env, static, episodes, seed, f"{tag} mpc static model")
             played["static model"] = (summarise(results, static.seconds), results)
             for label, (row, results) in played.items():
@@ -94,7 +114,12 @@ def evaluate_mpc(
                 raw.setdefault(f"mpc {label}", []).append(results)
             if index == 0:  # the references do not depend on the world model: played once
                 references = play_references(env, episodes, seed, raw)
-                if stepwise_episodes:
+                if stepwise_episodes and ensemble:
+                    logger.info(
+                        "skipping the step-wise CEMPlanner episodes: ForecasterWorldModelEnv rolls out one "
+                        "world model, not an ensemble (play the members one by one to compare the planners)"
+                    )
+                elif stepwise_episodes:
                     n = min(stepwise_episodes, episodes)
                     references |= play_stepwise(env, world_model, objective, sizes, n, seed, raw)
         finally:
