@@ -95,14 +95,14 @@ mean forecast, and as its scale their disagreement (the std over members of thei
 which is epistemic (largest where the data left the outcome open) where the decoder's scale is
 the outcome's own noise. ``--uncertainty-weight`` then penalises the disagreement. The ensemble
 counts as one world-model seed in the rows (spread and per-seed cells show that one agent), the
-static model plays on its first member, the step-wise `CEMPlanner` episodes are skipped (with a
-log line: `ForecasterWorldModelEnv` rolls out one world model), and aggregation rounds still
-record with each seed's own agent. The results page names the ensemble's checkpoints.
+static model plays on its first member, the step-wise `CEMPlanner` rolls out the ensemble too
+(its rows say "the ensemble" for "world model 1"), and aggregation rounds still record with each
+seed's own agent. The results page names the ensemble's checkpoints.
 
 Step-wise vs vectorised planning: the first
 ``--stepwise-episodes`` episodes are also played with torchrl's `CEMPlanner` rolling out
-`ForecasterWorldModelEnv` step by step with the first world model, with the same candidates,
-iterations and elites.
+`ForecasterWorldModelEnv` step by step with the first world model (or the ensemble), with the
+same candidates, iterations and elites.
 
 Ends with ``summary: success all A%, no-camera B%, no-force C%, scripted S%, random R%`` (MPC:
 mean over world-model seeds, or the ensemble's; the first ``--outage`` type).

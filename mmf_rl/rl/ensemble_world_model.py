@@ -20,7 +20,7 @@ STATS_TOLERANCE = 1e-6
 class EnsembleWorldModel:
     """Independently trained `WorldModel` s (e.g. training seeds on one data config) as one world
     model, PETS-style: wherever a `WorldModel` plans (`SequenceCEMPlanner`, `MPCActor`,
-    `forecast_and_score`), an ensemble plans too.
+    `forecast_and_score`, `ForecasterWorldModelEnv`), an ensemble plans too.
 
     Its forecast is the members' mean forecast. Its spread (:meth:`forecast_distribution`) is the
     members' **disagreement**: per step and dim, the standard deviation over members of their mean
@@ -88,6 +88,11 @@ class EnsembleWorldModel:
         return self.members[0].modalities
 
     @property
+    def token_shape(self) -> tuple[int, ...]:
+        """The shape of one window's :meth:`encode` tokens: ``(K, N, d)``."""
+        return len(self.members), *self.members[0].token_shape
+
+    @property
     def device(self) -> torch.device:
         return self.members[0].device
 
@@ -146,7 +151,7 @@ def _difference(reference: WorldModel, member: WorldModel) -> str:
             "action steps x dims": (model.action_steps, model.action_dim),
             "horizon": model.horizon,
             "target dims": model.target_dim,
-            "tokens x width": (len(model.model.token_modality), model.model.config.d_model),
+            "tokens x width": model.token_shape,
             "normalisation statistics": sorted(model.normalizer.stats),
         }
 

@@ -5,7 +5,6 @@ actions, torchrl's step-wise `CEMPlanner`), all on the same seeded episodes; the
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Iterator
 
 import torch
@@ -27,8 +26,6 @@ from mmf_rl.rl.outage_evaluation import Condition, Timed, play_conditions, succe
 from mmf_rl.rl.push_objective import PushObjective
 from mmf_rl.rl.world_model import WorldModel
 from mmf_rl.rl.world_model_env import ForecasterWorldModelEnv, ImaginedPlanningPolicy
-
-logger = logging.getLogger(__name__)
 
 PlannedWorldModel = WorldModel | EnsembleWorldModel
 
@@ -114,14 +111,10 @@ def evaluate_mpc(
                 raw.setdefault(f"mpc {label}", []).append(results)
             if index == 0:  # the references do not depend on the world model: played once
                 references = play_references(env, episodes, seed, raw)
-                if stepwise_episodes and ensemble:
-                    logger.info(
-                        "skipping the step-wise CEMPlanner episodes: ForecasterWorldModelEnv rolls out one "
-                        "world model, not an ensemble (play the members one by one to compare the planners)"
-                    )
-                elif stepwise_episodes:
+                if stepwise_episodes:
                     n = min(stepwise_episodes, episodes)
-                    references |= play_stepwise(env, world_model, objective, sizes, n, seed, raw)
+                    which = "the ensemble" if ensemble else "world model 1"
+                    references |= play_stepwise(env, world_model, objective, sizes, n, seed, raw, which)
         finally:
             env.close()
     return {name: over_seeds(rows) for name, rows in per_seed.items()} | references, raw
@@ -138,16 +131,18 @@ def play_references(env: TransformedEnv, episodes: int, seed: int, raw: dict) ->
 
 def play_stepwise(
     env: TransformedEnv,
-    world_model: WorldModel,
+    world_model: PlannedWorldModel,
     objective: PushObjective,
     sizes: dict[str, int],
     n: int,
     seed: int,
     raw: dict,
+    which: str = "world model 1",
 ) -> dict[str, dict]:
     """torchrl's `CEMPlanner` rolling out `ForecasterWorldModelEnv` step by step with the same
     candidates, iterations and elites, on the first ``n`` episodes, beside the vectorised MPC's
-    row on the same episodes (``raw["mpc all"][0]``: the first world model's)."""
+    row on the same episodes (``raw["mpc all"][0]``: the first world model's, or the ensemble's);
+    ``which`` names that world model in the rows."""
     imagined = ForecasterWorldModelEnv(world_model, objective, env.action_spec, env.observation_spec)
     cem = CEMPlanner(
         imagined,
@@ -160,10 +155,10 @@ def play_stepwise(
     stepwise = Timed(ImaginedPlanningPolicy(cem, imagined))
     raw["torchrl CEMPlanner all"] = play(env, stepwise, n, seed, "torchrl CEMPlanner all")
     return {
-        f"torchrl CEMPlanner all (first {n}, world model 1)": summarise(
+        f"torchrl CEMPlanner all (first {n}, {which})": summarise(
             raw["torchrl CEMPlanner all"], stepwise.seconds
         ),
-        f"mpc all (first {n}, world model 1)": summarise(raw["mpc all"][0][:n]),
+        f"mpc all (first {n}, {which})": summarise(raw["mpc all"][0][:n]),
     }
 
 

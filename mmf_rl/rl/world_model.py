@@ -84,6 +84,11 @@ class WorldModel:
         return self.model.modalities
 
     @property
+    def token_shape(self) -> tuple[int, ...]:
+        """The shape of one window's :meth:`encode` tokens: ``(N, d)``."""
+        return len(self.model.token_modality), self.model.config.d_model
+
+    @property
     def device(self) -> torch.device:
         return next(self.model.parameters()).device
 

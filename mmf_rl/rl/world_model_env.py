@@ -23,11 +23,12 @@ from torchrl.modules.planners import MPCPlannerBase
 
 from mmf_rl import keys
 from mmf_rl.rl.cem import Objective, forecast_and_score
+from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
 from mmf_rl.rl.world_model import WorldModel
 
 IMAGINED = "imagined"
-TOKENS = (IMAGINED, "tokens")
-TOKEN_PRESENT = (IMAGINED, "token_present")  # [M] per token slot; not the batch key ("present", m)
+TOKENS = (IMAGINED, "tokens")  # the world model's encoding: [N, d], an ensemble's [K, N, d]
+TOKEN_PRESENT = (IMAGINED, "token_present")  # [N] ([K, N]) per token slot; not the batch key ("present", m)
 VALID = (IMAGINED, "valid")
 ACTIONS = (IMAGINED, "actions")
 STEP = (IMAGINED, "step")
@@ -37,11 +38,13 @@ FORECAST = (IMAGINED, "forecast")  # the imagined target at the current step (ta
 class ForecasterWorldModelEnv(ModelBasedEnvBase):
     """Imagined rollouts of a `WorldModel` scored by an objective (e.g. `PushObjective`).
 
-    ``self.world_model`` is the underlying forecaster (as `ModelBasedEnvBase` names it);
-    ``self.dynamics`` the `WorldModel` that wraps it with its normalisation.
+    ``self.world_model`` is the underlying forecaster (as `ModelBasedEnvBase` names it; an
+    ensemble's: its members' in a `torch.nn.ModuleList`); ``self.dynamics`` the `WorldModel` (or
+    `EnsembleWorldModel`) that wraps it with its normalisation.
 
     Args:
-        world_model: the trained world model.
+        world_model: the trained world model, or an `EnsembleWorldModel` (the state then holds every
+            member's encoding, and a penalising objective gets the members' disagreement).
         objective: ``(forecast, actions, context) -> rewards [n, N, T]`` with ``in_keys`` (the
             context keys it reads, carried unchanged through the imagined state); one that sets
             ``uses_forecast_scale`` also gets ``forecast_scale=``, as in `SequenceCEMPlanner`.
@@ -58,22 +61,25 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
     """
 
     def __init__(
-        self, world_model: WorldModel, objective: Objective, action_spec: Bounded, context_spec: Composite
+        self,
+        world_model: WorldModel | EnsembleWorldModel,
+        objective: Objective,
+        action_spec: Bounded,
+        context_spec: Composite,
     ):
-        if not isinstance(world_model, WorldModel):
-            raise TypeError(
-                f"ForecasterWorldModelEnv rolls out one WorldModel, found {type(world_model).__name__}: plan "
-                "with an EnsembleWorldModel through SequenceCEMPlanner, or build this env on one member"
-            )
         if action_spec.shape != (world_model.action_dim,):
             raise ValueError(
                 f"ForecasterWorldModelEnv: action_spec must be one env's, shape [{world_model.action_dim}] "
                 f"(what the world model was trained on); found {list(action_spec.shape)}"
             )
-        super().__init__(world_model.model, device=world_model.device, batch_size=torch.Size([]))
+        forecasters = (
+            torch.nn.ModuleList([member.model for member in world_model.members])
+            if isinstance(world_model, EnsembleWorldModel)
+            else world_model.model
+        )
+        super().__init__(forecasters, device=world_model.device, batch_size=torch.Size([]))
         self.dynamics, self.objective = world_model, objective
-        model = world_model.model
-        m, d = len(model.modalities), model.config.d_model
+        token_shape = world_model.token_shape
         steps, dim = world_model.action_steps, world_model.action_dim
         self.action_spec = action_spec
         # The imagined state is observed (as Dreamer's model-based env observes its latent state),
@@ -81,8 +87,8 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         self.observation_spec = Composite(
             {
                 FORECAST: Unbounded((world_model.target_dim,), dtype=torch.float32),
-                TOKENS: Unbounded((m, d), dtype=torch.float32),
-                TOKEN_PRESENT: Categorical(2, (m,), dtype=torch.bool),
+                TOKENS: Unbounded(token_shape, dtype=torch.float32),
+                TOKEN_PRESENT: Categorical(2, token_shape[:-1], dtype=torch.bool),
                 VALID: Categorical(2, (), dtype=torch.bool),
                 ACTIONS: Unbounded((steps, dim), dtype=torch.float32),
                 STEP: Unbounded((1,), dtype=torch.int64),

@@ -6,6 +6,7 @@ import copy
 import pytest
 import torch
 from torchrl.data import Bounded
+from torchrl.modules.planners import CEMPlanner
 
 from mmf_rl import keys
 from mmf_rl.rl import (
@@ -125,8 +126,21 @@ def test_the_mpc_agent_of_several_checkpoints_plans_with_their_ensemble(push_wor
     assert "ensemble" in str(agent)
 
 
-def test_the_step_wise_world_model_env_names_the_planner_to_use(pair, push_history_env):
-    with pytest.raises(TypeError, match="SequenceCEMPlanner"):
-        ForecasterWorldModelEnv(
-            EnsembleWorldModel(pair), PushObjective(), ACTIONS, push_history_env.observation_spec
-        )
+def test_the_world_model_env_rolls_out_an_ensemble_and_penalises_its_disagreement(pair, push_history_env):
+    ensemble = EnsembleWorldModel(pair)
+    objective = PushObjective(uncertainty_weight=1.0)
+    env = ForecasterWorldModelEnv(ensemble, objective, ACTIONS, push_history_env.observation_spec)
+    real = push_history_env.reset()
+    state = env.reset(real.select(keys.HISTORY, *objective.in_keys))
+    action = torch.full((4,), 0.5)
+    reward = env.step(state.set("action", action)).get(("next", "reward"))
+
+    held = action.expand(ensemble.action_steps, -1)[None, None]
+    encoded = ensemble.encode(real.get(keys.HISTORY).unsqueeze(0))
+    forecast, disagreement = ensemble.forecast_distribution(*encoded, held)
+    context = real.select(*objective.in_keys).unsqueeze(0)
+    expected = objective(forecast, held, context, forecast_scale=disagreement)[0, 0, 0]
+    torch.testing.assert_close(reward[0], expected)
+    cem = CEMPlanner(env, planning_horizon=ensemble.action_steps, optim_steps=2, num_candidates=8, top_k=2)
+    action = cem.planning(env.reset(real.select(keys.HISTORY, *objective.in_keys)))
+    assert action.shape == (4,) and torch.isfinite(action).all()
