@@ -64,11 +64,10 @@ class EnsembleWorldModel:
                 )
         self.members, self.names = members, names
         first = members[0]
-        self.normalizer, self.constant_action_dims, self.stride = (
-            first.normalizer,
-            first.constant_action_dims,
-            first.stride,
-        )
+        # The members' statistics match: the first's action frame is every member's (the planner
+        # samples in it).
+        self.normalizer, self.constant_action_dims = first.normalizer, first.constant_action_dims
+        self.stride = first.stride
         self.action_steps, self.action_dim = first.action_steps, first.action_dim
         self.horizon, self.target_dim = first.horizon, first.target_dim
 
