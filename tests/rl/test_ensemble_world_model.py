@@ -2,6 +2,7 @@
 with it wherever a `WorldModel` plans."""
 
 import copy
+import pickle
 
 import pytest
 import torch
@@ -124,6 +125,7 @@ def test_the_mpc_agent_of_several_checkpoints_plans_with_their_ensemble(push_wor
     assert isinstance(actor.planner.world_model, EnsembleWorldModel)
     assert len(actor.planner.world_model.members) == 2
     assert "ensemble" in str(agent)
+    assert pickle.loads(pickle.dumps(agent)) == agent  # what a recording worker receives
 
 
 def test_the_world_model_env_rolls_out_an_ensemble_and_penalises_its_disagreement(pair, push_history_env):
