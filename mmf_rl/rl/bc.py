@@ -15,7 +15,11 @@ an action in ``[-1, 1]``:
   sensors (`ForecastTransform` with ``denormalize=False``: the forecaster's normalised frame);
 * with ``latched_forecast`` (a rule, off by default): that forecast as a
   `LatchedForecastTransform` serves it through a camera outage, and ``log(1 + age)`` of
-  ``("forecast", "age")``; trained on a `LatchedForecastTable`.
+  ``("forecast", "age")``; trained on a `LatchedForecastTable`;
+* with ``privileged_object`` (a diagnostic, not a deployable policy): the object's true planar
+  position (x, y of ``"object_pose"``, normalised), fed like the goal: it tells whether locating
+  the object from the sensors is what limits the policy. The position only: the scripted pusher
+  the policy imitates steers by it and never reads the orientation, and the height is the table's.
 
 A torchrl `MLP` maps the concatenation to the action (``tanh``). It is trained offline on the
 recorded demonstrations (`mmf_rl.rl.demonstrations`) with torchrl's `BCLoss` (mean squared error
@@ -50,11 +54,19 @@ from torchrl.objectives import BCLoss
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError, load_checkpoint, load_model_state, save_checkpoint
 from mmf_rl.configuration import reject_unknown_keys
-from mmf_rl.envs.torchrl_env import GOAL
+from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.encoders import build_encoder
 from mmf_rl.models.rows import compute_on_rows
-from mmf_rl.rl.demonstrations import ACTION, DemonstrationLoader, Demonstrations, ForecastTable, drop_sets
+from mmf_rl.rl.demonstrations import (
+    ACTION,
+    OBJECT_PLANAR_DIMS,
+    OBJECT_POSITION,
+    DemonstrationLoader,
+    Demonstrations,
+    ForecastTable,
+    drop_sets,
+)
 from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig
@@ -73,7 +85,9 @@ class BCConfig:
     policy's own); ``history``, ``stride``: the window (`HistoryWindow`); ``goal_dim``,
     ``action_dim``; ``forecast_shape``: ``(T, D)`` of the forecast input, ``None`` for a policy
     without it; ``latched_forecast``: the rule of the `LatchedForecastTransform` whose forecast
-    and age it reads (``None``: a `ForecastTransform`'s forecast, no age); ``d_model``: size of
+    and age it reads (``None``: a `ForecastTransform`'s forecast, no age); ``privileged_object``:
+    the policy also reads the object's true planar position (privileged state, never removed by an
+    outage: a diagnostic of what limits the policy, not a policy to deploy); ``d_model``: size of
     each modality's embedding; ``hidden``, ``depth``: the MLP head's width and number of hidden
     layers.
     """
@@ -85,6 +99,7 @@ class BCConfig:
     action_dim: int = 4
     forecast_shape: tuple[int, int] | None = None
     latched_forecast: str | None = None
+    privileged_object: bool = False
     d_model: int = 64
     hidden: int = 256
     depth: int = 2
@@ -112,6 +127,7 @@ class BCConfig:
             "action_dim": self.action_dim,
             "forecast_shape": None if self.forecast_shape is None else list(self.forecast_shape),
             "latched_forecast": self.latched_forecast,
+            "privileged_object": self.privileged_object,
             "d_model": self.d_model,
             "hidden": self.hidden,
             "depth": self.depth,
@@ -149,22 +165,29 @@ class BCNetwork(nn.Module):
         self.encoders = nn.ModuleDict(
             {s.name: build_encoder(s, config.history, config.d_model) for s in config.modalities}
         )
-        for stat in ("mean", "std"):
-            if f"{GOAL}/{stat}" not in stats:
-                raise KeyError(
-                    f"BCNetwork: normalisation stats lack {GOAL}/{stat} (found {sorted(stats)}); use "
-                    "the statistics of the demonstrations (Demonstrations.normalizer.stats)"
-                )
-        self.register_buffer("goal_mean", stats[f"{GOAL}/mean"].float().clone())
-        self.register_buffer("goal_std", stats[f"{GOAL}/std"].float().clone())
-        forecast = 2 * config.forecast_shape[0] * config.forecast_shape[1] if config.forecast_shape else 0
-        forecast += config.latched_forecast is not None  # the age
+        self._register_stats(GOAL, "goal", stats)
+        if config.privileged_object:
+            self._register_stats(OBJECT_POSITION, "object", stats)
+        inputs = len(config.modalities) * (config.d_model + 1) + config.goal_dim
+        inputs += 2 * config.forecast_shape[0] * config.forecast_shape[1] if config.forecast_shape else 0
+        inputs += config.latched_forecast is not None  # the age
+        inputs += OBJECT_PLANAR_DIMS if config.privileged_object else 0
         self.head = MLP(
-            in_features=len(config.modalities) * (config.d_model + 1) + config.goal_dim + forecast,
+            in_features=inputs,
             out_features=config.action_dim,
             num_cells=[config.hidden] * config.depth,
             activation_class=nn.ReLU,
         )
+
+    def _register_stats(self, name: str, buffer: str, stats: Mapping[str, torch.Tensor]) -> None:
+        """Buffers ``<buffer>_mean`` and ``<buffer>_std``: the statistics of the input ``name``."""
+        for stat in ("mean", "std"):
+            if f"{name}/{stat}" not in stats:
+                raise KeyError(
+                    f"BCNetwork: normalisation stats lack {name}/{stat} (found {sorted(stats)}); use "
+                    "the statistics of the demonstrations (Demonstrations.normalizer.stats)"
+                )
+            self.register_buffer(f"{buffer}_{stat}", stats[f"{name}/{stat}"].float().clone())
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         config, m = self.config, len(self.config.modalities)
@@ -190,6 +213,9 @@ class BCNetwork(nn.Module):
             features += [loc.reshape(n, -1), scale.reshape(n, -1).clamp_min(1e-6).log()]
         if config.latched_forecast is not None:
             features.append(inputs[2 * m + 3].reshape(n, 1).float().log1p())
+        if config.privileged_object:  # the last input
+            position = inputs[-1].reshape(n, -1)[:, :OBJECT_PLANAR_DIMS]
+            features.append((position - self.object_mean) / self.object_std)
         return torch.tanh(self.head(torch.cat(features, -1))).reshape(*batch, config.action_dim)
 
 
@@ -200,7 +226,8 @@ class BCPolicy(TensorDictModule):
         config: what it reads and its sizes.
         stats: normalisation statistics of its training data (`Demonstrations.normalizer.stats`):
             the sensor windows' (``"<m>/mean"``, ``"<m>/std"``, ``"target/..."``, for its
-            `HistoryWindow`) and the goal's (``"goal/mean"``, ``"goal/std"``).
+            `HistoryWindow`) and the goal's (``"goal/mean"``, ``"goal/std"``); with
+            ``privileged_object``, the object's planar position's (``"object_position/..."``).
     """
 
     def __init__(self, config: BCConfig, stats: Mapping[str, torch.Tensor]):
@@ -214,6 +241,8 @@ class BCPolicy(TensorDictModule):
             in_keys += [keys.FORECAST_LOC, keys.FORECAST_SCALE]
         if config.latched_forecast is not None:
             in_keys.append(keys.FORECAST_AGE)
+        if config.privileged_object:
+            in_keys.append(OBJECT_POSE)
         super().__init__(network, in_keys=in_keys, out_keys=[ACTION])
         self.config = config
         self.stats = {k: v.detach().float().clone() for k, v in stats.items()}
@@ -224,11 +253,15 @@ class BCPolicy(TensorDictModule):
         demonstrations: Demonstrations,
         forecasts: ForecastTable | None = None,
         encoders: EncoderChoice | None = None,
+        privileged_object: bool = False,
         **sizes,
     ) -> BCPolicy:
         """A policy for the windows, goal and action of ``demonstrations``; it reads forecasts of
-        ``forecasts``' shape when given (and their age, from a `LatchedForecastTable`). ``sizes``:
-        `BCConfig` fields (``d_model``, ``hidden``, ``depth``)."""
+        ``forecasts``' shape when given (and their age, from a `LatchedForecastTable`), and the
+        object's position with ``privileged_object``. ``sizes``: `BCConfig` fields (``d_model``,
+        ``hidden``, ``depth``)."""
+        if privileged_object:
+            demonstrations.check_object_pose("train")
         encoders = encoders or EncoderChoice()
         config = BCConfig(
             modalities=[encoders.spec(s) for s in demonstrations.specs],
@@ -238,6 +271,7 @@ class BCPolicy(TensorDictModule):
             action_dim=demonstrations.action_dim,
             forecast_shape=None if forecasts is None else forecasts.shape,
             latched_forecast=forecasts.rule if isinstance(forecasts, LatchedForecastTable) else None,
+            privileged_object=privileged_object,
             **sizes,
         )
         return cls(config, demonstrations.normalizer.stats)
@@ -382,6 +416,9 @@ def train_bc(
                 else "the policy was built without a forecast input: pass no ForecastTable"
             )
         )
+    if policy.config.privileged_object:
+        for split in ("train", "val"):
+            demonstrations.check_object_pose(split)
     latched = forecasts.rule if isinstance(forecasts, LatchedForecastTable) else None
     if forecasts is not None and latched != policy.config.latched_forecast:
         raise ValueError(

@@ -28,7 +28,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import TransformedEnv
 
-from mmf_rl.envs.torchrl_env import GOAL
+from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.rl.closed_loop import ScriptedPolicy, episode_result, episode_steps
 from mmf_rl.rl.demonstrations import ACTION
@@ -82,13 +82,15 @@ def labelled_episodes(
 
 def demonstration_frames(rollout: TensorDictBase, specs: Sequence[ModalitySpec]) -> TensorDict:
     """What `Demonstrations.with_episodes` adds of a labelled rollout: each modality's raw
-    observation and presence as the env emitted them, the goal, and the expert's action as the
-    ``"action"`` to imitate (the policy's own windows and forecasts are rebuilt from these)."""
+    observation and presence as the env emitted them, the goal and the object's pose, and the
+    expert's action as the ``"action"`` to imitate (the policy's own windows and forecasts are
+    rebuilt from these)."""
     frames = TensorDict(batch_size=rollout.batch_size)
     for spec in specs:
         frames.set(spec.obs_key, rollout.get(spec.obs_key))
         frames.set(spec.present_key, rollout.get(spec.present_key))
     frames.set(GOAL, rollout.get(GOAL))
+    frames.set(OBJECT_POSE, rollout.get(OBJECT_POSE))
     frames.set(ACTION, rollout.get(EXPERT_ACTION))
     return frames.clone()  # its own storage, not views of the whole rollout's
 

@@ -7,6 +7,8 @@ windows, every frame of an episode is a sample, its first frames too: the histor
 frame ``t`` holds frames ``t - (H-1)·s .. t`` with the episode's first frame repeated where they
 would precede it, which is exactly the window `HistoryWindow` writes in an env after a reset. A
 policy cloned from these windows therefore sees in closed loop the windows it was trained on.
+The object's pose column is read too, for a diagnostic policy told where the object is (a `BCConfig`
+option); a batch carries it under the key the env emits it with.
 `Demonstrations.with_episodes` adds episodes played in the env (DAgger's labelled states,
 `mmf_rl.rl.dagger`) to the training split.
 
@@ -37,12 +39,16 @@ from mmf_rl import keys
 from mmf_rl.datasets import Normalizer, WindowDataset
 from mmf_rl.datasets.config import SPLIT_NAMES
 from mmf_rl.datasets.lerobot_source import LeRobotSource, load_frame_columns
-from mmf_rl.envs.torchrl_env import GOAL
+from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.rows import compute_on_rows
-from mmf_rl.record import ACTION_KEY, GOAL_KEY
+from mmf_rl.record import ACTION_KEY, GOAL_KEY, OBJECT_POSE_KEY
 
 ACTION = "action"  # torchrl's action key: what a policy writes and `BCLoss` reads
+# The object's planar position is the first numbers (x, y) of its pose
+# (`mmf_rl.envs.push.OBJECT_POSE_NAMES`); its normalisation statistics are named with this prefix.
+OBJECT_PLANAR_DIMS = 2
+OBJECT_POSITION = "object_position"
 
 
 def _episode_starts(episode: torch.Tensor, first_row: int) -> torch.Tensor:
@@ -68,13 +74,22 @@ class Demonstrations:
             the forecaster read: modalities, history, stride, image size, split).
         goal_feature, action_feature: vector features of the recording read as the goal the
             policy is given and the action it imitates.
+        object_feature: the object's pose (privileged state, `OBJECT_POSE` in a batch); ``None``
+            for a recording without it.
 
     Attributes: ``specs``, ``history``, ``stride`` (the data config's), ``normalizer`` (the
-    training split's statistics, with ``goal/mean`` and ``goal/std`` added), ``split_frames``
-    (cache rows of the samples of each split: frames with a finite goal and action).
+    training split's statistics, with ``goal/mean``, ``goal/std`` and those of the object's planar
+    position, ``object_position/...``, added), ``split_frames`` (cache rows of the samples of each
+    split: frames with a finite goal and action), ``object_pose`` (``None`` without one).
     """
 
-    def __init__(self, data: WindowDataset, goal_feature: str = GOAL_KEY, action_feature: str = ACTION_KEY):
+    def __init__(
+        self,
+        data: WindowDataset,
+        goal_feature: str = GOAL_KEY,
+        action_feature: str = ACTION_KEY,
+        object_feature: str | None = OBJECT_POSE_KEY,
+    ):
         config = data.config
         self.specs: list[ModalitySpec] = list(data.specs)
         self.history, self.stride = config.history, config.stride
@@ -83,9 +98,11 @@ class Demonstrations:
         self._present = {s.name: frames.get(s.present_key).as_subclass(torch.Tensor) for s in self.specs}
         episode = frames.get("episode").as_subclass(torch.Tensor)
         source = LeRobotSource(config)
-        columns = self._columns(source, [goal_feature, action_feature], episode)
+        features = [goal_feature, action_feature] + ([object_feature] if object_feature else [])
+        columns = self._columns(source, features, episode)
         self.goal = columns[goal_feature]
         self.action = columns[action_feature]
+        self.object_pose = columns[object_feature] if object_feature else None
         rows = torch.arange(len(episode))
         self._episode_start = _episode_starts(episode, first_row=0)
         usable = torch.isfinite(self.goal).all(1) & torch.isfinite(self.action).all(1)
@@ -95,15 +112,13 @@ class Demonstrations:
             ]
             for name in SPLIT_NAMES
         }
-        goal_mean = self.goal[self.split_frames["train"]].double().mean(0)
-        goal_std = self.goal[self.split_frames["train"]].double().std(0, correction=0)
-        self.normalizer = Normalizer(
-            {
-                **data.normalizer.stats,
-                f"{GOAL}/mean": goal_mean.float(),
-                f"{GOAL}/std": goal_std.clamp_min(config.std_floor).float(),
-            }
-        )
+        stats = {**data.normalizer.stats}
+        named = {GOAL: self.goal} | ({} if self.object_pose is None else {OBJECT_POSITION: self.planar()})
+        for name, values in named.items():
+            train = values[self.split_frames["train"]].double()
+            stats[f"{name}/mean"] = train.mean(0).float()
+            stats[f"{name}/std"] = train.std(0, correction=0).clamp_min(config.std_floor).float()
+        self.normalizer = Normalizer(stats)
         self.goal_dim, self.action_dim = self.goal.shape[1], self.action.shape[1]
 
     @staticmethod
@@ -134,14 +149,33 @@ class Demonstrations:
         n = len(episode)
         return {f: torch.from_numpy(np.asarray(data[f], dtype=np.float32).reshape(n, -1)) for f in features}
 
+    def planar(self) -> torch.Tensor:
+        """``[N, 2]``: the object's planar position at every cache row."""
+        return self.object_pose[:, :OBJECT_PLANAR_DIMS]
+
+    def check_object_pose(self, split: str) -> None:
+        """Raise unless every frame of ``split`` has the object's pose (a privileged policy reads it)."""
+        if self.object_pose is None:
+            raise ValueError(
+                "demonstrations: a policy told the object's pose needs the recording's pose column; "
+                f"build Demonstrations with object_feature={OBJECT_POSE_KEY!r}"
+            )
+        if not bool(self.object_pose[self.split_frames[split]].isfinite().all()):
+            raise ValueError(
+                f"demonstrations: some {split!r} frames have no object pose (episodes added without "
+                f"{OBJECT_POSE!r}: saved by an older DAgger round); delete those episodes to play them again"
+            )
+
     def with_episodes(self, episodes: Sequence[TensorDictBase]) -> Demonstrations:
         """These demonstrations with ``episodes`` added to the training split (DAgger's aggregation).
 
         Each episode is a TensorDict ``[steps]`` of its frames as the env emits them: each
         modality's ``("obs", m)`` and ``("present", m)``, ``"goal"``, and the ``"action"`` to
-        imitate. The recording's frames keep their rows (a `ForecastTable` of them stays valid:
-        `ForecastTable.extended` adds the new rows) and its normalisation statistics stay those of the
-        recording, so a policy's inputs mean the same whatever it is trained on.
+        imitate; ``"object_pose"`` when the episode has it (NaN rows when not: a policy told the
+        object's pose refuses them, `check_object_pose`). The recording's frames keep their rows
+        (a `ForecastTable` of them stays valid: `ForecastTable.extended` adds the new rows) and its
+        normalisation statistics stay those of the recording, so a policy's inputs mean the same
+        whatever it is trained on.
         """
         if not episodes:
             raise ValueError("Demonstrations.with_episodes: no episode to add")
@@ -160,9 +194,16 @@ class Demonstrations:
         added._episode_start = torch.cat([self._episode_start, _episode_starts(episode, first_row=n)])
         added.goal = torch.cat([self.goal, joined(GOAL)])
         added.action = torch.cat([self.action, joined(ACTION)])
+        if self.object_pose is not None:
+            added.object_pose = torch.cat([self.object_pose, *map(self._episode_object_pose, episodes)])
         new_rows = torch.arange(n, n + len(episode))
         added.split_frames = {**self.split_frames, "train": torch.cat([self.split_frames["train"], new_rows])}
         return added
+
+    def _episode_object_pose(self, frames: TensorDictBase) -> torch.Tensor:
+        if OBJECT_POSE in frames.keys():
+            return frames.get(OBJECT_POSE)
+        return torch.full((len(frames), self.object_pose.shape[1]), math.nan)
 
     def _check_episode(self, index: int, frames: TensorDictBase) -> None:
         """An episode `with_episodes` can add: every entry the recording's frames have, same shapes
@@ -171,6 +212,8 @@ class Demonstrations:
         expected |= {keys.present_key(m): p for m, p in self._present.items()}
         expected |= {GOAL: self.goal, ACTION: self.action}
         found = frames.keys(include_nested=True)
+        if self.object_pose is not None and OBJECT_POSE in found:
+            expected[OBJECT_POSE] = self.object_pose
         for key, values in expected.items():
             given = frames.get(key) if key in found else None
             if given is None or given.shape[1:] != values.shape[1:] or given.dtype != values.dtype:
@@ -256,8 +299,9 @@ class Demonstrations:
 
     def batch(self, frames: torch.Tensor, absent: Mapping[str, torch.Tensor] | None = None) -> TensorDict:
         """A behaviour-cloning batch: ``"history"`` (the policy's window, `HistoryWindow`'s key),
-        ``"goal"`` (as the env emits it) and ``"action"`` (the demonstrated command)."""
-        return TensorDict(
+        ``"goal"`` and ``"object_pose"`` (as the env emits them; the pose when the recording has
+        it) and ``"action"`` (the demonstrated command)."""
+        batch = TensorDict(
             {
                 keys.HISTORY: self.window(frames, absent),
                 GOAL: self.goal[frames],
@@ -265,6 +309,9 @@ class Demonstrations:
             },
             batch_size=[len(frames)],
         )
+        if self.object_pose is not None:
+            batch.set(OBJECT_POSE, self.object_pose[frames])
+        return batch
 
 
 @dataclass

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -11,7 +13,7 @@ from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.envs.modality_dropout import ModalityDropout
-from mmf_rl.envs.torchrl_env import GOAL, MultimodalPushTorchEnv
+from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE, MultimodalPushTorchEnv
 from mmf_rl.rl import (
     BCPolicy,
     DemonstrationLoader,
@@ -23,6 +25,7 @@ from mmf_rl.rl import (
     validation_errors,
 )
 from mmf_rl.rl.bc_evaluation import bc_env
+from mmf_rl.rl.dagger import demonstration_frames, labelled_episodes
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform, target_frame
 from mmf_rl.rl.outage_evaluation import Condition
 from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
@@ -33,9 +36,11 @@ TINY = {"d_model": 16, "hidden": 32, "depth": 1}
 TINY_ENCODERS = EncoderChoice(image_channels=(8, 16))
 
 
-def make_policy(demonstrations, forecasts=None, seed: int = 0) -> BCPolicy:
+def make_policy(demonstrations, forecasts=None, seed: int = 0, privileged_object: bool = False) -> BCPolicy:
     seed_everything(seed)
-    return BCPolicy.for_demonstrations(demonstrations, forecasts, encoders=TINY_ENCODERS, **TINY)
+    return BCPolicy.for_demonstrations(
+        demonstrations, forecasts, encoders=TINY_ENCODERS, privileged_object=privileged_object, **TINY
+    )
 
 
 def recorded_steps(demonstrations, frames: torch.Tensor, image_absent: bool) -> list[TensorDict]:
@@ -309,3 +314,101 @@ def test_a_policy_on_latched_forecasts_reads_their_age_and_acts_through_a_dying_
     age = rollout.get(("next", *keys.FORECAST_AGE))
     assert age.max() > 0, "the camera died: the latch serves and ages"
     assert torch.isfinite(rollout.get("action")).all()
+
+
+# -- the object's true position as an input (a diagnostic) -----------------------------------------
+
+
+def test_a_privileged_policy_reads_the_objects_planar_position_and_an_ordinary_one_does_not(demonstrations):
+    frames = demonstrations.split_frames["train"][:6]
+    batch = demonstrations.batch(frames, {"image": torch.ones(6, dtype=torch.bool)})
+    torch.testing.assert_close(batch.get(OBJECT_POSE), demonstrations.object_pose[frames])
+    moved, turned = batch.clone(), batch.clone()
+    moved.get(OBJECT_POSE)[:, 0] += 0.05  # 5 cm along x
+    turned.get(OBJECT_POSE)[:, 3:] = torch.tensor([0.0, 0.0, 0.0, 1.0])  # another orientation
+
+    privileged = make_policy(demonstrations, privileged_object=True).eval()
+    assert privileged.config.privileged_object and OBJECT_POSE in privileged.in_keys
+    action = privileged(batch.clone()).get("action")
+    assert not torch.allclose(privileged(moved).get("action"), action)
+    torch.testing.assert_close(privileged(turned.clone()).get("action"), action)  # the position only
+
+    ordinary = make_policy(demonstrations).eval()
+    assert not ordinary.config.privileged_object and OBJECT_POSE not in ordinary.in_keys
+    torch.testing.assert_close(ordinary(moved.clone()).get("action"), ordinary(batch.clone()).get("action"))
+
+
+def test_without_the_option_a_policy_keeps_its_parameters_and_an_old_checkpoint_loads(
+    demonstrations, tmp_path
+):
+    ordinary = make_policy(demonstrations, seed=5).eval()
+    privileged = make_policy(demonstrations, seed=5, privileged_object=True).eval()
+    mine, theirs = ordinary.state_dict(), privileged.state_dict()
+    assert set(theirs) - set(mine) == {"module.object_mean", "module.object_std"}
+    first_layer = next(k for k in mine if k.startswith("module.head.") and k.endswith("weight"))
+    for name, value in mine.items():
+        if name == first_layer:  # two more inputs
+            assert theirs[name].shape == (value.shape[0], value.shape[1] + 2)
+        else:
+            assert theirs[name].shape == value.shape, name
+        if name.startswith("module.encoders."):  # drawn before the head, from the same seed
+            assert torch.equal(theirs[name], value), name
+    assert ordinary.in_keys == privileged.in_keys[:-1]
+
+    # A checkpoint written before the option existed (no 'privileged_object' in its config).
+    path = ordinary.save(tmp_path / "old")
+    meta = json.loads((path / "meta.json").read_text())
+    del meta["bc_config"]["privileged_object"]
+    (path / "meta.json").write_text(json.dumps(meta))
+    loaded = BCPolicy.from_checkpoint(tmp_path / "old")
+    assert loaded.config == ordinary.config and loaded.in_keys == ordinary.in_keys
+    batch = demonstrations.batch(demonstrations.split_frames["val"][:4])
+    torch.testing.assert_close(loaded(batch.clone()).get("action"), ordinary(batch.clone()).get("action"))
+
+
+def test_a_privileged_policy_trains_and_its_offline_batches_are_what_it_read_online(
+    demonstrations, forecaster, tmp_path
+):
+    """Frames the trained policy played (camera in bursts) and then added as demonstrations give,
+    offline, the actions it took online: the same windows and the same object pose."""
+    policy = make_policy(demonstrations, privileged_object=True)
+    config = TrainerConfig(total_steps=4, batch_size=16, eval_every=4, checkpoint_every=4, progress_bar=False)
+    train_bc(policy, demonstrations, config, run_dir=tmp_path)
+    policy = BCPolicy.from_checkpoint(tmp_path / "checkpoints")
+    assert policy.config.privileged_object
+    env = bc_env(policy, forecaster, IMAGE_SIZE, Condition("bursts", "image", "bursts"), seed=0)
+    try:
+        (rollout, _), *_ = labelled_episodes(env, policy, 1, seed=0, max_steps=12)
+    finally:
+        env.close()
+    assert not rollout.get((keys.HISTORY, "present", "image")).all(), "the camera was out at some steps"
+    aggregated = demonstrations.with_episodes([demonstration_frames(rollout, demonstrations.specs)])
+    played = torch.arange(len(demonstrations.goal), len(aggregated.goal))
+    batch = aggregated.batch(played)
+    torch.testing.assert_close(batch.get(OBJECT_POSE), rollout.get(OBJECT_POSE))
+    with torch.no_grad():
+        torch.testing.assert_close(policy(batch).get("action"), rollout.get("action"))
+
+
+def test_a_privileged_policy_refuses_frames_without_the_object_pose(demonstrations, forecaster, tmp_path):
+    _, _, data_config = forecaster
+    blind = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)), object_feature=None)
+    assert blind.object_pose is None and OBJECT_POSE not in blind.batch(blind.split_frames["train"][:2])
+    with pytest.raises(ValueError, match="object_feature='observation.object_pose'"):
+        make_policy(blind, privileged_object=True)
+    # Episodes saved before the pose was kept (an older DAgger round) train ordinary policies only.
+    frames = demonstrations.split_frames["train"][:5]
+    old = TensorDict(
+        {GOAL: demonstrations.goal[frames], "action": demonstrations.action[frames]}, batch_size=[5]
+    )
+    for spec in demonstrations.specs:
+        old.set(spec.obs_key, demonstrations.observation(spec.name, frames))
+        old.set(spec.present_key, demonstrations._present[spec.name][frames])
+    aggregated = demonstrations.with_episodes([old])
+    assert aggregated.object_pose[-5:].isnan().all()
+    make_policy(aggregated)
+    with pytest.raises(ValueError, match="'train' frames have no object pose"):
+        make_policy(aggregated, privileged_object=True)
+    config = TrainerConfig(total_steps=1, progress_bar=False)
+    with pytest.raises(ValueError, match="'train' frames have no object pose"):
+        train_bc(make_policy(demonstrations, privileged_object=True), aggregated, config, run_dir=tmp_path)
