@@ -79,7 +79,8 @@ Design (what the policies see, and why):
 * Observation: the sensor windows of the forecaster's data config (camera, force, proprio over
   H = 10 steps, `HistoryWindow`), their presence flags, and the goal (FetchPush gives every
   policy its goal; it is not a sensor). Not the object's pose: that is privileged state, which
-  the camera, and contact with force and proprioception, must stand in for.
+  the camera, and contact with force and proprioception, must stand in for (but with
+  ``--privileged-object``, below).
 * Outages in training: each training sample loses the camera and the force sensor
   independently with probability ``--dropout`` (`DEFAULT_DROPOUT`, 0.3), identically for both
   variants; a policy sees the outage through the presence flags and never what an absent
@@ -95,6 +96,15 @@ Design (what the policies see, and why):
   serves with that rule (the last forecast made with the camera, advanced through its outage,
   and its age), trained on the `LatchedForecastTable` of the same forecasts (their runs are
   ``bc_with_latched_<RULE>_forecasts_seed<S>``).
+* ``--privileged-object`` (a diagnostic, not a deployable policy): the policies also read the
+  object's true planar position (`BCConfig.privileged_object`), fed like the goal, never removed
+  by an outage. If they reach the scripted pusher's success, locating the object from the sensors
+  is what limits BC; if not, the imitation itself (data, compounding error, network, budget). Their
+  runs are their own (``bc_privileged_...``, ``dagger_privileged_...``; results in
+  ``WORK/privileged`` unless ``--out``); ``--variants without`` trains and plays only the policies
+  without forecasts (a policy told where the object is has little to gain from them; the other
+  variant shows as ``-`` in the tables and the summary line; the camera-loss target is not judged,
+  and the summary line counts it met for none of the outage types).
 
 Every policy plays the same seeded episodes (episode ``i`` reset with seed ``--seed + i``;
 success is FetchPush's: the object within 5 cm of the goal within the 50-step time limit) under
@@ -135,6 +145,7 @@ from mmf_rl.rl.bc_evaluation import (
     camera_loss,
     camera_target_met,
     evaluate_bc,
+    figure,
     loss_table,
     success_table,
     summary_line,
@@ -269,16 +280,22 @@ def forecast_tag(args) -> str:
     return latched + ("_uncalibrated" if args.no_calibrate else "")
 
 
+def privileged_tag(args) -> str:
+    """In the names of the runs of policies told the object's position: they never mix with the others."""
+    return "_privileged" if args.privileged_object else ""
+
+
 def dagger_dir(args, seed: int, round_: int) -> Path:
-    """Round ``round_``'s episodes and policies of BC seed ``seed``: they depend on both variants'
-    policies, so on the forecasts the ``with`` ones read."""
-    return args.work / f"dagger{forecast_tag(args)}_seed{seed}_round{round_}"
+    """Round ``round_``'s episodes and policies of BC seed ``seed``: they depend on the policies of
+    every variant played, so on the forecasts the ``with`` ones read."""
+    played = "" if tuple(args.variants) == VARIANTS else "_" + "_".join(args.variants)
+    return args.work / f"dagger{privileged_tag(args)}{played}{forecast_tag(args)}_seed{seed}_round{round_}"
 
 
 def policy_run_dir(args, variant: str, seed: int, round_: int) -> Path:
     if round_ == 0:
         tag = forecast_tag(args) if variant == "with" else ""
-        return args.work / f"bc_{variant}{tag}_forecasts_seed{seed}"
+        return args.work / f"bc{privileged_tag(args)}_{variant}{tag}_forecasts_seed{seed}"
     return dagger_dir(args, seed, round_) / f"bc_{variant}_forecasts"
 
 
@@ -296,6 +313,7 @@ def build_policy(args, variant: str, seed: int, round_: int, demonstrations, for
         demonstrations,
         table,
         encoders=EncoderChoice(image_channels=tuple(args.bc_image_channels)),
+        privileged_object=args.privileged_object,
         d_model=args.bc_d_model,
         hidden=args.bc_hidden,
     )
@@ -316,7 +334,7 @@ def build_policy(args, variant: str, seed: int, round_: int, demonstrations, for
 
 
 def dagger_episodes(args, seed: int, round_: int, policies: dict[str, BCPolicy], forecaster, specs, phases):
-    """Round ``round_``'s labelled episodes of both policies of BC seed ``seed`` (read back when a
+    """Round ``round_``'s labelled episodes of the policies of BC seed ``seed`` (read back when a
     run already played them) and one row per variant: its success on its own episodes."""
     directory = dagger_dir(args, seed, round_) / "episodes"
     saved = load_episodes(directory)
@@ -325,7 +343,7 @@ def dagger_episodes(args, seed: int, round_: int, policies: dict[str, BCPolicy],
         first = round_seed(args.seed, round_)
         episodes, results = [], []
         with timed_phase(phases, f"DAgger seed {seed} round {round_} episodes"):
-            for variant in VARIANTS:
+            for variant in args.variants:
                 policy = policies[variant].eval()
                 env = bc_env(policy, forecaster.loaded, image_size, Condition("all", None, None), first)
                 played = labelled_episodes(env, policy, args.dagger_episodes, first)
@@ -342,7 +360,7 @@ def dagger_episodes(args, seed: int, round_: int, policies: dict[str, BCPolicy],
     else:
         episodes, results = saved
     rows = []
-    for variant in VARIANTS:
+    for variant in args.variants:
         own = [r for r in results if r["variant"] == variant]
         rows.append(
             {
@@ -358,11 +376,11 @@ def dagger_episodes(args, seed: int, round_: int, policies: dict[str, BCPolicy],
 
 
 def train_with_dagger(args, seed: int, forecaster: Forecaster, demonstrations, table, phases):
-    """Both policies of BC seed ``seed`` after ``--dagger`` rounds (none: trained on the recording),
-    the demonstrations of their last round with what the ``with`` policies read of them, and the
-    rounds' rows."""
+    """The policies of BC seed ``seed`` (``--variants``) after ``--dagger`` rounds (none: trained on
+    the recording), the demonstrations of their last round with what the ``with`` policies read of
+    them, and the rounds' rows."""
     forecasts = forecaster.forecasts(args, table, demonstrations)
-    policies = {v: build_policy(args, v, seed, 0, demonstrations, forecasts, phases) for v in VARIANTS}
+    policies = {v: build_policy(args, v, seed, 0, demonstrations, forecasts, phases) for v in args.variants}
     rows = []
     for round_ in range(1, args.dagger + 1):
         episodes, played = dagger_episodes(
@@ -373,7 +391,7 @@ def train_with_dagger(args, seed: int, forecaster: Forecaster, demonstrations, t
             table = forecaster.extended(table, demonstrations)
         forecasts = forecaster.forecasts(args, table, demonstrations)
         policies = {
-            v: build_policy(args, v, seed, round_, demonstrations, forecasts, phases) for v in VARIANTS
+            v: build_policy(args, v, seed, round_, demonstrations, forecasts, phases) for v in args.variants
         }
         trained_on = len(demonstrations.split_frames["train"])
         rows += [{**row, "frames_trained_on": trained_on} for row in played]
@@ -415,6 +433,18 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
         help="the `with` policies read the latched forecast of this rule and its age (default: not latched)",
     )
     parser.add_argument(
+        "--privileged-object",
+        action="store_true",
+        help="a diagnostic: the policies also read the object's true planar position (runs of their own)",
+    )
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        choices=list(VARIANTS),
+        default=list(VARIANTS),
+        help="the policies trained and played: without and/or with forecasts (default both)",
+    )
+    parser.add_argument(
         "--dagger",
         type=int,
         default=0,
@@ -433,7 +463,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_common_arguments(parser, "bc")
     add_training_arguments(parser)
-    args = resolve_budget(parser.parse_args(argv), BUDGETS, "bc")
+    parsed = parser.parse_args(argv)
+    privileged_out = parsed.privileged_object and parsed.out is None
+    args = resolve_budget(parsed, BUDGETS, "bc")
+    args.variants = [v for v in VARIANTS if v in args.variants]
+    if privileged_out:  # never over the results of the ordinary policies in the same work directory
+        args.out = args.work / "privileged"
     if args.dagger < 0 or args.dagger_episodes < 1:
         parser.error(
             f"--dagger must be >= 0 and --dagger-episodes >= 1, found {args.dagger}, {args.dagger_episodes}"
@@ -475,15 +510,15 @@ def main(argv: list[str] | None = None) -> None:
 
     # Two policies per BC seed, with and without the forecast input (after the DAgger rounds); their
     # offline errors.
-    policies: dict[str, list[BCPolicy]] = {v: [] for v in VARIANTS}
-    errors: dict[str, list[dict]] = {v: [] for v in VARIANTS}
+    policies: dict[str, list[BCPolicy]] = {v: [] for v in args.variants}
+    errors: dict[str, list[dict]] = {v: [] for v in args.variants}
     dagger_rows = []
     for seed in args.bc_seeds:
         trained, demonstrations, forecasts, rows = train_with_dagger(
             args, seed, forecaster, recorded, table, phases
         )
         dagger_rows += rows
-        for variant in VARIANTS:
+        for variant in args.variants:
             policies[variant].append(trained[variant])
             if len(demonstrations.split_frames["val"]):
                 read = forecasts if variant == "with" else None
@@ -499,20 +534,10 @@ def main(argv: list[str] | None = None) -> None:
         )
 
     header = run_header("benchmarks/bc_push.py", sys.argv[1:] if argv is None else argv, started, phases)
-    budget = (
-        f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, BC seeds {args.bc_seeds}, "
-        f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; "
-        + (f"latched forecasts (rule {args.latched_forecast}); " if args.latched_forecast else "")
-        + (
-            f"DAgger {args.dagger} rounds of {args.dagger_episodes} episodes per policy; "
-            if args.dagger
-            else ""
-        )
-        + "forecaster "
-        f"`{forecaster.checkpoints}`; {len(recorded.split_frames['train'])} recorded training frames"
-    )
+    budget = budget_line(args, forecaster, recorded)
     extra = calibration_section(forecaster.calibration) + dagger_section(dagger_rows)
-    text = report(rows, errors, conditions, args.outage, f"{header}\n\n{budget}") + extra
+    text = report(rows, errors, conditions, args.outage, f"{header}\n\n{budget}", args.privileged_object)
+    text += extra
     results = {
         "rows": rows,
         "episodes": raw,
@@ -523,6 +548,27 @@ def main(argv: list[str] | None = None) -> None:
     write_results(args, text, results, phases)
     print(text)
     print(summary_line(rows, args.outage))
+
+
+def budget_line(args, forecaster: Forecaster, recorded: Demonstrations) -> str:
+    """The run's budget and what its policies read, for the results page."""
+    return (
+        f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, BC seeds {args.bc_seeds}, "
+        f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; "
+        + (f"latched forecasts (rule {args.latched_forecast}); " if args.latched_forecast else "")
+        + (
+            f"policies {' and '.join(args.variants)} forecasts only; "
+            if args.variants != list(VARIANTS)
+            else ""
+        )
+        + (
+            f"DAgger {args.dagger} rounds of {args.dagger_episodes} episodes per policy; "
+            if args.dagger
+            else ""
+        )
+        + "forecaster "
+        f"`{forecaster.checkpoints}`; {len(recorded.split_frames['train'])} recorded training frames"
+    )
 
 
 def calibration_section(record: dict | None) -> str:
@@ -557,22 +603,29 @@ def dagger_section(rows: list[dict]) -> str:
     return "\nDAgger (expert: the scripted pusher; every sensor):\n\n" + "\n".join(lines) + "\n"
 
 
-def report(rows: dict, errors: dict, conditions: list, outages: list[str], run: str) -> str:
-    """The results page: the run and its budget, the success and loss tables, the offline errors
-    and the camera-loss target."""
+def report(rows: dict, errors: dict, conditions: list, outages: list[str], run: str, privileged: bool) -> str:
+    """The results page: the run and its budget (``privileged``: the policies were told the object's
+    position), the success and loss tables, the offline errors and the camera-loss target."""
     loss = camera_loss(rows, outages)
     met = camera_target_met(loss)
+    title = "# Behaviour cloning with and without forecasts on the multimodal push task"
+    if privileged:
+        title += (
+            "\n\nPrivileged policies (a diagnostic, not deployable): every BC policy here also reads the "
+            "object's true planar position."
+        )
+    target = "; ".join(
+        f"{outage} {'met' if met[outage] else 'not met'} ({figure(lost[1])} vs {figure(lost[0])} pts)"
+        for outage, lost in loss.items()
+    )
+    if len(errors) < len(VARIANTS):
+        target = f"not judged: only the policies {' and '.join(errors)} forecasts were played"
     return (
-        f"# Behaviour cloning with and without forecasts on the multimodal push task\n\n{run}\n\n"
+        f"{title}\n\n{run}\n\n"
         f"{success_table(rows)}\n\nSuccess lost against all sensors:\n\n{loss_table(rows, conditions)}\n\n"
         "Offline: mean squared action error on the validation episodes, with each sensor subset removed "
         f"(mean over BC seeds):\n\n{validation_table(errors)}\n\n"
-        "Camera-loss target (success lost with forecasts <= half of that lost without): "
-        + "; ".join(
-            f"{outage} {'met' if met[outage] else 'not met'} ({lost[1]:.0f} vs {lost[0]:.0f} pts)"
-            for outage, lost in loss.items()
-        )
-        + "\n"
+        f"Camera-loss target (success lost with forecasts <= half of that lost without): {target}\n"
     )
 
 

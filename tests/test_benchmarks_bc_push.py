@@ -92,3 +92,42 @@ def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
     again = json.loads((work / "results.json").read_text())
     assert again["dagger"] == rows
     assert not [p for p in again["phases_s"] if p.startswith(("train BC", "DAgger"))], again["phases_s"]
+
+
+def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_own(
+    recorded_push_root, tmp_path, capsys
+):
+    work = tmp_path / "work"
+    tiny_forecaster = push_train_overrides(
+        recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
+    )
+    argv = [
+        *("bench", "bc", "--quick", "--work", str(work), "--data", str(recorded_push_root)),
+        *("--forecaster-override", *tiny_forecaster),
+        *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
+        *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
+        *("--episodes", "1", "--outage", "episode", "--dagger", "1", "--dagger-episodes", "1"),
+        *("--privileged-object", "--variants", "without"),
+    ]
+    assert cli(argv) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert re.fullmatch(
+        r"summary: BC success all \d+%/-, no-camera \d+%/-, no-force \d+%/- \(without/with forecasts\); "
+        r"camera loss without/with forecasts episode -?\d+/- pts "
+        r"\(target with <= without/2: met for 0 of 1 outage types\)",
+        last,
+    ), last
+    assert not (work / "results.json").exists(), "the ordinary policies' results are left alone"
+    results = json.loads((work / "privileged" / "results.json").read_text())
+    assert {r for r in results["rows"] if r.startswith("BC")} == {
+        f"BC without forecasts | {c}" for c in ("all", "no-camera (episode)", "no-force (episode)")
+    }
+    assert [(r["round"], r["variant"]) for r in results["dagger"]] == [(1, "without")]
+    page = (work / "privileged" / "results.md").read_text()
+    assert "Privileged policies" in page and "not judged" in page
+    for run in (
+        "bc_privileged_without_forecasts_seed0",
+        "dagger_privileged_without_seed0_round1/bc_without_forecasts",
+    ):
+        assert BCPolicy.from_checkpoint(work / run / "checkpoints").config.privileged_object
+    assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))

@@ -389,24 +389,13 @@ def validation_errors(
     return errors
 
 
-def train_bc(
+def _check_training_inputs(
     policy: BCPolicy,
     demonstrations: Demonstrations,
-    config: TrainerConfig,
-    *,
-    dropout: Mapping[str, float] = DEFAULT_DROPOUT,
-    forecasts: ForecastTable | LatchedForecastTable | None = None,
-    run_dir: str | os.PathLike | None = None,
-    logger=None,
-    resume: bool = False,
-) -> dict[str, float]:
-    """Clone the demonstrations' actions into ``policy`` (torchrl's `BCLoss`, mean squared error)
-    with the project's `Trainer`: ``config`` sets steps, batch size, optimiser, schedule, seed
-    (the batch order and the dropout draws), evaluation and checkpoints (under
-    ``run_dir/checkpoints``; ``resume`` continues the last one). ``dropout`` removes sensors per
-    sample (see `DemonstrationLoader`); ``forecasts`` must cover those outages when the policy
-    reads forecasts. Returns the last validation errors (`validation_errors`, ``val/`` prefix).
-    """
+    dropout: Mapping[str, float],
+    forecasts: ForecastTable | LatchedForecastTable | None,
+) -> None:
+    """Raise unless the demonstrations and ``forecasts`` hold what ``policy`` reads, under ``dropout``."""
     if (forecasts is None) != (policy.config.forecast_shape is None):
         raise ValueError(
             "train_bc: "
@@ -431,6 +420,27 @@ def train_bc(
             f"train_bc: dropout removes {sorted(dropout)} but the forecasts cover outages of "
             f"{list(forecasts.droppable)} only; compute the ForecastTable with droppable={sorted(dropout)}"
         )
+
+
+def train_bc(
+    policy: BCPolicy,
+    demonstrations: Demonstrations,
+    config: TrainerConfig,
+    *,
+    dropout: Mapping[str, float] = DEFAULT_DROPOUT,
+    forecasts: ForecastTable | LatchedForecastTable | None = None,
+    run_dir: str | os.PathLike | None = None,
+    logger=None,
+    resume: bool = False,
+) -> dict[str, float]:
+    """Clone the demonstrations' actions into ``policy`` (torchrl's `BCLoss`, mean squared error)
+    with the project's `Trainer`: ``config`` sets steps, batch size, optimiser, schedule, seed
+    (the batch order and the dropout draws), evaluation and checkpoints (under
+    ``run_dir/checkpoints``; ``resume`` continues the last one). ``dropout`` removes sensors per
+    sample (see `DemonstrationLoader`); ``forecasts`` must cover those outages when the policy
+    reads forecasts. Returns the last validation errors (`validation_errors`, ``val/`` prefix).
+    """
+    _check_training_inputs(policy, demonstrations, dropout, forecasts)
     loader = DemonstrationLoader(
         demonstrations, "train", config.batch_size, dropout=dropout, forecasts=forecasts, seed=config.seed
     )

@@ -1,9 +1,11 @@
 """Behaviour-cloning policies with and without the forecaster's forecast, in closed loop under
 sensor outages: every policy in every condition on the same seeded episodes and outages, the
-scripted pusher for reference, and the tables and summary that compare the two variants."""
+scripted pusher for reference, and the tables and summary that compare the two variants (a
+variant not played shows as ``-``)."""
 
 from __future__ import annotations
 
+import math
 import statistics
 
 import torch
@@ -50,15 +52,15 @@ def evaluate_bc(
     episodes: int,
     seed: int,
 ) -> tuple[dict[str, dict], dict[str, list]]:
-    """Every policy of each variant (one per BC seed) in every condition, then the scripted pusher
-    with all sensors. Returns the rows (``"BC <variant> forecasts | <condition>"``: mean and spread
+    """Every policy of each variant played (one per BC seed) in every condition, then the scripted
+    pusher with all sensors. Returns the rows (``"BC <variant> forecasts | <condition>"``: mean and spread
     over the BC seeds, `over_seeds`; ``"scripted | all"``) and the episodes of each row."""
     model = forecaster[0]
     image_size = camera_size(model.config.modalities)
     per_seed: dict[str, list[dict]] = {}
     raw: dict[str, list] = {}
-    for variant in VARIANTS:
-        for bc_seed, policy in zip(bc_seeds, policies[variant], strict=True):
+    for variant, trained in policies.items():
+        for bc_seed, policy in zip(bc_seeds, trained, strict=True):
             played = play_conditions(
                 lambda condition, p=policy: bc_env(p, forecaster, image_size, condition, seed),
                 lambda env, p=policy: p.eval(),
@@ -80,7 +82,14 @@ def evaluate_bc(
 
 
 def success(rows: dict[str, dict], variant: str, label: str) -> float:
-    return rows[f"BC {variant} forecasts | {label}"]["success"]
+    """The row's success %; NaN for a variant not played."""
+    row = rows.get(f"BC {variant} forecasts | {label}")
+    return math.nan if row is None else row["success"]
+
+
+def figure(value: float, unit: str = "") -> str:
+    """A rounded figure of a table or the summary; ``-`` for a variant not played (NaN)."""
+    return "-" if math.isnan(value) else f"{value:.0f}{unit}"
 
 
 def camera_loss(rows: dict[str, dict], outages: list[str]) -> dict[str, list[float]]:
@@ -108,13 +117,13 @@ def summary_line(rows: dict[str, dict], outages: list[str]) -> str:
     met = camera_target_met(loss)
 
     def pair(label: str) -> str:
-        return f"{success(rows, 'without', label):.0f}%/{success(rows, 'with', label):.0f}%"
+        return f"{figure(success(rows, 'without', label), '%')}/{figure(success(rows, 'with', label), '%')}"
 
     return (
         f"summary: BC success all {pair('all')}, no-camera {pair(f'no-camera ({first})')}, "
         f"no-force {pair(f'no-force ({first})')} (without/with forecasts); camera loss without/with "
         "forecasts "
-        + ", ".join(f"{outage} {lost[0]:.0f}/{lost[1]:.0f} pts" for outage, lost in loss.items())
+        + ", ".join(f"{outage} {figure(lost[0])}/{figure(lost[1])} pts" for outage, lost in loss.items())
         + f" (target with <= without/2: met for {sum(met.values())} of {len(met)} outage types)"
     )
 
@@ -139,7 +148,7 @@ def loss_table(rows: dict[str, dict], conditions: list[Condition]) -> str:
     ]
     for condition in conditions[1:]:
         lost = [success(rows, v, "all") - success(rows, v, condition.label) for v in VARIANTS]
-        lines.append(f"| {condition.label} | {lost[0]:.0f} | {lost[1]:.0f} |")
+        lines.append(f"| {condition.label} | {figure(lost[0])} | {figure(lost[1])} |")
     return "\n".join(lines)
 
 
