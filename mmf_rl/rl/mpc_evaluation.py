@@ -50,8 +50,9 @@ def cem_policy(world_model: PlannedWorldModel, objective: PushObjective, sizes: 
     return lambda env: Timed(SequenceCEMPlanner(world_model, objective, env.action_spec, seed=seed, **sizes))
 
 
-def world_model_env(world_model: PlannedWorldModel, condition: Condition, seed: int) -> TransformedEnv:
-    """The push env in ``condition``, with the history window the world model reads."""
+def planning_env(world_model: PlannedWorldModel, condition: Condition, seed: int) -> TransformedEnv:
+    """The real push env in ``condition``, with the history window the world model reads (not the
+    imagined `ForecasterWorldModelEnv`)."""
     return push_env(
         camera_size(world_model.modalities),
         condition.sensor,
@@ -92,7 +93,7 @@ def evaluate_mpc(
     references: dict[str, dict] = {}
     for index, (tag, world_model) in enumerate(world_models(checkpoints, ensemble)):
         played = play_conditions(
-            lambda condition, model=world_model: world_model_env(model, condition, seed),
+            lambda condition, model=world_model: planning_env(model, condition, seed),
             cem_policy(world_model, objective, sizes, seed),
             conditions,
             episodes,
@@ -100,7 +101,7 @@ def evaluate_mpc(
             f"{tag} mpc ",
         )
         # The static model and the references play in one env with every sensor up.
-        env = world_model_env(world_model, Condition("all", None, None), seed)
+        env = planning_env(world_model, Condition("all", None, None), seed)
         try:
             single = world_model.members[0] if ensemble else world_model
             static = cem_policy(StaticObjectModel(single), objective, sizes, seed)(env)
