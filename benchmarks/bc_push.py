@@ -31,25 +31,27 @@ the trainings):
   written), for comparison; its ``with`` policies train in runs of their own (``_uncalibrated``);
 * its forecast of every training and validation frame under each training outage
   (`ForecastTable`, computed each run);
-* per ``--bc-seeds`` seed, two policies (`BCPolicy`, ``train_bc``): ``without`` forecasts and
-  ``with`` them. Same encoders, sizes, steps, batch, optimiser; the same seed gives both the
-  same initial encoder weights, the same batch order and the same training outages (the head's
-  first layer is wider by the 2·T·D forecast numbers, so its initial draw differs);
+* per ``--bc-seeds`` seed, one policy (`BCPolicy`, ``train_bc``) of each ``--variants`` (default
+  both): ``without`` forecasts and ``with`` them. Same encoders, sizes, steps, batch, optimiser;
+  the same seed gives both the same initial encoder weights, the same batch order and the same
+  training outages (the head's first layer is wider by the 2·T·D forecast numbers, plus the age
+  with ``--latched-forecast``, so its initial draw differs);
 * with ``--dagger ROUNDS`` (default 0: none), per BC seed and round ``r``
-  (`mmf_rl.rl.dagger`): both policies of round ``r - 1`` each play ``--dagger-episodes``
-  episodes with every sensor (env seeds from ``--seed + 10000·r``, never a test episode's; both
-  policies play the same ones), the scripted pusher labels every state they visited with its
-  action, the labelled frames of both are added to that seed's training frames, with their
-  forecasts computed as for the recording's, and both policies are trained again from scratch
+  (`mmf_rl.rl.dagger`): the policies of round ``r - 1`` each play ``--dagger-episodes``
+  episodes with every sensor (env seeds from ``--seed + 10000·r``, never a test episode's; every
+  policy plays the same ones), the scripted pusher labels every state they visited with its
+  action, the labelled frames of all are added to that seed's training frames, with their
+  forecasts computed as for the recording's, and the policies are trained again from scratch
   on the union, with the same budget and seed. Both variants so see the same data in every
   round. The episodes are kept (``WORK/dagger_seed<S>_round<r>/episodes``, beside the round's
-  policies; with ``--latched-forecast`` or ``--no-calibrate`` the directory's name says so), so
+  policies; with ``--latched-forecast``, ``--no-calibrate``, ``--privileged-object`` or some
+  ``--variants`` only, the directory's name says so), so
   a re-run does not play them again. The results report each policy's success on
   its own DAgger episodes per round; the played conditions use the last round's policies.
-  Cost of a round, per BC seed: two more BC trainings of the first ones' budget (training is
-  the phase that dominates a run, so a round takes about as long again as all the first
-  trainings) and 2 x ``--dagger-episodes`` episodes played (each at the play phase's cost per
-  episode), plus their forecasts (seconds). The union grows by at most 50 frames per episode
+  Cost of a round, per BC seed and variant: one more BC training of the first ones' budget
+  (training is the phase that dominates a run, so a round takes about as long again as all the
+  first trainings) and ``--dagger-episodes`` episodes played (each at the play phase's cost per
+  episode), plus their forecasts. The union grows by at most 50 frames per episode
   played; a training's cost does not grow with it (a fixed number of steps).
 
 =============================  ===========  ===============================
@@ -66,13 +68,10 @@ DAgger episodes (per policy,   20           50
 per round, with --dagger)
 =============================  ===========  ===============================
 
-The quick mode's size is estimated from the code, not measured: 200 recorded episodes (a third
-fewer than the MPC benchmark's 300), a forecaster training a quarter the length of the MPC
-world model's at the same batch size, four BC trainings whose ConvNet has a third of the
-forecaster's convolution cost, and 420 played episodes of at most 50 steps, for about 10 to 15
-minutes on 2 CPU cores. The full mode, by the same reckoning, takes about three times as long
-(longer trainings, 1450 played episodes); neither is measured yet (the machine this was written
-on was loaded). The script prints the minutes of each phase and writes them to ``results.md``.
+The quick budget is sized from the code's costs (200 recorded episodes, a forecaster training a
+quarter the length of the MPC world model's, BC ConvNets with a third of the forecaster's
+convolution cost) to take a fraction of the full mode's time. The script prints the minutes of
+each phase and writes them to ``results.md``; measured run times are in docs/results.md.
 
 Design (what the policies see, and why):
 
