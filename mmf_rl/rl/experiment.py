@@ -45,7 +45,8 @@ def add_common_arguments(parser: argparse.ArgumentParser, name: str) -> None:
         type=int,
         default=2,
         help="torch threads; use 1 on a shared machine (OpenMP threads spin-wait for a thread whose "
-        "core is busy: a 2-thread training beside another job ran 13x slower than alone)",
+        "core is busy: a 2-thread training beside another job runs many times slower than alone, "
+        "see docs/results.md)",
     )
     parser.add_argument(
         "--episodes", type=int, default=None, help="episodes per condition (quick 20, full 50)"
