@@ -19,37 +19,30 @@ import argparse
 import torch
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 
-from mmf_rl.envs.modality_dropout import ModalityDropout, UniformBursts
+from mmf_rl.envs.modality_dropout import ModalityDropout
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
 from mmf_rl.rl import PushObjective, SequenceCEMPlanner, WorldModel
+from mmf_rl.rl.closed_loop import OUTAGES, camera_size
 
 parser = argparse.ArgumentParser(description="MPC with a push world model")
 parser.add_argument("--checkpoint", default="runs/world_model/checkpoints")
 parser.add_argument("--episodes", type=int, default=5)
 parser.add_argument("--drop", choices=["image", "force"], default=None, help="sensor that fails")
-parser.add_argument("--outage", choices=["episode", "bursts", "dies"], default="episode", help="how it fails")
+parser.add_argument("--outage", choices=list(OUTAGES), default="episode", help="how it fails")
 parser.add_argument("--seed", type=int, default=0)
 args = parser.parse_args()
 torch.set_num_threads(2)
 
 # The world model and the window of sensor history it reads.
 world_model = WorldModel.from_checkpoint(args.checkpoint)
-image_spec = next(s for s in world_model.model.modalities if s.name == "image")
 history = world_model.history_window()  # writes ("history", ...): the model's input window, every step
 
-# The real env: the outage (if any) happens before the history sees the sensors.
-outages = {
-    "episode": {"outage_prob": 1.0},  # off all episode
-    "bursts": {"outage_prob": 0.2, "bursts": UniformBursts(2, 8)},  # 2-8 step outages, ~half the time
-    "dies": {"outage_prob": 1.0, "dies_after": UniformBursts(1, 49)},
-}  # dies at a uniform step
-transforms = (
-    [ModalityDropout([args.drop], outage=args.outage, seed=args.seed, **outages[args.outage])]
-    if args.drop
-    else []
-)
+# The real env, rendering the camera at the model's size: the outage (if any, with the benchmark's
+# `ModalityDropout` settings) happens before the history sees the sensors.
+transforms = [ModalityDropout([args.drop], seed=args.seed, **OUTAGES[args.outage])] if args.drop else []
 env = TransformedEnv(
-    MultimodalPushTorchEnv(image_size=image_spec.shape[-1]), Compose(*transforms, history, InitTracker())
+    MultimodalPushTorchEnv(image_size=camera_size(world_model.modalities)),
+    Compose(*transforms, history, InitTracker()),
 )
 
 # The policy: CEM over whole action sequences, scored by the push objective.
