@@ -379,6 +379,12 @@ class ForecastTable:
         removed. A window left with no present modality gets the target's training prior (mean 0,
         scale 1), as in `ForecastTransform`."""
         config = forecaster.config
+        if getattr(config, "action_dim", 0):
+            raise ValueError(
+                "ForecastTable: this model is an action-conditioned world model (action_dim="
+                f"{config.action_dim}); it forecasts only under given future actions. Pass a forecaster "
+                "trained without `action` in its data config"
+            )
         unknown = sorted(set(droppable) - {s.name for s in config.modalities})
         if unknown:
             raise ValueError(

@@ -19,6 +19,7 @@ from mmf_rl.rl import (
     DemonstrationLoader,
     Demonstrations,
     EncoderChoice,
+    ForecastTable,
     ForecastTransform,
     HistoryWindow,
     train_bc,
@@ -219,6 +220,13 @@ def test_transforms_refuse_a_forecast_the_policy_was_not_trained_with(demonstrat
         without.transforms(ForecastTransform(model, stats, denormalize=False))
     with pytest.raises(ValueError, match="pass the ForecastTable"):
         train_bc(with_forecasts, demonstrations, TrainerConfig(total_steps=1, progress_bar=False))
+
+
+def test_a_forecast_table_refuses_a_world_model(demonstrations, push_world_model):
+    with pytest.raises(ValueError, match="action-conditioned world model"):
+        ForecastTable.compute(
+            demonstrations, push_world_model.model, push_world_model.normalizer.stats, DROPPABLE
+        )
 
 
 def test_a_goal_or_action_feature_the_recording_lacks_is_named(forecaster):
