@@ -1,7 +1,11 @@
 """The forecaster in reinforcement learning: live-forecast (and latched-forecast) and history
 transforms, the world model (and an ensemble of them), a model-based env for torchrl's planners,
-a vectorised CEM planner for model-predictive control, the MPC agent the recorder records with
-(`PushMPCAgent`), and behaviour cloning from recorded demonstrations with the forecast as a policy input."""
+a vectorised CEM planner for model-predictive control with the push task's objective, the MPC agent the
+recorder records with (`PushMPCAgent`), and behaviour cloning from recorded demonstrations with the
+forecast as a policy input. What the push experiments (``benchmarks/mpc_push.py``, ``benchmarks/bc_push.py``)
+build on lives in the submodules: closed-loop play under sensor outages (`closed_loop`,
+`outage_evaluation`, `mpc_evaluation`, `bc_evaluation`), data aggregation (`aggregation`), DAgger
+(`dagger`) and their shared command-line pieces (`experiment`)."""
 
 from mmf_rl.rl.agent import MPCActor, PushMPCAgent
 from mmf_rl.rl.bc import DEFAULT_DROPOUT, BCConfig, BCPolicy, EncoderChoice, train_bc, validation_errors

@@ -284,7 +284,8 @@ class BCPolicy(TensorDictModule):
 
     def transforms(self, forecast: ForecastTransform | None = None) -> list:
         """The env transforms this policy reads from, in order: its `HistoryWindow`, then the
-        forecaster's `ForecastTransform` (``denormalize=False``) for a policy that reads forecasts."""
+        forecaster's `ForecastTransform` (``denormalize=False``; a `LatchedForecastTransform` of the
+        policy's rule for one trained on latched forecasts) for a policy that reads forecasts."""
         wants = self.config.forecast_shape
         if (forecast is None) != (wants is None):
             raise ValueError(

@@ -364,7 +364,8 @@ class ForecastTransform(_WindowTransform):
     normalised with ``stats``; images are resized to the model's size the way the cache resizes
     them (bilinear, antialiased); a reading with NaN or ±Inf counts as absent at its step; a
     ``"sequence"``/``"image"`` modality is present in the window only if it is present at all H
-    steps (``"vector"``: at the last step), and an absent modality's vector window is zeroed.
+    steps (with ``per_step_presence``: at one step at least; ``"vector"``: at the last step), and an
+    absent modality's vector window is zeroed.
     After a reset, the first observation fills the whole history (its presence too), so a full
     window exists from the first step; it is replaced step by step over the next H-1 steps. A
     window with no present modality cannot be forecast: its row gets ``valid = False`` and the

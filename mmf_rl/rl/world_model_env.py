@@ -8,8 +8,9 @@ so an imagined step costs one decoder pass.
 
 An imagined step ``k`` records the action in the sequence and, since the forecaster decodes a
 whole ``S``-step sequence at once, holds it for the steps not chosen yet; the step's observation
-is the forecast at ``k`` and its reward the objective's reward at ``k``. After ``S`` steps (the
-model's horizon) the imagined episode is done: the model cannot see further.
+is the forecast at the forecast step holding ``k`` (``k // stride``) and its reward the
+objective's reward there. After ``S`` steps (the action steps one forecast covers: ``T`` forecast
+steps of ``stride`` env steps) the imagined episode is done: the model cannot see further.
 """
 
 from __future__ import annotations
@@ -130,8 +131,8 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
         steps = self.dynamics.action_steps
         if bool((step >= steps).any()):
             raise RuntimeError(
-                f"ForecasterWorldModelEnv: imagined past the model's horizon ({steps} steps); reset "
-                "from real history"
+                f"ForecasterWorldModelEnv: imagined past the model's horizon ({steps} action steps); "
+                "reset from real history"
             )
         # The new action replaces this step's and, until chosen, every later step's.
         later = torch.arange(steps)[None, :, None] >= step[:, :, None]
