@@ -3,9 +3,9 @@
 `mmf_rl.record` steps the gymnasium env (`MultimodalPushEnv`) itself, one process per worker, and
 sits below the models: it cannot load a world model. It takes a picklable factory instead,
 `PushMPCAgent` (a checkpoint path and the planner's sizes), and calls it once in each worker,
-which so builds its own world model and planner. The agent is the one `benchmarks/mpc_push.py`
-and `examples/mpc_push.py` play: `SequenceCEMPlanner` on the world model with `PushObjective`,
-reading the `HistoryWindow` of every sensor.
+which so builds its own world model and planner. Its policy is the one `benchmarks/mpc_push.py`
+and `examples/mpc_push.py` play in the TorchRL env: `SequenceCEMPlanner` on the world model with
+`PushObjective`, reading the `HistoryWindow` of every sensor.
 """
 
 from __future__ import annotations

@@ -25,8 +25,6 @@ from mmf_rl.trainers.train_command import check_resumable, train
 
 logger = logging.getLogger(__name__)
 
-MODES = ("quick", "full")
-
 
 def add_common_arguments(parser: argparse.ArgumentParser, name: str) -> None:
     """The arguments both push experiments take; ``name`` makes the default work directory
