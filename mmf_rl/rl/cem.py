@@ -144,6 +144,11 @@ class SequenceCEMPlanner(TensorDictModuleBase):
     @torch.no_grad()
     def plan(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The CEM's final mean sequences ``[*batch, S, A]`` (raw actions) for the envs of ``tensordict``."""
+        if keys.HISTORY not in tensordict.keys():
+            raise KeyError(
+                f"SequenceCEMPlanner reads {keys.HISTORY!r}, which the env does not write: append the world "
+                "model's window to the env (TransformedEnv(env, world_model.history_window()))"
+            )
         batch = tensordict.batch_size
         n = batch.numel()
         window = tensordict.get(keys.HISTORY).reshape(n)

@@ -65,13 +65,18 @@ class WorldModel:
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike, map_location: str | torch.device = "cpu") -> WorldModel:
+        """The world model of a trained run (what `load_trained_model` reads); an error names ``path``
+        (an ensemble loads several)."""
         model, stats, data_config = load_trained_model(path, map_location)
-        return cls(
-            model,
-            stats,
-            stride=int(data_config.get("stride", 1)),
-            std_floor=float(data_config.get("std_floor", 1e-3)),
-        )
+        try:
+            return cls(
+                model,
+                stats,
+                stride=int(data_config.get("stride", 1)),
+                std_floor=float(data_config.get("std_floor", 1e-3)),
+            )
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from error
 
     def history_window(self) -> HistoryWindow:
         """The env transform that writes the ``"history"`` window this model reads (its modalities,

@@ -179,6 +179,12 @@ def test_push_objective_brings_a_high_gripper_down_at_the_pre_push_point_not_on_
     assert rewards[0, 0, -1] > rewards[0, 1, -1]
 
 
+def test_planner_names_the_history_window_the_env_lacks(push_world_model):
+    planner = SequenceCEMPlanner(push_world_model, PushObjective(), ACTIONS)
+    with pytest.raises(KeyError, match=r"history_window\(\)"):
+        planner(TensorDict({}, batch_size=[]))
+
+
 def test_planner_refuses_an_action_spec_the_model_was_not_trained_on(push_world_model):
     with pytest.raises(ValueError, match=r"action spec has shape \[2\].*4 dims"):
         SequenceCEMPlanner(push_world_model, PushObjective(), Bounded(-1.0, 1.0, (2,)))

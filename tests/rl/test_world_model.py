@@ -1,8 +1,12 @@
 """`WorldModel`: forecasts and their spread in the target's units."""
 
+import re
+
+import pytest
 import torch
 
 from mmf_rl import keys
+from mmf_rl.rl import WorldModel
 from tests.conftest import assert_forecast_under_actions_is_one_forward_per_candidate
 
 CALIBRATION_FACTOR = 2.5
@@ -50,3 +54,9 @@ def test_a_window_without_sensors_forecasts_the_marginal_mean_and_spread(push_wo
     stats = push_world_model.normalizer.stats
     assert torch.equal(loc, stats["target/mean"].expand_as(loc))
     assert torch.equal(scale, stats["target/std"].expand_as(scale))
+
+
+def test_a_checkpoint_of_a_forecaster_without_actions_is_refused_by_path(forecaster_run):
+    path = forecaster_run / "checkpoints"
+    with pytest.raises(ValueError, match=re.escape(f"{path}: WorldModel needs an action-conditioned")):
+        WorldModel.from_checkpoint(path)
