@@ -116,7 +116,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from mmf_rl.cli import configure_logging
@@ -362,5 +361,4 @@ def report(args, rows: dict, aggregation: list[dict], checkpoints: list[Path], h
 
 if __name__ == "__main__":
     configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
-    np.set_printoptions(precision=3)
     main()

@@ -68,6 +68,8 @@ class ScriptedPolicy:
 
 
 class RandomPolicy:
+    """Uniform random actions in the push env's box ``[-1, 1]^4``, from a generator seeded once."""
+
     def __init__(self, seed: int):
         self.generator = torch.Generator().manual_seed(seed)
 
