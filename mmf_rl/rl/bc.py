@@ -68,7 +68,7 @@ from mmf_rl.rl.demonstrations import (
     drop_sets,
 )
 from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
-from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
+from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow, require_stats
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig
 
 # Training outages, the same for a policy with and without forecasts: each sample loses the
@@ -181,12 +181,10 @@ class BCNetwork(nn.Module):
 
     def _register_stats(self, name: str, buffer: str, stats: Mapping[str, torch.Tensor]) -> None:
         """Buffers ``<buffer>_mean`` and ``<buffer>_std``: the statistics of the input ``name``."""
+        names = [f"{name}/mean", f"{name}/std"]
+        fix = "use the statistics of the demonstrations (Demonstrations.normalizer.stats)"
+        require_stats("BCNetwork", stats, names, fix)
         for stat in ("mean", "std"):
-            if f"{name}/{stat}" not in stats:
-                raise KeyError(
-                    f"BCNetwork: normalisation stats lack {name}/{stat} (found {sorted(stats)}); use "
-                    "the statistics of the demonstrations (Demonstrations.normalizer.stats)"
-                )
             self.register_buffer(f"{buffer}_{stat}", stats[f"{name}/{stat}"].float().clone())
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:

@@ -37,6 +37,16 @@ from mmf_rl.models.forecaster import MultimodalForecaster
 from mmf_rl.models.loading import load_trained_model
 from mmf_rl.models.rows import compute_on_rows
 
+# What to pass instead when a trained model's statistics lack some.
+RUN_STATS_FIX = "pass the stats of the run that trained the model (checkpoint.tensors)"
+
+
+def require_stats(owner: str, stats: Mapping[str, torch.Tensor], names: Sequence[str], fix: str) -> None:
+    """Raise a KeyError naming ``owner``, the ``names`` that ``stats`` lacks and the ``fix``."""
+    missing = [name for name in names if name not in stats]
+    if missing:
+        raise KeyError(f"{owner}: normalisation stats lack {missing} (found {sorted(stats)}); {fix}")
+
 
 def _describe_spec(spec, batch_dims: int) -> str:
     """dtype and per-env shape of a leaf spec."""
@@ -68,12 +78,7 @@ class _WindowTransform(Transform):
         if stride < 1:
             raise ValueError(f"{type(self).__name__}: stride must be >= 1, found {stride}")
         required = [f"{s.name}/{stat}" for s in self.specs if s.kind != "image" for stat in ("mean", "std")]
-        missing = [k for k in required + ["target/mean", "target/std"] if k not in stats]
-        if missing:
-            raise KeyError(
-                f"{type(self).__name__}: normalisation stats lack {missing} (found {sorted(stats)}); "
-                "pass the stats of the run that trained the model (checkpoint.tensors)"
-            )
+        require_stats(type(self).__name__, stats, [*required, "target/mean", "target/std"], RUN_STATS_FIX)
         in_keys = [s.obs_key for s in self.specs] + [s.present_key for s in self.specs]
         super().__init__(in_keys=in_keys, out_keys=out_keys)
         self.history, self.stride = history, stride

@@ -13,7 +13,7 @@ from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.models.forecaster import MultimodalForecaster
 from mmf_rl.models.loading import load_trained_model
 from mmf_rl.models.rows import compute_on_rows
-from mmf_rl.rl.transforms import HistoryWindow
+from mmf_rl.rl.transforms import RUN_STATS_FIX, HistoryWindow, require_stats
 
 
 class WorldModel:
@@ -47,13 +47,8 @@ class WorldModel:
                 "WorldModel needs an action-conditioned forecaster (action_dim > 0): train one with "
                 "`action` in the data config (mmf-rl train experiment=world_model)"
             )
-        required = [f"{keys.FUTURE_ACTION}/mean", f"{keys.FUTURE_ACTION}/std"]
-        missing = [k for k in required if k not in stats]
-        if missing:
-            raise KeyError(
-                f"WorldModel: normalisation stats lack {missing} (found {sorted(stats)}); pass the stats "
-                "of the run that trained the model (checkpoint.tensors)"
-            )
+        action_stats = [f"{keys.FUTURE_ACTION}/mean", f"{keys.FUTURE_ACTION}/std"]
+        require_stats("WorldModel", stats, action_stats, RUN_STATS_FIX)
         self.model = model.eval()
         self.normalizer = Normalizer({k: v.to(self.device) for k, v in stats.items()})
         self.constant_action_dims = self.normalizer.stats[f"{keys.FUTURE_ACTION}/std"] <= std_floor * (

@@ -222,6 +222,12 @@ def test_transforms_refuse_a_forecast_the_policy_was_not_trained_with(demonstrat
         train_bc(with_forecasts, demonstrations, TrainerConfig(total_steps=1, progress_bar=False))
 
 
+def test_stats_without_the_goals_are_named(demonstrations):
+    stats = {k: v for k, v in demonstrations.normalizer.stats.items() if not k.startswith(f"{GOAL}/")}
+    with pytest.raises(KeyError, match=r"BCNetwork: normalisation stats lack \['goal/mean', 'goal/std'\]"):
+        BCPolicy(make_policy(demonstrations).config, stats)
+
+
 def test_a_forecast_table_refuses_a_world_model(demonstrations, push_world_model):
     with pytest.raises(ValueError, match="action-conditioned world model"):
         ForecastTable.compute(

@@ -60,3 +60,10 @@ def test_a_checkpoint_of_a_forecaster_without_actions_is_refused_by_path(forecas
     path = forecaster_run / "checkpoints"
     with pytest.raises(ValueError, match=re.escape(f"{path}: WorldModel needs an action-conditioned")):
         WorldModel.from_checkpoint(path)
+
+
+def test_stats_without_the_action_statistics_are_named(push_world_model):
+    stats = dict(push_world_model.normalizer.stats)
+    del stats[f"{keys.FUTURE_ACTION}/mean"], stats[f"{keys.FUTURE_ACTION}/std"]
+    with pytest.raises(KeyError, match=r"WorldModel: normalisation stats lack \['future_action/mean'"):
+        WorldModel(push_world_model.model, stats)
