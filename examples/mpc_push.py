@@ -7,7 +7,8 @@
 
 Every step, the agent encodes the last H steps of whatever sensors work, samples candidate
 action sequences, forecasts the object's motion under each with the world model (one batched
-decode), and applies the first action of the best ones (CEM). `--drop` makes a sensor fail, the
+decode), refits its sampling distribution to the best ones a few times (CEM) and applies the
+first action of the final mean. `--drop` makes a sensor fail, the
 `--outage` way: off for whole episodes (`episode`, unplugged), in bursts of a few steps
 (`bursts`), or dying at a random step and staying off until the episode ends (`dies`). The same
 model keeps planning from the rest. benchmarks/mpc_push.py runs this over many episodes against

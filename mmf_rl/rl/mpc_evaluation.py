@@ -138,7 +138,7 @@ def play_stepwise(
     n: int,
     seed: int,
     raw: dict,
-    which: str = "world model 1",
+    which: str,
 ) -> dict[str, dict]:
     """torchrl's `CEMPlanner` rolling out `ForecasterWorldModelEnv` step by step with the same
     candidates, iterations and elites, on the first ``n`` episodes, beside the vectorised MPC's
