@@ -507,8 +507,8 @@ def main(argv: list[str] | None = None) -> None:
     phases: dict[str, float] = {}
     forecaster, recorded, table = forecaster_and_demonstrations(args, phases)
 
-    # Two policies per BC seed, with and without the forecast input (after the DAgger rounds); their
-    # offline errors.
+    # A policy of each variant (without and with the forecast input) per BC seed, after the DAgger
+    # rounds; their offline errors.
     policies: dict[str, list[BCPolicy]] = {v: [] for v in args.variants}
     errors: dict[str, list[dict]] = {v: [] for v in args.variants}
     dagger_rows = []

@@ -29,7 +29,9 @@ logger = logging.getLogger(__name__)
 def add_common_arguments(parser: argparse.ArgumentParser, name: str) -> None:
     """The arguments both push experiments take; ``name`` makes the default work directory
     ``runs/bench_<name>_{quick,full}``. A ``None`` default is filled in by `resolve_budget`."""
-    parser.add_argument("--quick", action="store_true", help="the small budget (see the table above)")
+    parser.add_argument(
+        "--quick", action="store_true", help="the small budget (the script's docstring tabulates both)"
+    )
     parser.add_argument(
         "--work",
         type=Path,
