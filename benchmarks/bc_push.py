@@ -169,7 +169,7 @@ from mmf_rl.rl.experiment import (
     train_or_resume,
     write_results,
 )
-from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, target_frame
+from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable
 from mmf_rl.rl.outage_evaluation import Condition, outage_conditions
 from mmf_rl.trainers import TrainerConfig, seed_everything
 
@@ -216,16 +216,8 @@ class Forecaster:
         """What the ``with`` policies read of ``table``: its forecasts, or their latched form."""
         if not args.latched_forecast:
             return table
-        model, stats, data_config = self.loaded
-        relative, reference = target_frame(data_config, model.config.target_dim)
-        return LatchedForecastTable(
-            table,
-            demonstrations,
-            stats,
-            rule=args.latched_forecast,
-            stride=self.stride,
-            relative=relative,
-            reference=reference,
+        return LatchedForecastTable.for_trained(
+            table, demonstrations, *self.loaded, rule=args.latched_forecast
         )
 
     def extended(self, table: ForecastTable, demonstrations: Demonstrations) -> ForecastTable:

@@ -401,6 +401,25 @@ class LatchedForecastTable:
             )
         self.normalizer = Normalizer(dict(self.stats))
 
+    @classmethod
+    def for_trained(
+        cls,
+        table: ForecastTable,
+        demonstrations: Demonstrations,
+        model: nn.Module,
+        stats: Mapping[str, torch.Tensor],
+        data_config: Mapping,
+        **options,
+    ) -> LatchedForecastTable:
+        """The table of ``table``'s trained forecaster (`load_trained_model`'s triple), with the stride
+        and target frame of its data config, as `LatchedForecastTransform.for_trained` reads them;
+        ``options``: ``rule``, ``latch_on``, ``max_age``, ``never_latched``."""
+        relative, reference = target_frame(data_config, model.config.target_dim)
+        stride = int(data_config.get("stride", 1))
+        return cls(
+            table, demonstrations, stats, stride=stride, relative=relative, reference=reference, **options
+        )
+
     @property
     def shape(self) -> tuple[int, int]:
         return self.table.shape

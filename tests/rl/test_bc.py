@@ -27,7 +27,7 @@ from mmf_rl.rl import (
 )
 from mmf_rl.rl.bc_evaluation import bc_env
 from mmf_rl.rl.dagger import demonstration_frames, labelled_episodes
-from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform, target_frame
+from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.outage_evaluation import Condition
 from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
 
@@ -249,9 +249,7 @@ def test_a_goal_or_action_feature_the_recording_lacks_is_named(forecaster):
 
 @pytest.fixture(scope="module")
 def latched_forecasts(demonstrations, forecasts, forecaster) -> LatchedForecastTable:
-    model, stats, data_config = forecaster
-    relative, reference = target_frame(data_config, model.config.target_dim)
-    return LatchedForecastTable(forecasts, demonstrations, stats, relative=relative, reference=reference)
+    return LatchedForecastTable.for_trained(forecasts, demonstrations, *forecaster)
 
 
 def test_offline_latched_forecasts_are_what_the_latched_transform_serves_online(
