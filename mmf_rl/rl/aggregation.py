@@ -49,7 +49,8 @@ class AggregationConfig:
 
 
 def add_aggregation_arguments(parser: argparse.ArgumentParser) -> None:
-    """The command-line arguments of `AggregationConfig` (``--aggregate ROUNDS`` and its options)."""
+    """The command-line arguments of `AggregationConfig` (``--aggregate ROUNDS`` and its options, with
+    its defaults)."""
     parser.add_argument(
         "--aggregate",
         type=int,
@@ -57,18 +58,23 @@ def add_aggregation_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ROUNDS",
         help="rounds of data aggregation with the MPC agent before playing (0: none)",
     )
-    parser.add_argument("--aggregate-episodes", type=int, default=100, help="episodes recorded per round")
+    parser.add_argument(
+        "--aggregate-episodes",
+        type=int,
+        default=AggregationConfig.episodes,
+        help="episodes recorded per round",
+    )
     parser.add_argument(
         "--aggregate-exploration",
         type=float,
-        default=0.1,
+        default=AggregationConfig.exploration,
         help="per-step probability of a random-move burst while the agent records (mmf-rl record "
         "--exploration)",
     )
     parser.add_argument(
         "--early-stopping-patience",
         type=int,
-        default=2,
+        default=AggregationConfig.early_stopping_patience,
         help="retrainings of the aggregation rounds stop after this many evaluations without a better "
         "val/mse",
     )
