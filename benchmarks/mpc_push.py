@@ -120,7 +120,7 @@ import torch
 
 from mmf_rl.cli import configure_logging
 from mmf_rl.record import RecordConfig, record
-from mmf_rl.rl import PushObjective
+from mmf_rl.rl import PushMPCAgent, PushObjective
 from mmf_rl.rl.aggregation import (
     FIRST_RECORDING,
     SUCCESS_DISTANCE,
@@ -234,14 +234,14 @@ def add_planner_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="episodes also played with torchrl's CEMPlanner (0: skip; quick 0, full 10)",
     )
-    parser.add_argument("--candidates", type=int, default=128)
-    parser.add_argument("--iterations", type=int, default=4)
-    parser.add_argument("--elites", type=int, default=16)
-    parser.add_argument("--reach-weight", type=float, default=0.5)
+    parser.add_argument("--candidates", type=int, default=PushMPCAgent.num_candidates)
+    parser.add_argument("--iterations", type=int, default=PushMPCAgent.num_iterations)
+    parser.add_argument("--elites", type=int, default=PushMPCAgent.num_elites)
+    parser.add_argument("--reach-weight", type=float, default=PushMPCAgent.reach_weight)
     parser.add_argument(
         "--uncertainty-weight",
         type=float,
-        default=0.0,
+        default=PushMPCAgent.uncertainty_weight,
         help="PushObjective's uncertainty_weight: metres of goal distance per metre of the forecast's "
         "std (0: no penalty, the planner as without it)",
     )

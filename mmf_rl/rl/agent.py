@@ -76,7 +76,7 @@ class PushMPCAgent:
     is not a push world model fails here, in the caller, not in every recording worker.
     ``image_size`` is the recording's (the window resizes frames to the model's size).
     The sizes, ``reach_weight`` and ``uncertainty_weight`` are `SequenceCEMPlanner`'s and
-    `PushObjective`'s, defaulting to `benchmarks/mpc_push.py`'s.
+    `PushObjective`'s; their defaults are `benchmarks/mpc_push.py`'s.
     """
 
     checkpoint: Path | tuple[Path, ...]
