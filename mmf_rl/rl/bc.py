@@ -414,6 +414,13 @@ def _check_training_inputs(
             f"fresh ones), the table serves rule {latched}; build the policy with "
             "BCPolicy.for_demonstrations(demonstrations, forecasts)"
         )
+    table = forecasts.table if isinstance(forecasts, LatchedForecastTable) else forecasts
+    if table is not None and len(table.loc) < len(demonstrations.goal):
+        raise ValueError(
+            f"train_bc: the ForecastTable covers {len(table.loc)} frames, the demonstrations hold "
+            f"{len(demonstrations.goal)} (episodes added after it was computed); add theirs with "
+            "ForecastTable.extended(demonstrations, forecaster, stats)"
+        )
     if forecasts is not None and set(dropout) - set(forecasts.droppable):
         raise ValueError(
             f"train_bc: dropout removes {sorted(dropout)} but the forecasts cover outages of "

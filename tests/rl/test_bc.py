@@ -222,6 +222,13 @@ def test_transforms_refuse_a_forecast_the_policy_was_not_trained_with(demonstrat
         train_bc(with_forecasts, demonstrations, TrainerConfig(total_steps=1, progress_bar=False))
 
 
+def test_a_forecast_table_shorter_than_the_demonstrations_is_refused(demonstrations, forecasts):
+    short = ForecastTable(forecasts.loc[:10], forecasts.scale[:10], forecasts.droppable)
+    policy = make_policy(demonstrations, short)
+    with pytest.raises(ValueError, match="covers 10 frames.*ForecastTable.extended"):
+        train_bc(policy, demonstrations, TrainerConfig(total_steps=1, progress_bar=False), forecasts=short)
+
+
 def test_stats_without_the_goals_are_named(demonstrations):
     stats = {k: v for k, v in demonstrations.normalizer.stats.items() if not k.startswith(f"{GOAL}/")}
     with pytest.raises(KeyError, match=r"BCNetwork: normalisation stats lack \['goal/mean', 'goal/std'\]"):
