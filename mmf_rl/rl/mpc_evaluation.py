@@ -35,6 +35,8 @@ class StaticObjectModel(WorldModel):
     of it (no spread, so an uncertainty penalty costs every plan the same: nothing)."""
 
     def __init__(self, world_model: WorldModel):
+        # The loaded world model's state as is (its window, action frame and encoder): nothing is
+        # loaded or checked again, and only the forecasts change.
         self.__dict__.update(world_model.__dict__)
 
     def forecast(self, tokens, present, valid, actions):
