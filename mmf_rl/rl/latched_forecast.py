@@ -3,7 +3,8 @@
 When the camera dies, a `ForecastTransform` forecasts from the sensors left, which may not locate
 the object at all. This transform also keeps, per env, the last forecast made while a chosen set
 of sensors (by default every camera) was present for the whole window, and while they stay off
-serves that forecast advanced by the time elapsed, with its age, so a policy knows how old it is::
+serves that forecast advanced by the time elapsed (alone, or combined with the fresh one by a rule:
+by default their precision-weighted mean), with its age, so a policy knows how old it is::
 
     env = TransformedEnv(SerialEnv(4, make_env), Compose(
         ModalityDropout(["image"], outage="dies", seed=0),
