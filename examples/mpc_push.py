@@ -1,7 +1,7 @@
 """Model-predictive control of the multimodal push task with a trained world model.
 
-    mmf-rl record --out data/push_wm --episodes 300 --seed 1
-    mmf-rl train experiment=world_model data.root=data/push_wm
+    mmf-rl record --out data/push_explore --episodes 300 --seed 1 --exploration 0.1
+    mmf-rl train experiment=world_model
     MUJOCO_GL=egl .venv/bin/python examples/mpc_push.py --checkpoint runs/world_model/checkpoints \
         --drop image --outage dies
 
