@@ -338,9 +338,10 @@ class MarkovPusher(ScriptedPusher):
       window (the push's stop rule turns it into ``hold`` at the goal);
     * ``hold``: the object is within the distance at which the pusher resumes a push (step away,
       lift and wait: the pusher's hold lasts that long);
-    * ``descend``: the gripper is over the pre-push point (in the plane);
-    * ``retreat``: the gripper is below travel height by more than an approach lifts straight up
-      from (back off if close to the block, lift);
+    * ``descend``: the gripper is over the pre-push point (in the plane), or below travel height
+      by more than an approach lifts straight up from, within the push's contact window (it goes
+      down behind the object rather than up and round again);
+    * ``retreat``: the gripper is that low anywhere else (back off if close to the block, lift);
     * ``approach``: anywhere else (travel to the pre-push point).
 
     The push direction is the object->goal bearing of the state (the stateful push freezes it near
@@ -370,10 +371,11 @@ class MarkovPusher(ScriptedPusher):
             return "push"  # `_leave_push_if_done_or_lost` stops it at the goal
         if scene.distance <= RESUME_DISTANCE:
             return "hold"
+        low = scene.grip[2] < scene.travel_height - LIFT_FIRST_DEPTH
         if np.linalg.norm(scene.grip[:2] - self._pre_push_point(scene)) <= PRE_PUSH_TOLERANCE:
             return "descend"
-        if scene.grip[2] < scene.travel_height - LIFT_FIRST_DEPTH:
-            return "retreat"
+        if low:
+            return "descend" if scene.in_contact_window else "retreat"
         return "approach"
 
 
