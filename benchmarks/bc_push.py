@@ -40,13 +40,15 @@ the trainings):
   (`mmf_rl.rl.dagger`): the policies of round ``r - 1`` each play ``--dagger-episodes``
   episodes with every sensor (env seeds from ``--seed + 10000·r``, never a test episode's; every
   policy plays the same ones), the scripted pusher labels every state they visited with its
-  action, the labelled frames of all are added to that seed's training frames, with their
-  forecasts computed as for the recording's, and the policies are trained again from scratch
-  on the union, with the same budget and seed. Both variants so see the same data in every
-  round. The episodes are kept (``WORK/dagger_seed<S>_round<r>/episodes``, beside the round's
-  policies; with ``--latched-forecast``, ``--no-calibrate``, ``--privileged-object`` or some
-  ``--variants`` only, the directory's name says so), so
-  a re-run does not play them again. The results report each policy's success on
+  action, as a function of the state (`MarkovPusher`: the recording's pusher is a state machine
+  whose phase, along another's trajectory, no longer matches the state), the labelled frames of
+  all are added to that seed's training frames, with their forecasts computed as for the
+  recording's, and the policies are trained again from scratch on the union, with the same
+  budget and seed. Both variants so see the same data in every round. The episodes are kept
+  (``WORK/dagger_markov_seed<S>_round<r>/episodes``, beside the round's policies; with
+  ``--latched-forecast``, ``--no-calibrate``, ``--privileged-object`` or some ``--variants``
+  only, the directory's name says so), so a re-run does not play them again (nor those of
+  older runs, labelled by the stateful pusher). The results report each policy's success on
   its own DAgger episodes per round; the played conditions use the last round's policies.
   Cost of a round, per BC seed and variant: one more BC training of the first ones' budget
   (training is the phase that dominates a run, so a round takes about as long again as all the
@@ -152,6 +154,7 @@ from mmf_rl.rl.bc_evaluation import (
 )
 from mmf_rl.rl.closed_loop import OUTAGES, camera_size, summarise
 from mmf_rl.rl.dagger import (
+    EXPERT_NAME,
     ROUND_SEEDS,
     demonstration_frames,
     labelled_episodes,
@@ -280,7 +283,8 @@ def dagger_dir(args, seed: int, round_: int) -> Path:
     """Round ``round_``'s episodes and policies of BC seed ``seed``: they depend on the policies of
     every variant played, so on the forecasts the ``with`` ones read."""
     played = "" if tuple(args.variants) == VARIANTS else "_" + "_".join(args.variants)
-    return args.work / f"dagger{privileged_tag(args)}{played}{forecast_tag(args)}_seed{seed}_round{round_}"
+    tags = f"_{EXPERT_NAME}{privileged_tag(args)}{played}{forecast_tag(args)}"
+    return args.work / f"dagger{tags}_seed{seed}_round{round_}"
 
 
 def policy_run_dir(args, variant: str, seed: int, round_: int) -> Path:
@@ -591,7 +595,11 @@ def dagger_section(rows: list[dict]) -> str:
             f"| {r['bc_seed']} | {r['round']} | BC {r['variant']} forecasts of round {r['round'] - 1} | "
             f"{r['episodes']} | {r['success']:.0f} | {r['frames_added']} | {r['frames_trained_on']} |"
         )
-    return "\nDAgger (expert: the scripted pusher; every sensor):\n\n" + "\n".join(lines) + "\n"
+    return (
+        "\nDAgger (expert: the scripted pusher as a function of the state; every sensor):\n\n"
+        + "\n".join(lines)
+        + "\n"
+    )
 
 
 def report(rows: dict, errors: dict, conditions: list, outages: list[str], run: str, privileged: bool) -> str:

@@ -76,7 +76,7 @@ def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
     recorded_frames = rows[0]["frames_trained_on"] - sum(r["frames_added"] for r in rows)
     assert recorded_frames > 0 and all(0 < r["frames_added"] <= 50 for r in rows)
     assert first["forecaster_calibration"]["split"] == "val"  # mmf-rl train fitted it
-    round_dir = work / "dagger_seed0_round1"
+    round_dir = work / "dagger_markov_seed0_round1"
     for variant in ("without", "with"):
         assert (round_dir / f"bc_{variant}_forecasts" / "checkpoints" / "last").is_file()
     assert "DAgger (expert: the scripted pusher" in (work / "results.md").read_text()
@@ -127,7 +127,7 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
     assert "Privileged policies" in page and "not judged" in page
     for run in (
         "bc_privileged_without_forecasts_seed0",
-        "dagger_privileged_without_seed0_round1/bc_without_forecasts",
+        "dagger_markov_privileged_without_seed0_round1/bc_without_forecasts",
     ):
         assert BCPolicy.from_checkpoint(work / run / "checkpoints").config.privileged_object
     assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))

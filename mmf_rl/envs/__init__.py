@@ -7,7 +7,7 @@ unless the caller already set it.
 import gymnasium
 
 from mmf_rl.envs.push import MultimodalPushEnv
-from mmf_rl.envs.scripted import PusherStyle, ScriptedPusher, rollout
+from mmf_rl.envs.scripted import MarkovPusher, PusherStyle, ScriptedPusher, rollout
 
 ENV_ID = "mmf_rl/MultimodalPush-v0"
 
@@ -26,7 +26,15 @@ _TORCHRL_EXPORTS = {
     "replay_outages": "mmf_rl.envs.modality_dropout",
 }
 
-__all__ = ["ENV_ID", "MultimodalPushEnv", "PusherStyle", "ScriptedPusher", "rollout", *_TORCHRL_EXPORTS]
+__all__ = [
+    "ENV_ID",
+    "MarkovPusher",
+    "MultimodalPushEnv",
+    "PusherStyle",
+    "ScriptedPusher",
+    "rollout",
+    *_TORCHRL_EXPORTS,
+]
 
 
 def __getattr__(name):

@@ -11,6 +11,9 @@ and a ``retreat`` (lift clear, then approach again) whenever the object gets awa
 fingers. Each episode draws a `PusherStyle` — speeds, approach error, action noise, pause and
 re-approach rates — so that trajectories differ in tempo and contact pattern, and the object's
 future is not a straight extrapolation of its past.
+
+`MarkovPusher` is the same pusher as a function of the observation alone, the expert DAgger labels
+with (see its docstring).
 """
 
 from __future__ import annotations
@@ -33,6 +36,13 @@ SLOW_DOWN_DISTANCE = 0.08  # closer than this to the goal, the push slows down
 FREEZE_DIRECTION_DISTANCE = 0.06  # closer than this to the goal, the push direction stays fixed
 RESUME_DISTANCE = 0.04  # an object this far from the goal is pushed again (success is < 0.05)
 TRACKING_GAIN = 1.5  # the arm covers ~2/3 of a commanded move per step; ask for more
+PUSH_HEIGHT_TOLERANCE = 0.008  # a gripper this close above pushing height is at it: the descent ends
+PRE_PUSH_TOLERANCE = 0.015  # an approach this close to the pre-push point (in the plane) has arrived
+LIFT_FIRST_DEPTH = 0.02  # an approach this far below travel height lifts straight up first
+# The ranges `PusherStyle.sample` draws from.
+TRAVEL_SPEEDS = (0.7, 1.0)
+PUSH_LEADS = (0.01, 0.022)
+STOP_RADII = (0.01, 0.025)
 
 
 @dataclass(frozen=True)
@@ -50,13 +60,27 @@ class PusherStyle:
     @classmethod
     def sample(cls, rng: np.random.Generator) -> PusherStyle:
         return cls(
-            travel_speed=rng.uniform(0.7, 1.0),
-            push_lead=rng.uniform(0.01, 0.022),
+            travel_speed=rng.uniform(*TRAVEL_SPEEDS),
+            push_lead=rng.uniform(*PUSH_LEADS),
             approach_error=rng.normal(0.0, 0.008),
             action_noise=rng.uniform(0.0, 0.15),
             pause_rate=rng.choice([0.0, 0.03]),
             reapproach_rate=rng.choice([0.0, 0.0, 0.04]),
-            stop_radius=rng.uniform(0.01, 0.025),
+            stop_radius=rng.uniform(*STOP_RADII),
+        )
+
+    @classmethod
+    def steady(cls) -> PusherStyle:
+        """The middle of `sample`'s speeds, push lead and stop radius, no approach error, and no
+        noise, pauses or re-approaches: a style whose actions depend on the observation only."""
+        return cls(
+            travel_speed=float(np.mean(TRAVEL_SPEEDS)),
+            push_lead=float(np.mean(PUSH_LEADS)),
+            approach_error=0.0,
+            action_noise=0.0,
+            pause_rate=0.0,
+            reapproach_rate=0.0,
+            stop_radius=float(np.mean(STOP_RADII)),
         )
 
 
@@ -141,6 +165,15 @@ class _PushScene:
         return self.obj[2]
 
     @property
+    def at_push_height(self) -> bool:
+        return self.grip[2] <= self.push_height + PUSH_HEIGHT_TOLERANCE
+
+    @property
+    def in_contact_window(self) -> bool:
+        """The gripper is where a push keeps contact: behind the object, near the push line."""
+        return abs(self.lateral) <= 0.03 and -0.12 <= self.along <= -0.02
+
+    @property
     def travel_height(self) -> float:
         return self.obj[2] + CLEARANCE
 
@@ -180,6 +213,10 @@ class ScriptedPusher:
         if self.phase != "hold" and self.rng.random() < self.style.pause_rate:
             self.pause_steps = int(self.rng.integers(2, 7))
         self._leave_push_if_done_or_lost(scene)
+        return self._phase_action(scene)
+
+    def _phase_action(self, scene: _PushScene) -> np.ndarray:
+        """This step's action in the current phase (which may move on to the next one first)."""
         action = self._lift_off(scene) if self.phase in ("hold", "retreat") else None
         if action is None and self.phase in ("approach", "descend"):
             action = self._get_behind(scene)
@@ -219,7 +256,7 @@ class ScriptedPusher:
         """Push -> hold at the goal, push -> retreat when the contact is lost (or on a whim), hold ->
         retreat when the object drifted off the goal."""
         if self.phase == "push":
-            lost = abs(scene.lateral) > 0.03 or scene.along > -0.02 or scene.along < -0.12
+            lost = not scene.in_contact_window
             if scene.distance < self.style.stop_radius or scene.to_goal @ scene.direction < 0.005:
                 self.phase = "hold"
             elif lost or self.rng.random() < self.style.reapproach_rate:
@@ -248,20 +285,27 @@ class ScriptedPusher:
         once at pushing height (the push acts this step)."""
         grip, obj, direction = scene.grip, scene.obj, scene.direction
         if self.phase == "approach":
-            pre_push = (
-                obj[:2] - direction * PRE_PUSH_DISTANCE + scene.lateral_axis * self.style.approach_error
-            )
-            if np.linalg.norm(grip[:2] - pre_push) > 0.015:
-                if grip[2] < scene.travel_height - 0.02:
+            pre_push = self._pre_push_point(scene)
+            if np.linalg.norm(grip[:2] - pre_push) > PRE_PUSH_TOLERANCE:
+                if grip[2] < scene.travel_height - LIFT_FIRST_DEPTH:
                     # Lift straight up first: a diagonal move from pushing height can clip the block.
                     return self._move(grip, np.r_[grip[:2], scene.travel_height])
                 return self._move(grip, np.r_[pre_push, scene.travel_height])
             self.phase = "descend"
         behind = obj[:2] - direction * PRE_PUSH_DISTANCE
-        if grip[2] > scene.push_height + 0.008:
+        if not scene.at_push_height:
             return self._move(grip, np.r_[behind, scene.push_height])
         self.phase = "push"
         return None
+
+    def _pre_push_point(self, scene: _PushScene) -> np.ndarray:
+        """Where the approach ends, in the plane: behind the object on the push line, off it by the
+        style's approach error."""
+        return (
+            scene.obj[:2]
+            - scene.direction * PRE_PUSH_DISTANCE
+            + scene.lateral_axis * self.style.approach_error
+        )
 
     def _move(self, grip: np.ndarray, target: np.ndarray, speed: float | None = None) -> np.ndarray:
         step = TRACKING_GAIN * (target - grip) / ACTION_SCALE
@@ -275,6 +319,64 @@ class ScriptedPusher:
         step = step + self.rng.normal(0.0, self.style.action_noise, size=3)
         # The fourth action drives the fingers, which FetchPush keeps closed.
         return np.clip(np.r_[step, 0.0], -1.0, 1.0).astype(np.float32)
+
+
+class MarkovPusher(ScriptedPusher):
+    """`ScriptedPusher` as a function of the observation: its phase is inferred from the state at
+    every call, never carried over from the calls before, so one state always gets one action.
+
+    This is the expert DAgger labels with (`mmf_rl.rl.dagger`): DAgger assumes an expert policy of
+    the state, asked at states the learner drives it to. The stateful pusher's phase follows the
+    trajectory it drove itself; along the learner's it falls out of step with the state (still
+    "approaching" when the learner is already behind the block at pushing height, "retreating" for
+    many steps after one slip), so the same observation was labelled with contradictory actions
+    (lift here, push there) and a policy trained on them learned to hover.
+
+    The phase of a state, tried in order (then the stateful pusher's own rules and moves):
+
+    * ``push``: the gripper is at pushing height behind the object, within the push's contact
+      window (the push's stop rule turns it into ``hold`` at the goal);
+    * ``hold``: the object is within the distance at which the pusher resumes a push (step away,
+      lift and wait: the pusher's hold lasts that long);
+    * ``descend``: the gripper is over the pre-push point (in the plane), or below travel height
+      by more than an approach lifts straight up from, within the push's contact window (it goes
+      down behind the object rather than up and round again);
+    * ``retreat``: the gripper is that low anywhere else (back off if close to the block, lift);
+    * ``approach``: anywhere else (travel to the pre-push point).
+
+    The push direction is the object->goal bearing of the state (the stateful push freezes it near
+    the goal). The style is `PusherStyle.steady`: the middle of the sampled speeds, push lead and
+    stop radius, with no noise, pauses, re-approach whims or exploration bursts. ``reset`` ignores
+    its generator.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(exploration=0.0)
+
+    def reset(self, rng: np.random.Generator | None = None) -> None:
+        # Its own generator: the zero-noise draws of `_noisy` never change an action, and the
+        # episode's generator is left to whoever else draws from it.
+        super().reset(np.random.default_rng(0))
+        self.style = PusherStyle.steady()
+
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        self.phase = "approach"  # any phase but push: the scene takes the state's own bearing
+        scene = self._scene(obs)
+        self.phase = self._phase_of(scene)
+        self._leave_push_if_done_or_lost(scene)
+        return self._phase_action(scene)
+
+    def _phase_of(self, scene: _PushScene) -> str:
+        if scene.at_push_height and scene.in_contact_window:
+            return "push"  # `_leave_push_if_done_or_lost` stops it at the goal
+        if scene.distance <= RESUME_DISTANCE:
+            return "hold"
+        low = scene.grip[2] < scene.travel_height - LIFT_FIRST_DEPTH
+        if np.linalg.norm(scene.grip[:2] - self._pre_push_point(scene)) <= PRE_PUSH_TOLERANCE:
+            return "descend"
+        if low:
+            return "descend" if scene.in_contact_window else "retreat"
+        return "approach"
 
 
 def episode_generator(seed: int, episode_index: int) -> np.random.Generator:

@@ -49,11 +49,13 @@ def push_env(
 
 
 class ScriptedPolicy:
-    """`ScriptedPusher` on the TorchRL env's observation (full state: it reads the object's pose);
-    episode ``i`` draws its style from (seed, i). The env needs an `InitTracker`."""
+    """`ScriptedPusher` (or ``pusher``, e.g. a `MarkovPusher`) on the TorchRL env's observation (full
+    state: it reads the object's pose); episode ``i`` resets it with the generator of (seed, i), from
+    which the scripted pusher draws its style. The env needs an `InitTracker`."""
 
-    def __init__(self, seed: int):
-        self.seed, self.episode, self.pusher = seed, -1, ScriptedPusher()
+    def __init__(self, seed: int, pusher: ScriptedPusher | None = None):
+        self.seed, self.episode = seed, -1
+        self.pusher = ScriptedPusher() if pusher is None else pusher
 
     def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
         if bool(tensordict.get("is_init").any()):

@@ -4,10 +4,13 @@ A round of DAgger (Ross, Gordon and Bagnell, 2011) rolls out the learner, asks t
 would have done in every state the learner visited, adds those labelled states to the
 demonstrations and retrains on the union. Here the learner is a `BCPolicy` in the push env with
 every sensor, reading what it reads in the test (`mmf_rl.rl.bc_evaluation.bc_env`); the expert is
-the pusher that recorded the demonstrations (`ScriptedPolicy`), which reads the full state (the
-object's pose, emitted by the env beside the sensors, never read by the policy). The expert is
-asked at every step, so its state machine (approach, push, retreat) follows the learner's
-trajectory, and its label at a state is what it would do there after what happened so far.
+the pusher that recorded the demonstrations in its state-only form (`MarkovPusher`), which reads
+the full state (the object's pose, emitted by the env beside the sensors, never read by the
+policy). DAgger assumes an expert policy of the state; the recording pusher is a state machine
+(approach, push, retreat) whose phase follows the trajectory it drove, and along the learner's
+trajectory that phase no longer matches the state, so it labelled one state with contradictory
+actions. `MarkovPusher` infers its phase from each state: its label at a state is the same
+whatever happened before.
 
 `labelled_episodes` plays the seeded episodes; `demonstration_frames` keeps of each what
 `Demonstrations.with_episodes` adds (the expert's action as the one to imitate); `save_episodes`
@@ -28,6 +31,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import TransformedEnv
 
+from mmf_rl.envs.scripted import MarkovPusher
 from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.rl.closed_loop import ScriptedPolicy, episode_result, episode_steps
@@ -39,6 +43,9 @@ EXPERT_ACTION = "expert_action"  # the expert's action at the state, beside the 
 # The env seeds of round r's episodes start at seed + r * ROUND_SEEDS: never those of the test
 # episodes (seed + i, i < ROUND_SEEDS) or of another round.
 ROUND_SEEDS = 10_000
+# Names the expert in the directories of saved rounds: episodes labelled by an earlier expert (the
+# stateful pusher) are never read back as this one's.
+EXPERT_NAME = "markov"
 _RESULTS_FILE = "episodes.json"
 
 
@@ -52,8 +59,7 @@ def round_seed(seed: int, round_: int) -> int:
 
 class ExpertLabelled:
     """Acts with ``learner``; writes beside its ``"action"`` the ``expert``'s at the same state
-    (`EXPERT_ACTION`). The expert is called first, on every step: a stateful expert follows the
-    trajectory the learner drives."""
+    (`EXPERT_ACTION`). The expert is called first, on every step."""
 
     def __init__(self, learner, expert):
         self.learner, self.expert = learner, expert
@@ -68,11 +74,11 @@ def labelled_episodes(
     env: TransformedEnv, learner, episodes: int, seed: int, max_steps: int | None = None
 ) -> Iterator[tuple[TensorDictBase, dict]]:
     """``episodes`` episodes of ``learner`` in ``env`` (episode ``i`` reset with seed ``seed + i``, as
-    `mmf_rl.rl.closed_loop.play`), each step labelled by the scripted pusher (its style in episode
-    ``i`` drawn from ``(seed, i)``). Yields each episode's rollout (``EXPERT_ACTION`` beside the
+    `mmf_rl.rl.closed_loop.play`), each step labelled by the scripted pusher as a function of the
+    state (`MarkovPusher`). Yields each episode's rollout (``EXPERT_ACTION`` beside the
     learner's ``"action"``) and its `episode_result`. ``env`` needs an ``InitTracker`` (`bc_env`'s
     env has one); ``max_steps``: default the env's time limit."""
-    actor = ExpertLabelled(learner, ScriptedPolicy(seed))
+    actor = ExpertLabelled(learner, ScriptedPolicy(seed, MarkovPusher()))
     steps = episode_steps(env) if max_steps is None else max_steps
     for i in range(episodes):
         env.set_seed(seed + i)  # applied at the next reset

@@ -1,5 +1,5 @@
-"""DAgger with the scripted pusher as the expert: labels on the learner's states, the aggregated
-demonstrations and their forecasts, determinism per seed."""
+"""DAgger with the scripted pusher as a function of the state as the expert: labels on the
+learner's states, the aggregated demonstrations and their forecasts, determinism per seed."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import torch
 from tensordict import TensorDict
 
 from mmf_rl import keys
+from mmf_rl.envs.scripted import MarkovPusher
 from mmf_rl.envs.torchrl_env import GOAL
 from mmf_rl.rl import BCPolicy, DemonstrationLoader, EncoderChoice
 from mmf_rl.rl.bc_evaluation import bc_env
@@ -58,9 +59,9 @@ def test_the_labels_are_the_experts_actions_on_the_states_the_learner_visited(
     seed = round_seed(1000, 1)
     (rollout,), (result,) = play_labelled(policy, forecaster, 1, seed)
     assert rollout.shape[0] == result["steps"] == STEPS
-    # Replayed on the visited states in order, the scripted pusher of the episode's seed gives the labels,
-    expert = ScriptedPolicy(seed)
-    for t in range(STEPS):
+    # Asked on the visited states in reverse order, the state-only pusher gives the labels,
+    expert = ScriptedPolicy(seed, MarkovPusher())
+    for t in reversed(range(STEPS)):
         state = rollout[t].exclude("action", EXPERT_ACTION, "next")
         torch.testing.assert_close(expert(state).get("action"), rollout.get(EXPERT_ACTION)[t])
     # and the learner gives the actions the env was stepped with (its own, not the expert's).
