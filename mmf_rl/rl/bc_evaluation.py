@@ -36,9 +36,7 @@ def bc_env(
                 model, stats, data_config, rule=rule, denormalize=False
             )
         elif policy.config.forecast_shape is not None:
-            forecast = ForecastTransform(
-                model, stats, stride=int(data_config.get("stride", 1)), denormalize=False
-            )
+            forecast = ForecastTransform.for_trained(model, stats, data_config, denormalize=False)
         readers = policy.transforms(forecast)
     return push_env(image_size, condition.sensor, condition.outage, seed, readers)
 

@@ -37,8 +37,8 @@ class EnsembleWorldModel:
     ``[n]``, so the call ``forecast(*encoded, actions)`` is the same as a `WorldModel`'s. Cost:
     one encode per member per decision, one decode per member per batch of candidates.
 
-    Members must read the same history window (modalities, history, stride, normalisation
-    statistics within `STATS_TOLERANCE`), take the same actions (steps, dims) and forecast the
+    Members must read the same history window (modalities, history, stride, presence rule,
+    normalisation statistics within `STATS_TOLERANCE`), take the same actions (steps, dims) and forecast the
     same target (horizon, dims), so one `HistoryWindow` serves all and the planner samples in one
     action frame; and their encodings must stack (token count and width: the same model config).
     Otherwise the constructor raises, naming the member and the difference.
@@ -147,6 +147,7 @@ def _difference(reference: WorldModel, member: WorldModel) -> str:
             "modalities": [(s.name, s.kind, s.shape) for s in model.modalities],
             "history": model.model.config.history,
             "stride": model.stride,
+            "per-step presence (data.partial_windows)": model.per_step_presence,
             "action steps x dims": (model.action_steps, model.action_dim),
             "horizon": model.horizon,
             "target dims": model.target_dim,

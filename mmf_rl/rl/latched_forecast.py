@@ -28,7 +28,7 @@ from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.envs.modality_dropout import reset_rows
 from mmf_rl.models.loading import load_trained_model
 from mmf_rl.rl.demonstrations import Demonstrations, ForecastTable
-from mmf_rl.rl.transforms import ForecastTransform
+from mmf_rl.rl.transforms import ForecastTransform, trained_per_step_presence
 
 # How a latched forecast and a fresh one (from the sensors left) are combined during an outage.
 RULES = ("latched", "fresh", "scale", "precision")
@@ -172,13 +172,21 @@ class LatchedForecastTransform(ForecastTransform):
 
     @classmethod
     def for_trained(
-        cls, model: nn.Module, stats: Mapping[str, torch.Tensor], data_config: Mapping, **options
+        cls,
+        model: nn.Module,
+        stats: Mapping[str, torch.Tensor],
+        data_config: Mapping,
+        *,
+        per_step_presence: bool | None = None,
+        **options,
     ) -> LatchedForecastTransform:
-        """The transform of a trained model (`load_trained_model`'s triple): the stride and the
-        target frame (``relative`` / ``relative_to``, whose feature must be one of the model's
-        modalities: the env emits it) from its data config."""
+        """The transform of a trained model (`load_trained_model`'s triple): the stride, the target
+        frame (``relative`` / ``relative_to``, whose feature must be one of the model's modalities:
+        the env emits it) and per-step presence (``partial_windows``; an explicit
+        ``per_step_presence`` overrides it, `trained_per_step_presence`) from its data config."""
         relative, reference = target_frame(data_config, model.config.target_dim)
         stride = int(data_config.get("stride", 1))
+        options["per_step_presence"] = trained_per_step_presence(data_config, per_step_presence, cls.__name__)
         return cls(model, stats, stride=stride, relative=relative, reference=reference, **options)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:

@@ -18,6 +18,7 @@ Put the simulated outages (`mmf_rl.envs.ModalityDropout`) before the forecaster:
 
 from __future__ import annotations
 
+import logging
 import os
 import warnings
 from collections.abc import Mapping, Sequence
@@ -37,8 +38,30 @@ from mmf_rl.models.forecaster import MultimodalForecaster
 from mmf_rl.models.loading import load_trained_model
 from mmf_rl.models.rows import compute_on_rows
 
+logger = logging.getLogger(__name__)
+
 # What to pass instead when a trained model's statistics lack some.
 RUN_STATS_FIX = "pass the stats of the run that trained the model (checkpoint.tensors)"
+
+
+def trained_per_step_presence(data_config: Mapping, requested: bool | None, owner: str) -> bool:
+    """The ``per_step_presence`` of a transform serving a trained run: the run's
+    ``data.partial_windows`` (``False`` for a run without the key: trained before it existed), so
+    the windows' presence follows the rule the model was trained on; ``requested`` (not ``None``)
+    overrides it, with a warning when it contradicts the training."""
+    trained = bool(data_config.get("partial_windows", False))
+    if requested is None:
+        return trained
+    if bool(requested) != trained:
+        logger.warning(
+            "%s: per_step_presence=%s, but the model was trained with data.partial_windows=%s; its windows "
+            "will count a sensor lost for some steps %s, not as in training",
+            owner,
+            bool(requested),
+            trained,
+            "present (per-step presence)" if requested else "absent for the whole window",
+        )
+    return bool(requested)
 
 
 def require_stats(owner: str, stats: Mapping[str, torch.Tensor], names: Sequence[str], fix: str) -> None:
@@ -336,6 +359,7 @@ class ForecastTransform(_WindowTransform):
         per_step_presence: ``True`` keeps a windowed modality present while present at one step of
             the window at least, with ``("present_steps", m)`` marking its steps (the model masks the
             absent ones), instead of absent unless present at every step. Runs the eager forward.
+            Default ``False`` here; `for_trained` / `from_checkpoint` follow the run's training.
         num_samples: ``K > 0`` also writes ``("forecast", "samples")`` ``[*batch, K, T, D]``, one
             forecast per prior latent draw (costs a second, eager forward).
         denormalize: ``True`` writes forecasts in the target's units (for the push data: metres,
@@ -426,30 +450,32 @@ class ForecastTransform(_WindowTransform):
 
     @classmethod
     def from_checkpoint(
-        cls,
-        path: str | os.PathLike,
-        *,
-        num_samples: int = 0,
-        denormalize: bool = True,
-        trace: bool = True,
-        map_location: str | torch.device = "cpu",
-        per_step_presence: bool = False,
+        cls, path: str | os.PathLike, *, map_location: str | torch.device = "cpu", **options
     ) -> ForecastTransform:
-        """Load the model, its weights, normalisation stats and window stride from a checkpoint.
+        """Load the model, its weights, normalisation stats and window stride from a checkpoint
+        (`for_trained`); ``options``: ``num_samples``, ``denormalize``, ``trace``, ``per_step_presence``.
 
         ``path``: a checkpoint directory or a directory with a ``last`` pointer (a run's
         ``checkpoints/``).
         """
-        model, stats, data_config = load_trained_model(path, map_location)
-        return cls(
-            model,
-            stats,
-            stride=int(data_config.get("stride", 1)),
-            num_samples=num_samples,
-            denormalize=denormalize,
-            trace=trace,
-            per_step_presence=per_step_presence,
-        )
+        return cls.for_trained(*load_trained_model(path, map_location), **options)
+
+    @classmethod
+    def for_trained(
+        cls,
+        model: nn.Module,
+        stats: Mapping[str, torch.Tensor],
+        data_config: Mapping,
+        *,
+        per_step_presence: bool | None = None,
+        **options,
+    ) -> ForecastTransform:
+        """The transform of a trained model (`load_trained_model`'s triple): the stride of its data
+        config, and per-step presence as it was trained (``data.partial_windows``; an explicit
+        ``per_step_presence`` overrides it, `trained_per_step_presence`). ``options``: the other
+        keyword arguments of the constructor."""
+        options["per_step_presence"] = trained_per_step_presence(data_config, per_step_presence, cls.__name__)
+        return cls(model, stats, stride=int(data_config.get("stride", 1)), **options)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         self._check_modalities(observation_spec)
@@ -721,9 +747,16 @@ class HistoryWindow(_WindowTransform):
         super().__init__(specs, stats, history, stride, out_keys, per_step_presence=per_step_presence)
 
     @classmethod
-    def for_model(cls, model: nn.Module, stats: Mapping[str, torch.Tensor], stride: int = 1) -> HistoryWindow:
-        """The window ``model`` reads (its modalities and history)."""
-        return cls(model.config.modalities, stats, model.config.history, stride)
+    def for_model(
+        cls,
+        model: nn.Module,
+        stats: Mapping[str, torch.Tensor],
+        stride: int = 1,
+        per_step_presence: bool = False,
+    ) -> HistoryWindow:
+        """The window ``model`` reads (its modalities and history); ``per_step_presence``: as its run
+        was trained (``data.partial_windows``, `trained_per_step_presence`)."""
+        return cls(model.config.modalities, stats, model.config.history, stride, per_step_presence)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         self._check_modalities(observation_spec)

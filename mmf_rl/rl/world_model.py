@@ -13,7 +13,7 @@ from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.models.forecaster import MultimodalForecaster
 from mmf_rl.models.loading import load_trained_model
 from mmf_rl.models.rows import compute_on_rows
-from mmf_rl.rl.transforms import RUN_STATS_FIX, HistoryWindow, require_stats
+from mmf_rl.rl.transforms import RUN_STATS_FIX, HistoryWindow, require_stats, trained_per_step_presence
 
 
 class WorldModel:
@@ -41,6 +41,7 @@ class WorldModel:
         stats: Mapping[str, torch.Tensor],
         stride: int = 1,
         std_floor: float = 1e-3,
+        per_step_presence: bool = False,
     ):
         if not getattr(model.config, "action_dim", 0):
             raise ValueError(
@@ -55,28 +56,39 @@ class WorldModel:
             1 + 1e-4
         )
         self.stride = stride
+        # How its history window counts a sensor lost for some steps (as the run trained it).
+        self.per_step_presence = per_step_presence
         self.action_steps, self.action_dim = model.config.action_shape
         self.horizon, self.target_dim = model.config.horizon, model.config.target_dim
 
     @classmethod
-    def from_checkpoint(cls, path: str | os.PathLike, map_location: str | torch.device = "cpu") -> WorldModel:
+    def from_checkpoint(
+        cls,
+        path: str | os.PathLike,
+        map_location: str | torch.device = "cpu",
+        per_step_presence: bool | None = None,
+    ) -> WorldModel:
         """The world model of a trained run (what `load_trained_model` reads); an error names ``path``
-        (an ensemble loads several)."""
+        (an ensemble loads several). Its history window has per-step presence as the run was
+        trained (``data.partial_windows``), unless ``per_step_presence`` says otherwise
+        (`trained_per_step_presence`)."""
         model, stats, data_config = load_trained_model(path, map_location)
+        per_step_presence = trained_per_step_presence(data_config, per_step_presence, f"WorldModel {path}")
         try:
             return cls(
                 model,
                 stats,
                 stride=int(data_config.get("stride", 1)),
                 std_floor=float(data_config.get("std_floor", 1e-3)),
+                per_step_presence=per_step_presence,
             )
         except ValueError as error:
             raise ValueError(f"{path}: {error}") from error
 
     def history_window(self) -> HistoryWindow:
         """The env transform that writes the ``"history"`` window this model reads (its modalities,
-        history, stride and normalisation)."""
-        return HistoryWindow.for_model(self.model, self.normalizer.stats, self.stride)
+        history, stride, normalisation and presence rule)."""
+        return HistoryWindow.for_model(self.model, self.normalizer.stats, self.stride, self.per_step_presence)
 
     @property
     def modalities(self) -> list[keys.ModalitySpec]:

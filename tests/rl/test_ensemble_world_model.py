@@ -78,6 +78,7 @@ def test_two_members_give_their_mean_and_half_their_difference(pair, window):
     [
         (lambda m: setattr(m, "stride", m.stride + 1), "stride"),
         (lambda m: setattr(m, "horizon", m.horizon + 1), "horizon"),
+        (lambda m: setattr(m, "per_step_presence", True), "per-step presence"),
         (lambda m: m.normalizer.stats["target/std"].mul_(1.001), "statistic 'target/std'"),
     ],
 )

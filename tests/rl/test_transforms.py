@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import logging
 import pickle
 
 import pytest
@@ -16,6 +17,8 @@ from mmf_rl.envs.modality_dropout import ModalityDropout, UniformBursts
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
 from mmf_rl.keys import FORECAST_VALID, ModalitySpec
 from mmf_rl.models import build_model, saved_config
+from mmf_rl.models.loading import load_trained_model
+from mmf_rl.rl.latched_forecast import LatchedForecastTransform
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from tests.envs.conftest import IMAGE_SIZE
 from tests.envs.stamp_env import MODALITIES, VECTOR_DIMS, stamp_envs
@@ -34,7 +37,16 @@ def make_stats(seed: int = 0) -> dict[str, torch.Tensor]:
     return stats
 
 
-def write_checkpoint(directory, specs, stride: int = 1, prior: str = "standard", seed: int = 0):
+def write_checkpoint(
+    directory,
+    specs,
+    stride: int = 1,
+    prior: str = "standard",
+    seed: int = 0,
+    partial_windows: bool | None = None,
+):
+    """A checkpoint of an untrained forecaster; ``partial_windows`` (``None``: no key, an older run)
+    is its run's ``data.partial_windows``."""
     torch.manual_seed(seed)
     model = build_model(
         {
@@ -51,6 +63,9 @@ def write_checkpoint(directory, specs, stride: int = 1, prior: str = "standard",
         HORIZON,
         TARGET_DIM,
     )
+    data_config = {"history": HISTORY, "horizon": HORIZON, "stride": stride}
+    if partial_windows is not None:
+        data_config["partial_windows"] = partial_windows
     save_checkpoint(
         directory,
         1,
@@ -58,7 +73,7 @@ def write_checkpoint(directory, specs, stride: int = 1, prior: str = "standard",
         tensors=make_stats(),
         meta={
             "model_config": saved_config("forecaster", model),
-            "config": {"data": {"history": HISTORY, "horizon": HORIZON, "stride": stride}},
+            "config": {"data": data_config},
         },
     )
     return directory
@@ -553,3 +568,46 @@ def test_per_step_presence_keeps_a_camera_through_the_first_steps_of_its_outage(
     assert torch.equal(
         history.window().get(keys.present_steps_key("image")), window.get(keys.present_steps_key("image"))
     )
+
+
+@pytest.mark.parametrize("partial_windows", [True, False, None])
+def test_a_transform_of_a_trained_run_counts_presence_as_the_run_was_trained(
+    recorded_steps, tmp_path, partial_windows, caplog
+):
+    """A run trained with ``data.partial_windows=true`` is served windows that keep the camera
+    through the first steps of its outage (per-step presence); one trained without (or before the
+    key existed) windows that lose it at once. No warning: nothing contradicts the training."""
+    path = write_checkpoint(tmp_path, PUSH_SPECS, partial_windows=partial_windows)
+    steps = with_outages(recorded_steps, 1)[:7]  # the camera dies at the last step
+    per_step = bool(partial_windows)
+    model, stats, data_config = load_trained_model(path)
+    history = HistoryWindow.for_model(model, stats, per_step_presence=per_step)
+    with caplog.at_level(logging.WARNING, logger="mmf_rl.rl"):
+        transforms = [
+            ForecastTransform.from_checkpoint(path),
+            LatchedForecastTransform.from_checkpoint(path),
+            LatchedForecastTransform.for_trained(model, stats, data_config),
+        ]
+    assert not caplog.records
+    for transform in [*transforms, history]:
+        assert transform.per_step_presence is per_step
+        replay(transform, steps)
+        window = transform.window()
+        assert window.get(keys.present_key("image")).tolist() == [per_step]
+        assert (keys.present_steps_key("image") in window.keys(True)) is per_step
+
+
+@pytest.mark.parametrize("partial_windows", [True, False])
+def test_an_explicit_presence_rule_overrides_the_run_and_warns_when_it_contradicts_it(
+    tmp_path, partial_windows, caplog
+):
+    path = write_checkpoint(tmp_path, PUSH_SPECS, partial_windows=partial_windows)
+    with caplog.at_level(logging.WARNING, logger="mmf_rl.rl"):
+        same = ForecastTransform.from_checkpoint(path, per_step_presence=partial_windows)
+    assert same.per_step_presence is partial_windows and not caplog.records
+    with caplog.at_level(logging.WARNING, logger="mmf_rl.rl"):
+        other = LatchedForecastTransform.from_checkpoint(path, per_step_presence=not partial_windows)
+    assert other.per_step_presence is (not partial_windows)
+    (record,) = caplog.records
+    assert f"per_step_presence={not partial_windows}" in record.getMessage()
+    assert f"data.partial_windows={partial_windows}" in record.getMessage()

@@ -1,6 +1,9 @@
 """`WorldModel`: forecasts and their spread in the target's units."""
 
+import json
+import logging
 import re
+import shutil
 
 import pytest
 import torch
@@ -67,3 +70,31 @@ def test_stats_without_the_action_statistics_are_named(push_world_model):
     del stats[f"{keys.FUTURE_ACTION}/mean"], stats[f"{keys.FUTURE_ACTION}/std"]
     with pytest.raises(KeyError, match=r"WorldModel: normalisation stats lack \['future_action/mean'"):
         WorldModel(push_world_model.model, stats)
+
+
+def retrained_with_partial_windows(run, directory):
+    """A copy of ``run``'s checkpoints whose data config says it was trained with
+    ``data.partial_windows=true`` (the weights do not depend on it)."""
+    copied = shutil.copytree(run / "checkpoints", directory / "checkpoints")
+    for meta_file in copied.glob("*/meta.json"):
+        meta = json.loads(meta_file.read_text())
+        meta["config"]["data"]["partial_windows"] = True
+        meta_file.write_text(json.dumps(meta))
+    return copied
+
+
+def test_the_history_window_counts_presence_as_the_run_was_trained(
+    push_world_model, push_world_model_run, tmp_path, caplog
+):
+    partial = retrained_with_partial_windows(push_world_model_run, tmp_path)
+    with caplog.at_level(logging.WARNING, logger="mmf_rl.rl"):
+        per_step = WorldModel.from_checkpoint(partial)
+    assert not caplog.records
+    assert per_step.per_step_presence and per_step.history_window().per_step_presence
+    assert not push_world_model.per_step_presence and not push_world_model.history_window().per_step_presence
+    with caplog.at_level(logging.WARNING, logger="mmf_rl.rl"):
+        overridden = WorldModel.from_checkpoint(partial, per_step_presence=False)
+    assert not overridden.history_window().per_step_presence
+    (record,) = caplog.records
+    assert "per_step_presence=False" in record.getMessage()
+    assert "data.partial_windows=True" in record.getMessage()
