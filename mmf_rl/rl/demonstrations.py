@@ -43,6 +43,7 @@ from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.rows import compute_on_rows
 from mmf_rl.record import ACTION_KEY, GOAL_KEY, OBJECT_POSE_KEY
+from mmf_rl.rl.transforms import trained_per_step_presence
 
 ACTION = "action"  # torchrl's action key: what a policy writes and `BCLoss` reads
 # The object's planar position is the first numbers (x, y) of its pose
@@ -263,14 +264,17 @@ class Demonstrations:
         history: int | None = None,
         stride: int | None = None,
         normalizer: Normalizer | None = None,
+        per_step_presence: bool = False,
     ) -> TensorDict:
         """The model window (``("obs", m)``, ``("present", m)``, batch ``[B]``) ending at ``frames``.
 
         Built by `HistoryWindow`'s rules: vectors normalised, a ``"sequence"``/``"image"``
         modality present only if present at every step (``"vector"``: the last), absent vector
-        windows zeroed. ``absent[m]`` (``bool [B]``) removes ``m`` from those samples, as an outage
-        would. ``specs``/``history``/``stride``/``normalizer`` default to the recording's (a
-        forecaster passes its own).
+        windows zeroed; with ``per_step_presence`` (a forecaster trained with
+        ``data.partial_windows``) present if present at one step at least, its absent steps zeroed
+        and marked in ``("present_steps", m)``. ``absent[m]`` (``bool [B]``) removes ``m`` from
+        those samples (every step), as a training outage does. ``specs``/``history``/``stride``/
+        ``normalizer`` default to the recording's (a forecaster passes its own).
         """
         specs = self.specs if specs is None else specs
         history = self.history if history is None else history
@@ -279,23 +283,34 @@ class Demonstrations:
         rows = self.rows(frames, history, stride)
         window = TensorDict(batch_size=[len(frames)])
         for spec in specs:
-            if spec.name not in self._obs or tuple(self._obs[spec.name].shape[1:]) != spec.shape:
-                cached = {n: list(o.shape[1:]) for n, o in self._obs.items()}
-                raise ValueError(
-                    f"demonstrations: the model reads {spec.name!r} ({spec.kind} {list(spec.shape)}) but the "
-                    f"recording's cache holds {cached}; build the demonstrations with the data config the "
-                    "model was trained on"
-                )
+            self._check_cached(spec)
             step_rows = rows if spec.kind != "vector" else rows[:, -1]
-            present = self._window_presence(spec, step_rows)
+            step_present = self._present[spec.name][step_rows]
+            present = step_present
+            if spec.kind != "vector":
+                present = step_present.any(1) if per_step_presence else step_present.all(1)
             if absent is not None and spec.name in absent:
                 present = present & ~absent[spec.name]
             values = self._obs[spec.name][step_rows]
+            if per_step_presence and spec.kind != "vector":
+                steps = step_present & present.unsqueeze(1)
+                values = keys.zero_absent_steps(values, steps)
+                window.set(keys.present_steps_key(spec.name), steps)
             if spec.kind != "image":
                 values = normalizer.normalize(spec.name, values) * present.view(-1, *[1] * (values.dim() - 1))
             window.set(spec.obs_key, values)
             window.set(spec.present_key, present)
         return window
+
+    def _check_cached(self, spec: ModalitySpec) -> None:
+        """Raise unless the recording's cache holds ``spec``'s modality with its shape."""
+        if spec.name not in self._obs or tuple(self._obs[spec.name].shape[1:]) != spec.shape:
+            cached = {n: list(o.shape[1:]) for n, o in self._obs.items()}
+            raise ValueError(
+                f"demonstrations: the model reads {spec.name!r} ({spec.kind} {list(spec.shape)}) but the "
+                f"recording's cache holds {cached}; build the demonstrations with the data config the "
+                "model was trained on"
+            )
 
     def batch(self, frames: torch.Tensor, absent: Mapping[str, torch.Tensor] | None = None) -> TensorDict:
         """A behaviour-cloning batch: ``"history"`` (the policy's window, `HistoryWindow`'s key),
@@ -321,12 +336,14 @@ class ForecastTable:
     ``loc``, ``scale``: ``float32 [N, 2**len(droppable), T, D]`` (``N`` cache rows; NaN for
     frames not computed), in the forecaster's normalised frame (what `ForecastTransform` writes
     with ``denormalize=False``); entry ``[f, i]`` was forecast with the modalities of
-    ``drop_sets(droppable)[i]`` removed.
+    ``drop_sets(droppable)[i]`` removed. ``per_step_presence``: the windows' presence rule
+    (`Demonstrations.window`), the forecaster's training one (`for_trained`).
     """
 
     loc: torch.Tensor
     scale: torch.Tensor
     droppable: tuple[str, ...]
+    per_step_presence: bool = False
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -373,11 +390,13 @@ class ForecastTable:
         splits: Sequence[str] = ("train", "val"),
         frames: torch.Tensor | None = None,
         batch_size: int = 256,
+        per_step_presence: bool = False,
     ) -> ForecastTable:
-        """Run ``forecaster`` (eval mode; normalisation ``stats`` and window ``stride`` of its run)
-        on the frames of ``splits`` (or the cache rows ``frames``), once per subset of ``droppable``
-        removed. A window left with no present modality gets the target's training prior (mean 0,
-        scale 1), as in `ForecastTransform`."""
+        """Run ``forecaster`` (eval mode; normalisation ``stats``, window ``stride`` and presence rule
+        ``per_step_presence`` of its run: `for_trained` reads them) on the frames of ``splits`` (or
+        the cache rows ``frames``), once per subset of ``droppable`` removed. A window left with no
+        present modality gets the target's training prior (mean 0, scale 1), as in
+        `ForecastTransform`."""
         config = forecaster.config
         if getattr(config, "action_dim", 0):
             raise ValueError(
@@ -409,6 +428,7 @@ class ForecastTable:
                     history=config.history,
                     stride=stride,
                     normalizer=normalizer,
+                    per_step_presence=per_step_presence,
                 )
                 valid = torch.stack([window.get(s.present_key) for s in config.modalities]).any(0)
                 prior = (
@@ -421,7 +441,35 @@ class ForecastTable:
                     return out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
 
                 loc[chunk, i], scale[chunk, i] = compute_on_rows(valid, predict, prior)
-        return cls(loc, scale, tuple(droppable))
+        return cls(loc, scale, tuple(droppable), per_step_presence)
+
+    @classmethod
+    def for_trained(
+        cls,
+        demonstrations: Demonstrations,
+        model: nn.Module,
+        stats: Mapping[str, torch.Tensor],
+        data_config: Mapping,
+        droppable: Sequence[str],
+        *,
+        per_step_presence: bool | None = None,
+        **options,
+    ) -> ForecastTable:
+        """`compute` for a trained forecaster (`load_trained_model`'s triple), with the window stride
+        and presence rule of its data config, as `ForecastTransform.for_trained` reads them (an
+        explicit ``per_step_presence`` overrides the rule, `trained_per_step_presence`);
+        ``options``: ``splits``, ``frames``, ``batch_size``."""
+        per_step_presence = trained_per_step_presence(data_config, per_step_presence, cls.__name__)
+        stride = int(data_config.get("stride", 1))
+        return cls.compute(
+            demonstrations,
+            model,
+            stats,
+            droppable,
+            stride=stride,
+            per_step_presence=per_step_presence,
+            **options,
+        )
 
     def extended(
         self,
@@ -434,7 +482,7 @@ class ForecastTable:
     ) -> ForecastTable:
         """This table of ``demonstrations``' first frames, with the forecasts of the frames added
         after them (`Demonstrations.with_episodes`) computed as `compute` computes them (same
-        ``forecaster``, ``stats``, ``stride``, outages)."""
+        ``forecaster``, ``stats``, ``stride``, outages, presence rule)."""
         n, total = len(self.loc), len(demonstrations.goal)
         if total < n:
             raise ValueError(
@@ -449,9 +497,13 @@ class ForecastTable:
             stride=stride,
             frames=torch.arange(n, total),
             batch_size=batch_size,
+            per_step_presence=self.per_step_presence,
         )
         return ForecastTable(
-            torch.cat([self.loc, added.loc[n:]]), torch.cat([self.scale, added.scale[n:]]), self.droppable
+            torch.cat([self.loc, added.loc[n:]]),
+            torch.cat([self.scale, added.scale[n:]]),
+            self.droppable,
+            self.per_step_presence,
         )
 
 

@@ -102,6 +102,56 @@ def test_offline_windows_and_forecasts_are_what_the_transforms_build_online(
             torch.testing.assert_close(out.get(keys.FORECAST_SCALE), forecasts.scale[episode[t], drop_index])
 
 
+def test_a_forecaster_trained_on_partial_windows_gets_them_offline_and_online(demonstrations, forecaster):
+    """For a forecaster trained with ``data.partial_windows=true``, an episode whose camera dies at
+    step 6 (added to the demonstrations) keeps the camera in the windows of the next H-1 steps,
+    and the table computed offline is what `bc_env`'s `ForecastTransform` serves online; a run
+    trained without partial windows loses the camera at once, offline and online alike."""
+    model, stats, data_config = forecaster
+    dies, h = 6, demonstrations.history
+    frames = demonstrations.split_frames["train"][: dies + h]
+    steps = recorded_steps(demonstrations, frames, image_absent=False)
+    for step in steps[dies:]:
+        step.get(keys.obs_key("image")).zero_()
+        step.set(keys.present_key("image"), torch.tensor(False))
+    episode = torch.stack(steps)
+    episode.set(GOAL, demonstrations.goal[frames])
+    episode.set("action", demonstrations.action[frames])
+    added = demonstrations.with_episodes([episode])
+    rows = torch.arange(len(demonstrations.goal), len(added.goal))
+    tables = {}
+    for partial in (True, False):
+        trained = {**data_config, "partial_windows": partial}
+        table = ForecastTable.for_trained(added, model, stats, trained, DROPPABLE, frames=rows)
+        online = ForecastTransform.for_trained(model, stats, trained, denormalize=False)
+        assert table.per_step_presence is online.per_step_presence is partial
+        served = [online.observe_reset(steps[0].clone())] + [
+            online.observe_step(s.clone()) for s in steps[1:]
+        ]
+        for t, out in enumerate(served):
+            torch.testing.assert_close(out.get(keys.FORECAST_LOC), table.loc[rows[t], 0])
+            torch.testing.assert_close(out.get(keys.FORECAST_SCALE), table.scale[rows[t], 0])
+        window = added.window(rows, specs=model.config.modalities, per_step_presence=partial)
+        assert window.get(keys.present_key("image"))[dies : dies + h - 1].all() == partial
+        tables[partial] = table.loc[rows, 0]
+    torch.testing.assert_close(tables[True][:dies], tables[False][:dies])  # the camera at every step
+    assert not torch.allclose(tables[True][dies], tables[False][dies])
+
+
+@pytest.mark.parametrize("partial_windows", [True, False])
+def test_bc_env_serves_forecasts_with_the_presence_rule_the_forecaster_was_trained_on(
+    demonstrations, forecasts, forecaster, partial_windows
+):
+    model, stats, data_config = forecaster
+    trained = (model, stats, {**data_config, "partial_windows": partial_windows})
+    env = bc_env(make_policy(demonstrations, forecasts), trained, IMAGE_SIZE, Condition("all", None, None), 0)
+    try:
+        (forecast,) = [t for t in env.transform if isinstance(t, ForecastTransform)]
+        assert forecast.per_step_presence is partial_windows
+    finally:
+        env.close()
+
+
 def test_dropout_draws_are_seeded_and_never_remove_every_sensor(demonstrations):
     def draws(seed):
         loader = DemonstrationLoader(
