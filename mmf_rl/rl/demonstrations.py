@@ -337,7 +337,10 @@ class ForecastTable:
     frames not computed), in the forecaster's normalised frame (what `ForecastTransform` writes
     with ``denormalize=False``); entry ``[f, i]`` was forecast with the modalities of
     ``drop_sets(droppable)[i]`` removed. ``per_step_presence``: the windows' presence rule
-    (`Demonstrations.window`), the forecaster's training one (`for_trained`).
+    (`Demonstrations.window`), the forecaster's training one (`for_trained`). A removal covers
+    every step of the window: with per-step presence, the forecasts a `ForecastTransform` makes
+    in the first H-1 steps of an env outage (a sensor that died mid-window, still present at its
+    earlier steps) have no entry here.
     """
 
     loc: torch.Tensor
