@@ -38,10 +38,10 @@ class EnsembleWorldModel:
     one encode per member per decision, one decode per member per batch of candidates.
 
     Members must read the same history window (modalities, history, stride, presence rule,
-    normalisation statistics within `STATS_TOLERANCE`), take the same actions (steps, dims) and forecast the
-    same target (horizon, dims), so one `HistoryWindow` serves all and the planner samples in one
-    action frame; and their encodings must stack (token count and width: the same model config).
-    Otherwise the constructor raises, naming the member and the difference.
+    normalisation statistics within `STATS_TOLERANCE`), take the same actions (steps, dims) and
+    forecast the same target (horizon, dims), so one `HistoryWindow` serves all and the planner
+    samples in one action frame; and their encodings must stack (token count and width: the same
+    model config). Otherwise the constructor raises, naming the member and the difference.
 
     Args:
         members: the world models, on one device.

@@ -84,13 +84,26 @@ def retrained_with_partial_windows(run, directory):
 
 
 def test_the_history_window_counts_presence_as_the_run_was_trained(
-    push_world_model, push_world_model_run, tmp_path, caplog
+    push_world_model, push_world_model_run, push_history_env, tmp_path, caplog
 ):
     partial = retrained_with_partial_windows(push_world_model_run, tmp_path)
     with caplog.at_level(logging.WARNING, logger="mmf_rl.rl"):
         per_step = WorldModel.from_checkpoint(partial)
     assert not caplog.records
-    assert per_step.per_step_presence and per_step.history_window().per_step_presence
+    history = per_step.history_window()
+    assert per_step.per_step_presence and history.per_step_presence
+    # It plans on the windows it writes: a camera lost at the last step stays present, masked there.
+    window = push_history_env.reset().get(keys.HISTORY).unsqueeze(0)
+    steps = torch.ones(1, per_step.model.config.history, dtype=torch.bool)
+    steps[:, -1] = False
+    for spec in per_step.modalities:
+        if spec.kind != "vector":
+            window.set(
+                keys.present_steps_key(spec.name), steps if spec.name == "image" else torch.ones_like(steps)
+            )
+    tokens, present, valid = per_step.encode(window)
+    assert valid.all() and present.any() and tokens.isfinite().all()
+    assert not torch.equal(tokens, push_world_model.encode(window.exclude(keys.PRESENT_STEPS))[0])
     assert not push_world_model.per_step_presence and not push_world_model.history_window().per_step_presence
     with caplog.at_level(logging.WARNING, logger="mmf_rl.rl"):
         overridden = WorldModel.from_checkpoint(partial, per_step_presence=False)
