@@ -492,7 +492,7 @@ def forecaster_and_demonstrations(args, phases: dict[str, float]):
         data_config = {**data_config, "root": str(args.data.resolve())}
     with timed_phase(phases, "forecast the demonstrations"):
         demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
-        table = ForecastTable.compute(demonstrations, model, stats, DROPPABLE, stride=forecaster.stride)
+        table = ForecastTable.for_trained(demonstrations, model, stats, data_config, DROPPABLE)
     return forecaster, demonstrations, table
 
 
