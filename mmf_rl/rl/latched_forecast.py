@@ -14,7 +14,6 @@ by default their precision-weighted mean), with its age, so a policy knows how o
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -26,7 +25,6 @@ from torchrl.data import Composite, Unbounded
 from mmf_rl import keys
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.envs.modality_dropout import reset_rows
-from mmf_rl.models.loading import load_trained_model
 from mmf_rl.rl.demonstrations import Demonstrations, ForecastTable
 from mmf_rl.rl.transforms import ForecastTransform, trained_per_step_presence
 
@@ -161,14 +159,6 @@ class LatchedForecastTransform(ForecastTransform):
                 + (" (the model has no image modality: name one)" if not latch_on else "")
             )
         return [names.index(name) for name in latch_on]
-
-    @classmethod
-    def from_checkpoint(
-        cls, path: str | os.PathLike, *, map_location: str | torch.device = "cpu", **options
-    ) -> LatchedForecastTransform:
-        """Load the model, stats, stride and target frame from a checkpoint (`for_trained`);
-        ``options``: ``latch_on``, ``rule``, ``denormalize``, ``trace``, ``per_step_presence``."""
-        return cls.for_trained(*load_trained_model(path, map_location), **options)
 
     @classmethod
     def for_trained(

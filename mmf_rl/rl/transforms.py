@@ -453,7 +453,9 @@ class ForecastTransform(_WindowTransform):
         cls, path: str | os.PathLike, *, map_location: str | torch.device = "cpu", **options
     ) -> ForecastTransform:
         """Load the model, its weights, normalisation stats and window stride from a checkpoint
-        (`for_trained`); ``options``: ``num_samples``, ``denormalize``, ``trace``, ``per_step_presence``.
+        (`for_trained`, a subclass's too: `LatchedForecastTransform` adds its target frame);
+        ``options``: ``num_samples``, ``denormalize``, ``trace``, ``per_step_presence`` (a subclass's:
+        also its own, e.g. ``latch_on``, ``rule``).
 
         ``path``: a checkpoint directory or a directory with a ``last`` pointer (a run's
         ``checkpoints/``).
