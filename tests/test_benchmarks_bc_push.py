@@ -52,20 +52,25 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     assert BCPolicy.from_checkpoint(work / with_run / "checkpoints").config.latched_forecast == latched
 
 
-def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
-    recorded_push_root, tmp_path, capsys
-):
-    work = tmp_path / "work"
+def tiny_dagger_argv(recorded_push_root, tmp_path, work) -> list[str]:
+    """`mmf-rl bench bc` with one DAgger round, at sizes that run in seconds."""
     tiny_forecaster = push_train_overrides(
         recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
     )
-    argv = [
+    return [
         *("bench", "bc", "--quick", "--work", str(work), "--data", str(recorded_push_root)),
         *("--forecaster-override", *tiny_forecaster),
         *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
         *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
         *("--episodes", "1", "--outage", "episode", "--dagger", "1", "--dagger-episodes", "1"),
     ]
+
+
+def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
+    recorded_push_root, tmp_path, capsys
+):
+    work = tmp_path / "work"
+    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
     assert cli(argv) == 0
     first = json.loads((work / "results.json").read_text())
     rows = first["dagger"]
@@ -98,16 +103,11 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
     recorded_push_root, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    tiny_forecaster = push_train_overrides(
-        recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
-    )
     argv = [
-        *("bench", "bc", "--quick", "--work", str(work), "--data", str(recorded_push_root)),
-        *("--forecaster-override", *tiny_forecaster),
-        *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
-        *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
-        *("--episodes", "1", "--outage", "episode", "--dagger", "1", "--dagger-episodes", "1"),
-        *("--privileged-object", "--variants", "without"),
+        *tiny_dagger_argv(recorded_push_root, tmp_path, work),
+        "--privileged-object",
+        "--variants",
+        "without",
     ]
     assert cli(argv) == 0
     last = capsys.readouterr().out.strip().splitlines()[-1]

@@ -26,7 +26,7 @@ from mmf_rl import keys
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.envs.modality_dropout import reset_rows
 from mmf_rl.rl.demonstrations import Demonstrations, ForecastTable
-from mmf_rl.rl.transforms import ForecastTransform, trained_per_step_presence
+from mmf_rl.rl.transforms import ForecastTransform
 
 # How a latched forecast and a fresh one (from the sensors left) are combined during an outage.
 RULES = ("latched", "fresh", "scale", "precision")
@@ -175,9 +175,15 @@ class LatchedForecastTransform(ForecastTransform):
         the env emits it) and per-step presence (``partial_windows``; an explicit
         ``per_step_presence`` overrides it, `trained_per_step_presence`) from its data config."""
         relative, reference = target_frame(data_config, model.config.target_dim)
-        stride = int(data_config.get("stride", 1))
-        options["per_step_presence"] = trained_per_step_presence(data_config, per_step_presence, cls.__name__)
-        return cls(model, stats, stride=stride, relative=relative, reference=reference, **options)
+        return super().for_trained(
+            model,
+            stats,
+            data_config,
+            per_step_presence=per_step_presence,
+            relative=relative,
+            reference=reference,
+            **options,
+        )
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         observation_spec = super().transform_observation_spec(observation_spec)
