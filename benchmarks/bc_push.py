@@ -46,8 +46,8 @@ the trainings):
   recording's, and the policies are trained again from scratch on the union, with the same
   budget and seed. Both variants so see the same data in every round. The episodes are kept
   (``WORK/dagger_markov_seed<S>_round<r>/episodes``, beside the round's policies; with
-  ``--latched-forecast``, ``--no-calibrate``, ``--privileged-object`` or some ``--variants``
-  only, the directory's name says so), so a re-run does not play them again (nor those of
+  ``--latched-forecast``, ``--no-calibrate``, ``--privileged-object``, ``--action-chunk`` or some
+  ``--variants`` only, the directory's name says so), so a re-run does not play them again (nor those of
   older runs, labelled by the stateful pusher). The results report each policy's success on
   its own DAgger episodes per round; the played conditions use the last round's policies.
   Cost of a round, per BC seed and variant: one more BC training of the first ones' budget
@@ -106,6 +106,12 @@ Design (what the policies see, and why):
   without forecasts (a policy told where the object is has little to gain from them; the other
   variant shows as ``-`` in the tables and the summary line; the camera-loss target is not judged,
   and the summary line counts it met for none of the outage types).
+* ``--action-chunk K`` (default 1): every policy (both variants, privileged ones too) predicts the
+  next K actions and acts with ACT's temporal ensemble of its past chunks
+  (`BCConfig.action_chunk`, `mmf_rl.rl.action_chunks`), trained on the next K recorded actions of
+  the episode (steps past its end masked out of the loss). With K > 1 its runs are its own
+  (``bc_chunk<K>_...``, ``dagger_markov_chunk<K>_...``; results in ``WORK/chunk<K>`` unless
+  ``--out``); the offline errors are those of each chunk's first action, comparable with K = 1.
 
 Every policy plays the same seeded episodes (episode ``i`` reset with seed ``--seed + i``;
 success is FetchPush's: the object within 5 cm of the goal within the 50-step time limit) under
@@ -279,18 +285,23 @@ def privileged_tag(args) -> str:
     return "_privileged" if args.privileged_object else ""
 
 
+def chunk_tag(args) -> str:
+    """In the names of the runs of action-chunk policies (k > 1): a run never resumes another k's."""
+    return f"_chunk{args.action_chunk}" if args.action_chunk > 1 else ""
+
+
 def dagger_dir(args, seed: int, round_: int) -> Path:
     """Round ``round_``'s episodes and policies of BC seed ``seed``: they depend on the policies of
     every variant played, so on the forecasts the ``with`` ones read."""
     played = "" if tuple(args.variants) == VARIANTS else "_" + "_".join(args.variants)
-    tags = f"_{EXPERT_NAME}{privileged_tag(args)}{played}{forecast_tag(args)}"
+    tags = f"_{EXPERT_NAME}{privileged_tag(args)}{chunk_tag(args)}{played}{forecast_tag(args)}"
     return args.work / f"dagger{tags}_seed{seed}_round{round_}"
 
 
 def policy_run_dir(args, variant: str, seed: int, round_: int) -> Path:
     if round_ == 0:
         tag = forecast_tag(args) if variant == "with" else ""
-        return args.work / f"bc{privileged_tag(args)}_{variant}{tag}_forecasts_seed{seed}"
+        return args.work / f"bc{privileged_tag(args)}{chunk_tag(args)}_{variant}{tag}_forecasts_seed{seed}"
     return dagger_dir(args, seed, round_) / f"bc_{variant}_forecasts"
 
 
@@ -311,6 +322,7 @@ def build_policy(args, variant: str, seed: int, round_: int, demonstrations, for
         privileged_object=args.privileged_object,
         d_model=args.bc_d_model,
         hidden=args.bc_hidden,
+        action_chunk=args.action_chunk,
     )
     dagger = f", DAgger round {round_}" if round_ else ""
     steps = config.total_steps
@@ -433,6 +445,14 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
         help="a diagnostic: the policies also read the object's true planar position (runs of their own)",
     )
     parser.add_argument(
+        "--action-chunk",
+        type=int,
+        default=1,
+        metavar="K",
+        help="every BC policy predicts the next K actions and acts with their temporal ensemble (ACT); "
+        "default 1: one action per step (runs of K > 1 are their own)",
+    )
+    parser.add_argument(
         "--variants",
         nargs="+",
         choices=list(VARIANTS),
@@ -459,11 +479,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_common_arguments(parser, "bc")
     add_training_arguments(parser)
     parsed = parser.parse_args(argv)
-    privileged_out = parsed.privileged_object and parsed.out is None
+    own_out = parsed.out is None and (parsed.privileged_object or parsed.action_chunk > 1)
     args = resolve_budget(parsed, BUDGETS, "bc")
     args.variants = [v for v in VARIANTS if v in args.variants]
-    if privileged_out:  # never over the results of the ordinary policies in the same work directory
-        args.out = args.work / "privileged"
+    if own_out:  # never over the results of the ordinary policies in the same work directory
+        args.out = args.work / (privileged_tag(args) + chunk_tag(args)).removeprefix("_")
+    if args.action_chunk < 1:
+        parser.error(f"--action-chunk must be >= 1, found {args.action_chunk}")
     if args.dagger < 0 or args.dagger_episodes < 1:
         parser.error(
             f"--dagger must be >= 0 and --dagger-episodes >= 1, found {args.dagger}, {args.dagger_episodes}"
@@ -539,6 +561,7 @@ def main(argv: list[str] | None = None) -> None:
         "validation_errors": errors,
         "forecaster_calibration": forecaster.calibration,
         "dagger": dagger_rows,
+        "action_chunk": args.action_chunk,
     }
     write_results(args, text, results, phases)
     print(text)
@@ -551,6 +574,7 @@ def budget_line(args, forecaster: Forecaster, recorded: Demonstrations) -> str:
         f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, BC seeds {args.bc_seeds}, "
         f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; "
         + (f"latched forecasts (rule {args.latched_forecast}); " if args.latched_forecast else "")
+        + (f"action chunks of {args.action_chunk}, temporal ensembling; " if args.action_chunk > 1 else "")
         + (
             f"policies {' and '.join(args.variants)} forecasts only; "
             if args.variants != list(VARIANTS)

@@ -28,6 +28,12 @@ config in ``meta.json``, the normalisation statistics beside them; resumable). T
 sensors at random per sample (``dropout``), so the policy has seen outages before it meets one;
 the policy that reads forecasts is trained on the forecasts made under the same outages.
 
+With ``action_chunk`` k > 1 (`BCConfig`; default 1, the per-step policy) the network predicts the
+next k actions (``"action_chunk"``), trained on the demonstrator's next k actions of the episode
+(`mmf_rl.rl.action_chunks.ActionChunkLoss`, the steps past the episode's end masked out), and the
+policy acts with ACT's temporal ensemble of its past chunks (`TemporalEnsemble`), whose state
+lives in the tensordict: `BCPolicy.transforms` then adds an `InitTracker` and the state's primer.
+
 In an env, the policy reads what its transforms write; put `ModalityDropout` before them::
 
     policy = BCPolicy.from_checkpoint("runs/bc/checkpoints")
@@ -48,6 +54,7 @@ from pathlib import Path
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
+from torchrl.envs import InitTracker
 from torchrl.modules import MLP
 from torchrl.objectives import BCLoss
 
@@ -58,6 +65,7 @@ from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.encoders import build_encoder
 from mmf_rl.models.rows import compute_on_rows
+from mmf_rl.rl.action_chunks import ACTION_CHUNK, ActionChunkLoss, TemporalEnsemble
 from mmf_rl.rl.demonstrations import (
     ACTION,
     OBJECT_PLANAR_DIMS,
@@ -89,7 +97,9 @@ class BCConfig:
     the policy also reads the object's true planar position (privileged state, never removed by an
     outage: a diagnostic of what limits the policy, not a policy to deploy); ``d_model``: size of
     each modality's embedding; ``hidden``, ``depth``: the MLP head's width and number of hidden
-    layers.
+    layers; ``action_chunk``: k, the actions predicted per step (1: one, the per-step policy;
+    k > 1: a chunk executed with temporal ensembling, `TemporalEnsemble`), ``chunk_decay``: the
+    ensemble's ``m`` (ACT's weights ``exp(-m·i)``, ``i = 0`` the oldest prediction).
     """
 
     modalities: list[ModalitySpec]
@@ -103,6 +113,8 @@ class BCConfig:
     d_model: int = 64
     hidden: int = 256
     depth: int = 2
+    action_chunk: int = 1
+    chunk_decay: float = 0.01
 
     def __post_init__(self):
         self.modalities = [
@@ -116,6 +128,11 @@ class BCConfig:
             raise ValueError(
                 f"BCConfig: latched_forecast must be one of {list(RULES)} or None, found "
                 f"{self.latched_forecast!r}"
+            )
+        if self.action_chunk < 1 or not self.chunk_decay >= 0:
+            raise ValueError(
+                f"BCConfig: action_chunk must be >= 1 and chunk_decay >= 0, found {self.action_chunk}, "
+                f"{self.chunk_decay}"
             )
 
     def to_dict(self) -> dict:
@@ -131,6 +148,8 @@ class BCConfig:
             "d_model": self.d_model,
             "hidden": self.hidden,
             "depth": self.depth,
+            "action_chunk": self.action_chunk,
+            "chunk_decay": self.chunk_decay,
         }
 
     @classmethod
@@ -157,7 +176,8 @@ class EncoderChoice:
 
 
 class BCNetwork(nn.Module):
-    """The policy's network on plain tensors, in `BCPolicy.in_keys` order; any leading batch shape."""
+    """The policy's network on plain tensors, in `BCPolicy.in_keys` order; any leading batch shape.
+    Returns the action ``[*B, A]``, or with ``action_chunk`` k > 1 the chunk ``[*B, k, A]``."""
 
     def __init__(self, config: BCConfig, stats: Mapping[str, torch.Tensor]):
         super().__init__()
@@ -174,7 +194,7 @@ class BCNetwork(nn.Module):
         inputs += OBJECT_PLANAR_DIMS if config.privileged_object else 0
         self.head = MLP(
             in_features=inputs,
-            out_features=config.action_dim,
+            out_features=config.action_dim * config.action_chunk,
             num_cells=[config.hidden] * config.depth,
             activation_class=nn.ReLU,
         )
@@ -214,11 +234,19 @@ class BCNetwork(nn.Module):
         if config.privileged_object:  # the last input
             position = inputs[-1].reshape(n, -1)[:, :OBJECT_PLANAR_DIMS]
             features.append((position - self.object_mean) / self.object_std)
-        return torch.tanh(self.head(torch.cat(features, -1))).reshape(*batch, config.action_dim)
+        actions = torch.tanh(self.head(torch.cat(features, -1)))
+        if config.action_chunk > 1:
+            return actions.reshape(*batch, config.action_chunk, config.action_dim)
+        return actions.reshape(*batch, config.action_dim)
 
 
 class BCPolicy(TensorDictModule):
     """A behaviour-cloning policy: observation (+ forecast) -> ``"action"`` (see the module doc).
+
+    ``in_keys``/``out_keys`` are its network's. With ``action_chunk`` k > 1 the network writes
+    ``"action_chunk"`` and the policy's `TemporalEnsemble` (``ensemble``) then writes ``"action"``
+    from it and its state (``ensemble.in_keys``/``out_keys``): the policy acts in an env with
+    `transforms`; `predictor` is the network alone, for batches of independent frames.
 
     Args:
         config: what it reads and its sizes.
@@ -241,9 +269,24 @@ class BCPolicy(TensorDictModule):
             in_keys.append(keys.FORECAST_AGE)
         if config.privileged_object:
             in_keys.append(OBJECT_POSE)
-        super().__init__(network, in_keys=in_keys, out_keys=[ACTION])
+        chunked = config.action_chunk > 1
+        super().__init__(network, in_keys=in_keys, out_keys=[ACTION_CHUNK if chunked else ACTION])
         self.config = config
         self.stats = {k: v.detach().float().clone() for k, v in stats.items()}
+        self.ensemble = (
+            TemporalEnsemble(config.action_chunk, config.action_dim, config.chunk_decay) if chunked else None
+        )
+
+    def forward(self, tensordict, *args, **kwargs):
+        tensordict = super().forward(tensordict, *args, **kwargs)
+        return tensordict if self.ensemble is None else self.ensemble(tensordict)
+
+    def predictor(self) -> TensorDictModule:
+        """The network alone, sharing this policy's weights: writes ``"action"`` (k = 1: the policy
+        itself) or the chunk ``"action_chunk"`` of each row of a batch, without the ensemble."""
+        if self.ensemble is None:
+            return self
+        return TensorDictModule(self.module, in_keys=self.in_keys, out_keys=self.out_keys)
 
     @classmethod
     def for_demonstrations(
@@ -257,7 +300,7 @@ class BCPolicy(TensorDictModule):
         """A policy for the windows, goal and action of ``demonstrations``; it reads forecasts of
         ``forecasts``' shape when given (and their age, from a `LatchedForecastTable`), and the
         object's position with ``privileged_object``. ``sizes``: `BCConfig` fields (``d_model``,
-        ``hidden``, ``depth``)."""
+        ``hidden``, ``depth``, ``action_chunk``, ``chunk_decay``)."""
         if privileged_object:
             demonstrations.check_object_pose("train")
         encoders = encoders or EncoderChoice()
@@ -283,7 +326,16 @@ class BCPolicy(TensorDictModule):
     def transforms(self, forecast: ForecastTransform | None = None) -> list:
         """The env transforms this policy reads from, in order: its `HistoryWindow`, then the
         forecaster's `ForecastTransform` (``denormalize=False``; a `LatchedForecastTransform` of the
-        policy's rule for one trained on latched forecasts) for a policy that reads forecasts."""
+        policy's rule for one trained on latched forecasts) for a policy that reads forecasts; for
+        an action-chunk policy, last, an `InitTracker` and its ensemble's state primer."""
+        return self._readers(forecast) + self._ensemble_transforms()
+
+    def _ensemble_transforms(self) -> list:
+        if self.ensemble is None:
+            return []
+        return [InitTracker(), self.ensemble.make_tensordict_primer()]
+
+    def _readers(self, forecast: ForecastTransform | None) -> list:
         wants = self.config.forecast_shape
         if (forecast is None) != (wants is None):
             raise ValueError(
@@ -367,11 +419,15 @@ def validation_errors(
     batch_size: int = 256,
 ) -> dict[str, float]:
     """Mean squared action error on ``split``, with all sensors (``mse_all``) and with each subset
-    of ``droppable`` removed from every sample (``mse_no_image``, ...); ``loss``: their mean."""
+    of ``droppable`` removed from every sample (``mse_no_image``, ...); ``loss``: their mean.
+    For an action-chunk policy, the error of the chunk's first action (the one it predicts for
+    now, as a per-step policy does: the two compare), from its network alone (`BCPolicy.predictor`:
+    no ensemble over past chunks, the frames being independent)."""
     if not len(demonstrations.split_frames[split]):
         raise ValueError(f"validation_errors: the {split!r} split has no demonstration frame")
     was_training = policy.training
     policy.eval()
+    predictor, chunked = policy.predictor(), policy.config.action_chunk > 1
     errors = {}
     for dropped in drop_sets(droppable):
         loader = DemonstrationLoader(
@@ -379,7 +435,8 @@ def validation_errors(
         )
         total, count = 0.0, 0
         for batch in loader:
-            predicted = policy(batch.exclude(ACTION)).get(ACTION)
+            predicted = predictor(batch.exclude(ACTION)).get(predictor.out_keys[0])
+            predicted = predicted[:, 0] if chunked else predicted
             total += float(((predicted - batch.get(ACTION)) ** 2).sum())
             count += batch.get(ACTION).numel()
         errors[f"mse_{_drop_label(dropped)}"] = total / count
@@ -439,21 +496,29 @@ def train_bc(
     logger=None,
     resume: bool = False,
 ) -> dict[str, float]:
-    """Clone the demonstrations' actions into ``policy`` (torchrl's `BCLoss`, mean squared error)
-    with the project's `Trainer`: ``config`` sets steps, batch size, optimiser, schedule, seed
-    (the batch order and the dropout draws), evaluation and checkpoints (under
-    ``run_dir/checkpoints``; ``resume`` continues the last one). ``dropout`` removes sensors per
-    sample (see `DemonstrationLoader`); ``forecasts`` must cover those outages when the policy
-    reads forecasts. Returns the last validation errors (`validation_errors`, ``val/`` prefix).
+    """Clone the demonstrations' actions into ``policy`` (torchrl's `BCLoss`, mean squared error;
+    an action-chunk policy: `ActionChunkLoss` on the next k actions) with the project's `Trainer`:
+    ``config`` sets steps, batch size, optimiser, schedule, seed (the batch order and the dropout
+    draws), evaluation and checkpoints (under ``run_dir/checkpoints``; ``resume`` continues the
+    last one). ``dropout`` removes sensors per sample (see `DemonstrationLoader`); ``forecasts``
+    must cover those outages when the policy reads forecasts. Returns the last validation errors
+    (`validation_errors`, ``val/`` prefix).
     """
     _check_training_inputs(policy, demonstrations, dropout, forecasts)
+    chunk = policy.config.action_chunk
     loader = DemonstrationLoader(
-        demonstrations, "train", config.batch_size, dropout=dropout, forecasts=forecasts, seed=config.seed
+        demonstrations,
+        "train",
+        config.batch_size,
+        dropout=dropout,
+        forecasts=forecasts,
+        action_chunk=chunk,
+        seed=config.seed,
     )
     with warnings.catch_warnings():
-        # torchrl 0.13 warns that BCLoss, which has no target network, declares none.
+        # torchrl 0.13 warns that a loss without a target network declares none.
         warnings.filterwarnings("ignore", message="The name target_actor_network_params")
-        loss = BCLoss(policy, loss_function="mse")
+        loss = BCLoss(policy, loss_function="mse") if chunk == 1 else ActionChunkLoss(policy.predictor())
 
     def evaluate(model: BCPolicy) -> dict[str, float]:
         errors = validation_errors(model, demonstrations, "val", list(dropout), forecasts)

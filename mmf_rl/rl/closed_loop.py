@@ -41,10 +41,13 @@ def push_env(
     image_size: int, sensor: str | None, outage: str | None, seed: int, readers: list[Transform]
 ) -> TransformedEnv:
     """The push env with ``sensor`` failing the ``outage`` way (seeded), then the transforms a
-    policy reads through (``readers``), then an `InitTracker` (the reference policies need it)."""
+    policy reads through (``readers``), then an `InitTracker` (the reference policies need it)
+    unless ``readers`` have one."""
     failing = [ModalityDropout([sensor], seed=seed, **OUTAGES[outage])] if sensor else []
+    tracked = any(isinstance(t, InitTracker) for t in readers)
     return TransformedEnv(
-        MultimodalPushTorchEnv(image_size=image_size), Compose(*failing, *readers, InitTracker())
+        MultimodalPushTorchEnv(image_size=image_size),
+        Compose(*failing, *readers, *([] if tracked else [InitTracker()])),
     )
 
 

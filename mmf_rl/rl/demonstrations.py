@@ -20,7 +20,8 @@ added episodes).
 
 `DemonstrationLoader` serves batches with the `WindowLoader` protocol (one epoch per iteration,
 deterministic given ``set_epoch``) for `mmf_rl.trainers.Trainer`, with seeded per-sample
-modality dropout.
+modality dropout, and for an action-chunk policy the demonstrator's next k actions of each
+frame's episode (`Demonstrations.action_chunks`).
 """
 
 from __future__ import annotations
@@ -46,6 +47,10 @@ from mmf_rl.record import ACTION_KEY, GOAL_KEY, OBJECT_POSE_KEY
 from mmf_rl.rl.transforms import trained_per_step_presence
 
 ACTION = "action"  # torchrl's action key: what a policy writes and `BCLoss` reads
+# An action-chunk policy's targets (`Demonstrations.action_chunks`): the demonstrator's next k
+# actions from a frame, ``[B, k, A]``, and whether each is in the frame's episode, ``[B, k]``.
+DEMONSTRATED_CHUNK = "demonstrated_chunk"
+DEMONSTRATED_CHUNK_MASK = "demonstrated_chunk_mask"
 # The object's planar position is the first numbers (x, y) of its pose
 # (`mmf_rl.envs.push.OBJECT_POSE_NAMES`); its normalisation statistics are named with this prefix.
 OBJECT_PLANAR_DIMS = 2
@@ -244,6 +249,19 @@ class Demonstrations:
         """The cache row of the first frame of each of ``frames``' episodes."""
         return self._episode_start[frames]
 
+    def action_chunks(self, frames: torch.Tensor, chunk: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The demonstrated actions at ``frames`` and the ``chunk - 1`` frames after each:
+        ``[B, chunk, A]``, and ``[B, chunk]`` whether each step is in the frame's episode with an
+        action. Steps past the episode's end (and frames without a finite action) are masked, and
+        hold zeros: nothing is invented for them."""
+        rows = frames[:, None] + torch.arange(chunk)
+        inside = rows.clamp(max=len(self.action) - 1)
+        same_episode = self._episode_start[inside] == self._episode_start[frames][:, None]
+        mask = (rows < len(self.action)) & same_episode
+        actions = self.action[inside]
+        mask &= torch.isfinite(actions).all(-1)
+        return torch.where(mask.unsqueeze(-1), actions, 0.0), mask
+
     def _window_presence(self, spec: ModalitySpec, step_rows: torch.Tensor) -> torch.Tensor:
         present = self._present[spec.name][step_rows]
         return present.all(1) if spec.kind != "vector" else present
@@ -312,10 +330,13 @@ class Demonstrations:
                 "model was trained on"
             )
 
-    def batch(self, frames: torch.Tensor, absent: Mapping[str, torch.Tensor] | None = None) -> TensorDict:
+    def batch(
+        self, frames: torch.Tensor, absent: Mapping[str, torch.Tensor] | None = None, action_chunk: int = 1
+    ) -> TensorDict:
         """A behaviour-cloning batch: ``"history"`` (the policy's window, `HistoryWindow`'s key),
         ``"goal"`` and ``"object_pose"`` (as the env emits them; the pose when the recording has
-        it) and ``"action"`` (the demonstrated command)."""
+        it) and ``"action"`` (the demonstrated command); with ``action_chunk`` k > 1, the next k
+        demonstrated actions and their mask too (`action_chunks`)."""
         batch = TensorDict(
             {
                 keys.HISTORY: self.window(frames, absent),
@@ -326,6 +347,9 @@ class Demonstrations:
         )
         if self.object_pose is not None:
             batch.set(OBJECT_POSE, self.object_pose[frames])
+        if action_chunk > 1:
+            actions, mask = self.action_chunks(frames, action_chunk)
+            batch.update({DEMONSTRATED_CHUNK: actions, DEMONSTRATED_CHUNK_MASK: mask})
         return batch
 
 
@@ -524,6 +548,8 @@ class DemonstrationLoader:
         forecasts: a `ForecastTable` covering the outages: batches then carry
             ``("forecast", "loc"/"scale")`` of the outage each sample is under (a
             `mmf_rl.rl.latched_forecast.LatchedForecastTable`: the latched forecast and its age).
+        action_chunk: k > 1: batches carry the next k demonstrated actions and their mask
+            (`Demonstrations.action_chunks`), an action-chunk policy's targets.
         shuffle: default: for ``"train"``; ``seed`` orders the epochs (``(seed, epoch)``).
         drop_last: default: when shuffled.
     """
@@ -537,14 +563,15 @@ class DemonstrationLoader:
         dropout: Mapping[str, float] | None = None,
         absent: Sequence[str] = (),
         forecasts: ForecastTable | None = None,
+        action_chunk: int = 1,
         shuffle: bool | None = None,
         seed: int = 0,
         drop_last: bool | None = None,
     ):
         if split not in SPLIT_NAMES:
             raise ValueError(f"unknown split {split!r}; expected one of {list(SPLIT_NAMES)}")
-        if batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, found {batch_size}")
+        if batch_size < 1 or action_chunk < 1:
+            raise ValueError(f"batch_size and action_chunk must be >= 1, found {batch_size}, {action_chunk}")
         names = [s.name for s in demonstrations.specs]
         dropout = dict(dropout or {})
         unknown = sorted((set(dropout) | set(absent)) - set(names))
@@ -556,6 +583,7 @@ class DemonstrationLoader:
             )
         self.demonstrations, self.split, self.batch_size = demonstrations, split, batch_size
         self.dropout, self.absent, self.forecasts = dropout, tuple(absent), forecasts
+        self.action_chunk = action_chunk
         self.shuffle = split == "train" if shuffle is None else shuffle
         self.drop_last = self.shuffle if drop_last is None else drop_last
         self.seed, self.epoch = seed, 0
@@ -592,7 +620,7 @@ class DemonstrationLoader:
         for first in range(0, stop, self.batch_size):
             chunk = frames[first : first + self.batch_size]
             absent = self._absent(chunk, generator)
-            batch = self.demonstrations.batch(chunk, absent)
+            batch = self.demonstrations.batch(chunk, absent, self.action_chunk)
             if self.forecasts is not None:
                 for key, value in self.forecasts.entries(chunk, absent, generator).items():
                     batch.set(key, value)
