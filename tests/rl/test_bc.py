@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs import Compose, InitTracker, TransformedEnv
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError
@@ -25,11 +26,15 @@ from mmf_rl.rl import (
     train_bc,
     validation_errors,
 )
+from mmf_rl.rl.action_chunks import ACTION_CHUNK, PAST_CHUNKS_FILLED
+from mmf_rl.rl.bc import BCConfig
 from mmf_rl.rl.bc_evaluation import bc_env
-from mmf_rl.rl.dagger import demonstration_frames, labelled_episodes
+from mmf_rl.rl.dagger import EXPERT_ACTION, demonstration_frames, labelled_episodes
+from mmf_rl.rl.demonstrations import DEMONSTRATED_CHUNK, DEMONSTRATED_CHUNK_MASK
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.outage_evaluation import Condition
 from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
+from tests.rl.test_action_chunks import act_ensemble
 
 IMAGE_SIZE = 32  # as recorded by `recorded_push_root`
 DROPPABLE = ("image", "force")
@@ -37,10 +42,17 @@ TINY = {"d_model": 16, "hidden": 32, "depth": 1}
 TINY_ENCODERS = EncoderChoice(image_channels=(8, 16))
 
 
-def make_policy(demonstrations, forecasts=None, seed: int = 0, privileged_object: bool = False) -> BCPolicy:
+def make_policy(
+    demonstrations, forecasts=None, seed: int = 0, privileged_object: bool = False, **options
+) -> BCPolicy:
     seed_everything(seed)
     return BCPolicy.for_demonstrations(
-        demonstrations, forecasts, encoders=TINY_ENCODERS, privileged_object=privileged_object, **TINY
+        demonstrations,
+        forecasts,
+        encoders=TINY_ENCODERS,
+        privileged_object=privileged_object,
+        **TINY,
+        **options,
     )
 
 
@@ -481,3 +493,111 @@ def test_a_privileged_policy_refuses_frames_without_the_object_pose(demonstratio
     config = TrainerConfig(total_steps=1, progress_bar=False)
     with pytest.raises(ValueError, match="'train' frames have no object pose"):
         train_bc(make_policy(demonstrations, privileged_object=True), aggregated, config, run_dir=tmp_path)
+
+
+# -- action chunks with temporal ensembling ----------------------------------------------------------
+
+TINY_TRAINING = TrainerConfig(
+    total_steps=4, batch_size=16, eval_every=4, checkpoint_every=4, progress_bar=False
+)
+
+
+def test_chunk_targets_are_the_next_actions_of_the_episode_masked_past_its_end(demonstrations):
+    k = 4
+    frames = demonstrations.split_frames["train"]
+    first_episode = frames[demonstrations.episode_start(frames) == demonstrations.episode_start(frames[:1])]
+    last = int(first_episode.max())
+    assert int(demonstrations.episode_start(torch.tensor([last + 1]))) == last + 1, "another episode follows"
+    queried = torch.arange(last - 5, last + 1)
+    actions, mask = demonstrations.action_chunks(queried, k)
+    assert actions.shape == (6, k, demonstrations.action_dim) and mask.shape == (6, k)
+    for b, frame in enumerate(queried.tolist()):
+        for i in range(k):
+            inside = frame + i <= last
+            assert bool(mask[b, i]) == inside
+            expected = demonstrations.action[frame + i] if inside else torch.zeros(demonstrations.action_dim)
+            torch.testing.assert_close(actions[b, i], expected)
+    assert mask[-1].tolist() == [True, False, False, False]
+
+    chunked = next(iter(DemonstrationLoader(demonstrations, "train", 8, action_chunk=k, shuffle=False)))
+    torch.testing.assert_close(chunked.get(DEMONSTRATED_CHUNK)[:, 0], chunked.get("action"))
+    assert chunked.get(DEMONSTRATED_CHUNK_MASK)[:, 0].all()
+    plain = next(iter(DemonstrationLoader(demonstrations, "train", 8, shuffle=False)))
+    assert DEMONSTRATED_CHUNK not in plain.keys() and DEMONSTRATED_CHUNK_MASK not in plain.keys()
+
+
+def test_one_action_per_step_is_the_policy_of_a_config_without_chunks(demonstrations, tmp_path):
+    """k = 1 (the default) builds, acts and trains bit for bit as a config written before chunks
+    existed: same weights, outputs, transforms and training."""
+    explicit = make_policy(demonstrations, seed=7, action_chunk=1, chunk_decay=0.01)
+    old = explicit.config.to_dict()
+    del old["action_chunk"], old["chunk_decay"]
+    seed_everything(7)
+    before = BCPolicy(BCConfig.from_dict(old), demonstrations.normalizer.stats)
+    assert before.config == explicit.config and before.out_keys == explicit.out_keys == ["action"]
+    assert explicit.ensemble is None and explicit.predictor() is explicit
+    assert [type(t) for t in explicit.transforms()] == [HistoryWindow]
+    mine, theirs = explicit.state_dict(), before.state_dict()
+    assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine)
+    batch = demonstrations.batch(demonstrations.split_frames["val"][:4])
+    acted = [policy.eval()(batch.clone()).get("action") for policy in (explicit, before)]
+    assert torch.equal(*acted)
+    metrics = [
+        train_bc(policy.train(), demonstrations, TINY_TRAINING, run_dir=tmp_path / name)
+        for name, policy in (("explicit", explicit), ("before", before))
+    ]
+    assert metrics[0] == metrics[1]
+    assert all(torch.equal(v, before.state_dict()[k]) for k, v in explicit.state_dict().items())
+
+
+def test_a_chunk_policy_trains_acts_with_the_ensemble_in_bc_env_and_its_dagger_frames_give_chunks(
+    demonstrations, forecasts, forecaster, tmp_path
+):
+    k = 4
+    policy = make_policy(demonstrations, forecasts, action_chunk=k)
+    assert policy.out_keys == [ACTION_CHUNK] and policy.ensemble.chunk == k
+    metrics = train_bc(policy, demonstrations, TINY_TRAINING, forecasts=forecasts, run_dir=tmp_path)
+    assert all(torch.isfinite(torch.tensor(v)) for v in metrics.values())
+    loaded = BCPolicy.from_checkpoint(tmp_path / "checkpoints")
+    env = bc_env(loaded, forecaster, IMAGE_SIZE, Condition("bursts", "image", "bursts"), seed=0)
+    try:
+        assert sum(isinstance(t, InitTracker) for t in env.transform) == 1
+        ((rollout, _),) = list(labelled_episodes(env, loaded, 1, seed=0, max_steps=12))
+    finally:
+        env.close()
+    steps = rollout.shape[0]
+    assert rollout.get("is_init").squeeze(-1).tolist() == [True] + [False] * (steps - 1)
+    filled = rollout.get(PAST_CHUNKS_FILLED).sum(-1)
+    assert filled.tolist() == [min(t, k - 1) for t in range(steps)]  # empty at the reset, then fills
+    chunks = rollout.get(ACTION_CHUNK)
+    assert chunks.shape == (steps, k, 4)
+    torch.testing.assert_close(rollout.get("action"), torch.stack(act_ensemble(list(chunks), 0.01)))
+
+    # DAgger: the expert's per-step labels along the learner's trajectory are its chunk targets.
+    aggregated = demonstrations.with_episodes([demonstration_frames(rollout, demonstrations.specs)])
+    played = torch.arange(len(demonstrations.goal), len(aggregated.goal))
+    actions, mask = aggregated.action_chunks(played, k)
+    expert = rollout.get(EXPERT_ACTION)
+    torch.testing.assert_close(actions[0], expert[:k])
+    assert mask[: steps - k + 1].all() and mask[-1].tolist() == [True, False, False, False]
+
+
+def test_a_chunk_policy_round_trips_its_checkpoint_and_is_scored_on_its_first_action(
+    demonstrations, tmp_path
+):
+    policy = make_policy(demonstrations, seed=2, action_chunk=3, chunk_decay=0.05).eval()
+    assert BCConfig.from_dict(policy.config.to_dict()) == policy.config
+    loaded = BCPolicy.from_checkpoint(policy.save(tmp_path / "policy"))
+    assert loaded.config == policy.config and loaded.config.action_chunk == 3
+    assert loaded.ensemble.decay == 0.05 and loaded.state_dict().keys() == policy.state_dict().keys()
+    frames = demonstrations.split_frames["val"]
+    batch = demonstrations.batch(frames)
+    with torch.no_grad():
+        chunk = loaded.predictor()(batch.exclude("action")).get(ACTION_CHUNK)
+        torch.testing.assert_close(chunk, policy.predictor()(batch.exclude("action")).get(ACTION_CHUNK))
+    assert chunk.shape == (len(frames), 3, demonstrations.action_dim)
+    errors = validation_errors(loaded, demonstrations, "val", droppable=())
+    first = ((chunk[:, 0] - batch.get("action")) ** 2).mean().item()
+    assert errors["mse_all"] == pytest.approx(first, rel=1e-5)
+    with pytest.raises(ValueError, match="action_chunk must be >= 1"):
+        replace(policy.config, action_chunk=0)
