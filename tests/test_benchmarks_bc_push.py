@@ -46,6 +46,7 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     }
     assert set(results["rows"]) == expected
     assert set(results["validation_errors"]) == {"without", "with"}
+    assert results["action_chunk"] == 1
     with_run = f"bc_with_latched_{latched}_forecasts_seed0" if latched else "bc_with_forecasts_seed0"
     for run in ("bc_without_forecasts_seed0", with_run):
         assert (work / run / "checkpoints" / "last").is_file()
@@ -131,3 +132,27 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
     ):
         assert BCPolicy.from_checkpoint(work / run / "checkpoints").config.privileged_object
     assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
+
+
+def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(recorded_push_root, tmp_path, capsys):
+    work = tmp_path / "work"
+    assert cli([*tiny_dagger_argv(recorded_push_root, tmp_path, work), "--action-chunk", "2"]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    pct = r"\d+%/\d+%"
+    assert re.fullmatch(
+        rf"summary: BC success all {pct}, no-camera {pct}, no-force {pct} \(without/with forecasts\); "
+        r"camera loss without/with forecasts episode -?\d+/-?\d+ pts "
+        r"\(target with <= without/2: met for [01] of 1 outage types\)",
+        last,
+    ), last
+    assert not (work / "results.json").exists(), "the per-step policies' results are left alone"
+    assert json.loads((work / "chunk2" / "results.json").read_text())["action_chunk"] == 2
+    for run in (
+        "bc_chunk2_without_forecasts_seed0",
+        "bc_chunk2_with_forecasts_seed0",
+        "dagger_markov_chunk2_seed0_round1/bc_without_forecasts",
+        "dagger_markov_chunk2_seed0_round1/bc_with_forecasts",
+    ):
+        assert BCPolicy.from_checkpoint(work / run / "checkpoints").config.action_chunk == 2, run
+    assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
+    assert not (work / "dagger_markov_seed0_round1").exists()
