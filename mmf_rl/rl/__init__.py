@@ -5,7 +5,8 @@ recorder records with (`PushMPCAgent`), and behaviour cloning from recorded demo
 forecast as a policy input. What the push experiments (``benchmarks/mpc_push.py``, ``benchmarks/bc_push.py``)
 build on lives in the submodules: closed-loop play under sensor outages (`closed_loop`,
 `outage_evaluation`, `mpc_evaluation`, `bc_evaluation`), data aggregation (`aggregation`), DAgger
-(`dagger`) and their shared command-line pieces (`experiment`)."""
+(`dagger`), action chunks with temporal ensembling for BC (`action_chunks`) and their shared
+command-line pieces (`experiment`)."""
 
 from mmf_rl.rl.agent import MPCActor, PushMPCAgent
 from mmf_rl.rl.bc import DEFAULT_DROPOUT, BCConfig, BCPolicy, EncoderChoice, train_bc, validation_errors

@@ -278,6 +278,7 @@ class BCPolicy(TensorDictModule):
         )
 
     def forward(self, tensordict, *args, **kwargs):
+        """The network's output; with action chunks, then the ensemble's action (`TemporalEnsemble`)."""
         tensordict = super().forward(tensordict, *args, **kwargs)
         return tensordict if self.ensemble is None else self.ensemble(tensordict)
 
