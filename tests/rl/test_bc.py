@@ -8,7 +8,8 @@ from dataclasses import replace
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.envs import Compose, InitTracker, TransformedEnv
+from torchrl.envs import Compose, InitTracker, SerialEnv, TransformedEnv
+from torchrl.envs.utils import step_mdp
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError
@@ -26,7 +27,7 @@ from mmf_rl.rl import (
     train_bc,
     validation_errors,
 )
-from mmf_rl.rl.action_chunks import ACTION_CHUNK, PAST_CHUNKS_FILLED
+from mmf_rl.rl.action_chunks import ACTION_CHUNK, PAST_CHUNKS, PAST_CHUNKS_FILLED
 from mmf_rl.rl.bc import BCConfig
 from mmf_rl.rl.bc_evaluation import bc_env
 from mmf_rl.rl.dagger import EXPERT_ACTION, demonstration_frames, labelled_episodes
@@ -580,6 +581,31 @@ def test_a_chunk_policy_trains_acts_with_the_ensemble_in_bc_env_and_its_dagger_f
     expert = rollout.get(EXPERT_ACTION)
     torch.testing.assert_close(actions[0], expert[:k])
     assert mask[: steps - k + 1].all() and mask[-1].tolist() == [True, False, False, False]
+
+
+def test_in_a_batch_of_two_envs_a_reset_clears_the_past_chunks_of_that_env_only(demonstrations):
+    policy = make_policy(demonstrations, action_chunk=3).eval()
+    env = TransformedEnv(
+        SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)), Compose(*policy.transforms())
+    )
+    try:
+        env.set_seed(0)
+        with torch.no_grad():
+            state = env.reset()
+            for _ in range(3):
+                state = step_mdp(env.step(policy(state)))
+            assert state.get(PAST_CHUNKS_FILLED).tolist() == [[1, 1], [1, 1]]
+            kept = state.get(PAST_CHUNKS)[0].clone()
+            state.set("_reset", torch.tensor([[False], [True]]))
+            state = env.reset(state)
+            assert state.get("is_init").squeeze(-1).tolist() == [False, True]
+            assert state.get(PAST_CHUNKS_FILLED).tolist() == [[1, 1], [0, 0]]
+            torch.testing.assert_close(state.get(PAST_CHUNKS)[0], kept)
+            acted = policy(state)
+            assert acted.get(("next", PAST_CHUNKS_FILLED)).tolist() == [[1, 1], [1, 0]]
+            torch.testing.assert_close(acted.get("action")[1], acted.get(ACTION_CHUNK)[1, 0])
+    finally:
+        env.close()
 
 
 def test_a_chunk_policy_round_trips_its_checkpoint_and_is_scored_on_its_first_action(
