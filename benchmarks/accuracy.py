@@ -27,7 +27,8 @@ Entries (``ENTRIES``; a new model option is one line there):
   per-frame image encoder (``conv_gru``), to tell the image encoder from the fusion.
 
 The dataset is recorded if ``--data`` does not exist (the mode's episode count x 50 steps at 64x64).
-Completed runs are reused: an interrupted benchmark resumes (delete ``--out`` to start over). Writes
+Completed runs are reused: an interrupted benchmark resumes (delete ``--out`` to start over); a completed
+run of other steps or batch size is refused (the report says every model trained with one budget). Writes
 ``<out>/results.md`` and ``<out>/results.json`` and ends with one line:
 ``summary: paper model best or tied in X/Y subsets (zero-fill baselines), R/3 paper subsets vs
 retrained; fusion spread S; mean degradation paper P%, best baseline Q%`` (``-`` where the run
@@ -307,7 +308,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     retrained_for = None if args.budget.retrained_subsets == "all" else PAPER_SUBSETS
     study = script.push_study(args, ENTRIES, MODALITIES, retrained_for=retrained_for)
-    script.check_study(study, "accuracy benchmark", refuse_other_budgets=False)
+    script.check_study(study, "accuracy benchmark")
     outcome = script.run_study(study, script.PushRecording(args.data, args.budget.episodes))
     collected = outcome.collected
     names = [name for name, _ in subsets(MODALITIES)]
