@@ -28,7 +28,10 @@ Entries (``ENTRIES``; a new model option is one line there):
 
 The dataset is recorded if ``--data`` does not exist (the mode's episode count x 50 steps at 64x64).
 Completed runs are reused: an interrupted benchmark resumes (delete ``--out`` to start over); a completed
-run of other steps or batch size is refused (the report says every model trained with one budget). Writes
+run of other steps or batch size is refused (the report says every model trained with one budget). A run
+lives in ``<out>/<the entry's label as a slug>/seed<k>``, so an entry whose label changes is trained again:
+move the old directory to keep its runs (``paper_gru_vector_encoders__issue__6`` is now
+``paper__gru_vector_encoders``). Writes
 ``<out>/results.md`` and ``<out>/results.json`` and ends with one line:
 ``summary: paper model best or tied in X/Y subsets (zero-fill baselines), R/3 paper subsets vs
 retrained; fusion spread S; mean degradation paper P%, best baseline Q%`` (``-`` where the run
@@ -111,7 +114,7 @@ ENTRIES = [
     Entry(
         "paper prior=learned, degraded NLL 1.0", "variant", (*PAPER, *LEARNED, "loss.dropped_nll_weight=1.0")
     ),
-    Entry("paper GRU vector encoders (issue #6)", "variant", (*PAPER, *GRU_VECTORS)),
+    Entry("paper, GRU vector encoders", "variant", (*PAPER, *GRU_VECTORS)),
     Entry("paper, drop 1..M-1", "variant", (*PAPER, "loss.max_dropped=null")),
     # The fusion on every test forecast: the decoder reads the multimodal encoder's mixed tokens, or
     # decodes at q(z|X)'s mean (eqs. 10 and 15); and tokens per step instead of one per modality.
