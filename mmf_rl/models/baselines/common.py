@@ -67,8 +67,12 @@ class BaselineConfig:
             raise ValueError(f"{name}.nonfinite must be one of {NONFINITE_RULES}, found {self.nonfinite!r}")
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.type in ("int", int) and value < 1:
-                raise ValueError(f"{name}.{f.name} must be >= 1, found {value}")
+            if f.type in ("int", int) and (not isinstance(value, int) or value < 1):
+                raise ValueError(f"{name}.{f.name} must be an integer >= 1, found {value!r}")
+        if not self.min_scale > 0:
+            raise ValueError(
+                f"{name}.min_scale must be > 0 (the floor of every forecast scale), found {self.min_scale!r}"
+            )
 
     def to_dict(self) -> dict:
         d = asdict(self)
