@@ -250,9 +250,7 @@ def markdown(
     intervals = report.episode_intervals_text(info["test_episodes"])
     return (
         header(budget, mode, info)
-        + report.results_sections(
-            table, collected, comparisons, push_subset_title, intervals, reference, "Issue #13's target"
-        )
+        + report.results_sections(table, collected, comparisons, push_subset_title, intervals, reference)
         + report.run_time_section(info["cache_seconds"], measured)
         + projections_text(measured)
     )
