@@ -85,15 +85,9 @@ def check_encoder(modality: str, encoder: str, kind: str | None) -> EncoderEntry
     raise ValueError(f"{what}: encoder {encoder!r} is not available; expected one of {expected}{hint}")
 
 
-def mlp(in_dim: int, hidden_dim: int, out_dim: int, num_layers: int = 2) -> nn.Sequential:
-    """``num_layers`` linear layers with ReLU between them (the paper's MLP blocks)."""
-    dims = [in_dim] + [hidden_dim] * (num_layers - 1) + [out_dim]
-    layers: list[nn.Module] = []
-    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:], strict=True)):
-        layers.append(nn.Linear(a, b))
-        if i < num_layers - 1:
-            layers.append(nn.ReLU())
-    return nn.Sequential(*layers)
+def mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
+    """Two linear layers with a ReLU between them (the paper's MLP blocks)."""
+    return nn.Sequential(nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, out_dim))
 
 
 def _conv_trunk(in_channels: int, channels: tuple[int, ...]) -> nn.Sequential:
