@@ -123,6 +123,13 @@ def moment_match(loc: torch.Tensor, scale: torch.Tensor, draws: int) -> tuple[to
     return loc.mean(0), variance.sqrt()
 
 
+def latent_gaussian(raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A latent head's output ``[N, 2 d_z]`` -> ``loc``, ``scale`` ``[N, d_z]``: softplus plus a small
+    floor, so that no scale reaches 0 and the KL terms stay finite."""
+    loc, raw_scale = raw.chunk(2, dim=-1)
+    return loc, F.softplus(raw_scale) + 1e-4
+
+
 class ModalitySpecificDecoder(nn.Module):
     """The paper's decoder: tokens, presence and ``z`` -> Gaussian parameters over ``T × D``."""
 
@@ -454,15 +461,13 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                     "forecast needs no target; in training it does)"
                 )
             features = torch.cat([features, self.target_encoder(target.flatten(1))], dim=-1)
-        loc, raw_scale = self.posterior_head(features).chunk(2, dim=-1)
-        return loc, F.softplus(raw_scale) + 1e-4
+        return latent_gaussian(self.posterior_head(features))
 
     def _prior_from(self, features: torch.Tensor | None, rows: int, device: torch.device):
         if self.prior_head is None:
             loc = torch.zeros(rows, self.config.d_latent, device=device)
             return loc, torch.ones_like(loc)
-        loc, raw_scale = self.prior_head(features).chunk(2, dim=-1)
-        return loc, F.softplus(raw_scale) + 1e-4
+        return latent_gaussian(self.prior_head(features))
 
     def decode(
         self, tokens: torch.Tensor, present: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None = None
