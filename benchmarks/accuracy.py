@@ -22,9 +22,9 @@ Entries (``ENTRIES``; a new model option is one line there):
     modalities present (``+data.missing.<m>=1.0`` for the others); its ``all`` cell is the model
     trained on all modalities.
 * Ablations of the paper's model: ``linear``, ``average``, ``sum``, ``cross_attention`` fusion
-  (Table 4), also under the learned prior (``learned fusion``: only there does the fusion act at test
-  time); without ``L_mis`` and with 50 % of the images missing in training (Table 5); the baselines'
-  per-frame image encoder (``conv_gru``), to tell the image encoder from the fusion.
+  (Table 4), also under the learned prior (``learned fusion``: there the fusion also gives the latent a
+  test forecast decodes); without ``L_mis`` and with 50 % of the images missing in training (Table 5);
+  the baselines' per-frame image encoder (``conv_gru``), to tell the image encoder from the fusion.
 
 The dataset is recorded if ``--data`` does not exist (the mode's episode count x 50 steps at 64x64).
 Completed runs are reused: an interrupted benchmark resumes (delete ``--out`` to start over); a completed

@@ -220,7 +220,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.modalities = list(config.modalities)
         d = config.d_model
         self.encoders = nn.ModuleDict({s.name: build_encoder(s, config.history, d) for s in self.modalities})
-        # Built in this order: the order parameters are created in fixes a seed's initial weights.
+        # Keep this order: parameters draw their initial values in creation order, so a reorder changes
+        # a seed's initial weights.
         encoder_shape = self._register_token_layout()
         self._build_latent_heads(encoder_shape)
         self._build_decoder(encoder_shape)
