@@ -31,7 +31,9 @@ stretches of motion, not over episodes or recordings. results.md says which was 
 test episodes, windows and blocks there are.
 
 Completed runs (``<out>/<entry>/seed<k>/eval/window_errors.json``) are reused, so an interrupted
-benchmark resumes; a reused run trained with other steps or batch size is refused. Writes
+benchmark resumes; a reused run trained with other steps or batch size is refused. An entry whose label
+changes is trained again under its new directory: move the old one to keep its runs
+(``paper_gru_vector_encoders__issue__6`` is now ``paper__gru_vector_encoders``). Writes
 ``<out>/results.md`` and ``<out>/results.json`` and ends with one line:
 ``summary: all sensors paper MSE A vs best baseline B (NAME): paper/best = R (target <= 1.05); mean
 degradation without a sensor paper P%, best baseline Q%`` (``-`` where the run lacks what a number
@@ -96,9 +98,7 @@ ENTRIES = [
         "variant",
         (*DATA, SENSOR_FEATURES, "model=forecaster", "model.prior=learned"),
     ),
-    Entry(
-        "paper GRU vector encoders (issue #6)", "variant", (*DATA, SENSOR_FEATURES_GRU, "model=forecaster")
-    ),
+    Entry("paper, GRU vector encoders", "variant", (*DATA, SENSOR_FEATURES_GRU, "model=forecaster")),
     Entry(
         "paper, mixed tokens, per-frame camera tokens",
         "variant",
@@ -170,7 +170,7 @@ def target_text(summary: dict) -> str:
     ratio = summary["paper_over_best"]
     paper_deg = summary["paper_mean_degradation_without_a_sensor"]
     baseline_deg = summary["best_baseline_mean_degradation_without_a_sensor"]
-    text = "## Target (issue #13)\n\n"
+    text = "## Target\n\n"
     if ratio is None:
         return text + "No baseline in this run: the target cannot be judged.\n\n"
     text += (

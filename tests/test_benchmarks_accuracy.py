@@ -53,3 +53,14 @@ def test_unknown_entries_are_refused_before_anything_runs(tmp_path):
     run = accuracy("--entries", "paper", "LF-LSMT", "--out", str(tmp_path / "out"), cwd=tmp_path)
     assert run.returncode == 2 and "--entries: unknown ['LF-LSMT']" in run.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_runs_of_another_budget_are_refused_before_anything_runs(tmp_path):
+    out = tmp_path / "out"
+    stale = out / "paper" / "seed0" / "eval" / "window_errors.json"
+    stale.parent.mkdir(parents=True)
+    stale.write_text(json.dumps({"steps": 3, "batch_size": 8}))
+    argv = ["--tiny", "--entries", "paper", "--seeds", "0", "--steps", "2"]
+    run = accuracy(*argv, "--data", str(tmp_path / "push"), "--out", str(out), cwd=tmp_path)
+    assert run.returncode == 1 and "holds runs of another budget than 2 steps of batch 8" in run.stderr
+    assert not (tmp_path / "push").exists()  # refused before recording

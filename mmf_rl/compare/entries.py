@@ -77,8 +77,8 @@ FUSION_ABLATIONS = tuple(
     Entry(f"paper fusion={fusion}", "fusion", ("model=forecaster", f"model.fusion={fusion}"))
     for fusion in FUSIONS
 )
-# Under the standard prior a forecast is decoded at z = 0 and the fusion only shapes training; under the
-# learned prior it gives p(z|X), so only there does the fusion act at test time.
+# Under the learned prior the fusion also gives p(z|X), the latent a test forecast decodes: these rows
+# compare the fusions there too.
 LEARNED_FUSION_ABLATIONS = tuple(
     Entry(
         f"paper prior=learned, fusion={fusion}",

@@ -136,14 +136,12 @@ def kl_section(kl: dict[str, float | None]) -> str:
     )
 
 
-def coverage_section(
-    coverage: dict[str, tuple[dict[str, float], bool]], table: Table, title: Title, target_name: str
-) -> str:
+def coverage_section(coverage: dict[str, tuple[dict[str, float], bool]], table: Table, title: Title) -> str:
     if not coverage:
         return ""
     return (
         "## Calibration: 90% interval coverage on test (mean over seeds)\n\n"
-        f"{target_name}: {COVERAGE_TARGET[0]:.2f}-{COVERAGE_TARGET[1]:.2f} in every subset. The "
+        f"Target: {COVERAGE_TARGET[0]:.2f}-{COVERAGE_TARGET[1]:.2f} in every subset. The "
         "paper model and its variants are scored at their eval latent (default: the prior's mean).\n\n"
         + coverage_table(coverage, table.subsets, title)
         + "\n\n"
@@ -199,7 +197,6 @@ def results_sections(
     title: Title,
     intervals: str,
     reference: str = "",
-    target_name: str = "Target",
 ) -> str:
     """Everything between a report's header and its run times: MSE, ablations, degradation, fusion
     verdicts, coverage and the latent's KL."""
@@ -214,7 +211,7 @@ def results_sections(
         + degradation_table(table, labels, title)
         + "\n\n"
         + fusion_verdicts(table, comparisons.get("all", {}))
-        + coverage_section(collected.coverage, table, title, target_name)
+        + coverage_section(collected.coverage, table, title)
         + kl_section(collected.kl)
     )
 

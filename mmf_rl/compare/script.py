@@ -147,14 +147,13 @@ class PushRecording:
         return time.perf_counter() - start
 
 
-def check_study(study: Study, title: str, refuse_other_budgets: bool = True) -> None:
-    """Exit with a message naming the script (``title``) if an entry does not compose, or (with
-    ``refuse_other_budgets``) ``study.out`` holds completed runs of another budget: seconds after the
-    start instead of after the first trainings."""
+def check_study(study: Study, title: str) -> None:
+    """Exit with a message naming the script (``title``) if an entry does not compose, or ``study.out``
+    holds completed runs of another budget: seconds after the start instead of after the first
+    trainings."""
     try:
         check_entries(study)
-        if refuse_other_budgets:
-            check_reused(study)
+        check_reused(study)
     except ValueError as err:
         raise SystemExit(f"{title}: {err}") from None
 

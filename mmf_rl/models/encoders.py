@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from torch import nn
@@ -84,15 +85,9 @@ def check_encoder(modality: str, encoder: str, kind: str | None) -> EncoderEntry
     raise ValueError(f"{what}: encoder {encoder!r} is not available; expected one of {expected}{hint}")
 
 
-def mlp(in_dim: int, hidden_dim: int, out_dim: int, num_layers: int = 2) -> nn.Sequential:
-    """``num_layers`` linear layers with ReLU between them (the paper's MLP blocks)."""
-    dims = [in_dim] + [hidden_dim] * (num_layers - 1) + [out_dim]
-    layers: list[nn.Module] = []
-    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:], strict=True)):
-        layers.append(nn.Linear(a, b))
-        if i < num_layers - 1:
-            layers.append(nn.ReLU())
-    return nn.Sequential(*layers)
+def mlp(in_dim: int, hidden_dim: int, out_dim: int) -> nn.Sequential:
+    """Two linear layers with a ReLU between them (the paper's MLP blocks)."""
+    return nn.Sequential(nn.Linear(in_dim, hidden_dim), nn.ReLU(), nn.Linear(hidden_dim, out_dim))
 
 
 def _conv_trunk(in_channels: int, channels: tuple[int, ...]) -> nn.Sequential:
@@ -128,6 +123,11 @@ class ImageWindowEncoder(nn.Module):
     ):
         super().__init__()
         c, h, w = spec.shape
+        if not channels:
+            raise ValueError(
+                f"image encoder for {spec.name!r}: channels is empty; give the width of each stride-2 "
+                "convolution, e.g. encoder_kwargs.channels=[32, 64, 64, 64]"
+            )
         if temporal not in ("stack", "gru"):
             raise ValueError(
                 f"image encoder for {spec.name!r}: temporal must be 'stack' or 'gru', found {temporal!r}"
@@ -321,10 +321,16 @@ def deepsets_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -
 def build_encoder(spec: ModalitySpec, history: int, d_model: int) -> nn.Module:
     """The registered encoder a spec names, with its ``encoder_kwargs``."""
     entry = check_encoder(spec.name, spec.encoder, spec.kind)
+    build = partial(entry.build, spec, history, d_model)
+    return with_encoder_kwargs(spec, build, f"encoder {spec.encoder!r}")
+
+
+def with_encoder_kwargs(spec: ModalitySpec, build: Callable[..., nn.Module], what: str) -> nn.Module:
+    """``build(**spec.encoder_kwargs)``; a keyword ``build`` does not take is a ``ValueError`` naming the
+    modality, its ``encoder_kwargs`` and ``what`` they were given to, not a ``TypeError`` from a
+    constructor."""
     kwargs = dict(spec.encoder_kwargs)
     try:
-        return entry.build(spec, history, d_model, **kwargs)
+        return build(**kwargs)
     except TypeError as err:
-        raise ValueError(
-            f"modality {spec.name!r}: bad encoder_kwargs {kwargs} for encoder {spec.encoder!r}: {err}"
-        ) from None
+        raise ValueError(f"modality {spec.name!r}: bad encoder_kwargs {kwargs} for {what}: {err}") from None

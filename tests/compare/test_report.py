@@ -44,7 +44,6 @@ def test_the_sections_are_the_ones_benchmarks_accuracy_wrote():
         partial(report.subset_title, modalities=("image", "force", "proprio")),
         report.episode_intervals_text(len(episodes)),
         reference,
-        "Issue #13's target",
     ) + report.run_time_section(3.0, measured)
     assert text == EXPECTED.read_text()
 

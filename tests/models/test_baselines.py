@@ -190,6 +190,19 @@ def test_model_config_file_builds_the_baseline(name):
     assert type(model) is MODELS[name].model_cls
 
 
+@pytest.mark.parametrize("name", BASELINES)
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ({"d_model": 16.5}, r"Config.d_model must be an integer >= 1, found 16.5"),
+        ({"min_scale": -1e-3}, r"Config.min_scale must be > 0 \(the floor of every forecast scale"),
+    ],
+)
+def test_sizes_and_the_scale_floor_are_checked_when_the_config_is_made(name, setting, message):
+    with pytest.raises(ValueError, match=message):
+        build_model({"name": name, **setting}, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM)
+
+
 def test_unknown_config_key_is_rejected():
     with pytest.raises(ValueError, match="unknown keys"):
         build_model({"name": "lf_lstm", "d_latent": 4}, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM)

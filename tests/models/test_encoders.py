@@ -38,6 +38,21 @@ def test_bad_encoder_kwargs_are_a_clear_error():
         build_encoder(spec, HISTORY, 8)
 
 
+@pytest.mark.parametrize("model_name", ["lf_lstm", "mult"])
+def test_bad_encoder_kwargs_of_a_baselines_per_frame_convnet_are_a_clear_error(model_name):
+    specs = [ModalitySpec("cam", "image", (3, 16, 16), encoder_kwargs={"slot_dim": 3})]
+    with pytest.raises(
+        ValueError, match=r"modality 'cam': bad encoder_kwargs \{'slot_dim': 3\} for the baselines'"
+    ):
+        build_model({"name": model_name}, specs, HISTORY, HORIZON, TARGET_DIM)
+
+
+def test_an_image_encoder_without_convolutions_is_a_clear_error():
+    spec = ModalitySpec("cam", "image", (3, 16, 16), encoder_kwargs={"channels": ()})
+    with pytest.raises(ValueError, match=r"image encoder for 'cam': channels is empty"):
+        build_encoder(spec, HISTORY, 8)
+
+
 def test_registration_refuses_a_taken_name_and_unknown_kinds(monkeypatch):
     monkeypatch.setattr(encoders, "ENCODERS", dict(ENCODERS))
     with pytest.raises(ValueError, match="encoder 'gru' is already registered"):

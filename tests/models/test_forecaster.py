@@ -288,6 +288,18 @@ def test_config_roundtrip_and_bad_keys(small_config):
         ForecasterConfig()
 
 
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ({"d_model": 16.5}, r"ForecasterConfig.d_model must be an integer >= 1, found 16.5"),
+        ({"min_scale": 0.0}, r"ForecasterConfig.min_scale must be > 0 \(the floor of every forecast scale"),
+    ],
+)
+def test_sizes_and_the_scale_floor_are_checked_when_the_config_is_made(setting, message):
+    with pytest.raises(ValueError, match=message):
+        ForecasterConfig(modalities=list(SMALL_MODALITIES), **setting)
+
+
 # -- action-conditioned world model ---------------------------------------------------------------
 
 ACTION_SHAPE = (HORIZON, 3)

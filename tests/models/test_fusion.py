@@ -160,8 +160,9 @@ NORMALISED = ["cross_attention", "linear", "sum"]  # the fusions that end in a L
 def test_fused_rows_are_layer_normalised_whatever_is_present(fusion, token_scale):
     """The learned prior ties the prior of the full input to that of the input minus dropped
     modalities: their fused features must be on one scale, whatever the number of present
-    modalities and the tokens' scale (unnormalised sum/linear/cross-attention collapsed, issue #13).
-    At initialisation (unit gain, zero bias) every present row has zero mean and unit variance."""
+    modalities and the tokens' scale (unnormalised, the sum, linear and cross-attention fusions
+    collapsed: docs/results.md). At initialisation (unit gain, zero bias) every present row has zero
+    mean and unit variance."""
     torch.manual_seed(0)
     module = build_fusion(fusion, shape())
     tokens = token_scale * torch.randn(7, 3, 8)

@@ -9,6 +9,7 @@ whose scale is multiplied in eval mode by its presence pattern's factor (``scale
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
+from functools import partial
 
 import torch
 import torch.nn.functional as F
@@ -19,7 +20,7 @@ from torch import nn
 from mmf_rl import keys
 from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
-from mmf_rl.models.encoders import ImageWindowEncoder, check_encoder
+from mmf_rl.models.encoders import ImageWindowEncoder, check_encoder, with_encoder_kwargs
 from mmf_rl.models.hub import PretrainedModel
 from mmf_rl.models.scale_calibration import PresenceScaleCalibration
 
@@ -66,8 +67,12 @@ class BaselineConfig:
             raise ValueError(f"{name}.nonfinite must be one of {NONFINITE_RULES}, found {self.nonfinite!r}")
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.type in ("int", int) and value < 1:
-                raise ValueError(f"{name}.{f.name} must be >= 1, found {value}")
+            if f.type in ("int", int) and (not isinstance(value, int) or value < 1):
+                raise ValueError(f"{name}.{f.name} must be an integer >= 1, found {value!r}")
+        if not self.min_scale > 0:
+            raise ValueError(
+                f"{name}.min_scale must be > 0 (the floor of every forecast scale), found {self.min_scale!r}"
+            )
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -105,7 +110,8 @@ class StepTokenizer(nn.Module):
         super().__init__()
         self.kind = spec.kind
         if spec.kind == "image":
-            self.frame = ImageWindowEncoder(spec, 1, d_model, temporal="stack", **spec.encoder_kwargs)
+            per_frame = partial(ImageWindowEncoder, spec, 1, d_model, temporal="stack")
+            self.frame = with_encoder_kwargs(spec, per_frame, "the baselines' per-frame ConvNet")
         else:
             self.frame = nn.Sequential(nn.Linear(spec.shape[0], d_model), nn.ReLU())
 
@@ -121,6 +127,16 @@ class StepTokenizer(nn.Module):
 def presence(td: TensorDictBase, modalities: list[ModalitySpec]) -> torch.Tensor:
     """``[B, M]`` bool: ``("present", m)`` of each modality, in spec order."""
     return torch.stack([td.get(s.present_key) for s in modalities], dim=1)
+
+
+def validate_baseline_batch(td: TensorDictBase, config: BaselineConfig) -> None:
+    """Raise a clear error if ``td`` does not follow the key contract for ``config``'s sizes; with
+    ``nonfinite="absent"``, mark its present samples holding NaN/Inf absent in ``td``."""
+    keys.validate_batch(
+        td, config.modalities, config.history, config.horizon, config.target_dim, nonfinite=config.nonfinite
+    )
+    if config.nonfinite == "absent":
+        keys.mark_nonfinite_absent(td, config.modalities)
 
 
 def gaussian_head_output(raw: torch.Tensor, horizon: int, target_dim: int, min_scale: float):
@@ -142,16 +158,7 @@ class DeterministicForecaster(TensorDictModuleBase, PretrainedModel):
         self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE]
 
     def validate(self, td: TensorDictBase) -> None:
-        keys.validate_batch(
-            td,
-            self.modalities,
-            self.config.history,
-            self.config.horizon,
-            self.config.target_dim,
-            nonfinite=self.config.nonfinite,
-        )
-        if self.config.nonfinite == "absent":
-            keys.mark_nonfinite_absent(td, self.modalities)
+        validate_baseline_batch(td, self.config)
 
     def forecast(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         raise NotImplementedError

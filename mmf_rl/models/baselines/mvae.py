@@ -30,7 +30,12 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from mmf_rl import keys
-from mmf_rl.models.baselines.common import BaselineConfig, gaussian_head_output, presence
+from mmf_rl.models.baselines.common import (
+    BaselineConfig,
+    gaussian_head_output,
+    presence,
+    validate_baseline_batch,
+)
 from mmf_rl.models.encoders import build_encoder, mlp
 from mmf_rl.models.hub import PretrainedModel
 from mmf_rl.models.registry import register_model
@@ -91,16 +96,7 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
         ]
 
     def validate(self, td: TensorDictBase) -> None:
-        keys.validate_batch(
-            td,
-            self.modalities,
-            self.config.history,
-            self.config.horizon,
-            self.config.target_dim,
-            nonfinite=self.config.nonfinite,
-        )
-        if self.config.nonfinite == "absent":
-            keys.mark_nonfinite_absent(td, self.modalities)
+        validate_baseline_batch(td, self.config)
 
     def posterior(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """PoE posterior ``loc``, ``scale`` ``[B, d_z]``; each expert runs on its present rows only."""

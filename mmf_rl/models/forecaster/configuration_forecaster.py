@@ -147,8 +147,14 @@ class ForecasterConfig:
             "mlp_hidden",
             "head_hidden",
         ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"ForecasterConfig.{name} must be >= 1, found {getattr(self, name)}")
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"ForecasterConfig.{name} must be an integer >= 1, found {value!r}")
+        if not self.min_scale > 0:
+            raise ValueError(
+                f"ForecasterConfig.min_scale must be > 0 (the floor of every forecast scale), found "
+                f"{self.min_scale!r}"
+            )
         if self.d_model % self.num_heads:
             raise ValueError(
                 f"ForecasterConfig: d_model={self.d_model} must be divisible by num_heads={self.num_heads}"

@@ -123,6 +123,13 @@ def moment_match(loc: torch.Tensor, scale: torch.Tensor, draws: int) -> tuple[to
     return loc.mean(0), variance.sqrt()
 
 
+def latent_gaussian(raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A latent head's output ``[N, 2 d_z]`` -> ``loc``, ``scale`` ``[N, d_z]``: softplus plus a small
+    floor, so that no scale reaches 0 and the KL terms stay finite."""
+    loc, raw_scale = raw.chunk(2, dim=-1)
+    return loc, F.softplus(raw_scale) + 1e-4
+
+
 class ModalitySpecificDecoder(nn.Module):
     """The paper's decoder: tokens, presence and ``z`` -> Gaussian parameters over ``T × D``."""
 
@@ -213,7 +220,23 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.modalities = list(config.modalities)
         d = config.d_model
         self.encoders = nn.ModuleDict({s.name: build_encoder(s, config.history, d) for s in self.modalities})
-        # The modality of each token of encode's [B, N, d] (an encoder may emit several).
+        # Keep this order: parameters draw their initial values in creation order, so a reorder changes
+        # a seed's initial weights.
+        encoder_shape = self._register_token_layout()
+        self._build_latent_heads(encoder_shape)
+        self._build_decoder(encoder_shape)
+        # The ε_k of eval_latent="predictive". Not persistent: checkpoints stay as they were, and a
+        # model saved before the option existed loads unchanged.
+        self.register_buffer(
+            "predictive_noise",
+            antithetic_normal(config.predictive_samples, config.d_latent),
+            persistent=False,
+        )
+        self._declare_keys()
+
+    def _register_token_layout(self) -> FusionShape:
+        """``token_counts`` and the modality of each token of :meth:`encode`'s ``[B, N, d]`` (an encoder
+        may emit several); returns the shape the multimodal encoder's fusion is built for."""
         self.token_counts = [num_tokens(self.encoders[s.name]) for s in self.modalities]
         self.register_buffer(
             "token_modality",
@@ -226,16 +249,21 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             F.one_hot(self.token_modality, len(self.modalities)).bool(),
             persistent=False,
         )
-        shape = FusionShape(
+        return FusionShape(
             num_modalities=len(self.modalities),
             num_tokens=sum(self.token_counts),
-            d_model=d,
-            num_heads=config.num_heads,
-            mlp_hidden=config.mlp_hidden,
-            num_layers=config.num_encoder_layers,
+            d_model=self.config.d_model,
+            num_heads=self.config.num_heads,
+            mlp_hidden=self.config.mlp_hidden,
+            num_layers=self.config.num_encoder_layers,
             role="encoder",
         )
-        self.fusion = build_fusion(config.fusion, shape)
+
+    def _build_latent_heads(self, encoder_shape: FusionShape) -> None:
+        """The multimodal encoder's fusion, the posterior head (with the target's encoder when it reads
+        ``y``) and, with ``prior="learned"``, the prior head."""
+        config, d = self.config, self.config.d_model
+        self.fusion = build_fusion(config.fusion, encoder_shape)
         target_numel = config.horizon * config.target_dim
         reads_target = config.posterior_reads_target
         self.target_encoder = mlp(target_numel, config.head_hidden, d) if reads_target else None
@@ -244,32 +272,26 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.prior_head = (
             mlp(fused, config.head_hidden, 2 * config.d_latent) if config.prior == "learned" else None
         )
-        # decoder_input="pair_streams" or "mixed_pair_streams": MulT's pair streams, the decoder's M × M
-        # tokens.
+
+    def _build_decoder(self, encoder_shape: FusionShape) -> None:
+        """The decoder (after the pair streams it reads with ``decoder_input="pair_streams"`` or
+        ``"mixed_pair_streams"``: its ``M × M`` tokens), the scale factors and a world model's action
+        encoder."""
+        config = self.config
         self.pair_streams = (
-            PairStreams(self.token_counts, d, config.num_heads, config.mlp_hidden)
+            PairStreams(self.token_counts, config.d_model, config.num_heads, config.mlp_hidden)
             if config.decoder_input.endswith("pair_streams")
             else None
         )
-        decoder_shape = dataclasses.replace(
-            shape,
-            role="decoder",
-            num_tokens=shape.num_tokens if self.pair_streams is None else len(self.pair_streams.pairs),
-        )
+        tokens = encoder_shape.num_tokens if self.pair_streams is None else len(self.pair_streams.pairs)
+        decoder_shape = dataclasses.replace(encoder_shape, role="decoder", num_tokens=tokens)
         self.decoder = ModalitySpecificDecoder(config, decoder_shape)
         self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
         self.action_encoder = (
-            mlp(config.action_steps * config.action_dim, config.head_hidden, d) if config.action_dim else None
+            mlp(config.action_steps * config.action_dim, config.head_hidden, config.d_model)
+            if config.action_dim
+            else None
         )
-        # The ε_k of eval_latent="predictive". Not persistent: checkpoints stay as they were, and a
-        # model saved before the option existed loads unchanged.
-        self.register_buffer(
-            "predictive_noise",
-            antithetic_normal(config.predictive_samples, config.d_latent),
-            persistent=False,
-        )
-
-        self._declare_keys()
 
     def _declare_keys(self) -> None:
         """``in_keys`` and ``out_keys``: the batch contract's inputs and everything forward writes."""
@@ -300,9 +322,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             return None
         return (
             f"these are weights of the fusion={self.config.fusion!r} ablation saved when an ablation "
-            "replaced "
-            "only the posterior's fusion; the decoder now aggregates with the same fusion, so retrain "
-            f"with model.fusion={self.config.fusion}"
+            "replaced only the posterior's fusion; the decoder now aggregates with the same fusion, so "
+            f"retrain with model.fusion={self.config.fusion}"
         )
 
     # -- building blocks -------------------------------------------------------------------------
@@ -441,15 +462,13 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                     "forecast needs no target; in training it does)"
                 )
             features = torch.cat([features, self.target_encoder(target.flatten(1))], dim=-1)
-        loc, raw_scale = self.posterior_head(features).chunk(2, dim=-1)
-        return loc, F.softplus(raw_scale) + 1e-4
+        return latent_gaussian(self.posterior_head(features))
 
     def _prior_from(self, features: torch.Tensor | None, rows: int, device: torch.device):
         if self.prior_head is None:
             loc = torch.zeros(rows, self.config.d_latent, device=device)
             return loc, torch.ones_like(loc)
-        loc, raw_scale = self.prior_head(features).chunk(2, dim=-1)
-        return loc, F.softplus(raw_scale) + 1e-4
+        return latent_gaussian(self.prior_head(features))
 
     def decode(
         self, tokens: torch.Tensor, present: torch.Tensor, z: torch.Tensor, action: torch.Tensor | None = None
