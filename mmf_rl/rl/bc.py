@@ -34,6 +34,13 @@ next k actions (``"action_chunk"``), trained on the demonstrator's next k action
 policy acts with ACT's temporal ensemble of its past chunks (`TemporalEnsemble`), whose state
 lives in the tensordict: `BCPolicy.transforms` then adds an `InitTracker` and the state's primer.
 
+With ``action_head="gmm"`` (`BCConfig`; default ``"mse"``, the regression above) the network
+predicts a Gaussian mixture per action step (`mmf_rl.rl.gmm_head`, robomimic's BC-GMM) under
+``"action_gmm"``, is trained by its negative log-likelihood (`GMMActionLoss`), and acts with the
+mean of its most likely component: the demonstrations' "move" and "stay" labels of similar states
+stay two modes instead of averaging into a shrunken action. It composes with action chunks (one
+mixture per chunk step; the chunk of modes then goes through the ensemble).
+
 In an env, the policy reads what its transforms write; put `ModalityDropout` before them::
 
     policy = BCPolicy.from_checkpoint("runs/bc/checkpoints")
@@ -52,7 +59,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.envs import InitTracker
 from torchrl.modules import MLP
@@ -75,6 +82,14 @@ from mmf_rl.rl.demonstrations import (
     ForecastTable,
     drop_sets,
 )
+from mmf_rl.rl.gmm_head import (
+    GMM_KEYS,
+    GMM_LOC,
+    GMM_LOGITS,
+    GMMActionLoss,
+    gmm_parameters,
+    most_likely_mean,
+)
 from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow, require_stats
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig
@@ -83,6 +98,7 @@ from mmf_rl.trainers.trainer import Trainer, TrainerConfig
 # camera and the force sensor independently with this probability (proprioception, the robot's
 # own joint readings, is never removed).
 DEFAULT_DROPOUT = {"image": 0.3, "force": 0.3}
+ACTION_HEADS = ("mse", "gmm")  # `BCConfig.action_head`
 
 
 @dataclass
@@ -99,7 +115,9 @@ class BCConfig:
     each modality's embedding; ``hidden``, ``depth``: the MLP head's width and number of hidden
     layers; ``action_chunk``: k, the actions predicted per step (1: one, the per-step policy;
     k > 1: a chunk executed with temporal ensembling, `TemporalEnsemble`), ``chunk_decay``: the
-    ensemble's ``m`` (ACT's weights ``exp(-m·i)``, ``i = 0`` the oldest prediction).
+    ensemble's ``m`` (ACT's weights ``exp(-m·i)``, ``i = 0`` the oldest prediction);
+    ``action_head``: ``"mse"`` (the action, trained by mean squared error) or ``"gmm"`` (a
+    mixture of ``gmm_components`` Gaussians per action step, `mmf_rl.rl.gmm_head`).
     """
 
     modalities: list[ModalitySpec]
@@ -115,6 +133,8 @@ class BCConfig:
     depth: int = 2
     action_chunk: int = 1
     chunk_decay: float = 0.01
+    action_head: str = "mse"
+    gmm_components: int = 5
 
     def __post_init__(self):
         self.modalities = [
@@ -134,6 +154,11 @@ class BCConfig:
                 f"BCConfig: action_chunk must be >= 1 and chunk_decay >= 0, found {self.action_chunk}, "
                 f"{self.chunk_decay}"
             )
+        if self.action_head not in ACTION_HEADS or self.gmm_components < 1:
+            raise ValueError(
+                f"BCConfig: action_head must be one of {list(ACTION_HEADS)} and gmm_components >= 1, found "
+                f"{self.action_head!r}, {self.gmm_components}"
+            )
 
     def to_dict(self) -> dict:
         return {
@@ -150,6 +175,8 @@ class BCConfig:
             "depth": self.depth,
             "action_chunk": self.action_chunk,
             "chunk_decay": self.chunk_decay,
+            "action_head": self.action_head,
+            "gmm_components": self.gmm_components,
         }
 
     @classmethod
@@ -177,7 +204,9 @@ class EncoderChoice:
 
 class BCNetwork(nn.Module):
     """The policy's network on plain tensors, in `BCPolicy.in_keys` order; any leading batch shape.
-    Returns the action ``[*B, A]``, or with ``action_chunk`` k > 1 the chunk ``[*B, k, A]``."""
+    Returns the action ``[*B, A]``, or with ``action_chunk`` k > 1 the chunk ``[*B, k, A]``; with
+    the ``"gmm"`` head the mixture's ``(loc, scale, logits)`` instead (`gmm_parameters`), with a
+    chunk dim k after ``*B`` for a chunk policy."""
 
     def __init__(self, config: BCConfig, stats: Mapping[str, torch.Tensor]):
         super().__init__()
@@ -192,9 +221,12 @@ class BCNetwork(nn.Module):
         inputs += 2 * config.forecast_shape[0] * config.forecast_shape[1] if config.forecast_shape else 0
         inputs += config.latched_forecast is not None  # the age
         inputs += OBJECT_PLANAR_DIMS if config.privileged_object else 0
+        per_step = config.action_dim
+        if config.action_head == "gmm":  # per component: a mean and a scale per action dim, a logit
+            per_step = config.gmm_components * (2 * config.action_dim + 1)
         self.head = MLP(
             in_features=inputs,
-            out_features=config.action_dim * config.action_chunk,
+            out_features=per_step * config.action_chunk,
             num_cells=[config.hidden] * config.depth,
             activation_class=nn.ReLU,
         )
@@ -234,7 +266,11 @@ class BCNetwork(nn.Module):
         if config.privileged_object:  # the last input
             position = inputs[-1].reshape(n, -1)[:, :OBJECT_PLANAR_DIMS]
             features.append((position - self.object_mean) / self.object_std)
-        actions = torch.tanh(self.head(torch.cat(features, -1)))
+        raw = self.head(torch.cat(features, -1))
+        if config.action_head == "gmm":
+            steps = (config.action_chunk,) if config.action_chunk > 1 else ()
+            return gmm_parameters(raw.reshape(*batch, *steps, -1), config.gmm_components, config.action_dim)
+        actions = torch.tanh(raw)
         if config.action_chunk > 1:
             return actions.reshape(*batch, config.action_chunk, config.action_dim)
         return actions.reshape(*batch, config.action_dim)
@@ -246,7 +282,9 @@ class BCPolicy(TensorDictModule):
     ``in_keys``/``out_keys`` are its network's. With ``action_chunk`` k > 1 the network writes
     ``"action_chunk"`` and the policy's `TemporalEnsemble` (``ensemble``) then writes ``"action"``
     from it and its state (``ensemble.in_keys``/``out_keys``): the policy acts in an env with
-    `transforms`; `predictor` is the network alone, for batches of independent frames.
+    `transforms`; `predictor` is the network alone, for batches of independent frames. With the
+    ``"gmm"`` head the network writes the mixture (`GMM_KEYS`) and the policy's ``mode`` writes
+    from it ``"action"`` (``"action_chunk"``): the mean of the most likely component.
 
     Args:
         config: what it reads and its sizes.
@@ -269,8 +307,14 @@ class BCPolicy(TensorDictModule):
             in_keys.append(keys.FORECAST_AGE)
         if config.privileged_object:
             in_keys.append(OBJECT_POSE)
-        chunked = config.action_chunk > 1
-        super().__init__(network, in_keys=in_keys, out_keys=[ACTION_CHUNK if chunked else ACTION])
+        chunked, gmm = config.action_chunk > 1, config.action_head == "gmm"
+        action_key = ACTION_CHUNK if chunked else ACTION
+        super().__init__(network, in_keys=in_keys, out_keys=GMM_KEYS if gmm else [action_key])
+        self.mode = (
+            TensorDictModule(most_likely_mean, in_keys=[GMM_LOC, GMM_LOGITS], out_keys=[action_key])
+            if gmm
+            else None
+        )
         self.config = config
         self.stats = {k: v.detach().float().clone() for k, v in stats.items()}
         self.ensemble = (
@@ -278,8 +322,11 @@ class BCPolicy(TensorDictModule):
         )
 
     def forward(self, tensordict, *args, **kwargs):
-        """The network's output; with action chunks, then the ensemble's action (`TemporalEnsemble`)."""
+        """The network's output; with the mixture head, then its mode's action (chunk); with action
+        chunks, then the ensemble's action (`TemporalEnsemble`)."""
         tensordict = super().forward(tensordict, *args, **kwargs)
+        if self.mode is not None:
+            tensordict = self.mode(tensordict)
         return tensordict if self.ensemble is None else self.ensemble(tensordict)
 
     def predictor(self) -> TensorDictModule:
@@ -287,7 +334,18 @@ class BCPolicy(TensorDictModule):
         itself) or the chunk ``"action_chunk"`` of each row of a batch, without the ensemble."""
         if self.ensemble is None:
             return self
-        return TensorDictModule(self.module, in_keys=self.in_keys, out_keys=self.out_keys)
+        network = TensorDictModule(self.module, in_keys=self.in_keys, out_keys=self.out_keys)
+        return network if self.mode is None else TensorDictSequential(network, self.mode)
+
+    def mixture(self) -> TensorDictModule:
+        """The network alone of a ``"gmm"`` policy, sharing its weights: writes the mixture
+        (`GMM_KEYS`) of each row of a batch, what `GMMActionLoss` scores."""
+        if self.mode is None:
+            raise ValueError(
+                f"BCPolicy.mixture: this policy's head is {self.config.action_head!r}, not a mixture; "
+                "build it with action_head='gmm'"
+            )
+        return TensorDictModule(self.module, in_keys=self.in_keys, out_keys=GMM_KEYS)
 
     @classmethod
     def for_demonstrations(
@@ -301,7 +359,8 @@ class BCPolicy(TensorDictModule):
         """A policy for the windows, goal and action of ``demonstrations``; it reads forecasts of
         ``forecasts``' shape when given (and their age, from a `LatchedForecastTable`), and the
         object's position with ``privileged_object``. ``sizes``: `BCConfig` fields (``d_model``,
-        ``hidden``, ``depth``, ``action_chunk``, ``chunk_decay``)."""
+        ``hidden``, ``depth``, ``action_chunk``, ``chunk_decay``, ``action_head``,
+        ``gmm_components``)."""
         if privileged_object:
             demonstrations.check_object_pose("train")
         encoders = encoders or EncoderChoice()
@@ -423,7 +482,8 @@ def validation_errors(
     of ``droppable`` removed from every sample (``mse_no_image``, ...); ``loss``: their mean.
     For an action-chunk policy, the error of the chunk's first action (the one it predicts for
     now, as a per-step policy does: the two compare), from its network alone (`BCPolicy.predictor`:
-    no ensemble over past chunks, the frames being independent)."""
+    no ensemble over past chunks, the frames being independent). For a ``"gmm"`` policy, the error of
+    the action it acts with (its most likely component's mean), so the two heads compare."""
     if not len(demonstrations.split_frames[split]):
         raise ValueError(f"validation_errors: the {split!r} split has no demonstration frame")
     was_training = policy.training
@@ -436,7 +496,7 @@ def validation_errors(
         )
         total, count = 0.0, 0
         for batch in loader:
-            predicted = predictor(batch.exclude(ACTION)).get(predictor.out_keys[0])
+            predicted = predictor(batch.exclude(ACTION)).get(ACTION_CHUNK if chunked else ACTION)
             predicted = predicted[:, 0] if chunked else predicted
             total += float(((predicted - batch.get(ACTION)) ** 2).sum())
             count += batch.get(ACTION).numel()
@@ -486,6 +546,14 @@ def _check_training_inputs(
         )
 
 
+def _bc_loss(policy: BCPolicy):
+    """The loss that trains ``policy``'s head (see `train_bc`)."""
+    chunked = policy.config.action_chunk > 1
+    if policy.config.action_head == "gmm":
+        return GMMActionLoss(policy.mixture(), chunked=chunked)
+    return ActionChunkLoss(policy.predictor()) if chunked else BCLoss(policy, loss_function="mse")
+
+
 def train_bc(
     policy: BCPolicy,
     demonstrations: Demonstrations,
@@ -498,12 +566,13 @@ def train_bc(
     resume: bool = False,
 ) -> dict[str, float]:
     """Clone the demonstrations' actions into ``policy`` (torchrl's `BCLoss`, mean squared error;
-    an action-chunk policy: `ActionChunkLoss` on the next k actions) with the project's `Trainer`:
-    ``config`` sets steps, batch size, optimiser, schedule, seed (the batch order and the dropout
-    draws), evaluation and checkpoints (under ``run_dir/checkpoints``; ``resume`` continues the
-    last one). ``dropout`` removes sensors per sample (see `DemonstrationLoader`); ``forecasts``
-    must cover those outages when the policy reads forecasts. Returns the last validation errors
-    (`validation_errors`, ``val/`` prefix).
+    an action-chunk policy: `ActionChunkLoss` on the next k actions; a ``"gmm"`` policy:
+    `GMMActionLoss`, the mixture's negative log-likelihood of the action or chunk) with the
+    project's `Trainer`: ``config`` sets steps, batch size, optimiser, schedule, seed (the batch
+    order and the dropout draws), evaluation and checkpoints (under ``run_dir/checkpoints``;
+    ``resume`` continues the last one). ``dropout`` removes sensors per sample (see
+    `DemonstrationLoader`); ``forecasts`` must cover those outages when the policy reads
+    forecasts. Returns the last validation errors (`validation_errors`, ``val/`` prefix).
     """
     _check_training_inputs(policy, demonstrations, dropout, forecasts)
     chunk = policy.config.action_chunk
@@ -519,7 +588,7 @@ def train_bc(
     with warnings.catch_warnings():
         # torchrl 0.13 warns that a loss without a target network declares none.
         warnings.filterwarnings("ignore", message="The name target_actor_network_params")
-        loss = BCLoss(policy, loss_function="mse") if chunk == 1 else ActionChunkLoss(policy.predictor())
+        loss = _bc_loss(policy)
 
     def evaluate(model: BCPolicy) -> dict[str, float]:
         errors = validation_errors(model, demonstrations, "val", list(dropout), forecasts)
