@@ -46,10 +46,11 @@ the trainings):
   recording's, and the policies are trained again from scratch on the union, with the same
   budget and seed. Both variants so see the same data in every round. The episodes are kept
   (``WORK/dagger_markov_seed<S>_round<r>/episodes``, beside the round's policies; with
-  ``--latched-forecast``, ``--no-calibrate``, ``--privileged-object``, ``--action-chunk`` or some
-  ``--variants`` only, the directory's name says so), so a re-run does not play them again (nor those of
-  older runs, labelled by the stateful pusher). The results report each policy's success on
-  its own DAgger episodes per round; the played conditions use the last round's policies.
+  ``--latched-forecast``, ``--no-calibrate``, ``--privileged-object``, ``--action-chunk``,
+  ``--action-head gmm`` or some ``--variants`` only, the directory's name says so), so a re-run
+  does not play them again (nor those of older runs, labelled by the stateful pusher). The
+  results report each policy's success on its own DAgger episodes per round; the played
+  conditions use the last round's policies.
   Cost of a round, per BC seed and variant: one more BC training of the first ones' budget
   (training is the phase that dominates a run, so a round takes about as long again as all the
   first trainings) and ``--dagger-episodes`` episodes played (each at the play phase's cost per
@@ -112,6 +113,12 @@ Design (what the policies see, and why):
   the episode (steps past its end masked out of the loss). With K > 1 its runs are its own
   (``bc_chunk<K>_...``, ``dagger_markov_chunk<K>_...``; results in ``WORK/chunk<K>`` unless
   ``--out``); the offline errors are those of each chunk's first action, comparable with K = 1.
+* ``--action-head gmm`` (default ``mse``): every policy predicts a Gaussian mixture per action
+  step (`BCConfig.action_head`, `mmf_rl.rl.gmm_head`, robomimic's BC-GMM), trained by its negative
+  log-likelihood, and acts with its most likely component's mean instead of regressing the
+  average of the recording's move and stay labels. Composes with ``--action-chunk``. Its runs are
+  its own (``bc_gmm_...``, ``dagger_markov_gmm_...``, after any ``chunk<K>``; results in
+  ``WORK/gmm`` unless ``--out``); the offline errors are those of the action it takes.
 
 Every policy plays the same seeded episodes (episode ``i`` reset with seed ``--seed + i``;
 success is FetchPush's: the object within 5 cm of the goal within the 50-step time limit) under
@@ -146,6 +153,7 @@ from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.scale_fit import PatternFit, fit_table
 from mmf_rl.record import RecordConfig, record
 from mmf_rl.rl import BCPolicy, Demonstrations, EncoderChoice, ForecastTable, train_bc, validation_errors
+from mmf_rl.rl.bc import ACTION_HEADS
 from mmf_rl.rl.bc_evaluation import (
     VARIANTS,
     bc_env,
@@ -290,18 +298,29 @@ def chunk_tag(args) -> str:
     return f"_chunk{args.action_chunk}" if args.action_chunk > 1 else ""
 
 
+def head_tag(args) -> str:
+    """In the names of the runs of mixture-head policies: a run never resumes a regression's."""
+    return "_gmm" if args.action_head == "gmm" else ""
+
+
+def policy_tag(args) -> str:
+    """What kind every policy of the run is, in its runs' names (empty for the ordinary ones, so the
+    runs of older versions stay valid)."""
+    return privileged_tag(args) + chunk_tag(args) + head_tag(args)
+
+
 def dagger_dir(args, seed: int, round_: int) -> Path:
     """Round ``round_``'s episodes and policies of BC seed ``seed``: they depend on the policies of
     every variant played, so on the forecasts the ``with`` ones read."""
     played = "" if tuple(args.variants) == VARIANTS else "_" + "_".join(args.variants)
-    tags = f"_{EXPERT_NAME}{privileged_tag(args)}{chunk_tag(args)}{played}{forecast_tag(args)}"
+    tags = f"_{EXPERT_NAME}{policy_tag(args)}{played}{forecast_tag(args)}"
     return args.work / f"dagger{tags}_seed{seed}_round{round_}"
 
 
 def policy_run_dir(args, variant: str, seed: int, round_: int) -> Path:
     if round_ == 0:
         tag = forecast_tag(args) if variant == "with" else ""
-        return args.work / f"bc{privileged_tag(args)}{chunk_tag(args)}_{variant}{tag}_forecasts_seed{seed}"
+        return args.work / f"bc{policy_tag(args)}_{variant}{tag}_forecasts_seed{seed}"
     return dagger_dir(args, seed, round_) / f"bc_{variant}_forecasts"
 
 
@@ -323,6 +342,7 @@ def build_policy(args, variant: str, seed: int, round_: int, demonstrations, for
         d_model=args.bc_d_model,
         hidden=args.bc_hidden,
         action_chunk=args.action_chunk,
+        action_head=args.action_head,
     )
     dagger = f", DAgger round {round_}" if round_ else ""
     steps = config.total_steps
@@ -453,6 +473,13 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
         "default 1: one action per step (runs of K > 1 are their own)",
     )
     parser.add_argument(
+        "--action-head",
+        choices=list(ACTION_HEADS),
+        default="mse",
+        help="every BC policy's head: mse (regression, default) or gmm (a Gaussian mixture per action step, "
+        "acting with its most likely component; runs of their own)",
+    )
+    parser.add_argument(
         "--variants",
         nargs="+",
         choices=list(VARIANTS),
@@ -479,11 +506,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_common_arguments(parser, "bc")
     add_training_arguments(parser)
     parsed = parser.parse_args(argv)
-    own_out = parsed.out is None and (parsed.privileged_object or parsed.action_chunk > 1)
+    own_out = parsed.out is None and (
+        parsed.privileged_object or parsed.action_chunk > 1 or parsed.action_head == "gmm"
+    )
     args = resolve_budget(parsed, BUDGETS, "bc")
     args.variants = [v for v in VARIANTS if v in args.variants]
     if own_out:  # never over the results of the ordinary policies in the same work directory
-        args.out = args.work / (privileged_tag(args) + chunk_tag(args)).removeprefix("_")
+        args.out = args.work / policy_tag(args).removeprefix("_")
     if args.action_chunk < 1:
         parser.error(f"--action-chunk must be >= 1, found {args.action_chunk}")
     if args.dagger < 0 or args.dagger_episodes < 1:
@@ -562,6 +591,7 @@ def main(argv: list[str] | None = None) -> None:
         "forecaster_calibration": forecaster.calibration,
         "dagger": dagger_rows,
         "action_chunk": args.action_chunk,
+        "action_head": args.action_head,
     }
     write_results(args, text, results, phases)
     print(text)
@@ -575,6 +605,7 @@ def budget_line(args, forecaster: Forecaster, recorded: Demonstrations) -> str:
         f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; "
         + (f"latched forecasts (rule {args.latched_forecast}); " if args.latched_forecast else "")
         + (f"action chunks of {args.action_chunk}, temporal ensembling; " if args.action_chunk > 1 else "")
+        + ("Gaussian-mixture action head (most likely component); " if args.action_head == "gmm" else "")
         + (
             f"policies {' and '.join(args.variants)} forecasts only; "
             if args.variants != list(VARIANTS)

@@ -46,7 +46,7 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     }
     assert set(results["rows"]) == expected
     assert set(results["validation_errors"]) == {"without", "with"}
-    assert results["action_chunk"] == 1
+    assert results["action_chunk"] == 1 and results["action_head"] == "mse"
     with_run = f"bc_with_latched_{latched}_forecasts_seed0" if latched else "bc_with_forecasts_seed0"
     for run in ("bc_without_forecasts_seed0", with_run):
         assert (work / run / "checkpoints" / "last").is_file()
@@ -156,3 +156,26 @@ def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(recorded_
         assert BCPolicy.from_checkpoint(work / run / "checkpoints").config.action_chunk == 2, run
     assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
     assert not (work / "dagger_markov_seed0_round1").exists()
+
+
+def test_bc_push_gmm_head_reaches_every_policy_in_runs_of_their_own(recorded_push_root, tmp_path, capsys):
+    work = tmp_path / "work"
+    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
+    argv = [*argv[: argv.index("--dagger")], "--action-head", "gmm", "--action-chunk", "2"]
+    assert cli(argv) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    pct = r"\d+%/\d+%"
+    assert re.fullmatch(
+        rf"summary: BC success all {pct}, no-camera {pct}, no-force {pct} \(without/with forecasts\); "
+        r"camera loss without/with forecasts episode -?\d+/-?\d+ pts "
+        r"\(target with <= without/2: met for [01] of 1 outage types\)",
+        last,
+    ), last
+    assert not (work / "results.json").exists(), "the regression policies' results are left alone"
+    results = json.loads((work / "chunk2_gmm" / "results.json").read_text())
+    assert results["action_head"] == "gmm" and results["action_chunk"] == 2
+    for run in ("bc_chunk2_gmm_without_forecasts_seed0", "bc_chunk2_gmm_with_forecasts_seed0"):
+        config = BCPolicy.from_checkpoint(work / run / "checkpoints").config
+        assert (config.action_head, config.action_chunk) == ("gmm", 2), run
+    assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
+    assert not list(work.glob("bc_chunk2_with*")) and not list(work.glob("bc_chunk2_without*"))
