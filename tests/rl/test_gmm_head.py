@@ -132,9 +132,13 @@ def test_a_gmm_policy_trains_round_trips_its_checkpoint_and_is_scored_on_the_act
 ):
     policy = make_policy(demonstrations, seed=2, action_head="gmm", gmm_components=3)
     assert policy.out_keys == GMM_KEYS
+    initial = {k: v.clone() for k, v in policy.state_dict().items()}
     metrics = train_bc(policy, demonstrations, TINY_TRAINING, run_dir=tmp_path / "run")
     assert all(torch.isfinite(torch.tensor(v)) for v in metrics.values())
     loaded = BCPolicy.from_checkpoint(tmp_path / "run" / "checkpoints")
+    trained = loaded.state_dict()
+    assert trained.keys() == initial.keys()
+    assert not all(torch.equal(trained[k], initial[k]) for k in initial if k.startswith("module.head."))
     assert loaded.config.action_head == "gmm" and loaded.config.gmm_components == 3
     batch = demonstrations.batch(demonstrations.split_frames["val"])
     with torch.no_grad():
