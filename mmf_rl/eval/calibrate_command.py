@@ -23,12 +23,10 @@ from omegaconf import OmegaConf
 
 from mmf_rl.checkpoint import CheckpointError
 from mmf_rl.configuration import ConfigError, parse_config_command, report_command_error
-from mmf_rl.datasets import WindowDataset
-from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.devices import resolve_device
-from mmf_rl.eval.eval_command import check_modalities_match, data_config_for_eval
+from mmf_rl.eval.eval_command import open_model_and_data
 from mmf_rl.eval.scale_fit import calibration_record, fit_scale_calibration, fit_table, save_calibration
-from mmf_rl.models import load_trained_model, locate_trained_model
+from mmf_rl.models import locate_trained_model
 from mmf_rl.models.loading import TRAINED_MODEL_KINDS
 
 EXAMPLES = [
@@ -46,10 +44,7 @@ def run_calibration(cfg) -> dict:
         )
     device = resolve_device(cfg.device)
     source = locate_trained_model(cfg.checkpoint)
-    model, stats, data_config = load_trained_model(source.path)
-    data = WindowDataset(data_config_for_eval(data_config, cfg.data_root, source))
-    data.normalizer = Normalizer(stats)  # the statistics the model was trained with
-    check_modalities_match(model.modalities, data.specs, source.path, data.config.root)
+    model, data = open_model_and_data(source, cfg.data_root)
     if len(data.split_windows[cfg.split]) == 0:
         raise ValueError(
             f"the {cfg.split!r} split of {data.config.root} has no window to fit the scale factors on; "

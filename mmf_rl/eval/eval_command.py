@@ -183,15 +183,22 @@ def evaluation_notes(
     return notes
 
 
-def load_for_evaluation(cfg, source: TrainedModelSource, overrides: dict, device):
-    """The trained model on ``device`` in eval mode and its data (scored with the model's training
-    statistics); refuses data whose modalities differ or whose split has no window."""
+def open_model_and_data(source: TrainedModelSource, data_root, overrides: dict | None = None):
+    """The trained model and the data of its data config (on ``data_root`` when given), normalised
+    with the model's training statistics; refuses data whose modalities differ from the model's."""
     # Applied to the saved config before building: the model's fixed draws follow predictive_samples.
     model, stats, data_config = load_trained_model(source.path, config_overrides=overrides)
-    data = WindowDataset(data_config_for_eval(data_config, cfg.data_root, source))
+    data = WindowDataset(data_config_for_eval(data_config, data_root, source))
     # Normalise with the statistics the model was trained with, whatever data it is scored on.
     data.normalizer = Normalizer(stats)
     check_modalities_match(model.modalities, data.specs, source.path, data.config.root)
+    return model, data
+
+
+def load_for_evaluation(cfg, source: TrainedModelSource, overrides: dict, device):
+    """The trained model on ``device`` in eval mode and its data (:func:`open_model_and_data`);
+    refuses a split with no window."""
+    model, data = open_model_and_data(source, cfg.data_root, overrides)
     model.to(device).eval()
     if len(data.split_windows[cfg.split]) == 0:
         raise ValueError(
