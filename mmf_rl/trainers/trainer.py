@@ -436,42 +436,58 @@ class Trainer:
         return (batch.to(self.device) for batch in self._batches())
 
     def _train_step(self, batch: TensorDictBase) -> dict[str, float] | None:
+        """One update from ``batch``: its logged values, or ``None`` when its loss was non-finite
+        (no update)."""
         total, losses = self.loss_step(batch)
-        loss_terms = {k: v for k, v in losses.items() if k.startswith("loss_")}
         total_value = float(total.detach())
-        # [any non-finite loss, largest finite loss]: under DDP every rank must take the same
-        # decision (skip, stop or step) before backward, or the gradient all-reduce inside
-        # backward would wait forever. (A DDP forward without backward is fine: the next forward
-        # starts a new reduction.)
-        status = torch.tensor(
-            [
-                0.0 if math.isfinite(total_value) else 1.0,
-                total_value if math.isfinite(total_value) else -math.inf,
-            ]
-        )
+        any_nonfinite, worst = self._loss_over_ranks(total_value)
+        if any_nonfinite:
+            self._skip_nonfinite_step(losses)
+            return None
+        self._check_not_exploded(worst)
+        self.nonfinite_in_a_row = 0
+        self._update(total)
+        logs = {k: float(v) for k, v in losses.items() if v.numel() == 1}
+        logs["loss"] = total_value
+        return logs
+
+    def _loss_over_ranks(self, total_value: float) -> tuple[bool, float]:
+        """(some rank's loss is non-finite, the largest finite loss of all ranks).
+
+        Under DDP every rank must take the same decision (skip, stop or step) before backward, or
+        the gradient all-reduce inside backward would wait forever. (A DDP forward without backward
+        is fine: the next forward starts a new reduction.)"""
+        finite = math.isfinite(total_value)
+        status = torch.tensor([0.0 if finite else 1.0, total_value if finite else -math.inf])
         if self.world_size > 1:
             dist.all_reduce(status, op=dist.ReduceOp.MAX)
-        if status[0] > 0:
-            self.nonfinite_in_a_row += 1
-            self.nonfinite_total += 1
-            bad = [k for k, v in loss_terms.items() if not torch.isfinite(v)]
-            if self.nonfinite_in_a_row > self.config.max_nonfinite_steps:
-                raise TrainingStopped(
-                    f"{self.nonfinite_in_a_row} steps in a row had a non-finite loss "
-                    f"({bad or 'on another rank'}); "
-                    f"last at step {self.step}, epoch {self.epoch}, batch {self.batch_in_epoch - 1}. Check "
-                    "that batch "
-                    f"for NaN/Inf inputs, or lower trainer.lr. Last good checkpoint: {self.last_checkpoint}"
-                )
-            return None
-        worst = float(status[1])
+        return bool(status[0] > 0), float(status[1])
+
+    def _skip_nonfinite_step(self, losses: TensorDictBase) -> None:
+        """Count a step skipped for its non-finite loss; too many in a row stop the run."""
+        self.nonfinite_in_a_row += 1
+        self.nonfinite_total += 1
+        if self.nonfinite_in_a_row <= self.config.max_nonfinite_steps:
+            return
+        bad = [k for k, v in losses.items() if k.startswith("loss_") and not torch.isfinite(v)]
+        raise TrainingStopped(
+            f"{self.nonfinite_in_a_row} steps in a row had a non-finite loss "
+            f"({bad or 'on another rank'}); last at step {self.step}, epoch {self.epoch}, batch "
+            f"{self.batch_in_epoch - 1}. Check that batch for NaN/Inf inputs, or lower trainer.lr. "
+            f"Last good checkpoint: {self.last_checkpoint}"
+        )
+
+    def _check_not_exploded(self, worst: float) -> None:
         if worst > self.config.loss_explosion_threshold:
             raise TrainingStopped(
                 f"loss exploded to {worst:.3g} at step {self.step} (threshold "
                 f"trainer.loss_explosion_threshold={self.config.loss_explosion_threshold:g}); lower "
                 f"trainer.lr or enable gradient clipping. Last good checkpoint: {self.last_checkpoint}"
             )
-        self.nonfinite_in_a_row = 0
+
+    def _update(self, total: torch.Tensor) -> None:
+        """Backward, the post_loss hooks (gradient clipping among them), the optimizer and
+        scheduler steps, the post_optim hooks."""
         self.optimizer.zero_grad(set_to_none=True)
         self.scaler.scale(total).backward()
         self.scaler.unscale_(self.optimizer)  # clipping and post_loss hooks see the true gradients
@@ -482,9 +498,6 @@ class Trainer:
         self.scheduler.step()
         for op in self.ops["post_optim"]:
             op(self)
-        logs = {k: float(v) for k, v in losses.items() if v.numel() == 1}
-        logs["loss"] = total_value
-        return logs
 
     def _evaluate(self) -> dict[str, float]:
         if self.evaluate is None:
