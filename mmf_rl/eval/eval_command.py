@@ -47,6 +47,7 @@ from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
+from tensordict import TensorDictBase
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError
@@ -285,55 +286,76 @@ def make_plots(
     Returns the plots written and notes on those left out (and why)."""
     paths = [out_dir / "error_per_subset.png", out_dir / "forecasts.png", out_dir / "latent_tsne.png"]
     plot_error_per_subset(results, baseline, paths[0])
-
-    device = next(model.parameters()).device
     subsets = [
         (name, subset) for name, subset in presence_subsets([s.name for s in data.specs]) if name in results
     ]
-    # Paired like the table: the first batch's windows that every subset can score, the same in every row.
-    shared = None
-    for candidate in loader:
-        rows = torch.stack([scorable_windows(candidate, subset) for _, subset in subsets]).all(0)
-        if rows.any():
-            shared = candidate[rows]
-            break
+    shared = first_shared_windows(loader, subsets)
     picks = torch.linspace(0, shared.shape[0] - 1, min(cfg.plot_windows, shared.shape[0])).long()
     examples, latents = {}, {}
     for name, subset in subsets:
-        batch = apply_presence_subset(shared[picks], subset)
-        inputs = batch.exclude(keys.TARGET).to(device)
-        out = model(inputs.clone())
-        past = batch.get(keys.TARGET_PAST, None)
-        examples[name] = {
-            "target": denormalize(batch.get(keys.TARGET)),
-            "mean": denormalize(out.get(keys.FORECAST_LOC).cpu()),
-            "past": denormalize(past) if past is not None else None,
-            "samples": denormalize(
-                model.sample(inputs.clone(), num_samples=min(cfg.num_samples, 10))
-                .get(keys.FORECAST_SAMPLES)
-                .cpu()
-            )
-            if cfg.num_samples
-            else None,
-        }
-        # The latents the test-time forecasts are decoded from (no target: not the posterior).
-        latent = model(
-            apply_presence_subset(shared[: cfg.tsne_windows], subset).exclude(keys.TARGET).to(device)
-        ).get(keys.LATENT, None)
+        examples[name] = forecast_example(
+            model, apply_presence_subset(shared[picks], subset), denormalize, min(cfg.num_samples, 10)
+        )
+        latent = test_time_latent(model, apply_presence_subset(shared[: cfg.tsne_windows], subset))
         if latent is not None:
-            latents[name] = latent.cpu()
+            latents[name] = latent
     plot_forecasts(examples, paths[1], units)
+    note = latent_plot_refused(latents)
+    if note is not None:
+        return paths[:2], [note]
+    plot_latent_tsne(latents, paths[2], seed=cfg.seed)
+    return paths, []
+
+
+def first_shared_windows(loader, subsets: list[tuple[str, dict]]) -> TensorDictBase:
+    """The first batch's windows that every subset can score: paired like the table, the same
+    windows in every row."""
+    for candidate in loader:
+        rows = torch.stack([scorable_windows(candidate, subset) for _, subset in subsets]).all(0)
+        if rows.any():
+            return candidate[rows]
+    raise ValueError("no window can be scored in every presence subset: nothing to plot (pass plots=false)")
+
+
+def forecast_example(model, batch: TensorDictBase, denormalize, num_samples: int) -> dict:
+    """One subset's windows for the forecast plot, in units: target, mean, past and up to
+    ``num_samples`` samples (``None`` when there is no past or no sample)."""
+    device = next(model.parameters()).device
+    inputs = batch.exclude(keys.TARGET).to(device)
+    out = model(inputs.clone())
+    past = batch.get(keys.TARGET_PAST, None)
+    samples = None
+    if num_samples:
+        samples = denormalize(
+            model.sample(inputs.clone(), num_samples=num_samples).get(keys.FORECAST_SAMPLES).cpu()
+        )
+    return {
+        "target": denormalize(batch.get(keys.TARGET)),
+        "mean": denormalize(out.get(keys.FORECAST_LOC).cpu()),
+        "past": denormalize(past) if past is not None else None,
+        "samples": samples,
+    }
+
+
+def test_time_latent(model, batch: TensorDictBase) -> torch.Tensor | None:
+    """The latents ``batch``'s test-time forecasts are decoded from (no target: not the posterior),
+    on the CPU; ``None`` for a model without latent."""
+    device = next(model.parameters()).device
+    latent = model(batch.exclude(keys.TARGET).to(device)).get(keys.LATENT, None)
+    return latent.cpu() if latent is not None else None
+
+
+def latent_plot_refused(latents: dict[str, torch.Tensor]) -> str | None:
+    """Why the latent t-SNE is not drawn (no latent, or one latent for every forecast); ``None``: draw it."""
     if not latents:
-        return paths[:2], ["no latent t-SNE: the model has no latent (a deterministic baseline)"]
+        return "no latent t-SNE: the model has no latent (a deterministic baseline)"
     if float(torch.cat(list(latents.values())).std(0).max()) == 0:
-        note = (
+        return (
             "no latent t-SNE: every test-time forecast is decoded from the same latent (under the standard "
             "prior its mean, z = 0); train with model.prior=learned for latents that depend on the present "
             "modalities"
         )
-        return paths[:2], [note]
-    plot_latent_tsne(latents, paths[2], seed=cfg.seed)
-    return paths, []
+    return None
 
 
 def main(argv: list[str]) -> int:

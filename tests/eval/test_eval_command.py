@@ -7,13 +7,14 @@ import shutil
 import pytest
 import torch
 
+from mmf_rl import keys
 from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import DataConfig, WindowDataset
-from mmf_rl.eval.eval_command import data_config_for_eval
+from mmf_rl.eval.eval_command import data_config_for_eval, first_shared_windows
 from mmf_rl.eval.report import constant_velocity_warning
 from mmf_rl.models import load_trained_model
-from tests.conftest import push_train_overrides
+from tests.conftest import SMALL_MODALITIES, push_train_overrides
 
 NEW_COLUMNS = ("available", "minMSE@K (norm.)", "minADE@K", "minFDE@K", "NLL", "cover 50%", "cover 90%")
 
@@ -284,3 +285,14 @@ def test_eval_scores_data_that_lost_a_modality_on_most_frames(tmp_path):
     assert saved["modalities"]["state"] == {"feature": "observation.state"}, (
         "the saved config is left as it was"
     )
+
+
+def test_plots_draw_windows_every_subset_can_score_and_refuse_batches_without_one(mixed_batch):
+    names = [s.name for s in SMALL_MODALITIES]
+    singles = [(f"only_{name}", {m: m == name for m in names}) for name in names]
+    present = torch.stack([mixed_batch.get(keys.present_key(name)) for name in names])
+    shared = first_shared_windows([mixed_batch], singles)
+    assert shared.shape[0] == int(present.all(0).sum()) == 1
+    assert all(bool(shared.get(keys.present_key(name)).all()) for name in names)
+    with pytest.raises(ValueError, match="no window can be scored in every presence subset"):
+        first_shared_windows([mixed_batch[~present.all(0)]], singles)
