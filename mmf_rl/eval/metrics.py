@@ -49,6 +49,20 @@ def displacement_errors(forecast: torch.Tensor, target: torch.Tensor) -> tuple[t
     return distance.mean(-1), distance[:, -1]
 
 
+def point_errors(
+    forecast: torch.Tensor, target: torch.Tensor, forecast_units: torch.Tensor, target_units: torch.Tensor
+) -> dict[str, torch.Tensor]:
+    """``mse`` (normalised), ``mse_units``, ``ade``, ``fde`` ``[B]`` of ``[B, T, D]`` point forecasts,
+    given normalised and in units."""
+    ade, fde = displacement_errors(forecast_units, target_units)
+    return {
+        "mse": ((forecast - target) ** 2).mean((1, 2)),
+        "mse_units": ((forecast_units - target_units) ** 2).mean((1, 2)),
+        "ade": ade,
+        "fde": fde,
+    }
+
+
 def constant_velocity(target_past: torch.Tensor, horizon: int) -> torch.Tensor:
     """Extrapolate the last step of ``[B, H, D]`` over ``horizon`` steps."""
     velocity = target_past[:, -1] - target_past[:, -2]
@@ -92,15 +106,9 @@ def window_metrics(
     inputs = batch.exclude(keys.TARGET)
     out = model(inputs.clone(False))
     loc, scale = out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
-    target_units, forecast_units = denormalize(target), denormalize(loc)
-    ade, fde = displacement_errors(forecast_units, target_units)
-    metrics = {
-        "mse": ((loc - target) ** 2).mean((1, 2)),
-        "mse_units": ((forecast_units - target_units) ** 2).mean((1, 2)),
-        "ade": ade,
-        "fde": fde,
-        "nll": gaussian_nll(target, loc, scale).flatten(1).sum(-1),
-    }
+    target_units = denormalize(target)
+    metrics = point_errors(loc, target, denormalize(loc), target_units)
+    metrics["nll"] = gaussian_nll(target, loc, scale).flatten(1).sum(-1)
     metrics |= {name: interval_coverage(target, loc, scale, level) for name, level in COVERAGE_LEVELS.items()}
     kl = latent_kl(model, batch, out)
     if kl is not None:
@@ -142,14 +150,8 @@ def baseline_metrics(
         )
     target = batch.get(keys.TARGET)
     cv = constant_velocity(past, target.shape[1])
-    cv_units, target_units = denormalize(cv), denormalize(target)
-    cv_ade, cv_fde = displacement_errors(cv_units, target_units)
-    return {
-        "cv_mse": ((cv - target) ** 2).mean((1, 2)),
-        "cv_mse_units": ((cv_units - target_units) ** 2).mean((1, 2)),
-        "cv_ade": cv_ade,
-        "cv_fde": cv_fde,
-    }
+    errors = point_errors(cv, target, denormalize(cv), denormalize(target))
+    return {f"{BASELINE_PREFIX}{name}": value for name, value in errors.items()}
 
 
 @torch.no_grad()
