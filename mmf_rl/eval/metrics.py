@@ -70,13 +70,17 @@ def constant_velocity(target_past: torch.Tensor, horizon: int) -> torch.Tensor:
     return target_past[:, -1:] + velocity[:, None] * steps[None, :, None]
 
 
+def central_half_width(level: float) -> float:
+    """The half width of the central ``level`` interval of ``N(0, 1)``."""
+    return torch.distributions.Normal(0.0, 1.0).icdf(torch.tensor(0.5 + level / 2)).item()
+
+
 def interval_coverage(
     target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, level: float
 ) -> torch.Tensor:
     """Per window ``[B]``: the share of ``target`` values inside the central ``level`` interval of
     ``N(loc, scale²)`` (``[B, T, D]`` each)."""
-    half_width = torch.distributions.Normal(0.0, 1.0).icdf(torch.tensor(0.5 + level / 2)).item()
-    return ((target - loc).abs() <= half_width * scale).flatten(1).float().mean(-1)
+    return ((target - loc).abs() <= central_half_width(level) * scale).flatten(1).float().mean(-1)
 
 
 def best_of_samples(

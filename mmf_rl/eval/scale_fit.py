@@ -40,17 +40,15 @@ from mmf_rl.checkpoint import (
     save_checkpoint,
 )
 from mmf_rl.datasets import apply_presence_subset, presence_subsets
-from mmf_rl.eval.metrics import COVERAGE_LEVELS
+from mmf_rl.eval.metrics import COVERAGE_LEVELS, central_half_width
 from mmf_rl.models import TrainedModelSource
 from mmf_rl.models.loading import RUN_EXPORT_DIR
 from mmf_rl.models.scale_calibration import pattern_name
 
 DEFAULT_MIN_WINDOWS = 32
 FACTORS_KEY = "scale_calibration.factors"  # the factors' name in a registered model's state dict
-# The half width of the central 90% interval of N(0, 1), for the coverage the fit reports.
-HALF_WIDTH_90 = float(
-    torch.distributions.Normal(0.0, 1.0).icdf(torch.tensor(0.5 + COVERAGE_LEVELS["coverage_90"] / 2))
-)
+# For the 90% coverage the fit reports.
+HALF_WIDTH_90 = central_half_width(COVERAGE_LEVELS["coverage_90"])
 
 
 @dataclass(frozen=True)
@@ -154,10 +152,8 @@ def _standardised_residuals(model, calibration, batches, names: list[str], devic
             out = model(window.exclude(keys.TARGET).to(device))
             # The presence the model used (nonfinite="absent" may have made a modality absent).
             pattern = calibration.pattern_index(_presence(out, names, "the model's output")).cpu()
-            z = (window.get(keys.TARGET) - out.get(keys.FORECAST_LOC).cpu()) / out.get(
-                keys.FORECAST_SCALE
-            ).cpu()
-            z = z.flatten(1).double()
+            loc, scale = out.get(keys.FORECAST_LOC).cpu(), out.get(keys.FORECAST_SCALE).cpu()
+            z = ((window.get(keys.TARGET) - loc) / scale).flatten(1).double()
             for index in pattern.unique().tolist():
                 mine = pattern == index
                 squared[index] += float(z[mine].square().mean(1).sum())
