@@ -94,7 +94,7 @@ def average_over_scenes(
     }
 
 
-def pair(scores: Mapping[str, float], point: bool = False) -> str:
+def ade_fde_text(scores: Mapping[str, float], point: bool = False) -> str:
     """``"A/F"`` (minADE20/minFDE20, or ADE/FDE with ``point``) at two decimals."""
     a, f = ("ade", "fde") if point else ("min_ade_k", "min_fde_k")
     return f"{scores[a]:.2f}/{scores[f]:.2f}"
@@ -108,10 +108,11 @@ def summary_line(
     best = min(baselines, key=lambda name: average[name]["all"]["min_ade_k"])
     p = average[paper]
     return (
-        f"summary: paper model minADE20/minFDE20 avg {pair(p['all'])} "
-        f"(without scene {pair(p['without_scene'])}, "
-        f"without neighbours {pair(p['without_neighbours'])}); constant velocity {pair(average[cv]['all'])}; "
-        f"best baseline {best} {pair(average[best]['all'])} ({mode})"
+        f"summary: paper model minADE20/minFDE20 avg {ade_fde_text(p['all'])} "
+        f"(without scene {ade_fde_text(p['without_scene'])}, "
+        f"without neighbours {ade_fde_text(p['without_neighbours'])}); "
+        f"constant velocity {ade_fde_text(average[cv]['all'])}; "
+        f"best baseline {best} {ade_fde_text(average[best]['all'])} ({mode})"
     )
 
 
@@ -121,7 +122,9 @@ def scores_table(rows: Mapping[str, Scores], deterministic: Sequence[str] = ()) 
     lines = [f"| model | {head} |", "|---" * (1 + 2 * len(MODES)) + "|"]
     for model, scores in rows.items():
         mark = " †" if model in deterministic else ""
-        cells = " | ".join(f"{pair(scores[m])}{mark} | {pair(scores[m], point=True)}" for m in MODES)
+        cells = " | ".join(
+            f"{ade_fde_text(scores[m])}{mark} | {ade_fde_text(scores[m], point=True)}" for m in MODES
+        )
         lines.append(f"| {model} | {cells} |")
     return "\n".join(lines)
 
