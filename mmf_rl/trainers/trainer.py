@@ -120,6 +120,18 @@ class TrainerConfig:
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"trainer.{name} must be >= 1, found {getattr(self, name)}")
+        # A negative clip norm would flip every gradient's sign instead of failing.
+        for name in (
+            "lr",
+            "weight_decay",
+            "warmup_steps",
+            "grad_clip_norm",
+            "max_nonfinite_steps",
+            "early_stopping_patience",
+        ):
+            value = getattr(self, name)
+            if value is not None and value < 0:
+                raise ValueError(f"trainer.{name} must be >= 0, found {value}")
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainerConfig:

@@ -204,6 +204,10 @@ def test_bad_config_and_hook_names(synthetic_task, tmp_path):
         TrainerConfig.from_dict({"lr_schedul": "cosine"})
     with pytest.raises(ValueError, match="lr_schedule must be 'constant' or 'cosine'"):
         TrainerConfig(lr_schedule="step")
+    with pytest.raises(ValueError, match=r"trainer.grad_clip_norm must be >= 0, found -1.0"):
+        TrainerConfig(grad_clip_norm=-1.0)
+    with pytest.raises(ValueError, match=r"trainer.lr must be >= 0, found -0.001"):
+        TrainerConfig(lr=-1e-3)
     with pytest.raises(ValueError, match="unknown hook point 'after_loss'"):
         build(synthetic_task, tmp_path).register_op("after_loss", print)
 
