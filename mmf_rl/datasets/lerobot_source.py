@@ -322,6 +322,38 @@ def _arrow_layout(arrow_type: pa.DataType) -> tuple[pa.DataType, int | None, boo
     return arrow_type, 1, False
 
 
+def _check_stored_column(path: Path, schema: pa.Schema, column: str, ft: dict, info_path: Path) -> None:
+    """Data file ``path`` has ``column`` and, for a numeric feature, stores it as info.json's
+    ``ft`` declares (a scalar for shape ``[1]``, a list of that length for a vector)."""
+    declared = f"dtype {ft['dtype']!r} shape {list(ft['shape'])}"
+    if column not in schema.names:
+        raise ValueError(
+            f"{path}: no column {column!r}, which {info_path} declares ({declared}); found "
+            f"columns {schema.names}. Restore the data file, or fix `features` in info.json"
+        )
+    if not _is_numeric(ft["dtype"]):
+        return
+    arrow_type = schema.field(column).type
+    value_type, per_frame, is_list = _arrow_layout(arrow_type)
+    shape = tuple(ft["shape"])
+    if shape == (1,):  # lerobot stores a shape-[1] feature as a scalar column
+        fits_shape = not is_list
+    elif len(shape) == 1:
+        fits_shape = is_list and per_frame in (None, shape[0])
+    else:  # arrays: never read by the pipeline, left to lerobot
+        fits_shape = True
+    numeric = any(
+        check(value_type) for check in (pa.types.is_integer, pa.types.is_floating, pa.types.is_boolean)
+    )
+    if not fits_shape or not numeric:
+        found = f"{per_frame} value(s) per frame" if per_frame is not None else "a variable-length list"
+        raise ValueError(
+            f"{path}: column {column!r} holds {arrow_type} ({found}), but {info_path} declares "
+            f"{declared}; fix the feature's `shape`/`dtype` in info.json to match the data, or "
+            "restore the data file"
+        )
+
+
 def _validity_candidates(feature: str) -> list[str]:
     """Validity feature names looked up when the config names none.
 
@@ -541,45 +573,12 @@ class LeRobotSource:
             schema = _read_parquet_schema(path)
             rows += pq.read_metadata(path).num_rows
             for column in stored:
-                ft = self.features[column]
-                declared = f"dtype {ft['dtype']!r} shape {list(ft['shape'])}"
-                if column not in schema.names:
-                    raise ValueError(
-                        f"{path}: no column {column!r}, which {info_path} declares ({declared}); found "
-                        f"columns {schema.names}. Restore the data file, or fix `features` in info.json"
-                    )
-                if not _is_numeric(ft["dtype"]):
-                    continue
-                arrow_type = schema.field(column).type
-                value_type, per_frame, is_list = _arrow_layout(arrow_type)
-                shape = tuple(ft["shape"])
-                if shape == (1,):  # lerobot stores a shape-[1] feature as a scalar column
-                    fits_shape = not is_list
-                elif len(shape) == 1:
-                    fits_shape = is_list and per_frame in (None, shape[0])
-                else:  # arrays: never read by the pipeline, left to lerobot
-                    fits_shape = True
-                numeric = any(
-                    check(value_type)
-                    for check in (pa.types.is_integer, pa.types.is_floating, pa.types.is_boolean)
-                )
-                if not fits_shape or not numeric:
-                    found = (
-                        f"{per_frame} value(s) per frame"
-                        if per_frame is not None
-                        else "a variable-length list"
-                    )
-                    raise ValueError(
-                        f"{path}: column {column!r} holds {arrow_type} ({found}), but {info_path} declares "
-                        f"{declared}; fix the feature's `shape`/`dtype` in info.json to match the data, or "
-                        "restore the data file"
-                    )
+                _check_stored_column(path, schema, column, self.features[column], info_path)
         if rows != self.meta.total_frames:
             raise ValueError(
                 f"{info_path}: `total_frames` is {self.meta.total_frames}, but the data files hold {rows} "
-                "frames "
-                f"({len(paths)} file(s) under {self.root / 'data'}); fix total_frames, or restore the data "
-                "files"
+                f"frames ({len(paths)} file(s) under {self.root / 'data'}); fix total_frames, or restore "
+                "the data files"
             )
 
     def _resolve(self, name: str) -> ResolvedModality:
