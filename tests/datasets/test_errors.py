@@ -155,6 +155,16 @@ def test_info_json_missing_keys_and_shapes_disagreeing_with_the_data(synthetic_c
     )
 
     info_path.write_text(original)
+    extra = {"dtype": "float32", "shape": [2], "names": None}
+    edit_info(synthetic_copy, lambda info: info["features"].update({"observation.extra": extra}))
+    raises_clearly(
+        ValueError,
+        rf"{data_file}: no column 'observation.extra', which {info_path} declares \(dtype 'float32' "
+        r"shape \[2\]\); found columns \[",
+        config,
+    )
+
+    info_path.write_text(original)
     edit_info(synthetic_copy, lambda info: info["features"][STATE_FEATURE].update(shape="4"))
     raises_clearly(ValueError, rf"{info_path}: feature '{STATE_FEATURE}' `shape` should be a list", config)
 
