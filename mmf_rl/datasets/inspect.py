@@ -116,17 +116,7 @@ def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> 
             entry.update(_vector_entry(values, episode, episodes))
             present &= np.isfinite(values).all(1)
         elif features[feature]["dtype"] == "video":
-            missing = []
-            for index, start, stop in episodes:
-                path = root / meta.get_video_file_path(index, feature)
-                if not path.is_file():
-                    missing.append(str(path))
-                    present[start:stop] = False
-            entry["video_files_missing"] = sorted(set(missing))
-            entry["episodes_without_video"] = sum(
-                not (root / meta.get_video_file_path(i, feature)).is_file() for i, _, _ in episodes
-            )
-            entry["sync"] = _video_sync(meta, feature, episodes, columns)
+            entry.update(_video_entry(meta, feature, episodes, columns, present))
         if validity[feature] is not None:
             present &= np.asarray(columns[validity[feature]]).reshape(n, -1).astype(bool).all(1)
         entry["outages"] = outage_statistics(torch.from_numpy(present), torch.from_numpy(episode))
@@ -146,6 +136,22 @@ def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> 
         "vectors": vectors,
         "validity_features": sorted(flags),
         "sensors": sensors,
+    }
+
+
+def _video_entry(meta, feature: str, episodes: list[tuple[int, int, int]], columns: dict, present) -> dict:
+    """A camera's missing video files (their episodes' frames marked absent in ``present``), the
+    count of episodes without one, and how its frames' timestamps sync with the video."""
+    missing = []
+    for index, start, stop in episodes:
+        path = Path(meta.root) / meta.get_video_file_path(index, feature)
+        if not path.is_file():
+            missing.append(str(path))
+            present[start:stop] = False
+    return {
+        "video_files_missing": sorted(set(missing)),
+        "episodes_without_video": len(missing),
+        "sync": _video_sync(meta, feature, episodes, columns),
     }
 
 
