@@ -52,10 +52,8 @@ class ModalityConfig:
                 f"modality feature {self.feature!r}: unknown kind {self.kind!r}; expected one of "
                 f"{sorted(MODALITY_KINDS)} or leave it unset to infer it from the feature dtype"
             )
-        if self.dims is not None:
-            self.dims = [int(i) for i in self.dims]
-        if self.raw_dims is not None:
-            self.raw_dims = [int(i) for i in self.raw_dims]
+        self.dims = _indices(self.dims, f"modality feature {self.feature!r}: dims")
+        self.raw_dims = _indices(self.raw_dims, f"modality feature {self.feature!r}: raw_dims")
 
 
 @dataclass
@@ -73,8 +71,7 @@ class TargetReference:
     dims: list[int] | None = None
 
     def __post_init__(self):
-        if self.dims is not None:
-            self.dims = [int(i) for i in self.dims]
+        self.dims = _indices(self.dims, "target.relative_to.dims")
 
 
 @dataclass
@@ -102,8 +99,7 @@ class TargetConfig:
     relative_to: TargetReference | None = None
 
     def __post_init__(self):
-        if self.dims is not None:
-            self.dims = [int(i) for i in self.dims]
+        self.dims = _indices(self.dims, "target.dims")
         if self.relative_to is not None and not isinstance(self.relative_to, TargetReference):
             self.relative_to = _entry(TargetReference, self.relative_to, "target.relative_to")
         if self.relative and self.relative_to is not None:
@@ -136,8 +132,7 @@ class ActionConfig:
     dims: list[int] | None = None
 
     def __post_init__(self):
-        if self.dims is not None:
-            self.dims = [int(i) for i in self.dims]
+        self.dims = _indices(self.dims, "action.dims")
 
 
 @dataclass
@@ -407,6 +402,26 @@ class DataConfig:
         if self.cache_dir is not None:
             return Path(self.cache_dir)
         return Path(os.environ.get("MMF_RL_CACHE", Path.home() / ".cache" / "mmf_rl")) / "windows"
+
+
+def _indices(values, key: str) -> list[int] | None:
+    """``values`` (a list of feature dims) as ints; a scalar, or an entry that is not a whole
+    number, is a ValueError naming ``key`` (``int`` alone would cut 1.5 to 1)."""
+    if values is None:
+        return None
+    wrong = ValueError(f"data config: `{key}` must be a list of whole-number indices, found {values!r}")
+    if isinstance(values, str | bytes) or not hasattr(values, "__iter__"):
+        raise wrong
+    indices = []
+    for value in values:
+        try:
+            index = int(value)
+        except (TypeError, ValueError):
+            raise wrong from None
+        if isinstance(value, bool) or index != value:
+            raise wrong
+        indices.append(index)
+    return indices
 
 
 def _entry(cls, value, key: str):
