@@ -77,7 +77,6 @@ EXAMPLES = [
 ]
 LATENT_SETTINGS = ("eval_latent", "predictive_samples")  # model settings an eval may override
 logger = logging.getLogger(__name__)
-BASELINE_KEYS = {"cv_mse": "mse", "cv_mse_units": "mse_units", "cv_ade": "ade", "cv_fde": "fde"}
 
 
 def check_modalities_match(model_specs, data_specs, source_path: Path, data_root) -> None:
@@ -234,7 +233,6 @@ def run_evaluation(cfg) -> dict:
     skipped = [name for name, _ in subsets if name not in results]
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    units = f"units of {data.config.target.feature}"
     notes = evaluation_notes(
         cfg.split, skipped, unfit, source, data.config.target.anchored, results, baseline
     )
@@ -252,9 +250,7 @@ def run_evaluation(cfg) -> dict:
     }
     plots = []
     if cfg.plots:
-        plots, plot_notes = make_plots(
-            model, data, loader, denormalize, cfg, out_dir, units, results, baseline
-        )
+        plots, plot_notes = make_plots(model, data, loader, denormalize, cfg, out_dir, results, baseline)
         notes += plot_notes
     summary["notes"] = notes
     write_results(out_dir, summary, source, data, cfg)
@@ -262,13 +258,17 @@ def run_evaluation(cfg) -> dict:
     return summary
 
 
+def target_units(data: WindowDataset) -> str:
+    """What the table's and plots' unnormalised errors are measured in."""
+    return f"units of {data.config.target.feature}"
+
+
 def write_results(out_dir: Path, summary: dict, source: TrainedModelSource, data, cfg) -> None:
     """``results.json`` (the summary) and ``results.md`` (headers, table, notes); the table goes
     into ``summary["table"]``."""
     write_json(out_dir / "results.json", summary)
     results, baseline = summary["subsets"], summary["constant_velocity"]
-    units = f"units of {data.config.target.feature}"
-    table = markdown_table(results, baseline, units, cfg.num_samples)
+    table = markdown_table(results, baseline, target_units(data), cfg.num_samples)
     table += "".join(f"\nNote: {note}\n" for note in summary["notes"])
     write_text(
         out_dir / "results.md",
@@ -279,7 +279,7 @@ def write_results(out_dir: Path, summary: dict, source: TrainedModelSource, data
 
 @torch.no_grad()
 def make_plots(
-    model, data, loader, denormalize, cfg, out_dir: Path, units: str, results: dict, baseline: dict | None
+    model, data, loader, denormalize, cfg, out_dir: Path, results: dict, baseline: dict | None
 ) -> tuple[list[Path], list[str]]:
     """Forecasts vs truth on a few test windows, error per subset, t-SNE of the test-time latents.
 
@@ -299,7 +299,7 @@ def make_plots(
         latent = test_time_latent(model, apply_presence_subset(shared[: cfg.tsne_windows], subset))
         if latent is not None:
             latents[name] = latent
-    plot_forecasts(examples, paths[1], units)
+    plot_forecasts(examples, paths[1], target_units(data))
     note = latent_plot_refused(latents)
     if note is not None:
         return paths[:2], [note]
