@@ -440,7 +440,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
     crop = CropConfig(args.crop_pixels, args.crop_metres, args.crop_heading)
     try:
         paths = convert(args.raw_dir, args.fold or sorted(FOLDS), args.out, args.neighbours, crop)
