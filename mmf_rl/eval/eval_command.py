@@ -53,6 +53,7 @@ from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError
 from mmf_rl.configuration import ConfigError, parse_config_command, report_command_error
 from mmf_rl.datasets import DataConfig, WindowDataset, apply_presence_subset, presence_subsets
+from mmf_rl.datasets.config import SPLIT_NAMES
 from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.devices import resolve_device
 from mmf_rl.eval.metrics import evaluate_presence_subsets, scorable_windows
@@ -208,7 +209,20 @@ def load_for_evaluation(cfg, source: TrainedModelSource, overrides: dict, device
     return model, data
 
 
+def check_eval_settings(cfg) -> None:
+    """The eval settings that would otherwise fail deep inside torch or matplotlib, or as a bare
+    KeyError, after the model and data are loaded."""
+    if cfg.split not in SPLIT_NAMES:
+        raise ConfigError(f"split={cfg.split!r}: expected one of {', '.join(SPLIT_NAMES)}")
+    if cfg.num_samples < 0:
+        raise ConfigError(f"num_samples={cfg.num_samples}: must be >= 0 (0: point-forecast metrics only)")
+    for name in ("plot_windows", "tsne_windows"):
+        if cfg.plots and cfg[name] < 1:
+            raise ConfigError(f"{name}={cfg[name]}: must be >= 1, or pass plots=false")
+
+
 def run_evaluation(cfg) -> dict:
+    check_eval_settings(cfg)
     device = resolve_device(cfg.device)
     source = locate_trained_model(cfg.checkpoint)
     # Checked before the slow part: a refused out_dir fails in a second, not after the scoring.

@@ -140,6 +140,21 @@ def test_eval_names_a_bad_latent_override(learned_prior_run, capsys, override, m
     assert not out_dir.exists()
 
 
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("split=tests", "split='tests': expected one of train, val, test"),
+        ("num_samples=-1", "num_samples=-1: must be >= 0"),
+        ("plot_windows=0", "plot_windows=0: must be >= 1, or pass plots=false"),
+    ],
+)
+def test_eval_names_a_bad_setting_before_loading(learned_prior_run, capsys, override, message):
+    out_dir = learned_prior_run / "bad_setting"
+    assert cli(["eval", f"checkpoint={learned_prior_run}", override, f"out_dir={out_dir}"]) == 1
+    assert capsys.readouterr().err.startswith(f"mmf-rl eval: error: {message}")
+    assert not out_dir.exists()
+
+
 @pytest.fixture(scope="module")
 def exported(learned_prior_run, tmp_path_factory):
     """The run's last checkpoint exported with save_pretrained, as a user shares it."""
