@@ -161,7 +161,7 @@ def plot_forecasts_on_image(
                 color="tab:orange",
                 lw=0.8,
                 alpha=0.6,
-                label="20 samples" if i + k == 0 else None,
+                label=f"{len(example['samples'])} samples" if i + k == 0 else None,
             )
         truth = to_pixel(np.concatenate([example["past"][-1:], example["future"]]))
         past = to_pixel(example["past"])
