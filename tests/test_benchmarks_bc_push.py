@@ -14,6 +14,18 @@ from mmf_rl.rl import BCPolicy
 from tests.conftest import push_train_overrides
 
 
+def assert_one_outage_summary(capsys) -> None:
+    """The run's last stdout line is bc_push's summary line for one outage type (``--outage episode``)."""
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    pct = r"\d+%/\d+%"
+    assert re.fullmatch(
+        rf"summary: BC success all {pct}, no-camera {pct}, no-force {pct} \(without/with forecasts\); "
+        r"camera loss without/with forecasts episode -?\d+/-?\d+ pts "
+        r"\(target with <= without/2: met for [01] of 1 outage types\)",
+        last,
+    ), last
+
+
 @pytest.mark.parametrize("latched", [None, "precision"])
 def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     recorded_push_root, tmp_path, capsys, latched
@@ -31,14 +43,7 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
         *(("--latched-forecast", latched) if latched else ()),
     ]
     assert cli(["bench", "bc", *argv]) == 0
-    last = capsys.readouterr().out.strip().splitlines()[-1]
-    pct = r"\d+%/\d+%"
-    assert re.fullmatch(
-        rf"summary: BC success all {pct}, no-camera {pct}, no-force {pct} \(without/with forecasts\); "
-        r"camera loss without/with forecasts episode -?\d+/-?\d+ pts "
-        r"\(target with <= without/2: met for [01] of 1 outage types\)",
-        last,
-    ), last
+    assert_one_outage_summary(capsys)
     results = json.loads((work / "results.json").read_text())
     conditions = ["all", "no-camera (episode)", "no-force (episode)"]
     expected = {f"BC {v} forecasts | {c}" for v in ("without", "with") for c in conditions} | {
@@ -137,14 +142,7 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
 def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(recorded_push_root, tmp_path, capsys):
     work = tmp_path / "work"
     assert cli([*tiny_dagger_argv(recorded_push_root, tmp_path, work), "--action-chunk", "2"]) == 0
-    last = capsys.readouterr().out.strip().splitlines()[-1]
-    pct = r"\d+%/\d+%"
-    assert re.fullmatch(
-        rf"summary: BC success all {pct}, no-camera {pct}, no-force {pct} \(without/with forecasts\); "
-        r"camera loss without/with forecasts episode -?\d+/-?\d+ pts "
-        r"\(target with <= without/2: met for [01] of 1 outage types\)",
-        last,
-    ), last
+    assert_one_outage_summary(capsys)
     assert not (work / "results.json").exists(), "the per-step policies' results are left alone"
     assert json.loads((work / "chunk2" / "results.json").read_text())["action_chunk"] == 2
     for run in (
@@ -163,14 +161,7 @@ def test_bc_push_gmm_head_reaches_every_policy_in_runs_of_their_own(recorded_pus
     argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
     argv = [*argv[: argv.index("--dagger")], "--action-head", "gmm", "--action-chunk", "2"]
     assert cli(argv) == 0
-    last = capsys.readouterr().out.strip().splitlines()[-1]
-    pct = r"\d+%/\d+%"
-    assert re.fullmatch(
-        rf"summary: BC success all {pct}, no-camera {pct}, no-force {pct} \(without/with forecasts\); "
-        r"camera loss without/with forecasts episode -?\d+/-?\d+ pts "
-        r"\(target with <= without/2: met for [01] of 1 outage types\)",
-        last,
-    ), last
+    assert_one_outage_summary(capsys)
     assert not (work / "results.json").exists(), "the regression policies' results are left alone"
     results = json.loads((work / "chunk2_gmm" / "results.json").read_text())
     assert results["action_head"] == "gmm" and results["action_chunk"] == 2

@@ -97,7 +97,31 @@ class TemporalEnsemble(TensorDictModuleBase):
         return tensordict
 
 
-class ActionChunkLoss(LossModule):
+class DemonstrationLoss(LossModule):
+    """What a loss on the demonstrations shares (torchrl's `BCLoss` does the same for its one
+    action): the actor held functionally (``actor_network_params``, what the trainer optimises),
+    no value estimator, and `predict`, the actor's output on a batch under those parameters.
+    Subclasses declare their ``_AcceptedKeys`` and compute ``loss_bc`` from `predict`."""
+
+    out_keys = ["loss_bc"]
+
+    actor_network: TensorDictModule
+    actor_network_params: TensorDictParams
+
+    def __init__(self, actor_network: TensorDictModule):
+        super().__init__()
+        self.convert_to_functional(actor_network, "actor_network")
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        pass
+
+    def predict(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The actor's output on (a shallow copy of) ``tensordict``, with the loss's parameters."""
+        with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
+            return self.actor_network(tensordict.copy())
+
+
+class ActionChunkLoss(DemonstrationLoss):
     """Mean squared error of a predicted action chunk to the demonstrated one, over the steps the
     demonstration has (the steps past its episode's end are masked out, as ACT masks them).
 
@@ -124,28 +148,16 @@ class ActionChunkLoss(LossModule):
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
-    out_keys = ["loss_bc"]
-
-    actor_network: TensorDictModule
-    actor_network_params: TensorDictParams
-
-    def __init__(self, actor_network: TensorDictModule):
-        super().__init__()
-        self.convert_to_functional(actor_network, "actor_network")
 
     @property
     def in_keys(self) -> list[NestedKey]:
         keys = self.tensor_keys
         return [*self.actor_network.in_keys, keys.demonstrated_chunk, keys.demonstrated_chunk_mask]
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
-        with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
-            predicted = self.actor_network(tensordict.copy()).get(keys.action_chunk)
+        predicted = self.predict(tensordict).get(keys.action_chunk)
         target = tensordict.get(keys.demonstrated_chunk)
         mask = tensordict.get(keys.demonstrated_chunk_mask).unsqueeze(-1).to(predicted.dtype)
         squared = (predicted - target) ** 2 * mask

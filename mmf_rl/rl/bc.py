@@ -334,8 +334,10 @@ class BCPolicy(TensorDictModule):
         itself) or the chunk ``"action_chunk"`` of each row of a batch, without the ensemble."""
         if self.ensemble is None:
             return self
-        network = TensorDictModule(self.module, in_keys=self.in_keys, out_keys=self.out_keys)
-        return network if self.mode is None else TensorDictSequential(network, self.mode)
+        return self._network() if self.mode is None else TensorDictSequential(self._network(), self.mode)
+
+    def _network(self) -> TensorDictModule:
+        return TensorDictModule(self.module, in_keys=self.in_keys, out_keys=self.out_keys)
 
     def mixture(self) -> TensorDictModule:
         """The network alone of a ``"gmm"`` policy, sharing its weights: writes the mixture
@@ -345,7 +347,7 @@ class BCPolicy(TensorDictModule):
                 f"BCPolicy.mixture: this policy's head is {self.config.action_head!r}, not a mixture; "
                 "build it with action_head='gmm'"
             )
-        return TensorDictModule(self.module, in_keys=self.in_keys, out_keys=GMM_KEYS)
+        return self._network()  # a mixture policy's network writes GMM_KEYS
 
     @classmethod
     def for_demonstrations(

@@ -256,7 +256,7 @@ class Demonstrations:
         hold zeros: nothing is invented for them."""
         rows = frames[:, None] + torch.arange(chunk)
         inside = rows.clamp(max=len(self.action) - 1)
-        same_episode = self._episode_start[inside] == self._episode_start[frames][:, None]
+        same_episode = self.episode_start(inside) == self.episode_start(frames)[:, None]
         mask = (rows < len(self.action)) & same_episode
         actions = self.action[inside]
         mask &= torch.isfinite(actions).all(-1)

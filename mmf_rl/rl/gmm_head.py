@@ -18,12 +18,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, dispatch
 from tensordict.utils import NestedKey
 from torch import distributions as D
-from torchrl.objectives import LossModule
 
+from mmf_rl.rl.action_chunks import DemonstrationLoss
 from mmf_rl.rl.demonstrations import ACTION, DEMONSTRATED_CHUNK, DEMONSTRATED_CHUNK_MASK
 
 # The mixture's parameters: means ``[*B, (k,) C, A]`` in the action box, scales of the same shape,
@@ -61,7 +61,7 @@ def most_likely_mean(loc: torch.Tensor, logits: torch.Tensor) -> torch.Tensor:
     return loc.gather(-2, best).squeeze(-2)
 
 
-class GMMActionLoss(LossModule):
+class GMMActionLoss(DemonstrationLoss):
     """Mean negative log-likelihood of the demonstrated action under the policy's mixture.
 
     Args:
@@ -94,15 +94,10 @@ class GMMActionLoss(LossModule):
 
     tensor_keys: _AcceptedKeys
     default_keys = _AcceptedKeys
-    out_keys = ["loss_bc"]
-
-    actor_network: TensorDictModule
-    actor_network_params: TensorDictParams
 
     def __init__(self, actor_network: TensorDictModule, chunked: bool = False):
-        super().__init__()
+        super().__init__(actor_network)
         self.chunked = chunked
-        self.convert_to_functional(actor_network, "actor_network")
 
     @property
     def in_keys(self) -> list[NestedKey]:
@@ -110,14 +105,10 @@ class GMMActionLoss(LossModule):
         targets = [keys.demonstrated_chunk, keys.demonstrated_chunk_mask] if self.chunked else [keys.action]
         return [*self.actor_network.in_keys, *targets]
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
-        with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
-            predicted = self.actor_network(tensordict.copy())
+        predicted = self.predict(tensordict)
         mixture = gmm_distribution(
             predicted.get(keys.gmm_loc), predicted.get(keys.gmm_scale), predicted.get(keys.gmm_logits)
         )
