@@ -37,6 +37,7 @@ logger = logging.getLogger(__name__)
 
 OPS = ("batch_process", "post_loss", "post_optim", "post_steps", "post_steps_log")
 PRECISIONS = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}
+PREFETCH = (True, False, "auto")  # `TrainerConfig.prefetch`
 
 
 class TrainingStopped(RuntimeError):
@@ -77,8 +78,11 @@ class TrainerConfig:
             the loop's, and data-parallel ranks then drift apart from a one-process run by more than
             the loop lets them. ``False`` (default): torch's own choice (the per-parameter loop on
             CPU, its multi-tensor ``foreach`` form on CUDA).
-        prefetch: make the next batch (and copy it to the device) while the current step runs;
-            the batches and results are the same either way.
+        prefetch: make the next batch (and copy it to the device) on a background thread while
+            the current step runs; the batches and results are the same either way. ``"auto"``
+            (default): on CUDA only. On CPU the step's own threads already use every core, so a
+            batch made beside it competes with the step instead of overlapping it (docs/results.md
+            has the measured cost); ``True`` prefetches on CPU too (cores to spare), ``False`` never.
     """
 
     total_steps: int = 1000
@@ -101,11 +105,13 @@ class TrainerConfig:
     precision: str = "fp32"
     compile: bool = False
     fused_optimizer: bool = False
-    prefetch: bool = True
+    prefetch: bool | str = "auto"
 
     def __post_init__(self):
         if self.precision not in PRECISIONS:
             raise ValueError(f"trainer.precision must be one of {list(PRECISIONS)}, found {self.precision!r}")
+        if self.prefetch not in PREFETCH:
+            raise ValueError(f"trainer.prefetch must be true, false or 'auto', found {self.prefetch!r}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(
                 f"trainer.lr_schedule must be 'constant' or 'cosine', found {self.lr_schedule!r}"
@@ -435,13 +441,20 @@ class Trainer:
                     yield batch
             epoch, skip = epoch + 1, 0
 
+    @property
+    def prefetching(self) -> bool:
+        """Whether batches are made one step ahead (``config.prefetch``; ``"auto"``: on CUDA)."""
+        if self.config.prefetch == "auto":
+            return self.device.type == "cuda"
+        return bool(self.config.prefetch)
+
     def _advance(self) -> None:
         if self.batch_in_epoch >= len(self.loader):
             self.epoch, self.batch_in_epoch = self.epoch + 1, 0
         self.batch_in_epoch += 1
 
     def _batch_stream(self):
-        if self.config.prefetch:
+        if self.prefetching:
             return Prefetcher(self._batches(), self.device, threaded=self.prefetch_in_thread)
         if self.device.type == "cpu":
             return self._batches()

@@ -7,6 +7,7 @@ import torch
 from tensordict import TensorDict
 
 from mmf_rl import keys
+from mmf_rl.datasets.prefetch import Prefetcher
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, outputs_to_fp32
 from tests.conftest import InMemoryLoader
 from tests.trainers.test_trainer import build, combined_loss, small_forecaster, trainer_config
@@ -31,6 +32,23 @@ def test_prefetching_trains_bit_identically_to_the_plain_loop(synthetic_task):
     for name, value in weights(plain).items():
         assert torch.equal(weights(prefetched)[name], value), name
     assert [h["train/loss"] for h in prefetched.history] == [h["train/loss"] for h in plain.history]
+
+
+def test_prefetch_auto_makes_batches_on_the_steps_thread_on_cpu(synthetic_task):
+    model = small_forecaster()
+    loader = InMemoryLoader(synthetic_task["train"][:64], batch_size=32)
+    streams = {
+        prefetch: Trainer(
+            model, combined_loss(model), loader, trainer_config(prefetch=prefetch)
+        )._batch_stream()
+        for prefetch in ("auto", True, False)
+    }
+    assert TrainerConfig().prefetch == "auto"
+    assert not isinstance(streams["auto"], Prefetcher) and not isinstance(streams[False], Prefetcher)
+    assert isinstance(streams[True], Prefetcher) and streams[True]._thread is not None
+    streams[True].close()
+    with pytest.raises(ValueError, match="trainer.prefetch must be true, false or 'auto', found 'yes'"):
+        TrainerConfig(prefetch="yes")
 
 
 def test_bf16_autocasts_the_forward_and_keeps_losses_and_weights_fp32(synthetic_task):
