@@ -98,6 +98,12 @@ Design (what the policies see, and why):
   serves with that rule (the last forecast made with the camera, advanced through its outage,
   and its age), trained on the `LatchedForecastTable` of the same forecasts (their runs are
   ``bc_with_latched_<RULE>_forecasts_seed<S>``).
+* ``--forecast-steps N`` (default: all T): the ``with`` policies read only the first N steps of
+  the forecast (`BCConfig.forecast_steps`): where the object is about to be, not the rest of its
+  forecast motion, which restates what the demonstrator was about to do (a policy can copy it,
+  and a still forecast then keeps the policy still). Their runs are their own
+  (``bc_with_..._first<N>_forecasts_seed<S>``; results in ``WORK/first<N>`` unless ``--out``, after
+  any other tag of the run).
 * ``--privileged-object`` (a diagnostic, not a deployable policy): the policies also read the
   object's true planar position (`BCConfig.privileged_object`), fed like the goal, never removed
   by an outage. If they reach the scripted pusher's success, locating the object from the sensors
@@ -285,7 +291,12 @@ def bc_trainer_config(args, seed: int) -> TrainerConfig:
 def forecast_tag(args) -> str:
     """What the forecasts the ``with`` policies read are, in their run directories' names."""
     latched = f"_latched_{args.latched_forecast}" if args.latched_forecast else ""
-    return latched + ("_uncalibrated" if args.no_calibrate else "")
+    return latched + ("_uncalibrated" if args.no_calibrate else "") + first_steps_tag(args)
+
+
+def first_steps_tag(args) -> str:
+    """In the names of the runs of ``with`` policies that read only the forecast's first steps."""
+    return f"_first{args.forecast_steps}" if args.forecast_steps else ""
 
 
 def privileged_tag(args) -> str:
@@ -343,6 +354,7 @@ def build_policy(args, variant: str, seed: int, round_: int, demonstrations, for
         hidden=args.bc_hidden,
         action_chunk=args.action_chunk,
         action_head=args.action_head,
+        forecast_steps=args.forecast_steps if variant == "with" else None,
     )
     dagger = f", DAgger round {round_}" if round_ else ""
     steps = config.total_steps
@@ -460,6 +472,14 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
         help="the `with` policies read the latched forecast of this rule and its age (default: not latched)",
     )
     parser.add_argument(
+        "--forecast-steps",
+        type=int,
+        default=None,
+        metavar="N",
+        help="the `with` policies read only the first N steps of the forecast (default: all; runs of their "
+        "own)",
+    )
+    parser.add_argument(
         "--privileged-object",
         action="store_true",
         help="a diagnostic: the policies also read the object's true planar position (runs of their own)",
@@ -507,14 +527,19 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_training_arguments(parser)
     parsed = parser.parse_args(argv)
     own_out = parsed.out is None and (
-        parsed.privileged_object or parsed.action_chunk > 1 or parsed.action_head == "gmm"
+        parsed.privileged_object
+        or parsed.action_chunk > 1
+        or parsed.action_head == "gmm"
+        or parsed.forecast_steps is not None
     )
     args = resolve_budget(parsed, BUDGETS, "bc")
     args.variants = [v for v in VARIANTS if v in args.variants]
     if own_out:  # never over the results of the ordinary policies in the same work directory
-        args.out = args.work / policy_tag(args).removeprefix("_")
+        args.out = args.work / (policy_tag(args) + first_steps_tag(args)).removeprefix("_")
     if args.action_chunk < 1:
         parser.error(f"--action-chunk must be >= 1, found {args.action_chunk}")
+    if args.forecast_steps is not None and args.forecast_steps < 1:
+        parser.error(f"--forecast-steps must be >= 1, found {args.forecast_steps}")
     if args.dagger < 0 or args.dagger_episodes < 1:
         parser.error(
             f"--dagger must be >= 0 and --dagger-episodes >= 1, found {args.dagger}, {args.dagger_episodes}"
@@ -592,6 +617,7 @@ def main(argv: list[str] | None = None) -> None:
         "dagger": dagger_rows,
         "action_chunk": args.action_chunk,
         "action_head": args.action_head,
+        "forecast_steps": args.forecast_steps,
     }
     write_results(args, text, results, phases)
     print(text)
@@ -605,6 +631,11 @@ def budget_line(args, forecaster: Forecaster, recorded: Demonstrations) -> str:
         f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; "
         + (f"latched forecasts (rule {args.latched_forecast}); " if args.latched_forecast else "")
         + (f"action chunks of {args.action_chunk}, temporal ensembling; " if args.action_chunk > 1 else "")
+        + (
+            f"the `with` policies read the first {args.forecast_steps} forecast steps; "
+            if args.forecast_steps
+            else ""
+        )
         + ("Gaussian-mixture action head (most likely component); " if args.action_head == "gmm" else "")
         + (
             f"policies {' and '.join(args.variants)} forecasts only; "

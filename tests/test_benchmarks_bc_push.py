@@ -170,3 +170,27 @@ def test_bc_push_gmm_head_reaches_every_policy_in_runs_of_their_own(recorded_pus
         assert (config.action_head, config.action_chunk) == ("gmm", 2), run
     assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
     assert not list(work.glob("bc_chunk2_with*")) and not list(work.glob("bc_chunk2_without*"))
+
+
+def test_bc_push_forecast_steps_reach_only_the_with_policies_in_runs_of_their_own(
+    recorded_push_root, tmp_path, capsys
+):
+    work = tmp_path / "work"
+    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
+    assert cli([*argv[: argv.index("--dagger")], "--forecast-steps", "1"]) == 0
+    assert_one_outage_summary(capsys)
+    assert not (work / "results.json").exists(), (
+        "the results of the policies reading every step are left alone"
+    )
+    assert json.loads((work / "first1" / "results.json").read_text())["forecast_steps"] == 1
+    assert (
+        BCPolicy.from_checkpoint(
+            work / "bc_with_first1_forecasts_seed0" / "checkpoints"
+        ).config.forecast_steps
+        == 1
+    )
+    assert (
+        BCPolicy.from_checkpoint(work / "bc_without_forecasts_seed0" / "checkpoints").config.forecast_steps
+        is None
+    )
+    assert not (work / "bc_with_forecasts_seed0").exists()

@@ -13,6 +13,9 @@ an action in ``[-1, 1]``:
 * with ``forecast_shape``: ``("forecast", "loc")`` and the log of ``("forecast", "scale")``,
   the object's motion over the next T steps as a trained forecaster sees it from the present
   sensors (`ForecastTransform` with ``denormalize=False``: the forecaster's normalised frame);
+* with ``forecast_steps`` n: only the first n of those T steps (and their scales): where the
+  object is about to be, without the rest of the forecast's motion, which restates what the
+  demonstrator was about to do and so invites the policy to copy it;
 * with ``latched_forecast`` (a rule, off by default): that forecast as a
   `LatchedForecastTransform` serves it through a camera outage, and ``log(1 + age)`` of
   ``("forecast", "age")``; trained on a `LatchedForecastTable`;
@@ -108,7 +111,8 @@ class BCConfig:
     ``modalities``: the sensor windows (their ``encoder`` and ``encoder_kwargs`` are the
     policy's own); ``history``, ``stride``: the window (`HistoryWindow`); ``goal_dim``,
     ``action_dim``; ``forecast_shape``: ``(T, D)`` of the forecast input, ``None`` for a policy
-    without it; ``latched_forecast``: the rule of the `LatchedForecastTransform` whose forecast
+    without it; ``forecast_steps``: the first n of its T steps the policy reads (``None``: all);
+    ``latched_forecast``: the rule of the `LatchedForecastTransform` whose forecast
     and age it reads (``None``: a `ForecastTransform`'s forecast, no age); ``privileged_object``:
     the policy also reads the object's true planar position (privileged state, never removed by an
     outage: a diagnostic of what limits the policy, not a policy to deploy); ``d_model``: size of
@@ -126,6 +130,7 @@ class BCConfig:
     goal_dim: int = 3
     action_dim: int = 4
     forecast_shape: tuple[int, int] | None = None
+    forecast_steps: int | None = None
     latched_forecast: str | None = None
     privileged_object: bool = False
     d_model: int = 64
@@ -144,6 +149,14 @@ class BCConfig:
             self.forecast_shape = tuple(int(s) for s in self.forecast_shape)
         if self.latched_forecast is not None and self.forecast_shape is None:
             raise ValueError("BCConfig: latched_forecast needs a forecast input (forecast_shape)")
+        if self.forecast_steps is not None and not (
+            self.forecast_shape is not None and 1 <= self.forecast_steps <= self.forecast_shape[0]
+        ):
+            horizon = None if self.forecast_shape is None else self.forecast_shape[0]
+            raise ValueError(
+                f"BCConfig: forecast_steps must be between 1 and the forecast's horizon ({horizon}; None: no "
+                f"forecast input), found {self.forecast_steps}"
+            )
         if self.latched_forecast not in (None, *RULES):
             raise ValueError(
                 f"BCConfig: latched_forecast must be one of {list(RULES)} or None, found "
@@ -168,6 +181,7 @@ class BCConfig:
             "goal_dim": self.goal_dim,
             "action_dim": self.action_dim,
             "forecast_shape": None if self.forecast_shape is None else list(self.forecast_shape),
+            "forecast_steps": self.forecast_steps,
             "latched_forecast": self.latched_forecast,
             "privileged_object": self.privileged_object,
             "d_model": self.d_model,
@@ -178,6 +192,13 @@ class BCConfig:
             "action_head": self.action_head,
             "gmm_components": self.gmm_components,
         }
+
+    @property
+    def forecast_read_shape(self) -> tuple[int, int] | None:
+        """``(n, D)``: the part of each forecast the policy reads (``None``: no forecast input)."""
+        if self.forecast_shape is None:
+            return None
+        return (self.forecast_steps or self.forecast_shape[0], self.forecast_shape[1])
 
     @classmethod
     def from_dict(cls, d: dict) -> BCConfig:
@@ -218,7 +239,8 @@ class BCNetwork(nn.Module):
         if config.privileged_object:
             self._register_stats(OBJECT_POSITION, "object", stats)
         inputs = len(config.modalities) * (config.d_model + 1) + config.goal_dim
-        inputs += 2 * config.forecast_shape[0] * config.forecast_shape[1] if config.forecast_shape else 0
+        read = config.forecast_read_shape
+        inputs += 2 * read[0] * read[1] if read else 0
         inputs += config.latched_forecast is not None  # the age
         inputs += OBJECT_PLANAR_DIMS if config.privileged_object else 0
         per_step = config.action_dim
@@ -259,7 +281,9 @@ class BCNetwork(nn.Module):
             features += [embedding, present.unsqueeze(1).float()]
         features.append((goal.reshape(n, -1) - self.goal_mean) / self.goal_std)
         if config.forecast_shape is not None:
-            loc, scale = inputs[2 * m + 1 : 2 * m + 3]
+            steps = config.forecast_read_shape[0]
+            forecast = inputs[2 * m + 1 : 2 * m + 3]
+            loc, scale = (x.reshape(n, *config.forecast_shape)[:, :steps] for x in forecast)
             features += [loc.reshape(n, -1), scale.reshape(n, -1).clamp_min(1e-6).log()]
         if config.latched_forecast is not None:
             features.append(inputs[2 * m + 3].reshape(n, 1).float().log1p())
@@ -356,10 +380,12 @@ class BCPolicy(TensorDictModule):
         forecasts: ForecastTable | None = None,
         encoders: EncoderChoice | None = None,
         privileged_object: bool = False,
+        forecast_steps: int | None = None,
         **sizes,
     ) -> BCPolicy:
         """A policy for the windows, goal and action of ``demonstrations``; it reads forecasts of
-        ``forecasts``' shape when given (and their age, from a `LatchedForecastTable`), and the
+        ``forecasts``' shape when given (its first ``forecast_steps``; their age, from a
+        `LatchedForecastTable`), and the
         object's position with ``privileged_object``. ``sizes``: `BCConfig` fields (``d_model``,
         ``hidden``, ``depth``, ``action_chunk``, ``chunk_decay``, ``action_head``,
         ``gmm_components``)."""
@@ -373,6 +399,7 @@ class BCPolicy(TensorDictModule):
             goal_dim=demonstrations.goal_dim,
             action_dim=demonstrations.action_dim,
             forecast_shape=None if forecasts is None else forecasts.shape,
+            forecast_steps=forecast_steps,
             latched_forecast=forecasts.rule if isinstance(forecasts, LatchedForecastTable) else None,
             privileged_object=privileged_object,
             **sizes,

@@ -398,6 +398,53 @@ def test_a_policy_on_latched_forecasts_reads_their_age_and_acts_through_a_dying_
     assert torch.isfinite(rollout.get("action")).all()
 
 
+# -- the forecast's first steps only ----------------------------------------------------------------
+
+
+def forecast_batch(demonstrations, forecasts, frames):
+    """A batch of ``frames`` without the camera, with their forecasts."""
+    absent = {"image": torch.ones(len(frames), dtype=torch.bool)}
+    batch = demonstrations.batch(frames, absent)
+    loc, scale = forecasts.lookup(frames, absent)
+    batch.update({keys.FORECAST_LOC: loc, keys.FORECAST_SCALE: scale})
+    return batch
+
+
+def test_a_policy_reading_the_first_forecast_steps_ignores_the_rest_and_round_trips(
+    demonstrations, forecasts, tmp_path
+):
+    policy = make_policy(demonstrations, forecasts, forecast_steps=1).eval()
+    whole = make_policy(demonstrations, forecasts).eval()
+    horizon, dim = forecasts.shape
+    assert policy.config.forecast_read_shape == (1, dim)
+    assert whole.config.forecast_read_shape == (horizon, dim)
+    head_inputs = policy.module.head[0].in_features
+    assert whole.module.head[0].in_features - head_inputs == 2 * (horizon - 1) * dim
+
+    batch = forecast_batch(demonstrations, forecasts, demonstrations.split_frames["train"][:6])
+    action = policy(batch.clone()).get("action")
+    later, first = batch.clone(), batch.clone()
+    later.get(keys.FORECAST_LOC)[:, 1:] += 1.0
+    later.get(keys.FORECAST_SCALE)[:, 1:] *= 3.0
+    first.get(keys.FORECAST_LOC)[:, 0] += 1.0
+    torch.testing.assert_close(policy(later).get("action"), action)
+    assert not torch.allclose(policy(first).get("action"), action)
+    assert not torch.allclose(whole(later.clone()).get("action"), whole(batch.clone()).get("action"))
+
+    policy.save(tmp_path / "policy")
+    loaded = BCPolicy.from_checkpoint(tmp_path / "policy")
+    assert loaded.config == policy.config
+    torch.testing.assert_close(loaded(batch.clone()).get("action"), action)
+
+
+def test_forecast_steps_outside_the_forecast_are_refused(demonstrations, forecasts):
+    horizon = forecasts.shape[0]
+    with pytest.raises(ValueError, match=rf"between 1 and the forecast's horizon \({horizon}"):
+        make_policy(demonstrations, forecasts, forecast_steps=horizon + 1)
+    with pytest.raises(ValueError, match="None: no forecast input"):
+        make_policy(demonstrations, forecast_steps=1)
+
+
 # -- the object's true position as an input (a diagnostic) -----------------------------------------
 
 
