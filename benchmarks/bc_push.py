@@ -7,6 +7,8 @@
     MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py
     # a recording and a forecaster of your own (nothing recorded or trained but the policies)
     MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py --data data/push --forecaster runs/push/checkpoints
+    # the forecaster trained on a recording of its own, never on the episodes the policies imitate
+    MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py --quick --held-out-forecaster
 
 The question: does a policy that reads the forecaster's forecast of the object's
 motion stay up when a sensor fails, better than the same policy without it? Target: the policy
@@ -104,6 +106,22 @@ Design (what the policies see, and why):
   and a still forecast then keeps the policy still). Their runs are their own
   (``bc_with_..._first<N>_forecasts_seed<S>``; results in ``WORK/first<N>`` unless ``--out``, after
   any other tag of the run).
+* ``--held-out-forecaster``: the forecaster is trained on a recording of its own, never on the
+  episodes the policies imitate. Trained on them, it forecasts the frames the policies learn from
+  far more accurately than any frame it meets in closed loop (it overfits its training episodes):
+  the policies then learn to rely on forecasts better than any they will get, and a forecast of the
+  object's position relative to the gripper gives away the demonstrated action itself. So the two
+  stages are fitted on different data, as for any stacked model: the forecaster's recording is
+  ``WORK/push_forecaster``, scripted pushes recorded with seed 1 (`RECORDING_SEEDS`; the policies'
+  with seed 0, so the two share no episode) with the episode count, length and image size of the
+  policies' recording (``WORK/push`` or ``--data``), or ``--forecaster-data PATH`` (a recording of
+  your own for the forecaster only; it implies the option). Its run is ``WORK/forecaster_held_out``
+  (never the ordinary ``WORK/forecaster``), calibrated on its own val split. Everything else is as
+  without the option: the policies train and are validated on their own recording, forecast by
+  this forecaster. The ``with`` policies' runs are their own (``bc_with_..._heldout_forecasts_seed<S>``,
+  ``dagger_markov_..._heldout_...``; results in ``WORK/heldout`` unless ``--out``, after any other
+  tag of the run); the ``without`` policies read no forecast and are the ordinary ones. Refused with
+  ``--forecaster`` (what a given forecaster was trained on is unknown here).
 * ``--privileged-object`` (a diagnostic, not a deployable policy): the policies also read the
   object's true planar position (`BCConfig.privileged_object`), fed like the goal, never removed
   by an outage. If they reach the scripted pusher's success, locating the object from the sensors
@@ -156,8 +174,9 @@ from tqdm.auto import tqdm
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.cli import configure_logging
 from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.datasets.lerobot_source import open_dataset_metadata
 from mmf_rl.eval.scale_fit import PatternFit, fit_table
-from mmf_rl.record import RecordConfig, record
+from mmf_rl.record import CAMERA_KEY, RecordConfig, record
 from mmf_rl.rl import BCPolicy, Demonstrations, EncoderChoice, ForecastTable, train_bc, validation_errors
 from mmf_rl.rl.bc import ACTION_HEADS
 from mmf_rl.rl.bc_evaluation import (
@@ -197,6 +216,9 @@ from mmf_rl.rl.outage_evaluation import Condition, outage_conditions
 from mmf_rl.trainers import TrainerConfig, seed_everything
 
 DROPPABLE = ("image", "force")  # the sensors a training sample may lose
+# The seed of each recording the script makes (under WORK): episode i depends only on (seed, i), so
+# the two share no episode.
+RECORDING_SEEDS = {"push": 0, "push_forecaster": 1}
 BUDGETS = {
     "quick": {
         "record_episodes": 200,
@@ -229,6 +251,7 @@ class Forecaster:
     checkpoints: Path
     loaded: tuple
     calibration: dict | None
+    trained_on: dict  # its training recording: path, seed (None: not recorded here), episodes
 
     @property
     def stride(self) -> int:
@@ -249,19 +272,76 @@ class Forecaster:
 
 
 def build_recording(args, phases: dict[str, float]) -> Path:
+    """The policies' recording, ``WORK/push`` (recorded when absent)."""
     data = (args.work / "push").resolve()
     if not (data / "meta" / "info.json").is_file():
         print(f"bc_push: recording {args.record_episodes} scripted episodes into {data}")
         with timed_phase(phases, "record"):
-            record(RecordConfig(out=data, episodes=args.record_episodes, workers=args.workers, seed=0))
+            seed = RECORDING_SEEDS["push"]
+            record(RecordConfig(out=data, episodes=args.record_episodes, workers=args.workers, seed=seed))
     return data
+
+
+def build_forecaster_recording(args, policies_data: Path, phases: dict[str, float]) -> Path:
+    """The held-out forecaster's recording: ``--forecaster-data``, or ``WORK/push_forecaster``, scripted
+    pushes of another seed with the episode count, length and image size of ``policies_data``
+    (recorded when absent)."""
+    if args.forecaster_data is not None:
+        return args.forecaster_data.resolve()
+    data = (args.work / "push_forecaster").resolve()
+    meta = open_dataset_metadata(policies_data, RecordConfig.repo_id)
+    episodes = meta.total_episodes
+    if CAMERA_KEY not in meta.features:
+        raise ValueError(
+            f"{policies_data} has no camera feature {CAMERA_KEY}: this script cannot record one like it for "
+            "the forecaster; give the forecaster's recording with --forecaster-data"
+        )
+    if (data / "meta" / "info.json").is_file():
+        found = open_dataset_metadata(data, RecordConfig.repo_id).total_episodes
+        if found != episodes:
+            raise ValueError(
+                f"{data} holds {found} episodes, the policies' recording {policies_data} {episodes}: the "
+                "forecaster's recording must match it; remove it, or use another --work"
+            )
+        return data
+    config = RecordConfig(
+        out=data,
+        episodes=episodes,
+        workers=args.workers,
+        seed=RECORDING_SEEDS["push_forecaster"],
+        image_size=meta.features[CAMERA_KEY]["shape"][0],
+        steps=meta.total_frames // episodes,
+    )
+    print(f"bc_push: recording {episodes} episodes (seed {config.seed}) for the forecaster into {data}")
+    with timed_phase(phases, "record forecaster data"):
+        return record(config)
+
+
+def training_recording(args, data_config: dict) -> dict:
+    """The recording a forecaster of data config ``data_config`` was trained on: its path, the seed
+    it was recorded with when this script recorded it (else ``None``) and its episode count (``None``
+    when it is not on this machine)."""
+    root = data_config.get("root")
+    if root is None:
+        return {"path": data_config.get("repo_id"), "seed": None, "episodes": None}
+    root = Path(root).resolve()
+    seeds = {(args.work / name).resolve(): seed for name, seed in RECORDING_SEEDS.items()}
+    episodes = None
+    if (root / "meta" / "info.json").is_file():
+        episodes = open_dataset_metadata(root, RecordConfig.repo_id).total_episodes
+    return {"path": str(root), "seed": seeds.get(root), "episodes": episodes}
+
+
+def forecaster_run_dir(args) -> Path:
+    """The forecaster's run: a held-out one never resumes the ordinary one."""
+    return (args.work / ("forecaster_held_out" if args.held_out_forecaster else "forecaster")).resolve()
 
 
 def build_forecaster(args, data: Path, phases: dict[str, float]) -> Path:
     """The default push forecaster trained on ``data`` (resumed or skipped when already there)."""
     overrides = [
         "name=bc_forecaster",
-        f"run_dir={(args.work / 'forecaster').resolve()}",
+        f"run_dir={forecaster_run_dir(args)}",
         f"data.root={data}",
         "trainer.seed=0",
         "trainer.progress_bar=false",
@@ -291,12 +371,18 @@ def bc_trainer_config(args, seed: int) -> TrainerConfig:
 def forecast_tag(args) -> str:
     """What the forecasts the ``with`` policies read are, in their run directories' names."""
     latched = f"_latched_{args.latched_forecast}" if args.latched_forecast else ""
-    return latched + ("_uncalibrated" if args.no_calibrate else "") + first_steps_tag(args)
+    uncalibrated = "_uncalibrated" if args.no_calibrate else ""
+    return latched + uncalibrated + first_steps_tag(args) + held_out_tag(args)
 
 
 def first_steps_tag(args) -> str:
     """In the names of the runs of ``with`` policies that read only the forecast's first steps."""
     return f"_first{args.forecast_steps}" if args.forecast_steps else ""
+
+
+def held_out_tag(args) -> str:
+    """In the names of the runs of ``with`` policies whose forecaster never saw their recording."""
+    return "_heldout" if args.held_out_forecaster else ""
 
 
 def privileged_tag(args) -> str:
@@ -442,6 +528,18 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--forecaster", type=Path, default=None, help="a trained push forecaster (default: train one)"
     )
+    parser.add_argument(
+        "--held-out-forecaster",
+        action="store_true",
+        help="train the forecaster on a recording of its own (WORK/push_forecaster, seed 1), never on the "
+        "episodes the policies imitate (runs of their own)",
+    )
+    parser.add_argument(
+        "--forecaster-data",
+        type=Path,
+        default=None,
+        help="a push recording for the forecaster only (implies --held-out-forecaster; default: record one)",
+    )
     parser.add_argument("--forecaster-steps", type=int, default=None)
     parser.add_argument("--forecaster-batch-size", type=int, default=None)
     parser.add_argument(
@@ -531,11 +629,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         or parsed.action_chunk > 1
         or parsed.action_head == "gmm"
         or parsed.forecast_steps is not None
+        or parsed.held_out_forecaster
+        or parsed.forecaster_data is not None
     )
     args = resolve_budget(parsed, BUDGETS, "bc")
     args.variants = [v for v in VARIANTS if v in args.variants]
+    check_held_out_forecaster(parser, args)
     if own_out:  # never over the results of the ordinary policies in the same work directory
-        args.out = args.work / (policy_tag(args) + first_steps_tag(args)).removeprefix("_")
+        tags = policy_tag(args) + first_steps_tag(args) + held_out_tag(args)
+        args.out = args.work / tags.removeprefix("_")
     if args.action_chunk < 1:
         parser.error(f"--action-chunk must be >= 1, found {args.action_chunk}")
     if args.forecast_steps is not None and args.forecast_steps < 1:
@@ -552,20 +654,56 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+def check_held_out_forecaster(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``--forecaster-data`` implies ``--held-out-forecaster``; refuses what would defeat it."""
+    args.held_out_forecaster = args.held_out_forecaster or args.forecaster_data is not None
+    if not args.held_out_forecaster:
+        return
+    if args.forecaster is not None:
+        parser.error(
+            "--forecaster and --held-out-forecaster/--forecaster-data: the data a given forecaster was "
+            "trained on is unknown here; drop --forecaster to train a held-out one, or drop "
+            "--held-out-forecaster"
+        )
+    if any(o.split("=", 1)[0].lstrip("+") == "data.root" for o in args.forecaster_override):
+        parser.error(
+            "--forecaster-override data.root=... with --held-out-forecaster: give the forecaster's recording "
+            "with --forecaster-data instead"
+        )
+    if args.forecaster_data is None:
+        return
+    policies_data = (args.data or args.work / "push").resolve()
+    if args.forecaster_data.resolve() == policies_data:
+        parser.error(
+            f"--forecaster-data {args.forecaster_data} is the policies' recording ({policies_data}): the "
+            "forecaster must learn from other episodes; give another recording, or drop --forecaster-data to "
+            "record one"
+        )
+    if not (args.forecaster_data / "meta" / "info.json").is_file():
+        parser.error(
+            f"--forecaster-data {args.forecaster_data}: not a LeRobot recording (no meta/info.json); give "
+            "the directory of a finished push recording (mmf-rl record --out DIR)"
+        )
+
+
 def forecaster_and_demonstrations(args, phases: dict[str, float]):
     """The recording, the forecaster (built when not given, calibrated), the demonstrations and the
     forecaster's forecasts of them (a `ForecastTable`)."""
+    data = args.data.resolve() if args.data else None  # the policies' recording
+    calibration_data = args.data  # where the forecaster's val split is, when not where it was trained
     if args.forecaster is not None:
         checkpoints = args.forecaster
     else:
-        data = args.data.resolve() if args.data else build_recording(args, phases)
-        checkpoints = build_forecaster(args, data, phases)
+        data = data or build_recording(args, phases)
+        if args.held_out_forecaster:
+            calibration_data = build_forecaster_recording(args, data, phases)
+        checkpoints = build_forecaster(args, calibration_data if args.held_out_forecaster else data, phases)
     with timed_phase(phases, "calibrate forecaster"):
-        loaded, calibration = calibrated_forecaster(checkpoints, not args.no_calibrate, args.data)
-    forecaster = Forecaster(checkpoints, loaded, calibration)
+        loaded, calibration = calibrated_forecaster(checkpoints, not args.no_calibrate, calibration_data)
+    forecaster = Forecaster(checkpoints, loaded, calibration, training_recording(args, loaded[2]))
     model, stats, data_config = forecaster.loaded
-    if args.data is not None:
-        data_config = {**data_config, "root": str(args.data.resolve())}
+    if args.data is not None or args.held_out_forecaster:
+        data_config = {**data_config, "root": str(data)}
     with timed_phase(phases, "forecast the demonstrations"):
         demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
         table = ForecastTable.for_trained(demonstrations, model, stats, data_config, DROPPABLE)
@@ -605,7 +743,7 @@ def main(argv: list[str] | None = None) -> None:
         )
 
     header = run_header("benchmarks/bc_push.py", sys.argv[1:] if argv is None else argv, started, phases)
-    budget = budget_line(args, forecaster, recorded)
+    budget = f"{budget_line(args, forecaster, recorded)}\n\n{recording_line(forecaster.trained_on)}"
     extra = calibration_section(forecaster.calibration) + dagger_section(dagger_rows)
     text = report(rows, errors, conditions, args.outage, f"{header}\n\n{budget}", args.privileged_object)
     text += extra
@@ -614,6 +752,8 @@ def main(argv: list[str] | None = None) -> None:
         "episodes": raw,
         "validation_errors": errors,
         "forecaster_calibration": forecaster.calibration,
+        "forecaster_recording": forecaster.trained_on,
+        "held_out_forecaster": args.held_out_forecaster,
         "dagger": dagger_rows,
         "action_chunk": args.action_chunk,
         "action_head": args.action_head,
@@ -647,9 +787,25 @@ def budget_line(args, forecaster: Forecaster, recorded: Demonstrations) -> str:
             if args.dagger
             else ""
         )
+        + (held_out_phrase(forecaster.trained_on) if args.held_out_forecaster else "")
         + "forecaster "
         f"`{forecaster.checkpoints}`; {len(recorded.split_frames['train'])} recorded training frames"
     )
+
+
+def held_out_phrase(trained_on: dict) -> str:
+    """The budget line's word on a held-out forecaster: the seed of its recording when recorded here."""
+    own = f"seed {trained_on['seed']}" if trained_on["seed"] is not None else f"`{trained_on['path']}`"
+    return f"forecaster trained on its own recording ({own}); "
+
+
+def recording_line(trained_on: dict) -> str:
+    """The results page's line on the recording the forecaster was trained on."""
+    seed = "not recorded by this script"
+    if trained_on["seed"] is not None:
+        seed = f"recorded here with seed {trained_on['seed']}"
+    episodes = "episodes unknown" if trained_on["episodes"] is None else f"{trained_on['episodes']} episodes"
+    return f"The forecaster was trained on the recording `{trained_on['path']}` ({seed}, {episodes})."
 
 
 def calibration_section(record: dict | None) -> str:

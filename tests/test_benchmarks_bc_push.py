@@ -7,7 +7,10 @@ from __future__ import annotations
 import json
 import re
 
+import numpy as np
+import pandas as pd
 import pytest
+import yaml
 
 from mmf_rl.cli import main as cli
 from mmf_rl.rl import BCPolicy
@@ -194,3 +197,81 @@ def test_bc_push_forecast_steps_reach_only_the_with_policies_in_runs_of_their_ow
         is None
     )
     assert not (work / "bc_with_forecasts_seed0").exists()
+
+
+def first_goal(root) -> np.ndarray:
+    """The goal of the first frame of episode 0 of the recording at ``root``."""
+    frames = pd.concat(pd.read_parquet(p) for p in sorted((root / "data").glob("*/*.parquet")))
+    return np.asarray(frames[frames["episode_index"] == 0]["observation.goal"].iloc[0])
+
+
+def held_out_argv(argv: list[str]) -> list[str]:
+    """``argv`` with `--held-out-forecaster` and without the forecaster's data root and run directory,
+    which the script chooses for a held-out forecaster."""
+    kept = [a for a in argv if not a.startswith(("data.root=", "run_dir="))]
+    return [*kept, "--held-out-forecaster", "--workers", "1"]
+
+
+def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_of_their_own(
+    recorded_push_root, tmp_path, capsys
+):
+    from mmf_rl.envs.push import MultimodalPushEnv
+    from mmf_rl.envs.scripted import episode_generator, reset_for_push
+
+    work = tmp_path / "work"
+    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
+    assert cli([*argv[: argv.index("--dagger")], "--variants", "without"]) == 0
+    without = work / "bc_without_forecasts_seed0" / "checkpoints"
+    trained = {p: p.stat().st_mtime_ns for p in without.rglob("*")}
+
+    capsys.readouterr()
+    assert cli(held_out_argv(argv)) == 0
+    assert_one_outage_summary(capsys)
+    recording = work / "push_forecaster"
+    info = json.loads((recording / "meta" / "info.json").read_text())
+    source = json.loads((recorded_push_root / "meta" / "info.json").read_text())
+    for key in ("total_episodes", "total_frames"):
+        assert info[key] == source[key], key
+    env = MultimodalPushEnv(image_size=32)
+    try:
+        seed_one_goal = reset_for_push(env, episode_generator(1, 0))[0]["desired_goal"]
+    finally:
+        env.close()
+    np.testing.assert_allclose(first_goal(recording), seed_one_goal, atol=1e-6)
+    assert not np.allclose(first_goal(recording), first_goal(recorded_push_root))
+    config = yaml.safe_load((work / "forecaster_held_out" / "config.yaml").read_text())
+    assert config["data"]["root"] == str(recording.resolve())
+
+    assert not (work / "results.json").exists(), "the ordinary policies' results are left alone"
+    results = json.loads((work / "heldout" / "results.json").read_text())
+    assert results["held_out_forecaster"]
+    assert results["forecaster_recording"] == {
+        "path": str(recording.resolve()),
+        "seed": 1,
+        "episodes": source["total_episodes"],
+    }
+    page = (work / "heldout" / "results.md").read_text()
+    assert "forecaster trained on its own recording (seed 1)" in page
+    assert f"trained on the recording `{recording.resolve()}` (recorded here with seed 1" in page
+    for run in ("bc_with_heldout_forecasts_seed0", "dagger_markov_heldout_seed0_round1/bc_with_forecasts"):
+        assert (work / run / "checkpoints" / "last").is_file(), run
+    assert not (work / "bc_with_forecasts_seed0").exists()
+    assert "train BC without seed 0" not in results["phases_s"], "the ordinary without policy is reused"
+    assert {p: p.stat().st_mtime_ns for p in without.rglob("*")} == trained
+
+
+@pytest.mark.parametrize(
+    "extra, refusal",
+    [
+        (["--forecaster", "runs/some/checkpoints", "--held-out-forecaster"], "--forecaster and --held-out"),
+        (["--forecaster-data", "DATA"], "is the policies' recording"),
+    ],
+)
+def test_bc_push_refuses_a_held_out_forecaster_that_could_have_seen_the_policies_episodes(
+    recorded_push_root, tmp_path, capsys, extra, refusal
+):
+    argv = tiny_dagger_argv(recorded_push_root, tmp_path, tmp_path / "work")
+    extra = [str(recorded_push_root) if a == "DATA" else a for a in extra]
+    assert cli([*argv, *extra]) == 2
+    assert refusal in capsys.readouterr().err
+    assert not (tmp_path / "work").exists()
