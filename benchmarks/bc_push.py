@@ -695,9 +695,10 @@ def forecaster_and_demonstrations(args, phases: dict[str, float]):
         checkpoints = args.forecaster
     else:
         data = data or build_recording(args, phases)
+        trained_on = build_forecaster_recording(args, data, phases) if args.held_out_forecaster else data
+        checkpoints = build_forecaster(args, trained_on, phases)
         if args.held_out_forecaster:
-            calibration_data = build_forecaster_recording(args, data, phases)
-        checkpoints = build_forecaster(args, calibration_data if args.held_out_forecaster else data, phases)
+            calibration_data = trained_on
     with timed_phase(phases, "calibrate forecaster"):
         loaded, calibration = calibrated_forecaster(checkpoints, not args.no_calibrate, calibration_data)
     forecaster = Forecaster(checkpoints, loaded, calibration, training_recording(args, loaded[2]))
