@@ -265,13 +265,15 @@ def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_
     [
         (["--forecaster", "runs/some/checkpoints", "--held-out-forecaster"], "--forecaster and --held-out"),
         (["--forecaster-data", "DATA"], "is the policies' recording"),
+        (["--held-out-forecaster", "--forecaster-override", "data.root=DATA"], "with --forecaster-data"),
     ],
 )
 def test_bc_push_refuses_a_held_out_forecaster_that_could_have_seen_the_policies_episodes(
     recorded_push_root, tmp_path, capsys, extra, refusal
 ):
     argv = tiny_dagger_argv(recorded_push_root, tmp_path, tmp_path / "work")
-    extra = [str(recorded_push_root) if a == "DATA" else a for a in extra]
+    argv = [a for a in argv if not a.startswith("data.root=")]
+    extra = [a.replace("DATA", str(recorded_push_root)) for a in extra]
     assert cli([*argv, *extra]) == 2
     assert refusal in capsys.readouterr().err
     assert not (tmp_path / "work").exists()
