@@ -690,20 +690,20 @@ def forecaster_and_demonstrations(args, phases: dict[str, float]):
     """The recording, the forecaster (built when not given, calibrated), the demonstrations and the
     forecaster's forecasts of them (a `ForecastTable`)."""
     data = args.data.resolve() if args.data else None  # the policies' recording
-    calibration_data = args.data  # where the forecaster's val split is, when not where it was trained
     if args.forecaster is not None:
         checkpoints = args.forecaster
     else:
         data = data or build_recording(args, phases)
         trained_on = build_forecaster_recording(args, data, phases) if args.held_out_forecaster else data
         checkpoints = build_forecaster(args, trained_on, phases)
-        if args.held_out_forecaster:
-            calibration_data = trained_on
+    # Where the forecaster's val split is when not where its config points: a held-out forecaster
+    # was trained here, on its own recording, and is calibrated on that.
+    calibration_data = None if args.held_out_forecaster else args.data
     with timed_phase(phases, "calibrate forecaster"):
         loaded, calibration = calibrated_forecaster(checkpoints, not args.no_calibrate, calibration_data)
     forecaster = Forecaster(checkpoints, loaded, calibration, training_recording(args, loaded[2]))
     model, stats, data_config = forecaster.loaded
-    if args.data is not None or args.held_out_forecaster:
+    if data is not None:  # the policies' recording, wherever the forecaster was trained
         data_config = {**data_config, "root": str(data)}
     with timed_phase(phases, "forecast the demonstrations"):
         demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))

@@ -186,16 +186,11 @@ def test_bc_push_forecast_steps_reach_only_the_with_policies_in_runs_of_their_ow
         "the results of the policies reading every step are left alone"
     )
     assert json.loads((work / "first1" / "results.json").read_text())["forecast_steps"] == 1
-    assert (
-        BCPolicy.from_checkpoint(
-            work / "bc_with_first1_forecasts_seed0" / "checkpoints"
-        ).config.forecast_steps
-        == 1
-    )
-    assert (
-        BCPolicy.from_checkpoint(work / "bc_without_forecasts_seed0" / "checkpoints").config.forecast_steps
-        is None
-    )
+    read = {
+        run: BCPolicy.from_checkpoint(work / run / "checkpoints").config.forecast_steps
+        for run in ("bc_with_first1_forecasts_seed0", "bc_without_forecasts_seed0")
+    }
+    assert read == {"bc_with_first1_forecasts_seed0": 1, "bc_without_forecasts_seed0": None}
     assert not (work / "bc_with_forecasts_seed0").exists()
 
 

@@ -57,6 +57,14 @@ def make_policy(
     )
 
 
+def batch_with_forecasts(demonstrations, forecasts, frames: torch.Tensor, absent: dict) -> TensorDict:
+    """The demonstrations' batch of ``frames`` under the outage ``absent``, with their forecasts."""
+    batch = demonstrations.batch(frames, absent)
+    loc, scale = forecasts.lookup(frames, absent)
+    batch.update({keys.FORECAST_LOC: loc, keys.FORECAST_SCALE: scale})
+    return batch
+
+
 def recorded_steps(demonstrations, frames: torch.Tensor, image_absent: bool) -> list[TensorDict]:
     """The recorded frames as the env's per-step observations (single frames, presence flags)."""
     steps = []
@@ -185,10 +193,9 @@ def test_dropout_draws_are_seeded_and_never_remove_every_sensor(demonstrations):
 def test_the_absent_modality_never_changes_the_action(demonstrations, forecasts):
     policy = make_policy(demonstrations, forecasts).eval()
     frames = demonstrations.split_frames["train"][:6]
-    absent = {"image": torch.ones(6, dtype=torch.bool)}
-    batch = demonstrations.batch(frames, absent)
-    loc, scale = forecasts.lookup(frames, absent)
-    batch.update({keys.FORECAST_LOC: loc, keys.FORECAST_SCALE: scale})
+    batch = batch_with_forecasts(
+        demonstrations, forecasts, frames, {"image": torch.ones(6, dtype=torch.bool)}
+    )
     action = policy(batch.clone()).get("action")
     garbage = batch.clone()
     image = garbage.get((keys.HISTORY, "obs", "image"))
@@ -263,10 +270,9 @@ def test_save_and_load_round_trip(demonstrations, forecasts, forecaster_run, tmp
     assert loaded.config == policy.config
     assert loaded.stats.keys() == policy.stats.keys()
     frames = demonstrations.split_frames["val"][:4]
-    absent = {"force": torch.tensor([True, False, True, False])}
-    batch = demonstrations.batch(frames, absent)
-    loc, scale = forecasts.lookup(frames, absent)
-    batch.update({keys.FORECAST_LOC: loc, keys.FORECAST_SCALE: scale})
+    batch = batch_with_forecasts(
+        demonstrations, forecasts, frames, {"force": torch.tensor([True, False, True, False])}
+    )
     torch.testing.assert_close(loaded(batch.clone()).get("action"), policy(batch.clone()).get("action"))
     with pytest.raises(CheckpointError, match="not a behaviour-cloning policy"):
         BCPolicy.from_checkpoint(forecaster_run / "checkpoints")
@@ -401,15 +407,6 @@ def test_a_policy_on_latched_forecasts_reads_their_age_and_acts_through_a_dying_
 # -- the forecast's first steps only ----------------------------------------------------------------
 
 
-def forecast_batch(demonstrations, forecasts, frames):
-    """A batch of ``frames`` without the camera, with their forecasts."""
-    absent = {"image": torch.ones(len(frames), dtype=torch.bool)}
-    batch = demonstrations.batch(frames, absent)
-    loc, scale = forecasts.lookup(frames, absent)
-    batch.update({keys.FORECAST_LOC: loc, keys.FORECAST_SCALE: scale})
-    return batch
-
-
 def test_a_policy_reading_the_first_forecast_steps_ignores_the_rest_and_round_trips(
     demonstrations, forecasts, tmp_path
 ):
@@ -421,7 +418,10 @@ def test_a_policy_reading_the_first_forecast_steps_ignores_the_rest_and_round_tr
     head_inputs = policy.module.head[0].in_features
     assert whole.module.head[0].in_features - head_inputs == 2 * (horizon - 1) * dim
 
-    batch = forecast_batch(demonstrations, forecasts, demonstrations.split_frames["train"][:6])
+    frames = demonstrations.split_frames["train"][:6]
+    batch = batch_with_forecasts(
+        demonstrations, forecasts, frames, {"image": torch.ones(6, dtype=torch.bool)}
+    )
     action = policy(batch.clone()).get("action")
     later, first = batch.clone(), batch.clone()
     later.get(keys.FORECAST_LOC)[:, 1:] += 1.0
