@@ -141,6 +141,13 @@ ENTRIES = [
         "variant",
         (*PAPER, *PAIR_STREAMS, "model.decoder_latent=none"),
     ),
+    # The same decoder without z and without L_mis: MulT's objective (the NLL alone) on the paper's
+    # architecture, to tell what the CVAE objective costs with every sensor from what the model does.
+    Entry(
+        "paper, pair-stream decoder, no z, w/o L_mis, per-step vector tokens",
+        "variant",
+        (*PAPER, *PAIR_STREAMS, "model.decoder_latent=none", "loss=no_mis"),
+    ),
     Entry(
         "paper, pair streams of mixed tokens, linear z, per-step vector tokens",
         "variant",
