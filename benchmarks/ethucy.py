@@ -7,8 +7,9 @@
 For each fold (its test scene held out; train/val from the other scenes' ``_train``/``_val`` files):
 the paper model (the attention CVAE, ``model.prior=learned`` so that its 20 samples come from
 ``p(z | X)``; the fold's data config: ``deepsets`` neighbours, conv scene), LF-LSTM and MulT are
-trained ONCE on all modalities (the baselines see an absent modality as zeros: the zero-fill
-protocol of the push accuracy benchmark); constant velocity and constant velocity with sampled
+trained ONCE on all modalities, their scene crops through lerobot's default image transforms
+(``augment=lerobot``; the baselines see an absent modality as zeros: the zero-fill protocol of the
+push accuracy benchmark); constant velocity and constant velocity with sampled
 heading noise (its angle std chosen on the fold's val split) need no training. Every model is
 scored in four modes (all modalities, without ``scene``, without ``neighbours``, trajectory only)
 on the same test windows: ADE/FDE of the point forecast and minADE20/minFDE20 per agent over 20
@@ -44,6 +45,10 @@ TRAINED = {  # label -> model overrides
     "LF-LSTM": ("model=lf_lstm",),
     "MulT": ("model=mult",),
 }
+# Every trained model sees its scene crops through lerobot's default image transforms: the test scene's
+# reference frame looks unlike the training scenes' (light, colour, sharpness), and a model trained on
+# four fixed images learns their look.
+AUGMENT = ("augment=lerobot",)
 DETERMINISTIC = ("LF-LSTM", "MulT", CV)
 HEADING_NOISE_GRID = (0.05, 0.1, 0.15, 0.2, 0.3, 0.45)  # radians, the sampler's std picked on val
 FIGURE_WINDOWS = 4
@@ -128,6 +133,7 @@ def train_overrides(args, budget: Budget, fold: str, label: str, run_dir: Path) 
     steps = budget.steps if paper else budget.baseline_steps
     return [
         *TRAINED[label],
+        *AUGMENT,
         f"data={args.data / f'{fold}.yaml'}",
         f"data.cache_dir={args.data / 'cache'}",
         f"data.image_size=[{IMAGE_SIZE},{IMAGE_SIZE}]",
