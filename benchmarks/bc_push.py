@@ -7,8 +7,8 @@
     MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py
     # a recording and a forecaster of your own (nothing recorded or trained but the policies)
     MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py --data data/push --forecaster runs/push/checkpoints
-    # the forecaster trained on a recording of its own, never on the episodes the policies imitate
-    MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py --quick --held-out-forecaster
+    # the old setup, for comparison: the forecaster trained on the episodes the policies imitate
+    MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py --quick --in-sample-forecaster
 
 The question: does a policy that reads the forecaster's forecast of the object's
 motion stay up when a sensor fails, better than the same policy without it? Target: the policy
@@ -18,9 +18,15 @@ off.
 What it builds when absent (under ``--work``; a re-run reuses the recording, resumes or skips
 the trainings):
 
-* the recording: scripted pushes without exploration (``mmf-rl record --out WORK/push --episodes N
-  --seed 0``): its ``action`` column is what the policies imitate;
-* the forecaster: the default push forecaster (``mmf-rl train data.root=WORK/push``), with
+* the policies' recording: scripted pushes without exploration (``mmf-rl record --out WORK/push
+  --episodes N --seed 0``): its ``action`` column is what the policies imitate;
+* the forecaster's recording, ``WORK/push_forecaster``: scripted pushes recorded with seed 1
+  (`RECORDING_SEEDS`, so the two recordings share no episode) with the episode count, length and
+  image size of the policies' recording (``WORK/push`` or ``--data``); or ``--forecaster-data PATH``,
+  a recording of your own for the forecaster only. Why a recording of its own: see "The forecaster
+  is held out" below;
+* the forecaster: the default push forecaster trained on its recording (``mmf-rl train
+  data.root=WORK/push_forecaster``) in the run ``WORK/forecaster_held_out``, with
   ``--forecaster-steps`` steps of ``--forecaster-batch-size``;
 * its forecast scale calibrated per presence pattern on its validation split, as ``mmf-rl
   calibrate`` fits it (`mmf_rl.eval.scale_fit`), before it forecasts anything: ``mmf-rl train``
@@ -62,7 +68,8 @@ the trainings):
 =============================  ===========  ===============================
 budget                         quick        full
 =============================  ===========  ===============================
-recorded episodes              200          300
+recorded episodes (policies'   200          300
+recording, and forecaster's)
 forecaster steps x batch       1000 x 64    3000 x 128 (configs/trainer)
 BC steps x batch (each)        1000 x 64    3000 x 128
 BC seeds (each variant)        0 1          0 1
@@ -106,22 +113,27 @@ Design (what the policies see, and why):
   and a still forecast then keeps the policy still). Their runs are their own
   (``bc_with_..._first<N>_forecasts_seed<S>``; results in ``WORK/first<N>`` unless ``--out``, after
   any other tag of the run).
-* ``--held-out-forecaster``: the forecaster is trained on a recording of its own, never on the
-  episodes the policies imitate. Trained on them, it forecasts the frames the policies learn from
-  far more accurately than any frame it meets in closed loop (it overfits its training episodes):
-  the policies then learn to rely on forecasts better than any they will get, and a forecast of the
+* The forecaster is held out: it is trained on a recording of its own, never on the episodes the
+  policies imitate. Trained on them, it forecasts the frames the policies learn from far more
+  accurately than any frame it meets in closed loop (it overfits its training episodes): the
+  policies then learn to rely on forecasts better than any they will get, and a forecast of the
   object's position relative to the gripper gives away the demonstrated action itself. So the two
-  stages are fitted on different data, as for any stacked model: the forecaster's recording is
-  ``WORK/push_forecaster``, scripted pushes recorded with seed 1 (`RECORDING_SEEDS`; the policies'
-  with seed 0, so the two share no episode) with the episode count, length and image size of the
-  policies' recording (``WORK/push`` or ``--data``), or ``--forecaster-data PATH`` (a recording of
-  your own for the forecaster only; it implies the option). Its run is ``WORK/forecaster_held_out``
-  (never the ordinary ``WORK/forecaster``), calibrated on its own val split. Everything else is as
-  without the option: the policies train and are validated on their own recording, forecast by
-  this forecaster. The ``with`` policies' runs are their own (``bc_with_..._heldout_forecasts_seed<S>``,
-  ``dagger_markov_..._heldout_...``; results in ``WORK/heldout`` unless ``--out``, after any other
-  tag of the run); the ``without`` policies read no forecast and are the ordinary ones. Refused with
-  ``--forecaster`` (what a given forecaster was trained on is unknown here).
+  stages are fitted on different data, as for any stacked model. The policies train and are
+  validated on their own recording, forecast by this forecaster. The ``with`` policies' runs are
+  tagged (``bc_with_..._heldout_forecasts_seed<S>``, ``dagger_markov_..._heldout_...``; results in
+  ``WORK/heldout`` unless ``--out``, after any other tag of the run); the ``without`` policies read
+  no forecast and are the ordinary ones. ``--held-out-forecaster`` is accepted and changes nothing
+  (it was the option's name before it became the default).
+* ``--in-sample-forecaster``: the old setup, kept for comparison: the forecaster is trained on the
+  policies' own recording (``mmf-rl train data.root=WORK/push``, run ``WORK/forecaster``), so the
+  ``with`` policies learn from forecasts of the very frames it was trained on. Its runs keep the
+  untagged names (``bc_with_forecasts_seed<S>``; results in ``WORK``), so older work directories
+  resume. Refused with ``--held-out-forecaster`` or ``--forecaster-data``.
+* ``--forecaster PATH``: a forecaster of your own; nothing is trained, and what it learned from is
+  unknown here, so its runs are untagged as with ``--in-sample-forecaster`` (use another ``--work``
+  to keep them apart). When its recorded ``data.root`` is the policies' recording (``--data``, or
+  its own when ``--data`` is not given), a warning says the policies learn from in-sample forecasts.
+  Refused with ``--held-out-forecaster``, ``--in-sample-forecaster`` or ``--forecaster-data``.
 * ``--privileged-object`` (a diagnostic, not a deployable policy): the policies also read the
   object's true planar position (`BCConfig.privileged_object`), fed like the goal, never removed
   by an outage. If they reach the scripted pusher's success, locating the object from the sensors
@@ -163,6 +175,7 @@ to lose everything there, by construction.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import time
 from dataclasses import dataclass
@@ -215,6 +228,8 @@ from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable
 from mmf_rl.rl.outage_evaluation import Condition, outage_conditions
 from mmf_rl.trainers import TrainerConfig, seed_everything
 
+# Under mmf_rl, so that the library's logging setup (`mmf-rl bench`, or this script's own) shows it.
+logger = logging.getLogger("mmf_rl.benchmarks.bc_push")
 DROPPABLE = ("image", "force")  # the sensors a training sample may lose
 # The seed of each recording the script makes (under WORK): episode i depends only on (seed, i), so
 # the two share no episode.
@@ -333,7 +348,7 @@ def training_recording(args, data_config: dict) -> dict:
 
 
 def forecaster_run_dir(args) -> Path:
-    """The forecaster's run: a held-out one never resumes the ordinary one."""
+    """The forecaster's run: the held-out one (the default) never resumes the in-sample one."""
     return (args.work / ("forecaster_held_out" if args.held_out_forecaster else "forecaster")).resolve()
 
 
@@ -531,14 +546,20 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--held-out-forecaster",
         action="store_true",
-        help="train the forecaster on a recording of its own (WORK/push_forecaster, seed 1), never on the "
-        "episodes the policies imitate (runs of their own)",
+        help="the default, accepted for older commands: the forecaster is trained on a recording of its own "
+        "(WORK/push_forecaster, seed 1), never on the episodes the policies imitate",
+    )
+    parser.add_argument(
+        "--in-sample-forecaster",
+        action="store_true",
+        help="the old setup, for comparison: train the forecaster on the policies' own recording (run "
+        "WORK/forecaster), so the policies learn from forecasts of the frames it was trained on",
     )
     parser.add_argument(
         "--forecaster-data",
         type=Path,
         default=None,
-        help="a push recording for the forecaster only (implies --held-out-forecaster; default: record one)",
+        help="a push recording for the held-out forecaster only (default: record one)",
     )
     parser.add_argument("--forecaster-steps", type=int, default=None)
     parser.add_argument("--forecaster-batch-size", type=int, default=None)
@@ -624,17 +645,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_common_arguments(parser, "bc")
     add_training_arguments(parser)
     parsed = parser.parse_args(argv)
+    check_forecaster_kind(parser, parsed)
     own_out = parsed.out is None and (
         parsed.privileged_object
         or parsed.action_chunk > 1
         or parsed.action_head == "gmm"
         or parsed.forecast_steps is not None
         or parsed.held_out_forecaster
-        or parsed.forecaster_data is not None
     )
     args = resolve_budget(parsed, BUDGETS, "bc")
     args.variants = [v for v in VARIANTS if v in args.variants]
-    check_held_out_forecaster(parser, args)
+    check_forecaster_data(parser, args)
     if own_out:  # never over the results of the ordinary policies in the same work directory
         tags = policy_tag(args) + first_steps_tag(args) + held_out_tag(args)
         args.out = args.work / tags.removeprefix("_")
@@ -654,22 +675,35 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def check_held_out_forecaster(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """``--forecaster-data`` implies ``--held-out-forecaster``; refuses what would defeat it."""
-    args.held_out_forecaster = args.held_out_forecaster or args.forecaster_data is not None
-    if not args.held_out_forecaster:
-        return
-    if args.forecaster is not None:
+def check_forecaster_kind(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Sets ``args.held_out_forecaster``: a forecaster trained here on a recording of its own, the
+    default, unless one is given (``--forecaster``) or ``--in-sample-forecaster`` asks for the old
+    setup; refuses the options that contradict each other."""
+    held_out_asked = args.held_out_forecaster or args.forecaster_data is not None
+    if args.in_sample_forecaster and held_out_asked:
         parser.error(
-            "--forecaster and --held-out-forecaster/--forecaster-data: the data a given forecaster was "
-            "trained on is unknown here; drop --forecaster to train a held-out one, or drop "
-            "--held-out-forecaster"
+            "--in-sample-forecaster with --held-out-forecaster/--forecaster-data: the forecaster is trained "
+            "either on the policies' recording or on one of its own; drop one of them"
         )
-    if any(o.split("=", 1)[0].lstrip("+") == "data.root" for o in args.forecaster_override):
+    if args.forecaster is not None and (held_out_asked or args.in_sample_forecaster):
         parser.error(
-            "--forecaster-override data.root=... with --held-out-forecaster: give the forecaster's recording "
-            "with --forecaster-data instead"
+            "--forecaster with --held-out-forecaster/--in-sample-forecaster/--forecaster-data: a given "
+            "forecaster is not trained here and the data it was trained on is unknown; drop --forecaster to "
+            "train one, or drop the others"
         )
+    args.held_out_forecaster = args.forecaster is None and not args.in_sample_forecaster
+    if args.held_out_forecaster and any(
+        o.split("=", 1)[0].lstrip("+") == "data.root" for o in args.forecaster_override
+    ):
+        parser.error(
+            "--forecaster-override data.root=... with the held-out forecaster (the default): give the "
+            "forecaster's recording with --forecaster-data instead, or add --in-sample-forecaster to train "
+            "it on the policies' recording"
+        )
+
+
+def check_forecaster_data(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuses a ``--forecaster-data`` that is the policies' recording or no recording at all."""
     if args.forecaster_data is None:
         return
     policies_data = (args.data or args.work / "push").resolve()
@@ -702,6 +736,8 @@ def forecaster_and_demonstrations(args, phases: dict[str, float]):
     with timed_phase(phases, "calibrate forecaster"):
         loaded, calibration = calibrated_forecaster(checkpoints, not args.no_calibrate, calibration_data)
     forecaster = Forecaster(checkpoints, loaded, calibration, training_recording(args, loaded[2]))
+    if args.forecaster is not None:
+        warn_of_in_sample_forecasts(forecaster, data)
     model, stats, data_config = forecaster.loaded
     if data is not None:  # the policies' recording, wherever the forecaster was trained
         data_config = {**data_config, "root": str(data)}
@@ -709,6 +745,22 @@ def forecaster_and_demonstrations(args, phases: dict[str, float]):
         demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
         table = ForecastTable.for_trained(demonstrations, model, stats, data_config, DROPPABLE)
     return forecaster, demonstrations, table
+
+
+def warn_of_in_sample_forecasts(forecaster: Forecaster, policies_data: Path | None) -> None:
+    """A warning when a given forecaster was trained on the policies' recording (``policies_data``;
+    ``None``: the policies read the forecaster's own recording)."""
+    trained_on = forecaster.trained_on["path"]
+    if policies_data is not None and trained_on != str(policies_data):
+        return
+    logger.warning(
+        "the forecaster %s was trained on the policies' recording %s: the policies learn from its "
+        "forecasts of the very frames it was trained on, more accurate than any it makes in closed loop; "
+        "see docs/results.md, 'BC with a held-out forecaster'. Give --data a recording it was not trained "
+        "on, or drop --forecaster to train a held-out one",
+        forecaster.checkpoints,
+        trained_on,
+    )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -789,6 +841,7 @@ def budget_line(args, forecaster: Forecaster, recorded: Demonstrations) -> str:
             else ""
         )
         + (held_out_phrase(forecaster.trained_on) if args.held_out_forecaster else "")
+        + ("forecaster trained on the policies' recording (in-sample); " if args.in_sample_forecaster else "")
         + "forecaster "
         f"`{forecaster.checkpoints}`; {len(recorded.split_frames['train'])} recorded training frames"
     )

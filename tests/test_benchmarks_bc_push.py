@@ -5,13 +5,16 @@ both policies, plays, writes the results and ends with the summary line."""
 from __future__ import annotations
 
 import json
+import logging
 import re
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
 
+from benchmarks.bc_push import Forecaster, parse_args, policy_run_dir, warn_of_in_sample_forecasts
 from mmf_rl.cli import main as cli
 from mmf_rl.rl import BCPolicy
 from tests.conftest import push_train_overrides
@@ -42,7 +45,7 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
         *("--forecaster-override", *tiny_forecaster),
         *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
         *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
-        *("--episodes", "1", "--outage", "episode"),
+        *("--episodes", "1", "--outage", "episode", "--in-sample-forecaster"),
         *(("--latched-forecast", latched) if latched else ()),
     ]
     assert cli(["bench", "bc", *argv]) == 0
@@ -62,7 +65,8 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
 
 
 def tiny_dagger_argv(recorded_push_root, tmp_path, work) -> list[str]:
-    """`mmf-rl bench bc` with one DAgger round, at sizes that run in seconds."""
+    """`mmf-rl bench bc` with one DAgger round, at sizes that run in seconds; the forecaster is trained
+    in-sample, on the given recording (the held-out default records one of its own)."""
     tiny_forecaster = push_train_overrides(
         recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
     )
@@ -71,7 +75,8 @@ def tiny_dagger_argv(recorded_push_root, tmp_path, work) -> list[str]:
         *("--forecaster-override", *tiny_forecaster),
         *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
         *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
-        *("--episodes", "1", "--outage", "episode", "--dagger", "1", "--dagger-episodes", "1"),
+        *("--episodes", "1", "--outage", "episode", "--in-sample-forecaster"),
+        *("--dagger", "1", "--dagger-episodes", "1"),
     ]
 
 
@@ -201,10 +206,10 @@ def first_goal(root) -> np.ndarray:
 
 
 def held_out_argv(argv: list[str]) -> list[str]:
-    """``argv`` with `--held-out-forecaster` and without the forecaster's data root and run directory,
-    which the script chooses for a held-out forecaster."""
-    kept = [a for a in argv if not a.startswith(("data.root=", "run_dir="))]
-    return [*kept, "--held-out-forecaster", "--workers", "1"]
+    """``argv`` with the default, held-out forecaster: without `--in-sample-forecaster` and the
+    forecaster's data root and run directory, which the script chooses for a held-out forecaster."""
+    kept = [a for a in argv if a != "--in-sample-forecaster" and not a.startswith(("data.root=", "run_dir="))]
+    return [*kept, "--workers", "1"]
 
 
 def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_of_their_own(
@@ -256,19 +261,72 @@ def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_
     assert {p: p.stat().st_mtime_ns for p in without.rglob("*")} == trained
 
 
+def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_untagged_runs(
+    recorded_push_root, tmp_path, capsys
+):
+    work = tmp_path / "work"
+    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
+    data_at = argv.index("--data")
+    argv = [
+        a
+        for a in argv[:data_at] + argv[data_at + 2 : argv.index("--dagger")]
+        if not a.startswith(("data.root=", "run_dir="))
+    ]
+    assert cli([*argv, "--record-episodes", "4", "--workers", "1"]) == 0
+    assert_one_outage_summary(capsys)
+    recording = (work / "push").resolve()
+    config = yaml.safe_load((work / "forecaster" / "config.yaml").read_text())
+    assert config["data"]["root"] == str(recording)
+    results = json.loads((work / "results.json").read_text())
+    assert not results["held_out_forecaster"]
+    assert results["forecaster_recording"] == {"path": str(recording), "seed": 0, "episodes": 4}
+    assert "forecaster trained on the policies' recording (in-sample)" in (work / "results.md").read_text()
+    assert (work / "bc_with_forecasts_seed0" / "checkpoints" / "last").is_file()
+    assert not list(work.glob("*held*")) and not (work / "push_forecaster").exists()
+
+
+def test_bc_push_given_forecaster_is_neither_kind_and_keeps_the_untagged_runs(tmp_path):
+    work = tmp_path / "work"
+    common = ["--quick", "--work", str(work)]
+    given = parse_args([*common, "--forecaster", "runs/some/checkpoints"])
+    assert not given.held_out_forecaster and not given.in_sample_forecaster
+    assert given.out == work
+    assert policy_run_dir(given, "with", 0, 0) == work / "bc_with_forecasts_seed0"
+    default, named = parse_args(common), parse_args([*common, "--held-out-forecaster"])
+    for held_out in (default, named):  # the flag of the held-out forecaster is the default's
+        assert held_out.held_out_forecaster and held_out.out == work / "heldout"
+        assert policy_run_dir(held_out, "with", 0, 0) == work / "bc_with_heldout_forecasts_seed0"
+
+
+def test_bc_push_warns_when_a_given_forecaster_was_trained_on_the_policies_recording(tmp_path, caplog):
+    recording = (tmp_path / "push").resolve()
+    trained_on = {"path": str(recording), "seed": None, "episodes": None}
+    forecaster = Forecaster(Path("runs/some/checkpoints"), (), None, trained_on)
+    with caplog.at_level(logging.WARNING, logger="mmf_rl"):
+        warn_of_in_sample_forecasts(forecaster, tmp_path / "other")
+        assert not caplog.records, "another recording: no warning"
+        warn_of_in_sample_forecasts(forecaster, recording)
+        warn_of_in_sample_forecasts(forecaster, None)  # the policies read the forecaster's own recording
+    assert len(caplog.records) == 2
+    assert all("BC with a held-out forecaster" in r.getMessage() for r in caplog.records)
+
+
 @pytest.mark.parametrize(
     "extra, refusal",
     [
-        (["--forecaster", "runs/some/checkpoints", "--held-out-forecaster"], "--forecaster and --held-out"),
+        (["--forecaster", "runs/some/checkpoints", "--held-out-forecaster"], "--forecaster with --held-out"),
+        (["--forecaster", "runs/some/checkpoints", "--in-sample-forecaster"], "--forecaster with --held-out"),
         (["--forecaster-data", "DATA"], "is the policies' recording"),
-        (["--held-out-forecaster", "--forecaster-override", "data.root=DATA"], "with --forecaster-data"),
+        (["--forecaster-override", "data.root=DATA"], "with --forecaster-data"),
+        (["--in-sample-forecaster", "--held-out-forecaster"], "--in-sample-forecaster with --held-out"),
+        (["--in-sample-forecaster", "--forecaster-data", "DATA"], "--in-sample-forecaster with --held-out"),
     ],
 )
-def test_bc_push_refuses_a_held_out_forecaster_that_could_have_seen_the_policies_episodes(
+def test_bc_push_refuses_a_forecaster_whose_training_data_contradicts_its_options(
     recorded_push_root, tmp_path, capsys, extra, refusal
 ):
     argv = tiny_dagger_argv(recorded_push_root, tmp_path, tmp_path / "work")
-    argv = [a for a in argv if not a.startswith("data.root=")]
+    argv = [a for a in argv if a != "--in-sample-forecaster" and not a.startswith("data.root=")]
     extra = [a.replace("DATA", str(recorded_push_root)) for a in extra]
     assert cli([*argv, *extra]) == 2
     assert refusal in capsys.readouterr().err
