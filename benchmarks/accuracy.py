@@ -141,11 +141,6 @@ ENTRIES = [
         "variant",
         (*PAPER, *PAIR_STREAMS, "model.decoder_latent=none"),
     ),
-    Entry(
-        "paper, pair-stream decoder, linear z, per-step tokens for all three",
-        "variant",
-        (*PAPER, *PAIR_STREAMS, "model.decoder_latent=linear", "data.modalities.image.encoder=conv_frames"),
-    ),
     # The same decoder without z and without L_mis: MulT's objective (the NLL alone) on the paper's
     # architecture, to tell what the CVAE objective costs with every sensor from what the model does.
     Entry(
