@@ -45,9 +45,9 @@ TRAINED = {  # label -> model overrides
     "LF-LSTM": ("model=lf_lstm",),
     "MulT": ("model=mult",),
 }
-# Every trained model sees its scene crops through lerobot's default image transforms: the test scene's
-# reference frame looks unlike the training scenes' (light, colour, sharpness), and a model trained on
-# four fixed images learns their look.
+# Every trained model sees its scene crops through lerobot's default image transforms: trained on four
+# fixed reference frames, a model can learn their look (light, colour, sharpness), which the held-out
+# scene's frame does not share.
 AUGMENT = ("augment=lerobot",)
 DETERMINISTIC = ("LF-LSTM", "MulT", CV)
 HEADING_NOISE_GRID = (0.05, 0.1, 0.15, 0.2, 0.3, 0.45)  # radians, the sampler's std picked on val
