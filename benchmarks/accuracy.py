@@ -148,6 +148,23 @@ ENTRIES = [
         "variant",
         (*PAPER, *PAIR_STREAMS, "model.decoder_latent=none", "loss=no_mis"),
     ),
+    # The image's frames as tokens too (MulT's per-frame ConvNet), with and without the CVAE objective.
+    Entry(
+        "paper, pair-stream decoder, linear z, per-step tokens for all three",
+        "variant",
+        (*PAPER, *PAIR_STREAMS, "model.decoder_latent=linear", "data.modalities.image.encoder=conv_frames"),
+    ),
+    Entry(
+        "paper, pair-stream decoder, no z, w/o L_mis, per-step tokens for all three",
+        "variant",
+        (
+            *PAPER,
+            *PAIR_STREAMS,
+            "model.decoder_latent=none",
+            "loss=no_mis",
+            "data.modalities.image.encoder=conv_frames",
+        ),
+    ),
     Entry(
         "paper, pair streams of mixed tokens, linear z, per-step vector tokens",
         "variant",
