@@ -43,8 +43,8 @@ from mmf_rl.compare.bootstrap import Table, build_table, difference_interval
 from mmf_rl.compare.entries import Entry, Study, subsets
 from mmf_rl.models.attention import FixedQueryAttention
 from mmf_rl.models.baselines.common import gaussian_head_output, zero_filled
-from mmf_rl.models.baselines.mult import CrossModalLayer, MulT, MulTConfig
-from mmf_rl.models.encoders import build_encoder, mlp
+from mmf_rl.models.baselines.mult import CrossModalLayer, CrossModalTransformer, MulT, MulTConfig
+from mmf_rl.models.encoders import StepTokens, build_encoder, mlp
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.forecaster.modeling_forecaster import ModalitySpecificDecoder, MultimodalForecaster
 from mmf_rl.models.fusion import FusionShape
@@ -161,6 +161,47 @@ class MulTStackedImageToken(StagedMulT):
             x = self.tokenizers[spec.name](zero_filled(td, spec))
             seq = x.unsqueeze(1) if spec.kind == "image" else x
             tokens[spec.name] = seq + self.step_embedding[-seq.shape[1] :]
+        return tokens
+
+
+@register_model("gap_mult_self", MulTConfig, loss=("nll",))
+class MulTWithSelfPairs(StagedMulT):
+    """Swaps MulT's pair set for the paper pair-stream decoder's: all ``M × M`` ordered pairs, the
+    self pairs ``i <- i`` included, each with its own cross-modal Transformer; the ``M²`` readouts
+    are concatenated into a head as much wider. Tokens and readout stay MulT's."""
+
+    def __init__(self, config: MulTConfig):
+        super().__init__(config)
+        names = [s.name for s in self.modalities]
+        d = config.d_model
+        self.pairs = [(i, j) for i in names for j in names]
+        self.streams = nn.ModuleDict(
+            {
+                f"{i}<-{j}": CrossModalTransformer(d, config.num_heads, config.mlp_hidden, config.num_layers)
+                for i, j in self.pairs
+            }
+        )
+        self.head = mlp(len(self.pairs) * d, config.head_hidden, 2 * config.horizon * config.target_dim)
+
+
+@register_model("gap_mult_steptok", MulTConfig, loss=("nll",))
+class MulTOnPaperStepTokens(StagedMulT):
+    """Swaps MulT's vector tokenizer (a linear layer + ReLU per step, one step embedding shared by the
+    modalities) for the paper's ``steps`` encoder (a two-layer MLP per step, a step embedding per
+    modality). The image keeps MulT's per-frame tokens; pair streams and head stay MulT's."""
+
+    def __init__(self, config: MulTConfig):
+        super().__init__(config)
+        for spec in self.modalities:
+            if spec.kind == "sequence":
+                self.tokenizers[spec.name] = StepTokens(spec, config.history, config.d_model)
+
+    def modality_tokens(self, td) -> dict[str, torch.Tensor]:
+        tokens = {}
+        for spec in self.modalities:
+            seq = self.tokenizers[spec.name](zero_filled(td, spec))
+            own_embedding = isinstance(self.tokenizers[spec.name], StepTokens)
+            tokens[spec.name] = seq if own_embedding else seq + self.step_embedding[-seq.shape[1] :]
         return tokens
 
 
@@ -352,6 +393,8 @@ ENTRIES = [
         (*MULT, "model.name=gap_mult_shared"),
     ),
     Entry("MulT, frame-stacked image token", "zero-fill", (*MULT, "model.name=gap_mult_stackimg")),
+    Entry("MulT, self pairs too", "zero-fill", (*MULT, "model.name=gap_mult_self")),
+    Entry("MulT, the paper's per-step vector tokens", "zero-fill", (*MULT, "model.name=gap_mult_steptok")),
     Entry("paper, no decoder joint MLP", "variant", (*PAPER, "model.name=gap_fc_nojoint")),
     Entry("paper, one joint MLP per modality", "variant", (*PAPER, "model.name=gap_fc_pm")),
     Entry("paper, residual joint MLP", "variant", (*PAPER, "model.name=gap_fc_res")),
