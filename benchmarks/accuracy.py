@@ -102,6 +102,14 @@ PAIR_STREAMS = (
     "data.modalities.force.encoder=steps",
     "data.modalities.proprio.encoder=steps",
 )
+# MulT's tokenizer for the vector modalities (a linear layer + ReLU per step) and its pair set (the
+# self pairs read only for a lone modality), for the pair-stream decoder.
+MULT_PAIRS_AND_STEP_TOKENS = (
+    "model.decoder_input=pair_streams",
+    "model.pair_self=alone",
+    "data.modalities.force.encoder=linear_steps",
+    "data.modalities.proprio.encoder=linear_steps",
+)
 ENTRIES = [
     catalogue.PAPER,
     # Options of the paper model. The defaults (standard prior, MLP window encoders for the vector
@@ -164,6 +172,24 @@ ENTRIES = [
             "loss=no_mis",
             "data.modalities.image.encoder=conv_frames",
         ),
+    ),
+    # MulT's pair set and vector tokenizer in the paper model: with MulT's objective and image tokens (what
+    # is left of the architecture), and as the CVAE with z added linearly.
+    Entry(
+        "paper, MulT's pairs and step tokens, no z, w/o L_mis, per-frame image tokens",
+        "variant",
+        (
+            *PAPER,
+            *MULT_PAIRS_AND_STEP_TOKENS,
+            "model.decoder_latent=none",
+            "loss=no_mis",
+            "data.modalities.image.encoder=conv_frames",
+        ),
+    ),
+    Entry(
+        "paper, MulT's pairs and step tokens, linear z",
+        "variant",
+        (*PAPER, *MULT_PAIRS_AND_STEP_TOKENS, "model.decoder_latent=linear"),
     ),
     Entry(
         "paper, pair streams of mixed tokens, linear z, per-step vector tokens",

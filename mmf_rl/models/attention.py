@@ -127,13 +127,22 @@ class PairStreams(nn.Module):
     Absent tokens (an absent modality, or an absent step of a step-token encoder) are hidden from the
     keys and never read as the query, so what is stored under them changes nothing. A pair is absent
     (:meth:`presence`) when ``i`` or ``j`` has no present token; its readout is then a placeholder
-    the caller masks out.
+    the caller masks out. ``self_pairs="alone"``: a self pair ``i <- i`` is present only when ``i`` is
+    the only present modality (MulT's pair set whenever two or more are present).
     """
 
-    def __init__(self, token_counts: list[int], d_model: int, num_heads: int, mlp_hidden: int):
+    def __init__(
+        self,
+        token_counts: list[int],
+        d_model: int,
+        num_heads: int,
+        mlp_hidden: int,
+        self_pairs: str = "always",
+    ):
         super().__init__()
         m = len(token_counts)
         self.token_counts = list(token_counts)
+        self.self_pairs = self_pairs
         self.pairs = [(i, j) for i in range(m) for j in range(m)]
         self.layers = nn.ModuleList(CrossModalLayer(d_model, num_heads, mlp_hidden) for _ in self.pairs)
         pair_index = torch.tensor(self.pairs)
@@ -159,8 +168,13 @@ class PairStreams(nn.Module):
         return torch.stack(readouts, dim=1)
 
     def presence(self, modality_present: torch.Tensor) -> torch.Tensor:
-        """Modality presence ``[B, M]`` -> pair presence ``[B, M × M]`` (both ``i`` and ``j`` present)."""
-        return modality_present[:, self.pair_modality] & modality_present[:, self.pair_source]
+        """Modality presence ``[B, M]`` -> pair presence ``[B, M × M]`` (both ``i`` and ``j`` present;
+        with ``self_pairs="alone"``, a self pair only when its modality is the only one present)."""
+        present = modality_present[:, self.pair_modality] & modality_present[:, self.pair_source]
+        if self.self_pairs == "alone":
+            alone = modality_present.sum(1, keepdim=True) == 1
+            present = present & ((self.pair_modality != self.pair_source) | alone)
+        return present
 
 
 def last_present_token(tokens: torch.Tensor, present: torch.Tensor) -> torch.Tensor:

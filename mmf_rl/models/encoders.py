@@ -25,6 +25,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
+from typing import Literal
 
 import torch
 from torch import nn
@@ -196,15 +197,31 @@ class FlatMLPEncoder(nn.Module):
 
 class StepTokens(nn.Module):
     """One token per step of a vector window ``[N, H, d_in]`` -> ``[N, H, d]``: a per-step MLP plus a
-    learned step embedding (so attention can tell the steps apart, as MulT's tokens do)."""
+    learned step embedding (so attention can tell the steps apart, as MulT's tokens do).
+    ``per_step="linear"``: a linear layer + ReLU per step instead of the MLP (MulT's tokenizer)."""
 
     # One token per step: an absent step (``("present_steps", m)``) is an absent token.
     tokens_are_steps = True
 
-    def __init__(self, spec: ModalitySpec, history: int, d_model: int, hidden_dim: int | None = None):
+    def __init__(
+        self,
+        spec: ModalitySpec,
+        history: int,
+        d_model: int,
+        hidden_dim: int | None = None,
+        per_step: Literal["mlp", "linear"] = "mlp",
+    ):
         super().__init__()
+        if per_step not in ("mlp", "linear"):
+            raise ValueError(
+                f"the step encoder of {spec.name!r}: per_step must be 'mlp' or 'linear', found {per_step!r}"
+            )
         self.num_tokens = history
-        self.net = mlp(spec.shape[0], hidden_dim or 2 * d_model, d_model)
+        self.net = (
+            mlp(spec.shape[0], hidden_dim or 2 * d_model, d_model)
+            if per_step == "mlp"
+            else nn.Sequential(nn.Linear(spec.shape[0], d_model), nn.ReLU())
+        )
         self.step_embedding = nn.Parameter(torch.randn(history, d_model) * 0.02)
 
     def forward(self, seq: torch.Tensor) -> torch.Tensor:
@@ -214,6 +231,12 @@ class StepTokens(nn.Module):
 @register_encoder("steps", kinds=("sequence",))
 def steps_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> StepTokens:
     return StepTokens(spec, history, d_model, **kwargs)
+
+
+@register_encoder("linear_steps", kinds=("sequence",))
+def linear_steps_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> StepTokens:
+    """MulT's tokenizer: a linear layer + ReLU per step (and the step embedding)."""
+    return StepTokens(spec, history, d_model, per_step="linear", **kwargs)
 
 
 class FrameTokens(nn.Module):

@@ -67,6 +67,16 @@ def test_a_pair_is_absent_when_either_modality_is():
     assert pairs[1].view(3, 3).tolist() == [[True, False, True], [False, False, False], [True, False, True]]
 
 
+def test_alone_self_pairs_are_present_only_for_a_lone_modality():
+    torch.manual_seed(0)
+    streams = PairStreams([3, 1, 4], D, num_heads=2, mlp_hidden=16, self_pairs="alone")
+    present = torch.tensor([[True, True, True], [True, False, True], [False, True, False]])
+    pairs = streams.presence(present).view(3, 3, 3)
+    assert pairs[0].tolist() == [[False, True, True], [True, False, True], [True, True, False]]
+    assert pairs[1].tolist() == [[False, False, True], [False, False, False], [True, False, False]]
+    assert pairs[2].tolist() == [[False, False, False], [False, True, False], [False, False, False]]
+
+
 def test_the_readout_is_the_full_stream_read_at_the_last_present_query_step():
     """Modality 0 (3 tokens) loses its last step: pair (0, 2) is its stream over all its tokens, read
     at its step 1; modality 2 loses steps 0 and 3, which are hidden keys."""

@@ -68,17 +68,24 @@ def garbled(batch, modalities):
 
 
 @pytest.mark.parametrize(
-    "modalities, latent",
-    [(SMALL_MODALITIES, "linear"), (STEP_MODALITIES, "joint"), (STEP_MODALITIES, "none")],
-    ids=["window-linear", "steps-joint", "steps-none"],
+    "modalities, latent, pair_self",
+    [
+        (SMALL_MODALITIES, "linear", "always"),
+        (STEP_MODALITIES, "joint", "always"),
+        (STEP_MODALITIES, "none", "always"),
+        (STEP_MODALITIES, "linear", "alone"),
+    ],
+    ids=["window-linear", "steps-joint", "steps-none", "steps-linear-self-alone"],
 )
 def test_pair_streams_keep_the_presence_invariants_when_windows_end_absent(
-    small_config, mixed_batch, modalities, latent
+    small_config, mixed_batch, modalities, latent, pair_self
 ):
     """Output shapes, a mixed batch giving each sample its own result, and nothing stored under an
     absent modality or step changing any output, when windows lose their last steps (the pair
     queries move; tests/models/test_tokens.py covers windows that end present)."""
-    model = build(small_config, modalities, decoder_input="pair_streams", decoder_latent=latent).eval()
+    model = build(
+        small_config, modalities, decoder_input="pair_streams", decoder_latent=latent, pair_self=pair_self
+    ).eval()
     batch = with_trailing_absent_steps(mixed(modalities, mixed_batch), modalities)
     with torch.no_grad():
         reference = model(batch.clone())
@@ -266,3 +273,21 @@ def test_one_trace_of_the_pair_stream_forecast_serves_every_presence_pattern(sma
         tokens, present = model.encode(batch)
         traced = torch.jit.trace(EvalForecast(model), (tokens, torch.ones_like(present)), check_trace=False)
         torch.testing.assert_close(traced(tokens, present), model.forecast_from_tokens(tokens, present))
+
+
+def test_alone_self_pairs_act_only_on_a_lone_modality(small_config, batch):
+    """With ``pair_self="alone"`` the self-pair layers change no forecast while two or more modalities
+    are present, and do change a lone modality's."""
+    model = build(small_config, STEP_MODALITIES, decoder_input="pair_streams", pair_self="alone").eval()
+    lone = batch.clone()
+    for spec in STEP_MODALITIES[1:]:
+        lone.set(spec.present_key, torch.zeros_like(lone.get(spec.present_key)))
+    with torch.no_grad():
+        before = [model(b.clone()).get(keys.FORECAST_LOC) for b in (batch, lone)]
+        for k, (i, j) in enumerate(model.pair_streams.pairs):
+            if i == j:
+                for p in model.pair_streams.layers[k].parameters():
+                    p.add_(torch.randn_like(p))
+        after = [model(b.clone()).get(keys.FORECAST_LOC) for b in (batch, lone)]
+    assert torch.equal(after[0], before[0])
+    assert not torch.allclose(after[1], before[1])

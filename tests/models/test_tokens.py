@@ -8,7 +8,7 @@ import torch
 from mmf_rl import keys
 from mmf_rl.eval.metrics import window_metrics
 from mmf_rl.models import MultimodalForecaster, build_loss
-from mmf_rl.models.encoders import FrameTokens, StepTokens, num_tokens
+from mmf_rl.models.encoders import FrameTokens, StepTokens, build_encoder, num_tokens
 from mmf_rl.objectives import LossConfig
 from tests.conftest import (
     HISTORY,
@@ -46,6 +46,16 @@ def test_a_step_token_depends_on_its_step_only(small_config):
     changed[:, 3] += 1.0
     moved = (encoder(changed) - encoder(seq)).abs().amax((0, 2))
     assert bool(moved[3] > 0) and not bool(moved[torch.arange(HISTORY) != 3].any())
+
+
+def test_linear_step_tokens_are_one_linear_layer_per_step():
+    spec = next(dataclasses.replace(s, encoder="linear_steps") for s in STEP_MODALITIES if s.name == "force")
+    encoder = build_encoder(spec, HISTORY, 16)
+    assert isinstance(encoder, StepTokens) and num_tokens(encoder) == HISTORY
+    assert [type(m) for m in encoder.net] == [torch.nn.Linear, torch.nn.ReLU]
+    assert encoder(torch.randn(2, HISTORY, 6)).shape == (2, HISTORY, 16)
+    with pytest.raises(ValueError, match="per_step must be 'mlp' or 'linear', found 'gru'"):
+        StepTokens(spec, HISTORY, 16, per_step="gru")
 
 
 @pytest.mark.parametrize("decoder_input", ["tokens", "mixed", "pair_streams", "mixed_pair_streams"])

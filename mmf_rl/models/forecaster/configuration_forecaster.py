@@ -13,6 +13,7 @@ from mmf_rl.models.fusion import check_fusion
 EVAL_LATENTS = ("mean", "sample", "predictive", "posterior")
 DECODER_INPUTS = ("tokens", "mixed", "pair_streams", "mixed_pair_streams")
 DECODER_LATENTS = ("joint", "linear", "none")
+PAIR_SELF = ("always", "alone")
 
 
 @dataclass
@@ -79,6 +80,9 @@ class ForecasterConfig:
             tokens; the decoder reads the ``M × M`` readouts (absent when ``i`` or ``j`` is), each
             with ``p^D_i`` (:class:`~mmf_rl.models.attention.PairStreams`). ``"mixed_pair_streams"``:
             the same streams over the mixed tokens, so the fusion acts on every forecast.
+        pair_self: the self pairs ``i <- i`` of the pair streams: ``"always"`` read (default) or only
+            when ``i`` is the only present modality (``"alone"``: with two or more, the decoder reads
+            MulT's ``M (M - 1)`` cross pairs alone). Unused without pair streams.
         decoder_latent: how ``z`` (and a world model's actions) enter the decoder's tokens ``H0``:
             ``"joint"`` (default, the paper: the shared MLP over ``[x̄ + p^D, z (, a)]``),
             ``"linear"`` (``H0 = x̄ + p^D + W [z (, a)]``: no MLP over every token) or ``"none"`` (a
@@ -111,6 +115,7 @@ class ForecasterConfig:
     fusion: str = "agnostic"
     decoder_input: Literal["tokens", "mixed", "pair_streams", "mixed_pair_streams"] = "mixed"
     decoder_latent: Literal["joint", "linear", "none"] = "joint"
+    pair_self: Literal["always", "alone"] = "always"
     action_dim: int = 0
     action_steps: int = 0
     nonfinite: NonFiniteRule = "raise"
@@ -200,7 +205,8 @@ class ForecasterConfig:
                 f"ForecasterConfig.nonfinite must be one of {NONFINITE_RULES}, found {self.nonfinite!r}"
             )
         check_fusion(self.fusion)
-        for name, allowed in (("decoder_input", DECODER_INPUTS), ("decoder_latent", DECODER_LATENTS)):
+        options = {"decoder_input": DECODER_INPUTS, "decoder_latent": DECODER_LATENTS, "pair_self": PAIR_SELF}
+        for name, allowed in options.items():
             if (value := getattr(self, name)) not in allowed:
                 raise ValueError(f"ForecasterConfig.{name} must be one of {allowed}, found {value!r}")
 

@@ -279,7 +279,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         encoder."""
         config = self.config
         self.pair_streams = (
-            PairStreams(self.token_counts, config.d_model, config.num_heads, config.mlp_hidden)
+            PairStreams(
+                self.token_counts, config.d_model, config.num_heads, config.mlp_hidden, config.pair_self
+            )
             if config.decoder_input.endswith("pair_streams")
             else None
         )
