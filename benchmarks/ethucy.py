@@ -18,7 +18,11 @@ samples (:mod:`mmf_rl.eval.trajectories`).
 The data is converted into ``--data`` when its fold configs are absent (``mmf-rl import ethucy``);
 the window cache is built once for all folds (``--data``/cache). Completed runs
 (``<out>/<fold>/<model>/scores.json``) are reused, so an interrupted benchmark resumes; delete
-``--out`` to start over. Writes ``<out>/results.md``, ``<out>/results.json`` and one figure per
+``--out`` to start over. Each ``scores.json`` records its recipe (a trained model's training
+overrides, a constant-velocity row's heading noise grid), and before anything runs a completed run
+whose recipe differs from this invocation's (another mode, or a recipe changed in this file since),
+or records none, is refused with the settings that differ: train it into another ``--out``, or delete
+its directory to compute it again. Writes ``<out>/results.md``, ``<out>/results.json`` and one figure per
 fold (``<out>/<fold>/forecasts.png``), and ends with one line:
 ``summary: paper model minADE20/minFDE20 avg A/F (without scene A/F, without neighbours A/F);
 constant velocity A/F; best baseline NAME A/F (MODE)``.
@@ -51,6 +55,8 @@ TRAINED = {  # label -> model overrides
 AUGMENT = ("augment=lerobot",)
 DETERMINISTIC = ("LF-LSTM", "MulT", CV)
 HEADING_NOISE_GRID = (0.05, 0.1, 0.15, 0.2, 0.3, 0.45)  # radians, the sampler's std picked on val
+# The constant-velocity rows' recipes (see ``recipe``): they are computed together, from no training.
+CV_RECIPES = {CV: ["heading_noise=0.0"], CV_NOISE: [f"heading_noise_grid={list(HEADING_NOISE_GRID)}"]}
 FIGURE_WINDOWS = 4
 
 
@@ -154,6 +160,60 @@ def train_overrides(args, budget: Budget, fold: str, label: str, run_dir: Path) 
     ]
 
 
+# Settings that differ between machines, not between recipes: where the fold's data config, its
+# window cache and the run live, the device, the cache-building processes. The run's directory already
+# names its fold. A trained run's recipe is its training overrides without these: what this file
+# decides, recorded in scores.json rather than read back from the run's config.yaml, which holds every
+# composed setting, so that any setting a newer mmf-rl adds would refuse every completed run.
+MACHINE_SETTINGS = frozenset({"data", "data.cache_dir", "run_dir", "device", "num_workers"})
+
+
+def recipe(args, budget: Budget, fold: str, label: str) -> list[str]:
+    """What a row's numbers depend on besides the data, as ``key=value`` settings."""
+    if label in CV_RECIPES:
+        return CV_RECIPES[label]
+    overrides = train_overrides(args, budget, fold, label, args.out / fold / slug(label))
+    return [o for o in overrides if o.split("=", 1)[0] not in MACHINE_SETTINGS]
+
+
+def recipe_differences(expected: list[str], found: list[str]) -> list[str]:
+    """``key: expected X, found Y`` for every setting the two recipes disagree on."""
+    want, have = (dict(setting.split("=", 1) for setting in r) for r in (expected, found))
+    return [
+        f"{key}: expected {want.get(key, 'absent')}, found {have.get(key, 'absent')}"
+        for key in dict.fromkeys([*want, *have])
+        if want.get(key) != have.get(key)
+    ]
+
+
+def stale_runs(args, budget: Budget, folds) -> list[str]:
+    """The completed runs this invocation would reuse but whose recipe differs from its own (or is
+    unknown), each with the settings that differ: reused, they would mix recipes in one table."""
+    stale = []
+    for fold in sorted(folds):
+        for label in [*(TRAINED if fold in budget.folds else ()), CV, CV_NOISE]:
+            done = completed(args, fold, label)
+            if done is None:
+                continue
+            run_dir = args.out / fold / slug(label)
+            if "recipe" not in done:
+                unknown = "recipe unknown (its scores.json predates recorded recipes): it cannot be checked"
+                stale.append(f"{run_dir}: {unknown}")
+            elif differences := recipe_differences(recipe(args, budget, fold, label), done["recipe"]):
+                stale.append(f"{run_dir}: " + "; ".join(differences))
+    return stale
+
+
+def check_reused(args, budget: Budget, folds) -> None:
+    """Refuse, before anything runs, to mix completed runs of another recipe into this table."""
+    if stale := stale_runs(args, budget, folds):
+        raise SystemExit(
+            f"ethucy: {args.out} holds completed runs of another recipe than this invocation's "
+            f"({budget.name}):\n  " + "\n  ".join(stale) + "\nuse another --out, or delete a listed "
+            "directory to compute it again with this recipe (nothing was deleted)"
+        )
+
+
 def val_curve(run_dir: Path) -> list[tuple[int, float]]:
     """``(step, val ADE in metres)`` the trainer logged four times: the only evidence the budget is
     read from (the test scene is never looked at for it)."""
@@ -192,6 +252,7 @@ def run_trained(args, budget: Budget, fold: str, label: str, data) -> dict:
     model, _, _ = load_trained_model(run_dir / "checkpoints", map_location=args.device)
     result = {
         "scores": score(model, data, "test", args, deterministic=label != PAPER),
+        "recipe": recipe(args, budget, fold, label),
         "train_seconds": trained,
         "val_ade": val_curve(run_dir),
     }
@@ -223,7 +284,10 @@ def run_constant_velocity(args, fold: str, data) -> dict[str, dict]:
     results = {}
     run_dir = args.out / fold / slug(CV)
     start = time.perf_counter()
-    results[CV] = {"scores": score(constant_velocity(data, 0.0), data, "test", args, deterministic=True)}
+    results[CV] = {
+        "scores": score(constant_velocity(data, 0.0), data, "test", args, deterministic=True),
+        "recipe": CV_RECIPES[CV],
+    }
     results[CV]["seconds"] = time.perf_counter() - start
     run_dir.mkdir(parents=True, exist_ok=True)
     write_json(run_dir / "scores.json", results[CV])
@@ -236,6 +300,7 @@ def run_constant_velocity(args, fold: str, data) -> dict[str, dict]:
     results[CV_NOISE] = {
         "scores": score(constant_velocity(data, sigma), data, "test", args),
         "heading_noise": sigma,
+        "recipe": CV_RECIPES[CV_NOISE],
         "val_min_ade_k": on_val,
         "seconds": time.perf_counter() - start,
     }
@@ -339,6 +404,7 @@ def main(argv: list[str] | None = None) -> int:
 
     args = parse_args(argv)
     budget = QUICK if args.quick else FULL
+    check_reused(args, budget, ethucy.FOLDS)
     args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     seconds = {"convert": ensure_data(args, tuple(ethucy.FOLDS))}

@@ -1,0 +1,134 @@
+"""benchmarks/ethucy.py's resume: a completed run is reused only when it was made with this invocation's
+recipe. On fabricated ``scores.json`` files: no data, no training."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from benchmarks import ethucy as bench
+from tests.conftest import run_bench
+
+ALL_ROWS = [*bench.TRAINED, bench.CV, bench.CV_NOISE]
+
+
+def bench_args(tmp_path: Path, out: str, *flags: str):
+    return bench.parse_args(["--out", str(tmp_path / out), "--data", str(tmp_path / "data"), *flags])
+
+
+def write_scores(args, fold: str, label: str, **fields) -> Path:
+    path = args.out / fold / bench.slug(label) / "scores.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"scores": {}, **fields}))
+    return path
+
+
+def complete_fold(args, budget: bench.Budget, fold: str) -> None:
+    """Every row of ``fold`` completed with ``budget``'s recipe, its figure drawn."""
+    for label in ALL_ROWS:
+        write_scores(args, fold, label, recipe=bench.recipe(args, budget, fold, label))
+    (args.out / fold / "forecasts.png").touch()
+
+
+def test_completed_runs_of_this_recipe_are_reused_not_computed_again(tmp_path, monkeypatch):
+    args = bench_args(tmp_path, "out", "--quick")
+    complete_fold(args, bench.QUICK, "eth")
+
+    def must_not_run(*_):
+        raise AssertionError("a completed run was computed again")
+
+    monkeypatch.setattr(bench, "fold_data", lambda *_: (None, None))
+    monkeypatch.setattr(bench, "run_trained", must_not_run)
+    monkeypatch.setattr(bench, "run_constant_velocity", must_not_run)
+    assert bench.stale_runs(args, bench.QUICK, ["eth"]) == []
+    results = bench.run_fold(args, bench.QUICK, "eth")
+    assert list(results) == ALL_ROWS
+    assert results[bench.PAPER]["recipe"] == bench.recipe(args, bench.QUICK, "eth", bench.PAPER)
+
+
+def test_runs_moved_to_another_machine_keep_their_recipe(tmp_path):
+    """Where the data, the cache and the runs live and the device are not the recipe."""
+    args = bench_args(tmp_path, "out", "--quick")
+    complete_fold(args, bench.QUICK, "hotel")
+    shutil.copytree(args.out, tmp_path / "moved")
+    moved = bench.parse_args(
+        [
+            "--quick",
+            "--out",
+            str(tmp_path / "moved"),
+            "--data",
+            str(tmp_path / "elsewhere"),
+            "--device",
+            "cuda",
+        ]
+    )
+    assert bench.stale_runs(moved, bench.QUICK, ["hotel"]) == []
+
+
+def test_a_completed_run_of_another_mode_is_refused_before_anything_runs(tmp_path):
+    full = bench_args(tmp_path, "out")
+    path = write_scores(full, "eth", bench.PAPER, recipe=bench.recipe(full, bench.FULL, "eth", bench.PAPER))
+    # No raw files: were the run let through, the conversion would fail at once instead of training.
+    paths = ["--out", str(full.out), "--data", str(full.data), "--raw", str(tmp_path / "raw")]
+    run = run_bench("ethucy", "--quick", *paths, cwd=tmp_path)
+    assert run.returncode == 1, run.stderr[-3000:]
+    assert f"{path.parent}: trainer.total_steps: expected 800, found 3000;" in run.stderr
+    assert "use another --out, or delete a listed directory" in run.stderr
+    assert path.is_file()  # nothing deleted
+    assert not full.data.exists()  # refused before converting the data
+
+
+def test_another_model_recipe_names_every_differing_setting():
+    paper, lstm = (list(bench.TRAINED[label]) for label in (bench.PAPER, "LF-LSTM"))
+    assert bench.recipe_differences(paper, lstm) == [
+        "model: expected forecaster, found lf_lstm",
+        "model.prior: expected learned, found absent",
+    ]
+
+
+def test_constant_velocity_rows_of_another_heading_noise_grid_are_refused(tmp_path):
+    args = bench_args(tmp_path, "out", "--quick")
+    write_scores(args, "univ", bench.CV, recipe=bench.CV_RECIPES[bench.CV])
+    write_scores(args, "univ", bench.CV_NOISE, recipe=["heading_noise_grid=[0.1, 0.2]"])
+    assert bench.stale_runs(args, bench.QUICK, ["univ"]) == [
+        f"{args.out / 'univ' / bench.slug(bench.CV_NOISE)}: heading_noise_grid: expected "
+        f"{list(bench.HEADING_NOISE_GRID)}, found [0.1, 0.2]"
+    ]
+
+
+def test_a_scores_json_without_recipe_is_refused_as_unknown(tmp_path):
+    args = bench_args(tmp_path, "out", "--quick")
+    write_scores(args, "hotel", "MulT")  # as written before the runs recorded their recipe
+    with pytest.raises(SystemExit, match=r"hotel/mult: recipe unknown .*: it cannot be checked"):
+        bench.check_reused(args, bench.QUICK, ["hotel"])
+    assert (args.out / "hotel" / "mult" / "scores.json").is_file()
+
+
+def test_what_a_run_writes_is_the_recipe_its_resume_checks(tmp_path, monkeypatch):
+    """The rows as ``run_trained`` and ``run_constant_velocity`` write them, their training and scoring
+    replaced by stand-ins: this recipe accepts them, the full mode's refuses the trained ones."""
+    import mmf_rl.configuration
+    import mmf_rl.models
+    import mmf_rl.trainers.train_command
+
+    monkeypatch.setattr(mmf_rl.configuration, "compose_config", lambda name, overrides: overrides)
+
+    def train(overrides):  # the trainer makes the run directory
+        Path(next(o for o in overrides if o.startswith("run_dir="))[len("run_dir=") :]).mkdir(parents=True)
+
+    monkeypatch.setattr(mmf_rl.trainers.train_command, "train", train)
+    monkeypatch.setattr(mmf_rl.models, "load_trained_model", lambda *_, **__: (None, None, None))
+    monkeypatch.setattr(bench, "score", lambda *_, **__: {"all": {"min_ade_k": 1.0}})
+    monkeypatch.setattr(bench, "constant_velocity", lambda *_: None)
+    args = bench_args(tmp_path, "out", "--quick")
+    for label in bench.TRAINED:
+        bench.run_trained(args, bench.QUICK, "zara1", label, None)
+    bench.run_constant_velocity(args, "zara1", None)
+    assert bench.stale_runs(args, bench.QUICK, ["zara1"]) == []
+    refused = bench.stale_runs(args, bench.FULL, ["zara1"])
+    assert [line.split(": ")[0] for line in refused] == [
+        str(args.out / "zara1" / bench.slug(label)) for label in bench.TRAINED
+    ]
