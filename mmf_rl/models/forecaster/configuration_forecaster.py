@@ -82,7 +82,9 @@ class ForecasterConfig:
             the same streams over the mixed tokens, so the fusion acts on every forecast.
         pair_self: the self pairs ``i <- i`` of the pair streams: ``"always"`` read (default) or only
             when ``i`` is the only present modality (``"alone"``: with two or more, the decoder reads
-            MulT's ``M (M - 1)`` cross pairs alone). Unused without pair streams.
+            MulT's ``M (M - 1)`` cross pairs alone; the self-pair layers then learn only from windows
+            with one modality left, which ``L_mis`` dropping one of three never makes). Unused without
+            pair streams.
         decoder_latent: how ``z`` (and a world model's actions) enter the decoder's tokens ``H0``:
             ``"joint"`` (default, the paper: the shared MLP over ``[x̄ + p^D, z (, a)]``),
             ``"linear"`` (``H0 = x̄ + p^D + W [z (, a)]``: no MLP over every token) or ``"none"`` (a
