@@ -129,11 +129,13 @@ Design (what the policies see, and why):
   ``with`` policies learn from forecasts of the very frames it was trained on. Its runs keep the
   untagged names (``bc_with_forecasts_seed<S>``; results in ``WORK``), so older work directories
   resume. Refused with ``--held-out-forecaster`` or ``--forecaster-data``.
-* ``--forecaster PATH``: a forecaster of your own; nothing is trained, and what it learned from is
-  unknown here, so its runs are untagged as with ``--in-sample-forecaster`` (use another ``--work``
-  to keep them apart). When its recorded ``data.root`` is the policies' recording (``--data``, or
-  its own when ``--data`` is not given), a warning says the policies learn from in-sample forecasts.
-  Refused with ``--held-out-forecaster``, ``--in-sample-forecaster`` or ``--forecaster-data``.
+* ``--forecaster PATH``: a forecaster of your own; nothing is trained. Its ``with`` policies train
+  in runs of their own (``bc_with_..._given_forecasts_seed<S>``, ``dagger_markov_..._given_...``;
+  results in ``WORK/given`` unless ``--out``, after any other tag of the run), never in those of the
+  forecasters trained here; the ``without`` policies read no forecast and are the ordinary ones.
+  When its recorded ``data.root`` is the policies' recording (``--data``, or its own when ``--data``
+  is not given), a warning says the policies learn from in-sample forecasts. Refused with
+  ``--held-out-forecaster``, ``--in-sample-forecaster`` or ``--forecaster-data``.
 * ``--privileged-object`` (a diagnostic, not a deployable policy): the policies also read the
   object's true planar position (`BCConfig.privileged_object`), fed like the goal, never removed
   by an outage. If they reach the scripted pusher's success, locating the object from the sensors
@@ -387,7 +389,7 @@ def forecast_tag(args) -> str:
     """What the forecasts the ``with`` policies read are, in their run directories' names."""
     latched = f"_latched_{args.latched_forecast}" if args.latched_forecast else ""
     uncalibrated = "_uncalibrated" if args.no_calibrate else ""
-    return latched + uncalibrated + first_steps_tag(args) + held_out_tag(args)
+    return latched + uncalibrated + first_steps_tag(args) + forecaster_tag(args)
 
 
 def first_steps_tag(args) -> str:
@@ -395,9 +397,13 @@ def first_steps_tag(args) -> str:
     return f"_first{args.forecast_steps}" if args.forecast_steps else ""
 
 
-def held_out_tag(args) -> str:
-    """In the names of the runs of ``with`` policies whose forecaster never saw their recording."""
-    return "_heldout" if args.held_out_forecaster else ""
+def forecaster_tag(args) -> str:
+    """In the names of the runs of ``with`` policies: whose forecasts they read. A forecaster trained
+    here on its own recording (the default) or given with ``--forecaster``; none for the in-sample
+    one, so older work directories resume."""
+    if args.held_out_forecaster:
+        return "_heldout"
+    return "_given" if args.forecaster is not None else ""
 
 
 def privileged_tag(args) -> str:
@@ -646,18 +652,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_training_arguments(parser)
     parsed = parser.parse_args(argv)
     check_forecaster_kind(parser, parsed)
-    own_out = parsed.out is None and (
-        parsed.privileged_object
-        or parsed.action_chunk > 1
-        or parsed.action_head == "gmm"
-        or parsed.forecast_steps is not None
-        or parsed.held_out_forecaster
-    )
+    default_out = parsed.out is None
     args = resolve_budget(parsed, BUDGETS, "bc")
     args.variants = [v for v in VARIANTS if v in args.variants]
     check_forecaster_data(parser, args)
-    if own_out:  # never over the results of the ordinary policies in the same work directory
-        tags = policy_tag(args) + first_steps_tag(args) + held_out_tag(args)
+    tags = policy_tag(args) + first_steps_tag(args) + forecaster_tag(args)
+    if default_out and tags:  # never over the results of the ordinary policies in the same work directory
         args.out = args.work / tags.removeprefix("_")
     if args.action_chunk < 1:
         parser.error(f"--action-chunk must be >= 1, found {args.action_chunk}")

@@ -285,13 +285,26 @@ def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_unta
     assert not list(work.glob("*held*")) and not (work / "push_forecaster").exists()
 
 
-def test_bc_push_given_forecaster_is_neither_kind_and_keeps_the_untagged_runs(tmp_path):
+def test_bc_push_given_forecaster_is_neither_kind_and_has_with_runs_of_its_own(tmp_path):
     work = tmp_path / "work"
     common = ["--quick", "--work", str(work)]
     given = parse_args([*common, "--forecaster", "runs/some/checkpoints"])
     assert not given.held_out_forecaster and not given.in_sample_forecaster
-    assert given.out == work
-    assert policy_run_dir(given, "with", 0, 0) == work / "bc_with_forecasts_seed0"
+    assert given.out == work / "given"
+    assert policy_run_dir(given, "with", 0, 0) == work / "bc_with_given_forecasts_seed0"
+    assert policy_run_dir(given, "without", 0, 0) == work / "bc_without_forecasts_seed0"
+    round_dir = work / "dagger_markov_given_seed0_round1"  # its episodes were played by the with policies
+    assert policy_run_dir(given, "without", 0, 1) == round_dir / "bc_without_forecasts"
+    in_sample = parse_args([*common, "--in-sample-forecaster"])
+    assert in_sample.out == work
+    assert policy_run_dir(in_sample, "with", 0, 0) == work / "bc_with_forecasts_seed0"
+    uncalibrated_first = parse_args(
+        [*common, "--forecaster", "runs/some/checkpoints", "--no-calibrate", "--forecast-steps", "1"]
+    )
+    assert uncalibrated_first.out == work / "first1_given"
+    assert policy_run_dir(uncalibrated_first, "with", 0, 0) == (
+        work / "bc_with_uncalibrated_first1_given_forecasts_seed0"
+    )
     default, named = parse_args(common), parse_args([*common, "--held-out-forecaster"])
     for held_out in (default, named):  # the flag of the held-out forecaster is the default's
         assert held_out.held_out_forecaster and held_out.out == work / "heldout"
