@@ -37,18 +37,8 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     recorded_push_root, tmp_path, capsys, latched
 ):
     work = tmp_path / "work"
-    tiny_forecaster = push_train_overrides(
-        recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
-    )
-    argv = [
-        *("--quick", "--work", str(work), "--data", str(recorded_push_root)),
-        *("--forecaster-override", *tiny_forecaster),
-        *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
-        *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
-        *("--episodes", "1", "--outage", "episode", "--in-sample-forecaster"),
-        *(("--latched-forecast", latched) if latched else ()),
-    ]
-    assert cli(["bench", "bc", *argv]) == 0
+    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    assert cli([*argv, *(("--latched-forecast", latched) if latched else ())]) == 0
     assert_one_outage_summary(capsys)
     results = json.loads((work / "results.json").read_text())
     conditions = ["all", "no-camera (episode)", "no-force (episode)"]
@@ -64,19 +54,29 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     assert BCPolicy.from_checkpoint(work / with_run / "checkpoints").config.latched_forecast == latched
 
 
-def tiny_dagger_argv(recorded_push_root, tmp_path, work) -> list[str]:
-    """`mmf-rl bench bc` with one DAgger round, at sizes that run in seconds; the forecaster is trained
-    in-sample, on the given recording (the held-out default records one of its own)."""
-    tiny_forecaster = push_train_overrides(
-        recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
-    )
+def tiny_argv(
+    recorded_push_root, tmp_path, work, *, forecaster: str | Path = "in-sample", data=True, dagger=True
+) -> list[str]:
+    """`mmf-rl bench bc` at sizes that run in seconds. ``forecaster``: ``"in-sample"``, trained on the
+    policies' recording; ``"held-out"``, the default, trained on a recording the script makes; or the
+    checkpoints of one trained already (``--forecaster``). The forecaster's data root and run directory
+    are the test's only in-sample with ``--data``; otherwise the script's. ``data=False``: no
+    ``--data``, the script records 4 episodes for the policies; ``dagger``: one DAgger round."""
+    overrides = push_train_overrides(recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3)
+    if forecaster != "in-sample" or not data:
+        overrides = [o for o in overrides if not o.startswith(("data.root=", "run_dir="))]
+    kind = {"in-sample": ["--in-sample-forecaster"], "held-out": []}
+    records = forecaster == "held-out" or not data
     return [
-        *("bench", "bc", "--quick", "--work", str(work), "--data", str(recorded_push_root)),
-        *("--forecaster-override", *tiny_forecaster),
+        *("bench", "bc", "--quick", "--work", str(work)),
+        *(("--data", str(recorded_push_root)) if data else ("--record-episodes", "4")),
+        *("--forecaster-override", *overrides),
         *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
         *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
-        *("--episodes", "1", "--outage", "episode", "--in-sample-forecaster"),
-        *("--dagger", "1", "--dagger-episodes", "1"),
+        *("--episodes", "1", "--outage", "episode"),
+        *kind.get(forecaster, ["--forecaster", str(forecaster)]),
+        *(("--dagger", "1", "--dagger-episodes", "1") if dagger else ()),
+        *(("--workers", "1") if records else ()),
     ]
 
 
@@ -84,7 +84,7 @@ def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
     recorded_push_root, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
+    argv = tiny_argv(recorded_push_root, tmp_path, work)
     assert cli(argv) == 0
     first = json.loads((work / "results.json").read_text())
     rows = first["dagger"]
@@ -118,7 +118,7 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
 ):
     work = tmp_path / "work"
     argv = [
-        *tiny_dagger_argv(recorded_push_root, tmp_path, work),
+        *tiny_argv(recorded_push_root, tmp_path, work),
         "--privileged-object",
         "--variants",
         "without",
@@ -149,7 +149,7 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
 
 def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(recorded_push_root, tmp_path, capsys):
     work = tmp_path / "work"
-    assert cli([*tiny_dagger_argv(recorded_push_root, tmp_path, work), "--action-chunk", "2"]) == 0
+    assert cli([*tiny_argv(recorded_push_root, tmp_path, work), "--action-chunk", "2"]) == 0
     assert_one_outage_summary(capsys)
     assert not (work / "results.json").exists(), "the per-step policies' results are left alone"
     assert json.loads((work / "chunk2" / "results.json").read_text())["action_chunk"] == 2
@@ -166,9 +166,8 @@ def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(recorded_
 
 def test_bc_push_gmm_head_reaches_every_policy_in_runs_of_their_own(recorded_push_root, tmp_path, capsys):
     work = tmp_path / "work"
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
-    argv = [*argv[: argv.index("--dagger")], "--action-head", "gmm", "--action-chunk", "2"]
-    assert cli(argv) == 0
+    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    assert cli([*argv, "--action-head", "gmm", "--action-chunk", "2"]) == 0
     assert_one_outage_summary(capsys)
     assert not (work / "results.json").exists(), "the regression policies' results are left alone"
     results = json.loads((work / "chunk2_gmm" / "results.json").read_text())
@@ -184,8 +183,8 @@ def test_bc_push_forecast_steps_reach_only_the_with_policies_in_runs_of_their_ow
     recorded_push_root, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
-    assert cli([*argv[: argv.index("--dagger")], "--forecast-steps", "1"]) == 0
+    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    assert cli([*argv, "--forecast-steps", "1"]) == 0
     assert_one_outage_summary(capsys)
     assert not (work / "results.json").exists(), (
         "the results of the policies reading every step are left alone"
@@ -205,13 +204,6 @@ def first_goal(root) -> np.ndarray:
     return np.asarray(frames[frames["episode_index"] == 0]["observation.goal"].iloc[0])
 
 
-def held_out_argv(argv: list[str]) -> list[str]:
-    """``argv`` with the default, held-out forecaster: without `--in-sample-forecaster` and the
-    forecaster's data root and run directory, which the script chooses for a held-out forecaster."""
-    kept = [a for a in argv if a != "--in-sample-forecaster" and not a.startswith(("data.root=", "run_dir="))]
-    return [*kept, "--workers", "1"]
-
-
 def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_of_their_own(
     recorded_push_root, tmp_path, capsys
 ):
@@ -219,14 +211,14 @@ def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_
     from mmf_rl.envs.scripted import episode_generator, reset_for_push
 
     work = tmp_path / "work"
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
-    assert cli([*argv[: argv.index("--dagger")], "--variants", "without"]) == 0
+    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    assert cli([*argv, "--variants", "without"]) == 0
     without = work / "bc_without_forecasts_seed0" / "checkpoints"
     trained = {p: p.stat().st_mtime_ns for p in without.rglob("*")}
     ordinary_results = (work / "results.json").read_text()
 
     capsys.readouterr()
-    assert cli(held_out_argv(argv)) == 0
+    assert cli(tiny_argv(recorded_push_root, tmp_path, work, forecaster="held-out")) == 0
     assert_one_outage_summary(capsys)
     recording = work / "push_forecaster"
     info = json.loads((recording / "meta" / "info.json").read_text())
@@ -265,14 +257,7 @@ def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_unta
     recorded_push_root, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
-    data_at = argv.index("--data")
-    argv = [
-        a
-        for a in argv[:data_at] + argv[data_at + 2 : argv.index("--dagger")]
-        if not a.startswith(("data.root=", "run_dir="))
-    ]
-    assert cli([*argv, "--record-episodes", "4", "--workers", "1"]) == 0
+    assert cli(tiny_argv(recorded_push_root, tmp_path, work, data=False, dagger=False)) == 0
     assert_one_outage_summary(capsys)
     recording = (work / "push").resolve()
     config = yaml.safe_load((work / "forecaster" / "config.yaml").read_text())
@@ -338,8 +323,7 @@ def test_bc_push_warns_when_a_given_forecaster_was_trained_on_the_policies_recor
 def test_bc_push_refuses_a_forecaster_whose_training_data_contradicts_its_options(
     recorded_push_root, tmp_path, capsys, extra, refusal
 ):
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, tmp_path / "work")
-    argv = [a for a in argv if a != "--in-sample-forecaster" and not a.startswith("data.root=")]
+    argv = tiny_argv(recorded_push_root, tmp_path, tmp_path / "work", forecaster="held-out")
     extra = [a.replace("DATA", str(recorded_push_root)) for a in extra]
     assert cli([*argv, *extra]) == 2
     assert refusal in capsys.readouterr().err
