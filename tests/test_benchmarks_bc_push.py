@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,13 @@ import pandas as pd
 import pytest
 import yaml
 
-from benchmarks.bc_push import Forecaster, parse_args, policy_run_dir, warn_of_in_sample_forecasts
+from benchmarks.bc_push import (
+    Forecaster,
+    parse_args,
+    policy_run_dir,
+    record_or_check_forecaster,
+    warn_of_in_sample_forecasts,
+)
 from mmf_rl.cli import main as cli
 from mmf_rl.rl import BCPolicy
 from tests.conftest import push_train_overrides
@@ -294,6 +301,52 @@ def test_bc_push_given_forecaster_is_neither_kind_and_has_with_runs_of_its_own(t
     for held_out in (default, named):  # the flag of the held-out forecaster is the default's
         assert held_out.held_out_forecaster and held_out.out == work / "heldout"
         assert policy_run_dir(held_out, "with", 0, 0) == work / "bc_with_heldout_forecasts_seed0"
+
+
+def test_bc_push_with_run_records_its_forecaster_and_refuses_another(tmp_path):
+    run = tmp_path / "work" / "bc_with_given_forecasts_seed0"
+    trained_on, other = tmp_path / "mine" / "checkpoints", tmp_path / "other" / "checkpoints"
+    record_or_check_forecaster(run, trained_on, new_run=True)
+    record_or_check_forecaster(run, trained_on, new_run=False)  # the same forecaster: reused
+    with pytest.raises(ValueError, match="use another --work") as refused:
+        record_or_check_forecaster(run, other, new_run=False)
+    assert all(str(p) in str(refused.value) for p in (run, trained_on.resolve(), other.resolve()))
+    record_or_check_forecaster(run, other, new_run=True)  # nothing trained yet: the run is the new one's
+    record_or_check_forecaster(run, other, new_run=False)
+    older = tmp_path / "work" / "bc_with_forecasts_seed0"  # trained before runs kept a record
+    older.mkdir()
+    record_or_check_forecaster(older, other, new_run=False)
+    assert not (older / "forecaster.json").exists()
+
+
+def test_bc_push_given_forecaster_trains_its_own_with_policy_and_refuses_another_in_the_same_work(
+    recorded_push_root, tmp_path, capsys
+):
+    work = tmp_path / "work"
+    assert cli(tiny_argv(recorded_push_root, tmp_path, work, dagger=False)) == 0
+    in_sample_with = work / "bc_with_forecasts_seed0"
+    trained = {p: p.stat().st_mtime_ns for p in in_sample_with.rglob("*")}
+    ordinary_results = (work / "results.json").read_text()
+    for name in ("mine", "other"):  # a user's forecasters, here copies of the in-sample one
+        shutil.copytree(work / "forecaster", tmp_path / name)
+    mine, other = (tmp_path / name / "checkpoints" for name in ("mine", "other"))
+
+    capsys.readouterr()
+    assert cli(tiny_argv(recorded_push_root, tmp_path, work, forecaster=mine, dagger=False)) == 0
+    assert_one_outage_summary(capsys)
+    results = json.loads((work / "given" / "results.json").read_text())
+    assert "train BC with seed 0" in results["phases_s"]
+    assert "train BC without seed 0" not in results["phases_s"], "the ordinary without policy is reused"
+    run = work / "bc_with_given_forecasts_seed0"
+    assert (run / "checkpoints" / "last").is_file()
+    assert json.loads((run / "forecaster.json").read_text()) == {"checkpoints": str(mine.resolve())}
+    assert {p: p.stat().st_mtime_ns for p in in_sample_with.rglob("*")} == trained
+    assert (work / "results.json").read_text() == ordinary_results, "the in-sample results are left alone"
+
+    with pytest.raises(ValueError, match="use another --work") as refused:
+        cli(tiny_argv(recorded_push_root, tmp_path, work, forecaster=other, dagger=False))
+    assert all(str(p) in str(refused.value) for p in (run, mine.resolve(), other.resolve()))
+    assert json.loads((run / "forecaster.json").read_text()) == {"checkpoints": str(mine.resolve())}
 
 
 def test_bc_push_warns_when_a_given_forecaster_was_trained_on_the_policies_recording(tmp_path, caplog):
