@@ -129,11 +129,16 @@ Design (what the policies see, and why):
   ``with`` policies learn from forecasts of the very frames it was trained on. Its runs keep the
   untagged names (``bc_with_forecasts_seed<S>``; results in ``WORK``), so older work directories
   resume. Refused with ``--held-out-forecaster`` or ``--forecaster-data``.
-* ``--forecaster PATH``: a forecaster of your own; nothing is trained, and what it learned from is
-  unknown here, so its runs are untagged as with ``--in-sample-forecaster`` (use another ``--work``
-  to keep them apart). When its recorded ``data.root`` is the policies' recording (``--data``, or
-  its own when ``--data`` is not given), a warning says the policies learn from in-sample forecasts.
-  Refused with ``--held-out-forecaster``, ``--in-sample-forecaster`` or ``--forecaster-data``.
+* ``--forecaster PATH``: a forecaster of your own; nothing is trained. Its ``with`` policies train
+  in runs of their own (``bc_with_..._given_forecasts_seed<S>``, ``dagger_markov_..._given_...``;
+  results in ``WORK/given`` unless ``--out``, after any other tag of the run), never in those of the
+  forecasters trained here; the ``without`` policies read no forecast and are the ordinary ones.
+  The run of every ``with`` policy records the forecaster whose forecasts it learns from
+  (``forecaster.json``) and is never reused or resumed with another: a second forecaster given in
+  the same ``--work`` stops with an error naming both (give each its own ``--work``). When its
+  recorded ``data.root`` is the policies' recording (``--data``, or its own when ``--data`` is not
+  given), a warning says the policies learn from in-sample forecasts. Refused with
+  ``--held-out-forecaster``, ``--in-sample-forecaster`` or ``--forecaster-data``.
 * ``--privileged-object`` (a diagnostic, not a deployable policy): the policies also read the
   object's true planar position (`BCConfig.privileged_object`), fed like the goal, never removed
   by an outage. If they reach the scripted pusher's success, locating the object from the sensors
@@ -175,6 +180,7 @@ to lose everything there, by construction.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import time
@@ -188,6 +194,7 @@ from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.cli import configure_logging
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.datasets.lerobot_source import open_dataset_metadata
+from mmf_rl.eval.report import write_json
 from mmf_rl.eval.scale_fit import PatternFit, fit_table
 from mmf_rl.record import CAMERA_KEY, RecordConfig, record
 from mmf_rl.rl import BCPolicy, Demonstrations, EncoderChoice, ForecastTable, train_bc, validation_errors
@@ -234,6 +241,8 @@ DROPPABLE = ("image", "force")  # the sensors a training sample may lose
 # The seed of each recording the script makes (under WORK): episode i depends only on (seed, i), so
 # the two share no episode.
 RECORDING_SEEDS = {"push": 0, "push_forecaster": 1}
+# In the run of every `with` policy: the forecaster whose forecasts it learns from.
+FORECASTER_RECORD = "forecaster.json"
 BUDGETS = {
     "quick": {
         "record_episodes": 200,
@@ -387,7 +396,7 @@ def forecast_tag(args) -> str:
     """What the forecasts the ``with`` policies read are, in their run directories' names."""
     latched = f"_latched_{args.latched_forecast}" if args.latched_forecast else ""
     uncalibrated = "_uncalibrated" if args.no_calibrate else ""
-    return latched + uncalibrated + first_steps_tag(args) + held_out_tag(args)
+    return latched + uncalibrated + first_steps_tag(args) + forecaster_tag(args)
 
 
 def first_steps_tag(args) -> str:
@@ -395,9 +404,13 @@ def first_steps_tag(args) -> str:
     return f"_first{args.forecast_steps}" if args.forecast_steps else ""
 
 
-def held_out_tag(args) -> str:
-    """In the names of the runs of ``with`` policies whose forecaster never saw their recording."""
-    return "_heldout" if args.held_out_forecaster else ""
+def forecaster_tag(args) -> str:
+    """In the names of the runs of ``with`` policies: whose forecasts they read. A forecaster trained
+    here on its own recording (the default) or given with ``--forecaster``; none for the in-sample
+    one, so older work directories resume."""
+    if args.held_out_forecaster:
+        return "_heldout"
+    return "_given" if args.forecaster is not None else ""
 
 
 def privileged_tag(args) -> str:
@@ -436,13 +449,36 @@ def policy_run_dir(args, variant: str, seed: int, round_: int) -> Path:
     return dagger_dir(args, seed, round_) / f"bc_{variant}_forecasts"
 
 
-def build_policy(args, variant: str, seed: int, round_: int, demonstrations, forecasts, phases) -> BCPolicy:
+def record_or_check_forecaster(run_dir: Path, forecaster: Path, new_run: bool) -> None:
+    """Records in the new ``with`` run ``run_dir`` the forecaster (its checkpoints) whose forecasts it
+    learns from; refuses an existing run recorded with another, which reused or resumed would mix two
+    forecasters' forecasts. A run without a record (trained before runs kept one) is not checked."""
+    path = run_dir / FORECASTER_RECORD
+    given = str(forecaster.resolve())
+    if new_run:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        write_json(path, {"checkpoints": given})
+    elif path.is_file() and (trained_on := json.loads(path.read_text())["checkpoints"]) != given:
+        raise ValueError(
+            f"{run_dir} holds a policy trained on the forecasts of the forecaster {trained_on}, not of the "
+            f"one given now, {given}: use another --work for this forecaster, or remove {run_dir} and the "
+            f"DAgger rounds after it to train them on its forecasts (the same forecaster moved: write its "
+            f"new path into {path})"
+        )
+
+
+def build_policy(
+    args, variant: str, seed: int, round_: int, demonstrations, forecasts, forecaster: Path, phases
+) -> BCPolicy:
     """The ``variant`` policy of BC seed ``seed`` trained on ``demonstrations`` (those of DAgger round
-    ``round_``; 0: the recording's): trained under ``args.work`` unless already done."""
+    ``round_``; 0: the recording's), a ``with`` one on ``forecasts`` of the forecaster at ``forecaster``:
+    trained under ``args.work`` unless already done."""
     run_dir = policy_run_dir(args, variant, seed, round_)
     config = bc_trainer_config(args, seed)
     table = forecasts if variant == "with" else None
     checkpoints = list_checkpoints(run_dir / "checkpoints")
+    if variant == "with":
+        record_or_check_forecaster(run_dir, forecaster, new_run=not checkpoints)
     if checkpoints and load_checkpoint(checkpoints[-1], with_trainer_state=False).step >= config.total_steps:
         return BCPolicy.from_checkpoint(run_dir / "checkpoints")
     seed_everything(seed)  # the same initial encoder weights for both variants
@@ -520,7 +556,10 @@ def train_with_dagger(args, seed: int, forecaster: Forecaster, demonstrations, t
     the recording), the demonstrations of their last round with what the ``with`` policies read of
     them, and the rounds' rows."""
     forecasts = forecaster.forecasts(args, table, demonstrations)
-    policies = {v: build_policy(args, v, seed, 0, demonstrations, forecasts, phases) for v in args.variants}
+    policies = {
+        v: build_policy(args, v, seed, 0, demonstrations, forecasts, forecaster.checkpoints, phases)
+        for v in args.variants
+    }
     rows = []
     for round_ in range(1, args.dagger + 1):
         episodes, played = dagger_episodes(
@@ -531,7 +570,8 @@ def train_with_dagger(args, seed: int, forecaster: Forecaster, demonstrations, t
             table = forecaster.extended(table, demonstrations)
         forecasts = forecaster.forecasts(args, table, demonstrations)
         policies = {
-            v: build_policy(args, v, seed, round_, demonstrations, forecasts, phases) for v in args.variants
+            v: build_policy(args, v, seed, round_, demonstrations, forecasts, forecaster.checkpoints, phases)
+            for v in args.variants
         }
         trained_on = len(demonstrations.split_frames["train"])
         rows += [{**row, "frames_trained_on": trained_on} for row in played]
@@ -646,18 +686,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_training_arguments(parser)
     parsed = parser.parse_args(argv)
     check_forecaster_kind(parser, parsed)
-    own_out = parsed.out is None and (
-        parsed.privileged_object
-        or parsed.action_chunk > 1
-        or parsed.action_head == "gmm"
-        or parsed.forecast_steps is not None
-        or parsed.held_out_forecaster
-    )
+    default_out = parsed.out is None
     args = resolve_budget(parsed, BUDGETS, "bc")
     args.variants = [v for v in VARIANTS if v in args.variants]
     check_forecaster_data(parser, args)
-    if own_out:  # never over the results of the ordinary policies in the same work directory
-        tags = policy_tag(args) + first_steps_tag(args) + held_out_tag(args)
+    tags = policy_tag(args) + first_steps_tag(args) + forecaster_tag(args)
+    if default_out and tags:  # never over the results of the ordinary policies in the same work directory
         args.out = args.work / tags.removeprefix("_")
     if args.action_chunk < 1:
         parser.error(f"--action-chunk must be >= 1, found {args.action_chunk}")

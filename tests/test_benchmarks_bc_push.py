@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,13 @@ import pandas as pd
 import pytest
 import yaml
 
-from benchmarks.bc_push import Forecaster, parse_args, policy_run_dir, warn_of_in_sample_forecasts
+from benchmarks.bc_push import (
+    Forecaster,
+    parse_args,
+    policy_run_dir,
+    record_or_check_forecaster,
+    warn_of_in_sample_forecasts,
+)
 from mmf_rl.cli import main as cli
 from mmf_rl.rl import BCPolicy
 from tests.conftest import push_train_overrides
@@ -37,18 +44,8 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     recorded_push_root, tmp_path, capsys, latched
 ):
     work = tmp_path / "work"
-    tiny_forecaster = push_train_overrides(
-        recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
-    )
-    argv = [
-        *("--quick", "--work", str(work), "--data", str(recorded_push_root)),
-        *("--forecaster-override", *tiny_forecaster),
-        *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
-        *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
-        *("--episodes", "1", "--outage", "episode", "--in-sample-forecaster"),
-        *(("--latched-forecast", latched) if latched else ()),
-    ]
-    assert cli(["bench", "bc", *argv]) == 0
+    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    assert cli([*argv, *(("--latched-forecast", latched) if latched else ())]) == 0
     assert_one_outage_summary(capsys)
     results = json.loads((work / "results.json").read_text())
     conditions = ["all", "no-camera (episode)", "no-force (episode)"]
@@ -64,19 +61,29 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     assert BCPolicy.from_checkpoint(work / with_run / "checkpoints").config.latched_forecast == latched
 
 
-def tiny_dagger_argv(recorded_push_root, tmp_path, work) -> list[str]:
-    """`mmf-rl bench bc` with one DAgger round, at sizes that run in seconds; the forecaster is trained
-    in-sample, on the given recording (the held-out default records one of its own)."""
-    tiny_forecaster = push_train_overrides(
-        recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3
-    )
+def tiny_argv(
+    recorded_push_root, tmp_path, work, *, forecaster: str | Path = "in-sample", data=True, dagger=True
+) -> list[str]:
+    """`mmf-rl bench bc` at sizes that run in seconds. ``forecaster``: ``"in-sample"``, trained on the
+    policies' recording; ``"held-out"``, the default, trained on a recording the script makes; or the
+    checkpoints of one trained already (``--forecaster``). The forecaster's data root and run directory
+    are the test's only in-sample with ``--data``; otherwise the script's. ``data=False``: no
+    ``--data``, the script records 4 episodes for the policies; ``dagger``: one DAgger round."""
+    overrides = push_train_overrides(recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3)
+    if forecaster != "in-sample" or not data:
+        overrides = [o for o in overrides if not o.startswith(("data.root=", "run_dir="))]
+    kind = {"in-sample": ["--in-sample-forecaster"], "held-out": []}
+    records = forecaster == "held-out" or not data
     return [
-        *("bench", "bc", "--quick", "--work", str(work), "--data", str(recorded_push_root)),
-        *("--forecaster-override", *tiny_forecaster),
+        *("bench", "bc", "--quick", "--work", str(work)),
+        *(("--data", str(recorded_push_root)) if data else ("--record-episodes", "4")),
+        *("--forecaster-override", *overrides),
         *("--bc-steps", "3", "--bc-batch-size", "16", "--bc-seeds", "0"),
         *("--bc-d-model", "8", "--bc-hidden", "16", "--bc-image-channels", "8", "16"),
-        *("--episodes", "1", "--outage", "episode", "--in-sample-forecaster"),
-        *("--dagger", "1", "--dagger-episodes", "1"),
+        *("--episodes", "1", "--outage", "episode"),
+        *kind.get(forecaster, ["--forecaster", str(forecaster)]),
+        *(("--dagger", "1", "--dagger-episodes", "1") if dagger else ()),
+        *(("--workers", "1") if records else ()),
     ]
 
 
@@ -84,7 +91,7 @@ def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
     recorded_push_root, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
+    argv = tiny_argv(recorded_push_root, tmp_path, work)
     assert cli(argv) == 0
     first = json.loads((work / "results.json").read_text())
     rows = first["dagger"]
@@ -118,7 +125,7 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
 ):
     work = tmp_path / "work"
     argv = [
-        *tiny_dagger_argv(recorded_push_root, tmp_path, work),
+        *tiny_argv(recorded_push_root, tmp_path, work),
         "--privileged-object",
         "--variants",
         "without",
@@ -149,7 +156,7 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
 
 def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(recorded_push_root, tmp_path, capsys):
     work = tmp_path / "work"
-    assert cli([*tiny_dagger_argv(recorded_push_root, tmp_path, work), "--action-chunk", "2"]) == 0
+    assert cli([*tiny_argv(recorded_push_root, tmp_path, work), "--action-chunk", "2"]) == 0
     assert_one_outage_summary(capsys)
     assert not (work / "results.json").exists(), "the per-step policies' results are left alone"
     assert json.loads((work / "chunk2" / "results.json").read_text())["action_chunk"] == 2
@@ -166,9 +173,8 @@ def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(recorded_
 
 def test_bc_push_gmm_head_reaches_every_policy_in_runs_of_their_own(recorded_push_root, tmp_path, capsys):
     work = tmp_path / "work"
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
-    argv = [*argv[: argv.index("--dagger")], "--action-head", "gmm", "--action-chunk", "2"]
-    assert cli(argv) == 0
+    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    assert cli([*argv, "--action-head", "gmm", "--action-chunk", "2"]) == 0
     assert_one_outage_summary(capsys)
     assert not (work / "results.json").exists(), "the regression policies' results are left alone"
     results = json.loads((work / "chunk2_gmm" / "results.json").read_text())
@@ -184,8 +190,8 @@ def test_bc_push_forecast_steps_reach_only_the_with_policies_in_runs_of_their_ow
     recorded_push_root, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
-    assert cli([*argv[: argv.index("--dagger")], "--forecast-steps", "1"]) == 0
+    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    assert cli([*argv, "--forecast-steps", "1"]) == 0
     assert_one_outage_summary(capsys)
     assert not (work / "results.json").exists(), (
         "the results of the policies reading every step are left alone"
@@ -205,13 +211,6 @@ def first_goal(root) -> np.ndarray:
     return np.asarray(frames[frames["episode_index"] == 0]["observation.goal"].iloc[0])
 
 
-def held_out_argv(argv: list[str]) -> list[str]:
-    """``argv`` with the default, held-out forecaster: without `--in-sample-forecaster` and the
-    forecaster's data root and run directory, which the script chooses for a held-out forecaster."""
-    kept = [a for a in argv if a != "--in-sample-forecaster" and not a.startswith(("data.root=", "run_dir="))]
-    return [*kept, "--workers", "1"]
-
-
 def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_of_their_own(
     recorded_push_root, tmp_path, capsys
 ):
@@ -219,14 +218,14 @@ def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_
     from mmf_rl.envs.scripted import episode_generator, reset_for_push
 
     work = tmp_path / "work"
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
-    assert cli([*argv[: argv.index("--dagger")], "--variants", "without"]) == 0
+    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    assert cli([*argv, "--variants", "without"]) == 0
     without = work / "bc_without_forecasts_seed0" / "checkpoints"
     trained = {p: p.stat().st_mtime_ns for p in without.rglob("*")}
     ordinary_results = (work / "results.json").read_text()
 
     capsys.readouterr()
-    assert cli(held_out_argv(argv)) == 0
+    assert cli(tiny_argv(recorded_push_root, tmp_path, work, forecaster="held-out")) == 0
     assert_one_outage_summary(capsys)
     recording = work / "push_forecaster"
     info = json.loads((recording / "meta" / "info.json").read_text())
@@ -265,14 +264,7 @@ def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_unta
     recorded_push_root, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, work)
-    data_at = argv.index("--data")
-    argv = [
-        a
-        for a in argv[:data_at] + argv[data_at + 2 : argv.index("--dagger")]
-        if not a.startswith(("data.root=", "run_dir="))
-    ]
-    assert cli([*argv, "--record-episodes", "4", "--workers", "1"]) == 0
+    assert cli(tiny_argv(recorded_push_root, tmp_path, work, data=False, dagger=False)) == 0
     assert_one_outage_summary(capsys)
     recording = (work / "push").resolve()
     config = yaml.safe_load((work / "forecaster" / "config.yaml").read_text())
@@ -285,17 +277,76 @@ def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_unta
     assert not list(work.glob("*held*")) and not (work / "push_forecaster").exists()
 
 
-def test_bc_push_given_forecaster_is_neither_kind_and_keeps_the_untagged_runs(tmp_path):
+def test_bc_push_given_forecaster_is_neither_kind_and_has_with_runs_of_its_own(tmp_path):
     work = tmp_path / "work"
     common = ["--quick", "--work", str(work)]
     given = parse_args([*common, "--forecaster", "runs/some/checkpoints"])
     assert not given.held_out_forecaster and not given.in_sample_forecaster
-    assert given.out == work
-    assert policy_run_dir(given, "with", 0, 0) == work / "bc_with_forecasts_seed0"
+    assert given.out == work / "given"
+    assert policy_run_dir(given, "with", 0, 0) == work / "bc_with_given_forecasts_seed0"
+    assert policy_run_dir(given, "without", 0, 0) == work / "bc_without_forecasts_seed0"
+    round_dir = work / "dagger_markov_given_seed0_round1"  # its episodes were played by the with policies
+    assert policy_run_dir(given, "without", 0, 1) == round_dir / "bc_without_forecasts"
+    in_sample = parse_args([*common, "--in-sample-forecaster"])
+    assert in_sample.out == work
+    assert policy_run_dir(in_sample, "with", 0, 0) == work / "bc_with_forecasts_seed0"
+    uncalibrated_first = parse_args(
+        [*common, "--forecaster", "runs/some/checkpoints", "--no-calibrate", "--forecast-steps", "1"]
+    )
+    assert uncalibrated_first.out == work / "first1_given"
+    assert policy_run_dir(uncalibrated_first, "with", 0, 0) == (
+        work / "bc_with_uncalibrated_first1_given_forecasts_seed0"
+    )
     default, named = parse_args(common), parse_args([*common, "--held-out-forecaster"])
     for held_out in (default, named):  # the flag of the held-out forecaster is the default's
         assert held_out.held_out_forecaster and held_out.out == work / "heldout"
         assert policy_run_dir(held_out, "with", 0, 0) == work / "bc_with_heldout_forecasts_seed0"
+
+
+def test_bc_push_with_run_records_its_forecaster_and_refuses_another(tmp_path):
+    run = tmp_path / "work" / "bc_with_given_forecasts_seed0"
+    trained_on, other = tmp_path / "mine" / "checkpoints", tmp_path / "other" / "checkpoints"
+    record_or_check_forecaster(run, trained_on, new_run=True)
+    record_or_check_forecaster(run, trained_on, new_run=False)  # the same forecaster: reused
+    with pytest.raises(ValueError, match="use another --work") as refused:
+        record_or_check_forecaster(run, other, new_run=False)
+    assert all(str(p) in str(refused.value) for p in (run, trained_on.resolve(), other.resolve()))
+    record_or_check_forecaster(run, other, new_run=True)  # nothing trained yet: the run is the new one's
+    record_or_check_forecaster(run, other, new_run=False)
+    older = tmp_path / "work" / "bc_with_forecasts_seed0"  # trained before runs kept a record
+    older.mkdir()
+    record_or_check_forecaster(older, other, new_run=False)
+    assert not (older / "forecaster.json").exists()
+
+
+def test_bc_push_given_forecaster_trains_its_own_with_policy_and_refuses_another_in_the_same_work(
+    recorded_push_root, tmp_path, capsys
+):
+    work = tmp_path / "work"
+    assert cli(tiny_argv(recorded_push_root, tmp_path, work, dagger=False)) == 0
+    in_sample_with = work / "bc_with_forecasts_seed0"
+    trained = {p: p.stat().st_mtime_ns for p in in_sample_with.rglob("*")}
+    ordinary_results = (work / "results.json").read_text()
+    for name in ("mine", "other"):  # a user's forecasters, here copies of the in-sample one
+        shutil.copytree(work / "forecaster", tmp_path / name)
+    mine, other = (tmp_path / name / "checkpoints" for name in ("mine", "other"))
+
+    capsys.readouterr()
+    assert cli(tiny_argv(recorded_push_root, tmp_path, work, forecaster=mine, dagger=False)) == 0
+    assert_one_outage_summary(capsys)
+    results = json.loads((work / "given" / "results.json").read_text())
+    assert "train BC with seed 0" in results["phases_s"]
+    assert "train BC without seed 0" not in results["phases_s"], "the ordinary without policy is reused"
+    run = work / "bc_with_given_forecasts_seed0"
+    assert (run / "checkpoints" / "last").is_file()
+    assert json.loads((run / "forecaster.json").read_text()) == {"checkpoints": str(mine.resolve())}
+    assert {p: p.stat().st_mtime_ns for p in in_sample_with.rglob("*")} == trained
+    assert (work / "results.json").read_text() == ordinary_results, "the in-sample results are left alone"
+
+    with pytest.raises(ValueError, match="use another --work") as refused:
+        cli(tiny_argv(recorded_push_root, tmp_path, work, forecaster=other, dagger=False))
+    assert all(str(p) in str(refused.value) for p in (run, mine.resolve(), other.resolve()))
+    assert json.loads((run / "forecaster.json").read_text()) == {"checkpoints": str(mine.resolve())}
 
 
 def test_bc_push_warns_when_a_given_forecaster_was_trained_on_the_policies_recording(tmp_path, caplog):
@@ -325,8 +376,7 @@ def test_bc_push_warns_when_a_given_forecaster_was_trained_on_the_policies_recor
 def test_bc_push_refuses_a_forecaster_whose_training_data_contradicts_its_options(
     recorded_push_root, tmp_path, capsys, extra, refusal
 ):
-    argv = tiny_dagger_argv(recorded_push_root, tmp_path, tmp_path / "work")
-    argv = [a for a in argv if a != "--in-sample-forecaster" and not a.startswith("data.root=")]
+    argv = tiny_argv(recorded_push_root, tmp_path, tmp_path / "work", forecaster="held-out")
     extra = [a.replace("DATA", str(recorded_push_root)) for a in extra]
     assert cli([*argv, *extra]) == 2
     assert refusal in capsys.readouterr().err
