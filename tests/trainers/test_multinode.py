@@ -10,6 +10,7 @@ from mmf_rl.cli import main as cli
 from tests.trainers.test_train_command import final_weights, free_port, subprocess_env
 
 STEPS = 4
+LR = 1e-3  # the trainer's default learning rate
 
 
 def deterministic_run(root, cache_dir, run_dir, batch_size: int) -> list[str]:
@@ -29,6 +30,7 @@ def deterministic_run(root, cache_dir, run_dir, batch_size: int) -> list[str]:
         f"trainer.total_steps={STEPS}",
         f"trainer.batch_size={batch_size}",
         "trainer.warmup_steps=2",
+        f"trainer.lr={LR}",
         "trainer.progress_bar=false",
         "logger=none",
         "num_workers=0",
@@ -75,4 +77,9 @@ def test_two_nodes_build_the_cache_once_and_train_the_weights_of_one_process(rec
         torch.set_num_threads(2)
     two_nodes, one_process = final_weights(tmp_path / "nodes"), final_weights(tmp_path / "one")
     deltas = {name: float((two_nodes[name] - value).abs().max()) for name, value in one_process.items()}
-    assert max(deltas.values()) <= 1e-6, sorted(deltas.items(), key=lambda item: -item[1])[:5]
+    # Two ranks' mean gradient and one batch's differ in summation order (and, on some CPUs, in the
+    # convolution kernels chosen per batch size); Adam divides by each gradient's running RMS, so a
+    # rounding difference in a near-zero gradient can move its weight by a small fraction of a step.
+    # A tenth of the learning rate: far below what training on one rank's batch alone moves a weight
+    # (several learning rates after these steps).
+    assert max(deltas.values()) <= 0.1 * LR, sorted(deltas.items(), key=lambda item: -item[1])[:5]
