@@ -119,6 +119,20 @@ def configure_logging(level: int | None = None) -> None:
         handler = _ProgressSafeHandler()
         handler.setFormatter(logging.Formatter(LOG_FORMAT, datefmt="%H:%M:%S"))
         logger.addHandler(handler)
+        _root_handler_without_mmf_rl()
+
+
+def _root_handler_without_mmf_rl() -> None:
+    """A library that logs on the root logger (``logging.info(...)``, as some of lerobot does) makes
+    Python give the root a default handler, which would print every ``mmf_rl`` record a second
+    time: give it that default handler now, minus the records the ``mmf_rl`` handler prints. A root
+    logger already configured (by the user, or pytest) is left as it is."""
+    root = logging.getLogger()
+    if root.handlers:
+        return
+    logging.basicConfig()
+    for handler in root.handlers:
+        handler.addFilter(lambda record: record.name != "mmf_rl" and not record.name.startswith("mmf_rl."))
 
 
 def _usage() -> str:

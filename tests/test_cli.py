@@ -1,5 +1,7 @@
 import logging
 import re
+import subprocess
+import sys
 
 import pytest
 import yaml
@@ -140,6 +142,20 @@ def test_a_script_run_by_the_cli_keeps_its_level_and_run_alone_shows_progress():
         assert sum(isinstance(h, cli._ProgressSafeHandler) for h in logger.handlers) == 1
     finally:
         cli.configure_logging(logging.INFO)
+
+
+def test_a_library_logging_on_the_root_logger_does_not_print_mmf_rl_records_twice():
+    """In a fresh process (pytest configures the root logger): a root-logger call, as lerobot makes,
+    gives the root its default handler; an ``mmf_rl`` record still prints once, another library's
+    warning still prints."""
+    script = (
+        "import logging; from mmf_rl.cli import configure_logging; configure_logging(); "
+        "logging.info('a library on the root logger'); "
+        "logging.getLogger('mmf_rl.data').info('cache built'); "
+        "logging.getLogger('other.library').warning('careful')"
+    )
+    err = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stderr
+    assert err.count("cache built") == 1 and err.count("careful") == 1, err
 
 
 def refuse(argv):
