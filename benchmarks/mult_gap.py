@@ -58,11 +58,15 @@ class StagedMulT(MulT):
     token sequences, the pairs' last-step readouts, and the head's input made of them."""
 
     def modality_tokens(self, td) -> dict[str, torch.Tensor]:
-        """``{m: [N, L_m, d]}``: MulT's per-step tokens plus its step embedding."""
+        """``{m: [N, L_m, d]}``: each tokenizer's tokens (a window encoder's one token is the last step)
+        plus MulT's step embedding, unless the tokenizer adds its own (the paper's ``StepTokens``)."""
         tokens = {}
         for spec in self.modalities:
-            seq = self.tokenizers[spec.name](zero_filled(td, spec))
-            tokens[spec.name] = seq + self.step_embedding[-seq.shape[1] :]
+            tokenizer = self.tokenizers[spec.name]
+            seq = tokenizer(zero_filled(td, spec))
+            seq = seq.unsqueeze(1) if seq.dim() == 2 else seq
+            own_embedding = isinstance(tokenizer, StepTokens)
+            tokens[spec.name] = seq if own_embedding else seq + self.step_embedding[-seq.shape[1] :]
         return tokens
 
     def pair_readouts(self, tokens: dict[str, torch.Tensor]) -> list[torch.Tensor]:
@@ -155,14 +159,6 @@ class MulTStackedImageToken(StagedMulT):
             if spec.kind == "image":
                 self.tokenizers[spec.name] = build_encoder(spec, config.history, config.d_model)
 
-    def modality_tokens(self, td) -> dict[str, torch.Tensor]:
-        tokens = {}
-        for spec in self.modalities:
-            x = self.tokenizers[spec.name](zero_filled(td, spec))
-            seq = x.unsqueeze(1) if spec.kind == "image" else x
-            tokens[spec.name] = seq + self.step_embedding[-seq.shape[1] :]
-        return tokens
-
 
 @register_model("gap_mult_self", MulTConfig, loss=("nll",))
 class MulTWithSelfPairs(StagedMulT):
@@ -195,14 +191,6 @@ class MulTOnPaperStepTokens(StagedMulT):
         for spec in self.modalities:
             if spec.kind == "sequence":
                 self.tokenizers[spec.name] = StepTokens(spec, config.history, config.d_model)
-
-    def modality_tokens(self, td) -> dict[str, torch.Tensor]:
-        tokens = {}
-        for spec in self.modalities:
-            seq = self.tokenizers[spec.name](zero_filled(td, spec))
-            own_embedding = isinstance(self.tokenizers[spec.name], StepTokens)
-            tokens[spec.name] = seq if own_embedding else seq + self.step_embedding[-seq.shape[1] :]
-        return tokens
 
 
 # --- hybrids of the paper model ----------------------------------------------------------------------
