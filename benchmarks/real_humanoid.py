@@ -14,13 +14,14 @@ the next T = 10 frames from H = 10 frames of history. One split by episode (spli
 / 0.1, split_seed 0) for every model.
 
 Entries (``ENTRIES``): the paper model with the configuration defaults, with the other prior, with GRU
-encoders for joints and commands, and with its decoder reading the fusion's mixed tokens and the camera
-as one token per frame; the baselines LF-LSTM, MulT and MVAE, each trained once on every sensor and
-seeing an absent sensor as its own absence handling (zero-fill; MVAE drops the expert). Every entry:
-``--steps`` steps of batch ``--batch-size`` for each seed, trained with ``mmf-rl train``'s
-``train(cfg)`` and scored on every presence subset of the test split with ``mmf-rl eval``'s
-``run_evaluation(cfg)``. The machinery (training, per-window errors, the paired bootstrap, the tables,
-the summary) is ``mmf_rl.compare``'s; only the data, the entries and the report are this file's.
+encoders for joints and commands, with its decoder reading the fusion's mixed tokens and the camera as
+one token per frame, and with the pair-stream decoder over per-step tokens of joints and commands and a
+linear latent (the push benchmark's closest entry to MulT); the baselines LF-LSTM, MulT and MVAE, each
+trained once on every sensor and seeing an absent sensor as its own absence handling (zero-fill; MVAE
+drops the expert). Every entry: ``--steps`` steps of batch ``--batch-size`` for each seed, trained with
+``mmf-rl train``'s ``train(cfg)`` and scored on every presence subset of the test split with ``mmf-rl
+eval``'s ``run_evaluation(cfg)``. The machinery (training, per-window errors, the paired bootstrap, the
+tables, the summary) is ``mmf_rl.compare``'s; only the data, the entries and the report are this file's.
 
 Each cell: normalised test MSE, mean over seeds, with a 95% paired bootstrap interval (the same
 resamples for every entry, seed and sensor subset). With at least ``MIN_EPISODES`` test episodes the
@@ -108,6 +109,19 @@ ENTRIES = [
             "model=forecaster",
             "model.decoder_input=mixed",
             "data.modalities.cam_high.encoder=conv_frames",
+        ),
+    ),
+    Entry(
+        "paper, pair-stream decoder, linear z, per-step vector tokens",
+        "variant",
+        (
+            *DATA,
+            SENSOR_FEATURES,
+            "model=forecaster",
+            "model.decoder_input=pair_streams",
+            "model.decoder_latent=linear",
+            "data.modalities.state.encoder=steps",
+            "data.modalities.action.encoder=steps",
         ),
     ),
     Entry("LF-LSTM", "zero-fill", (*DATA, SENSOR_FEATURES, "model=lf_lstm")),
