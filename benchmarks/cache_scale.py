@@ -233,7 +233,7 @@ def interrupted_build(root: Path, cache_dir: Path, episodes: int) -> str:
     process.wait()
     killed_at = recorded()
     stats, stderr = measure_in_subprocess(root, cache_dir)
-    resumed = re.search(r"resuming an interrupted window cache build .*: (\d+) of (\d+) video jobs", stderr)
+    resumed = re.search(r"resuming an interrupted window cache build .*: (\d+) of (\d+) decode jobs", stderr)
     if resumed is None:
         return (
             f"killed at {killed_at}/{episodes} jobs; the next build started over (no resume) in "

@@ -131,7 +131,7 @@ def fold_data(args, fold: str):
         "cache_dir": str(args.data / "cache"),
         "image_size": [IMAGE_SIZE, IMAGE_SIZE],
     }
-    return WindowDataset(DataConfig.from_dict(config), num_workers=1), config
+    return WindowDataset(DataConfig.from_dict(config)), config
 
 
 def train_overrides(args, budget: Budget, fold: str, label: str, run_dir: Path) -> list[str]:
@@ -155,17 +155,16 @@ def train_overrides(args, budget: Budget, fold: str, label: str, run_dir: Path) 
         "trainer.progress_bar=false",
         "calibrate=false",
         "logger=csv",
-        "num_workers=1",
         f"device={args.device}",
     ]
 
 
 # Settings that differ between machines, not between recipes: where the fold's data config, its
-# window cache and the run live, the device, the cache-building processes. The run's directory already
-# names its fold. A trained run's recipe is its training overrides without these: what this file
-# decides, recorded in scores.json rather than read back from the run's config.yaml, which holds every
-# composed setting, so that any setting a newer mmf-rl adds would refuse every completed run.
-MACHINE_SETTINGS = frozenset({"data", "data.cache_dir", "run_dir", "device", "num_workers"})
+# window cache and the run live, the device. The run's directory already names its fold. A trained
+# run's recipe is its training overrides without these: what this file decides, recorded in
+# scores.json rather than read back from the run's config.yaml, which holds every composed setting,
+# so that any setting a newer mmf-rl adds would refuse every completed run.
+MACHINE_SETTINGS = frozenset({"data", "data.cache_dir", "run_dir", "device"})
 
 
 def recipe(args, budget: Budget, fold: str, label: str) -> list[str]:

@@ -25,9 +25,10 @@ Concurrency and failures:
   the check-and-build: one builds, the others wait, then open the finished cache. A reader never
   sees a half-written cache (it appears by rename); a dataset change builds a new directory,
   leaving the old one, which readers may hold, untouched.
-* A build killed midway resumes: each decoded video job is appended to ``progress.jsonl`` in the
-  temp dir, and the next open adopts a dead build's temp dir of the same key and decodes only
-  the jobs not listed. The temp dirs of other dead builds are removed.
+* A build killed midway resumes: each finished decode job (one episode of a video camera, or a
+  range of episodes of a camera stored as images in the parquet) is appended to ``progress.jsonl``
+  in the temp dir, and the next open adopts a dead build's temp dir of the same key and decodes
+  only the jobs not listed. The temp dirs of other dead builds are removed.
 * Before a build, the frames' size is checked against the free space (a memory-mapped write to
   a full disk is a SIGBUS, not an error); ``ENOSPC`` from a write removes the partial build and
   says so. The previous caches are untouched either way.
@@ -40,6 +41,7 @@ import errno
 import fcntl
 import glob
 import hashlib
+import itertools
 import json
 import logging
 import multiprocessing
@@ -61,12 +63,13 @@ from tqdm.auto import tqdm
 
 from mmf_rl import keys
 from mmf_rl.datasets.lerobot_source import (
+    REPORTED_IMAGE_ERRORS,
+    ImageJob,
     LeRobotSource,
     VideoJob,
     clear_decoders,
-    decode_images,
+    run_image_job,
     run_video_job,
-    to_cache_frames,
 )
 
 logger = logging.getLogger(__name__)
@@ -76,7 +79,7 @@ logger = logging.getLogger(__name__)
 CACHE_FORMAT = 3
 CACHE_META = "cache.json"
 BUILDING_PREFIX = ".building-"
-# In a build's temp dir: one JSON line per finished video job, and the marker written once the
+# In a build's temp dir: one JSON line per finished decode job, and the marker written once the
 # frame table is allocated and its vector columns filled (what a resumed build keeps).
 PROGRESS_FILE = "progress.jsonl"
 FRAMES_READY = "frames.ready"
@@ -96,6 +99,10 @@ CHECKSUM_SAMPLES = 16
 # A spawned decode worker pays seconds of imports (torch, torchvision via lerobot): below this
 # many frames, decoding in-process is faster than starting a pool.
 POOL_MIN_FRAMES = 3000
+# Jobs per decode process for the cameras stored as images (their episodes split by frames): enough
+# that the processes finish together and the progress bar moves, few enough to keep each job's
+# start-up (opening the frame table and the images) negligible.
+IMAGE_JOBS_PER_WORKER = 8
 # Windows checked at once when the cache's windows are listed: bounds the frame-index matrices
 # (history + horizon int64s per window) to a few tens of MB whatever the dataset's size.
 WINDOW_CHUNK = 2**16
@@ -176,6 +183,46 @@ def _frame_columns(source: LeRobotSource, columns: dict[str, np.ndarray]) -> dic
     return per_frame
 
 
+def _camera_jobs(
+    source: LeRobotSource, columns: dict, frames_dir: Path, missing: dict, num_workers: int | None
+) -> list[ImageJob | VideoJob]:
+    """The decode jobs of every camera: those stored as images first (their errors come first in the
+    report), then the videos'. The image jobs are split for the processes the whole build would use,
+    so a resumed build splits them as the killed one did."""
+    videos = _video_jobs(source, columns, frames_dir, missing)
+    cameras = sum(m.storage == "image" for m in source.modalities.values())
+    frames = sum(j.frames for j in videos) + cameras * sum(e.stop - e.start for e in source.episodes)
+    parts = IMAGE_JOBS_PER_WORKER * max(_worker_count(num_workers, frames), 1)
+    return _image_jobs(source, frames_dir, parts) + videos
+
+
+def _image_jobs(source: LeRobotSource, frames_dir: Path, parts: int) -> list[ImageJob]:
+    """Per camera stored as images, ``parts`` jobs of consecutive episodes with about as many frames
+    each (fewer when there are fewer episodes)."""
+    lengths = np.array([e.stop - e.start for e in source.episodes])
+    part_of = ((np.cumsum(lengths) - lengths) * parts // max(int(lengths.sum()), 1)).tolist()
+    jobs = []
+    for name, m in source.modalities.items():
+        if m.storage != "image":
+            continue
+        images, row_order = source.image_column(name)
+        for _, group in itertools.groupby(zip(part_of, source.episodes, strict=True), key=lambda p: p[0]):
+            episodes = tuple(e for _, e in group)
+            jobs.append(
+                ImageJob(
+                    modality=name,
+                    images=images,
+                    positions=np.concatenate([row_order[e.start : e.stop] for e in episodes]),
+                    episodes=episodes,
+                    frames_dir=str(frames_dir),
+                    image_size=tuple(source.config.image_size),
+                    channels=m.spec.shape[0],
+                    root=str(source.root),
+                )
+            )
+    return jobs
+
+
 def _video_jobs(
     source: LeRobotSource, columns: dict, frames_dir: Path, missing: dict[str, list[Path]]
 ) -> list[VideoJob]:
@@ -213,12 +260,25 @@ def _episode_times(source: LeRobotSource, columns: dict, episode) -> np.ndarray:
     return columns["timestamp"][episode.start : episode.stop].astype(np.float64)
 
 
-def _job_key(job: VideoJob) -> str:
+def _job_key(job: ImageJob | VideoJob) -> str:
+    if isinstance(job, ImageJob):
+        return f"{job.modality}:{job.episodes[0].start}-{job.episodes[-1].stop}:parquet images"
     return f"{job.modality}:{job.row_start}:{job.video_path}"
 
 
-def _finished_jobs(progress: Path) -> dict[str, tuple[str | None, int]]:
-    """Job key -> (decode error or None, frames decoded) of the jobs a build recorded as finished."""
+def _job_record(job: ImageJob | VideoJob, *result) -> dict:
+    """What a finished job leaves to mark and report (its line in the progress file): for a video, its
+    error or None and how many leading frames it decoded; for images, the rows of the undecodable
+    ones and the first errors."""
+    if isinstance(job, ImageJob):
+        absent, errors = result
+        return {"absent": absent, "errors": errors}
+    error, decoded = result
+    return {"error": error, "decoded": decoded}
+
+
+def _finished_jobs(progress: Path) -> dict[str, dict]:
+    """Job key -> `_job_record` of the jobs a build recorded as finished."""
     finished = {}
     if progress.is_file():
         for line in progress.read_text().splitlines():
@@ -226,100 +286,76 @@ def _finished_jobs(progress: Path) -> dict[str, tuple[str | None, int]]:
                 record = json.loads(line)
             except json.JSONDecodeError:  # the line being written when the build was killed
                 continue
-            finished[record["job"]] = (record["error"], record["decoded"])
+            finished[record.pop("job")] = record
     return finished
 
 
+def _worker_count(num_workers: int | None, frames: int) -> int:
+    """``num_workers``, or by default one process per core when there are enough frames to repay
+    their start-up."""
+    if num_workers is not None:
+        return num_workers
+    return len(os.sched_getaffinity(0)) if frames >= POOL_MIN_FRAMES else 1
+
+
+def _runner(job: ImageJob | VideoJob):
+    """The function that decodes ``job``, looked up when called (tests replace them)."""
+    return run_image_job if isinstance(job, ImageJob) else run_video_job
+
+
 def _decode(
-    jobs: list[VideoJob], num_workers: int | None, progress: Path, done_frames: int = 0
-) -> list[tuple[VideoJob, str, int]]:
-    """Run the decode jobs (process pool with ``spawn`` when worth it); return the failed ones
-    with their error and how many of their leading frames were decoded.
+    jobs: list[ImageJob | VideoJob], num_workers: int | None, progress: Path, done_frames: int = 0
+) -> dict[str, dict]:
+    """Run the decode jobs (process pool with ``spawn`` when worth it); return each one's
+    `_job_record` by `_job_key`.
 
     Each finished job is appended to ``progress`` (its frames are in the memory-mapped table by
     then), so a killed build can resume after it.
     """
-    total = sum(len(j.timestamps) for j in jobs)
-    if num_workers is None:
-        cores = len(os.sched_getaffinity(0))
-        num_workers = min(cores, len(jobs)) if total >= POOL_MIN_FRAMES else 1
-    failed = []
+    total = sum(j.frames for j in jobs)
+    workers = min(_worker_count(num_workers, total), len(jobs))
+    records = {}
     with (
         tqdm(
             total=total + done_frames,
             initial=done_frames,
-            desc="decoding videos into the window cache",
+            desc="decoding cameras into the window cache",
             unit="frame",
             disable=not jobs,
         ) as bar,
         open(progress, "a") as log,
     ):
 
-        def finished(job: VideoJob, error: str | None, decoded: int) -> None:
-            if error is not None:
-                failed.append((job, error, decoded))
-            log.write(json.dumps({"job": _job_key(job), "error": error, "decoded": decoded}) + "\n")
+        def finished(job: ImageJob | VideoJob, *result) -> None:
+            records[_job_key(job)] = _job_record(job, *result)
+            log.write(json.dumps({"job": _job_key(job), **records[_job_key(job)]}) + "\n")
             log.flush()
-            bar.update(len(job.timestamps))
+            bar.update(job.frames)
 
-        if num_workers > 1 and len(jobs) > 1:
+        if workers > 1:
             # spawn, not fork: torchcodec decoders break in forked children; each spawned worker
             # starts with its own empty decoder cache.
             context = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=num_workers, mp_context=context) as pool:
+            with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
                 # Each finished future is dropped: kept, their results would hold every job twice.
-                pending = {pool.submit(run_video_job, job): job for job in jobs}
+                pending = {pool.submit(_runner(job), job): job for job in jobs}
                 for future in as_completed(pending):
-                    _, error, decoded = future.result()
-                    finished(pending.pop(future), error, decoded)
+                    finished(pending.pop(future), *future.result()[1:])
         else:
             try:
                 for job in jobs:
-                    finished(*run_video_job(job))
+                    finished(*_runner(job)(job))
             finally:
                 clear_decoders()
-    return failed
-
-
-def _decode_parquet_images(source: LeRobotSource, frames: TensorDict) -> dict[str, dict[str, str]]:
-    """Decode the cameras stored as images in the parquet files into ``frames``, one episode at a time
-    (bounded memory). A frame whose image cannot be decoded is marked absent; returns, per
-    modality, ``{"<data dir> episode E frame F": error}`` for the first few of them."""
-    undecodable: dict[str, dict[str, str]] = {}
-    cameras = [(name, m) for name, m in source.modalities.items() if m.storage == "image"]
-    total = sum(e.stop - e.start for e in source.episodes) * len(cameras)
-    with tqdm(
-        total=total, desc="decoding images into the window cache", unit="frame", disable=not cameras
-    ) as bar:
-        for name, m in cameras:
-            destination = frames.get(keys.obs_key(name))
-            present = frames.get(keys.present_key(name))
-            channels = m.spec.shape[0]
-            for episode in source.episodes:
-                rows = slice(episode.start, episode.stop)
-                decoded, errors = decode_images(source.read_images(name, rows), channels, source.root)
-                episode_frames = torch.zeros((len(decoded), *m.spec.shape), dtype=torch.uint8)
-                for offset, (frame, error) in enumerate(zip(decoded, errors, strict=True)):
-                    if frame is None:
-                        present[episode.start + offset] = False
-                        failures = undecodable.setdefault(name, {})
-                        if len(failures) < 10:
-                            failures[f"{source.root / 'data'} episode {episode.index} frame {offset}"] = error
-                        continue
-                    episode_frames[offset] = to_cache_frames(frame[None], source.config.image_size, channels)[
-                        0
-                    ]
-                destination[rows] = episode_frames
-                bar.update(episode.stop - episode.start)
-    return undecodable
+    return records
 
 
 def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> dict:
     """Build the cache's files in ``directory``; continue the build a killed process left there."""
-    frames, unordered, missing, jobs = _frame_table(source, directory)
+    frames, unordered, missing, jobs = _frame_table(source, directory, num_workers)
     n = int(frames.batch_size[0])
-    failed = _decode_videos(jobs, directory, num_workers)
-    undecodable = _mark_undecodable_and_missing(source, frames, failed, missing)
+    records = _decode_cameras(jobs, directory, num_workers)
+    undecodable = _mark_undecodable_and_missing(source, frames, jobs, records, missing)
 
     windows, skipped = _windows(source, frames)
     skipped["episodes_timestamps_not_increasing"] = unordered
@@ -347,10 +383,10 @@ def _write(source: LeRobotSource, directory: Path, num_workers: int | None) -> d
 
 
 def _frame_table(
-    source: LeRobotSource, directory: Path
-) -> tuple[TensorDict, list[int], dict, list[VideoJob]]:
+    source: LeRobotSource, directory: Path, num_workers: int | None
+) -> tuple[TensorDict, list[int], dict, list[ImageJob | VideoJob]]:
     """The frame table with its vector columns filled (a killed build's, or allocated now), the
-    episodes skipped for unordered timestamps, the missing videos and the video jobs.
+    episodes skipped for unordered timestamps, the missing videos and the camera decode jobs.
 
     The dataset's columns live only in this call: the decoding that follows holds none of them.
     """
@@ -359,7 +395,7 @@ def _frame_table(
     by_index = source.config.video_sync == "frame_index"
     unordered = [] if by_index else source.drop_episodes_with_unordered_timestamps(columns)
     missing = source.missing_videos()
-    jobs = _video_jobs(source, columns, directory / "frames", missing)
+    jobs = _camera_jobs(source, columns, directory / "frames", missing, num_workers)
     if (directory / FRAMES_READY).is_file():
         frames = TensorDict.load_memmap(directory / "frames")
     else:
@@ -368,42 +404,40 @@ def _frame_table(
     return frames, unordered, missing, jobs
 
 
-def _decode_videos(jobs: list, directory: Path, num_workers: int | None) -> list:
-    """Decode the video jobs a killed build did not finish; ``(job, error, frames decoded)`` of
-    every job that failed, in this build or the killed one."""
+def _decode_cameras(jobs: list, directory: Path, num_workers: int | None) -> dict[str, dict]:
+    """Decode the jobs a killed build did not finish; the `_job_record` of every job, by
+    `_job_key`, from this build or the killed one."""
     finished = _finished_jobs(directory / PROGRESS_FILE)
     todo = [job for job in jobs if _job_key(job) not in finished]
-    failed = [
-        (job, *finished[_job_key(job)])
-        for job in jobs
-        if _job_key(job) in finished and finished[_job_key(job)][0] is not None
-    ]
     if finished:
         logger.info(
-            "resuming an interrupted window cache build in %s: %d of %d video jobs already decoded",
+            "resuming an interrupted window cache build in %s: %d of %d decode jobs already done",
             directory,
             len(jobs) - len(todo),
             len(jobs),
         )
-    return failed + _decode(
-        todo,
-        num_workers,
-        directory / PROGRESS_FILE,
-        done_frames=sum(len(j.timestamps) for j in jobs) - sum(len(j.timestamps) for j in todo),
-    )
+    done_frames = sum(j.frames for j in jobs) - sum(j.frames for j in todo)
+    return finished | _decode(todo, num_workers, directory / PROGRESS_FILE, done_frames)
 
 
 def _mark_undecodable_and_missing(
-    source: LeRobotSource, frames: TensorDict, failed: list, missing: dict
+    source: LeRobotSource, frames: TensorDict, jobs: list, records: dict, missing: dict
 ) -> dict:
-    """Clear the presence of the frames that a failed job did not decode and of the episodes whose
-    video file is missing; the undecodable files per modality, with their errors."""
-    undecodable: dict[str, dict[str, str]] = _decode_parquet_images(source, frames)
-    for job, error, decoded in failed:
-        undecodable.setdefault(job.modality, {})[job.video_path] = error
-        frames.get(keys.present_key(job.modality))[
-            job.row_start + decoded : job.row_start + len(job.timestamps)
-        ] = False
+    """Clear the presence of the frames that the jobs could not decode and of the episodes whose
+    video file is missing; per modality, the undecodable video files or the first undecodable
+    images (`REPORTED_IMAGE_ERRORS`), with their errors."""
+    undecodable: dict[str, dict[str, str]] = {}
+    for job in jobs:  # in job order: the report is the same whichever job finished first
+        record, present = records[_job_key(job)], frames.get(keys.present_key(job.modality))
+        if isinstance(job, ImageJob):
+            present[torch.tensor(record["absent"], dtype=torch.long)] = False
+            for where, error in record["errors"].items():
+                reported = undecodable.setdefault(job.modality, {})
+                if len(reported) < REPORTED_IMAGE_ERRORS:
+                    reported[where] = error
+        elif record["error"] is not None:
+            undecodable.setdefault(job.modality, {})[job.video_path] = record["error"]
+            present[job.row_start + record["decoded"] : job.row_start + job.frames] = False
     for name, paths in missing.items():
         absent = {str(p) for p in paths}
         for episode in source.episodes:

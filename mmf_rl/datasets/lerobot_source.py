@@ -56,6 +56,9 @@ MAX_VECTOR_WIDTH = 2**16
 # OSError for a missing or unreadable file. Anything else (a TypeError from an API change) is a
 # bug and propagates instead of being cached as "camera absent".
 DECODE_ERRORS = (RuntimeError, ValueError, IndexError, OSError)
+# The undecodable images of a camera that a cache report names (the first ones, with their errors);
+# the others are only marked absent.
+REPORTED_IMAGE_ERRORS = 10
 
 
 @dataclass(frozen=True)
@@ -664,7 +667,7 @@ class LeRobotSource:
         """The per-frame columns the pipeline needs, rows in cache order (selected episodes by frame
         ``index``).
 
-        Keeps the dataset open for :meth:`read_images` if a camera is stored as images (otherwise
+        Keeps the dataset open for :meth:`image_column` if a camera is stored as images (otherwise
         its memory-mapped pages that the read touched would stay resident for the whole build).
         """
         selection = None if self.selected_all else self.episodes
@@ -673,11 +676,15 @@ class LeRobotSource:
             self._hf, self._row_order = hf, row_order
         return data
 
-    def read_images(self, name: str, rows: slice) -> list:
-        """Encoded images (``{"bytes", "path"}`` entries) of camera ``name`` for cache ``rows``
-        (after :meth:`read_columns`)."""
+    def image_column(self, name: str):
+        """Camera ``name``'s encoded images (``{"bytes", "path"}`` entries) as a one-column Hugging Face
+        dataset, and the positions of its rows in cache row order (after :meth:`read_columns`).
+
+        The dataset is memory-mapped, so it pickles as its file's path: decode workers receive it
+        cheaply and read only their own rows.
+        """
         feature = self.modalities[name].feature
-        return self._hf.select_columns([feature]).select(self._row_order[rows])[feature]
+        return self._hf.select_columns([feature]), self._row_order
 
     def files(self) -> list[Path]:
         """Every file that makes up the dataset: what the cache fingerprint covers."""
@@ -777,6 +784,28 @@ class VideoJob:
     source_frame_values: int  # values in one decoded frame (C * H * W at the video's resolution)
     channels: int = 3  # the modality's: 1 stores a grey (depth) video as one channel
 
+    @property
+    def frames(self) -> int:
+        return len(self.timestamps)
+
+
+@dataclass(frozen=True)
+class ImageJob:
+    """Decode a camera's images stored in the parquet files for consecutive ``episodes`` into their rows."""
+
+    modality: str
+    images: object  # the camera's one-column Hugging Face dataset (`LeRobotSource.image_column`)
+    positions: np.ndarray  # int64, the rows of ``images`` for the episodes' cache rows, in order
+    episodes: tuple[Episode, ...]
+    frames_dir: str  # memory-mapped frames TensorDict to write into
+    image_size: tuple[int, int]
+    channels: int
+    root: str  # the dataset root, which relative image paths start from
+
+    @property
+    def frames(self) -> int:
+        return len(self.positions)
+
 
 def to_cache_frames(frames, image_size: tuple[int, int], channels: int):
     """Float frames ``[n, C, h, w]`` in [0, 1] -> the cache's ``uint8 [n, channels, *image_size]``."""
@@ -815,6 +844,45 @@ def decode_images(entries: list, channels: int, root: Path) -> tuple[list, list[
             frames.append(None)
             errors.append(_error_text(error))
     return frames, errors
+
+
+def run_image_job(job: ImageJob) -> tuple[ImageJob, list[int], dict[str, str]]:
+    """Decode, resize and store a job's images one episode at a time (bounded memory); return the
+    cache rows whose image could not be decoded and, for the first `REPORTED_IMAGE_ERRORS` of them,
+    ``{"<data dir> episode E frame F": error}``. Only decode errors are caught, as in `run_video_job`.
+    """
+    from tensordict import TensorDict
+
+    destination = TensorDict.load_memmap(job.frames_dir).get(obs_key(job.modality))
+    images = job.images.with_format("arrow")  # arrow rows, not one Python object per row and field
+    absent, errors, read = [], {}, 0
+    for episode in job.episodes:
+        length = episode.stop - episode.start
+        rows = images[job.positions[read : read + length].tolist()]
+        read += length
+        frames, failures = decode_images(rows.column(0).to_pylist(), job.channels, Path(job.root))
+        stored = _episode_cache_frames(frames, job.image_size, job.channels)
+        destination[episode.start : episode.stop] = stored
+        for offset in (i for i, error in enumerate(failures) if error is not None):
+            absent.append(episode.start + offset)
+            if len(errors) < REPORTED_IMAGE_ERRORS:
+                errors[f"{Path(job.root) / 'data'} episode {episode.index} frame {offset}"] = failures[offset]
+    return job, absent, errors
+
+
+def _episode_cache_frames(frames: list, image_size: tuple[int, int], channels: int):
+    """An episode's decoded frames (``None`` where undecodable, left zero) in cache layout, resized in
+    one call per frame size: the same bytes as one call per frame, without the per-call overhead."""
+    import torch
+
+    stored = torch.zeros((len(frames), channels, *image_size), dtype=torch.uint8)
+    by_size: dict[tuple, list[int]] = {}
+    for i, frame in enumerate(frames):
+        if frame is not None:
+            by_size.setdefault(tuple(frame.shape), []).append(i)
+    for same in by_size.values():
+        stored[same] = to_cache_frames(torch.stack([frames[i] for i in same]), image_size, channels)
+    return stored
 
 
 _decoder_cache = None

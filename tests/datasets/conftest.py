@@ -202,6 +202,46 @@ def image_only_root(tmp_path_factory) -> Path:
     return make_camera_dataset(tmp_path_factory.mktemp("cameras") / "images", use_videos=False)
 
 
+# Rows (frames, episodes in order) whose wrist image `break_images` replaces: in every episode, and
+# more of them than a cache report names.
+BROKEN_ROWS = [1, 5, 13, 14, 15, 16, 17, 23, 24, 30, 34, 40]
+
+
+def break_images(root: Path, rows: list[int]) -> Path:
+    """Replace the PNG bytes of the wrist camera at ``rows`` of the dataset at ``root`` by bytes that
+    are no image (the rest of the parquet file, its schema and metadata unchanged)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    [data_file] = (root / "data").glob("*/*.parquet")
+    table = pq.read_table(data_file)
+    assert table.column("index").to_pylist() == list(range(sum(CAMERA_EPISODES)))
+    images = table.column(IMAGE_CAMERA).to_pylist()
+    for row in rows:
+        images[row] = {**images[row], "bytes": b"not an image"}
+    field = table.schema.field(IMAGE_CAMERA)
+    table = table.set_column(table.schema.get_field_index(IMAGE_CAMERA), field, pa.array(images, field.type))
+    pq.write_table(table, data_file)
+    return root
+
+
+def differing_files(a: Path, b: Path) -> list[str]:
+    """The files (relative paths) that only one of directories ``a`` and ``b`` holds or whose bytes differ."""
+    files = {str(p.relative_to(d)) for d in (a, b) for p in d.rglob("*") if p.is_file()}
+    return sorted(
+        f
+        for f in files
+        if not ((a / f).is_file() and (b / f).is_file() and (a / f).read_bytes() == (b / f).read_bytes())
+    )
+
+
+@pytest.fixture(scope="session")
+def broken_images_root(image_only_root, tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("cameras") / "broken"
+    shutil.copytree(image_only_root, root)
+    return break_images(root, BROKEN_ROWS)
+
+
 @pytest.fixture(scope="session")
 def mixed_cameras_root(tmp_path_factory) -> Path:
     return make_camera_dataset(tmp_path_factory.mktemp("cameras") / "mixed", use_videos=True)

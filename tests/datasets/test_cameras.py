@@ -13,9 +13,11 @@ from tensordict import TensorDict
 from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.configuration import compose_config
 from mmf_rl.datasets import WindowDataset, lerobot_source
+from mmf_rl.datasets.lerobot_source import REPORTED_IMAGE_ERRORS
 from mmf_rl.keys import obs_key, present_key
 from mmf_rl.trainers.train_command import train
 from tests.datasets.conftest import (
+    BROKEN_ROWS,
     CAMERA_EPISODES,
     CAMERA_HEIGHT,
     CAMERA_WIDTH,
@@ -57,6 +59,33 @@ def test_images_in_the_parquet_are_cached_exactly_rgb_and_depth(image_only_root,
     rows = start[:, None] + torch.arange(3)
     assert torch.equal(batch.get(obs_key("wrist")), recorded(3)[rows])
     assert torch.equal(batch.get(obs_key("depth")), recorded(1)[rows])
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_an_undecodable_image_is_an_absent_frame_named_in_the_report(broken_images_root, tmp_path, workers):
+    with pytest.warns(
+        UserWarning, match=r"'wrist'.*episode 0 frame 1 \(undecodable: RuntimeError: Unsupported"
+    ):
+        dataset = WindowDataset(camera_config(broken_images_root, tmp_path), num_workers=workers)
+    frames = TensorDict.load_memmap(dataset.cache_path / "frames")
+    broken = torch.zeros(sum(CAMERA_EPISODES), dtype=torch.bool)
+    broken[BROKEN_ROWS] = True
+    assert torch.equal(frames.get(present_key("wrist")).as_subclass(torch.Tensor), ~broken)
+    assert frames.get(present_key("depth")).all()
+    wrist = cached_frames(dataset, "wrist")
+    assert not wrist[broken].any() and torch.equal(wrist[~broken], recorded(3)[~broken])
+    assert torch.equal(cached_frames(dataset, "depth"), recorded(1))
+
+    # The first ones in frame order, whichever process decoded them.
+    first_rows = np.cumsum([0, *CAMERA_EPISODES])
+    episodes = [int(np.searchsorted(first_rows, row, side="right")) - 1 for row in BROKEN_ROWS]
+    named = [
+        f"{broken_images_root / 'data'} episode {e} frame {row - first_rows[e]}"
+        for row, e in zip(BROKEN_ROWS, episodes, strict=True)
+    ]
+    report = dataset.report["undecodable_files"]
+    assert list(report) == ["wrist"] and list(report["wrist"]) == named[:REPORTED_IMAGE_ERRORS]
+    assert all(error.startswith("RuntimeError: Unsupported image file") for error in report["wrist"].values())
 
 
 def test_a_depth_camera_resized_stays_one_channel(image_only_root, tmp_path):

@@ -7,6 +7,8 @@ from types import SimpleNamespace
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+import pytest
+import torch
 
 from mmf_rl.datasets import lerobot_source
 from mmf_rl.datasets.lerobot_source import load_frame_columns
@@ -67,3 +69,19 @@ def test_a_decode_worker_keeps_the_decoder_of_one_video_file(synthetic_root, tmp
             assert lerobot_source._decoder_cache.size() == 1
     finally:
         lerobot_source.clear_decoders()
+
+
+@pytest.mark.parametrize("channels", [3, 1])
+def test_an_episode_resized_in_one_call_per_size_stores_the_bytes_of_one_call_per_frame(channels):
+    torch.manual_seed(0)
+    size = (16, 32)
+    shapes = [(20, 24), (16, 32), None, (20, 24), (40, 48), (16, 32), (20, 24)]  # None: undecodable
+    frames = [None if s is None else torch.rand(channels, *s) for s in shapes]
+    stored = lerobot_source._episode_cache_frames(frames, size, channels)
+    one_by_one = [
+        torch.zeros(channels, *size, dtype=torch.uint8)
+        if f is None
+        else lerobot_source.to_cache_frames(f[None], size, channels)[0]
+        for f in frames
+    ]
+    assert stored.dtype == torch.uint8 and torch.equal(stored, torch.stack(one_by_one))

@@ -19,7 +19,7 @@ from tests.reliability.conftest import (
     wait_for,
 )
 
-DECODING = "decoding videos into the window cache"
+DECODING = "decoding cameras into the window cache"
 
 
 def test_two_trainers_on_one_dataset_build_the_cache_once_and_both_train(recorded_push_root, tmp_path):
