@@ -10,11 +10,18 @@ is a ``torchvision.transforms.v2`` class (``ColorJitter``, ``RandomResizedCrop``
   treats leading dims as a batch with one set of parameters), so motion between frames is kept;
 * deterministic: each batch draws from its own generator state, seeded by the run's seed, the
   epoch, the batch's position and the rank, so a resumed run replays the same augmentations and
-  the model's own random draws are untouched.
+  the model's own random draws are untouched;
+* off the training thread by default (``workers``): torchvision draws from the global generator,
+  which a thread would share with the training step, but a worker process has its own. It
+  augments the batches ahead of the one being trained on, with the same seeds, so the batches are
+  bit-identical to those augmented on the training thread.
 """
 
 from __future__ import annotations
 
+import functools
+from collections import deque
+from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 
 import torch
@@ -22,6 +29,7 @@ from tensordict import TensorDictBase
 
 from mmf_rl import keys
 from mmf_rl.configuration import reject_unknown_keys
+from mmf_rl.datasets.worker_pool import WorkerPool
 from mmf_rl.keys import ModalitySpec
 
 
@@ -34,7 +42,8 @@ def lerobot_default_transforms() -> dict[str, dict]:
 
 @dataclass
 class AugmentConfig:
-    """lerobot's ``ImageTransformsConfig`` (same fields, same meaning), off by default.
+    """lerobot's ``ImageTransformsConfig`` (same fields, same meaning) plus which images and where
+    they are augmented; off by default.
 
     Args:
         enable: augment the training images (never val or test).
@@ -43,6 +52,11 @@ class AugmentConfig:
         tfs: name → lerobot ``ImageTransformConfig`` (``weight``, ``type``, ``kwargs``); lerobot's
             defaults (brightness, contrast, saturation, hue, sharpness, affine).
         modalities: the image modalities to augment (default: every image modality).
+        workers: processes that augment the next batches while the model trains on the current
+            one; ``0``: on the training thread, between steps. Either way the batches are the
+            same. They start at the first batch, spawned (they import torch and lerobot once per
+            run), so a script that trains with them guards its entry point with
+            ``if __name__ == "__main__":``.
     """
 
     enable: bool = False
@@ -50,6 +64,7 @@ class AugmentConfig:
     random_order: bool = False
     tfs: dict[str, dict] = field(default_factory=lerobot_default_transforms)
     modalities: list[str] | None = None
+    workers: int = 1
 
     @classmethod
     def from_dict(cls, d: dict | None) -> AugmentConfig:
@@ -61,6 +76,11 @@ class AugmentConfig:
         if config.max_num_transforms < 1:
             raise ValueError(
                 f"augment config: `max_num_transforms` must be >= 1, found {config.max_num_transforms}"
+            )
+        if config.workers < 0:
+            raise ValueError(
+                f"augment config: `workers` must be >= 0 (0: augment on the training thread), found "
+                f"{config.workers}"
             )
         return config
 
@@ -97,7 +117,11 @@ def _transform_config_cls():
 
 
 class ImageAugmentation:
-    """Applies an :class:`AugmentConfig` to the image modalities of training batches (in place)."""
+    """Applies an :class:`AugmentConfig` to the image modalities of training batches (in place).
+
+    ``augmented`` augments a stream of batches, in ``config.workers`` processes when it is not 0;
+    :meth:`close` stops them (the next stream starts them again).
+    """
 
     def __init__(self, config: AugmentConfig, specs: list[ModalitySpec], seed: int):
         images = [s.name for s in specs if s.kind == "image"]
@@ -110,20 +134,74 @@ class ImageAugmentation:
         self.names = list(config.modalities) if config.modalities is not None else images
         self.transform = config.build()
         self.seed = seed
+        self.workers = config.workers
+        self._make_in_worker = functools.partial(_frames_augmenter, config, specs, seed)
+        self._pool: WorkerPool | None = None
 
     def __call__(self, batch: TensorDictBase, epoch: int, index: int, rank: int = 0) -> TensorDictBase:
+        """``batch`` augmented here, on the calling thread."""
+        return self._set_frames(batch, self.augment_frames(self._frames(batch), epoch, index, rank))
+
+    def augment_frames(
+        self, frames: dict[str, torch.Tensor], epoch: int, index: int, rank: int
+    ) -> dict[str, torch.Tensor]:
+        """The augmented ``uint8 [B, H, C, h, w]`` frames of each modality, for batch ``index`` of
+        ``epoch`` on ``rank``: what a worker process runs, and the calling thread without one."""
         # torchvision draws from the global generator: fork it, so the augmentation neither depends
         # on nor changes the model's draws, and seed it from the batch's place in the run.
+        augmented = {}
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(hash((self.seed, epoch, index, rank)) % 2**63)
-            for name in self.names:
-                frames = batch.get(keys.obs_key(name))  # uint8 [B, H, C, h, w]
-                augmented = torch.stack([self.transform(window) for window in frames])
-                if augmented.shape != frames.shape:
+            for name, windows in frames.items():
+                augmented[name] = torch.stack([self.transform(window) for window in windows])
+                if augmented[name].shape != windows.shape:
                     raise ValueError(
-                        f"augment: the transforms turn {name!r} frames of {list(frames.shape[-2:])} into "
-                        f"{list(augmented.shape[-2:])}; a transform that resizes (e.g. RandomResizedCrop's "
-                        "`size`) must give the data config's image_size"
+                        f"augment: the transforms turn {name!r} frames of {list(windows.shape[-2:])} into "
+                        f"{list(augmented[name].shape[-2:])}; a transform that resizes (e.g. "
+                        "RandomResizedCrop's `size`) must give the data config's image_size"
                     )
-                batch.set(keys.obs_key(name), augmented)
+        return augmented
+
+    def augmented(
+        self, batches: Iterable[TensorDictBase], epoch: int, rank: int = 0
+    ) -> Iterator[TensorDictBase]:
+        """``batches`` (one epoch, in order) augmented; with workers, ``workers`` batches are made
+        and augmenting ahead of the one returned."""
+        if self.workers == 0:
+            for index, batch in enumerate(batches):
+                yield self(batch, epoch, index, rank)
+            return
+        if self._pool is None or self._pool.closed:
+            self._pool = WorkerPool(
+                self._make_in_worker,
+                self.workers,
+                role="image augmentation",
+                fix="augment.workers=0 augments on the training thread instead (a process killed by "
+                "signal 9 is often the out-of-memory killer's doing)",
+            )
+        pool, ahead = self._pool, deque()
+        for index, batch in enumerate(batches):
+            ahead.append((batch, pool.submit(self._frames(batch), epoch, index, rank)))
+            if len(ahead) > self.workers:
+                batch, ticket = ahead.popleft()
+                yield self._set_frames(batch, pool.result(ticket))
+        for batch, ticket in ahead:
+            yield self._set_frames(batch, pool.result(ticket))
+
+    def close(self) -> None:
+        """Stop the worker processes, if any."""
+        if self._pool is not None:
+            self._pool.close()
+
+    def _frames(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        return {name: batch.get(keys.obs_key(name)) for name in self.names}
+
+    def _set_frames(self, batch: TensorDictBase, frames: dict[str, torch.Tensor]) -> TensorDictBase:
+        for name, augmented in frames.items():
+            batch.set(keys.obs_key(name), augmented)
         return batch
+
+
+def _frames_augmenter(config: AugmentConfig, specs: list[ModalitySpec], seed: int):
+    """In a worker process: the augmentation's ``augment_frames``, built there once."""
+    return ImageAugmentation(config, specs, seed).augment_frames

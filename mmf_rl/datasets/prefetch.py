@@ -17,14 +17,20 @@ import torch
 from tensordict import TensorDictBase
 
 _END = object()
+# How a loader makes a batch (its ``batch_making``), which decides where it may be made ahead:
+# "thread_safe" (a gather: on a background thread), "global_rng" (its making draws from the global
+# RNG, e.g. image augmentation on the training thread: only on the consumer's thread, which a
+# second thread would interleave with the step's draws), "in_workers" (worker processes make most
+# of it, e.g. image augmentation with `augment.workers`: a thread that mostly waits on them).
+BATCH_MAKING = ("thread_safe", "global_rng", "in_workers")
 
 
 class Prefetcher:
     """Iterate ``source`` (TensorDict batches) one batch ahead, moved to ``device``.
 
     ``threaded=False`` iterates the source on the caller's thread: required when making a batch
-    draws from the global RNG (e.g. image augmentation seeded through ``fork_rng``), which a
-    second thread would interleave with the training step's draws. An exception raised by the
+    draws from the global RNG (``"global_rng"`` of :data:`BATCH_MAKING`), which a second thread
+    would interleave with the training step's draws. An exception raised by the
     source is raised by ``next``; :meth:`close` stops the thread (also at the end, or on
     ``with``-exit).
     """

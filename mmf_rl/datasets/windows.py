@@ -361,6 +361,8 @@ class WindowLoader:
     pass, or set it with :meth:`set_epoch`) and give rank ``rank`` of ``world_size`` an equal share
     (the tail that does not divide is dropped, like ``DistributedSampler(drop_last=True)``), so DDP
     ranks step together. Sequential loaders cover every window exactly once across ranks.
+    ``augment`` transforms the image modalities of every batch; :meth:`close` stops its worker
+    processes (the trainer calls it when training ends).
     """
 
     def __init__(
@@ -402,12 +404,27 @@ class WindowLoader:
         n = len(self._ids())
         return n // self.batch_size if self.drop_last else math.ceil(n / self.batch_size)
 
+    @property
+    def batch_making(self) -> str:
+        """How a batch is made (:data:`~mmf_rl.datasets.prefetch.BATCH_MAKING`): by a gather, by
+        a gather and augmentation drawing from the global RNG, or with augmentation in workers."""
+        if self.augment is None:
+            return "thread_safe"
+        return "in_workers" if self.augment.workers else "global_rng"
+
     def __iter__(self) -> Iterator[TensorDict]:
         ids = self._ids()
         stop = len(ids) // self.batch_size * self.batch_size if self.drop_last else len(ids)
-        for index, first in enumerate(range(0, stop, self.batch_size)):
-            batch = self.dataset.batch(ids[first : first + self.batch_size], self.split)
-            if self.augment is not None:
-                batch = self.augment(batch, self.epoch, index, self.rank)
-            yield batch
+        batches = (
+            self.dataset.batch(ids[first : first + self.batch_size], self.split)
+            for first in range(0, stop, self.batch_size)
+        )
+        if self.augment is not None:
+            batches = self.augment.augmented(batches, self.epoch, self.rank)
+        yield from batches
         self.epoch += 1
+
+    def close(self) -> None:
+        """Stop the augmentation's worker processes, if any (iterating again restarts them)."""
+        if self.augment is not None:
+            self.augment.close()

@@ -62,7 +62,15 @@ EXAMPLES = [
     "data.target=observation.state   # print the composed config only",
 ]
 # Keys that may differ between a run and its resumption (run_dir: the run may have been moved).
-RESUMABLE_CHANGES = {"resume", "trainer.progress_bar", "trainer.prefetch", "logger", "num_workers", "run_dir"}
+RESUMABLE_CHANGES = {
+    "resume",
+    "trainer.progress_bar",
+    "trainer.prefetch",
+    "augment.workers",
+    "logger",
+    "num_workers",
+    "run_dir",
+}
 
 
 def init_distributed(device: torch.device) -> tuple[int, int]:
@@ -267,8 +275,6 @@ def make_trainer(cfg, model, model_name: str, loss, data: WindowDataset, trainer
         checkpoint_tensors=data.normalizer.stats,
         rank=rank,
         world_size=world_size,
-        # Augmentation seeds the global RNG through fork_rng: a second thread would interleave it.
-        prefetch_in_thread=augment is None,
     )
 
 

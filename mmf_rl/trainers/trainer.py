@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 
 from mmf_rl.checkpoint import load_checkpoint, load_model_state, save_checkpoint
 from mmf_rl.configuration import reject_unknown_keys
-from mmf_rl.datasets.prefetch import Prefetcher
+from mmf_rl.datasets.prefetch import BATCH_MAKING, Prefetcher
 
 logger = logging.getLogger(__name__)
 
@@ -80,9 +80,11 @@ class TrainerConfig:
             CPU, its multi-tensor ``foreach`` form on CUDA).
         prefetch: make the next batch (and copy it to the device) on a background thread while
             the current step runs; the batches and results are the same either way. ``"auto"``
-            (default): on CUDA only. On CPU the step's own threads already use every core, so a
-            batch made beside it competes with the step instead of overlapping it (docs/results.md
-            has the measured cost); ``True`` prefetches on CPU too (cores to spare), ``False`` never.
+            (default): on CUDA, and on CPU when worker processes make the batches (image
+            augmentation with ``augment.workers``: the thread mostly waits on them). Otherwise on
+            CPU the step's own threads already use every core, so a batch made beside it competes
+            with the step instead of overlapping it (docs/results.md has the measured cost);
+            ``True`` prefetches on CPU too (cores to spare), ``False`` never.
     """
 
     total_steps: int = 1000
@@ -258,7 +260,10 @@ class Trainer:
     Args:
         model: the module whose weights are checkpointed (the loss module's forecaster).
         loss_module: a torchrl ``LossModule`` returning ``loss_*`` entries.
-        loader: re-iterable, one epoch per iteration, deterministic given ``set_epoch``.
+        loader: re-iterable, one epoch per iteration, deterministic given ``set_epoch``. If it
+            has them, its ``batch_making`` (one of :data:`~mmf_rl.datasets.prefetch.BATCH_MAKING`;
+            default ``"thread_safe"``) says where a batch may be made ahead, and its ``close()``
+            is called when training ends (it may own worker processes).
         config: :class:`TrainerConfig`.
         run_dir: where ``checkpoints/`` go (only rank 0 writes); ``None``: no checkpoints.
         logger: a ``torchrl.record.loggers.Logger`` (rank 0 only), or ``None``.
@@ -268,8 +273,6 @@ class Trainer:
             fingerprint, normalisation statistics).
         rank, world_size: data-parallel position (``torch.distributed`` must be initialised
             when ``world_size > 1``).
-        prefetch_in_thread: with ``config.prefetch``, make batches on a background thread; pass
-            ``False`` when making a batch draws from the global RNG (image augmentation).
 
     Batches are moved to the model's device (pinned, ``non_blocking``, on CUDA).
     """
@@ -288,7 +291,6 @@ class Trainer:
         checkpoint_tensors: dict[str, torch.Tensor] | None = None,
         rank: int = 0,
         world_size: int = 1,
-        prefetch_in_thread: bool = True,
     ):
         self.model, self.loss_module, self.loader, self.config = model, loss_module, loader, config
         self.run_dir = Path(run_dir) if run_dir is not None else None
@@ -298,7 +300,11 @@ class Trainer:
         self.checkpoint_tensors = dict(checkpoint_tensors or {})
         self.rank, self.world_size = rank, world_size
         self.device = next(model.parameters()).device
-        self.prefetch_in_thread = prefetch_in_thread
+        self.batch_making = getattr(loader, "batch_making", "thread_safe")
+        if self.batch_making not in BATCH_MAKING:
+            raise ValueError(
+                f"the loader's batch_making must be one of {list(BATCH_MAKING)}, found {self.batch_making!r}"
+            )
         check_precision(config.precision, self.device)
         self.optimizer = make_optimizer(model.parameters(), config)
         self.scheduler = make_scheduler(self.optimizer, config)
@@ -443,9 +449,10 @@ class Trainer:
 
     @property
     def prefetching(self) -> bool:
-        """Whether batches are made one step ahead (``config.prefetch``; ``"auto"``: on CUDA)."""
+        """Whether batches are made one step ahead (``config.prefetch``; ``"auto"``: on CUDA, or
+        when worker processes make them)."""
         if self.config.prefetch == "auto":
-            return self.device.type == "cuda"
+            return self.device.type == "cuda" or self.batch_making == "in_workers"
         return bool(self.config.prefetch)
 
     def _advance(self) -> None:
@@ -455,7 +462,7 @@ class Trainer:
 
     def _batch_stream(self):
         if self.prefetching:
-            return Prefetcher(self._batches(), self.device, threaded=self.prefetch_in_thread)
+            return Prefetcher(self._batches(), self.device, threaded=self.batch_making != "global_rng")
         if self.device.type == "cpu":
             return self._batches()
         return (batch.to(self.device) for batch in self._batches())
@@ -630,7 +637,9 @@ class Trainer:
         finally:
             bar.close()
             if isinstance(batches, Prefetcher):
-                batches.close()
+                batches.close()  # first: its thread may be waiting on the loader's workers
+            if hasattr(self.loader, "close"):
+                self.loader.close()
             if fp32_outputs is not None:
                 fp32_outputs.remove()
         if self.world_size > 1:

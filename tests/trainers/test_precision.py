@@ -34,21 +34,47 @@ def test_prefetching_trains_bit_identically_to_the_plain_loop(synthetic_task):
     assert [h["train/loss"] for h in prefetched.history] == [h["train/loss"] for h in plain.history]
 
 
-def test_prefetch_auto_makes_batches_on_the_steps_thread_on_cpu(synthetic_task):
+class LoaderMaking(InMemoryLoader):
+    def __init__(self, *args, batch_making: str, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.batch_making = batch_making
+
+
+def batch_streams(synthetic_task, batch_making: str) -> dict:
     model = small_forecaster()
-    loader = InMemoryLoader(synthetic_task["train"][:64], batch_size=32)
-    streams = {
+    loader = LoaderMaking(synthetic_task["train"][:64], batch_size=32, batch_making=batch_making)
+    return {
         prefetch: Trainer(
             model, combined_loss(model), loader, trainer_config(prefetch=prefetch)
         )._batch_stream()
         for prefetch in ("auto", True, False)
     }
+
+
+def test_prefetch_auto_makes_batches_on_the_steps_thread_on_cpu(synthetic_task):
+    streams = batch_streams(synthetic_task, "thread_safe")
     assert TrainerConfig().prefetch == "auto"
     assert not isinstance(streams["auto"], Prefetcher) and not isinstance(streams[False], Prefetcher)
     assert isinstance(streams[True], Prefetcher) and streams[True]._thread is not None
     streams[True].close()
     with pytest.raises(ValueError, match="trainer.prefetch must be true, false or 'auto', found 'yes'"):
         TrainerConfig(prefetch="yes")
+
+
+def test_batches_made_in_workers_are_prefetched_on_a_thread_unless_prefetch_is_false(synthetic_task):
+    streams = batch_streams(synthetic_task, "in_workers")
+    for prefetch in ("auto", True):
+        assert isinstance(streams[prefetch], Prefetcher) and streams[prefetch]._thread is not None
+        streams[prefetch].close()
+    assert not isinstance(streams[False], Prefetcher)
+
+
+def test_batches_drawing_from_the_global_rng_are_never_made_on_a_thread(synthetic_task):
+    streams = batch_streams(synthetic_task, "global_rng")
+    assert isinstance(streams[True], Prefetcher) and streams[True]._thread is None
+    assert not isinstance(streams["auto"], Prefetcher) and not isinstance(streams[False], Prefetcher)
+    with pytest.raises(ValueError, match=r"batch_making must be one of \['thread_safe', 'global_rng', "):
+        batch_streams(synthetic_task, "in_threads")
 
 
 def test_bf16_autocasts_the_forward_and_keeps_losses_and_weights_fp32(synthetic_task):

@@ -63,6 +63,13 @@ def test_existing_run_is_never_overwritten_and_resume_needs_same_config(override
     assert "differs from" in err and "model.d_latent: 4 -> 6" in err
 
 
+def test_augment_workers_may_change_when_a_run_resumes(overrides, tmp_path):
+    augmented = ["train", *overrides("run"), "augment=lerobot"]
+    assert cli([*augmented, "augment.workers=1"]) == 0
+    assert cli([*augmented, "augment.workers=0", "resume=true"]) == 0  # the batches are the same
+    assert cli([*augmented, "augment.max_num_transforms=2", "resume=true"]) == 1
+
+
 def test_a_run_saved_before_a_setting_existed_resumes_with_a_warning_naming_it(overrides, tmp_path):
     import yaml
 

@@ -1,4 +1,5 @@
 import itertools
+import multiprocessing
 from datetime import timedelta
 
 import pytest
@@ -9,9 +10,11 @@ from torchrl.record.loggers import CSVLogger
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import load_checkpoint
+from mmf_rl.configuration import compose_config, to_container
+from mmf_rl.datasets import AugmentConfig, ImageAugmentation, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
-from mmf_rl.models import ForecasterConfig, MultimodalForecaster
-from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
+from mmf_rl.models import ForecasterConfig, MultimodalForecaster, build_loss, build_model
+from mmf_rl.objectives import CombinedLoss, ELBOLoss, LossConfig, MissingModalityLoss
 from mmf_rl.trainers.trainer import (
     Trainer,
     TrainerConfig,
@@ -22,7 +25,8 @@ from mmf_rl.trainers.trainer import (
     seed_everything,
     set_rng_state,
 )
-from tests.conftest import SYNTH_MODALITIES, InMemoryLoader, synthetic_motion_task
+from tests.conftest import SMALL_MODEL_SIZES, SYNTH_MODALITIES, InMemoryLoader, synthetic_motion_task
+from tests.reliability.conftest import push_data_config
 
 
 class Interrupt(Exception):
@@ -122,6 +126,61 @@ def test_resume_after_interrupt_equals_uninterrupted_run(synthetic_task, tmp_pat
     ):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=name)
     assert int(resumed.loss_module.losses[0].num_updates) == 12
+
+
+@pytest.fixture(scope="module")
+def push_windows(recorded_push_root, tmp_path_factory) -> WindowDataset:
+    return WindowDataset(push_data_config(recorded_push_root, tmp_path_factory.mktemp("cache")))
+
+
+def augmented_run(data: WindowDataset, run_dir, seen_images: list) -> Trainer:
+    """A trainer over ``data`` augmented in a worker process, recording the images of each step."""
+    seed_everything(0)
+    model = build_model({"name": "forecaster", **SMALL_MODEL_SIZES["forecaster"]}, data.specs, 4, 3, 2)
+    augment = to_container(compose_config("train", ["augment=lerobot", "augment.workers=1"]).augment)
+    loader = data.loader(
+        "train", 16, seed=0, augment=ImageAugmentation(AugmentConfig.from_dict(augment), data.specs, 0)
+    )
+    # 4 batches per epoch: the run resumes inside epoch 1 and crosses into epoch 2.
+    config = trainer_config(total_steps=10, checkpoint_every=5, eval_every=100)
+    trainer = Trainer(model, build_loss("forecaster", model, LossConfig()), loader, config, run_dir=run_dir)
+    trainer.register_op(
+        "batch_process", lambda batch: seen_images.append(batch.get(keys.obs_key("image")).clone()) or batch
+    )
+    return trainer
+
+
+def test_a_resumed_run_replays_the_batches_augmented_in_a_worker(push_windows, tmp_path):
+    reference_images, images = [], []
+    reference = augmented_run(push_windows, tmp_path / "a", reference_images)
+    assert len(reference.loader) == 4 and reference.prefetching  # "auto": a thread waits on the worker
+    reference.train()
+
+    interrupted = augmented_run(push_windows, tmp_path / "b", images)
+
+    def die_after_checkpoint(trainer):
+        if trainer.step == 7:  # checkpoint at 5, two more steps are lost
+            raise Interrupt
+
+    interrupted.register_op("post_steps", die_after_checkpoint)
+    with pytest.raises(Interrupt):
+        interrupted.train()
+    assert not multiprocessing.active_children(), "the interrupted run left its worker running"
+    assert all(torch.equal(a, b) for a, b in zip(images, reference_images[:7], strict=True))
+
+    resumed_images = []
+    resumed = augmented_run(push_windows, tmp_path / "b", resumed_images)
+    resumed.resume(tmp_path / "b" / "checkpoints")
+    assert (resumed.step, resumed.epoch, resumed.batch_in_epoch) == (5, 1, 1)
+    resumed.train()
+    assert not multiprocessing.active_children()
+    assert len(resumed_images) == 5
+    for step, (a, b) in enumerate(zip(resumed_images, reference_images[5:], strict=True), start=6):
+        assert torch.equal(a, b), f"step {step} trained on other images than the uninterrupted run's"
+    for (name, a), b in zip(
+        reference.model.state_dict().items(), resumed.model.state_dict().values(), strict=True
+    ):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=name)
 
 
 def poison(step_numbers):
