@@ -377,12 +377,19 @@ def to_container(cfg: DictConfig) -> dict:
     return OmegaConf.to_container(cfg, resolve=True)
 
 
-def save_config(cfg: DictConfig | dict, path: Path, header: str = "") -> None:
-    """Write YAML atomically (temp file + rename), after ``header`` (comment lines)."""
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to a temp file beside ``path``, then rename it over ``path``: a reader sees the
+    old file or the new one, never a half-written one."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(header + OmegaConf.to_yaml(cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)))
+    tmp.write_text(text)
     os.replace(tmp, path)
+
+
+def save_config(cfg: DictConfig | dict, path: Path, header: str = "") -> None:
+    """Write YAML atomically (temp file + rename), after ``header`` (comment lines)."""
+    config = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
+    write_text_atomic(path, header + OmegaConf.to_yaml(config))
 
 
 def load_config(path: Path) -> DictConfig:

@@ -24,12 +24,29 @@ where it was not annotated and nothing is interpolated or zero-filled there. Per
   windows then train with the scene absent.
 
 The target is ``observation.trajectory`` dims ``[0, 1]``, relative to the last observed step.
+
+The files are written by one process per core (``--workers``), each a contiguous share of them
+into a shard dataset, joined in order by lerobot's `aggregate_datasets`: lerobot's per-frame and
+per-episode writes cost the time, and the dataset is the same for any number of processes. All of
+it happens in a temp dir under ``--out`` renamed into place, so a failed or killed conversion
+leaves no dataset; the next one removes what a killed one left and starts over.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import multiprocessing as mp
+import os
+import queue
+import re
+import shutil
+import tempfile
+import threading
+import traceback
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +54,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from mmf_rl.configuration import report_command_error
+from mmf_rl.configuration import report_command_error, write_text_atomic
+from mmf_rl.datasets.cache import owned_temp_prefix, remove_stale_temp_dirs
 from mmf_rl.datasets.config import DataConfig
 
 logger = logging.getLogger(__name__)
@@ -53,6 +71,9 @@ AGENT_KEY = "ethucy.agent"
 FRAME_KEY = "ethucy.frame"
 HISTORY, HORIZON = 8, 12
 DATASET_NAME = "ethucy"  # the dataset folder under --out
+STAGING_PREFIX = f".{DATASET_NAME}.partial-"  # a conversion's temp dir under --out, renamed when done
+# numpy's histogram (lerobot's episode stats) warns once per episode about the bool scene flag.
+BOOL_STATS_WARNING = re.escape("Converting input from bool to <class 'numpy.uint8'>")
 
 # Leave-one-scene-out: the test scene's whole files; every other sequence's _train/_val files.
 FOLDS: dict[str, tuple[str, ...]] = {
@@ -83,6 +104,19 @@ SCENE_OF = {
 # UCY trajectories are an exact affine map of the pixel annotations (top-left origin).
 UCY_COL = (360.0, 7.5767, 0.021047)
 UCY_ROW = (288.0, 6.8734, 0.023866)
+
+
+class ConversionError(RuntimeError):
+    """A file (part) that could not be converted, named; nothing was written to ``out/ethucy``."""
+
+
+class PartError(Exception):
+    """`write_dataset`'s failure in one part: the part and what went wrong (picklable: a worker
+    process reports it to `convert`, which names the part's file)."""
+
+    def __init__(self, part: str, detail: str):
+        super().__init__(part, detail)
+        self.part, self.detail = part, detail
 
 
 @dataclass(frozen=True)
@@ -280,7 +314,7 @@ def write_dataset(
     min_length: int = HISTORY + HORIZON,
 ) -> dict[str, list[int]]:
     """Write ``{part: [(sequence, table)]}`` as one LeRobot dataset at ``root``; its episodes per part
-    (a part is a split, or one converted file).
+    (a part is a split, or one converted file). A part that fails raises `PartError` naming it.
 
     Segments shorter than ``min_length`` steps give no window and are left out (they still serve as
     neighbours). Scene crops are stored as images in the parquet files (no video encoding).
@@ -299,23 +333,32 @@ def write_dataset(
     )
     scenes: dict[str, Scene] = {}
     parts: dict[str, list[int]] = {}
-    for name, entries in tables.items():
-        parts[name] = []
-        for sequence, table in entries:
-            scene_name = SCENE_OF.get(sequence)
-            if scene_name is not None and scene_name not in scenes:
-                scenes[scene_name] = load_scene(raw_dir, scene_name)
-            episodes = sequence_episodes(table, scenes.get(scene_name), num_slots, crop, min_length)
-            for episode in episodes:
-                for t in range(len(episode[TRAJECTORY_KEY])):
-                    dataset.add_frame(
-                        {key: values[t] for key, values in episode.items()} | {"task": sequence}
-                    )
-                parts[name].append(dataset.meta.total_episodes)
-                dataset.save_episode()
-            logger.info("%s: %s -> %d episodes", name, sequence, len(episodes))
-    dataset.finalize()
+    with warnings.catch_warnings():
+        # A bool feature's stats are right after numpy's conversion; the warning would repeat per episode.
+        warnings.filterwarnings("ignore", message=BOOL_STATS_WARNING, category=RuntimeWarning)
+        for name, entries in tables.items():
+            parts[name] = []
+            for sequence, table in entries:
+                try:
+                    scene_name = SCENE_OF.get(sequence)
+                    if scene_name is not None and scene_name not in scenes:
+                        scenes[scene_name] = load_scene(raw_dir, scene_name)
+                    episodes = sequence_episodes(table, scenes.get(scene_name), num_slots, crop, min_length)
+                    parts[name] += [save_episode(dataset, episode, sequence) for episode in episodes]
+                except Exception as error:
+                    raise PartError(name, f"{type(error).__name__}: {error}") from error
+                logger.info("%s: %s -> %d episodes", name, sequence, len(episodes))
+        dataset.finalize()
     return parts
+
+
+def save_episode(dataset, episode: dict[str, np.ndarray], task: str) -> int:
+    """Add ``episode``'s frames to ``dataset`` as its next episode; return that episode's index."""
+    for t in range(len(episode[TRAJECTORY_KEY])):
+        dataset.add_frame({key: values[t] for key, values in episode.items()} | {"task": task})
+    index = dataset.meta.total_episodes
+    dataset.save_episode()
+    return index
 
 
 def data_config(
@@ -372,27 +415,176 @@ def fold_split(raw_dir: Path, fold: str, parts: dict[str, list[int]]) -> dict[st
     }
 
 
+def shard_parts(rows: list[int], workers: int) -> list[range]:
+    """Split parts of ``rows`` rows, in order, into at most ``workers`` contiguous non-empty ranges of
+    about equal rows: each part goes to the shard its middle row falls in."""
+    ends = np.cumsum(rows)
+    middles = ends - np.asarray(rows) / 2
+    shard_of = np.minimum((middles * workers / ends[-1]).astype(int), workers - 1)
+    bounds = [0, *(np.flatnonzero(np.diff(shard_of)) + 1).tolist(), len(rows)]
+    return [range(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def _exit_with_parent() -> None:
+    """End this worker process when its parent ends: a killed conversion leaves no worker that goes
+    on using a core for a dataset nobody will join."""
+    parent = mp.parent_process()
+    threading.Thread(target=lambda: (parent.join(), os._exit(1)), daemon=True).start()
+
+
+def _shard_worker(
+    index: int, root: Path, tables: dict, raw_dir: Path, num_slots: int, crop: CropConfig, results
+) -> None:
+    _exit_with_parent()
+    try:
+        results.put(("done", index, write_dataset(root, tables, raw_dir, num_slots, crop)))
+    except KeyboardInterrupt:
+        raise SystemExit(1) from None  # the parent was interrupted too; no traceback per worker
+    except PartError as error:
+        results.put(("error", index, error.part, error.detail, traceback.format_exc()))
+    except Exception as error:
+        results.put(("error", index, None, f"{type(error).__name__}: {error}", traceback.format_exc()))
+
+
+def _failure(parts: list[str], detail: str, files: dict[str, tuple[str, Path]]) -> ConversionError:
+    named = ", ".join(f"{part} ({files[part][1]})" for part in parts)
+    return ConversionError(f"converting ETH/UCY {named} failed: {detail}")
+
+
+def _write_shards(
+    roots: list[Path], shards: list[dict], raw_dir: Path, num_slots: int, crop, files: dict
+) -> list[dict[str, list[int]]]:
+    """Write each shard into its root in a spawned process; their episodes per part, in order.
+    The first failure stops them all and is raised as a `ConversionError` naming its part."""
+    # spawn, not fork: the parent may hold threads (torch, logging) that a fork copies half-locked.
+    context = mp.get_context("spawn")
+    results = context.Queue()
+    processes = [
+        context.Process(target=_shard_worker, args=(k, root, shard, raw_dir, num_slots, crop, results))
+        for k, (root, shard) in enumerate(zip(roots, shards, strict=True))
+    ]
+    for process in processes:
+        process.start()
+    done: dict[int, dict[str, list[int]]] = {}
+    try:
+        while len(done) < len(processes):
+            try:
+                report = results.get(timeout=1.0)
+            except queue.Empty:
+                # A worker reports before it exits with 0; any other exit is a death (killed, out of memory).
+                for k, process in enumerate(processes):
+                    if process.exitcode not in (None, 0):
+                        detail = f"its worker died with exit code {process.exitcode} (out of memory?)"
+                        raise _failure(list(shards[k]), detail, files) from None
+                continue
+            if report[0] == "error":
+                _, k, part, detail, trace = report
+                logger.debug("conversion worker %d:\n%s", k, trace)
+                raise _failure([part] if part is not None else list(shards[k]), detail, files)
+            done[report[1]] = report[2]
+    finally:
+        for process in processes:
+            # Stopped only on a failure: a worker that reported may still be cleaning up on its way out.
+            if len(done) < len(processes) and process.is_alive():
+                process.terminate()
+            process.join()
+    return [done[k] for k in range(len(processes))]
+
+
+def write_parts(
+    work: Path,
+    tables: dict[str, list[tuple[str, pd.DataFrame]]],
+    files: dict[str, tuple[str, Path]],
+    raw_dir: Path,
+    num_slots: int,
+    crop: CropConfig,
+    workers: int,
+) -> tuple[Path, dict[str, list[int]]]:
+    """Write the parts into one dataset under ``work``: in ``workers`` contiguous shards of about
+    equal rows, one process each, joined in order by lerobot's `aggregate_datasets`. Return the
+    dataset's path and its episodes per part, the same whatever ``workers`` is."""
+    names = list(tables)
+    ranges = shard_parts([sum(len(t) for _, t in tables[name]) for name in names], workers)
+    shards = [{name: tables[name] for name in names[r.start : r.stop]} for r in ranges]
+    dataset = work / DATASET_NAME
+    if len(shards) == 1:  # no worker process: spares a second import of torch and lerobot
+        try:
+            return dataset, write_dataset(dataset, tables, raw_dir, num_slots, crop)
+        except PartError as error:
+            raise _failure([error.part], error.detail, files) from error
+    roots = [work / f"shard-{k}" for k in range(len(shards))]
+    written = _write_shards(roots, shards, raw_dir, num_slots, crop, files)
+    counts = [sum(len(episodes) for episodes in shard.values()) for shard in written]
+    offsets = np.cumsum([0, *counts[:-1]]).tolist()
+    # A shard without an episode (only tracks too short) has nothing to add, nor the metadata to join.
+    kept = [root for root, count in zip(roots, counts, strict=True) if count > 0]
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    repo_id = f"local/{DATASET_NAME}"
+    aggregate_datasets(repo_ids=[repo_id] * len(kept), aggr_repo_id=repo_id, roots=kept, aggr_root=dataset)
+    parts = {}
+    for shard, offset in zip(written, offsets, strict=True):
+        parts |= {name: [offset + e for e in episodes] for name, episodes in shard.items()}
+    return dataset, parts
+
+
+@contextlib.contextmanager
+def _staging(out: Path) -> Iterator[Path]:
+    """A temp dir under ``out`` (the dataset's file system: it is renamed into place), removed on
+    exit; those of conversions that were killed are removed first."""
+    for stale in remove_stale_temp_dirs(out, STAGING_PREFIX):
+        logger.info("removed %s, left by a conversion that is no longer running", stale)
+    out.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=owned_temp_prefix(STAGING_PREFIX), dir=out))
+    try:
+        yield work
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def default_workers() -> int:
+    """One conversion process per core this process may run on."""
+    return len(os.sched_getaffinity(0))
+
+
 def convert(
-    raw_dir: Path, folds: list[str], out: Path, num_slots: int = 8, crop: CropConfig = CropConfig()
+    raw_dir: Path,
+    folds: list[str],
+    out: Path,
+    num_slots: int = 8,
+    crop: CropConfig = CropConfig(),
+    workers: int | None = None,
 ) -> list[Path]:
     """Convert the files of ``folds`` once into ``out/ethucy/``; write each fold's data config to
-    ``out/<fold>.yaml`` (returned), every config selecting all the dataset's episodes."""
-    root = Path(out) / DATASET_NAME
+    ``out/<fold>.yaml`` (returned), every config selecting all the dataset's episodes.
+
+    ``workers`` processes (default one per core, never more than the files; 1: in this process)
+    write the files in contiguous shards; the dataset is the same whatever their number. It is
+    built in a temp dir under ``out`` and renamed into place, so a failed or killed conversion
+    leaves no ``out/ethucy`` (the next conversion removes what a killed one left).
+    """
+    out = Path(out)
+    root = out / DATASET_NAME
     if root.exists():
         raise FileExistsError(f"{root} exists; remove it or choose another --out to convert ETH/UCY again")
+    if workers is not None and workers < 1:
+        raise ValueError(f"--workers {workers}: expected at least 1 conversion process")
     files = part_files(raw_dir, folds)  # checks every file before anything is written
     tables = {part: [(sequence, read_sequence(path))] for part, (sequence, path) in files.items()}
-    parts = write_dataset(root, tables, raw_dir, num_slots, crop)
+    workers = min(workers or default_workers(), len(tables))
+    with _staging(out) as work:
+        dataset, parts = write_parts(work, tables, files, raw_dir, num_slots, crop, workers)
+        os.rename(dataset, root)
     everything = sorted(e for episodes in parts.values() for e in episodes)
     paths = []
     for fold in folds:
         config = data_config(root, fold_split(raw_dir, fold, parts), num_slots, crop, everything)
-        path = Path(out) / f"{fold}.yaml"
+        path = out / f"{fold}.yaml"
         header = (
             f"# ETH/UCY fold {fold!r} (test: {', '.join(FOLDS[fold])}) over the dataset {root}, "
             "written by `mmf-rl import ethucy`\n"
         )
-        path.write_text(header + yaml.safe_dump(config, sort_keys=False, default_flow_style=None))
+        write_text_atomic(path, header + yaml.safe_dump(config, sort_keys=False, default_flow_style=None))
         paths.append(path)
     return paths
 
@@ -435,6 +627,12 @@ def build_parser() -> argparse.ArgumentParser:
     ethucy.add_argument(
         "--crop-heading", action="store_true", help="crop with the agent's heading up (default north up)"
     )
+    ethucy.add_argument(
+        "--workers",
+        type=int,
+        help="conversion processes, each writing a contiguous share of the files (default one per "
+        "core, never more than the files; 1: no extra process); the dataset is the same for any number",
+    )
     return parser
 
 
@@ -442,9 +640,10 @@ def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     crop = CropConfig(args.crop_pixels, args.crop_metres, args.crop_heading)
     try:
-        paths = convert(args.raw_dir, args.fold or sorted(FOLDS), args.out, args.neighbours, crop)
+        folds = args.fold or sorted(FOLDS)
+        paths = convert(args.raw_dir, folds, args.out, args.neighbours, crop, args.workers)
         for path in paths:
             logger.info("fold %s: train with `mmf-rl train data=%s`", path.stem, path)
-    except (OSError, ValueError) as error:
+    except (OSError, ValueError, ConversionError) as error:
         return report_command_error("mmf-rl import ethucy", error)
     return 0

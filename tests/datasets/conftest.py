@@ -70,6 +70,27 @@ def drifting_g1_root(g1_root, tmp_path_factory) -> Path:
     return root
 
 
+def cut_ethucy_raw(tmp_path: Path, steps: int = 22, agents: int = 4) -> Path:
+    """The shared ETH/UCY files' layout under ``tmp_path/raw``, each trajectory file cut to its first
+    ``agents`` agents within its first ``steps`` steps (the default: a few 20-step tracks per file, a
+    conversion of seconds); the scenes linked one by one, so a test can replace one."""
+    from mmf_rl.datasets import ethucy
+
+    source_root, raw = SHARED_DATA / "ethucy", tmp_path / "raw"
+    for source in sorted((source_root / "trajectories").glob("*/*.txt")):
+        rows = [line.split() for line in source.read_text().splitlines() if line.strip()]
+        first = float(rows[0][0])
+        rows = [r for r in rows if float(r[0]) < first + steps * ethucy.FRAME_STEP]
+        kept = list(dict.fromkeys(r[1] for r in rows))[:agents]
+        target = raw / source.relative_to(source_root)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text("".join("\t".join(r) + "\n" for r in rows if r[1] in kept))
+    (raw / "scenes").mkdir()
+    for scene in set(ethucy.SCENE_OF.values()):
+        (raw / "scenes" / scene).symlink_to(source_root / "scenes" / scene)
+    return raw
+
+
 def record_synthetic(root: Path, **options) -> Path:
     """The tests' synthetic dataset at ``root``; ``options`` go to ``make_synthetic_dataset`` (e.g.
     its file layout), everything else is the same for every caller."""

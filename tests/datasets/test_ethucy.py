@@ -1,5 +1,6 @@
 """ETH/UCY -> LeRobot: converted on a slice of the real files (skipped when ../shared is absent)."""
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 from mmf_rl.datasets import ethucy
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.windows import WindowDataset
-from tests.datasets.conftest import SHARED_DATA
+from tests.datasets.conftest import SHARED_DATA, cut_ethucy_raw
 
 RAW = SHARED_DATA / "ethucy"
 pytestmark = pytest.mark.skipif(
@@ -309,3 +310,107 @@ def test_raw_dims_outside_the_feature_are_refused(converted):
         ValueError, match=r"modalities\.neighbours\.raw_dims` \[4, 40\] must index its 40 dims"
     ):
         WindowDataset(DataConfig.from_dict(bad), num_workers=0)
+
+
+def test_parts_are_sharded_in_order_by_rows():
+    assert ethucy.shard_parts([10, 10, 10, 10], 2) == [range(0, 2), range(2, 4)]
+    assert ethucy.shard_parts([30, 5, 5, 5, 5], 2) == [range(0, 1), range(1, 5)]
+    assert ethucy.shard_parts([5, 5, 5], 1) == [range(0, 3)]
+    # A part too big to share: fewer shards than workers, none empty.
+    assert ethucy.shard_parts([1, 100, 1], 3) == [range(0, 1), range(1, 2), range(2, 3)]
+    assert ethucy.shard_parts([1, 100], 3) == [range(0, 1), range(1, 2)]
+
+
+def _convert_spied(monkeypatch, raw: Path, out: Path, workers: int) -> tuple[dict, list[int]]:
+    """Convert fold eth; the episodes per part and the shard count of the processes' path (0: none)."""
+    seen: dict = {"shards": [0]}
+
+    def write_parts(*args):
+        dataset, seen["parts"] = real_write_parts(*args)
+        return dataset, seen["parts"]
+
+    def write_shards(roots, *args):
+        seen["shards"] = [len(roots)]
+        return real_write_shards(roots, *args)
+
+    real_write_parts, real_write_shards = ethucy.write_parts, ethucy._write_shards
+    monkeypatch.setattr(ethucy, "write_parts", write_parts)
+    monkeypatch.setattr(ethucy, "_write_shards", write_shards)
+    assert ethucy.convert(raw, ["eth"], out, workers=workers) == [out / "eth.yaml"]
+    assert not list(out.glob(f"{ethucy.STAGING_PREFIX}*")), "the staging dir is removed"
+    return seen["parts"], seen["shards"]
+
+
+def test_a_conversion_in_two_processes_equals_one_in_this_process(tmp_path, monkeypatch):
+    import warnings
+
+    import yaml
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    raw = cut_ethucy_raw(tmp_path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        alone, no_shards = _convert_spied(monkeypatch, raw, tmp_path / "one", workers=1)
+    assert not [w for w in caught if "Converting input from bool" in str(w.message)]
+    shared, shards = _convert_spied(monkeypatch, raw, tmp_path / "two", workers=2)
+    assert (no_shards, shards) == ([0], [2])
+    assert shared == alone and list(shared) == list(alone)
+    assert sum(len(e) for e in alone.values()) > 10 and alone["biwi_eth"], "parts in both shards"
+    configs = [yaml.safe_load((tmp_path / n / "eth.yaml").read_text()) for n in ("one", "two")]
+    assert [c.pop("root") for c in configs] == [str(tmp_path / n / "ethucy") for n in ("one", "two")]
+    assert configs[0] == configs[1]
+    frames = [_frames(tmp_path / n / "ethucy") for n in ("one", "two")]
+    for key in ("episode_index", "frame_index", "index", "timestamp", "task_index"):
+        np.testing.assert_array_equal(frames[0][key], frames[1][key], err_msg=key)
+    keys = (ethucy.TRAJECTORY_KEY, ethucy.NEIGHBOURS_KEY, ethucy.AGENT_KEY, ethucy.FRAME_KEY)
+    for key in (*keys, ethucy.SCENE_VALID_KEY):
+        np.testing.assert_array_equal(_column(frames[0], key), _column(frames[1], key), err_msg=key)
+    datasets = [LeRobotDataset("local/ethucy", root=tmp_path / n / "ethucy") for n in ("one", "two")]
+    assert datasets[0].meta.tasks.equals(datasets[1].meta.tasks)
+    last_part = alone["biwi_eth"]  # in the second shard, with the eth scene
+    picks = [0, int(np.flatnonzero(frames[0]["episode_index"] == last_part[0])[0]), len(frames[0]) - 1]
+    for index in picks:
+        image = datasets[0][index][ethucy.SCENE_KEY]
+        assert image.equal(datasets[1][index][ethucy.SCENE_KEY])
+    assert datasets[0][picks[1]][ethucy.SCENE_KEY].any(), "a real crop, not a black frame"
+
+
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+
+    process = subprocess.Popen([sys.executable, "-c", ""])
+    process.wait()
+    return process.pid
+
+
+@pytest.mark.parametrize("broken", ["scene image", "trajectory file"])
+def test_a_broken_file_is_named_and_leaves_no_dataset(tmp_path, capsys, broken):
+    from mmf_rl.cli import main
+    from mmf_rl.datasets.cache import owned_temp_prefix
+
+    raw, out = cut_ethucy_raw(tmp_path), tmp_path / "out"
+    if broken == "scene image":  # read in a worker process, while converting the zara01 files
+        (raw / "scenes" / "zara01").unlink()
+        (raw / "scenes" / "zara01").mkdir()
+        (raw / "scenes" / "zara01" / "reference.png").write_bytes(b"not a png")
+        named = r"crowds_zara01_(train|val) \(\S+/crowds_zara01_\1\.txt\) failed: UnidentifiedImageError"
+    else:  # read before any worker starts
+        (raw / "trajectories" / "val" / "students003_val.txt").write_text("10\t1\t2.5\n")
+        named = r"students003_val\.txt: expected non-empty rows of 4 numbers"
+    host = owned_temp_prefix("").split("-")[1]
+    stale = out / f"{ethucy.STAGING_PREFIX}{_dead_pid()}-{host}-left"
+    stale.mkdir(parents=True)
+    argv = ["import", "ethucy", str(raw), "--out", str(out), "--fold", "eth", "--workers", "2"]
+    assert main(argv) == 1
+    error = capsys.readouterr().err
+    assert re.search(named, error), error
+    assert not (out / ethucy.DATASET_NAME).exists() and not (out / "eth.yaml").exists()
+    leftovers = list(out.glob(f"{ethucy.STAGING_PREFIX}*"))
+    assert leftovers == ([] if broken == "scene image" else [stale]), "staging removed, stale ones too"
+
+
+def test_fewer_than_one_worker_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="--workers 0: expected at least 1"):
+        ethucy.convert(cut_ethucy_raw(tmp_path), ["eth"], tmp_path / "out", workers=0)
+    assert not (tmp_path / "out").exists()
