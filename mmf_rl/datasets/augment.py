@@ -13,8 +13,12 @@ is a ``torchvision.transforms.v2`` class (``ColorJitter``, ``RandomResizedCrop``
   the model's own random draws are untouched;
 * off the training thread by default (``workers``): torchvision draws from the global generator,
   which a thread would share with the training step, but a worker process has its own. It
-  augments the batches ahead of the one being trained on, with the same seeds, so the batches are
-  bit-identical to those augmented on the training thread.
+  augments the batches ahead of the one being trained on, with the same seeds, on one intra-op
+  thread (the training step keeps the cores; a worker with the step's thread count oversubscribes
+  them and makes training slower than no worker, docs/results.md). The batches are those augmented
+  on the training thread, bit for bit unless an image is large enough for torch to split one of a
+  transform's float reductions across the training thread's threads (then a pixel may round to
+  the neighbouring uint8 value).
 """
 
 from __future__ import annotations
@@ -54,9 +58,9 @@ class AugmentConfig:
         modalities: the image modalities to augment (default: every image modality).
         workers: processes that augment the next batches while the model trains on the current
             one; ``0``: on the training thread, between steps. Either way the batches are the
-            same. They start at the first batch, spawned (they import torch and lerobot once per
-            run), so a script that trains with them guards its entry point with
-            ``if __name__ == "__main__":``.
+            same (to rounding, see the module's docstring). They start at the first batch,
+            spawned (they import torch and lerobot once per run), so a script that trains with
+            them guards its entry point with ``if __name__ == "__main__":``.
     """
 
     enable: bool = False

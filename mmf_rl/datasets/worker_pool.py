@@ -24,8 +24,6 @@ CLOSE_TIMEOUT_S = 5.0
 def _serve(connection, make: Callable[[], Callable], threads: int) -> None:
     """A worker's loop: ``make()`` once, then answer each ``(ticket, args)`` with its result."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it closes the pool
-    # The parent's intra-op thread count: a reduction splits its work by the thread count, so
-    # matching it runs the same kernels and gives the same bits as the parent's own thread would.
     torch.set_num_threads(threads)
     function = make()
     while True:
@@ -52,6 +50,9 @@ class WorkerPool:
     memory (``torch.multiprocessing``'s pickling): only their handles go through the pipes. A
     result never taken (its consumer stopped early) is skipped when a later one is read.
 
+    Each process runs ``threads`` intra-op threads (default one): the workers share the cores with
+    the process that feeds them, and giving each as many threads as it has oversubscribes them.
+
     A process that dies is an error naming ``role``, its exit code and ``fix``, raised by the call
     waiting on it, never a wait forever; the pool then closes. Each process holds only its own
     end of a pipe, so it sees the pipe close and exits when the pool is closed or its parent dies,
@@ -59,7 +60,7 @@ class WorkerPool:
     also hold open, when the parent is killed).
     """
 
-    def __init__(self, make: Callable[[], Callable], count: int, role: str, fix: str):
+    def __init__(self, make: Callable[[], Callable], count: int, role: str, fix: str, threads: int = 1):
         if count < 1:
             raise ValueError(f"a worker pool needs at least one process, found count={count}")
         self.role, self.fix = role, fix
@@ -69,7 +70,7 @@ class WorkerPool:
             parent_end, child_end = context.Pipe()
             process = context.Process(
                 target=_serve,
-                args=(child_end, make, torch.get_num_threads()),
+                args=(child_end, make, threads),
                 name=f"mmf-rl-{role.replace(' ', '-')}-{i}",
                 daemon=True,
             )
