@@ -40,8 +40,12 @@ def _running(pid: int) -> bool:
 
 
 def _episodes(root: Path) -> int:
-    """The episodes a dataset's info.json counts."""
-    return json.loads((root / "meta" / "info.json").read_text())["total_episodes"]
+    """The episodes a dataset's info.json counts; 0 when a worker was stopped while lerobot rewrote
+    it (lerobot writes it in place, so a killed write leaves it empty or cut)."""
+    try:
+        return json.loads((root / "meta" / "info.json").read_text())["total_episodes"]
+    except json.JSONDecodeError:
+        return 0
 
 
 def _shards_started(out: Path) -> bool:
