@@ -33,6 +33,18 @@ class Interrupt(Exception):
     pass
 
 
+def train_until_interrupted(trainer: Trainer, step: int) -> None:
+    """Train until ``step``, then stop as a killed run would (after that step, not at a checkpoint)."""
+
+    def interrupt(t):
+        if t.step == step:
+            raise Interrupt
+
+    trainer.register_op("post_steps", interrupt)
+    with pytest.raises(Interrupt):
+        trainer.train()
+
+
 def small_forecaster() -> MultimodalForecaster:
     seed_everything(0)
     config = ForecasterConfig(
@@ -108,13 +120,7 @@ def test_resume_after_interrupt_equals_uninterrupted_run(synthetic_task, tmp_pat
 
     interrupted = build(synthetic_task, tmp_path / "b")
 
-    def die_after_checkpoint(trainer):
-        if trainer.step == 8:  # checkpoint at 6, two more steps are lost
-            raise Interrupt
-
-    interrupted.register_op("post_steps", die_after_checkpoint)
-    with pytest.raises(Interrupt):
-        interrupted.train()
+    train_until_interrupted(interrupted, 8)  # checkpoint at 6, two more steps are lost
 
     resumed = build(synthetic_task, tmp_path / "b")
     torch.manual_seed(1234)  # whatever the process did before: the checkpoint's RNG state wins
@@ -158,13 +164,7 @@ def test_a_resumed_run_replays_the_batches_augmented_in_a_worker(push_windows, t
 
     interrupted = augmented_run(push_windows, tmp_path / "b", images)
 
-    def die_after_checkpoint(trainer):
-        if trainer.step == 7:  # checkpoint at 5, two more steps are lost
-            raise Interrupt
-
-    interrupted.register_op("post_steps", die_after_checkpoint)
-    with pytest.raises(Interrupt):
-        interrupted.train()
+    train_until_interrupted(interrupted, 7)  # checkpoint at 5, two more steps are lost
     assert not multiprocessing.active_children(), "the interrupted run left its worker running"
     assert all(torch.equal(a, b) for a, b in zip(images, reference_images[:7], strict=True))
 
