@@ -6,6 +6,7 @@ The large-N version (kill at ~90% of 10k-1M frames) is `benchmarks/cache_scale.p
 import logging
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 import torch
@@ -28,9 +29,10 @@ IMAGE_JOBS = 8
 IMAGE_JOBS_BEFORE_KILL = 5
 
 
-def build_killed_after(jobs: int, runner: str, config: str) -> str:
+def build_killed_after(jobs: int, runner: str, config: str, cache_dir: Path) -> None:
     """Build in a subprocess that SIGKILLs itself when ``cache.<runner>`` starts decoding job
-    ``jobs + 1``; ``config``: the expression of the data config."""
+    ``jobs + 1``; ``config``: the expression of the data config (caching in ``cache_dir``). The
+    killed build's temp dir is left with those ``jobs`` recorded as finished."""
     script = textwrap.dedent(f"""
         import os, signal
         from mmf_rl.datasets import WindowDataset, cache
@@ -51,19 +53,27 @@ def build_killed_after(jobs: int, runner: str, config: str) -> str:
     with background([sys.executable, "-c", script]) as process:
         wait_for(lambda: process.poll() is not None, process, 300, "the kill")
     assert process.returncode == -9, output(process)
-    return output(process)
+    [partial] = cache_dir.glob(".building-*")
+    assert len((partial / cache.PROGRESS_FILE).read_text().splitlines()) == jobs
+
+
+def record_jobs(monkeypatch, runner: str) -> list:
+    """The jobs ``cache.<runner>`` is called with from now on (they still run), in call order."""
+    run, jobs = getattr(cache, runner), []
+    monkeypatch.setattr(cache, runner, lambda job: jobs.append(job) or run(job))
+    return jobs
 
 
 def test_a_killed_cache_build_resumes_and_matches_a_full_build(push_copy, tmp_path, monkeypatch, caplog):
     cache_dir = tmp_path / "cache"
     build_killed_after(
-        DECODED_BEFORE_KILL, "run_video_job", f"push_data_config({str(push_copy)!r}, {str(cache_dir)!r})"
+        DECODED_BEFORE_KILL,
+        "run_video_job",
+        f"push_data_config({str(push_copy)!r}, {str(cache_dir)!r})",
+        cache_dir,
     )
-    [partial] = cache_dir.glob(".building-*")
-    assert len((partial / cache.PROGRESS_FILE).read_text().splitlines()) == DECODED_BEFORE_KILL
 
-    decode, decoded = cache.run_video_job, []
-    monkeypatch.setattr(cache, "run_video_job", lambda job: decoded.append(job) or decode(job))
+    decoded = record_jobs(monkeypatch, "run_video_job")
     with caplog.at_level(logging.INFO, logger="mmf_rl"):
         resumed = WindowDataset(push_data_config(push_copy, cache_dir), num_workers=1)
     assert resumed.built and len(decoded) == EPISODES - DECODED_BEFORE_KILL, (
@@ -90,13 +100,13 @@ def test_a_killed_build_resumes_after_its_finished_image_jobs(tmp_path, monkeypa
     root = break_images(make_camera_dataset(tmp_path / "images", use_videos=False), BROKEN_ROWS)
     cache_dir = tmp_path / "cache"
     build_killed_after(
-        IMAGE_JOBS_BEFORE_KILL, "run_image_job", f"camera_config({str(root)!r}, {str(cache_dir)!r})"
+        IMAGE_JOBS_BEFORE_KILL,
+        "run_image_job",
+        f"camera_config({str(root)!r}, {str(cache_dir)!r})",
+        cache_dir,
     )
-    [partial] = cache_dir.glob(".building-*")
-    assert len((partial / cache.PROGRESS_FILE).read_text().splitlines()) == IMAGE_JOBS_BEFORE_KILL
 
-    decode, decoded = cache.run_image_job, []
-    monkeypatch.setattr(cache, "run_image_job", lambda job: decoded.append(job) or decode(job))
+    decoded = record_jobs(monkeypatch, "run_image_job")
     with caplog.at_level(logging.INFO, logger="mmf_rl"), pytest.warns(UserWarning, match="undecodable"):
         resumed = WindowDataset(camera_config(root, cache_dir), num_workers=1)
     assert resumed.built and [(j.modality, j.episodes[0].index) for j in decoded] == [
