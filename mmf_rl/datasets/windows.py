@@ -166,8 +166,8 @@ class WindowDataset:
                 f"{n!r} ({source.modalities[n].feature}): {', '.join(p)}" for n, p in problems.items()
             )
             warnings.warn(
-                f"dataset {source.root}: modality absent for the episodes of these video files, marked "
-                f"present=False there: {lines}",
+                f"dataset {source.root}: modality absent where these video files or parquet images are "
+                f"missing or undecodable, marked present=False there: {lines}",
                 stacklevel=3,
             )
 
