@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/ethucy.py --quick      # 3 folds, short training (see QUICK)
     .venv/bin/python benchmarks/ethucy.py              # the 5 folds (see FULL)
+    .venv/bin/python benchmarks/ethucy.py --seed 1 --out runs/bench_ethucy_seed1   # another training seed
     mmf-rl bench ethucy --quick --out runs/bench_ethucy_quick
 
 For each fold (its test scene held out; train/val from the other scenes' ``_train``/``_val`` files):
@@ -105,6 +106,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--raw", type=Path, default=REPO.parent / "shared" / "data" / "ethucy")
     parser.add_argument("--data", type=Path, default=REPO / "data" / "ethucy", help="converted dataset")
     parser.add_argument("--out", type=Path, default=REPO / "runs" / "bench_ethucy")
+    parser.add_argument(
+        "--seed", type=int, default=0, help="training seed of every model (another seed: another --out)"
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--batch-size", type=int, default=512, help="evaluation batch size")
     return parser.parse_args(argv)
@@ -147,6 +151,7 @@ def train_overrides(args, budget: Budget, fold: str, label: str, run_dir: Path) 
         f"trainer.total_steps={steps}",
         f"trainer.batch_size={budget.batch_size if paper else budget.baseline_batch}",
         f"trainer.lr={budget.lr}",
+        f"trainer.seed={args.seed}",
         f"trainer.eval_every={max(steps // 4, 1)}",
         f"trainer.checkpoint_every={steps}",
         f"trainer.warmup_steps={min(100, steps // 10)}",
@@ -175,9 +180,16 @@ def recipe(args, budget: Budget, fold: str, label: str) -> list[str]:
     return [o for o in overrides if o.split("=", 1)[0] not in MACHINE_SETTINGS]
 
 
+# Settings this file began to override after runs had recorded their recipes, with the value those
+# runs trained with (the configuration's default then): a recipe without one of them had that value.
+IMPLIED_BEFORE_OVERRIDDEN = {"trainer.seed": "0"}
+
+
 def recipe_differences(expected: list[str], found: list[str]) -> list[str]:
     """``key: expected X, found Y`` for every setting the two recipes disagree on."""
     want, have = (dict(setting.split("=", 1) for setting in r) for r in (expected, found))
+    if any(key in want for key in IMPLIED_BEFORE_OVERRIDDEN):
+        have = IMPLIED_BEFORE_OVERRIDDEN | have
     return [
         f"{key}: expected {want.get(key, 'absent')}, found {have.get(key, 'absent')}"
         for key in dict.fromkeys([*want, *have])

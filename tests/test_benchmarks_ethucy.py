@@ -99,6 +99,18 @@ def test_constant_velocity_rows_of_another_heading_noise_grid_are_refused(tmp_pa
     ]
 
 
+def test_a_recipe_recorded_before_the_seed_was_overridden_trained_with_seed_0(tmp_path):
+    args = bench_args(tmp_path, "out", "--quick")
+    recipe = bench.recipe(args, bench.QUICK, "zara1", bench.PAPER)
+    assert "trainer.seed=0" in recipe
+    write_scores(args, "zara1", bench.PAPER, recipe=[s for s in recipe if not s.startswith("trainer.seed=")])
+    assert bench.stale_runs(args, bench.QUICK, ["zara1"]) == []
+    seed_1 = bench_args(tmp_path, "out", "--quick", "--seed", "1")
+    assert bench.stale_runs(seed_1, bench.QUICK, ["zara1"]) == [
+        f"{args.out / 'zara1' / bench.slug(bench.PAPER)}: trainer.seed: expected 1, found 0"
+    ]
+
+
 def test_a_scores_json_without_recipe_is_refused_as_unknown(tmp_path):
     args = bench_args(tmp_path, "out", "--quick")
     write_scores(args, "hotel", "MulT")  # as written before the runs recorded their recipe
