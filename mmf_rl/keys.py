@@ -31,7 +31,12 @@ key                                  shape                meaning
                                                           ``("drop", m)`` modalities
 ``"decode_from_prior"``              ``[B]`` bool         request: also decode every row from ``z ~ p(z|X)``
                                                           in training (the GSNN term of the ELBO loss)
-``("forecast_from_prior", ...)``     ``[B, T, D]``        that forecast (``loc``/``scale``)
+``"decode_prior_draws"``             ``[B, K]`` bool      request: also decode ``K`` draws ``z ~ p(z|X)`` per
+                                                          row in training (the best-of-K term of the ELBO
+                                                          loss); only its shape is read
+``("forecast_from_prior", ...)``     ``[B, T, D]``        the forecast of the ``"decode_from_prior"`` draw
+                                                          (``loc``/``scale``); ``"samples"`` ``[B, K, T, D]``:
+                                                          the means of the ``"decode_prior_draws"`` ones
 ``"latent"``                         ``[B, d_z]``         the latent code the forecast was decoded from
 ``"loss_*"``                         scalar               one loss term each, summed by the trainer
 ===================================  ===================  ==================================================
@@ -71,6 +76,7 @@ FORECAST = "forecast"
 FORECAST_DROPPED = "forecast_dropped"
 FORECAST_FROM_PRIOR = "forecast_from_prior"
 DECODE_FROM_PRIOR = "decode_from_prior"
+DECODE_PRIOR_DRAWS = "decode_prior_draws"
 POSTERIOR = "posterior"
 PRIOR = "prior"
 PRIOR_DROPPED = "prior_dropped"
@@ -84,6 +90,7 @@ FORECAST_DROPPED_LOC = (FORECAST_DROPPED, LOC)
 FORECAST_DROPPED_SCALE = (FORECAST_DROPPED, SCALE)
 FORECAST_FROM_PRIOR_LOC = (FORECAST_FROM_PRIOR, LOC)
 FORECAST_FROM_PRIOR_SCALE = (FORECAST_FROM_PRIOR, SCALE)
+FORECAST_FROM_PRIOR_SAMPLES = (FORECAST_FROM_PRIOR, SAMPLES)
 POSTERIOR_LOC = (POSTERIOR, LOC)
 POSTERIOR_SCALE = (POSTERIOR, SCALE)
 PRIOR_LOC = (PRIOR, LOC)

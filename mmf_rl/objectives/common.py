@@ -29,6 +29,12 @@ def gaussian_kl_to_standard(loc: torch.Tensor, scale: torch.Tensor) -> torch.Ten
     return 0.5 * (scale**2 + loc**2 - 1) - scale.log()
 
 
+def best_of_k_mse(target: torch.Tensor, samples: torch.Tensor) -> torch.Tensor:
+    """``[B]``: the mean squared error over ``T × D`` of the closest of ``K`` forecasts ``samples``
+    ``[B, K, T, D]`` to ``target`` ``[B, T, D]``; the min passes the gradient to that forecast only."""
+    return (samples - target.unsqueeze(1)).square().flatten(2).mean(-1).amin(1)
+
+
 def reduce_batch(per_sample: torch.Tensor, reduction: str) -> torch.Tensor:
     if reduction == "mean":
         return per_sample.mean()

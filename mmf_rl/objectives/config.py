@@ -23,6 +23,10 @@ class LossConfig:
         detach_teacher: stop the gradient through ``L_mis``'s full-modality side.
         gsnn_weight: > 0 also decodes from ``z ~ p(z|X)`` in training and adds that NLL with this weight
             (Sohn et al.'s GSNN term); models without a prior decode refuse it.
+        best_of_k_weight: > 0 also decodes ``best_of_k_samples`` draws ``z ~ p(z|X)`` per window in
+            training and adds this weight times the MSE of the closest one to the target (Bhattacharyya
+            et al.'s best-of-many term); models without a prior decode refuse it.
+        best_of_k_samples: ``K``, the draws of that term (20: the minADE20 / minFDE20 of ETH/UCY).
         max_dropped: ``L_mis`` drops ``k ~ U{1..min(max_dropped, M_i - 1)}`` present modalities per
             sample; 1 is the paper's setting, ``None`` up to ``M_i - 1`` (single-modality inputs trained).
         dropped_nll_weight: > 0 adds the target's NLL under the degraded forecast beside ``L_mis``.
@@ -39,6 +43,8 @@ class LossConfig:
     missing_modality_weight: float = 1.0
     detach_teacher: bool = True
     gsnn_weight: float = 0.0
+    best_of_k_weight: float = 0.0
+    best_of_k_samples: int = 20
     max_dropped: int | None = 1
     dropped_nll_weight: float = 0.0
     dropped_prior_weight: float = 1.0
@@ -64,6 +70,14 @@ class LossConfig:
                 "loss.max_dropped_steps must be a whole number >= 1 or null (all but one present step), "
                 f"found {self.max_dropped_steps!r}"
             )
+        if (
+            isinstance(self.best_of_k_samples, bool)
+            or not isinstance(self.best_of_k_samples, int)
+            or self.best_of_k_samples < 1
+        ):
+            raise ValueError(
+                f"loss.best_of_k_samples must be a whole number >= 1, found {self.best_of_k_samples!r}"
+            )
         if not 0 <= self.step_drop_prob <= 1:
             raise ValueError(f"loss.step_drop_prob must be in [0, 1], found {self.step_drop_prob}")
         for name in (
@@ -71,6 +85,7 @@ class LossConfig:
             "kl_warmup_steps",
             "missing_modality_weight",
             "gsnn_weight",
+            "best_of_k_weight",
             "dropped_nll_weight",
             "dropped_prior_weight",
         ):

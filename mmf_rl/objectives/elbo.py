@@ -11,6 +11,7 @@ from tensordict.utils import NestedKey
 from mmf_rl import keys
 from mmf_rl.objectives.common import (
     ForecasterLossBase,
+    best_of_k_mse,
     gaussian_kl,
     gaussian_kl_to_standard,
     gaussian_nll,
@@ -33,6 +34,15 @@ class ELBOLoss(ForecasterLossBase):
     E_{p(z|X)}[-log p(y | X, z)]``: :meth:`prepare` asks the forecaster (``"decode_from_prior"``)
     to also decode every row from a prior draw, so training sees the latents used at test time.
 
+    With ``best_of_k_weight > 0`` it adds the best-of-many term of Bhattacharyya et al. (2018)
+    (Social-GAN's variety loss): ``loss_best_of_k = w · mean_windows min_k MSE(ŷ_k, y)``, ``ŷ_k`` the
+    forecast mean at the ``k``-th of ``K`` draws ``z ~ p(z|X)`` (``"decode_prior_draws"``, one
+    decoder call) and the MSE over the ``T × D`` target in its normalised frame, every entry of
+    which the NLL scores too (windows with an invalid target step never reach a batch). The
+    ELBO never asks the prior's draws to cover the futures while best-of-K metrics (minADE20) score
+    exactly that; the min passes the gradient to the best draw only, so the others stay free to
+    spread.
+
     Args:
         forecaster: a :class:`~mmf_rl.models.MultimodalForecaster` (or any module writing the
             same keys).
@@ -41,11 +51,14 @@ class ELBOLoss(ForecasterLossBase):
             ``kl_weight`` over this many training updates (0: constant). The update count is a
             buffer, so it is saved and restored with the loss's ``state_dict``.
         gsnn_weight: ``w`` of the GSNN term (0, the default: no term, no extra decode).
+        best_of_k_weight: ``w`` of the best-of-K term (0, the default: no term, no extra decode).
+        best_of_k_samples: its ``K`` (>= 1).
         reduction: ``"mean"`` | ``"sum"`` | ``"none"`` over the batch.
 
     Returns a TensorDict with ``loss_nll``, ``loss_kl`` (already weighted by ``β``), with
-    ``gsnn_weight > 0`` ``loss_gsnn`` (weighted), and the detached diagnostics ``kl``
-    (unweighted) and ``kl_weight``.
+    ``gsnn_weight > 0`` ``loss_gsnn`` (weighted), with ``best_of_k_weight > 0`` ``loss_best_of_k``
+    (weighted) and the detached diagnostic ``best_of_k_mse`` (its unweighted mean), and the
+    detached diagnostics ``kl`` (unweighted) and ``kl_weight``.
     """
 
     @dataclass
@@ -68,6 +81,9 @@ class ELBOLoss(ForecasterLossBase):
                 ``("forecast_from_prior", "loc")``.
             from_prior_scale (NestedKey): its standard deviation. Defaults to
                 ``("forecast_from_prior", "scale")``.
+            from_prior_samples (NestedKey): the means of the forecasts decoded from ``K`` prior draws
+                (the best-of-K term's, read only with ``best_of_k_weight > 0``), ``[B, K, T, D]``.
+                Defaults to ``("forecast_from_prior", "samples")``.
         """
 
         target: NestedKey = keys.TARGET
@@ -79,6 +95,7 @@ class ELBOLoss(ForecasterLossBase):
         prior_scale: NestedKey = keys.PRIOR_SCALE
         from_prior_loc: NestedKey = keys.FORECAST_FROM_PRIOR_LOC
         from_prior_scale: NestedKey = keys.FORECAST_FROM_PRIOR_SCALE
+        from_prior_samples: NestedKey = keys.FORECAST_FROM_PRIOR_SAMPLES
 
     default_keys = _AcceptedKeys
 
@@ -89,6 +106,8 @@ class ELBOLoss(ForecasterLossBase):
         kl_weight: float = 1.0,
         kl_warmup_steps: int = 0,
         gsnn_weight: float = 0.0,
+        best_of_k_weight: float = 0.0,
+        best_of_k_samples: int = 20,
         reduction: str = "mean",
     ):
         super().__init__(forecaster, reduction)
@@ -98,30 +117,45 @@ class ELBOLoss(ForecasterLossBase):
             )
         if gsnn_weight < 0:
             raise ValueError(f"gsnn_weight must be >= 0, found {gsnn_weight}")
+        if best_of_k_weight < 0:
+            raise ValueError(f"best_of_k_weight must be >= 0, found {best_of_k_weight}")
+        if (
+            isinstance(best_of_k_samples, bool)
+            or not isinstance(best_of_k_samples, int)
+            or best_of_k_samples < 1
+        ):
+            raise ValueError(f"best_of_k_samples must be a whole number >= 1, found {best_of_k_samples!r}")
         self.kl_weight = kl_weight
         self.kl_warmup_steps = kl_warmup_steps
         self.gsnn_weight = gsnn_weight
+        self.best_of_k_weight = best_of_k_weight
+        self.best_of_k_samples = best_of_k_samples
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
 
     @classmethod
     def from_config(cls, forecaster, loss_cfg) -> ELBOLoss:
-        """``kl_weight``, ``kl_warmup_steps`` and ``gsnn_weight`` of the loss config; a model that
-        declares ``decodes_from_prior = False`` refuses the GSNN term rather than fail mid-training."""
-        if loss_cfg.gsnn_weight > 0 and not getattr(forecaster, "decodes_from_prior", True):
-            raise ValueError(
-                "loss.gsnn_weight > 0 needs a model that decodes from its prior in training "
-                f"(model=forecaster); {type(forecaster).__name__} does not: set loss.gsnn_weight=0"
-            )
+        """``kl_weight``, ``kl_warmup_steps``, ``gsnn_weight`` and ``best_of_k_*`` of the loss config; a
+        model that declares ``decodes_from_prior = False`` refuses the GSNN and best-of-K terms rather
+        than fail mid-training."""
+        for option in ("gsnn_weight", "best_of_k_weight"):
+            if getattr(loss_cfg, option) > 0 and not getattr(forecaster, "decodes_from_prior", True):
+                raise ValueError(
+                    f"loss.{option} > 0 needs a model that decodes from its prior in training "
+                    f"(model=forecaster); {type(forecaster).__name__} does not: set loss.{option}=0"
+                )
         return cls(
             forecaster,
             kl_weight=loss_cfg.kl_weight,
             kl_warmup_steps=loss_cfg.kl_warmup_steps,
             gsnn_weight=loss_cfg.gsnn_weight,
+            best_of_k_weight=loss_cfg.best_of_k_weight,
+            best_of_k_samples=loss_cfg.best_of_k_samples,
         )
 
     def _loss_in_keys(self) -> list:
         k = self.tensor_keys
         extra = [k.from_prior_loc, k.from_prior_scale] if self.gsnn_weight else []
+        extra += [k.from_prior_samples] if self.best_of_k_weight else []
         return [
             k.target,
             k.forecast_loc,
@@ -135,11 +169,16 @@ class ELBOLoss(ForecasterLossBase):
 
     @property
     def out_keys(self):
-        return ["loss_nll", "loss_kl", *(["loss_gsnn"] if self.gsnn_weight else []), "kl", "kl_weight"]
+        gsnn = ["loss_gsnn"] if self.gsnn_weight else []
+        best_of_k = ["loss_best_of_k", "best_of_k_mse"] if self.best_of_k_weight else []
+        return ["loss_nll", "loss_kl", *gsnn, *best_of_k, "kl", "kl_weight"]
 
     def prepare(self, td: TensorDictBase) -> TensorDictBase:
         if self.gsnn_weight:
             td.set(keys.DECODE_FROM_PRIOR, torch.ones(td.batch_size, dtype=torch.bool, device=td.device))
+        if self.best_of_k_weight:
+            draws = (*td.batch_size, self.best_of_k_samples)
+            td.set(keys.DECODE_PRIOR_DRAWS, torch.ones(draws, dtype=torch.bool, device=td.device))
         return td
 
     def current_kl_weight(self) -> float:
@@ -170,7 +209,17 @@ class ELBOLoss(ForecasterLossBase):
             kl=kl.mean().detach(),
             kl_weight=torch.tensor(beta),
         )
+        out.update(self._prior_draw_terms(td, target))
+        return out
+
+    def _prior_draw_terms(self, td: TensorDictBase, target: torch.Tensor) -> dict:
+        """The terms scored on forecasts decoded from prior draws, those switched on: GSNN, best-of-K."""
+        k, terms = self.tensor_keys, {}
         if self.gsnn_weight:
             gsnn = gaussian_nll(target, self._get(td, k.from_prior_loc), self._get(td, k.from_prior_scale))
-            out.set("loss_gsnn", self.gsnn_weight * reduce_batch(gsnn.flatten(1).sum(-1), self.reduction))
-        return out
+            terms["loss_gsnn"] = self.gsnn_weight * reduce_batch(gsnn.flatten(1).sum(-1), self.reduction)
+        if self.best_of_k_weight:
+            best = best_of_k_mse(target, self._get(td, k.from_prior_samples))
+            terms["loss_best_of_k"] = self.best_of_k_weight * reduce_batch(best, self.reduction)
+            terms["best_of_k_mse"] = best.mean().detach()
+        return terms

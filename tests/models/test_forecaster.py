@@ -864,3 +864,50 @@ def test_bad_step_cuts_are_clear_errors(small_model):
         alone.set(keys.drop_key(name), torch.zeros(2, dtype=torch.bool))
     with pytest.raises(ValueError, match="removes every present modality of some sample"):
         small_model(with_cuts(alone, {"image": torch.ones(2, HISTORY, dtype=torch.bool)}))
+
+
+def test_prior_draws_are_decoded_unmixed_in_the_same_decoder_call(learned_model, mixed_batch):
+    model, td = learned_model.train(), mixed_batch.clone()
+    b = td.shape[0]
+    present, drop = drop_first_present_modality(td)
+    td.set(keys.DECODE_FROM_PRIOR, torch.ones(b, dtype=torch.bool))
+    torch.manual_seed(4)
+    without = model(td.clone())
+    td.set(keys.DECODE_PRIOR_DRAWS, torch.ones(b, 3, dtype=torch.bool))
+    torch.manual_seed(4)
+    with decoder_rows(model) as rows:
+        out = model(td.clone())
+    assert rows == [2 * b + b + 3 * b]  # teacher, student, the GSNN draw, the K draws
+    for key in (keys.FORECAST_LOC, keys.FORECAST_DROPPED_LOC, keys.FORECAST_FROM_PRIOR_LOC):
+        torch.testing.assert_close(out.get(key), without.get(key), rtol=1e-4, atol=1e-5)  # drawn after
+    # Draw k of row b decodes z = μ_b + σ_b ε_{k * B + b}, ε drawn after the posterior and GSNN draws.
+    torch.manual_seed(4)
+    torch.randn(b, 4), torch.randn(b, 4)  # the posterior's and the GSNN draws
+    noise = torch.randn(3 * b, 4)
+    with torch.no_grad():
+        tokens, _ = model.encode(td)
+        prior_loc, prior_scale = model.prior(tokens, present)
+        expected = [model.decode(tokens, present, prior_loc + prior_scale * eps)[0] for eps in noise.split(b)]
+    samples = out.get(keys.FORECAST_FROM_PRIOR_SAMPLES)
+    assert samples.shape == (b, 3, HORIZON, TARGET_DIM)
+    torch.testing.assert_close(samples, torch.stack(expected, 1), rtol=1e-4, atol=1e-5)
+
+
+def test_prior_draws_stay_unmixed_beside_a_predictive_forecast(predictive_model, batch):
+    model = predictive_model.eval()
+    with torch.no_grad():
+        reference = model(batch.clone())
+        td = batch.clone()
+        td.set(keys.DECODE_PRIOR_DRAWS, torch.ones(8, 2, dtype=torch.bool))
+        with decoder_rows(model) as rows:
+            out = model(td)
+    assert rows == [K * 8 + 2 * 8]
+    torch.testing.assert_close(out.get(keys.FORECAST_LOC), reference.get(keys.FORECAST_LOC))
+    torch.testing.assert_close(out.get(keys.FORECAST_SCALE), reference.get(keys.FORECAST_SCALE))
+    assert out.get(keys.FORECAST_FROM_PRIOR_SAMPLES).shape == (8, 2, HORIZON, TARGET_DIM)
+
+
+def test_a_malformed_prior_draws_request_is_a_clear_error(small_model, batch):
+    batch.set(keys.DECODE_PRIOR_DRAWS, torch.ones(8, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"td\['decode_prior_draws'\]: expected \[B, K\] with K >= 1"):
+        small_model(batch)

@@ -28,6 +28,8 @@ LOSS_CONFIGS = {
         missing_modality_weight=2.0,
         detach_teacher=False,
         gsnn_weight=0.5,
+        best_of_k_weight=0.5,
+        best_of_k_samples=3,
         max_dropped=None,
         dropped_nll_weight=0.5,
         dropped_prior_weight=2.0,
@@ -44,6 +46,8 @@ def explicit_loss(name: str, model, cfg: LossConfig):
                 kl_weight=cfg.kl_weight,
                 kl_warmup_steps=cfg.kl_warmup_steps,
                 gsnn_weight=cfg.gsnn_weight,
+                best_of_k_weight=cfg.best_of_k_weight,
+                best_of_k_samples=cfg.best_of_k_samples,
             )
         ]
         if cfg.missing_modality_weight > 0:
@@ -67,8 +71,8 @@ def explicit_loss(name: str, model, cfg: LossConfig):
 @pytest.mark.parametrize("name", ["forecaster", "lf_lstm", "mvae", "mult"])
 def test_the_assembled_loss_gives_the_explicit_values(name, option):
     cfg = LOSS_CONFIGS[option]
-    if name == "mvae":  # it refuses the GSNN term (tested in test_baselines)
-        cfg = dataclasses.replace(cfg, gsnn_weight=0.0)
+    if name == "mvae":  # it refuses the GSNN and best-of-K terms (tested in test_baselines, test_elbo)
+        cfg = dataclasses.replace(cfg, gsnn_weight=0.0, best_of_k_weight=0.0)
     model = small_registered_model(name).train()
     batch = make_batch(8, seed=2)
     results = []

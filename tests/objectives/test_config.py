@@ -25,6 +25,9 @@ def test_an_unknown_loss_key_is_a_clear_error():
         ("kl_warmup_steps", -5, "loss.kl_warmup_steps must be >= 0, found -5"),
         ("missing_modality_weight", -0.5, "loss.missing_modality_weight must be >= 0"),
         ("detach_teacher", "yes", "loss.detach_teacher must be true or false, found 'yes'"),
+        ("best_of_k_weight", -1.0, "loss.best_of_k_weight must be >= 0, found -1.0"),
+        ("best_of_k_samples", 0, "loss.best_of_k_samples must be a whole number >= 1, found 0"),
+        ("best_of_k_samples", 2.5, "loss.best_of_k_samples must be a whole number >= 1, found 2.5"),
     ],
 )
 def test_bad_values_name_the_key(field, value, message):

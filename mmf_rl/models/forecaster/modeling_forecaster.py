@@ -75,6 +75,11 @@ Open points of the paper, and what this implementation does:
   :class:`~mmf_rl.objectives.ELBOLoss` with ``gsnn_weight > 0``), every row is also decoded
   from a reparameterised ``z ~ p(z | X)`` in the same decoder pass, written to
   ``("forecast_from_prior", ...)``: training then also sees the latents used at test time.
+* **Best-of-K term (Bhattacharyya et al. 2018).** If the batch carries ``"decode_prior_draws"``
+  ``[B, K]`` (set by :class:`~mmf_rl.objectives.ELBOLoss` with ``best_of_k_weight > 0``), every
+  row is also decoded from ``K`` reparameterised draws ``z ~ p(z | X)`` in the same decoder pass,
+  their means written to ``("forecast_from_prior", "samples")`` ``[B, K, T, D]``, unmixed: the loss
+  scores the best one.
 """
 
 from __future__ import annotations
@@ -193,11 +198,11 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
 
     Reads ``("obs", m)``, ``("present", m)`` for every modality, ``"target"`` when training
     (and, if present, in eval, to report the posterior), optional ``("present_steps", m)``,
-    ``("drop", m)``, ``("drop_steps", m)`` and ``"decode_from_prior"``; writes ``("forecast",
-    "loc"/"scale")``, ``"latent"``, ``("prior", ...)``, ``("posterior", ...)`` (when ``"target"``
-    is given or not needed), ``("forecast_dropped", ...)`` and, with the learned prior,
-    ``("prior_dropped", ...)`` (when ``("drop", m)`` is given), and ``("forecast_from_prior", ...)``
-    (when requested).
+    ``("drop", m)``, ``("drop_steps", m)``, ``"decode_from_prior"`` and ``"decode_prior_draws"``;
+    writes ``("forecast", "loc"/"scale")``, ``"latent"``, ``("prior", ...)``, ``("posterior", ...)``
+    (when ``"target"`` is given or not needed), ``("forecast_dropped", ...)`` and, with the learned
+    prior, ``("prior_dropped", ...)`` (when ``("drop", m)`` is given), and ``("forecast_from_prior",
+    ...)`` (when requested).
 
     In train mode ``z`` is sampled from the posterior (reparameterised); in eval mode it is the
     prior's mean (``eval_latent="mean"``; ``0`` under the standard prior), a prior draw
@@ -312,6 +317,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             keys.FORECAST_DROPPED_SCALE,
             keys.FORECAST_FROM_PRIOR_LOC,
             keys.FORECAST_FROM_PRIOR_SCALE,
+            keys.FORECAST_FROM_PRIOR_SAMPLES,
         ]
         if self.prior_head is not None:
             self.out_keys += [keys.PRIOR_DROPPED_LOC, keys.PRIOR_DROPPED_SCALE]
@@ -594,16 +600,33 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             td, (tokens, present, prepared), (tokens_kept, kept, prepared_kept), wants_posterior
         )
         z = self._forward_latent(td, features, target, wants_posterior, (prior_loc, prior_scale))
+        self._decode_into(td, (present, prepared), (kept, prepared_kept), z, (prior_loc, prior_scale))
+        return td
 
-        # Every decode of this pass (full input; degraded input; from the prior) in one decoder call;
-        # a decode is a presence [B, M], its decoder tokens and its latents, B rows or K blocks of B.
+    def _decode_into(self, td: TensorDictBase, full, student, z: torch.Tensor, prior) -> None:
+        """Every decode of this pass, in one decoder call, written to ``td``: the full input at ``z``;
+        the L_mis student at the same ``z``; the requested prior draws. ``full`` and ``student`` are
+        (token presence, decoder tokens), the student's ``(None, None)`` without ``("drop", m)``."""
+        (present, prepared), (kept, prepared_kept), (prior_loc, prior_scale) = full, student, prior
+        batch = present.shape[0]
+        # A decode is a presence [B, M], its decoder tokens and its latents, B rows or K blocks of B.
         decodes = [(present, prepared, z)]
         if kept is not None:  # teacher and student share z (and the tokens of what was not cut)
             decodes.append((kept, prepared_kept, z))
         from_prior = keys.DECODE_FROM_PRIOR in td.keys()
         if from_prior:  # the GSNN term: a reparameterised prior draw, so the prior head learns from it
             decodes.append((present, prepared, prior_loc + prior_scale * torch.randn_like(prior_scale)))
-        forecasts = self._decode_all(decodes, self.embed_actions(td), present.shape[0])
+        draws = self._requested_prior_draws(td)
+        if draws:  # the best-of-K term: K reparameterised prior draws, rows k * B + b
+            noise = torch.randn(draws * batch, prior_loc.shape[1], device=prior_loc.device)
+            decodes.append(
+                (present, prepared, prior_loc.repeat(draws, 1) + prior_scale.repeat(draws, 1) * noise)
+            )
+        decoded = self._decode_all(decodes, self.embed_actions(td), batch)
+        if draws:  # kept apart, not mixed: the loss scores each draw's forecast
+            samples = decoded.pop()[0]
+            td.set(keys.FORECAST_FROM_PRIOR_SAMPLES, samples.unflatten(0, (draws, batch)).transpose(0, 1))
+        forecasts = [moment_match(loc, scale, loc.shape[0] // batch) for loc, scale in decoded]
         td.set(keys.FORECAST_LOC, forecasts[0][0])
         td.set(keys.FORECAST_SCALE, self.scale_calibration(forecasts[0][1], self.modality_presence(present)))
         if kept is not None:
@@ -612,7 +635,6 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         if from_prior:
             td.set(keys.FORECAST_FROM_PRIOR_LOC, forecasts[-1][0])
             td.set(keys.FORECAST_FROM_PRIOR_SCALE, forecasts[-1][1])
-        return td
 
     def _kept_decoder_tokens(self, tokens, tokens_kept, kept: torch.Tensor, prepared: torch.Tensor):
         """The decoder tokens of the L_mis student (``tokens_kept``, ``kept``: its tokens and token
@@ -690,9 +712,21 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         td.set(keys.LATENT, z if z.shape[0] == prior_loc.shape[0] else prior_loc)
         return z
 
+    def _requested_prior_draws(self, td: TensorDictBase) -> int:
+        """``K`` of the batch's ``"decode_prior_draws"`` request ``[B, K]`` (0 without one)."""
+        request = td.get(keys.DECODE_PRIOR_DRAWS, None)
+        if request is None:
+            return 0
+        if request.dim() != 2 or request.shape[1] < 1:
+            raise ValueError(
+                f"td[{keys.DECODE_PRIOR_DRAWS!r}]: expected [B, K] with K >= 1 prior draws per row, found "
+                f"{list(request.shape)}"
+            )
+        return request.shape[1]
+
     def _decode_all(self, decodes: list, action: torch.Tensor | None, batch: int) -> list:
-        """``(loc, scale)`` of each decode ``(presence, decoder tokens, latents)``, in one decoder call,
-        moment-matched over the latents of a decode."""
+        """``(loc, scale)`` of each decode ``(presence, decoder tokens, latents)``, in one decoder call:
+        as many rows as the decode's latents."""
         present, prepared, z = decodes[0]
         rows = [latent.shape[0] for *_, latent in decodes]
         copies = sum(rows) // batch
@@ -705,10 +739,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                 torch.cat([latent for *_, latent in decodes]),
                 None if action is None else action.repeat(copies, 1),
             )
-        return [
-            moment_match(*parts, n // batch)
-            for *parts, n in zip(loc.split(rows), scale.split(rows), rows, strict=True)
-        ]
+        return list(zip(loc.split(rows), scale.split(rows), strict=True))
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
         """Decode ``num_samples`` latents drawn from :meth:`eval_distribution` (the prior ``p(z | X)``,
