@@ -334,9 +334,13 @@ def _decode(
 
         if workers > 1:
             # spawn, not fork: torchcodec decoders break in forked children; each spawned worker
-            # starts with its own empty decoder cache.
+            # starts with its own empty decoder cache. One torch thread each: the workers already
+            # fill the cores, and torch's default (a thread per core) in every worker oversubscribes
+            # them, which made an image-in-parquet build 5x slower (docs/results.md).
             context = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+            with ProcessPoolExecutor(
+                max_workers=workers, mp_context=context, initializer=torch.set_num_threads, initargs=(1,)
+            ) as pool:
                 # Each finished future is dropped: kept, their results would hold every job twice.
                 pending = {pool.submit(_runner(job), job): job for job in jobs}
                 for future in as_completed(pending):
