@@ -336,7 +336,7 @@ def _decode(
             # spawn, not fork: torchcodec decoders break in forked children; each spawned worker
             # starts with its own empty decoder cache. One torch thread each: the workers already
             # fill the cores, and torch's default (a thread per core) in every worker oversubscribes
-            # them, which made an image-in-parquet build 5x slower (docs/results.md).
+            # them and slows the build several-fold (docs/results.md).
             context = multiprocessing.get_context("spawn")
             with ProcessPoolExecutor(
                 max_workers=workers, mp_context=context, initializer=torch.set_num_threads, initargs=(1,)
