@@ -5,7 +5,7 @@ data = WindowDataset(DataConfig.from_dict(cfg))
 for batch in data.loader("train", batch_size=64): ...
 """
 
-from mmf_rl.datasets.augment import AugmentConfig, ImageAugmentation
+from mmf_rl.datasets.augment import AugmentConfig, TrainingAugmentation
 from mmf_rl.datasets.config import ActionConfig, DataConfig, ModalityConfig, TargetConfig
 from mmf_rl.datasets.protocols import apply_presence_subset, presence_subsets, training_dropout
 from mmf_rl.datasets.splits import Normalizer, split_episodes
@@ -15,7 +15,7 @@ __all__ = [
     "ActionConfig",
     "AugmentConfig",
     "DataConfig",
-    "ImageAugmentation",
+    "TrainingAugmentation",
     "ModalityConfig",
     "Normalizer",
     "TargetConfig",

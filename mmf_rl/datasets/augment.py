@@ -1,4 +1,5 @@
-"""Image augmentation of training batches, as lerobot users know it (``image_transforms``).
+"""Augmentation of training batches: image transforms as lerobot users know them
+(``image_transforms``), and random turns of the ground plane (``rotation``).
 
 The transforms are lerobot's own :class:`~lerobot.datasets.transforms.ImageTransforms` (torchvision
 v2 transforms sampled by ``RandomSubsetApply``), configured with the same names: ``enable``,
@@ -19,11 +20,17 @@ is a ``torchvision.transforms.v2`` class (``ColorJitter``, ``RandomResizedCrop``
   on the training thread, bit for bit unless an image is large enough for torch to split one of a
   transform's float reductions across the training thread's threads (then a pixel may round to
   the neighbouring uint8 value).
+
+``rotation`` turns each training window's ground plane by its own angle, drawn uniformly within
+``±rotation`` degrees from a generator seeded like the image transforms: the data config's
+``planar`` dims and ``top_down`` cameras (:mod:`mmf_rl.datasets.planar`), turned while the window is
+gathered, before normalisation.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
@@ -35,6 +42,9 @@ from mmf_rl import keys
 from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.datasets.worker_pool import WorkerPool
 from mmf_rl.keys import ModalitySpec
+
+# Tells the rotation's seeds from the image transforms' (a str would hash differently per process).
+_ROTATION_STREAM = 1
 
 
 def lerobot_default_transforms() -> dict[str, dict]:
@@ -56,6 +66,9 @@ class AugmentConfig:
         tfs: name → lerobot ``ImageTransformConfig`` (``weight``, ``type``, ``kwargs``); lerobot's
             defaults (brightness, contrast, saturation, hue, sharpness, affine).
         modalities: the image modalities to augment (default: every image modality).
+        rotation: turn each training window's ground plane by a random angle within ``±rotation``
+            degrees (``180``: any direction; ``0``: never), whether or not ``enable`` is set. The
+            data config says what turns (``planar`` dims, ``top_down`` cameras).
         workers: processes that augment the next batches while the model trains on the current
             one; ``0``: on the training thread, between steps. Either way the batches are the
             same (to rounding, see the module's docstring). They start at the first batch,
@@ -68,6 +81,7 @@ class AugmentConfig:
     random_order: bool = False
     tfs: dict[str, dict] = field(default_factory=lerobot_default_transforms)
     modalities: list[str] | None = None
+    rotation: float = 0.0
     workers: int = 1
 
     @classmethod
@@ -80,6 +94,11 @@ class AugmentConfig:
         if config.max_num_transforms < 1:
             raise ValueError(
                 f"augment config: `max_num_transforms` must be >= 1, found {config.max_num_transforms}"
+            )
+        if not 0.0 <= config.rotation <= 180.0:
+            raise ValueError(
+                f"augment config: `rotation` is the largest turn in degrees, in [0, 180] (180: any "
+                f"direction), found {config.rotation}"
             )
         if config.workers < 0:
             raise ValueError(
@@ -120,8 +139,9 @@ def _transform_config_cls():
     return ImageTransformConfig
 
 
-class ImageAugmentation:
-    """Applies an :class:`AugmentConfig` to the image modalities of training batches (in place).
+class TrainingAugmentation:
+    """Applies an :class:`AugmentConfig` to training batches: the image transforms to the image
+    modalities (in place), and the angles the loader turns each window by (:meth:`angles`).
 
     ``augmented`` augments a stream of batches, in ``config.workers`` processes when it is not 0;
     :meth:`close` stops them (the next stream starts them again).
@@ -135,12 +155,26 @@ class ImageAugmentation:
                 f"augment config: `modalities` names {unknown}, which are not image modalities "
                 f"of the data config (its image modalities: {images})"
             )
-        self.names = list(config.modalities) if config.modalities is not None else images
+        self.names = (
+            (list(config.modalities) if config.modalities is not None else images) if config.enable else []
+        )
         self.transform = config.build()
         self.seed = seed
-        self.workers = config.workers
+        self.rotation = math.radians(config.rotation)
+        self.workers = config.workers if self.names else 0
         self._make_in_worker = functools.partial(_frames_augmenter, config, specs, seed)
         self._pool: WorkerPool | None = None
+
+    def angles(self, n: int, epoch: int, index: int, rank: int = 0) -> torch.Tensor | None:
+        """The ``[n]`` angles (radians) that turn batch ``index`` of ``epoch`` on ``rank``; ``None``
+        without ``rotation``. From their own generator: neither the image transforms' draws nor the
+        model's depend on them."""
+        if not self.rotation:
+            return None
+        generator = torch.Generator().manual_seed(
+            hash((self.seed, epoch, index, rank, _ROTATION_STREAM)) % 2**63
+        )
+        return (2 * torch.rand(n, generator=generator, dtype=torch.float64) - 1) * self.rotation
 
     def __call__(self, batch: TensorDictBase, epoch: int, index: int, rank: int = 0) -> TensorDictBase:
         """``batch`` augmented here, on the calling thread."""
@@ -208,4 +242,4 @@ class ImageAugmentation:
 
 def _frames_augmenter(config: AugmentConfig, specs: list[ModalitySpec], seed: int):
     """In a worker process: the augmentation's ``augment_frames``, built there once."""
-    return ImageAugmentation(config, specs, seed).augment_frames
+    return TrainingAugmentation(config, specs, seed).augment_frames

@@ -35,6 +35,11 @@ class ModalityConfig:
         allow_absent: accept losing the modality on more than half of the frames; without it that
             is an error, since the model would silently train without it (e.g. a declared camera
             whose video files were never recorded).
+        planar: ``[x, y]`` pairs of dims (after ``dims``) that are vectors in the ground plane
+            (positions, velocities, offsets): ``augment.rotation`` turns them
+            (:mod:`~mmf_rl.datasets.planar`).
+        top_down: a camera that is a map of the ground plane (world ``x`` right, ``y`` up), turned
+            with the planar dims by ``augment.rotation``.
     """
 
     feature: str
@@ -45,6 +50,8 @@ class ModalityConfig:
     encoder: str | None = None
     raw_dims: list[int] | None = None
     allow_absent: bool = False
+    planar: list[list[int]] | None = None
+    top_down: bool = False
 
     def __post_init__(self):
         if self.kind is not None and self.kind not in MODALITY_KINDS:
@@ -54,6 +61,7 @@ class ModalityConfig:
             )
         self.dims = _indices(self.dims, f"modality feature {self.feature!r}: dims")
         self.raw_dims = _indices(self.raw_dims, f"modality feature {self.feature!r}: raw_dims")
+        self.planar = _pairs(self.planar, f"modality feature {self.feature!r}: planar")
 
 
 @dataclass
@@ -91,15 +99,19 @@ class TargetConfig:
             gripper: where the object is, in a frame a policy acts in). Subtracted from the future
             and from ``target_past``; the normalisation statistics describe the offsets. Excludes
             ``relative``.
+        planar: ``[x, y]`` pairs of the target's dims (after ``dims``) that are vectors in the ground
+            plane, turned by ``augment.rotation`` with the inputs' planar dims.
     """
 
     feature: str
     dims: list[int] | None = None
     relative: bool = False
     relative_to: TargetReference | None = None
+    planar: list[list[int]] | None = None
 
     def __post_init__(self):
         self.dims = _indices(self.dims, "target.dims")
+        self.planar = _pairs(self.planar, "target.planar")
         if self.relative_to is not None and not isinstance(self.relative_to, TargetReference):
             self.relative_to = _entry(TargetReference, self.relative_to, "target.relative_to")
         if self.relative and self.relative_to is not None:
@@ -126,13 +138,17 @@ class ActionConfig:
     Args:
         feature: the action feature (LeRobot's ``"action"`` by default).
         dims: which of its dims condition the model (all when unset).
+        planar: ``[x, y]`` pairs of those dims that are vectors in the ground plane (a commanded
+            displacement), turned by ``augment.rotation`` with the observations.
     """
 
     feature: str = "action"
     dims: list[int] | None = None
+    planar: list[list[int]] | None = None
 
     def __post_init__(self):
         self.dims = _indices(self.dims, "action.dims")
+        self.planar = _pairs(self.planar, "action.planar")
 
 
 @dataclass
@@ -348,6 +364,13 @@ class DataConfig:
         return cls(**d)
 
     @property
+    def has_planar_values(self) -> bool:
+        """Some modality, the target or the action is declared in the ground plane (``planar``,
+        ``top_down``): what ``augment.rotation`` turns."""
+        declared = [m.planar or m.top_down for m in self.modalities.values()] + [self.target.planar]
+        return any(declared) or bool(self.action is not None and self.action.planar)
+
+    @property
     def window_dropout(self) -> dict[str, float]:
         """The ``{modality: fraction of training windows}`` part of ``missing``."""
         return (
@@ -422,6 +445,15 @@ def _indices(values, key: str) -> list[int] | None:
             raise wrong
         indices.append(index)
     return indices
+
+
+def _pairs(values, key: str) -> list[list[int]] | None:
+    """``values`` (``[x, y]`` index pairs) as lists of ints; anything else is a ValueError naming ``key``."""
+    if values is None:
+        return None
+    if isinstance(values, str | bytes) or not hasattr(values, "__iter__"):
+        raise ValueError(f"data config: `{key}` must be a list of [x, y] index pairs, found {values!r}")
+    return [_indices(pair, key) for pair in values]
 
 
 def _entry(cls, value, key: str):

@@ -384,15 +384,19 @@ def data_config(
         "episodes": episodes,
         "split": split,
         "modalities": {
-            "trajectory": {"feature": TRAJECTORY_KEY},
+            "trajectory": {"feature": TRAJECTORY_KEY, "planar": [[0, 1], [2, 3]]},
             "neighbours": {
                 "feature": NEIGHBOURS_KEY,
                 "encoder": "deepsets",
                 "raw_dims": list(range(SLOT_DIM - 1, num_slots * SLOT_DIM, SLOT_DIM)),
+                "planar": [
+                    [k * SLOT_DIM + d, k * SLOT_DIM + d + 1] for k in range(num_slots) for d in (0, 2)
+                ],
             },
-            "scene": {"feature": SCENE_KEY},
+            # A heading-up crop turns with the agent, so it has no north to turn.
+            "scene": {"feature": SCENE_KEY, "top_down": not crop.heading},
         },
-        "target": {"feature": TRAJECTORY_KEY, "dims": [0, 1], "relative": True},
+        "target": {"feature": TRAJECTORY_KEY, "dims": [0, 1], "relative": True, "planar": [[0, 1]]},
     }
     return DataConfig.from_dict(config).to_dict()
 

@@ -9,10 +9,11 @@ from collections.abc import Iterator
 import torch
 from tensordict import MemoryMappedTensor, TensorDict
 
-from mmf_rl.datasets.augment import ImageAugmentation
+from mmf_rl.datasets.augment import TrainingAugmentation
 from mmf_rl.datasets.cache import action_offsets, open_cache, window_offsets
 from mmf_rl.datasets.config import OBSERVED, SPLIT_NAMES, DataConfig
 from mmf_rl.datasets.lerobot_source import LeRobotSource
+from mmf_rl.datasets.planar import check_pairs, rotate_frames, rotate_pairs
 from mmf_rl.datasets.protocols import outage_statistics, replay_outages, training_dropout
 from mmf_rl.datasets.splits import Normalizer, episode_splits, mean_std
 from mmf_rl.keys import (
@@ -117,9 +118,30 @@ class WindowDataset:
             .flatten()
             for name, episodes in self.split_episodes.items()
         }
+        self._check_planar()
         self.normalizer = Normalizer(self._train_stats(frames))
         self.observed_outages = self._observed_outages(frames)
         self.train_presence = self._train_presence()
+
+    def _check_planar(self) -> None:
+        """The ``planar`` pairs index their vectors and ``top_down`` marks cameras only."""
+        for spec in self.specs:
+            modality = self.config.modalities[spec.name]
+            if spec.kind == "image" and modality.planar:
+                raise ValueError(
+                    f"data config: `modalities.{spec.name}.planar` names dims of a camera; a camera that "
+                    "maps the ground plane takes `top_down: true` instead"
+                )
+            if spec.kind != "image" and modality.top_down:
+                raise ValueError(
+                    f"data config: `modalities.{spec.name}.top_down` is for cameras, and {spec.name!r} is a "
+                    f"{spec.kind}; mark its [x, y] dims with `planar` instead"
+                )
+            raw = modality.raw_dims or []
+            check_pairs(modality.planar, spec.shape[0], raw, f"modalities.{spec.name}.planar")
+        check_pairs(self.config.target.planar, self.target_dim, [], "target.planar")
+        if self.action_shape is not None:
+            check_pairs(self.config.action.planar, self.action_shape[1], [], "action.planar")
 
     def _map_images(self) -> None:
         """Map the cache's image columns afresh (their files only, not the other columns).
@@ -294,8 +316,12 @@ class WindowDataset:
     def __len__(self) -> int:
         return len(self.window_start)
 
-    def batch(self, window_ids: torch.Tensor, split: str = "eval") -> TensorDict:
-        """The batch of windows ``window_ids``; ``split="train"`` applies the missingness protocol."""
+    def batch(
+        self, window_ids: torch.Tensor, split: str = "eval", angles: torch.Tensor | None = None
+    ) -> TensorDict:
+        """The batch of windows ``window_ids``; ``split="train"`` applies the missingness protocol.
+        ``angles`` ``[B]`` (radians) turns each window's ground plane: its ``planar`` dims and
+        ``top_down`` cameras (:mod:`~mmf_rl.datasets.planar`)."""
         presence = self.train_presence if split == "train" else self.presence
         if self._image_table_bytes > REMAP_IMAGE_BYTES and self._image_bytes_read > REMAP_IMAGE_BYTES:
             self._map_images()
@@ -306,10 +332,15 @@ class WindowDataset:
             present = presence[spec.name][window_ids]
             rows = observed if spec.kind != "vector" else observed[:, -1]
             values = self._obs[spec.name][rows]
+            modality = self.config.modalities[spec.name]
             if spec.kind == "image":
                 values = values.view(torch.uint8).view(*rows.shape, *spec.shape)
                 self._image_bytes_read += values.numel()
+                if angles is not None and modality.top_down:
+                    values = rotate_frames(values, angles)
             else:
+                if angles is not None:
+                    values = rotate_pairs(values, modality.planar, angles)
                 values = self.normalizer.normalize(spec.name, values)
                 # Absent samples carry zeros, not the stored placeholder: never NaN, never data.
                 values = values * present.view(-1, *[1] * (values.dim() - 1))
@@ -320,11 +351,16 @@ class WindowDataset:
             batch.set(spec.obs_key, values)
             batch.set(spec.present_key, present)
         future, past = self._targets(start, with_past=self.config.include_target_past)
+        if angles is not None:
+            future = rotate_pairs(future, self.config.target.planar, angles)
+            past = rotate_pairs(past, self.config.target.planar, angles) if past is not None else None
         batch.set(TARGET, self.normalizer.normalize("target", future))
         if past is not None:
             batch.set(TARGET_PAST, self.normalizer.normalize("target", past))
         if self._action is not None:
             actions = self._action[start[:, None] + self._action_offsets]
+            if angles is not None:
+                actions = rotate_pairs(actions, self.config.action.planar, angles)
             batch.set(FUTURE_ACTION, self.normalizer.normalize(FUTURE_ACTION, actions))
         return batch
 
@@ -337,10 +373,17 @@ class WindowDataset:
         rank: int = 0,
         world_size: int = 1,
         drop_last: bool | None = None,
-        augment: ImageAugmentation | None = None,
+        augment: TrainingAugmentation | None = None,
     ) -> WindowLoader:
         """Batches of ``split``: shuffled (seeded, per epoch) for train by default, sequential otherwise.
-        ``augment`` transforms the image modalities of every batch (meant for the training split)."""
+        ``augment`` transforms the image modalities and turns the ground plane of every batch (meant
+        for the training split)."""
+        if augment is not None and augment.rotation and not self.config.has_planar_values:
+            raise ValueError(
+                "augment.rotation turns the ground plane, but the data config marks nothing in it: declare "
+                "the [x, y] dims with `planar` (modalities.<name>.planar, target.planar, action.planar) "
+                "and map cameras with `top_down: true`, or set augment.rotation=0"
+            )
         return WindowLoader(
             self,
             split,
@@ -375,7 +418,7 @@ class WindowLoader:
         rank: int = 0,
         world_size: int = 1,
         drop_last: bool | None = None,
-        augment: ImageAugmentation | None = None,
+        augment: TrainingAugmentation | None = None,
     ):
         if split not in SPLIT_NAMES:
             raise ValueError(f"unknown split {split!r}; expected one of {list(SPLIT_NAMES)}")
@@ -408,7 +451,7 @@ class WindowLoader:
     def batch_making(self) -> str:
         """How a batch is made (:data:`~mmf_rl.datasets.prefetch.BATCH_MAKING`): by a gather, by
         a gather and augmentation drawing from the global RNG, or with augmentation in workers."""
-        if self.augment is None:
+        if self.augment is None or not self.augment.names:  # the turns draw from their own generator
             return "thread_safe"
         return "in_workers" if self.augment.workers else "global_rng"
 
@@ -416,13 +459,20 @@ class WindowLoader:
         ids = self._ids()
         stop = len(ids) // self.batch_size * self.batch_size if self.drop_last else len(ids)
         batches = (
-            self.dataset.batch(ids[first : first + self.batch_size], self.split)
+            self.dataset.batch(ids[first : first + self.batch_size], self.split, self._angles(first, stop))
             for first in range(0, stop, self.batch_size)
         )
         if self.augment is not None:
             batches = self.augment.augmented(batches, self.epoch, self.rank)
         yield from batches
         self.epoch += 1
+
+    def _angles(self, first: int, stop: int) -> torch.Tensor | None:
+        """The turns of the batch that starts at ``first`` (``None``: not turned)."""
+        if self.augment is None:
+            return None
+        n = min(self.batch_size, stop - first)
+        return self.augment.angles(n, self.epoch, first // self.batch_size, self.rank)
 
     def close(self) -> None:
         """Stop the augmentation's worker processes, if any (iterating again restarts them)."""

@@ -40,7 +40,7 @@ from mmf_rl.configuration import (
     save_config,
     to_container,
 )
-from mmf_rl.datasets import AugmentConfig, DataConfig, ImageAugmentation, WindowDataset
+from mmf_rl.datasets import AugmentConfig, DataConfig, TrainingAugmentation, WindowDataset
 from mmf_rl.devices import resolve_device
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.eval.scale_fit import calibrate_after_training
@@ -240,7 +240,11 @@ def make_trainer(cfg, model, model_name: str, loss, data: WindowDataset, trainer
     rank, world_size = ranks
     seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents
     augment_cfg = AugmentConfig.from_dict(to_container(cfg.augment) if "augment" in cfg else None)
-    augment = ImageAugmentation(augment_cfg, data.specs, trainer_cfg.seed) if augment_cfg.enable else None
+    augment = (
+        TrainingAugmentation(augment_cfg, data.specs, trainer_cfg.seed)
+        if augment_cfg.enable or augment_cfg.rotation
+        else None
+    )
     loader = data.loader(
         "train",
         trainer_cfg.batch_size,

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from mmf_rl.configuration import compose_config, to_container
-from mmf_rl.datasets import AugmentConfig, ImageAugmentation, WindowDataset
+from mmf_rl.datasets import AugmentConfig, TrainingAugmentation, WindowDataset
 from mmf_rl.keys import obs_key
 from tests.conftest import SMALL_MODALITIES, make_batch
 from tests.datasets.conftest import synthetic_config
@@ -26,9 +26,9 @@ def dataset(synthetic_root, tmp_path_factory):
         return WindowDataset(synthetic_config(synthetic_root, tmp_path_factory.mktemp("cache")))
 
 
-def lerobot_augmentation(seed: int = 0, **overrides) -> ImageAugmentation:
+def lerobot_augmentation(seed: int = 0, **overrides) -> TrainingAugmentation:
     cfg = to_container(compose_config("train", ["augment=crop", "data.image_size=[16,16]"]).augment)
-    return ImageAugmentation(AugmentConfig.from_dict({**cfg, **overrides}), SMALL_MODALITIES, seed)
+    return TrainingAugmentation(AugmentConfig.from_dict({**cfg, **overrides}), SMALL_MODALITIES, seed)
 
 
 def still_windows(seed: int):
@@ -68,7 +68,7 @@ def test_deterministic_under_the_seed_and_independent_of_the_global_generator():
 def test_training_loader_only_and_off_by_default(dataset):
     assert not AugmentConfig.from_dict(to_container(compose_config("train", []).augment)).enable
     cfg = to_container(compose_config("train", ["augment=lerobot"]).augment)
-    augment = ImageAugmentation(AugmentConfig.from_dict(cfg), dataset.specs, seed=0)
+    augment = TrainingAugmentation(AugmentConfig.from_dict(cfg), dataset.specs, seed=0)
     plain = next(iter(dataset.loader("train", 8, seed=1)))
     augmented = next(iter(dataset.loader("train", 8, seed=1, augment=augment)))
     augment.close()
@@ -92,7 +92,9 @@ def test_augmenting_in_workers_gives_the_training_threads_batches_bit_for_bit(da
             "train",
             8,
             seed=1,
-            augment=ImageAugmentation(AugmentConfig.from_dict({**cfg, "workers": workers}), dataset.specs, 5),
+            augment=TrainingAugmentation(
+                AugmentConfig.from_dict({**cfg, "workers": workers}), dataset.specs, 5
+            ),
         )
         for workers in (0, 2)
     }
@@ -118,7 +120,7 @@ def test_augmenting_in_workers_gives_the_training_threads_batches_bit_for_bit(da
 def test_a_killed_worker_stops_the_epoch_with_an_error_naming_the_fix(dataset):
     cfg = to_container(compose_config("train", ["augment=lerobot"]).augment)
     loader = dataset.loader(
-        "train", 8, augment=ImageAugmentation(AugmentConfig.from_dict(cfg), dataset.specs, 0)
+        "train", 8, augment=TrainingAugmentation(AugmentConfig.from_dict(cfg), dataset.specs, 0)
     )
     batches = iter(loader)
     next(batches)
@@ -144,12 +146,12 @@ def test_a_killed_worker_stops_the_epoch_with_an_error_naming_the_fix(dataset):
 )
 def test_bad_augment_configs_are_named(overrides, message):
     with pytest.raises(ValueError, match=message):
-        ImageAugmentation(AugmentConfig.from_dict({"enable": True, **overrides}), SMALL_MODALITIES, 0)
+        TrainingAugmentation(AugmentConfig.from_dict({"enable": True, **overrides}), SMALL_MODALITIES, 0)
 
 
 @pytest.mark.parametrize("workers", [0, 1])
 def test_a_transform_that_resizes_is_named(workers):
-    augment = ImageAugmentation(
+    augment = TrainingAugmentation(
         AugmentConfig.from_dict(
             {
                 "enable": True,

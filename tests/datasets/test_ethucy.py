@@ -414,3 +414,40 @@ def test_fewer_than_one_worker_is_refused(tmp_path):
     with pytest.raises(ValueError, match="--workers 0: expected at least 1"):
         ethucy.convert(cut_ethucy_raw(tmp_path), ["eth"], tmp_path / "out", workers=0)
     assert not (tmp_path / "out").exists()
+
+
+def test_turned_windows_keep_velocities_the_steps_of_positions(converted):
+    """With the converter's planar declarations, a turned window is still one walk: each velocity is
+    the step between its positions, the past target is those positions from the last, neighbours
+    keep their distances and validity, and the north-up crop turns with them."""
+    import torch
+
+    from mmf_rl.datasets import AugmentConfig, TrainingAugmentation
+    from mmf_rl.keys import TARGET_PAST, obs_key
+
+    _, config, _ = converted
+    dataset = WindowDataset(DataConfig.from_dict(config), num_workers=0)
+    augment = TrainingAugmentation(AugmentConfig.from_dict({"rotation": 180}), dataset.specs, 0)
+    plain = next(iter(dataset.loader("train", 32, seed=0)))
+    turned = next(iter(dataset.loader("train", 32, seed=0, augment=augment)))
+    stats = dataset.normalizer.stats
+
+    def raw(batch, name):
+        return batch.get(obs_key(name)) * stats[f"{name}/std"] + stats[f"{name}/mean"]
+
+    walk = raw(turned, "trajectory")
+    positions, velocities = walk[..., :2], walk[..., 2:]
+    moved = velocities[:, 1:].norm(dim=-1) > 0  # 0 where the step before was not annotated
+    steps = (positions[:, 1:] - positions[:, :-1]) / ethucy.STEP_S
+    assert moved.sum() > 100
+    torch.testing.assert_close(steps[moved], velocities[:, 1:][moved], atol=2e-3, rtol=1e-3)
+    past = dataset.normalizer.denormalize_target(turned.get(TARGET_PAST))
+    torch.testing.assert_close(past, positions - positions[:, -1:], atol=2e-3, rtol=1e-3)
+    slots = raw(turned, "neighbours").unflatten(-1, (8, ethucy.SLOT_DIM))
+    plain_slots = raw(plain, "neighbours").unflatten(-1, (8, ethucy.SLOT_DIM))
+    assert torch.equal(slots[..., 4], plain_slots[..., 4])
+    torch.testing.assert_close(
+        slots[..., :2].norm(dim=-1), plain_slots[..., :2].norm(dim=-1), atol=1e-3, rtol=1e-4
+    )
+    scene = turned.get(obs_key("scene"))
+    assert config["modalities"]["scene"]["top_down"] and not torch.equal(scene, plain.get(obs_key("scene")))

@@ -11,7 +11,7 @@ from torchrl.record.loggers import CSVLogger
 from mmf_rl import keys
 from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.configuration import compose_config, to_container
-from mmf_rl.datasets import AugmentConfig, ImageAugmentation, WindowDataset
+from mmf_rl.datasets import AugmentConfig, TrainingAugmentation, WindowDataset
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster, build_loss, build_model
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, LossConfig, MissingModalityLoss
@@ -145,7 +145,7 @@ def augmented_run(data: WindowDataset, run_dir, seen_images: list) -> Trainer:
     model = build_model({"name": "forecaster", **SMALL_MODEL_SIZES["forecaster"]}, data.specs, 4, 3, 2)
     augment = to_container(compose_config("train", ["augment=lerobot", "augment.workers=1"]).augment)
     loader = data.loader(
-        "train", 16, seed=0, augment=ImageAugmentation(AugmentConfig.from_dict(augment), data.specs, 0)
+        "train", 16, seed=0, augment=TrainingAugmentation(AugmentConfig.from_dict(augment), data.specs, 0)
     )
     # 4 batches per epoch: the run resumes inside epoch 1 and crosses into epoch 2.
     config = trainer_config(total_steps=10, checkpoint_every=5, eval_every=100)
