@@ -9,12 +9,13 @@ For each fold (its test scene held out; train/val from the other scenes' ``_trai
 the paper model (the attention CVAE, ``model.prior=learned`` so that its 20 samples come from
 ``p(z | X)``; the fold's data config: ``deepsets`` neighbours, conv scene), LF-LSTM and MulT are
 trained ONCE on all modalities, their scene crops through lerobot's default image transforms
-(``augment=lerobot``; the baselines see an absent modality as zeros: the zero-fill protocol of the
-push accuracy benchmark); constant velocity and constant velocity with sampled
-heading noise (its angle std chosen on the fold's val split) need no training. Every model is
-scored in four modes (all modalities, without ``scene``, without ``neighbours``, trajectory only)
-on the same test windows: ADE/FDE of the point forecast and minADE20/minFDE20 per agent over 20
-samples (:mod:`mmf_rl.eval.trajectories`).
+(``augment=lerobot``) and every training window turned by a random angle (``augment.rotation=180``);
+the baselines see an absent modality as zeros (the zero-fill protocol of the push accuracy
+benchmark); constant velocity and constant velocity with sampled heading noise (its angle std
+chosen on the fold's val split) need no training. Every model is scored in four modes (all
+modalities, without ``scene``, without ``neighbours``, trajectory only) on the same test windows:
+ADE/FDE of the point forecast and minADE20/minFDE20 per agent over 20 samples
+(:mod:`mmf_rl.eval.trajectories`).
 
 The data is converted into ``--data`` when its fold configs are absent (``mmf-rl import ethucy``);
 the window cache is built once for all folds (``--data``/cache). Completed runs
@@ -52,8 +53,10 @@ TRAINED = {  # label -> model overrides
 }
 # Every trained model sees its scene crops through lerobot's default image transforms: trained on four
 # fixed reference frames, a model can learn their look (light, colour, sharpness), which the held-out
-# scene's frame does not share.
-AUGMENT = ("augment=lerobot",)
+# scene's frame does not share. And each training window is turned by a random angle (trajectories,
+# neighbours, target and the north-up crop together), as Trajectron++ trains on these files: otherwise
+# a model learns the training scenes' walking directions, which the held-out scene need not share.
+AUGMENT = ("augment=lerobot", "augment.rotation=180")
 DETERMINISTIC = ("LF-LSTM", "MulT", CV)
 HEADING_NOISE_GRID = (0.05, 0.1, 0.15, 0.2, 0.3, 0.45)  # radians, the sampler's std picked on val
 # The constant-velocity rows' recipes (see ``recipe``): they are computed together, from no training.
@@ -119,10 +122,23 @@ def ensure_data(args, folds: tuple[str, ...]) -> float:
     from mmf_rl.datasets import ethucy
 
     if all((args.data / f"{fold}.yaml").is_file() for fold in folds):
+        for fold in folds:
+            check_planar_declared(args.data / f"{fold}.yaml")
         return 0.0
     start = time.perf_counter()
     ethucy.convert(args.raw, sorted(ethucy.FOLDS), args.data)
     return time.perf_counter() - start
+
+
+def check_planar_declared(path: Path) -> None:
+    """A fold config converted before the converter declared the planar dims cannot be turned."""
+    import yaml
+
+    if not yaml.safe_load(path.read_text())["target"].get("planar"):
+        raise SystemExit(
+            f"{path} was converted by an older mmf-rl: it does not declare the planar dims that "
+            "augment.rotation turns; convert again into a new --data (or delete this one)"
+        )
 
 
 def fold_data(args, fold: str):
@@ -182,7 +198,7 @@ def recipe(args, budget: Budget, fold: str, label: str) -> list[str]:
 
 # Settings this file began to override after runs had recorded their recipes, with the value those
 # runs trained with (the configuration's default then): a recipe without one of them had that value.
-IMPLIED_BEFORE_OVERRIDDEN = {"trainer.seed": "0"}
+IMPLIED_BEFORE_OVERRIDDEN = {"trainer.seed": "0", "augment.rotation": "0"}
 
 
 def recipe_differences(expected: list[str], found: list[str]) -> list[str]:

@@ -144,3 +144,24 @@ def test_what_a_run_writes_is_the_recipe_its_resume_checks(tmp_path, monkeypatch
     assert [line.split(": ")[0] for line in refused] == [
         str(args.out / "zara1" / bench.slug(label)) for label in bench.TRAINED
     ]
+
+
+def test_a_run_trained_before_the_windows_were_turned_is_refused_as_unturned(tmp_path):
+    args = bench_args(tmp_path, "out", "--quick")
+    recipe = bench.recipe(args, bench.QUICK, "eth", bench.PAPER)
+    assert "augment.rotation=180" in recipe
+    write_scores(
+        args, "eth", bench.PAPER, recipe=[s for s in recipe if not s.startswith("augment.rotation=")]
+    )
+    assert bench.stale_runs(args, bench.QUICK, ["eth"]) == [
+        f"{args.out / 'eth' / bench.slug(bench.PAPER)}: augment.rotation: expected 180, found 0"
+    ]
+
+
+def test_fold_configs_converted_before_the_planar_dims_were_declared_are_refused(tmp_path):
+    args = bench_args(tmp_path, "out", "--quick")
+    args.data.mkdir(parents=True, exist_ok=True)
+    for fold in bench.QUICK.folds:
+        (args.data / f"{fold}.yaml").write_text("target: {feature: observation.trajectory, dims: [0, 1]}\n")
+    with pytest.raises(SystemExit, match=r"eth.yaml was converted by an older mmf-rl: .* convert again"):
+        bench.ensure_data(args, bench.QUICK.folds)
