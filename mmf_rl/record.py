@@ -47,22 +47,15 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import logging
-import multiprocessing as mp
 import os
-import queue
-import shutil
 import sys
-import tempfile
-import traceback
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from mmf_rl.datasets.cache import owned_temp_prefix, remove_stale_temp_dirs
 from mmf_rl.envs.push import (
     ACTION_NAMES,
     FORCE_NAMES,
@@ -73,8 +66,8 @@ from mmf_rl.envs.push import (
     camera_names,
 )
 from mmf_rl.envs.scripted import Actor, rollout
-
-logger = logging.getLogger(__name__)
+from mmf_rl.shards import ShardError, join_shards, run_shards
+from mmf_rl.temp_dirs import StagingError, staging_dir
 
 PROG = "mmf-rl record"
 TASK = "Push the block to the red target."
@@ -93,7 +86,8 @@ FAULTS_STREAM = 1  # keeps the fault generator independent of the episode's push
 
 
 class RecordError(ValueError):
-    """Bad arguments or destination; the message names the problem and the fix."""
+    """Bad arguments or destination, or a recording worker that failed; the message names the
+    problem (and the episodes the worker recorded)."""
 
 
 @dataclass(frozen=True)
@@ -204,9 +198,10 @@ def record_episode(
 
 
 def record_shard(
-    config: RecordConfig, root: Path, episode_indices: range, on_episode: Callable[[int], None]
+    config: RecordConfig, root: Path, episode_indices: range, progress: Callable[[int], None]
 ) -> None:
-    """Record ``episode_indices`` into a new LeRobot dataset at ``root``; report each episode."""
+    """Record ``episode_indices`` into a new LeRobot dataset at ``root``; ``progress(index)`` after
+    each episode."""
     from datasets.utils.logging import disable_progress_bar
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -241,25 +236,10 @@ def record_shard(
                 )
             # One encoder process per worker: the workers already fill the cores.
             dataset.save_episode(parallel_encoding=False)
-            on_episode(index)
+            progress(index)
         dataset.finalize()
     finally:
         env.close()
-
-
-def _worker(config: RecordConfig, root: Path, episode_indices: range, progress) -> None:
-    import torch
-
-    # One process per core already: a policy's torch ops must not spread over the others' cores.
-    torch.set_num_threads(1)
-    try:
-        record_shard(config, root, episode_indices, lambda index: progress.put(("episode", index)))
-    except KeyboardInterrupt:
-        return  # the parent saw the interrupt too and cleans up
-    except BaseException:
-        progress.put(("error", traceback.format_exc()))
-        return
-    progress.put(("done", None))
 
 
 def _check_destination(out: Path, overwrite: bool) -> None:
@@ -306,36 +286,16 @@ def _shard_ranges(episodes: int, workers: int) -> list[range]:
     return [range(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
 
 
-def _run_workers(config: RecordConfig, shard_roots: list[Path], ranges: list[range], bar) -> None:
-    # spawn, not fork: MuJoCo's GL contexts and torchcodec's decoders do not survive a fork.
-    context = mp.get_context("spawn")
-    progress = context.Queue()
-    processes = [
-        context.Process(target=_worker, args=(config, root, indices, progress), daemon=True)
-        for root, indices in zip(shard_roots, ranges, strict=True)
-    ]
-    for process in processes:
-        process.start()
-    running = len(processes)
+def _record_shards(config: RecordConfig, shard_roots: list[Path], ranges: list[range], bar) -> None:
+    """Record each range of episodes into its shard root, each in a worker process of its own."""
+    shards = [(config, root, indices) for root, indices in zip(shard_roots, ranges, strict=True)]
     try:
-        while running:
-            try:
-                kind, payload = progress.get(timeout=1.0)
-            except queue.Empty:
-                if any(p.exitcode not in (None, 0) for p in processes):
-                    raise RuntimeError("a recording worker died without a report (out of memory?)") from None
-                continue
-            if kind == "episode":
-                bar.update(1)
-            elif kind == "done":
-                running -= 1
-            else:
-                raise RuntimeError(f"a recording worker failed:\n{payload}")
-    finally:
-        for process in processes:
-            if process.is_alive():
-                process.terminate()
-            process.join()
+        run_shards(record_shard, shards, lambda _shard, _episode: bar.update(1))
+    except ShardError as failure:
+        failed = ranges[failure.shard]
+        raise RecordError(
+            f"recording episodes {failed.start}-{failed.stop - 1} failed: {failure.detail}"
+        ) from None
 
 
 def partial_prefix(out: Path) -> str:
@@ -343,23 +303,10 @@ def partial_prefix(out: Path) -> str:
     return f".{out.name}.partial-"
 
 
-@contextlib.contextmanager
-def _staging(out: Path) -> Iterator[Path]:
-    """A temporary directory beside ``out`` (same file system: the result is renamed into place),
-    removed on exit; stale ones of dead recordings are removed first."""
-    for stale in remove_stale_temp_dirs(out.parent, partial_prefix(out)):
-        logger.info("removed %s, left by a recording that is no longer running", stale)
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        work = Path(tempfile.mkdtemp(prefix=owned_temp_prefix(partial_prefix(out)), dir=out.parent))
-    except OSError as error:
-        raise RecordError(
-            f"cannot write next to --out {out} ({error.strerror}); choose a writable --out."
-        ) from None
-    try:
-        yield work
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+def _staging(out: Path) -> contextlib.AbstractContextManager[Path]:
+    """A temp dir beside ``out`` (the same file system: the result is renamed into place), removed
+    on exit; those of recordings that were killed are removed first."""
+    return staging_dir(out.parent, partial_prefix(out), "choose a writable --out.")
 
 
 def _publish(dataset_root: Path, out: Path, work: Path) -> None:
@@ -388,19 +335,9 @@ def record(config: RecordConfig) -> Path:
             if len(ranges) == 1:  # no worker process: spares a second import of torch and lerobot
                 record_shard(config, shard_roots[0], ranges[0], lambda _: bar.update(1))
             else:
-                _run_workers(config, shard_roots, ranges, bar)
-        if len(shard_roots) == 1:
-            dataset_root = shard_roots[0]
-        else:
-            from lerobot.datasets.aggregate import aggregate_datasets
-
-            dataset_root = work / "dataset"
-            aggregate_datasets(
-                repo_ids=[config.repo_id] * len(shard_roots),
-                aggr_repo_id=config.repo_id,
-                roots=shard_roots,
-                aggr_root=dataset_root,
-            )
+                _record_shards(config, shard_roots, ranges, bar)
+        dataset_root = work / "dataset"
+        join_shards(shard_roots, dataset_root, config.repo_id)
         _publish(dataset_root, out, work)
     return out
 
@@ -546,7 +483,7 @@ def run(args: argparse.Namespace, policy: Callable[[], Actor] | None = None) -> 
             policy=policy,
         )
         out = record(config)
-    except RecordError as error:
+    except (RecordError, StagingError) as error:
         print(f"{PROG}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

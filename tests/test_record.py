@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # before lerobot / huggingface_hub load
 
@@ -251,6 +252,25 @@ def test_interrupted_recording_leaves_nothing(tmp_path, capsys, monkeypatch):
     out = tmp_path / "push"
     code, err = _run_cli(["--out", str(out), "--episodes", "2", "--steps", "3"], capsys)
     assert code == 130 and "interrupted" in err
+    assert list(tmp_path.iterdir()) == [], "neither --out nor a temporary directory remains"
+
+
+@dataclass(frozen=True)
+class UnloadablePolicy:
+    """A `RecordConfig.policy` factory that fails in each worker process that calls it."""
+
+    def __call__(self):
+        raise ValueError("no world model in runs/missing")
+
+
+def test_a_failing_worker_is_a_one_line_error_naming_its_episodes(tmp_path, capsys):
+    args = record_module.build_parser().parse_args(
+        ["--out", str(tmp_path / "push"), "--episodes", "4", "--workers", "2", "--steps", "3"]
+    )
+    code = record_module.run(args, UnloadablePolicy())
+    err = capsys.readouterr().err.strip()
+    _assert_one_line_error(code, err, "failed: ValueError: no world model in runs/missing")
+    assert re.search(r"recording episodes (0-1|2-3) failed", err), err
     assert list(tmp_path.iterdir()) == [], "neither --out nor a temporary directory remains"
 
 

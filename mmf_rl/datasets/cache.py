@@ -48,10 +48,8 @@ import multiprocessing
 import os
 import re
 import shutil
-import socket
 import sys
 import tempfile
-import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -71,6 +69,7 @@ from mmf_rl.datasets.lerobot_source import (
     run_image_job,
     run_video_job,
 )
+from mmf_rl.temp_dirs import is_stale, owned_temp_prefix, remove_stale_temp_dirs
 
 logger = logging.getLogger(__name__)
 
@@ -85,11 +84,6 @@ PROGRESS_FILE = "progress.jsonl"
 FRAMES_READY = "frames.ready"
 # Free space a build leaves beyond the cache's own size (cache.json, filesystem slack).
 FREE_SPACE_MARGIN = 64 * 2**20
-# A temp dir of another host (a shared cache dir) or of an unknown owner is stale once nothing
-# in it has been written for this long; a live build writes frames continuously. One of this
-# host whose PID is alive is stale only after a day without writes (the PID was reused).
-STALE_BUILD_AGE_S = 3600
-STALE_REUSED_PID_AGE_S = 24 * 3600
 # Checksums: files up to this size are hashed whole (cheap next to opening the cache; see docs/results.md);
 # larger ones (image frames) by their size plus CHECKSUM_SAMPLES blocks of CHECKSUM_BLOCK bytes
 # spread from the first to the last byte, so an open stays cheap for a cache of any size.
@@ -598,62 +592,8 @@ def cache_damage(directory: Path) -> str | None:
     return None
 
 
-def _host() -> str:
-    """This host's name as it appears in temp dir names (no '-', which separates the fields)."""
-    return re.sub(r"[^A-Za-z0-9_.]", "_", socket.gethostname())
-
-
-def owned_temp_prefix(prefix: str) -> str:
-    """``prefix`` followed by this process's PID and host, which `remove_stale_temp_dirs` reads back."""
-    return f"{prefix}{os.getpid()}-{_host()}-"
-
-
 def _temp_prefix(name: str) -> str:
     return f"{owned_temp_prefix(BUILDING_PREFIX)}{name}-"
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # alive, owned by another user
-        return True
-    return True
-
-
-def _last_write(directory: Path) -> float:
-    times = [directory.stat().st_mtime]
-    for parent, _, files in os.walk(directory):
-        times.extend(os.stat(os.path.join(parent, f)).st_mtime for f in files)
-    return max(times)
-
-
-def _is_stale(directory: Path, prefix: str) -> bool:
-    """A temp dir whose writer is gone (same host) or that has not been written for long."""
-    owner = re.match(rf"{re.escape(prefix)}(\d+)-([^-]+)-", directory.name)
-    idle = time.time() - _last_write(directory)
-    if owner is not None and owner[2] == _host():
-        return not _pid_alive(int(owner[1])) or idle > STALE_REUSED_PID_AGE_S
-    # Another host's writer (no PID to ask), or one named before PIDs were recorded.
-    return idle > STALE_BUILD_AGE_S
-
-
-def remove_stale_temp_dirs(parent: Path, prefix: str) -> list[Path]:
-    """Delete the ``prefix*`` dirs in ``parent`` that killed writers left behind (never a live
-    one's); return them. Their names come from `owned_temp_prefix`."""
-    removed = []
-    if not parent.is_dir():
-        return removed
-    for directory in parent.glob(f"{glob.escape(prefix)}*"):
-        try:
-            stale = directory.is_dir() and _is_stale(directory, prefix)
-        except FileNotFoundError:  # removed meanwhile by its writer or another cleaner
-            continue
-        if stale:
-            shutil.rmtree(directory, ignore_errors=True)
-            removed.append(directory)
-    return removed
 
 
 def remove_stale_builds(cache_dir: Path) -> None:
@@ -707,7 +647,7 @@ def _resumable_build(destination: Path) -> Path | None:
     process's name (so no other process takes it for stale); None if there is none."""
     pattern = f"{glob.escape(BUILDING_PREFIX)}*-{glob.escape(destination.name)}-*"
     for directory in sorted(destination.parent.glob(pattern)):
-        if (directory / FRAMES_READY).is_file() and _is_stale(directory, BUILDING_PREFIX):
+        if (directory / FRAMES_READY).is_file() and is_stale(directory, BUILDING_PREFIX):
             claimed = Path(tempfile.mkdtemp(prefix=_temp_prefix(destination.name), dir=destination.parent))
             os.rename(directory, claimed)  # replaces the empty temp dir
             return claimed

@@ -35,18 +35,11 @@ leaves no dataset; the next one removes what a killed one left and starts over.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
-import multiprocessing as mp
 import os
-import queue
 import re
-import shutil
-import tempfile
-import threading
-import traceback
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,8 +48,9 @@ import pandas as pd
 import yaml
 
 from mmf_rl.configuration import report_command_error, write_text_atomic
-from mmf_rl.datasets.cache import owned_temp_prefix, remove_stale_temp_dirs
 from mmf_rl.datasets.config import DataConfig
+from mmf_rl.shards import ShardError, join_shards, run_shards
+from mmf_rl.temp_dirs import staging_dir
 
 logger = logging.getLogger(__name__)
 
@@ -312,9 +306,11 @@ def write_dataset(
     num_slots: int = 8,
     crop: CropConfig = CropConfig(),
     min_length: int = HISTORY + HORIZON,
+    progress: Callable[[str], None] = logger.info,
 ) -> dict[str, list[int]]:
     """Write ``{part: [(sequence, table)]}`` as one LeRobot dataset at ``root``; its episodes per part
     (a part is a split, or one converted file). A part that fails raises `PartError` naming it.
+    ``progress`` gets a line per converted file.
 
     Segments shorter than ``min_length`` steps give no window and are left out (they still serve as
     neighbours). Scene crops are stored as images in the parquet files (no video encoding).
@@ -347,7 +343,7 @@ def write_dataset(
                     parts[name] += [save_episode(dataset, episode, sequence) for episode in episodes]
                 except Exception as error:
                     raise PartError(name, f"{type(error).__name__}: {error}") from error
-                logger.info("%s: %s -> %d episodes", name, sequence, len(episodes))
+                progress(f"{name}: {sequence} -> {len(episodes)} episodes")
         dataset.finalize()
     return parts
 
@@ -429,27 +425,6 @@ def shard_parts(rows: list[int], workers: int) -> list[range]:
     return [range(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def _exit_with_parent() -> None:
-    """End this worker process when its parent ends: a killed conversion leaves no worker that goes
-    on using a core for a dataset nobody will join."""
-    parent = mp.parent_process()
-    threading.Thread(target=lambda: (parent.join(), os._exit(1)), daemon=True).start()
-
-
-def _shard_worker(
-    index: int, root: Path, tables: dict, raw_dir: Path, num_slots: int, crop: CropConfig, results
-) -> None:
-    _exit_with_parent()
-    try:
-        results.put(("done", index, write_dataset(root, tables, raw_dir, num_slots, crop)))
-    except KeyboardInterrupt:
-        raise SystemExit(1) from None  # the parent was interrupted too; no traceback per worker
-    except PartError as error:
-        results.put(("error", index, error.part, error.detail, traceback.format_exc()))
-    except Exception as error:
-        results.put(("error", index, None, f"{type(error).__name__}: {error}", traceback.format_exc()))
-
-
 def _failure(parts: list[str], detail: str, files: dict[str, tuple[str, Path]]) -> ConversionError:
     named = ", ".join(f"{part} ({files[part][1]})" for part in parts)
     return ConversionError(f"converting ETH/UCY {named} failed: {detail}")
@@ -458,41 +433,15 @@ def _failure(parts: list[str], detail: str, files: dict[str, tuple[str, Path]]) 
 def _write_shards(
     roots: list[Path], shards: list[dict], raw_dir: Path, num_slots: int, crop, files: dict
 ) -> list[dict[str, list[int]]]:
-    """Write each shard into its root in a spawned process; their episodes per part, in order.
-    The first failure stops them all and is raised as a `ConversionError` naming its part."""
-    # spawn, not fork: the parent may hold threads (torch, logging) that a fork copies half-locked.
-    context = mp.get_context("spawn")
-    results = context.Queue()
-    processes = [
-        context.Process(target=_shard_worker, args=(k, root, shard, raw_dir, num_slots, crop, results))
-        for k, (root, shard) in enumerate(zip(roots, shards, strict=True))
-    ]
-    for process in processes:
-        process.start()
-    done: dict[int, dict[str, list[int]]] = {}
+    """Write each shard into its root in a worker process of its own; their episodes per part, in
+    order. The first failure stops them all and is raised as a `ConversionError` naming its part."""
+    args = [(root, shard, raw_dir, num_slots, crop) for root, shard in zip(roots, shards, strict=True)]
     try:
-        while len(done) < len(processes):
-            try:
-                report = results.get(timeout=1.0)
-            except queue.Empty:
-                # A worker reports before it exits with 0; any other exit is a death (killed, out of memory).
-                for k, process in enumerate(processes):
-                    if process.exitcode not in (None, 0):
-                        detail = f"its worker died with exit code {process.exitcode} (out of memory?)"
-                        raise _failure(list(shards[k]), detail, files) from None
-                continue
-            if report[0] == "error":
-                _, k, part, detail, trace = report
-                logger.debug("conversion worker %d:\n%s", k, trace)
-                raise _failure([part] if part is not None else list(shards[k]), detail, files)
-            done[report[1]] = report[2]
-    finally:
-        for process in processes:
-            # Stopped only on a failure: a worker that reported may still be cleaning up on its way out.
-            if len(done) < len(processes) and process.is_alive():
-                process.terminate()
-            process.join()
-    return [done[k] for k in range(len(processes))]
+        return run_shards(write_dataset, args, lambda _shard, line: logger.info("%s", line))
+    except ShardError as failure:
+        if isinstance(failure.error, PartError):
+            raise _failure([failure.error.part], failure.error.detail, files) from None
+        raise _failure(list(shards[failure.shard]), failure.detail, files) from None
 
 
 def write_parts(
@@ -522,28 +471,11 @@ def write_parts(
     offsets = np.cumsum([0, *counts[:-1]]).tolist()
     # A shard without an episode (only tracks too short) has nothing to add, nor the metadata to join.
     kept = [root for root, count in zip(roots, counts, strict=True) if count > 0]
-    from lerobot.datasets.aggregate import aggregate_datasets
-
-    repo_id = f"local/{DATASET_NAME}"
-    aggregate_datasets(repo_ids=[repo_id] * len(kept), aggr_repo_id=repo_id, roots=kept, aggr_root=dataset)
+    join_shards(kept, dataset, f"local/{DATASET_NAME}")
     parts = {}
     for shard, offset in zip(written, offsets, strict=True):
         parts |= {name: [offset + e for e in episodes] for name, episodes in shard.items()}
     return dataset, parts
-
-
-@contextlib.contextmanager
-def _staging(out: Path) -> Iterator[Path]:
-    """A temp dir under ``out`` (the dataset's file system: it is renamed into place), removed on
-    exit; those of conversions that were killed are removed first."""
-    for stale in remove_stale_temp_dirs(out, STAGING_PREFIX):
-        logger.info("removed %s, left by a conversion that is no longer running", stale)
-    out.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=owned_temp_prefix(STAGING_PREFIX), dir=out))
-    try:
-        yield work
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
 
 
 def default_workers() -> int:
@@ -576,7 +508,7 @@ def convert(
     files = part_files(raw_dir, folds)  # checks every file before anything is written
     tables = {part: [(sequence, read_sequence(path))] for part, (sequence, path) in files.items()}
     workers = min(workers or default_workers(), len(tables))
-    with _staging(out) as work:
+    with staging_dir(out, STAGING_PREFIX, "choose a writable --out") as work:
         dataset, parts = write_parts(work, tables, files, raw_dir, num_slots, crop, workers)
         os.rename(dataset, root)
     everything = sorted(e for episodes in parts.values() for e in episodes)

@@ -14,6 +14,7 @@ import pytest
 import torch
 
 import mmf_rl.datasets.cache as cache
+from mmf_rl import temp_dirs
 from mmf_rl.datasets.lerobot_source import V21_CONVERTER
 from mmf_rl.datasets.synthetic import IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
@@ -235,12 +236,12 @@ def test_stale_build_dirs_are_removed_live_ones_kept(synthetic_root, tmp_path, m
     assert seen[0].startswith(own_prefix)
     dead = make_temp_dir(tmp_path, seen[0].replace(own_prefix, f".building-{exited_pid()}-", 1))
     live = make_temp_dir(tmp_path, seen[0] + "x")  # this process: a build in progress
-    reused_pid = make_temp_dir(tmp_path, seen[0] + "y", age_s=2 * cache.STALE_REUSED_PID_AGE_S)
+    reused_pid = make_temp_dir(tmp_path, seen[0] + "y", age_s=2 * temp_dirs.STALE_REUSED_PID_AGE_S)
     other_host_recent = make_temp_dir(tmp_path, ".building-123-otherhost-push-abc")
     other_host_old = make_temp_dir(
-        tmp_path, ".building-123-otherhost-push-def", age_s=2 * cache.STALE_BUILD_AGE_S
+        tmp_path, ".building-123-otherhost-push-def", age_s=2 * temp_dirs.STALE_AGE_S
     )
-    unnamed_old = make_temp_dir(tmp_path, ".building-push-0123abcd-ghi", age_s=2 * cache.STALE_BUILD_AGE_S)
+    unnamed_old = make_temp_dir(tmp_path, ".building-push-0123abcd-ghi", age_s=2 * temp_dirs.STALE_AGE_S)
 
     dataset = open_quietly(config)
     assert dataset.built

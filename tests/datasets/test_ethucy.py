@@ -388,7 +388,7 @@ def _dead_pid() -> int:
 @pytest.mark.parametrize("broken", ["scene image", "trajectory file"])
 def test_a_broken_file_is_named_and_leaves_no_dataset(tmp_path, capsys, broken):
     from mmf_rl.cli import main
-    from mmf_rl.datasets.cache import owned_temp_prefix
+    from mmf_rl.temp_dirs import owned_temp_prefix
 
     raw, out = cut_ethucy_raw(tmp_path), tmp_path / "out"
     if broken == "scene image":  # read in a worker process, while converting the zara01 files

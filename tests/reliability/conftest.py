@@ -90,6 +90,14 @@ def wait_for(condition, process, timeout_s: float, what: str) -> None:
         time.sleep(POLL_S)
 
 
+def running(pid: int) -> bool:
+    """Alive and not a zombie (a container's init may never reap an orphan)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
 def cli_command(*args: str) -> list[str]:
     return [sys.executable, "-m", "mmf_rl.cli", *args]
 

@@ -10,7 +10,7 @@ import pytest
 
 from mmf_rl.datasets import ethucy
 from tests.datasets.conftest import SHARED_DATA, cut_ethucy_raw
-from tests.reliability.conftest import background, cli_command, wait_for
+from tests.reliability.conftest import background, cli_command, running, wait_for
 
 pytestmark = pytest.mark.skipif(
     not (SHARED_DATA / "ethucy" / "trajectories" / "all_data" / "biwi_eth.txt").is_file(),
@@ -29,14 +29,6 @@ def _children(pid: int) -> list[int]:
         if int(fields[1]) == pid:
             children.append(int(stat.parent.name))
     return children
-
-
-def _running(pid: int) -> bool:
-    """Alive and not a zombie (a container's init may never reap an orphan)."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
 
 
 def _episodes(root: Path) -> int:
@@ -63,9 +55,9 @@ def test_killed_conversion_leaves_no_dataset_and_the_next_one_completes(tmp_path
         process.kill()  # the parent alone: its workers must notice
         process.wait()
         deadline = time.monotonic() + 60
-        while any(map(_running, workers)) and time.monotonic() < deadline:
+        while any(map(running, workers)) and time.monotonic() < deadline:
             time.sleep(0.1)
-        assert not any(map(_running, workers)), "a worker outlived its killed conversion"
+        assert not any(map(running, workers)), "a worker outlived its killed conversion"
     assert not (out / ethucy.DATASET_NAME).exists() and not (out / "eth.yaml").exists()
     [partial] = out.glob(f"{ethucy.STAGING_PREFIX}*")
     assert f"-{process.pid}-" in partial.name, "the staging dir names its owner"

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from mmf_rl.datasets import DataConfig, WindowDataset
-from mmf_rl.datasets.cache import owned_temp_prefix
 from mmf_rl.record import RecordConfig, partial_prefix, record
+from mmf_rl.temp_dirs import owned_temp_prefix
 from tests.reliability.conftest import background, cli_command, wait_for
 
 
