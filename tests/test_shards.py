@@ -5,7 +5,6 @@ import os
 import signal
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -113,7 +112,7 @@ def count_or_die(dies: bool, how: str, progress) -> list[int]:
 
 
 def test_the_workers_end_when_their_parent_is_killed(tmp_path):
-    from tests.reliability.conftest import background, running, wait_for
+    from tests.reliability.conftest import background, kill_parent_and_check_workers_end, wait_for
 
     script = (
         "import sys\n"
@@ -124,9 +123,4 @@ def test_the_workers_end_when_their_parent_is_killed(tmp_path):
     with background([sys.executable, "-c", script, str(tmp_path)]) as process:
         wait_for(lambda: len(list(tmp_path.glob("*.pid"))) == 2, process, 120, "two started workers")
         workers = [int(p.stem) for p in tmp_path.glob("*.pid")]
-        process.kill()  # the parent alone: its workers must notice
-        process.wait()
-        deadline = time.monotonic() + 60
-        while any(map(running, workers)) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert not any(map(running, workers)), "a worker outlived its killed parent"
+        kill_parent_and_check_workers_end(process, workers, "parent")

@@ -98,6 +98,17 @@ def running(pid: int) -> bool:
         return False
 
 
+def kill_parent_and_check_workers_end(process, workers: list[int], what: str) -> None:
+    """SIGKILL ``process`` alone (it cannot stop its workers) and wait up to a minute for every one of
+    ``workers`` to notice and end."""
+    process.kill()
+    process.wait()
+    deadline = time.monotonic() + 60
+    while any(map(running, workers)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(map(running, workers)), f"a worker outlived its killed {what}"
+
+
 def cli_command(*args: str) -> list[str]:
     return [sys.executable, "-m", "mmf_rl.cli", *args]
 

@@ -3,14 +3,13 @@ the next conversion removes the staging dir and completes."""
 
 import json
 import logging
-import time
 from pathlib import Path
 
 import pytest
 
 from mmf_rl.datasets import ethucy
 from tests.datasets.conftest import SHARED_DATA, cut_ethucy_raw
-from tests.reliability.conftest import background, cli_command, running, wait_for
+from tests.reliability.conftest import background, cli_command, kill_parent_and_check_workers_end, wait_for
 
 pytestmark = pytest.mark.skipif(
     not (SHARED_DATA / "ethucy" / "trajectories" / "all_data" / "biwi_eth.txt").is_file(),
@@ -52,12 +51,7 @@ def test_killed_conversion_leaves_no_dataset_and_the_next_one_completes(tmp_path
         wait_for(lambda: _shards_started(out), process, 300, "two started shards")
         workers = _children(process.pid)
         assert len(workers) >= 2
-        process.kill()  # the parent alone: its workers must notice
-        process.wait()
-        deadline = time.monotonic() + 60
-        while any(map(running, workers)) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert not any(map(running, workers)), "a worker outlived its killed conversion"
+        kill_parent_and_check_workers_end(process, workers, "conversion")
     assert not (out / ethucy.DATASET_NAME).exists() and not (out / "eth.yaml").exists()
     [partial] = out.glob(f"{ethucy.STAGING_PREFIX}*")
     assert f"-{process.pid}-" in partial.name, "the staging dir names its owner"
