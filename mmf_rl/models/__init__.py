@@ -19,6 +19,7 @@ from mmf_rl.models.registry import (
     model_from_saved_config,
     register_model,
     saved_config,
+    trained_loss_terms,
 )
 
 __all__ = [
@@ -43,4 +44,5 @@ __all__ = [
     "model_from_saved_config",
     "register_model",
     "saved_config",
+    "trained_loss_terms",
 ]

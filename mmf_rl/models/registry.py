@@ -106,10 +106,14 @@ def build_model(
     return entry.model_cls(entry.config_cls.from_dict(fields))
 
 
+def trained_loss_terms(name: str, loss_cfg: LossConfig) -> tuple[str, ...]:
+    """The loss terms model ``name`` trains with: the loss config's ``terms``, else the model's own."""
+    return tuple(loss_cfg.terms) if loss_cfg.terms is not None else model_entry(name).loss_terms
+
+
 def build_loss(name: str, model: nn.Module, loss_cfg: LossConfig) -> nn.Module:
     """The losses model ``name`` trains with (or the loss config's ``terms``), weighted by the loss config."""
-    terms = loss_cfg.terms if loss_cfg.terms is not None else model_entry(name).loss_terms
-    return build_loss_terms(terms, model, loss_cfg)
+    return build_loss_terms(trained_loss_terms(name, loss_cfg), model, loss_cfg)
 
 
 def saved_config(name: str, model: nn.Module) -> dict:

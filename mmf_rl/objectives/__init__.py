@@ -4,7 +4,13 @@ from mmf_rl.objectives.config import LossConfig
 from mmf_rl.objectives.elbo import ELBOLoss
 from mmf_rl.objectives.missing_modality import MissingModalityLoss
 from mmf_rl.objectives.nll import GaussianNLLLoss
-from mmf_rl.objectives.registry import LOSS_TERMS, build_loss_terms, loss_term, register_loss_term
+from mmf_rl.objectives.registry import (
+    LOSS_TERMS,
+    build_loss_terms,
+    loss_term,
+    register_loss_term,
+    terms_reading,
+)
 
 __all__ = [
     "CombinedLoss",
@@ -20,4 +26,5 @@ __all__ = [
     "gaussian_nll",
     "loss_term",
     "register_loss_term",
+    "terms_reading",
 ]

@@ -2,13 +2,14 @@
 
 A term is a :class:`~mmf_rl.objectives.ForecasterLossBase` subclass with ``@register_loss_term(name)``;
 its ``from_config(model, loss_cfg)`` builds it from the loss config group (``None``: the config
-turns it off). A new term is one class plus that decorator.
+turns it off) and its ``config_fields`` name the settings it reads. A new term is one class plus that
+decorator.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 from torch import nn
 
@@ -48,6 +49,16 @@ def loss_term(name: str) -> type[ForecasterLossBase]:
             "(a new term is a ForecasterLossBase subclass with @register_loss_term(name))"
         )
     return LOSS_TERMS[name]
+
+
+def terms_reading(setting: str, names: Iterable[str] | None = None) -> list[str]:
+    """The loss terms among ``names`` (default: every registered one) whose ``from_config`` reads
+    ``loss.<setting>``."""
+    return [
+        name
+        for name in (sorted(LOSS_TERMS) if names is None else names)
+        if setting in loss_term(name).config_fields
+    ]
 
 
 def build_loss_terms(names: Sequence[str], model: nn.Module, loss_cfg: LossConfig) -> ForecasterLossBase:
