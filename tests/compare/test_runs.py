@@ -3,6 +3,7 @@ and the training rate of a run."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import torch
 
 from mmf_rl.compare import entries, runs
 from mmf_rl.compare.entries import Budget, Entry, Study
+from mmf_rl.configuration import compose_config
 from tests.compare.helpers import PUSH_MODALITIES
 
 
@@ -38,6 +40,18 @@ def test_the_data_overrides_follow_the_entrys_and_the_budget_follows_them(tmp_pa
     assert list(cfg.data.image_size) == [32, 32] and cfg.model.name == "mult"
     default_size = runs.compose_train(entries.PAPER, 0, study(tmp_path, image_size=None), tmp_path / "run")
     assert list(default_size.data.image_size) == [64, 64]  # the data config's
+
+
+def test_the_kl_warmup_goes_to_the_entries_whose_loss_has_a_kl(tmp_path):
+    s = dataclasses.replace(study(tmp_path), budget=Budget(steps=100, batch_size=32, seeds=(0,)))
+    warmup = {
+        e.label: runs.compose_train(e, 0, s, tmp_path / "run").loss.kl_warmup_steps for e in entries.CATALOGUE
+    }
+    trained_without_elbo = {"LF-LSTM", "MulT", "LF-LSTM (retrained)", "MulT (retrained)"}
+    assert {label for label, steps in warmup.items() if steps != 100 // 5} == trained_without_elbo
+    assert {warmup[label] for label in trained_without_elbo} == {
+        compose_config("train", []).loss.kl_warmup_steps
+    }
 
 
 def test_entries_are_checked_against_the_configs_before_any_training(tmp_path):
