@@ -10,6 +10,9 @@ from pathlib import Path
 import pytest
 
 from benchmarks import ethucy as bench
+from mmf_rl.configuration import compose_config, to_container
+from mmf_rl.models import check_loss_settings
+from mmf_rl.objectives import LossConfig, default_loss_config
 from tests.conftest import run_bench
 
 ALL_ROWS = [*bench.TRAINED, bench.CV, bench.CV_NOISE]
@@ -169,8 +172,12 @@ def test_fold_configs_converted_before_the_planar_dims_were_declared_are_refused
 
 @pytest.mark.parametrize("budget", [bench.QUICK, bench.FULL])
 @pytest.mark.parametrize("label", list(bench.TRAINED))
-def test_the_kl_warmup_goes_to_the_paper_model_only(tmp_path, budget, label):
+def test_every_trained_model_is_given_only_loss_settings_its_loss_reads(tmp_path, budget, label):
+    """The recipe is the training overrides but where the data and the run live: composed on the default
+    data, the trainer's check of the loss settings sees what the benchmark's training sees."""
     recipe = bench.recipe(bench_args(tmp_path, "out"), budget, "eth", label)
+    cfg = compose_config("train", recipe)
+    check_loss_settings(cfg.model.name, LossConfig.from_dict(to_container(cfg.loss)), default_loss_config())
     assert (f"loss.kl_warmup_steps={min(200, budget.steps // 5)}" in recipe) == (label == bench.PAPER)
 
 

@@ -87,21 +87,28 @@ def open_data(study: Study):
 
 
 def check_entries(study: Study) -> None:
-    """Compose every entry's training config before the first training: an option this build lacks
-    fails here in seconds, naming the entry, not after an hour of runs."""
-    from mmf_rl.configuration import ConfigError
+    """Compose every entry's training config before the first training: an option this build lacks, or
+    a loss option the entry's model does not train with, fails here in seconds, naming the entry, not
+    after an hour of runs."""
+    from mmf_rl.configuration import to_container
+    from mmf_rl.models import check_loss_settings
+    from mmf_rl.models.registry import DEFAULT_MODEL
+    from mmf_rl.objectives import LossConfig, default_loss_config
 
+    defaults = default_loss_config(study.config_dirs)
     problems = []
     for entry in study.entries:
         try:
-            compose_train(entry, 0, study, study.out / "check")
-        except ConfigError as err:
+            cfg = compose_train(entry, 0, study, study.out / "check")
+            loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
+            check_loss_settings(cfg.model.get("name", DEFAULT_MODEL), loss_cfg, defaults)
+        except ValueError as err:  # a ConfigError, or a bad value of the loss config
             problems.append(f"{entry.label!r} ({' '.join(entry.overrides)}): {' '.join(str(err).split())}")
     if problems:
         raise ValueError(
-            "these entries do not compose with this build's configs:\n  "
+            "these entries do not compose with this build's configs, or set what their model ignores:\n  "
             + "\n  ".join(problems)
-            + "\nleave them out with --entries, or add the option they set"
+            + "\nleave them out with --entries, or add the option they set (remove one their model ignores)"
         )
 
 

@@ -60,7 +60,8 @@ class ForecasterLossBase(LossModule):
     losses list their networks' inputs.
 
     ``config_fields`` names the :class:`~mmf_rl.objectives.LossConfig` fields :meth:`from_config`
-    reads: a registered term lists every one it reads.
+    reads: a registered term lists every one it reads, so that a setting none of a model's terms reads
+    is refused (``build_loss_terms``) rather than silently ignored.
     """
 
     REDUCTIONS = ("mean", "sum", "none")

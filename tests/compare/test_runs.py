@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import runpy
 from pathlib import Path
 
 import pytest
@@ -12,8 +13,11 @@ import torch
 
 from mmf_rl.compare import entries, runs
 from mmf_rl.compare.entries import Budget, Entry, Study
-from mmf_rl.configuration import compose_config
+from mmf_rl.models import MODELS
+from mmf_rl.objectives import default_loss_config
 from tests.compare.helpers import PUSH_MODALITIES
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def study(tmp_path: Path, chosen=(entries.PAPER,), image_size: int | None = 32) -> Study:
@@ -49,9 +53,7 @@ def test_the_kl_warmup_goes_to_the_entries_whose_loss_has_a_kl(tmp_path):
     }
     trained_without_elbo = {"LF-LSTM", "MulT", "LF-LSTM (retrained)", "MulT (retrained)"}
     assert {label for label, steps in warmup.items() if steps != 100 // 5} == trained_without_elbo
-    assert {warmup[label] for label in trained_without_elbo} == {
-        compose_config("train", []).loss.kl_warmup_steps
-    }
+    assert {warmup[label] for label in trained_without_elbo} == {default_loss_config().kl_warmup_steps}
 
 
 def test_entries_are_checked_against_the_configs_before_any_training(tmp_path):
@@ -59,6 +61,27 @@ def test_entries_are_checked_against_the_configs_before_any_training(tmp_path):
     bogus = Entry("paper typo", "variant", ("model=forecaster", "model.fusoin=sum"))
     with pytest.raises(ValueError, match=r"'paper typo' \(model=forecaster model.fusoin=sum\)"):
         runs.check_entries(study(tmp_path, (entries.PAPER, bogus)))
+    ignored = Entry("MulT best-of-K", "zero-fill", ("model=mult", "loss.best_of_k_weight=1"))
+    with pytest.raises(
+        ValueError,
+        match=r"'MulT best-of-K' \(model=mult loss.best_of_k_weight=1\): loss.best_of_k_weight=1 is",
+    ):
+        runs.check_entries(study(tmp_path, (entries.PAPER, ignored)))
+
+
+@pytest.fixture
+def benchmark_entries():
+    """A benchmark script's ``ENTRIES``, loaded as ``mmf-rl bench`` runs it (some register models of
+    their own: the built-in ones only are left registered after)."""
+    before = dict(MODELS)
+    yield lambda name: runpy.run_path(str(REPO / "benchmarks" / f"{name}.py"), run_name="entries")["ENTRIES"]
+    MODELS.clear()
+    MODELS.update(before)
+
+
+@pytest.mark.parametrize("benchmark", ["accuracy", "mult_gap", "real_humanoid"])
+def test_every_benchmark_entry_sets_only_loss_options_its_model_reads(benchmark, benchmark_entries, tmp_path):
+    runs.check_entries(study(tmp_path, benchmark_entries(benchmark)))
 
 
 def test_completed_runs_of_another_budget_are_refused(tmp_path):
