@@ -10,6 +10,9 @@ from pathlib import Path
 import pytest
 
 from benchmarks import ethucy as bench
+from mmf_rl.configuration import compose_config, to_container
+from mmf_rl.models import check_loss_settings
+from mmf_rl.objectives import LossConfig, default_loss_config
 from tests.conftest import run_bench
 
 ALL_ROWS = [*bench.TRAINED, bench.CV, bench.CV_NOISE]
@@ -165,3 +168,34 @@ def test_fold_configs_converted_before_the_planar_dims_were_declared_are_refused
         (args.data / f"{fold}.yaml").write_text("target: {feature: observation.trajectory, dims: [0, 1]}\n")
     with pytest.raises(SystemExit, match=r"eth.yaml was converted by an older mmf-rl: .* convert again"):
         bench.ensure_data(args, bench.QUICK.folds)
+
+
+@pytest.mark.parametrize("budget", [bench.QUICK, bench.FULL])
+@pytest.mark.parametrize("label", list(bench.TRAINED))
+def test_every_trained_model_is_given_only_loss_settings_its_loss_reads(tmp_path, budget, label):
+    """The recipe is the training overrides but where the data and the run live: composed on the default
+    data, the trainer's check of the loss settings sees what the benchmark's training sees."""
+    recipe = bench.recipe(bench_args(tmp_path, "out"), budget, "eth", label)
+    cfg = compose_config("train", recipe)
+    check_loss_settings(cfg.model.name, LossConfig.from_dict(to_container(cfg.loss)), default_loss_config())
+    assert (f"loss.kl_warmup_steps={min(200, budget.steps // 5)}" in recipe) == (label == bench.PAPER)
+
+
+def test_a_baselines_recipe_with_the_kl_warmup_it_never_read_is_reused(tmp_path):
+    """Before the trainer refused them, every trained model was given the paper model's KL warm-up."""
+    args = bench_args(tmp_path, "out", "--quick")
+    for label in ("LF-LSTM", "MulT"):
+        recipe = bench.recipe(args, bench.QUICK, "hotel", label)
+        assert not any(s.startswith("loss.") for s in recipe)
+        write_scores(args, "hotel", label, recipe=[*recipe, "loss.kl_warmup_steps=60"])
+    paper = bench.recipe(args, bench.QUICK, "hotel", bench.PAPER)
+    assert "loss.kl_warmup_steps=160" in paper
+    write_scores(
+        args,
+        "hotel",
+        bench.PAPER,
+        recipe=[s if not s.startswith("loss.") else "loss.kl_warmup_steps=60" for s in paper],
+    )
+    assert bench.stale_runs(args, bench.QUICK, ["hotel"]) == [
+        f"{args.out / 'hotel' / bench.slug(bench.PAPER)}: loss.kl_warmup_steps: expected 160, found 60"
+    ]

@@ -42,13 +42,30 @@ def train_overrides(
         f"trainer.eval_every={budget.steps}",
         f"trainer.checkpoint_every={budget.steps}",
         f"trainer.warmup_steps={min(100, budget.steps // 10)}",
-        f"loss.kl_warmup_steps={min(200, budget.steps // 5)}",
+        *kl_warmup(entry, study, extra),
         "trainer.keep_checkpoints=1",
         "trainer.progress_bar=false",
         "logger=csv",
         "num_workers=2",
         f"device={study.device}",
     ]
+
+
+def kl_warmup(entry: Entry, study: Study, extra: tuple[str, ...]) -> list[str]:
+    """The budget's KL warm-up, for an entry whose loss has a KL to warm up (the ELBO's: the paper model,
+    MVAE); not for LF-LSTM's or MulT's NLL, whose trainer refuses a loss setting none of its terms reads."""
+    from mmf_rl.configuration import compose_config, to_container
+    from mmf_rl.models import trained_loss_terms
+    from mmf_rl.models.registry import DEFAULT_MODEL
+    from mmf_rl.objectives import LossConfig, terms_reading
+
+    cfg = compose_config("train", [*entry.overrides, *extra, *study.data_overrides], list(study.config_dirs))
+    terms = trained_loss_terms(
+        cfg.model.get("name", DEFAULT_MODEL), LossConfig.from_dict(to_container(cfg.loss))
+    )
+    if not terms_reading("kl_warmup_steps", terms):
+        return []
+    return [f"loss.kl_warmup_steps={min(200, study.budget.steps // 5)}"]
 
 
 def compose_train(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[str, ...] = ()):
@@ -70,21 +87,28 @@ def open_data(study: Study):
 
 
 def check_entries(study: Study) -> None:
-    """Compose every entry's training config before the first training: an option this build lacks
-    fails here in seconds, naming the entry, not after an hour of runs."""
-    from mmf_rl.configuration import ConfigError
+    """Compose every entry's training config before the first training: an option this build lacks, or
+    a loss option the entry's model does not train with, fails here in seconds, naming the entry, not
+    after an hour of runs."""
+    from mmf_rl.configuration import to_container
+    from mmf_rl.models import check_loss_settings
+    from mmf_rl.models.registry import DEFAULT_MODEL
+    from mmf_rl.objectives import LossConfig, default_loss_config
 
+    defaults = default_loss_config(study.config_dirs)
     problems = []
     for entry in study.entries:
         try:
-            compose_train(entry, 0, study, study.out / "check")
-        except ConfigError as err:
+            cfg = compose_train(entry, 0, study, study.out / "check")
+            loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
+            check_loss_settings(cfg.model.get("name", DEFAULT_MODEL), loss_cfg, defaults)
+        except ValueError as err:  # a ConfigError, or a bad value of the loss config
             problems.append(f"{entry.label!r} ({' '.join(entry.overrides)}): {' '.join(str(err).split())}")
     if problems:
         raise ValueError(
-            "these entries do not compose with this build's configs:\n  "
+            "these entries do not compose with this build's configs, or set what their model ignores:\n  "
             + "\n  ".join(problems)
-            + "\nleave them out with --entries, or add the option they set"
+            + "\nleave them out with --entries, or add the option they set (remove one their model ignores)"
         )
 
 

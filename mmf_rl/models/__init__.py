@@ -14,11 +14,13 @@ from mmf_rl.models.registry import (
     MODELS,
     build_loss,
     build_model,
+    check_loss_settings,
     model_config_with_overrides,
     model_entry,
     model_from_saved_config,
     register_model,
     saved_config,
+    trained_loss_terms,
 )
 
 __all__ = [
@@ -34,6 +36,7 @@ __all__ = [
     "TrainedModelSource",
     "build_loss",
     "build_model",
+    "check_loss_settings",
     "from_pretrained",
     "init_weights_from",
     "load_trained_model",
@@ -43,4 +46,5 @@ __all__ = [
     "model_from_saved_config",
     "register_model",
     "saved_config",
+    "trained_loss_terms",
 ]

@@ -18,7 +18,7 @@ from torch import nn
 
 from mmf_rl.configuration import ConfigError
 from mmf_rl.keys import ModalitySpec
-from mmf_rl.objectives import LossConfig, build_loss_terms
+from mmf_rl.objectives import LossConfig, build_loss_terms, check_settings_read
 
 DEFAULT_MODEL = "forecaster"  # the model of a config or checkpoint that names none
 
@@ -106,10 +106,21 @@ def build_model(
     return entry.model_cls(entry.config_cls.from_dict(fields))
 
 
-def build_loss(name: str, model: nn.Module, loss_cfg: LossConfig) -> nn.Module:
-    """The losses model ``name`` trains with (or the loss config's ``terms``), weighted by the loss config."""
-    terms = loss_cfg.terms if loss_cfg.terms is not None else model_entry(name).loss_terms
-    return build_loss_terms(terms, model, loss_cfg)
+def trained_loss_terms(name: str, loss_cfg: LossConfig) -> tuple[str, ...]:
+    """The loss terms model ``name`` trains with: the loss config's ``terms``, else the model's own."""
+    return tuple(loss_cfg.terms) if loss_cfg.terms is not None else model_entry(name).loss_terms
+
+
+def check_loss_settings(name: str, loss_cfg: LossConfig, defaults: LossConfig | None = None) -> None:
+    """Refuse a setting of ``loss_cfg`` changed from ``defaults`` (``LossConfig()``) that none of the loss
+    terms model ``name`` trains with reads (a :class:`ConfigError` naming it): without building the model."""
+    check_settings_read(trained_loss_terms(name, loss_cfg), loss_cfg, model_name=name, defaults=defaults)
+
+
+def build_loss(name: str, model: nn.Module, loss_cfg: LossConfig, *, check_unread: bool = True) -> nn.Module:
+    """The losses model ``name`` trains with (or the loss config's ``terms``), weighted by the loss config;
+    ``check_unread``: as :func:`~mmf_rl.objectives.build_loss_terms`."""
+    return build_loss_terms(trained_loss_terms(name, loss_cfg), model, loss_cfg, check_unread=check_unread)
 
 
 def saved_config(name: str, model: nn.Module) -> dict:

@@ -1,23 +1,35 @@
 from mmf_rl.objectives.combined import CombinedLoss
 from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl, gaussian_kl_to_standard, gaussian_nll
-from mmf_rl.objectives.config import LossConfig
+from mmf_rl.objectives.config import LossConfig, default_loss_config
 from mmf_rl.objectives.elbo import ELBOLoss
 from mmf_rl.objectives.missing_modality import MissingModalityLoss
 from mmf_rl.objectives.nll import GaussianNLLLoss
-from mmf_rl.objectives.registry import LOSS_TERMS, build_loss_terms, loss_term, register_loss_term
+from mmf_rl.objectives.registry import (
+    GLOBAL_LOSS_SETTINGS,
+    LOSS_TERMS,
+    build_loss_terms,
+    check_settings_read,
+    loss_term,
+    register_loss_term,
+    terms_reading,
+)
 
 __all__ = [
     "CombinedLoss",
     "ELBOLoss",
     "ForecasterLossBase",
+    "GLOBAL_LOSS_SETTINGS",
     "GaussianNLLLoss",
     "LOSS_TERMS",
     "LossConfig",
     "MissingModalityLoss",
     "build_loss_terms",
+    "check_settings_read",
+    "default_loss_config",
     "gaussian_kl",
     "gaussian_kl_to_standard",
     "gaussian_nll",
     "loss_term",
     "register_loss_term",
+    "terms_reading",
 ]

@@ -58,9 +58,14 @@ class ForecasterLossBase(LossModule):
     is built (:meth:`default_tensor_keys`). ``in_keys`` lists what ``forward`` reads: the loss's
     own keys, then the forecaster's ``in_keys`` (observations, presence masks...), as torchrl's
     losses list their networks' inputs.
+
+    ``config_fields`` names the :class:`~mmf_rl.objectives.LossConfig` fields :meth:`from_config`
+    reads: a registered term lists every one it reads, so that a setting none of a model's terms reads
+    is refused (``build_loss_terms``) rather than silently ignored.
     """
 
     REDUCTIONS = ("mean", "sum", "none")
+    config_fields: frozenset[str] = frozenset()
 
     def __init__(self, forecaster, reduction: str = "mean"):
         super().__init__()
@@ -89,7 +94,7 @@ class ForecasterLossBase(LossModule):
     def from_config(cls, forecaster, loss_cfg) -> ForecasterLossBase | None:
         """This loss for ``forecaster`` as the loss config group (a ``LossConfig``) sets it; ``None``
         when the config turns it off. By default the loss's own defaults: a loss with settings in
-        the loss config overrides this."""
+        the loss config overrides this and lists them in ``config_fields``."""
         return cls(forecaster)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mmf_rl.configuration import reject_unknown_keys
+from mmf_rl.configuration import compose_config, reject_unknown_keys, to_container
 
 
 @dataclass
@@ -13,7 +13,9 @@ class LossConfig:
     (``@register_model(..., loss=...)``) unless ``terms`` names others.
 
     The defaults are the losses' own (β = 1 without warm-up, ``L_mis`` at weight 1 with a detached
-    teacher); a training run takes its values from ``configs/loss/<name>.yaml``.
+    teacher); a training run takes its values from ``configs/loss/<name>.yaml``. Each term reads some of
+    the settings (its ``config_fields``): one changed from its default that none of the run's terms
+    reads is refused (``check_settings_read``); ``terms``, which chooses the terms, is exempt.
 
     Args:
         kl_weight: ``β`` of the ELBO's KL term once warm (:class:`~mmf_rl.objectives.ELBOLoss`).
@@ -108,3 +110,10 @@ class LossConfig:
     def from_dict(cls, d: dict) -> LossConfig:
         reject_unknown_keys(cls, d, "loss config")
         return cls(**d)
+
+
+def default_loss_config(config_dirs=()) -> LossConfig:
+    """The loss settings ``mmf-rl train`` composes when none is chosen (``configs/train.yaml``'s loss
+    option, ``configs/loss/default.yaml``): what a run gets without asking, e.g. the ELBO's KL warm-up,
+    which a model trained without the ELBO gets too. ``config_dirs``: as ``--config-dir``."""
+    return LossConfig.from_dict(to_container(compose_config("train", [], list(config_dirs)).loss))

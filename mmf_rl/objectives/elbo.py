@@ -98,6 +98,9 @@ class ELBOLoss(ForecasterLossBase):
         from_prior_samples: NestedKey = keys.FORECAST_FROM_PRIOR_SAMPLES
 
     default_keys = _AcceptedKeys
+    config_fields = frozenset(
+        {"kl_weight", "kl_warmup_steps", "gsnn_weight", "best_of_k_weight", "best_of_k_samples"}
+    )
 
     def __init__(
         self,

@@ -114,6 +114,17 @@ class MissingModalityLoss(ForecasterLossBase):
         prior_dropped_scale: NestedKey = keys.PRIOR_DROPPED_SCALE
 
     default_keys = _AcceptedKeys
+    config_fields = frozenset(
+        {
+            "missing_modality_weight",
+            "detach_teacher",
+            "max_dropped",
+            "dropped_nll_weight",
+            "dropped_prior_weight",
+            "step_drop_prob",
+            "max_dropped_steps",
+        }
+    )
 
     def __init__(
         self,

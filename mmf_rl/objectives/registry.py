@@ -2,16 +2,20 @@
 
 A term is a :class:`~mmf_rl.objectives.ForecasterLossBase` subclass with ``@register_loss_term(name)``;
 its ``from_config(model, loss_cfg)`` builds it from the loss config group (``None``: the config
-turns it off). A new term is one class plus that decorator.
+turns it off) and its ``config_fields`` name the settings it reads. A new term is one class plus that
+decorator.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 from torch import nn
 
+from mmf_rl.configuration import ConfigError
 from mmf_rl.objectives.combined import CombinedLoss
 from mmf_rl.objectives.common import ForecasterLossBase
 from mmf_rl.objectives.config import LossConfig
@@ -19,6 +23,8 @@ from mmf_rl.objectives.config import LossConfig
 logger = logging.getLogger(__name__)
 
 LOSS_TERMS: dict[str, type[ForecasterLossBase]] = {}
+# Settings of the loss config that choose terms rather than set one: no term reads them.
+GLOBAL_LOSS_SETTINGS = frozenset({"terms"})
 
 
 def register_loss_term(name: str):
@@ -50,15 +56,86 @@ def loss_term(name: str) -> type[ForecasterLossBase]:
     return LOSS_TERMS[name]
 
 
-def build_loss_terms(names: Sequence[str], model: nn.Module, loss_cfg: LossConfig) -> ForecasterLossBase:
+def terms_reading(setting: str, names: Iterable[str] | None = None) -> list[str]:
+    """The loss terms among ``names`` (default: every registered one) whose ``from_config`` reads
+    ``loss.<setting>``."""
+    return [
+        name
+        for name in (sorted(LOSS_TERMS) if names is None else names)
+        if setting in loss_term(name).config_fields
+    ]
+
+
+def check_settings_read(
+    names: Sequence[str],
+    loss_cfg: LossConfig,
+    *,
+    model_name: str | None = None,
+    defaults: LossConfig | None = None,
+) -> None:
+    """Refuse the settings of ``loss_cfg`` that differ from ``defaults`` (``LossConfig()``, the losses'
+    own) and that none of the terms ``names`` reads: training would silently ignore them.
+
+    ``model_name`` is the model the terms are for, named in the error. A :class:`ConfigError` names
+    each setting, the terms that would read it and the terms in use.
+    """
+    defaults = LossConfig() if defaults is None else defaults
+    unread = [
+        field.name
+        for field in dataclasses.fields(LossConfig)
+        if field.name not in GLOBAL_LOSS_SETTINGS
+        and getattr(loss_cfg, field.name) != getattr(defaults, field.name)
+        and not terms_reading(field.name, names)
+    ]
+    if unread:
+        raise ConfigError(_unread_message(unread, names, loss_cfg, model_name))
+
+
+def _unread_message(unread: list[str], names: Sequence[str], loss_cfg: LossConfig, model_name) -> str:
+    """``loss.a=1, loss.b=2 are read by the 'elbo' term and loss.c=3 by the 'mis' term, which ...``."""
+    by_readers: dict[tuple[str, ...], list[str]] = {}
+    for setting in unread:
+        by_readers.setdefault(tuple(terms_reading(setting)), []).append(setting)
+    readers = [
+        ", ".join(f"loss.{setting}={json.dumps(getattr(loss_cfg, setting))}" for setting in settings)
+        + (" by " if i else " is read by " if len(settings) == 1 else " are read by ")
+        + _term_list(terms)
+        for i, (terms, settings) in enumerate(by_readers.items())
+    ]
+    if loss_cfg.terms is not None:
+        trained, fix = f"loss.terms={list(names)} leaves out", "or add such a term to loss.terms"
+    else:
+        model = "the model" if model_name is None else f"model {model_name!r}"
+        trained, fix = f"{model} does not train with (its terms: {list(names)})", "or pick loss.terms"
+    them = "it" if len(unread) == 1 else "them"
+    return f"{' and '.join(readers)}, which {trained}; remove {them} {fix}"
+
+
+def _term_list(names: tuple[str, ...]) -> str:
+    if not names:
+        return "no registered loss term"
+    quoted = " and ".join(repr(name) for name in names)
+    return f"the {quoted} term" + ("s" if len(names) > 1 else "")
+
+
+def build_loss_terms(
+    names: Sequence[str], model: nn.Module, loss_cfg: LossConfig, *, check_unread: bool = True
+) -> ForecasterLossBase:
     """The terms ``names`` for ``model``, weighted by ``loss_cfg``.
 
     A single term is returned as it is; several are a :class:`CombinedLoss` of those the config
     leaves on (one forward pass). The structure decides the names of the loss's buffers in a
     checkpoint, so it depends on the names given, not on which terms the config turns off.
+
+    A setting changed from ``LossConfig()``'s default that none of the terms reads is a
+    :class:`ConfigError` (:func:`check_settings_read`); ``check_unread=False`` skips that, for a
+    caller that checked against other defaults (``mmf-rl train``: the loss config group's) or
+    rebuilds the loss of a run as it was trained.
     """
     if not names:
         raise ValueError(f"no loss terms given; expected names among {sorted(LOSS_TERMS)}")
+    if check_unread:
+        check_settings_read(names, loss_cfg, model_name=getattr(model, "model_name", None))
     terms = {name: loss_term(name).from_config(model, loss_cfg) for name in names}
     off = [name for name, term in terms.items() if term is None]
     if off:

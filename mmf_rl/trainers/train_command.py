@@ -44,10 +44,11 @@ from mmf_rl.datasets import AugmentConfig, DataConfig, TrainingAugmentation, Win
 from mmf_rl.devices import resolve_device
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.eval.scale_fit import calibrate_after_training
-from mmf_rl.models import build_loss, build_model, init_weights_from, saved_config
+from mmf_rl.models import build_loss, build_model, check_loss_settings, init_weights_from, saved_config
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.loading import RUN_EXPORT_DIR
-from mmf_rl.objectives import LossConfig
+from mmf_rl.models.registry import DEFAULT_MODEL
+from mmf_rl.objectives import LossConfig, default_loss_config
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
 logger = logging.getLogger(__name__)
@@ -225,13 +226,25 @@ def build_model_and_loss(
         data.target_dim,
         action_shape=data.action_shape,
     ).to(device)
-    model_name = model_cfg.get("name", "forecaster")
+    model_name = model_cfg.get("name", DEFAULT_MODEL)
     if cfg.get("init_from") is not None and not cfg.resume:  # resuming restores the run's own weights
         source = init_weights_from(model, cfg.init_from)
         if rank == 0:
             logger.info("fine-tuning from %s: weights copied, new optimizer, step 0", source)
-    loss = build_loss(model_name, model, loss_cfg)
+    # The settings were checked by check_loss_settings_read (a new run) or are the run's own (resumed).
+    loss = build_loss(model_name, model, loss_cfg, check_unread=False)
     return model, model_name, loss
+
+
+def check_loss_settings_read(cfg, loss_cfg: LossConfig) -> None:
+    """A new run may not carry a loss setting that none of its model's loss terms reads (e.g.
+    ``loss.best_of_k_weight`` with ``model=lf_lstm``): training would silently ignore it. Compared with
+    what the loss config group gives without asking (its KL warm-up is every model's, read by the ELBO's
+    only), before the run directory and the window cache are made. A resumed run is not checked: it
+    continues as it began, and one begun before this check may hold such a setting, which changed
+    nothing in it."""
+    if not cfg.resume:
+        check_loss_settings(cfg.model.get("name", DEFAULT_MODEL), loss_cfg, default_loss_config())
 
 
 def make_trainer(cfg, model, model_name: str, loss, data: WindowDataset, trainer_cfg, run_dir, ranks, device):
@@ -305,6 +318,7 @@ def train(cfg) -> Path:
     rank, world_size = init_distributed(device)
     trainer_cfg = TrainerConfig.from_dict(to_container(cfg.trainer))
     loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
+    check_loss_settings_read(cfg, loss_cfg)
     run_dir = prepare_run_dir(cfg, rank)
     data = open_windows(cfg, DataConfig.from_dict(to_container(cfg.data)), world_size)
     model, model_name, loss = build_model_and_loss(cfg, data, trainer_cfg, loss_cfg, rank, device)

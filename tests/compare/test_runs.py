@@ -3,7 +3,9 @@ and the training rate of a run."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import runpy
 from pathlib import Path
 
 import pytest
@@ -11,7 +13,11 @@ import torch
 
 from mmf_rl.compare import entries, runs
 from mmf_rl.compare.entries import Budget, Entry, Study
+from mmf_rl.models import MODELS
+from mmf_rl.objectives import default_loss_config
 from tests.compare.helpers import PUSH_MODALITIES
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 def study(tmp_path: Path, chosen=(entries.PAPER,), image_size: int | None = 32) -> Study:
@@ -40,11 +46,42 @@ def test_the_data_overrides_follow_the_entrys_and_the_budget_follows_them(tmp_pa
     assert list(default_size.data.image_size) == [64, 64]  # the data config's
 
 
+def test_the_kl_warmup_goes_to_the_entries_whose_loss_has_a_kl(tmp_path):
+    s = dataclasses.replace(study(tmp_path), budget=Budget(steps=100, batch_size=32, seeds=(0,)))
+    warmup = {
+        e.label: runs.compose_train(e, 0, s, tmp_path / "run").loss.kl_warmup_steps for e in entries.CATALOGUE
+    }
+    trained_without_elbo = {"LF-LSTM", "MulT", "LF-LSTM (retrained)", "MulT (retrained)"}
+    assert {label for label, steps in warmup.items() if steps != 100 // 5} == trained_without_elbo
+    assert {warmup[label] for label in trained_without_elbo} == {default_loss_config().kl_warmup_steps}
+
+
 def test_entries_are_checked_against_the_configs_before_any_training(tmp_path):
     runs.check_entries(study(tmp_path, entries.CATALOGUE))
     bogus = Entry("paper typo", "variant", ("model=forecaster", "model.fusoin=sum"))
     with pytest.raises(ValueError, match=r"'paper typo' \(model=forecaster model.fusoin=sum\)"):
         runs.check_entries(study(tmp_path, (entries.PAPER, bogus)))
+    ignored = Entry("MulT best-of-K", "zero-fill", ("model=mult", "loss.best_of_k_weight=1"))
+    with pytest.raises(
+        ValueError,
+        match=r"'MulT best-of-K' \(model=mult loss.best_of_k_weight=1\): loss.best_of_k_weight=1 is",
+    ):
+        runs.check_entries(study(tmp_path, (entries.PAPER, ignored)))
+
+
+@pytest.fixture
+def benchmark_entries():
+    """A benchmark script's ``ENTRIES``, loaded as ``mmf-rl bench`` runs it (some register models of
+    their own: the built-in ones only are left registered after)."""
+    before = dict(MODELS)
+    yield lambda name: runpy.run_path(str(REPO / "benchmarks" / f"{name}.py"), run_name="entries")["ENTRIES"]
+    MODELS.clear()
+    MODELS.update(before)
+
+
+@pytest.mark.parametrize("benchmark", ["accuracy", "mult_gap", "real_humanoid"])
+def test_every_benchmark_entry_sets_only_loss_options_its_model_reads(benchmark, benchmark_entries, tmp_path):
+    runs.check_entries(study(tmp_path, benchmark_entries(benchmark)))
 
 
 def test_completed_runs_of_another_budget_are_refused(tmp_path):

@@ -7,8 +7,10 @@ import dataclasses
 import pytest
 import torch
 
-from mmf_rl.models import MODELS, build_loss, register_model
+from mmf_rl.configuration import ConfigError
+from mmf_rl.models import MODELS, build_loss, check_loss_settings, register_model, trained_loss_terms
 from mmf_rl.objectives import (
+    GLOBAL_LOSS_SETTINGS,
     LOSS_TERMS,
     CombinedLoss,
     ELBOLoss,
@@ -16,6 +18,7 @@ from mmf_rl.objectives import (
     LossConfig,
     MissingModalityLoss,
     register_loss_term,
+    terms_reading,
 )
 from tests.conftest import make_batch, small_registered_model
 
@@ -67,10 +70,22 @@ def explicit_loss(name: str, model, cfg: LossConfig):
     return GaussianNLLLoss(model)
 
 
+def settings_read_by(name: str, cfg: LossConfig) -> LossConfig:
+    """``cfg`` with the settings that no loss term of model ``name`` reads at their defaults (the
+    others are refused)."""
+    terms = trained_loss_terms(name, cfg)
+    unread = {
+        field.name: getattr(LossConfig(), field.name)
+        for field in dataclasses.fields(LossConfig)
+        if field.name not in GLOBAL_LOSS_SETTINGS and not terms_reading(field.name, terms)
+    }
+    return dataclasses.replace(cfg, **unread)
+
+
 @pytest.mark.parametrize("option", sorted(LOSS_CONFIGS))
 @pytest.mark.parametrize("name", ["forecaster", "lf_lstm", "mvae", "mult"])
 def test_the_assembled_loss_gives_the_explicit_values(name, option):
-    cfg = LOSS_CONFIGS[option]
+    cfg = settings_read_by(name, LOSS_CONFIGS[option])
     if name == "mvae":  # it refuses the GSNN and best-of-K terms (tested in test_baselines, test_elbo)
         cfg = dataclasses.replace(cfg, gsnn_weight=0.0, best_of_k_weight=0.0)
     model = small_registered_model(name).train()
@@ -112,3 +127,17 @@ def test_loss_terms_is_a_list_of_names_or_null():
         LossConfig(terms="nll")
     model = small_registered_model("forecaster")
     assert isinstance(build_loss("forecaster", model, LossConfig(terms=["elbo"])), ELBOLoss)
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_every_registered_model_builds_its_loss_from_the_default_settings(name):
+    build_loss(name, small_registered_model(name), LossConfig())
+
+
+def test_a_setting_the_models_terms_do_not_read_is_refused_before_the_model_is_built():
+    with pytest.raises(
+        ConfigError, match=r"^loss\.gsnn_weight=0\.5 is read by the 'elbo' term, which model "
+    ):
+        check_loss_settings("mult", LossConfig(gsnn_weight=0.5))
+    check_loss_settings("mvae", LossConfig(kl_warmup_steps=7))
+    check_loss_settings("mult", LossConfig(terms=["nll", "elbo"], gsnn_weight=0.5))  # the terms chosen

@@ -14,8 +14,11 @@ from safetensors.torch import load_file
 from mmf_rl import keys
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.cli import main as cli
+from mmf_rl.configuration import compose_config, config_dir, to_container
 from mmf_rl.datasets import WindowDataset
 from mmf_rl.models import load_trained_model
+from mmf_rl.objectives import LossConfig
+from mmf_rl.trainers.train_command import check_loss_settings_read
 from tests.conftest import push_train_overrides
 from tests.reliability.conftest import edit_frames, push_data_config
 
@@ -80,6 +83,51 @@ def test_a_run_saved_before_a_setting_existed_resumes_with_a_warning_naming_it(o
     config.write_text(yaml.safe_dump(saved))
     with pytest.warns(UserWarning, match=r"predates the settings model\.predictive_samples=16"):
         assert cli(["train", *overrides("run"), "resume=true"]) == 0
+
+
+def lf_lstm_overrides(overrides, run: str, **kw) -> list[str]:
+    """``overrides`` for a tiny LF-LSTM (the forecaster's sizes it has not replaced by its own)."""
+    return [
+        *(o for o in overrides(run, **kw) if not o.startswith("model.")),
+        "model=lf_lstm",
+        "model.d_model=16",
+        "model.head_hidden=32",
+    ]
+
+
+@pytest.mark.parametrize("option", sorted(p.stem for p in (config_dir() / "model").glob("*.yaml")))
+def test_every_model_trains_with_the_default_loss_settings(option):
+    # The loss config group warms the ELBO's KL up; LF-LSTM and MulT, trained without it, get that too.
+    cfg = compose_config("train", [f"model={option}"])
+    check_loss_settings_read(cfg, LossConfig.from_dict(to_container(cfg.loss)))
+
+
+def test_a_loss_setting_the_models_terms_do_not_read_is_a_one_line_error_before_anything_is_made(
+    tmp_path, capsys
+):
+    run = tmp_path / "run"
+    args = ["model=lf_lstm", "loss.best_of_k_weight=1", f"run_dir={run}", f"data.root={tmp_path / 'none'}"]
+    assert cli(["train", *args]) == 1
+    err = capsys.readouterr().err
+    assert err == (
+        "mmf-rl train: error: loss.best_of_k_weight=1 is read by the 'elbo' term, which model 'lf_lstm' "
+        "does not train with (its terms: ['nll']); remove it or pick loss.terms\n"
+    )
+    assert not run.exists()
+
+
+def test_a_run_saved_with_a_loss_setting_its_model_does_not_read_still_resumes(overrides, tmp_path, capsys):
+    import yaml
+
+    assert cli(["train", *lf_lstm_overrides(overrides, "run", steps=2)]) == 0
+    config = tmp_path / "run" / "config.yaml"
+    saved = yaml.safe_load(config.read_text())
+    saved["loss"]["kl_warmup_steps"] = 60  # as benchmarks/ethucy.py trained LF-LSTM before the check
+    config.write_text(yaml.safe_dump(saved))
+    unread = "loss.kl_warmup_steps=60"
+    assert cli(["train", *lf_lstm_overrides(overrides, "run", steps=2), unread, "resume=true"]) == 0
+    assert cli(["train", *lf_lstm_overrides(overrides, "new", steps=2), unread]) == 1
+    assert "loss.kl_warmup_steps=60 is read by the 'elbo' term" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
