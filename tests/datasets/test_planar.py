@@ -45,6 +45,24 @@ def test_each_pair_turns_by_its_samples_angle_and_the_rest_stays():
     assert torch.equal(turned[..., [2, 5]], values[..., [2, 5]])
 
 
+def test_frames_turn_as_torchvision_rotates_them_non_square_too():
+    from torchvision.transforms.v2 import functional as F
+
+    frames = torch.randint(
+        0, 256, (6, 3, 3, 20, 36), dtype=torch.uint8, generator=torch.Generator().manual_seed(0)
+    )
+    angles = torch.tensor([0.0, 0.3, -1.2, math.pi / 2, 2.5, -math.pi])
+    turned = rotate_frames(frames, angles)
+    expected = torch.stack(
+        [
+            F.rotate(w, math.degrees(a), interpolation=F.InterpolationMode.BILINEAR)
+            for w, a in zip(frames, angles.tolist(), strict=True)
+        ]
+    )
+    assert torch.equal(turned[0], frames[0])
+    assert (turned.int() - expected.int()).abs().max() <= 1  # the same up to rounding
+
+
 def test_a_turned_map_crop_is_the_crop_of_the_turned_world():
     """Turning the world a quarter counter-clockwise puts east where north was: the turned north-up
     crop is the crop with east up, pixel for pixel (the coded scene spells each pixel's place)."""
