@@ -155,9 +155,8 @@ class TrainingAugmentation:
                 f"augment config: `modalities` names {unknown}, which are not image modalities "
                 f"of the data config (its image modalities: {images})"
             )
-        self.names = (
-            (list(config.modalities) if config.modalities is not None else images) if config.enable else []
-        )
+        chosen = list(config.modalities) if config.modalities is not None else images
+        self.names = chosen if config.enable else []  # turning alone transforms no image
         self.transform = config.build()
         self.seed = seed
         self.rotation = math.radians(config.rotation)
