@@ -7,6 +7,16 @@ from dataclasses import dataclass
 from mmf_rl.configuration import compose_config, reject_unknown_keys, to_container
 
 
+def check_count(value, label: str, null: str | None = None) -> None:
+    """Raise a ValueError naming ``label`` unless ``value`` is a whole number >= 1 (a bool is not one),
+    or ``None`` where ``null`` (the words after "or null", maybe none) allows it."""
+    if value is None and null is not None:
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        allowed = "" if null is None else f" or null{null}"
+        raise ValueError(f"{label} must be a whole number >= 1{allowed}, found {value!r}")
+
+
 @dataclass
 class LossConfig:
     """How a model's losses are weighted; each model's registry entry picks the terms it uses
@@ -55,31 +65,9 @@ class LossConfig:
     terms: list[str] | None = None
 
     def __post_init__(self):
-        if self.max_dropped is not None and (
-            isinstance(self.max_dropped, bool)
-            or not isinstance(self.max_dropped, int)
-            or self.max_dropped < 1
-        ):
-            raise ValueError(
-                f"loss.max_dropped must be a whole number >= 1 or null, found {self.max_dropped!r}"
-            )
-        if self.max_dropped_steps is not None and (
-            isinstance(self.max_dropped_steps, bool)
-            or not isinstance(self.max_dropped_steps, int)
-            or self.max_dropped_steps < 1
-        ):
-            raise ValueError(
-                "loss.max_dropped_steps must be a whole number >= 1 or null (all but one present step), "
-                f"found {self.max_dropped_steps!r}"
-            )
-        if (
-            isinstance(self.best_of_k_samples, bool)
-            or not isinstance(self.best_of_k_samples, int)
-            or self.best_of_k_samples < 1
-        ):
-            raise ValueError(
-                f"loss.best_of_k_samples must be a whole number >= 1, found {self.best_of_k_samples!r}"
-            )
+        check_count(self.max_dropped, "loss.max_dropped", null="")
+        check_count(self.max_dropped_steps, "loss.max_dropped_steps", null=" (all but one present step)")
+        check_count(self.best_of_k_samples, "loss.best_of_k_samples")
         if not 0 <= self.step_drop_prob <= 1:
             raise ValueError(f"loss.step_drop_prob must be in [0, 1], found {self.step_drop_prob}")
         for name in (

@@ -17,6 +17,7 @@ from mmf_rl.objectives.common import (
     gaussian_nll,
     reduce_batch,
 )
+from mmf_rl.objectives.config import check_count
 from mmf_rl.objectives.registry import register_loss_term
 
 
@@ -122,12 +123,7 @@ class ELBOLoss(ForecasterLossBase):
             raise ValueError(f"gsnn_weight must be >= 0, found {gsnn_weight}")
         if best_of_k_weight < 0:
             raise ValueError(f"best_of_k_weight must be >= 0, found {best_of_k_weight}")
-        if (
-            isinstance(best_of_k_samples, bool)
-            or not isinstance(best_of_k_samples, int)
-            or best_of_k_samples < 1
-        ):
-            raise ValueError(f"best_of_k_samples must be a whole number >= 1, found {best_of_k_samples!r}")
+        check_count(best_of_k_samples, "best_of_k_samples")
         self.kl_weight = kl_weight
         self.kl_warmup_steps = kl_warmup_steps
         self.gsnn_weight = gsnn_weight
