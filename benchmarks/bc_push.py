@@ -139,6 +139,13 @@ Design (what the policies see, and why):
   recorded ``data.root`` is the policies' recording (``--data``, or its own when ``--data`` is not
   given), a warning says the policies learn from in-sample forecasts. Refused with
   ``--held-out-forecaster``, ``--in-sample-forecaster`` or ``--forecaster-data``.
+* ``--steady-demonstrations``: the policies' recording (``WORK/push_steady``, seed 0) is made by
+  the pusher in one steady style (`PusherStyle.steady`, ``mmf-rl record --steady``): no action
+  noise, pauses or re-approach whims, one speed. The default recording draws a style per episode;
+  at nearby states its demonstrations hold both "move" and "stay", which a per-step regression
+  averages into a stalled action. The forecaster's recording keeps the drawn styles (it learns
+  how the object moves, not what to do). Its runs are their own (``bc_steady_...``; results in
+  ``WORK/steady...`` unless ``--out``). Refused with ``--data``.
 * ``--privileged-object`` (a diagnostic, not a deployable policy): the policies also read the
   object's true planar position (`BCConfig.privileged_object`), fed like the goal, never removed
   by an outage. If they reach the scripted pusher's success, locating the object from the sensors
@@ -296,13 +303,19 @@ class Forecaster:
 
 
 def build_recording(args, phases: dict[str, float]) -> Path:
-    """The policies' recording, ``WORK/push`` (recorded when absent)."""
-    data = (args.work / "push").resolve()
+    """The policies' recording, ``WORK/push`` (``WORK/push_steady`` with ``--steady-demonstrations``),
+    recorded when absent."""
+    steady = args.steady_demonstrations
+    data = (args.work / ("push_steady" if steady else "push")).resolve()
     if not (data / "meta" / "info.json").is_file():
-        print(f"bc_push: recording {args.record_episodes} scripted episodes into {data}")
+        style = "steady " if steady else ""
+        print(f"bc_push: recording {args.record_episodes} {style}scripted episodes into {data}")
         with timed_phase(phases, "record"):
             seed = RECORDING_SEEDS["push"]
-            record(RecordConfig(out=data, episodes=args.record_episodes, workers=args.workers, seed=seed))
+            config = RecordConfig(
+                out=data, episodes=args.record_episodes, workers=args.workers, seed=seed, steady=steady
+            )
+            record(config)
     return data
 
 
@@ -413,6 +426,11 @@ def forecaster_tag(args) -> str:
     return "_given" if args.forecaster is not None else ""
 
 
+def steady_tag(args) -> str:
+    """In the names of the runs of policies that imitate the steady pusher's recording."""
+    return "_steady" if args.steady_demonstrations else ""
+
+
 def privileged_tag(args) -> str:
     """In the names of the runs of policies told the object's position: they never mix with the others."""
     return "_privileged" if args.privileged_object else ""
@@ -431,7 +449,7 @@ def head_tag(args) -> str:
 def policy_tag(args) -> str:
     """What kind every policy of the run is, in its runs' names (empty for the ordinary ones, so the
     runs of older versions stay valid)."""
-    return privileged_tag(args) + chunk_tag(args) + head_tag(args)
+    return steady_tag(args) + privileged_tag(args) + chunk_tag(args) + head_tag(args)
 
 
 def dagger_dir(args, seed: int, round_: int) -> Path:
@@ -639,6 +657,12 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
         "own)",
     )
     parser.add_argument(
+        "--steady-demonstrations",
+        action="store_true",
+        help="the policies imitate a recording of the pusher in one steady style, without noise, pauses or "
+        "whims (WORK/push_steady; runs of their own); the forecaster's recording keeps the drawn styles",
+    )
+    parser.add_argument(
         "--privileged-object",
         action="store_true",
         help="a diagnostic: the policies also read the object's true planar position (runs of their own)",
@@ -693,6 +717,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     tags = policy_tag(args) + first_steps_tag(args) + forecaster_tag(args)
     if default_out and tags:  # never over the results of the ordinary policies in the same work directory
         args.out = args.work / tags.removeprefix("_")
+    if args.steady_demonstrations and args.data is not None:
+        parser.error(
+            "--steady-demonstrations records the policies' recording, but --data gives one; drop one (record "
+            "a steady one yourself with mmf-rl record --steady)"
+        )
     if args.action_chunk < 1:
         parser.error(f"--action-chunk must be >= 1, found {args.action_chunk}")
     if args.forecast_steps is not None and args.forecast_steps < 1:
@@ -856,6 +885,7 @@ def budget_line(args, forecaster: Forecaster, recorded: Demonstrations) -> str:
     return (
         f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, BC seeds {args.bc_seeds}, "
         f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; "
+        + ("demonstrations by the steady pusher; " if args.steady_demonstrations else "")
         + (f"latched forecasts (rule {args.latched_forecast}); " if args.latched_forecast else "")
         + (f"action chunks of {args.action_chunk}, temporal ensembling; " if args.action_chunk > 1 else "")
         + (

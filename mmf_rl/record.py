@@ -26,7 +26,9 @@ Features (float32 vectors carry per-dimension ``names``):
 ===================================  =========  ================================================
 
 With ``--exploration P``, the pusher makes random-move bursts (`ScriptedPusher`): the data a
-world model needs to learn what the actions do, not what the pusher tends to do.
+world model needs to learn what the actions do, not what the pusher tends to do. With
+``--steady``, it pushes in one steady style (no noise, pauses or whims): demonstrations for
+imitation, where the drawn styles' "move" and "stay" at nearby states would be averaged.
 
 Another agent can act instead of the scripted pusher (``RecordConfig.policy``; ``--policy
 CHECKPOINT`` in `mmf-rl record`: MPC with that world model, `mmf_rl.rl.PushMPCAgent`), with the
@@ -162,6 +164,9 @@ class RecordConfig:
             camera's validity flag) into the data, for training on faults the data really has.
         exploration: the per-step probability of a random-move burst of the pusher, so a world
             model also sees moves that miss or bump the block.
+        steady: the scripted pusher acts in one steady style (`PusherStyle.steady`: no noise,
+            pauses or re-approach whims) instead of a style drawn per episode: demonstrations to
+            imitate rather than data to forecast.
         overwrite: replace an existing ``out`` instead of refusing.
         repo_id: the LeRobot ``repo_id`` stored in the metadata.
         vcodec: the video codec lerobot encodes the camera with.
@@ -178,6 +183,7 @@ class RecordConfig:
     camera: str = "front"
     faults: bool = False
     exploration: float = 0.0
+    steady: bool = False
     overwrite: bool = False
     repo_id: str = "local/mmf-push"
     vcodec: str = "libsvtav1"
@@ -189,7 +195,7 @@ def record_episode(
 ) -> dict[str, np.ndarray]:
     """Roll out episode ``episode_index`` (with ``actor``, built from ``config.policy``, if any) and
     apply its sensor faults when enabled."""
-    episode = rollout(env, config.seed, episode_index, config.steps, config.exploration, actor)
+    episode = rollout(env, config.seed, episode_index, config.steps, config.exploration, actor, config.steady)
     episode["image_valid"] = np.ones((config.steps, 1), dtype=bool)
     if config.faults:
         rng = np.random.default_rng(np.random.SeedSequence([config.seed, episode_index, FAULTS_STREAM]))
@@ -269,6 +275,10 @@ def _validate(config: RecordConfig) -> None:
         raise RecordError(f"--seed {config.seed}: must be non-negative.")
     if not 0.0 <= config.exploration <= 1.0:
         raise RecordError(f"--exploration {config.exploration}: must be a probability in [0, 1].")
+    if config.steady and config.policy is not None:
+        raise RecordError(
+            "--steady sets the scripted pusher's style, but --policy acts instead of it; drop one."
+        )
     _check_destination(config.out, config.overwrite)
     # Slower checks last: this one imports lerobot.
     if config.camera not in camera_names():
@@ -436,6 +446,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.0,
         help="per-step probability of a random-move burst (data for world models; default 0)",
     )
+    parser.add_argument(
+        "--steady",
+        action="store_true",
+        help="the pusher in one steady style, without noise, pauses or whims (demonstrations for imitation)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     parser.add_argument(
         "--repo-id", default=RecordConfig.repo_id, help="LeRobot repo_id stored in the metadata"
@@ -449,7 +464,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # Options of a recording that a merge has no use for (their defaults are RecordConfig's).
-RECORDING_OPTIONS = ("workers", "seed", "image_size", "steps", "camera", "faults", "exploration", "vcodec")
+RECORDING_OPTIONS = (
+    "workers",
+    "seed",
+    "image_size",
+    "steps",
+    "camera",
+    "faults",
+    "exploration",
+    "steady",
+    "vcodec",
+)
 
 
 def run(args: argparse.Namespace, policy: Callable[[], Actor] | None = None) -> int:
@@ -477,6 +502,7 @@ def run(args: argparse.Namespace, policy: Callable[[], Actor] | None = None) -> 
             camera=args.camera,
             faults=args.faults,
             exploration=args.exploration,
+            steady=args.steady,
             overwrite=args.overwrite,
             repo_id=args.repo_id,
             vcodec=args.vcodec,

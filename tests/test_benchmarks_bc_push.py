@@ -260,6 +260,34 @@ def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_
     assert {p: p.stat().st_mtime_ns for p in without.rglob("*")} == trained
 
 
+def test_bc_push_steady_demonstrations_are_recorded_by_the_steady_pusher_in_runs_of_their_own(
+    recorded_push_root, tmp_path, capsys
+):
+    from mmf_rl.envs.push import MultimodalPushEnv
+    from mmf_rl.envs.scripted import rollout
+
+    work = tmp_path / "work"
+    argv = tiny_argv(recorded_push_root, tmp_path, work, data=False, dagger=False)
+    assert cli([*argv, "--steady-demonstrations", "--variants", "without"]) == 0
+    parquets = sorted((work / "push_steady" / "data").glob("*/*.parquet"))
+    frames = pd.concat(pd.read_parquet(p) for p in parquets)
+    env = MultimodalPushEnv(image_size=64)
+    try:
+        steady = rollout(env, seed=0, episode_index=0, steps=50, steady=True)
+    finally:
+        env.close()
+    actions = np.stack(frames[frames["episode_index"] == 0]["action"])
+    np.testing.assert_allclose(actions, steady["action"], atol=1e-6)
+    assert not (work / "push").exists() and not (work / "results.json").exists()
+    results = json.loads((work / "steady" / "results.json").read_text())
+    assert "demonstrations by the steady pusher" in (work / "steady" / "results.md").read_text()
+    assert "train BC without seed 0" in results["phases_s"]
+    assert (work / "bc_steady_without_forecasts_seed0" / "checkpoints" / "last").is_file()
+    with pytest.raises(SystemExit):
+        parse_args(["--work", str(work), "--steady-demonstrations", "--data", str(recorded_push_root)])
+    assert "--steady-demonstrations records the policies' recording, but --data" in capsys.readouterr().err
+
+
 def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_untagged_runs(
     recorded_push_root, tmp_path, capsys
 ):

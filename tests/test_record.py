@@ -220,6 +220,13 @@ def test_exploration_outside_zero_one_is_a_clear_error(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
+def test_steady_with_a_policy_is_a_clear_error(tmp_path):
+    config = RecordConfig(out=tmp_path / "x", episodes=1, steady=True, policy=DrawnDirectionPolicy())
+    with pytest.raises(RecordError, match="--steady sets the scripted pusher's style, but --policy acts"):
+        record(config)
+    assert not (tmp_path / "x").exists()
+
+
 def test_unwritable_out_is_a_clear_error(tmp_path, capsys):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a directory")

@@ -186,15 +186,20 @@ class ScriptedPusher:
     and the object ended up. Data for a world model needs them: without bursts the gripper moves
     sideways almost only while pushing, so a model learns "the object follows the gripper" and a
     planner exploits it; with them it also sees moves that miss or bump the block.
+
+    ``steady``: every episode in `PusherStyle.steady` instead of a style drawn per episode, so the
+    actions are a function of the state and the phase: demonstrations without the pauses, noise
+    and whims that a per-step imitation averages into a stalled action.
     """
 
-    def __init__(self, exploration: float = 0.0) -> None:
+    def __init__(self, exploration: float = 0.0, steady: bool = False) -> None:
         self.bursts = RandomBursts(exploration)
+        self.steady = steady
         self.reset(np.random.default_rng(0))
 
     def reset(self, rng: np.random.Generator) -> None:
         self.rng = rng
-        self.style = PusherStyle.sample(rng)
+        self.style = PusherStyle.steady() if self.steady else PusherStyle.sample(rng)
         self.phase = "approach"
         self.pause_steps = 0
         self.direction = np.zeros(2)  # push direction in the plane, unit
@@ -351,13 +356,12 @@ class MarkovPusher(ScriptedPusher):
     """
 
     def __init__(self) -> None:
-        super().__init__(exploration=0.0)
+        super().__init__(exploration=0.0, steady=True)
 
     def reset(self, rng: np.random.Generator | None = None) -> None:
         # Its own generator: the zero-noise draws of `_noisy` never change an action, and the
         # episode's generator is left to whoever else draws from it.
         super().reset(np.random.default_rng(0))
-        self.style = PusherStyle.steady()
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         self.phase = "approach"  # any phase but push: the scene takes the state's own bearing
@@ -399,13 +403,14 @@ def rollout(
     steps: int,
     exploration: float = 0.0,
     actor: Actor | None = None,
+    steady: bool = False,
 ) -> dict[str, np.ndarray]:
     """Run one episode and return its per-step arrays.
 
-    The scripted pusher acts (``exploration``: its random-move bursts, see `ScriptedPusher`),
-    or ``actor`` with the same bursts on top (`ExploringActor`). Either is reset with the
-    episode's generator after the env, so the start and the actor's draws depend only on
-    ``(seed, episode_index)``.
+    The scripted pusher acts (``exploration``: its random-move bursts; ``steady``: its one steady
+    style, see `ScriptedPusher`), or ``actor`` with the same bursts on top (`ExploringActor`).
+    Either is reset with the episode's generator after the env, so the start and the actor's draws
+    depend only on ``(seed, episode_index)``.
 
     Frame ``t`` holds the observation before action ``t``. Keys: ``image`` ``[steps, h, w, 3]``
     uint8; ``force``, ``proprio``, ``object_pose``, ``goal``, ``action`` float32 ``[steps, d]``;
@@ -415,7 +420,7 @@ def rollout(
         raise ValueError(f"steps={steps}: an episode needs at least 1 step.")
     rng = episode_generator(seed, episode_index)
     obs, _ = reset_for_push(env, rng)
-    pusher = ScriptedPusher(exploration) if actor is None else ExploringActor(actor, exploration)
+    pusher = ScriptedPusher(exploration, steady) if actor is None else ExploringActor(actor, exploration)
     pusher.reset(rng)
     frames: dict[str, list] = {k: [] for k in ("image", "force", "proprio", "object_pose", "goal", "action")}
     success = []

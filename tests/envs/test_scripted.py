@@ -69,6 +69,21 @@ def test_exploration_adds_seeded_random_bursts_and_zero_changes_nothing(push_env
     )
 
 
+def test_steady_pusher_pushes_in_one_style_without_pauses_or_noise(push_env):
+    pusher = ScriptedPusher(steady=True)
+    for index in range(3):
+        pusher.reset(episode_generator(0, index))
+        assert pusher.style == PusherStyle.steady()
+    episodes = [rollout(push_env, seed=0, episode_index=i, steps=50, steady=True) for i in range(4)]
+    assert sum(e["success"][-1] for e in episodes) >= 3
+    for e in episodes:
+        moving = ~e["success"]
+        assert not np.any(np.all(e["action"][moving, :3] == 0, axis=1)), "no pause before the goal"
+    noisy = rollout(push_env, seed=0, episode_index=0, steps=50)
+    assert not np.array_equal(noisy["action"], episodes[0]["action"])
+    np.testing.assert_array_equal(episodes[0]["action"], rollout(push_env, 0, 0, 50, steady=True)["action"])
+
+
 def test_exploration_must_be_a_probability():
     with pytest.raises(ValueError, match=r"exploration must be a probability in \[0, 1\], found 1.5"):
         ScriptedPusher(exploration=1.5)
