@@ -68,17 +68,17 @@ SMALL_MODEL_SIZES = {
 }
 
 
-def small_registered_model(name: str):
-    """The registered model ``name`` at ``SMALL_MODEL_SIZES`` over ``SMALL_MODALITIES``.
+def small_registered_model(name: str, **settings):
+    """The registered model ``name`` at ``SMALL_MODEL_SIZES`` over ``SMALL_MODALITIES``, with its other
+    ``settings`` (e.g. ``prior="learned"``, or a composed model config group's: the sizes stay small).
 
     Seeded, in eval mode.
     """
     from mmf_rl.models import build_model
 
     torch.manual_seed(0)
-    return build_model(
-        {"name": name, **SMALL_MODEL_SIZES[name]}, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM
-    ).eval()
+    model_cfg = {"name": name, **settings, **SMALL_MODEL_SIZES[name]}
+    return build_model(model_cfg, list(SMALL_MODALITIES), HISTORY, HORIZON, TARGET_DIM).eval()
 
 
 def make_batch(

@@ -177,7 +177,9 @@ def test_every_trained_model_is_given_only_loss_settings_its_loss_reads(tmp_path
     data, the trainer's check of the loss settings sees what the benchmark's training sees."""
     recipe = bench.recipe(bench_args(tmp_path, "out"), budget, "eth", label)
     cfg = compose_config("train", recipe)
-    check_loss_settings(cfg.model.name, LossConfig.from_dict(to_container(cfg.loss)), default_loss_config())
+    check_loss_settings(
+        to_container(cfg.model), LossConfig.from_dict(to_container(cfg.loss)), default_loss_config()
+    )
     assert (f"loss.kl_warmup_steps={min(200, budget.steps // 5)}" in recipe) == (label == bench.PAPER)
 
 

@@ -92,7 +92,6 @@ def check_entries(study: Study) -> None:
     after an hour of runs."""
     from mmf_rl.configuration import to_container
     from mmf_rl.models import check_loss_settings
-    from mmf_rl.models.registry import DEFAULT_MODEL
     from mmf_rl.objectives import LossConfig, default_loss_config
 
     defaults = default_loss_config(study.config_dirs)
@@ -101,7 +100,7 @@ def check_entries(study: Study) -> None:
         try:
             cfg = compose_train(entry, 0, study, study.out / "check")
             loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
-            check_loss_settings(cfg.model.get("name", DEFAULT_MODEL), loss_cfg, defaults)
+            check_loss_settings(to_container(cfg.model), loss_cfg, defaults)
         except ValueError as err:  # a ConfigError, or a bad value of the loss config
             problems.append(f"{entry.label!r} ({' '.join(entry.overrides)}): {' '.join(str(err).split())}")
     if problems:

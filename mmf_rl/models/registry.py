@@ -11,14 +11,14 @@ the forecaster, whose package stays free of the registry).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from torch import nn
 
 from mmf_rl.configuration import ConfigError
 from mmf_rl.keys import ModalitySpec
-from mmf_rl.objectives import LossConfig, build_loss_terms, check_settings_read
+from mmf_rl.objectives import LossConfig, build_loss_terms, check_settings_read, settings_read
 
 DEFAULT_MODEL = "forecaster"  # the model of a config or checkpoint that names none
 
@@ -111,10 +111,35 @@ def trained_loss_terms(name: str, loss_cfg: LossConfig) -> tuple[str, ...]:
     return tuple(loss_cfg.terms) if loss_cfg.terms is not None else model_entry(name).loss_terms
 
 
-def check_loss_settings(name: str, loss_cfg: LossConfig, defaults: LossConfig | None = None) -> None:
-    """Refuse a setting of ``loss_cfg`` changed from ``defaults`` (``LossConfig()``) that none of the loss
-    terms model ``name`` trains with reads (a :class:`ConfigError` naming it): without building the model."""
-    check_settings_read(trained_loss_terms(name, loss_cfg), loss_cfg, model_name=name, defaults=defaults)
+def model_settings_from_group(model_cfg: Mapping) -> dict:
+    """The settings the model config group ``model_cfg`` gives its model (its ``name``, else
+    ``DEFAULT_MODEL``): its config class's defaults under the group's values, before the data fixes the
+    rest and the model is built."""
+    config_cls = model_entry(model_cfg.get("name", DEFAULT_MODEL)).config_cls
+    fields = dataclasses.fields(config_cls)
+    defaults = {field.name: field.default for field in fields if field.default is not dataclasses.MISSING}
+    return {**defaults, **{key: value for key, value in model_cfg.items() if key != "name"}}
+
+
+def loss_settings_read(model_cfg: Mapping, loss_cfg: LossConfig) -> frozenset[str]:
+    """The settings of ``loss_cfg`` that the loss of the model config group ``model_cfg`` reads (e.g. not
+    ``kl_warmup_steps`` with ``model=lf_lstm``, nor with ``loss.kl_weight=0``): without building it."""
+    name = model_cfg.get("name", DEFAULT_MODEL)
+    return settings_read(trained_loss_terms(name, loss_cfg), loss_cfg, model_settings_from_group(model_cfg))
+
+
+def check_loss_settings(model_cfg: Mapping, loss_cfg: LossConfig, defaults: LossConfig | None = None) -> None:
+    """Refuse a setting of ``loss_cfg`` changed from ``defaults`` (``LossConfig()``) that the loss terms
+    the model config group ``model_cfg`` trains with do not read (a :class:`ConfigError` naming it):
+    without building the model."""
+    name = model_cfg.get("name", DEFAULT_MODEL)
+    check_settings_read(
+        trained_loss_terms(name, loss_cfg),
+        loss_cfg,
+        model_settings=model_settings_from_group(model_cfg),
+        model_name=name,
+        defaults=defaults,
+    )
 
 
 def build_loss(name: str, model: nn.Module, loss_cfg: LossConfig, *, check_unread: bool = True) -> nn.Module:

@@ -1,5 +1,11 @@
 from mmf_rl.objectives.combined import CombinedLoss
-from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl, gaussian_kl_to_standard, gaussian_nll
+from mmf_rl.objectives.common import (
+    ForecasterLossBase,
+    gaussian_kl,
+    gaussian_kl_to_standard,
+    gaussian_nll,
+    model_settings_of,
+)
 from mmf_rl.objectives.config import LossConfig, default_loss_config
 from mmf_rl.objectives.elbo import ELBOLoss
 from mmf_rl.objectives.missing_modality import MissingModalityLoss
@@ -11,6 +17,7 @@ from mmf_rl.objectives.registry import (
     check_settings_read,
     loss_term,
     register_loss_term,
+    settings_read,
     terms_reading,
 )
 
@@ -30,6 +37,8 @@ __all__ = [
     "gaussian_kl_to_standard",
     "gaussian_nll",
     "loss_term",
+    "model_settings_of",
     "register_loss_term",
+    "settings_read",
     "terms_reading",
 ]

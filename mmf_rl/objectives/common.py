@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -35,6 +37,21 @@ def best_of_k_mse(target: torch.Tensor, samples: torch.Tensor) -> torch.Tensor:
     return (samples - target.unsqueeze(1)).square().flatten(2).mean(-1).amin(1)
 
 
+def model_settings_of(model) -> dict:
+    """A built model's settings by name (the fields of its dataclass ``config``; none for a module
+    without one): what a loss term's reads may depend on (:meth:`ForecasterLossBase.unread_settings`)."""
+    config = getattr(model, "config", None)
+    if not dataclasses.is_dataclass(config):
+        return {}
+    return {field.name: getattr(config, field.name) for field in dataclasses.fields(config)}
+
+
+def has_learned_prior(model_settings: Mapping) -> bool:
+    """Whether a model with these settings has a learned prior ``p(z|X)`` (``model.prior=learned``);
+    any other has ``N(0, I)`` or no latent, neither of which depends on the present modalities."""
+    return model_settings.get("prior") == "learned"
+
+
 def reduce_batch(per_sample: torch.Tensor, reduction: str) -> torch.Tensor:
     if reduction == "mean":
         return per_sample.mean()
@@ -61,7 +78,8 @@ class ForecasterLossBase(LossModule):
 
     ``config_fields`` names the :class:`~mmf_rl.objectives.LossConfig` fields :meth:`from_config`
     reads: a registered term lists every one it reads, so that a setting none of a model's terms reads
-    is refused (``build_loss_terms``) rather than silently ignored.
+    is refused (``build_loss_terms``) rather than silently ignored. A term that reads some of them only
+    under a condition (another setting, the model's prior) says so in :meth:`unread_settings`.
     """
 
     REDUCTIONS = ("mean", "sum", "none")
@@ -96,6 +114,14 @@ class ForecasterLossBase(LossModule):
         when the config turns it off. By default the loss's own defaults: a loss with settings in
         the loss config overrides this and lists them in ``config_fields``."""
         return cls(forecaster)
+
+    @classmethod
+    def unread_settings(cls, loss_cfg, model_settings: Mapping) -> dict[str, str]:
+        """The settings of ``config_fields`` that change nothing this term computes under ``loss_cfg`` for
+        a model with ``model_settings`` (:func:`model_settings_of`), each with the condition under which
+        it would, e.g. ``"only with loss.best_of_k_weight > 0 (found 0.0)"``. None by default: a term whose
+        reads are conditional overrides this, so that such a setting is refused, not silently ignored."""
+        return {}
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No value estimator: nothing to forward (required by ``set_keys``)."""

@@ -24,8 +24,10 @@ class LossConfig:
 
     The defaults are the losses' own (β = 1 without warm-up, ``L_mis`` at weight 1 with a detached
     teacher); a training run takes its values from ``configs/loss/<name>.yaml``. Each term reads some of
-    the settings (its ``config_fields``): one changed from its default that none of the run's terms
-    reads is refused (``check_settings_read``); ``terms``, which chooses the terms, is exempt.
+    the settings (its ``config_fields``), some only under a condition (its ``unread_settings``: e.g.
+    ``best_of_k_samples`` only with ``best_of_k_weight > 0``): one changed from its default that none of
+    the run's terms reads is refused (``check_settings_read``); ``terms``, which chooses the terms, is
+    exempt.
 
     Args:
         kl_weight: ``β`` of the ELBO's KL term once warm (:class:`~mmf_rl.objectives.ELBOLoss`).

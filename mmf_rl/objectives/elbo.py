@@ -151,6 +151,17 @@ class ELBOLoss(ForecasterLossBase):
             best_of_k_samples=loss_cfg.best_of_k_samples,
         )
 
+    @classmethod
+    def unread_settings(cls, loss_cfg, model_settings) -> dict[str, str]:
+        """The warm-up scales ``β``, which ``kl_weight=0`` leaves at 0; ``K`` is the best-of-K term's,
+        which ``best_of_k_weight=0`` turns off."""
+        conditional = {"kl_warmup_steps": "kl_weight", "best_of_k_samples": "best_of_k_weight"}
+        return {
+            setting: f"only with loss.{weight} > 0 (found {getattr(loss_cfg, weight)})"
+            for setting, weight in conditional.items()
+            if not getattr(loss_cfg, weight)
+        }
+
     def _loss_in_keys(self) -> list:
         k = self.tensor_keys
         extra = [k.from_prior_loc, k.from_prior_scale] if self.gsnn_weight else []

@@ -10,7 +10,14 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 
 from mmf_rl import keys
-from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl, gaussian_nll, reduce_batch
+from mmf_rl.objectives.common import (
+    ForecasterLossBase,
+    gaussian_kl,
+    gaussian_nll,
+    has_learned_prior,
+    model_settings_of,
+    reduce_batch,
+)
 from mmf_rl.objectives.registry import register_loss_term
 
 
@@ -174,8 +181,7 @@ class MissingModalityLoss(ForecasterLossBase):
         self.max_dropped = max_dropped
         self.dropped_nll_weight = dropped_nll_weight
         # Only a learned prior depends on the present modalities; N(0, I) has nothing to tie.
-        learned = getattr(getattr(forecaster, "config", None), "prior", "standard") == "learned"
-        self.prior_weight = prior_weight if learned else 0.0
+        self.prior_weight = prior_weight if has_learned_prior(model_settings_of(forecaster)) else 0.0
         self.modality_names = [spec.name for spec in forecaster.modalities]
 
     @classmethod
@@ -194,6 +200,23 @@ class MissingModalityLoss(ForecasterLossBase):
             step_drop_prob=loss_cfg.step_drop_prob,
             max_dropped_steps=loss_cfg.max_dropped_steps,
         )
+
+    @classmethod
+    def unread_settings(cls, loss_cfg, model_settings) -> dict[str, str]:
+        """Weight 0 turns the term off (:meth:`from_config`), leaving every other setting unread; on, the
+        prior tie needs a learned prior and the tail cuts' length a tail cut."""
+        weight = loss_cfg.missing_modality_weight
+        if weight <= 0:
+            off = f"only with loss.missing_modality_weight > 0 (found {weight}, which turns it off)"
+            return dict.fromkeys(sorted(cls.config_fields - {"missing_modality_weight"}), off)
+        unread = {}
+        if not has_learned_prior(model_settings):
+            unread["dropped_prior_weight"] = (
+                "only with a learned prior (model.prior=learned), which this model does not have"
+            )
+        if not (step_drop_prob := loss_cfg.step_drop_prob):
+            unread["max_dropped_steps"] = f"only with loss.step_drop_prob > 0 (found {step_drop_prob})"
+        return unread
 
     def default_tensor_keys(self) -> _AcceptedKeys:
         return self.default_keys(present={spec.name: spec.present_key for spec in self.forecaster.modalities})

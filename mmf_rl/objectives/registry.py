@@ -2,7 +2,8 @@
 
 A term is a :class:`~mmf_rl.objectives.ForecasterLossBase` subclass with ``@register_loss_term(name)``;
 its ``from_config(model, loss_cfg)`` builds it from the loss config group (``None``: the config
-turns it off) and its ``config_fields`` name the settings it reads. A new term is one class plus that
+turns it off), its ``config_fields`` name the settings it reads and its ``unread_settings`` those it
+reads only under a condition the config or the model leaves off. A new term is one class plus that
 decorator.
 """
 
@@ -11,13 +12,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 from torch import nn
 
 from mmf_rl.configuration import ConfigError
 from mmf_rl.objectives.combined import CombinedLoss
-from mmf_rl.objectives.common import ForecasterLossBase
+from mmf_rl.objectives.common import ForecasterLossBase, model_settings_of
 from mmf_rl.objectives.config import LossConfig
 
 logger = logging.getLogger(__name__)
@@ -66,29 +67,53 @@ def terms_reading(setting: str, names: Iterable[str] | None = None) -> list[str]
     ]
 
 
+def settings_read(names: Iterable[str], loss_cfg: LossConfig, model_settings: Mapping) -> frozenset[str]:
+    """The settings of ``loss_cfg`` that the terms ``names`` read for a model with ``model_settings``
+    (:func:`~mmf_rl.objectives.common.model_settings_of`, or a model config group's settings): those
+    they list in ``config_fields`` but what the config or the model leaves unread (``unread_settings``)."""
+    read = set()
+    for name in names:
+        term = loss_term(name)
+        read |= term.config_fields - term.unread_settings(loss_cfg, model_settings).keys()
+    return frozenset(read)
+
+
 def check_settings_read(
     names: Sequence[str],
     loss_cfg: LossConfig,
     *,
+    model_settings: Mapping,
     model_name: str | None = None,
     defaults: LossConfig | None = None,
 ) -> None:
     """Refuse the settings of ``loss_cfg`` that differ from ``defaults`` (``LossConfig()``, the losses'
-    own) and that none of the terms ``names`` reads: training would silently ignore them.
+    own) and that none of the terms ``names`` reads for a model with ``model_settings``: training would
+    silently ignore them.
 
     ``model_name`` is the model the terms are for, named in the error. A :class:`ConfigError` names
-    each setting, the terms that would read it and the terms in use.
+    each setting and either the terms that would read it and the terms in use, or the condition under
+    which a term in use would read it (another setting, the model's prior).
     """
     defaults = LossConfig() if defaults is None else defaults
-    unread = [
+    changed = [
         field.name
         for field in dataclasses.fields(LossConfig)
         if field.name not in GLOBAL_LOSS_SETTINGS
         and getattr(loss_cfg, field.name) != getattr(defaults, field.name)
-        and not terms_reading(field.name, names)
     ]
-    if unread:
-        raise ConfigError(_unread_message(unread, names, loss_cfg, model_name))
+    read = settings_read(names, loss_cfg, model_settings)
+    unread = [setting for setting in changed if setting not in read]
+    no_reader = [setting for setting in unread if not terms_reading(setting, names)]
+    problems = [_unread_message(no_reader, names, loss_cfg, model_name)] if no_reader else []
+    conditional = [setting for setting in unread if setting not in no_reader]
+    if conditional:
+        problems.append(_conditional_message(conditional, names, loss_cfg, model_settings))
+    if problems:
+        raise ConfigError(". ".join(problems))
+
+
+def _settings(settings: list[str], loss_cfg: LossConfig) -> str:
+    return ", ".join(f"loss.{setting}={json.dumps(getattr(loss_cfg, setting))}" for setting in settings)
 
 
 def _unread_message(unread: list[str], names: Sequence[str], loss_cfg: LossConfig, model_name) -> str:
@@ -97,7 +122,7 @@ def _unread_message(unread: list[str], names: Sequence[str], loss_cfg: LossConfi
     for setting in unread:
         by_readers.setdefault(tuple(terms_reading(setting)), []).append(setting)
     readers = [
-        ", ".join(f"loss.{setting}={json.dumps(getattr(loss_cfg, setting))}" for setting in settings)
+        _settings(settings, loss_cfg)
         + (" by " if i else " is read by " if len(settings) == 1 else " are read by ")
         + _term_list(terms)
         for i, (terms, settings) in enumerate(by_readers.items())
@@ -109,6 +134,24 @@ def _unread_message(unread: list[str], names: Sequence[str], loss_cfg: LossConfi
         trained, fix = f"{model} does not train with (its terms: {list(names)})", "or pick loss.terms"
     them = "it" if len(unread) == 1 else "them"
     return f"{' and '.join(readers)}, which {trained}; remove {them} {fix}"
+
+
+def _conditional_message(
+    unread: list[str], names: Sequence[str], loss_cfg: LossConfig, model_settings: Mapping
+) -> str:
+    """``loss.a=1, loss.b=2 are read by the 'mis' term only with ...; set that or remove them``: settings
+    that terms in use read only under a condition, grouped by the terms and their conditions."""
+    conditions = {name: loss_term(name).unread_settings(loss_cfg, model_settings) for name in names}
+    by_reason: dict[tuple[tuple[str, str], ...], list[str]] = {}
+    for setting in unread:
+        reason = tuple((name, conditions[name][setting]) for name in terms_reading(setting, names))
+        by_reason.setdefault(reason, []).append(setting)
+    return ". ".join(
+        f"{_settings(settings, loss_cfg)} {'is' if len(settings) == 1 else 'are'} read by "
+        + " and by ".join(f"the {name!r} term {condition}" for name, condition in reason)
+        + f"; set that or remove {'it' if len(settings) == 1 else 'them'}"
+        for reason, settings in by_reason.items()
+    )
 
 
 def _term_list(names: tuple[str, ...]) -> str:
@@ -135,7 +178,12 @@ def build_loss_terms(
     if not names:
         raise ValueError(f"no loss terms given; expected names among {sorted(LOSS_TERMS)}")
     if check_unread:
-        check_settings_read(names, loss_cfg, model_name=getattr(model, "model_name", None))
+        check_settings_read(
+            names,
+            loss_cfg,
+            model_settings=model_settings_of(model),
+            model_name=getattr(model, "model_name", None),
+        )
     terms = {name: loss_term(name).from_config(model, loss_cfg) for name in names}
     off = [name for name, term in terms.items() if term is None]
     if off:

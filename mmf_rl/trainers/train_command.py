@@ -237,14 +237,14 @@ def build_model_and_loss(
 
 
 def check_loss_settings_read(cfg, loss_cfg: LossConfig) -> None:
-    """A new run may not carry a loss setting that none of its model's loss terms reads (e.g.
-    ``loss.best_of_k_weight`` with ``model=lf_lstm``): training would silently ignore it. Compared with
-    what the loss config group gives without asking (its KL warm-up is every model's, read by the ELBO's
-    only), before the run directory and the window cache are made. A resumed run is not checked: it
-    continues as it began, and one begun before this check may hold such a setting, which changed
-    nothing in it."""
+    """A new run may not carry a loss setting that its model's loss terms do not read (e.g.
+    ``loss.best_of_k_weight`` with ``model=lf_lstm``, ``loss.dropped_prior_weight`` without
+    ``model.prior=learned``): training would silently ignore it. Compared with what the loss config group
+    gives without asking (its KL warm-up is every model's, read by the ELBO's only), before the run
+    directory and the window cache are made. A resumed run is not checked: it continues as it began, and
+    one begun before this check may hold such a setting, which changed nothing in it."""
     if not cfg.resume:
-        check_loss_settings(cfg.model.get("name", DEFAULT_MODEL), loss_cfg, default_loss_config())
+        check_loss_settings(to_container(cfg.model), loss_cfg, default_loss_config())
 
 
 def make_trainer(cfg, model, model_name: str, loss, data: WindowDataset, trainer_cfg, run_dir, ranks, device):

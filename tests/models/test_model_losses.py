@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from mmf_rl.configuration import ConfigError
-from mmf_rl.models import MODELS, build_loss, check_loss_settings, register_model, trained_loss_terms
+from mmf_rl.models import MODELS, build_loss, check_loss_settings, loss_settings_read, register_model
 from mmf_rl.objectives import (
     GLOBAL_LOSS_SETTINGS,
     LOSS_TERMS,
@@ -18,7 +18,6 @@ from mmf_rl.objectives import (
     LossConfig,
     MissingModalityLoss,
     register_loss_term,
-    terms_reading,
 )
 from tests.conftest import make_batch, small_registered_model
 
@@ -71,13 +70,13 @@ def explicit_loss(name: str, model, cfg: LossConfig):
 
 
 def settings_read_by(name: str, cfg: LossConfig) -> LossConfig:
-    """``cfg`` with the settings that no loss term of model ``name`` reads at their defaults (the
+    """``cfg`` with the settings that the loss of model ``name`` does not read at their defaults (the
     others are refused)."""
-    terms = trained_loss_terms(name, cfg)
+    read = loss_settings_read({"name": name}, cfg)
     unread = {
         field.name: getattr(LossConfig(), field.name)
         for field in dataclasses.fields(LossConfig)
-        if field.name not in GLOBAL_LOSS_SETTINGS and not terms_reading(field.name, terms)
+        if field.name not in GLOBAL_LOSS_SETTINGS and field.name not in read
     }
     return dataclasses.replace(cfg, **unread)
 
@@ -85,9 +84,10 @@ def settings_read_by(name: str, cfg: LossConfig) -> LossConfig:
 @pytest.mark.parametrize("option", sorted(LOSS_CONFIGS))
 @pytest.mark.parametrize("name", ["forecaster", "lf_lstm", "mvae", "mult"])
 def test_the_assembled_loss_gives_the_explicit_values(name, option):
-    cfg = settings_read_by(name, LOSS_CONFIGS[option])
+    cfg = LOSS_CONFIGS[option]
     if name == "mvae":  # it refuses the GSNN and best-of-K terms (tested in test_baselines, test_elbo)
         cfg = dataclasses.replace(cfg, gsnn_weight=0.0, best_of_k_weight=0.0)
+    cfg = settings_read_by(name, cfg)
     model = small_registered_model(name).train()
     batch = make_batch(8, seed=2)
     results = []
@@ -138,6 +138,20 @@ def test_a_setting_the_models_terms_do_not_read_is_refused_before_the_model_is_b
     with pytest.raises(
         ConfigError, match=r"^loss\.gsnn_weight=0\.5 is read by the 'elbo' term, which model "
     ):
-        check_loss_settings("mult", LossConfig(gsnn_weight=0.5))
-    check_loss_settings("mvae", LossConfig(kl_warmup_steps=7))
-    check_loss_settings("mult", LossConfig(terms=["nll", "elbo"], gsnn_weight=0.5))  # the terms chosen
+        check_loss_settings({"name": "mult"}, LossConfig(gsnn_weight=0.5))
+    check_loss_settings({"name": "mvae"}, LossConfig(kl_warmup_steps=7))
+    check_loss_settings(
+        {"name": "mult"}, LossConfig(terms=["nll", "elbo"], gsnn_weight=0.5)
+    )  # the terms chosen
+
+
+def test_the_model_config_group_says_whether_its_model_reads_the_learned_priors_settings():
+    tie = LossConfig(dropped_prior_weight=2.0)
+    check_loss_settings({"name": "forecaster", "prior": "learned"}, tie)
+    assert "dropped_prior_weight" in loss_settings_read({"name": "forecaster", "prior": "learned"}, tie)
+    for group in ({"name": "forecaster"}, {"name": "forecaster", "prior": "standard"}, {}):  # the default's
+        with pytest.raises(
+            ConfigError,
+            match=r"^loss\.dropped_prior_weight=2\.0 is read by the 'mis' term only with a learned",
+        ):
+            check_loss_settings(group, tie)

@@ -7,6 +7,7 @@ import dataclasses
 import re
 
 import pytest
+import torch
 
 from mmf_rl.configuration import ConfigError
 from mmf_rl.objectives import (
@@ -17,9 +18,10 @@ from mmf_rl.objectives import (
     build_loss_terms,
     check_settings_read,
     default_loss_config,
+    model_settings_of,
     terms_reading,
 )
-from tests.conftest import small_registered_model
+from tests.conftest import make_batch, small_registered_model
 
 
 class RecordingConfig:
@@ -92,19 +94,153 @@ def test_settings_the_terms_in_use_read_pass():
     forecaster = small_registered_model("forecaster")
     build_loss_terms(["elbo", "mis"], forecaster, LossConfig(best_of_k_weight=1.0, max_dropped=None))
     # The terms chosen by loss.terms: the settings of those terms are read.
-    check_settings_read(["nll", "elbo"], LossConfig(terms=["nll", "elbo"], kl_warmup_steps=5))
+    check_settings_read(
+        ["nll", "elbo"], LossConfig(terms=["nll", "elbo"], kl_warmup_steps=5), model_settings={}
+    )
 
 
 def test_a_setting_is_compared_with_the_defaults_given():
     # The loss config group warms the KL up, for every model: not a choice of the user's.
     shipped = default_loss_config()
     assert shipped.kl_warmup_steps != LossConfig().kl_warmup_steps
-    check_settings_read(["nll"], shipped, model_name="lf_lstm", defaults=shipped)
+    lf_lstm = {"model_settings": {}, "model_name": "lf_lstm"}
+    check_settings_read(["nll"], shipped, **lf_lstm, defaults=shipped)
     with pytest.raises(ConfigError, match=r"^loss\.kl_warmup_steps=\d+ is read by the 'elbo' term"):
-        check_settings_read(["nll"], shipped, model_name="lf_lstm")
+        check_settings_read(["nll"], shipped, **lf_lstm)
     changed = dataclasses.replace(shipped, kl_warmup_steps=shipped.kl_warmup_steps + 1)
     with pytest.raises(ConfigError, match=r"^loss\.kl_warmup_steps=\d+ is read by the 'elbo' term"):
-        check_settings_read(["nll"], changed, model_name="lf_lstm", defaults=shipped)
+        check_settings_read(["nll"], changed, **lf_lstm, defaults=shipped)
+
+
+@pytest.mark.parametrize(
+    "terms, model, cfg, message",
+    [
+        (  # the settings of a term the config turns off
+            ["elbo", "mis"],
+            "forecaster",
+            LossConfig(
+                missing_modality_weight=0.0,
+                detach_teacher=False,
+                max_dropped=2,
+                dropped_nll_weight=1.0,
+                step_drop_prob=0.3,
+            ),
+            "loss.detach_teacher=false, loss.max_dropped=2, loss.dropped_nll_weight=1.0, "
+            "loss.step_drop_prob=0.3 are read by the 'mis' term only with loss.missing_modality_weight > 0 "
+            "(found 0.0, which turns it off); set that or remove them",
+        ),
+        (  # the learned prior's tie, for a model with the standard prior
+            ["elbo", "mis"],
+            "forecaster",
+            LossConfig(dropped_prior_weight=2.0),
+            "loss.dropped_prior_weight=2.0 is read by the 'mis' term only with a learned prior "
+            "(model.prior=learned), which this model does not have; set that or remove it",
+        ),
+        (  # K of a best-of-K term that is off
+            ["elbo", "mis"],
+            "forecaster",
+            LossConfig(best_of_k_samples=5),
+            "loss.best_of_k_samples=5 is read by the 'elbo' term only with loss.best_of_k_weight > 0 "
+            "(found 0.0); set that or remove it",
+        ),
+        (  # a warm-up of a KL weighted 0
+            ["elbo"],
+            "mvae",
+            LossConfig(kl_weight=0.0, kl_warmup_steps=60),
+            "loss.kl_warmup_steps=60 is read by the 'elbo' term only with loss.kl_weight > 0 (found 0.0); "
+            "set that or remove it",
+        ),
+        (  # the length of tail cuts never made
+            ["elbo", "mis"],
+            "forecaster",
+            LossConfig(max_dropped_steps=2),
+            "loss.max_dropped_steps=2 is read by the 'mis' term only with loss.step_drop_prob > 0 "
+            "(found 0.0); set that or remove it",
+        ),
+        (  # a setting no term in use reads, and one read under a condition: both named
+            ["nll", "mis"],
+            "forecaster",
+            LossConfig(terms=["nll", "mis"], missing_modality_weight=0.0, max_dropped=2, kl_weight=0.5),
+            "loss.kl_weight=0.5 is read by the 'elbo' term, which loss.terms=['nll', 'mis'] leaves out; "
+            "remove it or add such a term to loss.terms. loss.max_dropped=2 is read by the 'mis' term only "
+            "with loss.missing_modality_weight > 0 (found 0.0, which turns it off); set that or remove it",
+        ),
+    ],
+)
+def test_a_setting_read_only_under_a_condition_the_config_or_model_leaves_off_is_refused(
+    terms, model, cfg, message
+):
+    with pytest.raises(ConfigError, match="^" + re.escape(message) + "$"):
+        build_loss_terms(terms, small_registered_model(model), cfg)
+
+
+def test_the_same_settings_pass_with_their_condition_on():
+    forecaster = small_registered_model("forecaster")
+    on = LossConfig(
+        detach_teacher=False,
+        max_dropped=2,
+        dropped_nll_weight=1.0,
+        step_drop_prob=0.3,
+        max_dropped_steps=2,
+        best_of_k_weight=1.0,
+        best_of_k_samples=5,
+    )
+    assert build_loss_terms(["elbo", "mis"], forecaster, on).losses[1].max_dropped_steps == 2
+    learned = small_registered_model("forecaster", prior="learned")
+    assert (
+        build_loss_terms(["elbo", "mis"], learned, LossConfig(dropped_prior_weight=2.0))
+        .losses[1]
+        .prior_weight
+        == 2.0
+    )
+    mvae = small_registered_model("mvae")
+    assert (
+        build_loss_terms(["elbo"], mvae, LossConfig(kl_weight=0.5, kl_warmup_steps=60)).kl_warmup_steps == 60
+    )
+
+
+def changed(value):
+    """Another valid value of a loss setting."""
+    if isinstance(value, bool):
+        return not value
+    if value is None:
+        return 2
+    return value + 3 if isinstance(value, int) else value + 0.5
+
+
+@pytest.mark.parametrize(
+    "model, settings, terms, cfg",
+    [
+        ("forecaster", {}, ["elbo", "mis"], LossConfig(missing_modality_weight=0.0)),
+        ("forecaster", {}, ["elbo", "mis"], LossConfig(kl_weight=0.0)),
+        ("forecaster", {"prior": "learned"}, ["elbo", "mis"], LossConfig(kl_weight=0.0, step_drop_prob=0.5)),
+        ("mvae", {}, ["elbo"], LossConfig(kl_weight=0.0)),
+    ],
+)
+def test_a_setting_a_term_says_it_leaves_unread_changes_nothing_it_computes(model, settings, terms, cfg):
+    model = small_registered_model(model, **settings).train()
+    batch = make_batch(8, seed=1)
+    unread = {name: LOSS_TERMS[name].unread_settings(cfg, model_settings_of(model)) for name in terms}
+    assert any(unread.values())  # each case leaves some setting unread
+    for name in terms:
+        assert unread[name].keys() <= LOSS_TERMS[name].config_fields, name
+        for setting in unread[name]:
+            results = []
+            for config in (cfg, dataclasses.replace(cfg, **{setting: changed(getattr(cfg, setting))})):
+                loss = LOSS_TERMS[name].from_config(model, config)
+                torch.manual_seed(0)  # the same draws of z and of the dropped modalities
+                results.append(None if loss is None else outputs_and_gradients(loss, batch))
+            torch.testing.assert_close(*results, rtol=0, atol=0, msg=f"{name}: {setting}")
+
+
+def outputs_and_gradients(loss, batch) -> tuple[dict, list]:
+    """What a loss computes on ``batch``: its outputs and the gradients of their sum (e.g. a detached
+    teacher changes only the latter)."""
+    out = loss(batch)
+    model = loss.forecaster
+    model.zero_grad(set_to_none=True)
+    sum(value for key, value in out.items() if key.startswith("loss_")).backward()
+    return out.detach().to_dict(), [p.grad for p in model.parameters()]
 
 
 def test_check_unread_false_builds_the_terms_of_a_run_as_it_was_trained():

@@ -16,10 +16,10 @@ from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.configuration import compose_config, config_dir, to_container
 from mmf_rl.datasets import WindowDataset
-from mmf_rl.models import load_trained_model
+from mmf_rl.models import build_loss, load_trained_model
 from mmf_rl.objectives import LossConfig
 from mmf_rl.trainers.train_command import check_loss_settings_read
-from tests.conftest import push_train_overrides
+from tests.conftest import push_train_overrides, small_registered_model
 from tests.reliability.conftest import edit_frames, push_data_config
 
 
@@ -95,11 +95,41 @@ def lf_lstm_overrides(overrides, run: str, **kw) -> list[str]:
     ]
 
 
-@pytest.mark.parametrize("option", sorted(p.stem for p in (config_dir() / "model").glob("*.yaml")))
-def test_every_model_trains_with_the_default_loss_settings(option):
-    # The loss config group warms the ELBO's KL up; LF-LSTM and MulT, trained without it, get that too.
-    cfg = compose_config("train", [f"model={option}"])
-    check_loss_settings_read(cfg, LossConfig.from_dict(to_container(cfg.loss)))
+def shipped(group: str) -> list[str]:
+    return sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
+
+
+PAPER_MODEL_USES = [
+    ("model=forecaster",),
+    ("model=forecaster", "model.prior=learned"),  # ETH/UCY's, mmf-rl compare's
+]
+# The models each shipped loss config trains in the README and the benchmarks.
+SHIPPED_LOSS_USES = {
+    "default": [*((f"model={option}",) for option in shipped("model")), *PAPER_MODEL_USES[1:]],
+    "no_mis": [
+        *PAPER_MODEL_USES,
+        ("model=forecaster", "loss.kl_weight=0", "model.eval_latent=posterior"),  # mult_gap's deterministic
+    ],
+}
+
+
+def test_every_shipped_loss_config_has_its_uses_listed():
+    assert sorted(SHIPPED_LOSS_USES) == shipped("loss")
+
+
+@pytest.mark.parametrize(
+    "loss, model",
+    [(loss, model) for loss, uses in SHIPPED_LOSS_USES.items() for model in uses],
+    ids=lambda value: " ".join(value) if isinstance(value, tuple) else value,
+)
+def test_every_shipped_loss_config_trains_the_models_it_is_used_with(loss, model):
+    # The loss config group warms the ELBO's KL up; LF-LSTM and MulT, trained without it, get that too,
+    # and so does a KL weighted 0.
+    cfg = compose_config("train", [*model, f"loss={loss}"])
+    loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
+    check_loss_settings_read(cfg, loss_cfg)
+    name, settings = cfg.model.name, {k: v for k, v in to_container(cfg.model).items() if k != "name"}
+    build_loss(name, small_registered_model(name, **settings), loss_cfg, check_unread=False)
 
 
 def test_a_loss_setting_the_models_terms_do_not_read_is_a_one_line_error_before_anything_is_made(
