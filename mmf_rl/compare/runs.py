@@ -42,7 +42,6 @@ def train_overrides(
         f"trainer.eval_every={budget.steps}",
         f"trainer.checkpoint_every={budget.steps}",
         f"trainer.warmup_steps={min(100, budget.steps // 10)}",
-        *kl_warmup(entry, study, extra),
         "trainer.keep_checkpoints=1",
         "trainer.progress_bar=false",
         "logger=csv",
@@ -51,29 +50,23 @@ def train_overrides(
     ]
 
 
-def kl_warmup(entry: Entry, study: Study, extra: tuple[str, ...]) -> list[str]:
-    """The budget's KL warm-up, for an entry whose loss has a KL to warm up (the ELBO's: the paper model,
-    MVAE); not for LF-LSTM's or MulT's NLL, whose trainer refuses a loss setting none of its terms reads."""
-    from mmf_rl.configuration import compose_config, to_container
-    from mmf_rl.models import trained_loss_terms
-    from mmf_rl.models.registry import DEFAULT_MODEL
-    from mmf_rl.objectives import LossConfig, terms_reading
-
-    cfg = compose_config("train", [*entry.overrides, *extra, *study.data_overrides], list(study.config_dirs))
-    terms = trained_loss_terms(
-        cfg.model.get("name", DEFAULT_MODEL), LossConfig.from_dict(to_container(cfg.loss))
-    )
-    if not terms_reading("kl_warmup_steps", terms):
-        return []
-    return [f"loss.kl_warmup_steps={min(200, study.budget.steps // 5)}"]
-
-
 def compose_train(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[str, ...] = ()):
-    from mmf_rl.configuration import compose_config
+    """The training config of one run: ``train_overrides`` composed, with the budget's KL warm-up where
+    the entry's loss reads one (the ELBO's with ``loss.kl_weight > 0``: the paper model, MVAE); not for
+    LF-LSTM's or MulT's NLL, whose trainer refuses a loss setting its terms do not read. The warm-up is
+    set on the composed config: whether it is read depends on the model and on the whole loss config
+    (``loss=no_mis``, ``loss.kl_weight=0``, ``loss.terms``), which only the composition knows."""
+    from mmf_rl.configuration import compose_config, to_container
+    from mmf_rl.models import loss_settings_read
+    from mmf_rl.objectives import LossConfig
 
-    return compose_config(
+    cfg = compose_config(
         "train", train_overrides(entry, seed, study, run_dir, extra), list(study.config_dirs)
     )
+    loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
+    if "kl_warmup_steps" in loss_settings_read(to_container(cfg.model), loss_cfg):
+        cfg.loss.kl_warmup_steps = min(200, study.budget.steps // 5)
+    return cfg
 
 
 def open_data(study: Study):
