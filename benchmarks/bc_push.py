@@ -25,9 +25,11 @@ the trainings):
   image size of the policies' recording (``WORK/push`` or ``--data``); or ``--forecaster-data PATH``,
   a recording of your own for the forecaster only. Why a recording of its own: see "The forecaster
   is held out" below;
-* the forecaster: the default push forecaster trained on its recording (``mmf-rl train
-  data.root=WORK/push_forecaster``) in the run ``WORK/forecaster_held_out``, with
-  ``--forecaster-steps`` steps of ``--forecaster-batch-size``;
+* the forecaster: the default push forecaster with the object's planar position relative to the
+  gripper as its target (`FORECAST_TARGET`: where the object is, in a frame the policy acts in;
+  the data config's default, its displacement from now, mostly restates what the policy is about
+  to do), trained on its recording (``mmf-rl train data.root=WORK/push_forecaster``) in the run
+  ``WORK/forecaster_held_out``, with ``--forecaster-steps`` steps of ``--forecaster-batch-size``;
 * its forecast scale calibrated per presence pattern on its validation split, as ``mmf-rl
   calibrate`` fits it (`mmf_rl.eval.scale_fit`), before it forecasts anything: ``mmf-rl train``
   fits it at the end of the training (``calibrate=true``, its default); a forecaster without a
@@ -248,6 +250,12 @@ DROPPABLE = ("image", "force")  # the sensors a training sample may lose
 # The seed of each recording the script makes (under WORK): episode i depends only on (seed, i), so
 # the two share no episode.
 RECORDING_SEEDS = {"push": 0, "push_forecaster": 1}
+# The forecaster's target: the object's planar position relative to the gripper's (observation.state
+# dims 0-1), not the data config's displacement from now.
+FORECAST_TARGET = [
+    "data.target.relative=false",
+    "data.target.relative_to={feature:observation.state,dims:[0,1]}",
+]
 # In the run of every `with` policy: the forecaster whose forecasts it learns from.
 FORECASTER_RECORD = "forecaster.json"
 BUDGETS = {
@@ -380,6 +388,7 @@ def build_forecaster(args, data: Path, phases: dict[str, float]) -> Path:
         "name=bc_forecaster",
         f"run_dir={forecaster_run_dir(args)}",
         f"data.root={data}",
+        *FORECAST_TARGET,
         "trainer.seed=0",
         "trainer.progress_bar=false",
     ]

@@ -241,6 +241,9 @@ def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_
     assert not np.allclose(first_goal(recording), first_goal(recorded_push_root))
     config = yaml.safe_load((work / "forecaster_held_out" / "config.yaml").read_text())
     assert config["data"]["root"] == str(recording.resolve())
+    target = config["data"]["target"]
+    assert not target["relative"], "the object's position relative to the gripper, not its displacement"
+    assert target["relative_to"] == {"feature": "observation.state", "dims": [0, 1]}
 
     assert (work / "results.json").read_text() == ordinary_results, "the ordinary results are left alone"
     results = json.loads((work / "heldout" / "results.json").read_text())
