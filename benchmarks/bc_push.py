@@ -60,7 +60,9 @@ the trainings):
   ``--action-head gmm`` or some ``--variants`` only, the directory's name says so), so a re-run
   does not play them again (nor those of older runs, labelled by the stateful pusher). The
   results report each policy's success on its own DAgger episodes per round; the played
-  conditions use the last round's policies.
+  conditions use the last round's policies. Those are other policies than round 0's, so their
+  results go to a directory of their own (``WORK/dagger<ROUNDS>``, after any other tag of the run,
+  unless ``--out``), never over round 0's.
   Cost of a round, per BC seed and variant: one more BC training of the first ones' budget
   (training is the phase that dominates a run, so a round takes about as long again as all the
   first trainings) and ``--dagger-episodes`` episodes played (each at the play phase's cost per
@@ -461,6 +463,12 @@ def policy_tag(args) -> str:
     return steady_tag(args) + privileged_tag(args) + chunk_tag(args) + head_tag(args)
 
 
+def dagger_tag(args) -> str:
+    """In the name of the results directory of a run whose policies went through DAgger rounds: they
+    are other policies than those of round 0, whose results stay where they are."""
+    return f"_dagger{args.dagger}" if args.dagger else ""
+
+
 def dagger_dir(args, seed: int, round_: int) -> Path:
     """Round ``round_``'s episodes and policies of BC seed ``seed``: they depend on the policies of
     every variant played, so on the forecasts the ``with`` ones read."""
@@ -723,7 +731,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = resolve_budget(parsed, BUDGETS, "bc")
     args.variants = [v for v in VARIANTS if v in args.variants]
     check_forecaster_data(parser, args)
-    tags = policy_tag(args) + first_steps_tag(args) + forecaster_tag(args)
+    tags = policy_tag(args) + first_steps_tag(args) + forecaster_tag(args) + dagger_tag(args)
     if default_out and tags:  # never over the results of the ordinary policies in the same work directory
         args.out = args.work / tags.removeprefix("_")
     if args.steady_demonstrations and args.data is not None:

@@ -93,7 +93,8 @@ def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
     work = tmp_path / "work"
     argv = tiny_argv(recorded_push_root, tmp_path, work)
     assert cli(argv) == 0
-    first = json.loads((work / "results.json").read_text())
+    assert not (work / "results.json").exists(), "round 0's results are not written over"
+    first = json.loads((work / "dagger1" / "results.json").read_text())
     rows = first["dagger"]
     assert [(r["bc_seed"], r["round"], r["variant"], r["episodes"]) for r in rows] == [
         (0, 1, "without", 1),
@@ -105,17 +106,15 @@ def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
     round_dir = work / "dagger_markov_seed0_round1"
     for variant in ("without", "with"):
         assert (round_dir / f"bc_{variant}_forecasts" / "checkpoints" / "last").is_file()
-    assert "DAgger (expert: the scripted pusher" in (work / "results.md").read_text()
-    assert (
-        "Forecast scale: calibrated per presence pattern on the val split"
-        in (work / "results.md").read_text()
-    )
+    page = (work / "dagger1" / "results.md").read_text()
+    assert "DAgger (expert: the scripted pusher" in page
+    assert "Forecast scale: calibrated per presence pattern on the val split" in page
 
     # A re-run trains and plays nothing it already has (the forecaster: `train_or_resume` leaves an
     # ended run as it is): only the test episodes are played.
     capsys.readouterr()
     assert cli(argv) == 0
-    again = json.loads((work / "results.json").read_text())
+    again = json.loads((work / "dagger1" / "results.json").read_text())
     assert again["dagger"] == rows
     assert not [p for p in again["phases_s"] if p.startswith(("train BC", "DAgger"))], again["phases_s"]
 
@@ -139,12 +138,12 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
         last,
     ), last
     assert not (work / "results.json").exists(), "the ordinary policies' results are left alone"
-    results = json.loads((work / "privileged" / "results.json").read_text())
+    results = json.loads((work / "privileged_dagger1" / "results.json").read_text())
     assert {r for r in results["rows"] if r.startswith("BC")} == {
         f"BC without forecasts | {c}" for c in ("all", "no-camera (episode)", "no-force (episode)")
     }
     assert [(r["round"], r["variant"]) for r in results["dagger"]] == [(1, "without")]
-    page = (work / "privileged" / "results.md").read_text()
+    page = (work / "privileged_dagger1" / "results.md").read_text()
     assert "Privileged policies" in page and "not judged" in page
     for run in (
         "bc_privileged_without_forecasts_seed0",
@@ -159,7 +158,7 @@ def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(recorded_
     assert cli([*tiny_argv(recorded_push_root, tmp_path, work), "--action-chunk", "2"]) == 0
     assert_one_outage_summary(capsys)
     assert not (work / "results.json").exists(), "the per-step policies' results are left alone"
-    assert json.loads((work / "chunk2" / "results.json").read_text())["action_chunk"] == 2
+    assert json.loads((work / "chunk2_dagger1" / "results.json").read_text())["action_chunk"] == 2
     for run in (
         "bc_chunk2_without_forecasts_seed0",
         "bc_chunk2_with_forecasts_seed0",
@@ -246,14 +245,14 @@ def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_
     assert target["relative_to"] == {"feature": "observation.state", "dims": [0, 1]}
 
     assert (work / "results.json").read_text() == ordinary_results, "the ordinary results are left alone"
-    results = json.loads((work / "heldout" / "results.json").read_text())
+    results = json.loads((work / "heldout_dagger1" / "results.json").read_text())
     assert results["held_out_forecaster"]
     assert results["forecaster_recording"] == {
         "path": str(recording.resolve()),
         "seed": 1,
         "episodes": source["total_episodes"],
     }
-    page = (work / "heldout" / "results.md").read_text()
+    page = (work / "heldout_dagger1" / "results.md").read_text()
     assert "forecaster trained on its own recording (seed 1)" in page
     assert f"trained on the recording `{recording.resolve()}` (recorded here with seed 1" in page
     for run in ("bc_with_heldout_forecasts_seed0", "dagger_markov_heldout_seed0_round1/bc_with_forecasts"):
