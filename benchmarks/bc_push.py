@@ -3,7 +3,7 @@
     # quick: builds what it lacks (records, trains the forecaster and the BC policies with small
     # budgets), then plays
     MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py --quick
-    # full: 300 recorded episodes, the forecaster's committed budget, 50 episodes per condition
+    # full: 1000 recorded episodes, the forecaster's committed budget, 50 episodes per condition
     MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py
     # a recording and a forecaster of your own (nothing recorded or trained but the policies)
     MUJOCO_GL=egl .venv/bin/python benchmarks/bc_push.py --data data/push --forecaster runs/push/checkpoints
@@ -72,7 +72,7 @@ the trainings):
 =============================  ===========  ===============================
 budget                         quick        full
 =============================  ===========  ===============================
-recorded episodes (policies'   200          300
+recorded episodes (policies'   200          1000
 recording, and forecaster's)
 forecaster steps x batch       1000 x 64    3000 x 128 (configs/trainer)
 BC steps x batch (each)        1000 x 64    3000 x 128
@@ -103,13 +103,15 @@ Design (what the policies see, and why):
   outage in the test.
 * The forecast: `ForecastTransform` (``denormalize=False``) on the same live sensors after the
   outage, i.e. the forecaster's own missing-modality inference; the policy reads its ``loc`` and
-  ``log(scale)`` (the object's planar motion over the next T steps, and how sure the forecaster
-  is). Training uses the forecaster's forecasts of the training frames under the same outage
-  each sample is under, built by the same window rules (tests/rl/test_bc.py checks that the
-  offline windows and forecasts equal the transforms' online ones).
-* ``--latched-forecast RULE``: the ``with`` policies read instead what `LatchedForecastTransform`
-  serves with that rule (the last forecast made with the camera, advanced through its outage,
-  and its age), trained on the `LatchedForecastTable` of the same forecasts (their runs are
+  ``log(scale)`` (the object's planar position relative to the gripper over the next T steps,
+  `FORECAST_TARGET`, and how sure the forecaster is). Training uses the forecaster's forecasts of
+  the training frames under the same outage each sample is under, built by the same window rules
+  (tests/rl/test_bc.py checks that the offline windows and forecasts equal the transforms' online
+  ones).
+* ``--latched-forecast RULE`` (default ``precision``; ``none``: the forecast of the live sensors at
+  each step): the ``with`` policies read what `LatchedForecastTransform` serves with that rule
+  (the last forecast made with the camera, advanced through its outage, and its age), trained on
+  the `LatchedForecastTable` of the same forecasts (their runs are
   ``bc_with_latched_<RULE>_forecasts_seed<S>``).
 * ``--forecast-steps N`` (default: all T): the ``with`` policies read only the first N steps of
   the forecast (`BCConfig.forecast_steps`): where the object is about to be, not the rest of its
@@ -143,13 +145,15 @@ Design (what the policies see, and why):
   recorded ``data.root`` is the policies' recording (``--data``, or its own when ``--data`` is not
   given), a warning says the policies learn from in-sample forecasts. Refused with
   ``--held-out-forecaster``, ``--in-sample-forecaster`` or ``--forecaster-data``.
-* ``--steady-demonstrations``: the policies' recording (``WORK/push_steady``, seed 0) is made by
-  the pusher in one steady style (`PusherStyle.steady`, ``mmf-rl record --steady``): no action
-  noise, pauses or re-approach whims, one speed. The default recording draws a style per episode;
-  at nearby states its demonstrations hold both "move" and "stay", which a per-step regression
-  averages into a stalled action. The forecaster's recording keeps the drawn styles (it learns
-  how the object moves, not what to do). Its runs are their own (``bc_steady_...``; results in
-  ``WORK/steady...`` unless ``--out``). Refused with ``--data``.
+* ``--demonstrations steady`` (the default; ``--steady-demonstrations`` says the same): the
+  policies' recording (``WORK/push_steady``, seed 0) is made by the pusher in one steady style
+  (`PusherStyle.steady`, ``mmf-rl record --steady``): no action noise, pauses or re-approach
+  whims, one speed. ``--demonstrations drawn`` records ``WORK/push`` instead, a style drawn per
+  episode: at nearby states its demonstrations hold both "move" and "stay", which a per-step
+  regression averages into a stalled action. The forecaster's recording keeps the drawn styles (it
+  learns how the object moves, not what to do). Steady runs are tagged (``bc_steady_...``; results
+  in ``WORK/steady...`` unless ``--out``). Refused with ``--data``, whose recording is used as it is
+  (its runs are untagged).
 * ``--privileged-object`` (a diagnostic, not a deployable policy): the policies also read the
   object's true planar position (`BCConfig.privileged_object`), fed like the goal, never removed
   by an outage. If they reach the scripted pusher's success, locating the object from the sensors
@@ -159,11 +163,11 @@ Design (what the policies see, and why):
   without forecasts (a policy told where the object is has little to gain from them; the other
   variant shows as ``-`` in the tables and the summary line; the camera-loss target is not judged,
   and the summary line counts it met for none of the outage types).
-* ``--action-chunk K`` (default 1): every policy (both variants, privileged ones too) predicts the
-  next K actions and acts with ACT's temporal ensemble of its past chunks
-  (`BCConfig.action_chunk`, `mmf_rl.rl.action_chunks`), trained on the next K recorded actions of
-  the episode (steps past its end masked out of the loss). With K > 1 its runs are its own
-  (``bc_chunk<K>_...``, ``dagger_markov_chunk<K>_...``; results in ``WORK/chunk<K>`` unless
+* ``--action-chunk K`` (default 8; 1: one action per step): every policy (both variants,
+  privileged ones too) predicts the next K actions and acts with ACT's temporal ensemble of its
+  past chunks (`BCConfig.action_chunk`, `mmf_rl.rl.action_chunks`), trained on the next K recorded
+  actions of the episode (steps past its end masked out of the loss). With K > 1 its runs are
+  tagged (``bc_chunk<K>_...``, ``dagger_markov_chunk<K>_...``; results in ``WORK/chunk<K>`` unless
   ``--out``); the offline errors are those of each chunk's first action, comparable with K = 1.
 * ``--action-head gmm`` (default ``mse``): every policy predicts a Gaussian mixture per action
   step (`BCConfig.action_head`, `mmf_rl.rl.gmm_head`, robomimic's BC-GMM), trained by its negative
@@ -258,6 +262,10 @@ FORECAST_TARGET = [
     "data.target.relative=false",
     "data.target.relative_to={feature:observation.state,dims:[0,1]}",
 ]
+# What the policies imitate: the scripted pusher in one steady style, or in a style drawn per episode.
+DEMONSTRATIONS = ("steady", "drawn")
+# Chunks of 8 actions: longer than the drawn pusher's longest pause (7 steps), a third of an episode.
+DEFAULT_ACTION_CHUNK = 8
 # In the run of every `with` policy: the forecaster whose forecasts it learns from.
 FORECASTER_RECORD = "forecaster.json"
 BUDGETS = {
@@ -272,7 +280,7 @@ BUDGETS = {
         "dagger_episodes": 20,
     },
     "full": {
-        "record_episodes": 300,
+        "record_episodes": 1000,
         "forecaster_steps": None,
         "forecaster_batch_size": None,
         "bc_steps": 3000,
@@ -661,9 +669,10 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--latched-forecast",
-        choices=list(RULES),
-        default=None,
-        help="the `with` policies read the latched forecast of this rule and its age (default: not latched)",
+        choices=[*RULES, "none"],
+        default="precision",
+        help="the `with` policies read the latched forecast of this rule and its age (default: precision); "
+        "none: the forecast made from the live sensors at each step",
     )
     parser.add_argument(
         "--forecast-steps",
@@ -674,10 +683,19 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
         "own)",
     )
     parser.add_argument(
+        "--demonstrations",
+        choices=DEMONSTRATIONS,
+        default=None,
+        help="the pusher the recorded policies imitate: steady (the default: one steady style, without "
+        "noise, pauses or whims, WORK/push_steady) or drawn (a style drawn per episode, WORK/push); the "
+        "forecaster's recording keeps the drawn styles. Not with --data",
+    )
+    parser.add_argument(
         "--steady-demonstrations",
-        action="store_true",
-        help="the policies imitate a recording of the pusher in one steady style, without noise, pauses or "
-        "whims (WORK/push_steady; runs of their own); the forecaster's recording keeps the drawn styles",
+        action="store_const",
+        const="steady",
+        dest="demonstrations",
+        help="the default, accepted for older commands: --demonstrations steady",
     )
     parser.add_argument(
         "--privileged-object",
@@ -687,10 +705,10 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--action-chunk",
         type=int,
-        default=1,
+        default=DEFAULT_ACTION_CHUNK,
         metavar="K",
         help="every BC policy predicts the next K actions and acts with their temporal ensemble (ACT); "
-        "default 1: one action per step (runs of K > 1 are their own)",
+        f"default {DEFAULT_ACTION_CHUNK}; 1: one action per step",
     )
     parser.add_argument(
         "--action-head",
@@ -727,6 +745,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_training_arguments(parser)
     parsed = parser.parse_args(argv)
     check_forecaster_kind(parser, parsed)
+    resolve_demonstrations(parser, parsed)
     default_out = parsed.out is None
     args = resolve_budget(parsed, BUDGETS, "bc")
     args.variants = [v for v in VARIANTS if v in args.variants]
@@ -734,11 +753,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     tags = policy_tag(args) + first_steps_tag(args) + forecaster_tag(args) + dagger_tag(args)
     if default_out and tags:  # never over the results of the ordinary policies in the same work directory
         args.out = args.work / tags.removeprefix("_")
-    if args.steady_demonstrations and args.data is not None:
-        parser.error(
-            "--steady-demonstrations records the policies' recording, but --data gives one; drop one (record "
-            "a steady one yourself with mmf-rl record --steady)"
-        )
     if args.action_chunk < 1:
         parser.error(f"--action-chunk must be >= 1, found {args.action_chunk}")
     if args.forecast_steps is not None and args.forecast_steps < 1:
@@ -753,6 +767,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
             "replay the test's"
         )
     return args
+
+
+def resolve_demonstrations(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Sets ``args.steady_demonstrations`` (the policies' recording is the steady pusher's, recorded
+    here) and ``args.latched_forecast`` (``None``: not latched); refuses ``--demonstrations`` with
+    ``--data``, whose recording is whatever it is."""
+    if args.data is not None and args.demonstrations is not None:
+        parser.error(
+            f"--demonstrations {args.demonstrations} records the policies' recording, but --data gives one; "
+            "drop one (record a steady one yourself with mmf-rl record --steady)"
+        )
+    args.steady_demonstrations = args.data is None and args.demonstrations != "drawn"
+    if args.latched_forecast == "none":
+        args.latched_forecast = None
 
 
 def check_forecaster_kind(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:

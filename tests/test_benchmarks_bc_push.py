@@ -61,6 +61,10 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     assert BCPolicy.from_checkpoint(work / with_run / "checkpoints").config.latched_forecast == latched
 
 
+# The plain policies: a style drawn per episode, one action per step, the forecast of the live sensors.
+PLAIN = ["--demonstrations", "drawn", "--action-chunk", "1", "--latched-forecast", "none"]
+
+
 def tiny_argv(
     recorded_push_root, tmp_path, work, *, forecaster: str | Path = "in-sample", data=True, dagger=True
 ) -> list[str]:
@@ -68,7 +72,8 @@ def tiny_argv(
     policies' recording; ``"held-out"``, the default, trained on a recording the script makes; or the
     checkpoints of one trained already (``--forecaster``). The forecaster's data root and run directory
     are the test's only in-sample with ``--data``; otherwise the script's. ``data=False``: no
-    ``--data``, the script records 4 episodes for the policies; ``dagger``: one DAgger round."""
+    ``--data``, the script records 4 episodes for the policies; ``dagger``: one DAgger round. The
+    policies are the plain ones (`PLAIN`), not the script's defaults, which tests below cover."""
     overrides = push_train_overrides(recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3)
     if forecaster != "in-sample" or not data:
         overrides = [o for o in overrides if not o.startswith(("data.root=", "run_dir="))]
@@ -84,6 +89,8 @@ def tiny_argv(
         *kind.get(forecaster, ["--forecaster", str(forecaster)]),
         *(("--dagger", "1", "--dagger-episodes", "1") if dagger else ()),
         *(("--workers", "1") if records else ()),
+        *PLAIN[2:],
+        *(PLAIN[:2] if not data else ()),
     ]
 
 
@@ -287,7 +294,7 @@ def test_bc_push_steady_demonstrations_are_recorded_by_the_steady_pusher_in_runs
     assert (work / "bc_steady_without_forecasts_seed0" / "checkpoints" / "last").is_file()
     with pytest.raises(SystemExit):
         parse_args(["--work", str(work), "--steady-demonstrations", "--data", str(recorded_push_root)])
-    assert "--steady-demonstrations records the policies' recording, but --data" in capsys.readouterr().err
+    assert "--demonstrations steady records the policies' recording, but --data" in capsys.readouterr().err
 
 
 def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_untagged_runs(
@@ -309,7 +316,7 @@ def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_unta
 
 def test_bc_push_given_forecaster_is_neither_kind_and_has_with_runs_of_its_own(tmp_path):
     work = tmp_path / "work"
-    common = ["--quick", "--work", str(work)]
+    common = ["--quick", "--work", str(work), *PLAIN]
     given = parse_args([*common, "--forecaster", "runs/some/checkpoints"])
     assert not given.held_out_forecaster and not given.in_sample_forecaster
     assert given.out == work / "given"
@@ -411,3 +418,22 @@ def test_bc_push_refuses_a_forecaster_whose_training_data_contradicts_its_option
     assert cli([*argv, *extra]) == 2
     assert refusal in capsys.readouterr().err
     assert not (tmp_path / "work").exists()
+
+
+def test_bc_push_defaults_are_steady_demonstrations_chunks_of_8_and_the_precision_latch(tmp_path, capsys):
+    work = tmp_path / "work"
+    default = parse_args(["--quick", "--work", str(work)])
+    assert default.steady_demonstrations and default.action_chunk == 8
+    assert default.latched_forecast == "precision" and default.held_out_forecaster
+    assert default.out == work / "steady_chunk8_heldout"
+    assert policy_run_dir(default, "with", 0, 0) == (
+        work / "bc_steady_chunk8_with_latched_precision_heldout_forecasts_seed0"
+    )
+    assert parse_args(["--work", str(work)]).record_episodes == 1000
+    given = parse_args(["--work", str(work), "--data", "mine", "--latched-forecast", "none"])
+    assert not given.steady_demonstrations and given.latched_forecast is None  # --data is used as it is
+    drawn = parse_args(["--work", str(work), "--demonstrations", "drawn"])
+    assert not drawn.steady_demonstrations and drawn.out == work / "chunk8_heldout"
+    with pytest.raises(SystemExit):
+        parse_args(["--work", str(work), "--demonstrations", "drawn", "--data", "mine"])
+    assert "--demonstrations drawn records the policies' recording, but --data" in capsys.readouterr().err
