@@ -11,6 +11,12 @@ into place at the end, so an interrupted or failed recording never leaves a part
 ``--out``. A recording that was killed outright (SIGKILL, power loss) cannot clean up: the next
 recording beside the same ``--out`` removes the temporary directories whose process is gone.
 
+The dataset says how it was made: ``meta/mmf_rl_recording.json`` (`recording_provenance`) holds
+the options that define its data (not ``--workers`` or ``--overwrite``), the policy that acted and
+the mmf-rl version; a merge's lists those of its sources, in order. It is written before the
+rename, so it is there exactly when the dataset is. `mmf_rl.datasets.provenance` reads it back;
+`mmf-rl inspect` shows it.
+
 Features (float32 vectors carry per-dimension ``names``):
 
 ===================================  =========  ================================================
@@ -49,6 +55,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import sys
 from collections.abc import Callable, Sequence
@@ -58,6 +65,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+import mmf_rl
+from mmf_rl.datasets.provenance import PROVENANCE_FILE, read_recording_provenance
 from mmf_rl.envs.push import (
     ACTION_NAMES,
     FORCE_NAMES,
@@ -188,6 +197,37 @@ class RecordConfig:
     repo_id: str = "local/mmf-push"
     vcodec: str = "libsvtav1"
     policy: Callable[[], Actor] | None = None
+
+
+# The options that define a recording's data; not ``workers`` nor ``overwrite``: episode i depends
+# only on (seed, i).
+PROVENANCE_OPTIONS = (
+    "episodes",
+    "seed",
+    "image_size",
+    "steps",
+    "camera",
+    "faults",
+    "exploration",
+    "steady",
+    "vcodec",
+    "repo_id",
+)
+
+
+def recording_provenance(config: RecordConfig) -> dict:
+    """What `record` writes to ``meta/mmf_rl_recording.json``: the options that define the data, the
+    policy that acted (``None``: the scripted pusher; else its factory's name or description) and the
+    mmf-rl version."""
+    policy = config.policy
+    name = None if policy is None else getattr(policy, "__qualname__", None) or str(policy)
+    options = {option: getattr(config, option) for option in PROVENANCE_OPTIONS}
+    return {**options, "policy": name, "mmf_rl_version": mmf_rl.__version__}
+
+
+def _write_provenance(dataset_root: Path, provenance: dict) -> None:
+    """Into the staged dataset: it is published with the dataset, by the same rename."""
+    (dataset_root / PROVENANCE_FILE).write_text(json.dumps(provenance, indent=2) + "\n")
 
 
 def record_episode(
@@ -348,6 +388,7 @@ def record(config: RecordConfig) -> Path:
                 _record_shards(config, shard_roots, ranges, bar)
         dataset_root = work / "dataset"
         join_shards(shard_roots, dataset_root, config.repo_id)
+        _write_provenance(dataset_root, recording_provenance(config))
         _publish(dataset_root, out, work)
     return out
 
@@ -382,6 +423,10 @@ def merge_recordings(
             )
     if out in sources:
         raise RecordError(f"--out {out} is one of the --merge datasets; write the union to a new directory.")
+    try:
+        provenance = {"merged": [read_recording_provenance(source) for source in sources]}
+    except ValueError as error:
+        raise RecordError(f"--merge: {error}") from None
     _check_destination(out, overwrite)
     from lerobot.datasets.aggregate import aggregate_datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
@@ -406,6 +451,7 @@ def merge_recordings(
         aggregate_datasets(
             repo_ids=[repo_id] * len(sources), aggr_repo_id=repo_id, roots=sources, aggr_root=dataset_root
         )
+        _write_provenance(dataset_root, provenance)
         _publish(dataset_root, out, work)
     return out
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import shutil
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # before lerobot / huggingface_hub load
 
@@ -14,8 +16,10 @@ import numpy as np
 import pytest
 import torch
 
+import mmf_rl
 from mmf_rl import cli
 from mmf_rl import record as record_module
+from mmf_rl.datasets.provenance import PROVENANCE_FILE, read_recording_provenance
 from mmf_rl.record import (
     ACTION_KEY,
     CAMERA_KEY,
@@ -138,6 +142,38 @@ def test_worker_count_does_not_change_the_episodes(recorded, config, tmp_path):
         a, b = columns(one, episode), columns(two, episode)
         for key in a:
             np.testing.assert_array_equal(a[key], b[key], err_msg=f"episode {episode} {key}")
+
+
+def test_a_recording_says_how_it_was_made(recorded, capsys):
+    assert read_recording_provenance(recorded) == {
+        "episodes": EPISODES,
+        "seed": 0,
+        "image_size": IMAGE_SIZE,
+        "steps": STEPS,
+        "camera": "front",
+        "faults": False,
+        "exploration": 0.0,
+        "steady": False,
+        "vcodec": RecordConfig.vcodec,
+        "repo_id": RecordConfig.repo_id,
+        "policy": None,
+        "mmf_rl_version": mmf_rl.__version__,
+    }
+    assert cli.main(["inspect", str(recorded)]) == 0
+    shown = [line for line in capsys.readouterr().out.splitlines() if "mmf-rl record" in line]
+    assert shown == [
+        f"  recorded by mmf-rl record: {EPISODES} episodes of {STEPS} steps, seed 0, scripted pusher, a "
+        f"style drawn per episode, exploration 0.0, no faults, front camera {IMAGE_SIZE} px (libsvtav1), "
+        f"mmf-rl {mmf_rl.__version__}"
+    ]
+
+
+def test_a_steady_recording_says_so_and_not_its_worker_count(config, tmp_path):
+    steady = replace(config, out=tmp_path / "steady", steady=True, steps=3, workers=2, seed=7)
+    provenance = read_recording_provenance(record(steady))
+    assert provenance["steady"] is True and provenance["seed"] == 7 and provenance["steps"] == 3
+    assert "workers" not in provenance and "overwrite" not in provenance
+    assert json.loads((steady.out / PROVENANCE_FILE).read_text()) == provenance
 
 
 def test_faults_are_written_as_data(config, push_env, tmp_path):
@@ -313,6 +349,7 @@ def test_an_injected_policy_records_its_episodes_with_the_same_features(
     dataset = load(policy_recorded)
     assert dataset.num_episodes == EPISODES and dataset.num_frames == EPISODES * STEPS
     assert dataset.meta.features == load(recorded).meta.features, "the recordings merge and train alike"
+    assert read_recording_provenance(policy_recorded)["policy"] == "DrawnDirectionPolicy()"
     policy_config = replace(config, seed=1)
     for episode in range(EPISODES):
         expected = record_episode(push_env, policy_config, episode, DrawnDirection())
@@ -334,6 +371,22 @@ def test_merge_holds_the_episodes_of_both_recordings_in_order(recorded, policy_r
     start = int(merged.meta.episodes["dataset_from_index"][EPISODES])
     assert merged[start][CAMERA_KEY].shape == (3, IMAGE_SIZE, IMAGE_SIZE), "the videos were merged too"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["union"], "no temporary directory left behind"
+    sources = [read_recording_provenance(root) for root in (recorded, policy_recorded)]
+    assert read_recording_provenance(tmp_path / "union") == {"merged": sources}
+
+
+def test_merge_of_a_recording_without_provenance_lists_it_as_null(recorded, tmp_path):
+    older = Path(shutil.copytree(recorded, tmp_path / "older"))  # as recorded before the file existed
+    (older / PROVENANCE_FILE).unlink()
+    assert read_recording_provenance(older) is None
+    merged = merge_recordings([older, recorded], tmp_path / "union")
+    assert read_recording_provenance(merged) == {"merged": [None, read_recording_provenance(recorded)]}
+    assert load(merged).num_episodes == 2 * EPISODES
+
+    (older / PROVENANCE_FILE).write_text("{damaged")
+    with pytest.raises(RecordError, match=re.escape(f"{older / PROVENANCE_FILE}: not valid JSON")):
+        merge_recordings([older, recorded], tmp_path / "again")
+    assert not (tmp_path / "again").exists()
 
 
 def test_merge_of_recordings_with_other_features_is_a_clear_error(recorded, recorded_push_root, tmp_path):
