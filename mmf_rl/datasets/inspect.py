@@ -4,18 +4,19 @@
     mmf-rl inspect /data/my_dataset --write-config mine.yaml     # ... written to mine.yaml
     mmf-rl train data=mine.yaml run_dir=runs/mine
 
-The report lists every feature (dtype, shape, names), fps, episodes and frames; for each camera,
-which of its video files exist, how far the rows' ``timestamp`` drifts from ``frame_index / fps``,
-and whether a sample of its frames decodes at those timestamps (as the window cache would, at the
-default ``tolerance_s``) and by frame index; for each numeric vector, its NaN/Inf spans and how far
-it moves over the suggested horizon; and for every sensor that could be a modality, its outages:
-the fraction of frames it is absent (non-finite values, a validity flag saying so, a missing video
-file) and the lengths of those bursts. The suggested config maps cameras and vectors to
-modalities, forecasts the target :func:`choose_target` picks (``relative`` when it moves little
-over the horizon against its spread), syncs video by frame index when only that decodes, accepts
-the cameras it finds absent on most frames (``allow_absent``) and, when a sensor has outages,
-replays them in training (``missing: {m: {fraction, mean_burst}}``, see
-``mmf_rl.datasets.config.OutageConfig``); comments in the written file say why.
+The report lists every feature (dtype, shape, names), fps, episodes and frames, how `mmf-rl record`
+made the dataset when it did (`mmf_rl.datasets.provenance`); for each camera, which of its video
+files exist, how far the rows' ``timestamp`` drifts from ``frame_index / fps``, and whether a
+sample of its frames decodes at those timestamps (as the window cache would, at the default
+``tolerance_s``) and by frame index; for each numeric vector, its NaN/Inf spans and how far it
+moves over the suggested horizon; and for every sensor that could be a modality, its outages: the
+fraction of frames it is absent (non-finite values, a validity flag saying so, a missing video
+file) and the lengths of those bursts. The suggested config maps cameras and vectors to modalities,
+forecasts the target :func:`choose_target` picks (``relative`` when it moves little over the
+horizon against its spread), syncs video by frame index when only that decodes, accepts the cameras
+it finds absent on most frames (``allow_absent``) and, when a sensor has outages, replays them in
+training (``missing: {m: {fraction, mean_burst}}``, see ``mmf_rl.datasets.config.OutageConfig``);
+comments in the written file say why.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from mmf_rl.datasets.lerobot_source import (
     read_frame_columns,
 )
 from mmf_rl.datasets.protocols import outage_statistics
+from mmf_rl.datasets.provenance import describe_provenance, read_recording_provenance
 from mmf_rl.datasets.windows import MAX_ABSENT_FRACTION
 
 CAMERA_DTYPES = ("video", "image")
@@ -136,6 +138,7 @@ def inspect_dataset(root: str | Path | None, repo_id: str = "local/dataset") -> 
         "vectors": vectors,
         "validity_features": sorted(flags),
         "sensors": sensors,
+        "provenance": read_recording_provenance(root),
     }
 
 
@@ -364,9 +367,10 @@ def format_report(report: dict) -> str:
         f"(episode length {min(lengths)}..{max(lengths)} frames)"
         if lengths
         else "  no episodes",
-        "",
-        "features:",
     ]
+    if report["provenance"] is not None:
+        lines.append(f"  {describe_provenance(report['provenance'])}")
+    lines += ["", "features:"]
     for name, ft in report["features"].items():
         names = ft["names"]
         if isinstance(names, list) and len(names) > 6:

@@ -1,5 +1,6 @@
 """`mmf-rl inspect`: the report (features, cameras, NaN spans, outages) and the suggested config."""
 
+import json
 import shutil
 import warnings
 
@@ -16,6 +17,7 @@ from mmf_rl.datasets.inspect import (
     inspect_dataset,
     suggested_data_config,
 )
+from mmf_rl.datasets.provenance import PROVENANCE_FILE
 from mmf_rl.datasets.synthetic import (
     FORCE_FEATURE,
     IMAGE_FEATURE,
@@ -33,6 +35,7 @@ from tests.datasets.conftest import (
     SO101_ROOT,
     needs_so101,
 )
+from tests.datasets.test_provenance import SCRIPTED
 from tests.test_configuration import readme_commands
 
 FRAMES = sum(EPISODE_LENGTHS)
@@ -111,6 +114,25 @@ def test_cli_writes_a_config_that_trains(synthetic_root, tmp_path, capsys):
 
     assert cli(["inspect", str(tmp_path / "nowhere")]) == 1
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_report_says_how_mmf_rl_record_made_the_dataset_when_it_did(synthetic_root, synthetic_copy, capsys):
+    assert inspect_dataset(synthetic_root)["provenance"] is None
+    assert cli(["inspect", str(synthetic_root)]) == 0
+    assert "mmf-rl record" not in capsys.readouterr().out.split("suggested data config")[0]
+
+    (synthetic_copy / PROVENANCE_FILE).write_text(json.dumps(SCRIPTED))
+    assert cli(["inspect", str(synthetic_copy)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"dataset {synthetic_copy}"
+    assert lines[2].startswith(
+        "  recorded by mmf-rl record: 300 episodes of 50 steps, seed 0, steady scripted"
+    )
+    assert sum("recorded by mmf-rl record" in line for line in lines) == 1
+
+    (synthetic_copy / PROVENANCE_FILE).write_text("{not json")
+    assert cli(["inspect", str(synthetic_copy)]) == 1
+    assert f"{synthetic_copy / PROVENANCE_FILE}: not valid JSON" in capsys.readouterr().err
 
 
 @needs_so101
