@@ -19,7 +19,11 @@ What it builds when absent (under ``--work``; a re-run reuses the recording, res
 the trainings):
 
 * the policies' recording: scripted pushes without exploration (``mmf-rl record --out WORK/push
-  --episodes N --seed 0``): its ``action`` column is what the policies imitate;
+  --episodes N --seed 0``): its ``action`` column is what the policies imitate. One found there is
+  reused only when its provenance (``meta/mmf_rl_recording.json``) says it was made so, steady or
+  drawn as the run asks (see ``--demonstrations``); one without that file (recorded before
+  recordings kept it) is reused with a warning. ``results.json`` records the policies' recording
+  and its provenance (``policies_recording``);
 * the forecaster's recording, ``WORK/push_forecaster``: scripted pushes recorded with seed 1
   (`RECORDING_SEEDS`, so the two recordings share no episode) with the episode count, length and
   image size of the policies' recording (``WORK/push`` or ``--data``); or ``--forecaster-data PATH``,
@@ -209,6 +213,7 @@ from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.cli import configure_logging
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.datasets.lerobot_source import open_dataset_metadata
+from mmf_rl.datasets.provenance import PROVENANCE_FILE, describe_provenance, read_recording_provenance
 from mmf_rl.eval.report import write_json
 from mmf_rl.eval.scale_fit import PatternFit, fit_table
 from mmf_rl.record import CAMERA_KEY, RecordConfig, record
@@ -325,7 +330,9 @@ def build_recording(args, phases: dict[str, float]) -> Path:
     recorded when absent."""
     steady = args.steady_demonstrations
     data = (args.work / ("push_steady" if steady else "push")).resolve()
-    if not (data / "meta" / "info.json").is_file():
+    if (data / "meta" / "info.json").is_file():
+        check_reused_recording(data, steady)
+    else:
         style = "steady " if steady else ""
         print(f"bc_push: recording {args.record_episodes} {style}scripted episodes into {data}")
         with timed_phase(phases, "record"):
@@ -335,6 +342,29 @@ def build_recording(args, phases: dict[str, float]) -> Path:
             )
             record(config)
     return data
+
+
+def check_reused_recording(data: Path, steady: bool) -> None:
+    """Refuses a policies' recording found under WORK whose provenance says it is not what this run
+    would record (the scripted pusher, steady or drawn as ``steady`` says, seed 0); one without
+    provenance (recorded before recordings said how they were made) is reused with a warning."""
+    provenance = read_recording_provenance(data)
+    style = "steady" if steady else "a style drawn per episode"
+    expected = f"demonstrations by the scripted pusher ({style}) with seed {RECORDING_SEEDS['push']}"
+    if provenance is None:
+        logger.warning(
+            "%s has no %s: reused, but whether it holds %s cannot be checked",
+            data,
+            PROVENANCE_FILE,
+            expected,
+        )
+        return
+    wanted = {"steady": steady, "seed": RECORDING_SEEDS["push"], "policy": None}
+    if any(provenance.get(key, "absent") != value for key, value in wanted.items()):
+        raise ValueError(
+            f"{data / PROVENANCE_FILE}: {describe_provenance(provenance)}; this run expects {expected}: "
+            f"remove {data} to record it again, or give another --work"
+        )
 
 
 def build_forecaster_recording(args, policies_data: Path, phases: dict[str, float]) -> Path:
@@ -829,8 +859,8 @@ def check_forecaster_data(parser: argparse.ArgumentParser, args: argparse.Namesp
 
 
 def forecaster_and_demonstrations(args, phases: dict[str, float]):
-    """The recording, the forecaster (built when not given, calibrated), the demonstrations and the
-    forecaster's forecasts of them (a `ForecastTable`)."""
+    """The forecaster (built when not given, calibrated), the demonstrations, the forecaster's
+    forecasts of them (a `ForecastTable`) and the record of their recording (`policies_recording`)."""
     data = args.data.resolve() if args.data else None  # the policies' recording
     if args.forecaster is not None:
         checkpoints = args.forecaster
@@ -852,7 +882,15 @@ def forecaster_and_demonstrations(args, phases: dict[str, float]):
     with timed_phase(phases, "forecast the demonstrations"):
         demonstrations = Demonstrations(WindowDataset(DataConfig.from_dict(data_config)))
         table = ForecastTable.for_trained(demonstrations, model, stats, data_config, DROPPABLE)
-    return forecaster, demonstrations, table
+    return forecaster, demonstrations, table, policies_recording(data_config)
+
+
+def policies_recording(data_config: dict) -> dict:
+    """The results' record of the recording the policies imitate: its path (or hub ``repo_id``) and
+    how `mmf-rl record` made it (``None``: not said, e.g. an older recording)."""
+    root = data_config.get("root")
+    provenance = read_recording_provenance(root) if root is not None else None
+    return {"path": root if root is not None else data_config.get("repo_id"), "provenance": provenance}
 
 
 def warn_of_in_sample_forecasts(forecaster: Forecaster, policies_data: Path | None) -> None:
@@ -876,7 +914,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(args.threads)
     started = time.perf_counter()
     phases: dict[str, float] = {}
-    forecaster, recorded, table = forecaster_and_demonstrations(args, phases)
+    forecaster, recorded, table, recording = forecaster_and_demonstrations(args, phases)
 
     # A policy of each variant (without and with the forecast input) per BC seed, after the DAgger
     # rounds; their offline errors.
@@ -914,6 +952,7 @@ def main(argv: list[str] | None = None) -> None:
         "validation_errors": errors,
         "forecaster_calibration": forecaster.calibration,
         "forecaster_recording": forecaster.trained_on,
+        "policies_recording": recording,
         "held_out_forecaster": args.held_out_forecaster,
         "dagger": dagger_rows,
         "action_chunk": args.action_chunk,

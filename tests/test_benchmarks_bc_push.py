@@ -17,12 +17,14 @@ import yaml
 
 from benchmarks.bc_push import (
     Forecaster,
+    build_recording,
     parse_args,
     policy_run_dir,
     record_or_check_forecaster,
     warn_of_in_sample_forecasts,
 )
 from mmf_rl.cli import main as cli
+from mmf_rl.datasets.provenance import PROVENANCE_FILE, read_recording_provenance
 from mmf_rl.rl import BCPolicy
 from tests.conftest import push_train_overrides
 
@@ -289,12 +291,47 @@ def test_bc_push_steady_demonstrations_are_recorded_by_the_steady_pusher_in_runs
     np.testing.assert_allclose(actions, steady["action"], atol=1e-6)
     assert not (work / "push").exists() and not (work / "results.json").exists()
     results = json.loads((work / "steady" / "results.json").read_text())
+    recording = (work / "push_steady").resolve()
+    assert results["policies_recording"] == {
+        "path": str(recording),
+        "provenance": read_recording_provenance(recording),
+    }
+    assert results["policies_recording"]["provenance"]["steady"] is True
     assert "demonstrations by the steady pusher" in (work / "steady" / "results.md").read_text()
     assert "train BC without seed 0" in results["phases_s"]
     assert (work / "bc_steady_without_forecasts_seed0" / "checkpoints" / "last").is_file()
     with pytest.raises(SystemExit):
         parse_args(["--work", str(work), "--steady-demonstrations", "--data", str(recorded_push_root)])
     assert "--demonstrations steady records the policies' recording, but --data" in capsys.readouterr().err
+
+
+def test_bc_push_refuses_a_reused_recording_of_another_kind_and_warns_when_it_cannot_tell(
+    recorded_push_root, tmp_path, caplog
+):
+    work = tmp_path / "work"
+    found = Path(shutil.copytree(recorded_push_root, work / "push_steady"))  # a drawn recording, seed 3
+    args, phases = parse_args(["--quick", "--work", str(work)]), {}  # steady demonstrations
+    with pytest.raises(ValueError) as refused:
+        build_recording(args, phases)
+    message = str(refused.value)
+    assert message.startswith(f"{found.resolve() / PROVENANCE_FILE}: recorded by mmf-rl record: ")
+    assert "seed 3, scripted pusher, a style drawn per episode" in message
+    assert (
+        "expects demonstrations by the scripted pusher (steady) with seed 0" in message
+        and "another --work" in message
+    )
+
+    steady = {**read_recording_provenance(found), "steady": True, "seed": 0}
+    (found / PROVENANCE_FILE).write_text(json.dumps(steady))
+    assert build_recording(args, phases) == found.resolve() and not phases, "reused, nothing recorded"
+
+    (found / PROVENANCE_FILE).unlink()  # a recording made before recordings kept their provenance
+    with caplog.at_level(logging.WARNING, logger="mmf_rl"):
+        assert build_recording(args, phases) == found.resolve() and not phases
+    assert [r.getMessage() for r in caplog.records] == [
+        f"{found.resolve()} has no {PROVENANCE_FILE}: reused, but whether it holds demonstrations by the "
+        "scripted pusher (steady) with seed 0 cannot be checked"
+    ]
 
 
 def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_untagged_runs(
@@ -309,6 +346,8 @@ def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_unta
     results = json.loads((work / "results.json").read_text())
     assert not results["held_out_forecaster"]
     assert results["forecaster_recording"] == {"path": str(recording), "seed": 0, "episodes": 4}
+    provenance = results["policies_recording"]["provenance"]
+    assert (provenance["steady"], provenance["seed"], provenance["episodes"]) == (False, 0, 4)
     assert "forecaster trained on the policies' recording (in-sample)" in (work / "results.md").read_text()
     assert (work / "bc_with_forecasts_seed0" / "checkpoints" / "last").is_file()
     assert not list(work.glob("*held*")) and not (work / "push_forecaster").exists()
