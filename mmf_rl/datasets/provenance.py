@@ -45,10 +45,10 @@ def describe_provenance(provenance: dict) -> str:
     return f"recorded by mmf-rl record: {_describe_source(provenance)}"
 
 
-def _describe_source(provenance: dict) -> str:
-    if "merged" in provenance:
-        return f"a merge of {len(provenance['merged'])} recordings"
-    p = provenance
+def _describe_source(p: dict) -> str:
+    """One recording's provenance (a merge among a merge's sources: just how many it joined)."""
+    if "merged" in p:
+        return f"a merge of {len(p['merged'])} recordings"
     if p.get("policy") is not None:
         actor = f"policy {p['policy']}"
     else:
