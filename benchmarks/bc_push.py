@@ -267,6 +267,13 @@ FORECAST_TARGET = [
     "data.target.relative=false",
     "data.target.relative_to={feature:observation.state,dims:[0,1]}",
 ]
+
+
+class RunRefusal(ValueError):
+    """A recording or run given or found in the work directory contradicts the run asked for:
+    nothing is overwritten; the message names both and the fix."""
+
+
 # What the policies imitate: the scripted pusher in one steady style, or in a style drawn per episode.
 DEMONSTRATIONS = ("steady", "drawn")
 # Chunks of 8 actions: longer than the drawn pusher's longest pause (7 steps), a third of an episode.
@@ -361,7 +368,7 @@ def check_reused_recording(data: Path, steady: bool) -> None:
         return
     wanted = {"steady": steady, "seed": RECORDING_SEEDS["push"], "policy": None}
     if any(provenance.get(key, "absent") != value for key, value in wanted.items()):
-        raise ValueError(
+        raise RunRefusal(
             f"{data / PROVENANCE_FILE}: {describe_provenance(provenance)}; this run expects {expected}: "
             f"remove {data} to record it again, or give another --work"
         )
@@ -377,14 +384,14 @@ def build_forecaster_recording(args, policies_data: Path, phases: dict[str, floa
     meta = open_dataset_metadata(policies_data, RecordConfig.repo_id)
     episodes = meta.total_episodes
     if CAMERA_KEY not in meta.features:
-        raise ValueError(
+        raise RunRefusal(
             f"{policies_data} has no camera feature {CAMERA_KEY}: this script cannot record one like it for "
             "the forecaster; give the forecaster's recording with --forecaster-data"
         )
     if (data / "meta" / "info.json").is_file():
         found = open_dataset_metadata(data, RecordConfig.repo_id).total_episodes
         if found != episodes:
-            raise ValueError(
+            raise RunRefusal(
                 f"{data} holds {found} episodes, the policies' recording {policies_data} {episodes}: the "
                 "forecaster's recording must match it; remove it, or use another --work"
             )
@@ -532,7 +539,7 @@ def record_or_check_forecaster(run_dir: Path, forecaster: Path, new_run: bool) -
         run_dir.mkdir(parents=True, exist_ok=True)
         write_json(path, {"checkpoints": given})
     elif path.is_file() and (trained_on := json.loads(path.read_text())["checkpoints"]) != given:
-        raise ValueError(
+        raise RunRefusal(
             f"{run_dir} holds a policy trained on the forecasts of the forecaster {trained_on}, not of the "
             f"one given now, {given}: use another --work for this forecaster, or remove {run_dir} and the "
             f"DAgger rounds after it to train them on its forecasts (the same forecaster moved: write its "
@@ -911,6 +918,15 @@ def warn_of_in_sample_forecasts(forecaster: Forecaster, policies_data: Path | No
 
 def main(argv: list[str] | None = None) -> None:
     args = parse_args(argv)
+    try:
+        run(args, sys.argv[1:] if argv is None else argv)
+    except RunRefusal as refusal:  # one line, as argparse's errors, not a traceback
+        raise SystemExit(f"bc_push: error: {refusal}") from None
+
+
+def run(args: argparse.Namespace, argv: list[str]) -> None:
+    """Builds what the work directory lacks, plays every policy and writes the results (their header
+    quotes ``argv``)."""
     torch.set_num_threads(args.threads)
     started = time.perf_counter()
     phases: dict[str, float] = {}
@@ -941,7 +957,7 @@ def main(argv: list[str] | None = None) -> None:
             policies, args.bc_seeds, forecaster.loaded, conditions, args.episodes, args.seed
         )
 
-    header = run_header("benchmarks/bc_push.py", sys.argv[1:] if argv is None else argv, started, phases)
+    header = run_header("benchmarks/bc_push.py", argv, started, phases)
     budget = f"{budget_line(args, forecaster, recorded)}\n\n{recording_line(forecaster.trained_on)}"
     extra = calibration_section(forecaster.calibration) + dagger_section(dagger_rows)
     text = report(rows, errors, conditions, args.outage, f"{header}\n\n{budget}", args.privileged_object)
