@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 from mmf_rl.configuration import compose_config, reject_unknown_keys, to_container
 
+# Where L_mis's step cuts fall in a window: its last steps, or a run of steps anywhere.
+STEP_CUTS = ("tail", "burst")
+
 
 def check_count(value, label: str, null: str | None = None) -> None:
     """Raise a ValueError naming ``label`` unless ``value`` is a whole number >= 1 (a bool is not one),
@@ -48,6 +51,8 @@ class LossConfig:
         step_drop_prob: probability that ``L_mis`` cuts the last steps of one windowed modality of a
             sample instead of dropping whole modalities (a sensor dying mid-window); 0: never.
         max_dropped_steps: the most steps such a tail cut removes; ``None``: all but one present step.
+        step_cut: where those steps are: ``"tail"``, the last ones (a sensor dying); ``"burst"``, a run
+            of consecutive present steps anywhere in the window (a sensor dropping out and back).
         terms: the loss terms to train with, by registered name (``mmf_rl.objectives.LOSS_TERMS``,
             ``@register_loss_term``); null: the model's own.
     """
@@ -64,6 +69,7 @@ class LossConfig:
     dropped_prior_weight: float = 1.0
     step_drop_prob: float = 0.0
     max_dropped_steps: int | None = None
+    step_cut: str = "tail"
     terms: list[str] | None = None
 
     def __post_init__(self):
@@ -72,6 +78,8 @@ class LossConfig:
         check_count(self.best_of_k_samples, "loss.best_of_k_samples")
         if not 0 <= self.step_drop_prob <= 1:
             raise ValueError(f"loss.step_drop_prob must be in [0, 1], found {self.step_drop_prob}")
+        if self.step_cut not in STEP_CUTS:
+            raise ValueError(f"loss.step_cut must be one of {list(STEP_CUTS)}, found {self.step_cut!r}")
         for name in (
             "kl_weight",
             "kl_warmup_steps",

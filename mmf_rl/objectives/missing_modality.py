@@ -18,6 +18,7 @@ from mmf_rl.objectives.common import (
     model_settings_of,
     reduce_batch,
 )
+from mmf_rl.objectives.config import STEP_CUTS
 from mmf_rl.objectives.registry import register_loss_term
 
 
@@ -46,7 +47,10 @@ class MissingModalityLoss(ForecasterLossBase):
     only (the teacher sees everything). A sample with a single present modality can get a tail cut
     (the modality stays present); a sample drawn for one with no modality to cut gets the whole
     drop it would have had. ``step_drop_prob=0`` (the default) writes no ``("drop_steps", m)`` and
-    draws nothing more from the RNG: the paper's ``L_mis`` exactly.
+    draws nothing more from the RNG: the paper's ``L_mis`` exactly. ``step_cut="burst"`` cuts ``k``
+    consecutive present steps starting at a uniformly random one of the ``n - k + 1`` places instead
+    of the last ``k``: a sensor that drops out and comes back leaves gaps inside the window, which
+    tail cuts never show the student.
 
     With a learned prior (``ForecasterConfig.prior="learned"``) the forecaster also computes the
     prior of the degraded input from the fusion of the kept modalities, and ``loss_mis_prior =
@@ -70,6 +74,8 @@ class MissingModalityLoss(ForecasterLossBase):
             windowed modality instead of whole modalities (0, the default: never).
         max_dropped_steps: the most steps a tail cut removes (``>= 1``); ``None``: up to all but
             one of the modality's present steps.
+        step_cut: ``"tail"`` (the default: the last present steps) or ``"burst"`` (a run of
+            consecutive present steps anywhere in the window), `STEP_CUTS`.
         reduction: ``"mean"`` (over eligible samples) | ``"sum"`` | ``"none"`` (per sample, 0
             where nothing was dropped).
 
@@ -130,6 +136,7 @@ class MissingModalityLoss(ForecasterLossBase):
             "dropped_prior_weight",
             "step_drop_prob",
             "max_dropped_steps",
+            "step_cut",
         }
     )
 
@@ -144,6 +151,7 @@ class MissingModalityLoss(ForecasterLossBase):
         prior_weight: float = 1.0,
         step_drop_prob: float = 0.0,
         max_dropped_steps: int | None = None,
+        step_cut: str = "tail",
         reduction: str = "mean",
     ):
         super().__init__(forecaster, reduction)
@@ -168,6 +176,10 @@ class MissingModalityLoss(ForecasterLossBase):
                 f"max_dropped_steps must be >= 1 (or None: up to all but one present step), "
                 f"found {max_dropped_steps}"
             )
+        if step_cut not in STEP_CUTS:
+            raise ValueError(
+                f"step_cut must be one of {list(STEP_CUTS)} (where a cut's steps fall), found {step_cut!r}"
+            )
         self.windowed = [spec.name for spec in forecaster.modalities if spec.kind != "vector"]
         if step_drop_prob > 0 and not self.windowed:
             raise ValueError(
@@ -176,6 +188,7 @@ class MissingModalityLoss(ForecasterLossBase):
             )
         self.step_drop_prob = step_drop_prob
         self.max_dropped_steps = max_dropped_steps
+        self.step_cut = step_cut
         self.weight = weight
         self.detach_teacher = detach_teacher
         self.max_dropped = max_dropped
@@ -199,6 +212,7 @@ class MissingModalityLoss(ForecasterLossBase):
             prior_weight=loss_cfg.dropped_prior_weight,
             step_drop_prob=loss_cfg.step_drop_prob,
             max_dropped_steps=loss_cfg.max_dropped_steps,
+            step_cut=loss_cfg.step_cut,
         )
 
     @classmethod
@@ -215,7 +229,8 @@ class MissingModalityLoss(ForecasterLossBase):
                 "only with a learned prior (model.prior=learned), which this model does not have"
             )
         if not (step_drop_prob := loss_cfg.step_drop_prob):
-            unread["max_dropped_steps"] = f"only with loss.step_drop_prob > 0 (found {step_drop_prob})"
+            for name in ("max_dropped_steps", "step_cut"):
+                unread[name] = f"only with loss.step_drop_prob > 0 (found {step_drop_prob})"
         return unread
 
     def default_tensor_keys(self) -> _AcceptedKeys:
@@ -294,7 +309,8 @@ class MissingModalityLoss(ForecasterLossBase):
 
     def _tail_cuts(self, td: TensorDictBase, present: torch.Tensor) -> torch.Tensor:
         """The steps each sample's student loses, ``[B, W, H]`` for the ``W`` windowed modalities:
-        with probability ``step_drop_prob``, the last ``k`` present steps of one of them."""
+        with probability ``step_drop_prob``, ``k`` consecutive present steps of one of them, the last
+        ones or (``step_cut="burst"``) from a uniformly random start."""
         windowed_present = present[:, [self.modality_names.index(m) for m in self.windowed]]
         steps = torch.stack(
             [self._present_steps(td, m, windowed_present[:, i]) for i, m in enumerate(self.windowed)], 1
@@ -307,10 +323,16 @@ class MissingModalityLoss(ForecasterLossBase):
         if self.max_dropped_steps is not None:
             most = most.clamp_max(self.max_dropped_steps)
         length = (torch.rand(most.shape, device=steps.device) * most).long() + 1
-        # Present steps counted from the window's end: the last k of them are those numbered <= k.
-        from_end = steps.flip(-1).cumsum(-1).flip(-1)
+        # Present steps numbered from 0 at the window's end: a cut is the run numbered
+        # [offset, offset + k); the tail's offset is 0, a burst's uniform in 0..n - k.
+        from_end = steps.flip(-1).cumsum(-1).flip(-1) - 1
+        offset = torch.zeros_like(length)
+        if self.step_cut == "burst":
+            places = count.gather(1, chosen.unsqueeze(1)).squeeze(1) - length + 1
+            offset = (torch.rand(places.shape, device=steps.device) * places.clamp_min(1)).long()
+        run = (from_end >= offset.view(-1, 1, 1)) & (from_end < (offset + length).view(-1, 1, 1))
         picked = F.one_hot(chosen, len(self.windowed)).bool() & cut_row.unsqueeze(1)
-        return steps & (from_end <= length.view(-1, 1, 1)) & picked.unsqueeze(-1)
+        return steps & run & picked.unsqueeze(-1)
 
     def _present_steps(self, td: TensorDictBase, modality: str, present: torch.Tensor) -> torch.Tensor:
         """``[B, H]``: the steps where ``modality`` is present (every step of a present window without

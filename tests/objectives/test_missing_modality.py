@@ -306,6 +306,29 @@ def test_max_dropped_steps_caps_the_cut_and_the_draw_repeats_under_a_seed(small_
     assert not torch.equal(drawn_cuts(loss, seed=3)[1], drawn_cuts(loss, seed=4)[1])
 
 
+def test_a_burst_cut_removes_a_run_of_present_steps_anywhere_and_keeps_one(small_model):
+    burst = MissingModalityLoss(small_model, max_dropped=None, step_drop_prob=0.5, step_cut="burst")
+    drop, cut, steps = drawn_cuts(burst)
+    assert not (cut & ~steps).any() and not drop[cut.flatten(1).any(1)].any()
+    kept = steps & ~cut
+    assert bool(kept.any(-1)[cut.any(-1)].all())  # the cut modality keeps a present step
+    # Consecutive among the present steps: no present step the student keeps lies inside the run.
+    index = torch.arange(HISTORY).expand_as(cut)
+    first_cut = torch.where(cut, index, HISTORY).amin(-1, keepdim=True)
+    last_cut = torch.where(cut, index, -1).amax(-1, keepdim=True)
+    assert not (kept & (index > first_cut) & (index < last_cut)).any()
+    # Full windows: every run length 1..H-1, runs that end before the window does (gaps the tail cut
+    # never makes) and runs that start at its first step.
+    full = cut.any(-1) & steps.all(-1)
+    assert set(cut.sum(-1)[full].tolist()) == set(range(1, HISTORY))
+    assert bool((last_cut.squeeze(-1)[full] < HISTORY - 1).any()) and bool(
+        (first_cut.squeeze(-1)[full] == 0).any()
+    )
+    # The same samples are cut as with tail cuts under the same seed; only where differs.
+    tail = MissingModalityLoss(small_model, max_dropped=None, step_drop_prob=0.5)
+    assert torch.equal(drawn_cuts(tail)[1].any(-1), cut.any(-1))
+
+
 @pytest.mark.parametrize("max_dropped", [1, None])
 def test_no_tail_cuts_by_default_and_the_same_random_draws_as_the_whole_drop(small_model, max_dropped):
     td = with_gaps(make_batch(64, present={n: p[:64] for n, p in THREE_PATTERNS.items()}))
@@ -330,6 +353,7 @@ def test_no_tail_cuts_by_default_and_the_same_random_draws_as_the_whole_drop(sma
         ({"step_drop_prob": -0.1}, r"step_drop_prob must be in \[0, 1\]"),
         ({"step_drop_prob": 1.5}, r"step_drop_prob must be in \[0, 1\]"),
         ({"max_dropped_steps": 0}, r"max_dropped_steps must be >= 1 \(or None: up to all but one"),
+        ({"step_cut": "middle"}, r"step_cut must be one of \['tail', 'burst'\]"),
     ],
 )
 def test_bad_tail_cut_options_name_the_argument(small_model, option, message):
@@ -355,15 +379,21 @@ def test_tail_cut_samples_count_and_train_the_student(small_model, batch):
 
 
 def test_tail_cut_options_come_from_the_loss_config():
-    overrides = ["loss.step_drop_prob=0.25", "loss.max_dropped_steps=2"]
+    overrides = ["loss.step_drop_prob=0.25", "loss.max_dropped_steps=2", "loss.step_cut=burst"]
     loss_cfg = LossConfig.from_dict(to_container(compose_config("train", overrides).loss))
     torch.manual_seed(0)
     model = MultimodalForecaster(
         ForecasterConfig(modalities=list(SMALL_MODALITIES), history=HISTORY, horizon=5, target_dim=2)
     )
     loss = MissingModalityLoss.from_config(model, loss_cfg)
-    assert (loss.step_drop_prob, loss.max_dropped_steps) == (0.25, 2)
-    assert (LossConfig().step_drop_prob, LossConfig().max_dropped_steps) == (0.0, None)
+    assert (loss.step_drop_prob, loss.max_dropped_steps, loss.step_cut) == (0.25, 2, "burst")
+    assert (LossConfig().step_drop_prob, LossConfig().max_dropped_steps, LossConfig().step_cut) == (
+        0.0,
+        None,
+        "tail",
+    )
+    with pytest.raises(ValueError, match=r"loss.step_cut must be one of \['tail', 'burst'\], found 'middle'"):
+        LossConfig(step_cut="middle")
 
 
 def camera_dies_mid_episode(frames) -> None:

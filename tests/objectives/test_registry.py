@@ -205,6 +205,8 @@ def changed(value):
         return not value
     if value is None:
         return 2
+    if isinstance(value, str):  # a choice: the step cut's place
+        return {"tail": "burst", "burst": "tail"}[value]
     return value + 3 if isinstance(value, int) else value + 0.5
 
 
