@@ -199,20 +199,11 @@ class RecordConfig:
     policy: Callable[[], Actor] | None = None
 
 
-# The options that define a recording's data; not ``workers`` nor ``overwrite``: episode i depends
-# only on (seed, i).
-PROVENANCE_OPTIONS = (
-    "episodes",
-    "seed",
-    "image_size",
-    "steps",
-    "camera",
-    "faults",
-    "exploration",
-    "steady",
-    "vcodec",
-    "repo_id",
-)
+# The options that decide what each episode holds; ``workers`` and ``overwrite`` do not: episode i
+# depends only on (seed, i).
+EPISODE_OPTIONS = ("seed", "image_size", "steps", "camera", "faults", "exploration", "steady", "vcodec")
+# What a recording's provenance keeps: those, how many episodes, and its name.
+PROVENANCE_OPTIONS = ("episodes", *EPISODE_OPTIONS, "repo_id")
 
 
 def recording_provenance(config: RecordConfig) -> dict:
@@ -510,17 +501,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # Options of a recording that a merge has no use for (their defaults are RecordConfig's).
-RECORDING_OPTIONS = (
-    "workers",
-    "seed",
-    "image_size",
-    "steps",
-    "camera",
-    "faults",
-    "exploration",
-    "steady",
-    "vcodec",
-)
+RECORDING_OPTIONS = ("workers", *EPISODE_OPTIONS)
 
 
 def run(args: argparse.Namespace, policy: Callable[[], Actor] | None = None) -> int:
