@@ -47,12 +47,14 @@ class LatchedForecastTransform(ForecastTransform):
     serves it advanced through their outage; writes ``("forecast", "age")`` besides the forecast.
 
     Every step the fresh forecast is computed as `ForecastTransform` does. An env whose
-    ``latch_on`` sensors are all present for the whole window (at every step, whatever
-    ``per_step_presence`` says) latches it: the forecast is served as is, with age 0. While one
-    of them is absent, the latched forecast is advanced by the env steps elapsed since it was made,
-    in whole forecast steps (``age // stride``): the step ``k`` served is the latched step
-    ``shift + k``. Past the latched horizon the last latched step is held, its variance growing
-    per forecast step as much as over the latched forecast's last step (it gets no surer);
+    ``latch_on`` sensors are all present for the whole window latches it: the forecast is served
+    as is, with age 0. With ``per_step_presence`` (a model trained on partial windows) present at
+    the window's newest step is enough: a sensor that drops out in bursts seldom fills a window,
+    and such a model forecasts from the steps it has. While one of them is absent, the latched
+    forecast is advanced by the env steps elapsed since it was made, in whole forecast steps
+    (``age // stride``): the step ``k`` served is the latched step ``shift + k``. Past the latched
+    horizon the last latched step is held, its variance growing per forecast step as much as over
+    the latched forecast's last step (it gets no surer);
     ``age >= T * stride`` says that the whole forecast served is that held step. The served
     forecast is re-based to the current step:
 
@@ -259,12 +261,14 @@ class LatchedForecastTransform(ForecastTransform):
         return self._last_reference
 
     def _latch(self, loc: torch.Tensor, scale: torch.Tensor, reference: torch.Tensor | None) -> torch.Tensor:
-        """Latch the fresh forecast of the envs whose ``latch_on`` sensors fill the window; age the
-        others. Returns those envs ``[n]``."""
+        """Latch the fresh forecast of the envs whose ``latch_on`` sensors fill the window (with
+        ``per_step_presence``: hold its newest step); age the others. Returns those envs ``[n]``."""
         slots = self._slots[self._newest]
         fresh = torch.ones_like(self._has_latch)
         for i in self._latch_modalities:
-            if self.specs[i].kind == "vector":  # a vector modality's window is its last step
+            # A vector modality's window is its last step; a model trained on partial windows
+            # forecasts from any window whose newest step holds the sensor.
+            if self.specs[i].kind == "vector" or self.per_step_presence:
                 fresh &= self._presence(i)[:, self._newest]
             else:
                 fresh &= self._presence(i).index_select(1, slots).all(1)

@@ -110,6 +110,32 @@ def test_latch_holds_and_ages_through_a_camera_outage_and_relatches_when_it_retu
     assert ages[back - 1] > 0 and ages[back] == 0, "re-latched once the camera is back"
 
 
+def test_with_per_step_presence_the_latch_refreshes_whenever_the_camera_holds_the_newest_step(
+    recorded_steps, absolute_checkpoint
+):
+    steps = camera_outages(recorded_steps, {0: [*range(4, 7), *range(9, 12)]})  # two bursts
+    options = {"per_step_presence": True}
+    plain = replay(ForecastTransform.from_checkpoint(absolute_checkpoint, **options), steps)
+    latched = replay(
+        LatchedForecastTransform.from_checkpoint(absolute_checkpoint, rule="latched", **options), steps
+    )
+    present = [bool(s[keys.present_key("image")][0]) for s in steps]
+    last_present = [max(u for u in range(t + 1) if present[u]) for t in range(len(steps))]
+    for t, served in enumerate(latched):
+        age = t - last_present[t]
+        assert served[keys.FORECAST_AGE].tolist() == [float(age)], f"step {t}"
+        expected = advanced_by_hand(plain[t - age][keys.FORECAST_LOC][0], age)
+        torch.testing.assert_close(
+            served[keys.FORECAST_LOC][0], expected, msg=lambda m, t=t: f"step {t}: {m}"
+        )
+    # Between the bursts the camera never fills the window, yet each of its frames refreshes the latch.
+    assert [latched[t][keys.FORECAST_AGE].item() for t in (7, 8, 12)] == [0.0, 0.0, 0.0]
+    whole_window = replay(
+        LatchedForecastTransform.from_checkpoint(absolute_checkpoint, rule="latched"), steps
+    )
+    assert whole_window[8][keys.FORECAST_AGE].item() == 5.0  # the window last filled at step 3
+
+
 def test_each_env_of_a_batch_keeps_its_own_latch_and_a_reset_clears_it(
     recorded_steps,
     absolute_checkpoint,
