@@ -21,8 +21,9 @@ the trainings):
 * the policies' recording: scripted pushes without exploration (``mmf-rl record --out WORK/push
   --episodes N --seed 0``): its ``action`` column is what the policies imitate. One found there is
   reused only when its provenance (``meta/mmf_rl_recording.json``) says it was made so, steady or
-  drawn as the run asks (see ``--demonstrations``); one without that file (recorded before
-  recordings kept it) is reused with a warning. ``results.json`` records the policies' recording
+  drawn as the run asks (see ``--demonstrations``), and it holds the run's episode count (a quick
+  run's recording is not a full run's); one without that file (recorded before recordings kept
+  it) is reused with a warning. ``results.json`` records the policies' recording
   and its provenance (``policies_recording``);
 * the forecaster's recording, ``WORK/push_forecaster``: scripted pushes recorded with seed 1
   (`RECORDING_SEEDS`, so the two recordings share no episode) with the episode count, length and
@@ -339,6 +340,7 @@ def build_recording(args, phases: dict[str, float]) -> Path:
     data = (args.work / ("push_steady" if steady else "push")).resolve()
     if (data / "meta" / "info.json").is_file():
         check_reused_recording(data, steady)
+        check_reused_episodes(data, args.record_episodes)
     else:
         style = "steady " if steady else ""
         print(f"bc_push: recording {args.record_episodes} {style}scripted episodes into {data}")
@@ -349,6 +351,18 @@ def build_recording(args, phases: dict[str, float]) -> Path:
             )
             record(config)
     return data
+
+
+def check_reused_episodes(data: Path, episodes: int) -> None:
+    """Refuses a policies' recording found under WORK with another episode count than the run's
+    budget (e.g. a quick run's, found by a full run in the same ``--work``)."""
+    found = open_dataset_metadata(data, RecordConfig.repo_id).total_episodes
+    if found != episodes:
+        raise RunRefusal(
+            f"{data} holds {found} episodes, this run's budget is {episodes} (--record-episodes, or the "
+            f"mode's): remove it to record {episodes}, give --record-episodes {found} to use it as it is, "
+            "or use another --work"
+        )
 
 
 def check_reused_recording(data: Path, steady: bool) -> None:

@@ -310,7 +310,9 @@ def test_bc_push_refuses_a_reused_recording_of_another_kind_and_warns_when_it_ca
 ):
     work = tmp_path / "work"
     found = Path(shutil.copytree(recorded_push_root, work / "push_steady"))  # a drawn recording, seed 3
-    args, phases = parse_args(["--quick", "--work", str(work)]), {}  # steady demonstrations
+    episodes = read_recording_provenance(found)["episodes"]
+    argv = ["--quick", "--work", str(work), "--record-episodes", str(episodes)]  # steady demonstrations
+    args, phases = parse_args(argv), {}
     with pytest.raises(ValueError) as refused:
         build_recording(args, phases)
     message = str(refused.value)
@@ -324,6 +326,9 @@ def test_bc_push_refuses_a_reused_recording_of_another_kind_and_warns_when_it_ca
     steady = {**read_recording_provenance(found), "steady": True, "seed": 0}
     (found / PROVENANCE_FILE).write_text(json.dumps(steady))
     assert build_recording(args, phases) == found.resolve() and not phases, "reused, nothing recorded"
+    with pytest.raises(ValueError, match=f"holds {episodes} episodes, this run's budget is 200") as refused:
+        build_recording(parse_args(["--quick", "--work", str(work)]), phases)  # a quick run's budget
+    assert f"give --record-episodes {episodes} to use it as it is" in str(refused.value)
 
     (found / PROVENANCE_FILE).unlink()  # a recording made before recordings kept their provenance
     with caplog.at_level(logging.WARNING, logger="mmf_rl"):
