@@ -299,7 +299,7 @@ class MissingModalityLoss(ForecasterLossBase):
         rank = scores.argsort(1, descending=True).argsort(1)
         drop = present & (rank < number.unsqueeze(1))
         if self.step_drop_prob:
-            cut = self._tail_cuts(td, present)
+            cut = self._step_cuts(td, present)
             drop &= ~cut.flatten(1).any(1, keepdim=True)  # a tail cut instead of the whole drop
             for i, name in enumerate(self.windowed):
                 td.set(keys.drop_steps_key(name), cut[:, i])
@@ -307,7 +307,7 @@ class MissingModalityLoss(ForecasterLossBase):
             td.set(keys.drop_key(name), drop[:, i])
         return td
 
-    def _tail_cuts(self, td: TensorDictBase, present: torch.Tensor) -> torch.Tensor:
+    def _step_cuts(self, td: TensorDictBase, present: torch.Tensor) -> torch.Tensor:
         """The steps each sample's student loses, ``[B, W, H]`` for the ``W`` windowed modalities:
         with probability ``step_drop_prob``, ``k`` consecutive present steps of one of them, the last
         ones or (``step_cut="burst"``) from a uniformly random start."""
@@ -319,7 +319,8 @@ class MissingModalityLoss(ForecasterLossBase):
         cuttable = count >= 2  # a cut keeps one present step at least
         chosen = torch.rand(cuttable.shape, device=steps.device).masked_fill(~cuttable, -1.0).argmax(1)
         cut_row = (torch.rand(count.shape[0], device=steps.device) < self.step_drop_prob) & cuttable.any(1)
-        most = count.gather(1, chosen.unsqueeze(1)).squeeze(1) - 1
+        chosen_count = count.gather(1, chosen.unsqueeze(1)).squeeze(1)  # n, the cut modality's steps
+        most = chosen_count - 1
         if self.max_dropped_steps is not None:
             most = most.clamp_max(self.max_dropped_steps)
         length = (torch.rand(most.shape, device=steps.device) * most).long() + 1
@@ -328,7 +329,7 @@ class MissingModalityLoss(ForecasterLossBase):
         from_end = steps.flip(-1).cumsum(-1).flip(-1) - 1
         offset = torch.zeros_like(length)
         if self.step_cut == "burst":
-            places = count.gather(1, chosen.unsqueeze(1)).squeeze(1) - length + 1
+            places = chosen_count - length + 1
             offset = (torch.rand(places.shape, device=steps.device) * places.clamp_min(1)).long()
         run = (from_end >= offset.view(-1, 1, 1)) & (from_end < (offset + length).view(-1, 1, 1))
         picked = F.one_hot(chosen, len(self.windowed)).bool() & cut_row.unsqueeze(1)
