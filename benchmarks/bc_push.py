@@ -796,7 +796,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add_training_arguments(parser)
     parsed = parser.parse_args(argv)
     check_forecaster_kind(parser, parsed)
-    resolve_demonstrations(parser, parsed)
+    resolve_choices(parser, parsed)
     default_out = parsed.out is None
     args = resolve_budget(parsed, BUDGETS, "bc")
     args.variants = [v for v in VARIANTS if v in args.variants]
@@ -820,10 +820,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
-def resolve_demonstrations(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Sets ``args.steady_demonstrations`` (the policies' recording is the steady pusher's, recorded
-    here) and ``args.latched_forecast`` (``None``: not latched); refuses ``--demonstrations`` with
-    ``--data``, whose recording is whatever it is."""
+def resolve_choices(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Turns the choices given by name into what the run reads: ``args.steady_demonstrations`` (the
+    policies' recording is the steady pusher's, recorded here) and ``args.latched_forecast``
+    (``None`` for ``none``: not latched); refuses ``--demonstrations`` with ``--data``, whose
+    recording is whatever it is."""
     if args.data is not None and args.demonstrations is not None:
         parser.error(
             f"--demonstrations {args.demonstrations} records the policies' recording, but --data gives one; "

@@ -54,9 +54,8 @@ class LatchedForecastTransform(ForecastTransform):
     forecast is advanced by the env steps elapsed since it was made, in whole forecast steps
     (``age // stride``): the step ``k`` served is the latched step ``shift + k``. Past the latched
     horizon the last latched step is held, its variance growing per forecast step as much as over
-    the latched forecast's last step (it gets no surer);
-    ``age >= T * stride`` says that the whole forecast served is that held step. The served
-    forecast is re-based to the current step:
+    the latched forecast's last step (it gets no surer); ``age >= T * stride`` says that the whole
+    forecast served is that held step. The served forecast is re-based to the current step:
 
     * absolute target: as is;
     * ``relative`` target (a displacement from the current value): minus the latched forecast's
