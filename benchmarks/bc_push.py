@@ -106,6 +106,16 @@ Design (what the policies see, and why):
   variants; a policy sees the outage through the presence flags and never what an absent
   sensor holds (its encoder is not run on that row). Without it a policy would meet its first
   outage in the test.
+* ``--train-outages replayed`` (default ``independent``, the bullet above): each training sample's
+  outage is instead one replay of the recorded episode through the outage processes the run plays
+  (`mmf_rl.rl.replayed_outages`): every sensor, and each sensor failing each ``--outage`` way,
+  ``--replay-draws`` times each with seeds of their own (`REPLAY_SEED`), stepped through the
+  policy's `HistoryWindow` and the forecast transform the ``with`` policies read in closed loop.
+  What a policy reads in training then follows the process as in the test: a camera in bursts
+  leaves the policy's own window without it most of the time, and the latch and its age are
+  what the transform serves. Both variants train on the same replays (``--dropout`` is unused);
+  their runs are their own (``bc_..._replayed_...``; results in ``WORK/replayed...`` unless
+  ``--out``). Not with ``--dagger``.
 * The forecast: `ForecastTransform` (``denormalize=False``) on the same live sensors after the
   outage, i.e. the forecaster's own missing-modality inference; the policy reads its ``loc`` and
   ``log(scale)`` (the object's planar position relative to the gripper over the next T steps,
@@ -200,6 +210,7 @@ to lose everything there, by construction.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import logging
 import sys
@@ -218,7 +229,16 @@ from mmf_rl.datasets.provenance import PROVENANCE_FILE, describe_provenance, rea
 from mmf_rl.eval.report import write_json
 from mmf_rl.eval.scale_fit import PatternFit, fit_table
 from mmf_rl.record import CAMERA_KEY, RecordConfig, record
-from mmf_rl.rl import BCPolicy, Demonstrations, EncoderChoice, ForecastTable, train_bc, validation_errors
+from mmf_rl.rl import (
+    BCPolicy,
+    Demonstrations,
+    EncoderChoice,
+    ForecastTable,
+    ForecastTransform,
+    HistoryWindow,
+    train_bc,
+    validation_errors,
+)
 from mmf_rl.rl.bc import ACTION_HEADS
 from mmf_rl.rl.bc_evaluation import (
     VARIANTS,
@@ -232,7 +252,7 @@ from mmf_rl.rl.bc_evaluation import (
     summary_line,
     validation_table,
 )
-from mmf_rl.rl.closed_loop import OUTAGES, camera_size, summarise
+from mmf_rl.rl.closed_loop import OUTAGES, camera_size, sensor_outage, summarise
 from mmf_rl.rl.dagger import (
     EXPERT_NAME,
     ROUND_SEEDS,
@@ -252,13 +272,17 @@ from mmf_rl.rl.experiment import (
     train_or_resume,
     write_results,
 )
-from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable
+from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.outage_evaluation import Condition, outage_conditions
+from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.trainers import TrainerConfig, seed_everything
 
 # Under mmf_rl, so that the library's logging setup (`mmf-rl bench`, or this script's own) shows it.
 logger = logging.getLogger("mmf_rl.benchmarks.bc_push")
 DROPPABLE = ("image", "force")  # the sensors a training sample may lose
+TRAIN_OUTAGES = ("independent", "replayed")
+# First seed of the outage processes replayed for training; the played conditions use --seed's.
+REPLAY_SEED = 7001
 # The seed of each recording the script makes (under WORK): episode i depends only on (seed, i), so
 # the two share no episode.
 RECORDING_SEEDS = {"push": 0, "push_forecaster": 1}
@@ -326,6 +350,15 @@ class Forecaster:
             return table
         return LatchedForecastTable.for_trained(
             table, demonstrations, *self.loaded, rule=args.latched_forecast
+        )
+
+    def served_transform(self, args) -> ForecastTransform:
+        """The forecast transform the ``with`` policies read in closed loop (`bc_env`'s)."""
+        model, stats, data_config = self.loaded
+        if not args.latched_forecast:
+            return ForecastTransform.for_trained(model, stats, data_config, denormalize=False)
+        return LatchedForecastTransform.for_trained(
+            model, stats, data_config, rule=args.latched_forecast, denormalize=False
         )
 
     def extended(self, table: ForecastTable, demonstrations: Demonstrations) -> ForecastTable:
@@ -516,10 +549,15 @@ def head_tag(args) -> str:
     return "_gmm" if args.action_head == "gmm" else ""
 
 
+def replay_tag(args) -> str:
+    """In the names of the runs of policies trained on replayed outages: they never mix with the others."""
+    return "_replayed" if args.train_outages == "replayed" else ""
+
+
 def policy_tag(args) -> str:
     """What kind every policy of the run is, in its runs' names (empty for the ordinary ones, so the
     runs of older versions stay valid)."""
-    return steady_tag(args) + privileged_tag(args) + chunk_tag(args) + head_tag(args)
+    return steady_tag(args) + privileged_tag(args) + chunk_tag(args) + head_tag(args) + replay_tag(args)
 
 
 def dagger_tag(args) -> str:
@@ -562,11 +600,12 @@ def record_or_check_forecaster(run_dir: Path, forecaster: Path, new_run: bool) -
 
 
 def build_policy(
-    args, variant: str, seed: int, round_: int, demonstrations, forecasts, forecaster: Path, phases
+    args, variant: str, seed: int, round_: int, demonstrations, forecasts, forecaster: Path, phases, replay
 ) -> BCPolicy:
     """The ``variant`` policy of BC seed ``seed`` trained on ``demonstrations`` (those of DAgger round
     ``round_``; 0: the recording's), a ``with`` one on ``forecasts`` of the forecaster at ``forecaster``:
-    trained under ``args.work`` unless already done."""
+    trained under ``args.work`` unless already done. ``replay``: builds the replayed training outages
+    (`replayed_outages`) when called; ``None``: the independent dropout."""
     run_dir = policy_run_dir(args, variant, seed, round_)
     config = bc_trainer_config(args, seed)
     table = forecasts if variant == "with" else None
@@ -595,8 +634,9 @@ def build_policy(
             policy,
             demonstrations,
             config,
-            dropout=dict.fromkeys(DROPPABLE, args.dropout),
+            dropout={} if replay else dict.fromkeys(DROPPABLE, args.dropout),
             forecasts=table,
+            outages=replay() if replay else None,
             run_dir=run_dir,
             resume=bool(checkpoints),
         )
@@ -645,13 +685,32 @@ def dagger_episodes(args, seed: int, round_: int, policies: dict[str, BCPolicy],
     return episodes, rows
 
 
-def train_with_dagger(args, seed: int, forecaster: Forecaster, demonstrations, table, phases):
+def replayed_outages(args, forecaster: Forecaster, demonstrations: Demonstrations, phases) -> ReplayedOutages:
+    """The training split replayed through every condition the run plays, ``--replay-draws`` times
+    each (seeds from `REPLAY_SEED`), with the ``with`` policies' window and forecast transform."""
+    outages = []
+    for draw in range(args.replay_draws):
+        for i, condition in enumerate(outage_conditions(args.outage)):
+            seed = REPLAY_SEED + 100 * draw + i
+            failing = sensor_outage(condition.sensor, condition.outage, seed) if condition.sensor else None
+            outages.append((condition.label, failing))
+    window = HistoryWindow(
+        demonstrations.specs, demonstrations.normalizer.stats, demonstrations.history, demonstrations.stride
+    )
+    print(f"bc_push: replaying the training episodes through {len(outages)} outage processes")
+    with timed_phase(phases, "replay the training outages"):
+        return ReplayedOutages.replay(
+            demonstrations, "train", outages, window, forecaster.served_transform(args)
+        )
+
+
+def train_with_dagger(args, seed: int, forecaster: Forecaster, demonstrations, table, phases, replay):
     """The policies of BC seed ``seed`` (``--variants``) after ``--dagger`` rounds (none: trained on
     the recording), the demonstrations of their last round with what the ``with`` policies read of
-    them, and the rounds' rows."""
+    them, and the rounds' rows. ``replay``: as `build_policy`'s (not with DAgger rounds)."""
     forecasts = forecaster.forecasts(args, table, demonstrations)
     policies = {
-        v: build_policy(args, v, seed, 0, demonstrations, forecasts, forecaster.checkpoints, phases)
+        v: build_policy(args, v, seed, 0, demonstrations, forecasts, forecaster.checkpoints, phases, replay)
         for v in args.variants
     }
     rows = []
@@ -664,7 +723,9 @@ def train_with_dagger(args, seed: int, forecaster: Forecaster, demonstrations, t
             table = forecaster.extended(table, demonstrations)
         forecasts = forecaster.forecasts(args, table, demonstrations)
         policies = {
-            v: build_policy(args, v, seed, round_, demonstrations, forecasts, forecaster.checkpoints, phases)
+            v: build_policy(
+                args, v, seed, round_, demonstrations, forecasts, forecaster.checkpoints, phases, None
+            )
             for v in args.variants
         }
         trained_on = len(demonstrations.split_frames["train"])
@@ -717,6 +778,20 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bc-image-channels", type=int, nargs="+", default=[16, 32, 32, 32])
     parser.add_argument(
         "--dropout", type=float, default=0.3, help="training outage probability of camera and force"
+    )
+    parser.add_argument(
+        "--train-outages",
+        choices=TRAIN_OUTAGES,
+        default="independent",
+        help="independent (default): each training sample loses camera and force with probability --dropout; "
+        "replayed: each sample's outage is a replay of its episode through the outage processes the run "
+        "plays (runs of their own)",
+    )
+    parser.add_argument(
+        "--replay-draws",
+        type=int,
+        default=2,
+        help="with --train-outages replayed: replays of each played condition (default 2)",
     )
     parser.add_argument(
         "--latched-forecast",
@@ -808,6 +883,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         parser.error(f"--action-chunk must be >= 1, found {args.action_chunk}")
     if args.forecast_steps is not None and args.forecast_steps < 1:
         parser.error(f"--forecast-steps must be >= 1, found {args.forecast_steps}")
+    if args.train_outages == "replayed" and (args.dagger or args.replay_draws < 1):
+        parser.error(
+            "--train-outages replayed needs --replay-draws >= 1 and no --dagger rounds (DAgger's episodes "
+            f"are not replayed), found --replay-draws {args.replay_draws}, --dagger {args.dagger}"
+        )
     if args.dagger < 0 or args.dagger_episodes < 1:
         parser.error(
             f"--dagger must be >= 0 and --dagger-episodes >= 1, found {args.dagger}, {args.dagger_episodes}"
@@ -946,6 +1026,9 @@ def run(args: argparse.Namespace, argv: list[str]) -> None:
     started = time.perf_counter()
     phases: dict[str, float] = {}
     forecaster, recorded, table, recording = forecaster_and_demonstrations(args, phases)
+    replay = None  # built once, when a policy is trained on replayed outages
+    if args.train_outages == "replayed":
+        replay = functools.cache(lambda: replayed_outages(args, forecaster, recorded, phases))
 
     # A policy of each variant (without and with the forecast input) per BC seed, after the DAgger
     # rounds; their offline errors.
@@ -954,7 +1037,7 @@ def run(args: argparse.Namespace, argv: list[str]) -> None:
     dagger_rows = []
     for seed in args.bc_seeds:
         trained, demonstrations, forecasts, rows = train_with_dagger(
-            args, seed, forecaster, recorded, table, phases
+            args, seed, forecaster, recorded, table, phases, replay
         )
         dagger_rows += rows
         for variant in args.variants:
@@ -989,6 +1072,10 @@ def run(args: argparse.Namespace, argv: list[str]) -> None:
         "action_chunk": args.action_chunk,
         "action_head": args.action_head,
         "forecast_steps": args.forecast_steps,
+        "train_outages": args.train_outages,
+        "replayed_absent_fraction": replay().absent_fraction()
+        if replay and replay.cache_info().currsize
+        else None,
     }
     write_results(args, text, results, phases)
     print(text)
@@ -999,7 +1086,7 @@ def budget_line(args, forecaster: Forecaster, recorded: Demonstrations) -> str:
     """The run's budget and what its policies read, for the results page."""
     return (
         f"{args.episodes} episodes per condition, outages {' '.join(args.outage)}, BC seeds {args.bc_seeds}, "
-        f"{args.bc_steps} BC steps x {args.bc_batch_size}, training dropout {args.dropout}; "
+        f"{args.bc_steps} BC steps x {args.bc_batch_size}, {training_outages_phrase(args)}; "
         + ("demonstrations by the steady pusher; " if args.steady_demonstrations else "")
         + (f"latched forecasts (rule {args.latched_forecast}); " if args.latched_forecast else "")
         + (f"action chunks of {args.action_chunk}, temporal ensembling; " if args.action_chunk > 1 else "")
@@ -1024,6 +1111,14 @@ def budget_line(args, forecaster: Forecaster, recorded: Demonstrations) -> str:
         + "forecaster "
         f"`{forecaster.checkpoints}`; {len(recorded.split_frames['train'])} recorded training frames"
     )
+
+
+def training_outages_phrase(args) -> str:
+    """The budget line's word on the training outages."""
+    if args.train_outages == "replayed":
+        played = len(outage_conditions(args.outage))
+        return f"training outages replayed through the {played} played conditions x {args.replay_draws} draws"
+    return f"training dropout {args.dropout}"
 
 
 def held_out_phrase(trained_on: dict) -> str:

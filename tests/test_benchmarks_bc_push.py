@@ -23,6 +23,7 @@ from benchmarks.bc_push import (
     record_or_check_forecaster,
     warn_of_in_sample_forecasts,
 )
+from mmf_rl.checkpoint import list_checkpoints
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets.provenance import PROVENANCE_FILE, read_recording_provenance
 from mmf_rl.rl import BCPolicy
@@ -192,6 +193,32 @@ def test_bc_push_gmm_head_reaches_every_policy_in_runs_of_their_own(recorded_pus
         assert (config.action_head, config.action_chunk) == ("gmm", 2), run
     assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
     assert not list(work.glob("bc_chunk2_with*")) and not list(work.glob("bc_chunk2_without*"))
+
+
+def test_bc_push_replayed_outages_train_both_variants_in_runs_of_their_own(
+    recorded_push_root, tmp_path, capsys
+):
+    work = tmp_path / "work"
+    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    assert (
+        cli([*argv, "--train-outages", "replayed", "--replay-draws", "1", "--latched-forecast", "precision"])
+        == 0
+    )
+    assert_one_outage_summary(capsys)
+    assert not (work / "results.json").exists(), "the independently trained policies' results are left alone"
+    results = json.loads((work / "replayed" / "results.json").read_text())
+    assert results["train_outages"] == "replayed"
+    fractions = results["replayed_absent_fraction"]
+    assert fractions["all"] == {"image": 0.0, "force": 0.0, "proprio": 0.0}
+    assert (
+        fractions["no-camera (episode)"]["image"] == 1.0 and fractions["no-force (episode)"]["force"] == 1.0
+    )
+    for run in ("bc_replayed_without_forecasts_seed0", "bc_replayed_with_latched_precision_forecasts_seed0"):
+        meta = json.loads((list_checkpoints(work / run / "checkpoints")[-1] / "meta.json").read_text())
+        assert meta["replayed_outages"] == ["all", "no-camera (episode)", "no-force (episode)"], run
+    assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
+    with pytest.raises(SystemExit):
+        parse_args([*argv, "--train-outages", "replayed", "--dagger", "1"])
 
 
 def test_bc_push_forecast_steps_reach_only_the_with_policies_in_runs_of_their_own(

@@ -293,5 +293,16 @@ class ModalityDropout(Transform):
             self._advance_episode(every_env)
         return self._apply_outages(next_tensordict)
 
+    def observe_reset(self, observation: TensorDictBase) -> TensorDictBase:
+        """Draw every env's outages for a reset's ``observation`` (env batch ``[*batch]``) and apply
+        them, as ``env.reset()`` does in a `TransformedEnv`: for a caller that replays recorded
+        episodes through the outages (`mmf_rl.rl.replayed_outages`)."""
+        return self._reset(observation.empty(), observation)
+
+    def observe_step(self, observation: TensorDictBase) -> TensorDictBase:
+        """Advance every env's outages by a step's ``observation`` and apply them, as ``env.step()``
+        does in a `TransformedEnv` (see :meth:`observe_reset`)."""
+        return self._call(observation)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         raise not_standalone("ModalityDropout")

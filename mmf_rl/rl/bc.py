@@ -29,7 +29,10 @@ recorded demonstrations (`mmf_rl.rl.demonstrations`) with torchrl's `BCLoss` (me
 to the demonstrated action) and the project's `Trainer` (checkpoints: safetensors weights, the
 config in ``meta.json``, the normalisation statistics beside them; resumable). Training removes
 sensors at random per sample (``dropout``), so the policy has seen outages before it meets one;
-the policy that reads forecasts is trained on the forecasts made under the same outages.
+the policy that reads forecasts is trained on the forecasts made under the same outages. Or each
+sample's outage is a replay of the env's own outage processes through the transforms the policy
+reads (``outages``, `mmf_rl.rl.replayed_outages`): what it reads then follows the process, as in
+closed loop.
 
 With ``action_chunk`` k > 1 (`BCConfig`; default 1, the per-step policy) the network predicts the
 next k actions (``"action_chunk"``), trained on the demonstrator's next k actions of the episode
@@ -94,6 +97,7 @@ from mmf_rl.rl.gmm_head import (
     most_likely_mean,
 )
 from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
+from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow, require_stats
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig
 
@@ -575,6 +579,31 @@ def _check_training_inputs(
         )
 
 
+def _check_replayed_outages(policy: BCPolicy, outages: ReplayedOutages | None) -> None:
+    """Raise unless ``outages`` served what ``policy`` reads: forecasts (with their age for a latched
+    one) or none."""
+    if outages is None:
+        return
+    served = set(outages.forecast)
+    wanted = set()
+    if policy.config.forecast_shape is not None:
+        wanted = {keys.FORECAST_LOC, keys.FORECAST_SCALE}
+        wanted |= {keys.FORECAST_AGE} if policy.config.latched_forecast is not None else set()
+    if wanted and served != wanted:
+        raise ValueError(
+            f"train_bc: the policy reads {sorted(map(str, wanted))}, the replayed outages served "
+            f"{sorted(map(str, served))}; replay them with the forecast transform the policy reads in "
+            "closed loop (LatchedForecastTransform for a latched policy, ForecastTransform else)"
+        )
+
+
+def _outages_meta(dropout: Mapping[str, float], outages: ReplayedOutages | None) -> dict:
+    """What the checkpoint records of the training outages."""
+    if outages is None:
+        return {"dropout": dict(dropout)}
+    return {"dropout": {}, "replayed_outages": list(outages.labels)}
+
+
 def _bc_loss(policy: BCPolicy):
     """The loss that trains ``policy``'s head (see `train_bc`)."""
     chunked = policy.config.action_chunk > 1
@@ -590,6 +619,7 @@ def train_bc(
     *,
     dropout: Mapping[str, float] = DEFAULT_DROPOUT,
     forecasts: ForecastTable | LatchedForecastTable | None = None,
+    outages: ReplayedOutages | None = None,
     run_dir: str | os.PathLike | None = None,
     logger=None,
     resume: bool = False,
@@ -601,9 +631,13 @@ def train_bc(
     order and the dropout draws), evaluation and checkpoints (under ``run_dir/checkpoints``;
     ``resume`` continues the last one). ``dropout`` removes sensors per sample (see
     `DemonstrationLoader`); ``forecasts`` must cover those outages when the policy reads
-    forecasts. Returns the last validation errors (`validation_errors`, ``val/`` prefix).
+    forecasts. ``outages`` (with ``dropout={}``): each sample's outage is a replay of the env's
+    outage processes instead (`ReplayedOutages`, replayed with the policy's forecast transform when
+    it reads forecasts); validation still removes each subset of the sensors it drops, with
+    ``forecasts``. Returns the last validation errors (`validation_errors`, ``val/`` prefix).
     """
     _check_training_inputs(policy, demonstrations, dropout, forecasts)
+    _check_replayed_outages(policy, outages)
     chunk = policy.config.action_chunk
     loader = DemonstrationLoader(
         demonstrations,
@@ -611,16 +645,18 @@ def train_bc(
         config.batch_size,
         dropout=dropout,
         forecasts=forecasts,
+        outages=outages,
         action_chunk=chunk,
         seed=config.seed,
     )
+    validated = list(dropout) if outages is None else list(outages.droppable)
     with warnings.catch_warnings():
         # torchrl 0.13 warns that a loss without a target network declares none.
         warnings.filterwarnings("ignore", message="The name target_actor_network_params")
         loss = _bc_loss(policy)
 
     def evaluate(model: BCPolicy) -> dict[str, float]:
-        errors = validation_errors(model, demonstrations, "val", list(dropout), forecasts)
+        errors = validation_errors(model, demonstrations, "val", validated, forecasts)
         return {f"val/{k}": v for k, v in errors.items()}
 
     trainer = Trainer(
@@ -631,7 +667,7 @@ def train_bc(
         run_dir=run_dir,
         logger=logger,
         evaluate=evaluate if len(demonstrations.split_frames["val"]) else None,
-        checkpoint_meta={**policy.checkpoint_meta(), "dropout": dict(dropout)},
+        checkpoint_meta={**policy.checkpoint_meta(), **_outages_meta(dropout, outages)},
         checkpoint_tensors=policy.stats,
     )
     if resume:

@@ -37,13 +37,19 @@ def camera_size(modalities: list[keys.ModalitySpec]) -> int:
     return next(s for s in modalities if s.name == "image").shape[-1]
 
 
+def sensor_outage(sensor: str, outage: str, seed: int) -> ModalityDropout:
+    """``sensor`` failing the ``outage`` way of `OUTAGES`, seeded: the push experiments' outage
+    process (in the env, and replayed on recordings to train on: `mmf_rl.rl.replayed_outages`)."""
+    return ModalityDropout([sensor], seed=seed, **OUTAGES[outage])
+
+
 def push_env(
     image_size: int, sensor: str | None, outage: str | None, seed: int, readers: list[Transform]
 ) -> TransformedEnv:
     """The push env with ``sensor`` failing the ``outage`` way (seeded), then the transforms a
     policy reads through (``readers``), then an `InitTracker` (the reference policies need it)
     unless ``readers`` have one."""
-    failing = [ModalityDropout([sensor], seed=seed, **OUTAGES[outage])] if sensor else []
+    failing = [sensor_outage(sensor, outage, seed)] if sensor else []
     tracked = any(isinstance(t, InitTracker) for t in readers)
     return TransformedEnv(
         MultimodalPushTorchEnv(image_size=image_size),

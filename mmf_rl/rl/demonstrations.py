@@ -245,6 +245,22 @@ class Demonstrations:
         """Modality ``name`` at ``frames`` as the env emits it (vectors raw, images resized)."""
         return self._obs[name][frames]
 
+    def env_observation(self, frames: torch.Tensor) -> TensorDict:
+        """The recorded ``frames`` as the env emits a step of a batch of envs: ``("obs", m)`` single
+        frames and ``("present", m)`` flags, batch ``[B]`` (to replay episodes through env transforms)."""
+        observation = TensorDict(batch_size=[len(frames)])
+        for spec in self.specs:
+            observation.set(spec.obs_key, self._obs[spec.name][frames].clone())
+            observation.set(spec.present_key, self._present[spec.name][frames].clone())
+        return observation
+
+    def episodes(self, split: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first cache row and the length of each episode with a frame in ``split``."""
+        starts = torch.unique(self._episode_start)
+        ends = torch.cat([starts[1:], torch.tensor([len(self._episode_start)])])
+        used = torch.isin(starts, self._episode_start[self.split_frames[split]])
+        return starts[used], (ends - starts)[used]
+
     def episode_start(self, frames: torch.Tensor) -> torch.Tensor:
         """The cache row of the first frame of each of ``frames``' episodes."""
         return self._episode_start[frames]
@@ -548,6 +564,9 @@ class DemonstrationLoader:
         forecasts: a `ForecastTable` covering the outages: batches then carry
             ``("forecast", "loc"/"scale")`` of the outage each sample is under (a
             `mmf_rl.rl.latched_forecast.LatchedForecastTable`: the latched forecast and its age).
+        outages: a `mmf_rl.rl.replayed_outages.ReplayedOutages` instead of ``dropout``: each
+            sample's outage is one replay of the env's outage processes, with the forecast served
+            there (when ``forecasts`` is given: the policy reads forecasts).
         action_chunk: k > 1: batches carry the next k demonstrated actions and their mask
             (`Demonstrations.action_chunks`), an action-chunk policy's targets.
         shuffle: default: for ``"train"``; ``seed`` orders the epochs (``(seed, epoch)``).
@@ -563,6 +582,7 @@ class DemonstrationLoader:
         dropout: Mapping[str, float] | None = None,
         absent: Sequence[str] = (),
         forecasts: ForecastTable | None = None,
+        outages=None,
         action_chunk: int = 1,
         shuffle: bool | None = None,
         seed: int = 0,
@@ -582,7 +602,12 @@ class DemonstrationLoader:
                 f"{names} with probabilities in [0, 1]"
             )
         self.demonstrations, self.split, self.batch_size = demonstrations, split, batch_size
+        if outages is not None and (dropout or absent):
+            raise ValueError(
+                "DemonstrationLoader: replayed outages replace dropout and absent; give one or the other"
+            )
         self.dropout, self.absent, self.forecasts = dropout, tuple(absent), forecasts
+        self.outages = outages
         self.action_chunk = action_chunk
         self.shuffle = split == "train" if shuffle is None else shuffle
         self.drop_last = self.shuffle if drop_last is None else drop_last
@@ -611,6 +636,14 @@ class DemonstrationLoader:
                 absent[m] = absent.get(m, none) | (drawn & ~nothing_left)
         return absent
 
+    def _outages(self, frames: torch.Tensor, generator: torch.Generator) -> tuple[dict, dict]:
+        """The modalities each sample lacks and the forecast entries it gets."""
+        with_forecasts = self.forecasts is not None
+        if self.outages is not None:
+            return self.outages.draw(frames, generator, with_forecasts)
+        absent = self._absent(frames, generator)
+        return absent, self.forecasts.entries(frames, absent, generator) if with_forecasts else {}
+
     def __iter__(self) -> Iterator[TensorDict]:
         frames = self.demonstrations.split_frames[self.split]
         generator = torch.Generator().manual_seed(self.seed * 100_003 + self.epoch)
@@ -619,10 +652,9 @@ class DemonstrationLoader:
         stop = len(frames) // self.batch_size * self.batch_size if self.drop_last else len(frames)
         for first in range(0, stop, self.batch_size):
             chunk = frames[first : first + self.batch_size]
-            absent = self._absent(chunk, generator)
+            absent, served = self._outages(chunk, generator)
             batch = self.demonstrations.batch(chunk, absent, self.action_chunk)
-            if self.forecasts is not None:
-                for key, value in self.forecasts.entries(chunk, absent, generator).items():
-                    batch.set(key, value)
+            for key, value in served.items():
+                batch.set(key, value)
             yield batch
         self.epoch += 1

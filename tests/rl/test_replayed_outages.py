@@ -1,0 +1,138 @@
+"""Training outages replayed through the env's own outage processes, on the recorded push data."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from mmf_rl import keys
+from mmf_rl.checkpoint import list_checkpoints
+from mmf_rl.rl import BCPolicy, DemonstrationLoader, ForecastTransform, HistoryWindow, train_bc
+from mmf_rl.rl.closed_loop import sensor_outage
+from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
+from mmf_rl.rl.replayed_outages import ReplayedOutages
+from mmf_rl.trainers.trainer import TrainerConfig
+from tests.rl.test_bc import make_policy
+
+NO_DROP, NO_IMAGE = 0, 1  # `drop_sets(("image", "force"))`: nothing, then the camera
+
+
+def window_of(demonstrations) -> HistoryWindow:
+    return HistoryWindow(demonstrations.specs, demonstrations.normalizer.stats, demonstrations.history)
+
+
+def replay(demonstrations, outages, forecast=None, split="train") -> ReplayedOutages:
+    return ReplayedOutages.replay(demonstrations, split, outages, window_of(demonstrations), forecast)
+
+
+@pytest.fixture(scope="module")
+def latched_replay(demonstrations, forecaster) -> ReplayedOutages:
+    model, stats, data_config = forecaster
+    latched = LatchedForecastTransform.for_trained(model, stats, data_config, denormalize=False)
+    return replay(
+        demonstrations, [("all", None), ("camera dies", sensor_outage("image", "dies", seed=3))], latched
+    )
+
+
+def test_replays_without_the_camera_or_with_every_sensor_serve_the_forecast_tables_entries(
+    demonstrations, forecasts, forecaster
+):
+    """The forecasts replayed through `ForecastTransform` are the `ForecastTable`'s, computed from
+    windows built offline: with every sensor, and with the camera off for whole episodes."""
+    model, stats, data_config = forecaster
+    outages = [("all", None), ("camera off", sensor_outage("image", "episode", seed=0))]
+    replayed = replay(
+        demonstrations, outages, ForecastTransform.for_trained(model, stats, data_config, denormalize=False)
+    )
+    frames = demonstrations.split_frames["train"]
+    assert bool(replayed.replayed[frames].all()) and not bool(
+        replayed.replayed[demonstrations.split_frames["val"]].any()
+    )
+    assert not replayed.absent["image"][0, frames].any() and replayed.absent["image"][1, frames].all()
+    assert not replayed.absent["force"][:, frames].any() and replayed.droppable == ("image",)
+    for index, drop in [(0, NO_DROP), (1, NO_IMAGE)]:
+        torch.testing.assert_close(
+            replayed.forecast[keys.FORECAST_LOC][index, frames], forecasts.loc[frames, drop]
+        )
+        torch.testing.assert_close(
+            replayed.forecast[keys.FORECAST_SCALE][index, frames], forecasts.scale[frames, drop]
+        )
+    assert keys.FORECAST_AGE not in replayed.forecast  # a fresh forecast has no age
+
+
+def test_a_dying_camera_stays_dead_and_its_latch_ages_a_step_per_step(demonstrations, latched_replay):
+    starts, lengths = demonstrations.episodes("train")
+    image, age = latched_replay.absent["image"][1], latched_replay.forecast[keys.FORECAST_AGE][1]
+    died = 0
+    for start, length in zip(starts.tolist(), lengths.tolist(), strict=True):
+        out, ages = image[start : start + length], age[start : start + length]
+        assert not out[0], "the camera delivers at least its first reading"
+        assert bool((out[1:] >= out[:-1]).all()), "once dead, it stays dead"
+        assert bool((ages[~out] == 0).all())
+        dead = out.nonzero().flatten()
+        if len(dead):
+            died += 1
+            torch.testing.assert_close(ages[dead], torch.arange(1, len(dead) + 1, dtype=ages.dtype))
+    assert died, "some camera died within its episode"
+    assert not latched_replay.absent["image"][0].any()
+
+
+def test_draws_are_seeded_and_give_each_sample_one_replay_whole(demonstrations, latched_replay):
+    frames = demonstrations.split_frames["train"]
+
+    def draw(seed):
+        return latched_replay.draw(frames, torch.Generator().manual_seed(seed), with_forecasts=True)
+
+    (absent, served), (again, _), (other, _) = draw(0), draw(0), draw(1)
+    assert torch.equal(absent["image"], again["image"]) and not torch.equal(absent["image"], other["image"])
+    assert 0 < absent["image"].float().mean() < 1
+    loc = latched_replay.forecast[keys.FORECAST_LOC]
+    age = latched_replay.forecast[keys.FORECAST_AGE]
+    for i, frame in enumerate(frames.tolist()):
+        replays = [
+            r
+            for r in range(len(latched_replay.labels))
+            if bool(latched_replay.absent["image"][r, frame] == absent["image"][i])
+            and torch.equal(loc[r, frame], served[keys.FORECAST_LOC][i])
+            and bool(age[r, frame] == served[keys.FORECAST_AGE][i])
+        ]
+        assert replays, f"sample {i}: its absences and forecast come from one replay"
+    assert latched_replay.draw(frames, torch.Generator(), with_forecasts=False)[1] == {}
+    with pytest.raises(ValueError, match="were not replayed; replay the split"):
+        latched_replay.draw(demonstrations.split_frames["val"], torch.Generator(), with_forecasts=False)
+
+
+def test_a_latched_policy_trains_on_replayed_outages_and_records_them(
+    demonstrations, forecasts, forecaster, latched_replay, tmp_path
+):
+    table = LatchedForecastTable.for_trained(forecasts, demonstrations, *forecaster)
+    policy = make_policy(demonstrations, table)
+    config = TrainerConfig(total_steps=4, batch_size=16, eval_every=4, checkpoint_every=4, progress_bar=False)
+    metrics = train_bc(
+        policy, demonstrations, config, dropout={}, forecasts=table, outages=latched_replay, run_dir=tmp_path
+    )
+    assert {"val/mse_all", "val/mse_no_image"} <= set(metrics) and "val/mse_no_force" not in metrics
+    meta = json.loads((list_checkpoints(tmp_path / "checkpoints")[-1] / "meta.json").read_text())
+    assert meta["replayed_outages"] == ["all", "camera dies"] and meta["dropout"] == {}
+    assert BCPolicy.from_checkpoint(tmp_path / "checkpoints").config == policy.config
+    without = replay(demonstrations, [("all", None)])
+    with pytest.raises(ValueError, match="replay them with the forecast transform"):
+        train_bc(
+            make_policy(demonstrations, table),
+            demonstrations,
+            config,
+            dropout={},
+            forecasts=table,
+            outages=without,
+        )
+
+
+def test_a_loader_takes_replayed_outages_or_dropout_not_both(demonstrations, latched_replay):
+    with pytest.raises(ValueError, match="replace dropout and absent"):
+        DemonstrationLoader(demonstrations, "train", 8, dropout={"image": 0.3}, outages=latched_replay)
+    batch = next(iter(DemonstrationLoader(demonstrations, "train", 64, outages=latched_replay)))
+    assert keys.FORECAST_LOC not in batch.keys(True), "a policy without forecasts gets none"
+    present = batch.get((keys.HISTORY, *keys.present_key("image")))
+    assert 0 < present.float().mean() < 1
