@@ -5,8 +5,9 @@ recorder records with (`PushMPCAgent`), and behaviour cloning from recorded demo
 forecast as a policy input. What the push experiments (``benchmarks/mpc_push.py``, ``benchmarks/bc_push.py``)
 build on lives in the submodules: closed-loop play under sensor outages (`closed_loop`,
 `outage_evaluation`, `mpc_evaluation`, `bc_evaluation`), data aggregation (`aggregation`), DAgger
-(`dagger`), action chunks with temporal ensembling for BC (`action_chunks`) and their shared
-command-line pieces (`experiment`)."""
+(`dagger`), action chunks with temporal ensembling for BC (`action_chunks`), training outages replayed
+through the env's outage processes (`replayed_outages`) and their shared command-line pieces
+(`experiment`)."""
 
 from mmf_rl.rl.agent import MPCActor, PushMPCAgent
 from mmf_rl.rl.bc import DEFAULT_DROPOUT, BCConfig, BCPolicy, EncoderChoice, train_bc, validation_errors
@@ -15,6 +16,7 @@ from mmf_rl.rl.demonstrations import DemonstrationLoader, Demonstrations, Foreca
 from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.push_objective import PushObjective
+from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.rl.world_model import WorldModel
 from mmf_rl.rl.world_model_env import ForecasterWorldModelEnv, ImaginedPlanningPolicy
@@ -37,6 +39,7 @@ __all__ = [
     "MPCActor",
     "PushMPCAgent",
     "PushObjective",
+    "ReplayedOutages",
     "SequenceCEMPlanner",
     "WorldModel",
     "drop_sets",
