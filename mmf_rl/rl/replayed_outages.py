@@ -104,12 +104,15 @@ class ReplayedOutages:
         return tuple(m for m, a in self.absent.items() if bool(a.any()))
 
     def absent_fraction(self) -> dict[str, dict[str, float]]:
-        """``{label: {m: fraction of the replayed frames whose window lacks m}}``, for the results."""
-        rows = self.replayed
-        return {
-            label: {m: float(a[i, rows].float().mean()) for m, a in self.absent.items()}
-            for i, label in enumerate(self.labels)
-        }
+        """``{label: {m: fraction of the replayed frames whose window lacks m}}``, for the results; over
+        every replay of a label (a process replayed with several seeds has one label)."""
+        fractions = {}
+        for label in dict.fromkeys(self.labels):
+            replays = torch.tensor([own == label for own in self.labels])
+            fractions[label] = {
+                m: float(a[replays][:, self.replayed].float().mean()) for m, a in self.absent.items()
+            }
+        return fractions
 
 
 def _episode_rows(starts: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:

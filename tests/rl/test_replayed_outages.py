@@ -136,3 +136,15 @@ def test_a_loader_takes_replayed_outages_or_dropout_not_both(demonstrations, lat
     assert keys.FORECAST_LOC not in batch.keys(True), "a policy without forecasts gets none"
     present = batch.get((keys.HISTORY, *keys.present_key("image")))
     assert 0 < present.float().mean() < 1
+
+
+def test_the_absent_fraction_of_a_process_counts_each_of_its_replays():
+    """A process replayed with two seeds (two replays of one label) reports both draws, not the last."""
+    image = torch.tensor([[True, True, False], [False, False, False], [True, False, False]])
+    replayed = ReplayedOutages(
+        labels=["camera bursts", "all", "camera bursts"],
+        replayed=torch.tensor([True, True, False]),
+        absent={"image": image},
+        forecast={},
+    )
+    assert replayed.absent_fraction() == {"camera bursts": {"image": 0.75}, "all": {"image": 0.0}}
