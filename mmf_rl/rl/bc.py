@@ -542,10 +542,11 @@ def validation_errors(
 def _check_training_inputs(
     policy: BCPolicy,
     demonstrations: Demonstrations,
-    dropout: Mapping[str, float],
+    removed: Sequence[str],
     forecasts: ForecastTable | LatchedForecastTable | None,
 ) -> None:
-    """Raise unless the demonstrations and ``forecasts`` hold what ``policy`` reads, under ``dropout``."""
+    """Raise unless the demonstrations and ``forecasts`` hold what ``policy`` reads with the ``removed``
+    sensors out (validation removes each subset of them)."""
     if (forecasts is None) != (policy.config.forecast_shape is None):
         raise ValueError(
             "train_bc: "
@@ -572,28 +573,43 @@ def _check_training_inputs(
             f"{len(demonstrations.goal)} (episodes added after it was computed); add theirs with "
             "ForecastTable.extended(demonstrations, forecaster, stats)"
         )
-    if forecasts is not None and set(dropout) - set(forecasts.droppable):
+    if forecasts is not None and set(removed) - set(forecasts.droppable):
         raise ValueError(
-            f"train_bc: dropout removes {sorted(dropout)} but the forecasts cover outages of "
-            f"{list(forecasts.droppable)} only; compute the ForecastTable with droppable={sorted(dropout)}"
+            f"train_bc: training removes {sorted(removed)} (dropout, or the replayed outages) but the "
+            f"forecasts cover outages of {list(forecasts.droppable)} only; compute the ForecastTable with "
+            f"droppable={sorted(removed)}"
         )
 
 
-def _check_replayed_outages(policy: BCPolicy, outages: ReplayedOutages | None) -> None:
-    """Raise unless ``outages`` served what ``policy`` reads: forecasts (with their age for a latched
-    one) or none."""
+def _check_replayed_outages(
+    policy: BCPolicy, outages: ReplayedOutages | None, dropout: Mapping[str, float]
+) -> None:
+    """Raise unless ``outages`` replace ``dropout`` and were replayed through what ``policy`` reads
+    in closed loop: its window, and its forecast (with the age and rule of a latched one) or none."""
     if outages is None:
         return
-    served = set(outages.forecast)
-    wanted = set()
-    if policy.config.forecast_shape is not None:
-        wanted = {keys.FORECAST_LOC, keys.FORECAST_SCALE}
-        wanted |= {keys.FORECAST_AGE} if policy.config.latched_forecast is not None else set()
-    if wanted and served != wanted:
+    config = policy.config
+    if dropout:
         raise ValueError(
-            f"train_bc: the policy reads {sorted(map(str, wanted))}, the replayed outages served "
-            f"{sorted(map(str, served))}; replay them with the forecast transform the policy reads in "
-            "closed loop (LatchedForecastTransform for a latched policy, ForecastTransform else)"
+            f"train_bc: replayed outages replace the dropout, found dropout={dict(dropout)}; pass "
+            "dropout={} with them"
+        )
+    if (outages.history, outages.stride) != (config.history, config.stride):
+        raise ValueError(
+            f"train_bc: the outages were replayed through a window of {outages.history} steps, stride "
+            f"{outages.stride}, the policy reads {config.history}, stride {config.stride}; replay them "
+            "through policy.history_window()"
+        )
+    if config.forecast_shape is None:
+        return
+    served, rule = outages.forecast.get(keys.FORECAST_LOC), outages.rule
+    if served is None or tuple(served.shape[-2:]) != config.forecast_shape or rule != config.latched_forecast:
+        found = "no forecast" if served is None else f"forecasts {list(served.shape[-2:])}, latch rule {rule}"
+        raise ValueError(
+            f"train_bc: the policy reads forecasts {list(config.forecast_shape)} (T, D), latch rule "
+            f"{config.latched_forecast} (None: fresh), the replayed outages served {found}; replay them with "
+            "the forecast transform the policy reads in closed loop (LatchedForecastTransform of its rule "
+            "for a latched policy, ForecastTransform else; denormalize=False)"
         )
 
 
@@ -636,8 +652,9 @@ def train_bc(
     it reads forecasts); validation still removes each subset of the sensors it drops, with
     ``forecasts``. Returns the last validation errors (`validation_errors`, ``val/`` prefix).
     """
-    _check_training_inputs(policy, demonstrations, dropout, forecasts)
-    _check_replayed_outages(policy, outages)
+    _check_replayed_outages(policy, outages, dropout)
+    removed = list(dropout) if outages is None else list(outages.droppable)
+    _check_training_inputs(policy, demonstrations, removed, forecasts)
     chunk = policy.config.action_chunk
     loader = DemonstrationLoader(
         demonstrations,
@@ -649,14 +666,13 @@ def train_bc(
         action_chunk=chunk,
         seed=config.seed,
     )
-    validated = list(dropout) if outages is None else list(outages.droppable)
     with warnings.catch_warnings():
         # torchrl 0.13 warns that a loss without a target network declares none.
         warnings.filterwarnings("ignore", message="The name target_actor_network_params")
         loss = _bc_loss(policy)
 
     def evaluate(model: BCPolicy) -> dict[str, float]:
-        errors = validation_errors(model, demonstrations, "val", validated, forecasts)
+        errors = validation_errors(model, demonstrations, "val", removed, forecasts)
         return {f"val/{k}": v for k, v in errors.items()}
 
     trainer = Trainer(

@@ -24,7 +24,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
-from tensordict import NestedKey, TensorDictBase
+from tensordict import NestedKey
 from torchrl.envs.transforms import Transform
 
 from mmf_rl import keys
@@ -47,12 +47,18 @@ class ReplayedOutages:
         replayed: ``bool [N]`` over the demonstrations' cache rows: the frames replayed.
         absent: ``{m: bool [R, N]}``: the policy's window lacks ``m`` (every modality it reads).
         forecast: ``{key: [R, N, ...]}``: what the forecast transform served (empty without one).
+        history, stride: the window's (`HistoryWindow`): a policy trained on the replay must read
+            the same, or its window's absences are not those stored.
+        rule: the `LatchedForecastTransform` rule of the forecast served (``None``: fresh or none).
     """
 
     labels: list[str]
     replayed: torch.Tensor
     absent: dict[str, torch.Tensor]
     forecast: dict[NestedKey, torch.Tensor]
+    history: int
+    stride: int
+    rule: str | None
 
     @classmethod
     @torch.no_grad()
@@ -68,17 +74,19 @@ class ReplayedOutages:
         ``outages`` (a process replayed twice with another seed is two entries) through ``window``
         (the policy's) and ``forecast`` (`ForecastTransform` or `LatchedForecastTransform` with
         ``denormalize=False``, as the policy reads it in closed loop; ``None`` for a policy without)."""
-        if not outages:
-            raise ValueError("ReplayedOutages.replay: no outage process; give ('all', None) at least")
+        _check_replay_inputs(demonstrations, split, outages, forecast)
         starts, lengths = demonstrations.episodes(split)
         n = len(demonstrations.goal)
         replayed = torch.zeros(n, dtype=torch.bool)
         replayed[_episode_rows(starts, lengths)] = True
         stacks = [[t for t in (dropout, window, forecast) if t is not None] for _, dropout in outages]
         runs = [_replay_one(demonstrations, starts, lengths, stack) for stack in stacks]
-        absent = {s.name: torch.stack([r[0][s.name] for r in runs]) for s in window.specs}
+        absent = {m: torch.stack([r[0][m] for r in runs]) for m in runs[0][0]}
         served = {k: torch.stack([r[1][k] for r in runs]) for k in runs[0][1]}
-        return cls([label for label, _ in outages], replayed, absent, served)
+        rule = getattr(forecast, "rule", None)
+        return cls(
+            [label for label, _ in outages], replayed, absent, served, window.history, window.stride, rule
+        )
 
     def draw(
         self, frames: torch.Tensor, generator: torch.Generator, with_forecasts: bool
@@ -92,7 +100,10 @@ class ReplayedOutages:
                 f"ReplayedOutages: frames {missing} were not replayed; replay the split they belong to"
             )
         if with_forecasts and not self.forecast:
-            raise ValueError("ReplayedOutages: the replay ran without a forecast transform; give it one")
+            raise ValueError(
+                "ReplayedOutages: the replay served no forecast and the policy reads one; replay with the "
+                "policy's forecast transform (ReplayedOutages.replay(..., forecast=...))"
+            )
         which = torch.randint(len(self.labels), (len(frames),), generator=generator)
         absent = {m: a[which, frames] for m, a in self.absent.items()}
         served = {k: v[which, frames] for k, v in self.forecast.items()} if with_forecasts else {}
@@ -115,6 +126,25 @@ class ReplayedOutages:
         return fractions
 
 
+def _check_replay_inputs(
+    demonstrations: Demonstrations, split: str, outages: Sequence, forecast: Transform | None
+) -> None:
+    """Raise unless there is something to replay, and the forecast is in the frame a policy reads."""
+    if not outages:
+        raise ValueError("ReplayedOutages.replay: no outage process; give ('all', None) at least")
+    if getattr(forecast, "denormalize", False):
+        raise ValueError(
+            "ReplayedOutages.replay: the forecast transform writes forecasts in the target's units, a "
+            "policy reads them in the forecaster's normalised frame; build it with denormalize=False"
+        )
+    if not len(demonstrations.split_frames.get(split, ())):
+        sizes = {name: len(frames) for name, frames in demonstrations.split_frames.items()}
+        raise ValueError(
+            f"ReplayedOutages.replay: the {split!r} split has no demonstration frame (frames per split: "
+            f"{sizes}); replay the split the policy trains on"
+        )
+
+
 def _episode_rows(starts: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.arange(s, s + n) for s, n in zip(starts.tolist(), lengths.tolist(), strict=True)])
 
@@ -131,7 +161,7 @@ def _replay_one(
         chunk = slice(first, first + EPISODES_PER_PASS)
         for t, rows, out in _stepped(demonstrations, starts[chunk], lengths[chunk], transforms):
             inside = t < lengths[chunk]
-            lacks = {s.name: ~_window_presence(out, s.present_key) for s in demonstrations.specs}
+            lacks = {s.name: ~out.get((keys.HISTORY, *s.present_key)) for s in demonstrations.specs}
             _write(absent, lacks, rows, inside, n)
             _write(served, {k: out.get(k) for k in FORECAST_KEYS if k in out.keys(True)}, rows, inside, n)
     return absent, served
@@ -148,13 +178,11 @@ def _stepped(demonstrations: Demonstrations, starts: torch.Tensor, lengths: torc
         yield t, rows, out
 
 
-def _window_presence(out: TensorDictBase, present_key: NestedKey) -> torch.Tensor:
-    return out.get((keys.HISTORY, *present_key)).reshape(len(out), -1).all(-1)
-
-
 def _write(
     store: dict, values: Mapping[NestedKey, torch.Tensor], rows: torch.Tensor, inside: torch.Tensor, n: int
 ) -> None:
+    """Store ``values`` of the ``inside`` rows at their cache ``rows``; a key's store is made at its
+    first write (which forecast keys a transform writes is known only then)."""
     for key, value in values.items():
         if key not in store:
             store[key] = value.new_zeros((n, *value.shape[1:]))

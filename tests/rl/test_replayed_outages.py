@@ -117,16 +117,49 @@ def test_a_latched_policy_trains_on_replayed_outages_and_records_them(
     meta = json.loads((list_checkpoints(tmp_path / "checkpoints")[-1] / "meta.json").read_text())
     assert meta["replayed_outages"] == ["all", "camera dies"] and meta["dropout"] == {}
     assert BCPolicy.from_checkpoint(tmp_path / "checkpoints").config == policy.config
-    without = replay(demonstrations, [("all", None)])
-    with pytest.raises(ValueError, match="replay them with the forecast transform"):
-        train_bc(
-            make_policy(demonstrations, table),
-            demonstrations,
-            config,
-            dropout={},
-            forecasts=table,
-            outages=without,
-        )
+
+
+def test_train_bc_refuses_replays_of_what_the_policy_does_not_read(
+    demonstrations, forecasts, forecaster, latched_replay
+):
+    """Outages replayed through another window or forecast than the policy's, or given with a dropout,
+    stop the training before it starts, naming the fix."""
+    model, stats, data_config = forecaster
+    table = LatchedForecastTable.for_trained(forecasts, demonstrations, *forecaster)
+    config = TrainerConfig(total_steps=4, batch_size=16, eval_every=4, checkpoint_every=4, progress_bar=False)
+    fresh = ForecastTransform.for_trained(model, stats, data_config, denormalize=False)
+    normalizer = demonstrations.normalizer
+    longer = HistoryWindow(demonstrations.specs, normalizer.stats, demonstrations.history + 1)
+    longer_window = ReplayedOutages.replay(demonstrations, "train", [("all", None)], longer)
+    refused = [
+        (table, latched_replay, {"image": 0.3}, "replace the dropout.*pass dropout=\\{\\}"),
+        (table, replay(demonstrations, [("all", None)]), {}, "served no forecast; replay them with"),
+        (table, replay(demonstrations, [("all", None)], fresh), {}, "latch rule None; replay them with"),
+        (
+            None,
+            longer_window,
+            {},
+            f"window of {demonstrations.history + 1} steps.*reads {demonstrations.history},.*history_window",
+        ),
+    ]
+    for read, outages, dropout, message in refused:
+        with pytest.raises(ValueError, match=message):
+            train_bc(
+                make_policy(demonstrations, read),
+                demonstrations,
+                config,
+                dropout=dropout,
+                forecasts=read,
+                outages=outages,
+            )
+
+
+def test_a_replay_refuses_a_split_without_frames_and_forecasts_in_target_units(demonstrations, forecaster):
+    with pytest.raises(ValueError, match="the 'tain' split has no demonstration frame"):
+        replay(demonstrations, [("all", None)], split="tain")
+    units = ForecastTransform.for_trained(*forecaster, denormalize=True)
+    with pytest.raises(ValueError, match="denormalize=False"):
+        replay(demonstrations, [("all", None)], units)
 
 
 def test_a_loader_takes_replayed_outages_or_dropout_not_both(demonstrations, latched_replay):
@@ -146,5 +179,8 @@ def test_the_absent_fraction_of_a_process_counts_each_of_its_replays():
         replayed=torch.tensor([True, True, False]),
         absent={"image": image},
         forecast={},
+        history=4,
+        stride=1,
+        rule=None,
     )
     assert replayed.absent_fraction() == {"camera bursts": {"image": 0.75}, "all": {"image": 0.0}}
