@@ -9,7 +9,7 @@ import torch
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import list_checkpoints
-from mmf_rl.rl import BCPolicy, DemonstrationLoader, ForecastTransform, HistoryWindow, train_bc
+from mmf_rl.rl import BCPolicy, DemonstrationLoader, ForecastTable, ForecastTransform, HistoryWindow, train_bc
 from mmf_rl.rl.closed_loop import sensor_outage
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.replayed_outages import ReplayedOutages
@@ -131,7 +131,10 @@ def test_train_bc_refuses_replays_of_what_the_policy_does_not_read(
     normalizer = demonstrations.normalizer
     longer = HistoryWindow(demonstrations.specs, normalizer.stats, demonstrations.history + 1)
     longer_window = ReplayedOutages.replay(demonstrations, "train", [("all", None)], longer)
+    camera_only = ForecastTable.compute(demonstrations, model, stats, ["image"], splits=("train", "val"))
+    force_off = replay(demonstrations, [("force off", sensor_outage("force", "episode", seed=0))], fresh)
     refused = [
+        (camera_only, force_off, {}, "training removes \\['force'\\].*with droppable=\\['force'\\]"),
         (table, latched_replay, {"image": 0.3}, "replace the dropout.*pass dropout=\\{\\}"),
         (table, replay(demonstrations, [("all", None)]), {}, "served no forecast; replay them with"),
         (table, replay(demonstrations, [("all", None)], fresh), {}, "latch rule None; replay them with"),
