@@ -115,7 +115,8 @@ Design (what the policies see, and why):
   leaves the policy's own window without it most of the time, and the latch and its age are
   what the transform serves. Both variants train on the same replays (``--dropout`` is unused);
   their runs are their own (``bc_..._replayed_...``; results in ``WORK/replayed...`` unless
-  ``--out``). Not with ``--dagger``.
+  ``--out``), and one trained on other replays (another ``--outage`` or ``--replay-draws``) is
+  refused, never reused or resumed. Not with ``--dagger``.
 * The forecast: `ForecastTransform` (``denormalize=False``) on the same live sensors after the
   outage, i.e. the forecaster's own missing-modality inference; the policy reads its ``loc`` and
   ``log(scale)`` (the object's planar position relative to the gripper over the next T steps,
@@ -610,9 +611,12 @@ def build_policy(
     config = bc_trainer_config(args, seed)
     table = forecasts if variant == "with" else None
     checkpoints = list_checkpoints(run_dir / "checkpoints")
+    last = load_checkpoint(checkpoints[-1], with_trainer_state=False) if checkpoints else None
     if variant == "with":
         record_or_check_forecaster(run_dir, forecaster, new_run=not checkpoints)
-    if checkpoints and load_checkpoint(checkpoints[-1], with_trainer_state=False).step >= config.total_steps:
+    if last is not None and replay:
+        check_replayed_run(args, run_dir, last.meta)
+    if last is not None and last.step >= config.total_steps:
         return BCPolicy.from_checkpoint(run_dir / "checkpoints")
     seed_everything(seed)  # the same initial encoder weights for both variants
     policy = BCPolicy.for_demonstrations(
@@ -683,6 +687,25 @@ def dagger_episodes(args, seed: int, round_: int, policies: dict[str, BCPolicy],
             }
         )
     return episodes, rows
+
+
+def replayed_labels(args) -> list[str]:
+    """The outage process of each replay `replayed_outages` makes, in its order (what the checkpoints
+    of a policy trained on them record)."""
+    return [condition.label for _ in range(args.replay_draws) for condition in outage_conditions(args.outage)]
+
+
+def check_replayed_run(args, run_dir: Path, meta: dict) -> None:
+    """Refuses to reuse or resume the policy of ``run_dir`` (its checkpoint's ``meta``) when it was
+    trained on other replays than this run's (another ``--outage`` or ``--replay-draws``): the results
+    would say it was trained on these."""
+    trained_on, replayed = meta.get("replayed_outages"), replayed_labels(args)
+    if trained_on != replayed:
+        raise RunRefusal(
+            f"{run_dir} holds a policy trained on the outages replayed through {trained_on}, this run "
+            f"replays {replayed} (--outage, --replay-draws): use another --work for this run, or remove "
+            f"{run_dir} to train the policy on its replays"
+        )
 
 
 def replayed_outages(args, forecaster: Forecaster, demonstrations: Demonstrations, phases) -> ReplayedOutages:

@@ -200,14 +200,12 @@ def test_bc_push_replayed_outages_train_both_variants_in_runs_of_their_own(
 ):
     work = tmp_path / "work"
     argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
-    assert (
-        cli([*argv, "--train-outages", "replayed", "--replay-draws", "1", "--latched-forecast", "precision"])
-        == 0
-    )
+    replayed = [*argv, "--train-outages", "replayed", "--latched-forecast", "precision"]
+    assert cli([*replayed, "--replay-draws", "1"]) == 0
     assert_one_outage_summary(capsys)
     assert not (work / "results.json").exists(), "the independently trained policies' results are left alone"
     results = json.loads((work / "replayed" / "results.json").read_text())
-    assert results["train_outages"] == "replayed"
+    assert results["train_outages"] == "replayed" and "replay the training outages" in results["phases_s"]
     fractions = results["replayed_absent_fraction"]
     assert fractions["all"] == {"image": 0.0, "force": 0.0, "proprio": 0.0}
     assert (
@@ -217,6 +215,14 @@ def test_bc_push_replayed_outages_train_both_variants_in_runs_of_their_own(
         meta = json.loads((list_checkpoints(work / run / "checkpoints")[-1] / "meta.json").read_text())
         assert meta["replayed_outages"] == ["all", "no-camera (episode)", "no-force (episode)"], run
     assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
+    assert cli([*replayed, "--replay-draws", "1"]) == 0  # the policies are reused: nothing is replayed
+    again = json.loads((work / "replayed" / "results.json").read_text())
+    assert (
+        again["replayed_absent_fraction"] is None and "replay the training outages" not in again["phases_s"]
+    )
+    capsys.readouterr()
+    assert cli([*replayed, "--replay-draws", "2"]) == 1  # other replays than the policies' own
+    assert "trained on the outages replayed through" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         parse_args([*argv, "--train-outages", "replayed", "--dagger", "1"])
 
