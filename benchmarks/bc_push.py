@@ -710,7 +710,8 @@ def check_replayed_run(args, run_dir: Path, meta: dict) -> None:
 
 def replayed_outages(args, forecaster: Forecaster, demonstrations: Demonstrations, phases) -> ReplayedOutages:
     """The training split replayed through every condition the run plays, ``--replay-draws`` times
-    each (seeds from `REPLAY_SEED`), with the ``with`` policies' window and forecast transform."""
+    each (seeds from `REPLAY_SEED`), with the ``with`` policies' window and forecast transform (no
+    forecast when no ``with`` policy is trained: ``--variants without``)."""
     outages = []
     for draw in range(args.replay_draws):
         for i, condition in enumerate(outage_conditions(args.outage)):
@@ -722,9 +723,8 @@ def replayed_outages(args, forecaster: Forecaster, demonstrations: Demonstration
     )
     print(f"bc_push: replaying the training episodes through {len(outages)} outage processes")
     with timed_phase(phases, "replay the training outages"):
-        return ReplayedOutages.replay(
-            demonstrations, "train", outages, window, forecaster.served_transform(args)
-        )
+        forecast = forecaster.served_transform(args) if "with" in args.variants else None
+        return ReplayedOutages.replay(demonstrations, "train", outages, window, forecast)
 
 
 def train_with_dagger(args, seed: int, forecaster: Forecaster, demonstrations, table, phases, replay):

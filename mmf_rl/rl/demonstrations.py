@@ -30,6 +30,7 @@ import copy
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -45,6 +46,9 @@ from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.rows import compute_on_rows
 from mmf_rl.record import ACTION_KEY, GOAL_KEY, OBJECT_POSE_KEY
 from mmf_rl.rl.transforms import trained_per_step_presence
+
+if TYPE_CHECKING:  # it replays these demonstrations: imported for the annotation only
+    from mmf_rl.rl.replayed_outages import ReplayedOutages
 
 ACTION = "action"  # torchrl's action key: what a policy writes and `BCLoss` reads
 # An action-chunk policy's targets (`Demonstrations.action_chunks`): the demonstrator's next k
@@ -582,7 +586,7 @@ class DemonstrationLoader:
         dropout: Mapping[str, float] | None = None,
         absent: Sequence[str] = (),
         forecasts: ForecastTable | None = None,
-        outages=None,
+        outages: ReplayedOutages | None = None,
         action_chunk: int = 1,
         shuffle: bool | None = None,
         seed: int = 0,
