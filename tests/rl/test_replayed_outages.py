@@ -9,8 +9,18 @@ import torch
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import list_checkpoints
-from mmf_rl.rl import BCPolicy, DemonstrationLoader, ForecastTable, ForecastTransform, HistoryWindow, train_bc
+from mmf_rl.envs.torchrl_env import GOAL
+from mmf_rl.rl import (
+    BCPolicy,
+    DemonstrationLoader,
+    ForecastTable,
+    ForecastTransform,
+    HistoryWindow,
+    replayed_outages,
+    train_bc,
+)
 from mmf_rl.rl.closed_loop import sensor_outage
+from mmf_rl.rl.demonstrations import ACTION
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.trainers.trainer import TrainerConfig
@@ -60,6 +70,36 @@ def test_replays_without_the_camera_or_with_every_sensor_serve_the_forecast_tabl
             replayed.forecast[keys.FORECAST_SCALE][index, frames], forecasts.scale[frames, drop]
         )
     assert keys.FORECAST_AGE not in replayed.forecast  # a fresh forecast has no age
+
+
+def test_episodes_of_other_lengths_over_passes_of_one_size_keep_nothing_of_the_replay_before(
+    demonstrations, forecaster, monkeypatch
+):
+    """Episodes of 40, 40, 7 and 23 frames in passes of two (the second pass reuses the first's
+    state, same batch), replayed with every sensor, then the camera off, then every sensor again
+    through one latched transform: each replay serves the forecasts computed offline, frame by frame,
+    so no window or latch leaks between episodes, passes or replays."""
+    monkeypatch.setattr(replayed_outages, "EPISODES_PER_PASS", 2)
+    added = []
+    for start, length in [(0, 7), (demonstrations.split_frames["train"][0], 23)]:
+        rows = torch.arange(int(start), int(start) + length)
+        episode = demonstrations.env_observation(rows)
+        episode.update({GOAL: demonstrations.goal[rows], ACTION: demonstrations.action[rows]})
+        added.append(episode)
+    longer = demonstrations.with_episodes(added)
+    assert sorted(longer.episodes("train")[1].tolist()) == [7, 23, 40, 40]
+    model, stats, data_config = forecaster
+    table = ForecastTable.compute(longer, model, stats, ["image"], splits=("train",))
+    latched = LatchedForecastTransform.for_trained(model, stats, data_config, denormalize=False)
+    off = ("camera off", sensor_outage("image", "episode", seed=0))
+    replayed = replay(longer, [("all", None), off, ("all", None)], latched)
+    frames = longer.split_frames["train"]
+    for index, drop in [(0, NO_DROP), (1, NO_IMAGE), (2, NO_DROP)]:
+        torch.testing.assert_close(
+            replayed.forecast[keys.FORECAST_LOC][index, frames], table.loc[frames, drop]
+        )
+        assert not replayed.forecast[keys.FORECAST_AGE][index, frames].any(), "no latch served"
+    assert replayed.absent["image"][1, frames].all() and not replayed.absent["image"][[0, 2]][:, frames].any()
 
 
 def test_a_dying_camera_stays_dead_and_its_latch_ages_a_step_per_step(demonstrations, latched_replay):
