@@ -632,6 +632,7 @@ def build_policy(
     )
     dagger = f", DAgger round {round_}" if round_ else ""
     steps = config.total_steps
+    outages = replay() if replay else None  # its own phase, not the training's
     print(f"bc_push: training the BC policy {variant} forecasts, seed {seed}{dagger} ({steps} steps)")
     with timed_phase(phases, f"train BC {variant} seed {seed}{dagger}"):
         train_bc(
@@ -640,7 +641,7 @@ def build_policy(
             config,
             dropout={} if replay else dict.fromkeys(DROPPABLE, args.dropout),
             forecasts=table,
-            outages=replay() if replay else None,
+            outages=outages,
             run_dir=run_dir,
             resume=bool(checkpoints),
         )
