@@ -30,11 +30,17 @@ the trainings):
   image size of the policies' recording (``WORK/push`` or ``--data``); or ``--forecaster-data PATH``,
   a recording of your own for the forecaster only. Why a recording of its own: see "The forecaster
   is held out" below;
-* the forecaster: the default push forecaster with the object's planar position relative to the
-  gripper as its target (`FORECAST_TARGET`: where the object is, in a frame the policy acts in;
-  the data config's default, its displacement from now, mostly restates what the policy is about
-  to do), trained on its recording (``mmf-rl train data.root=WORK/push_forecaster``) in the run
-  ``WORK/forecaster_held_out``, with ``--forecaster-steps`` steps of ``--forecaster-batch-size``;
+* the forecaster: the default push forecaster with the object's planar position as its target
+  (`FORECAST_TARGETS`: where the object is, in a frame the policy acts in; the data config's
+  default, its displacement from now, mostly restates what the policy is about to do), trained on
+  its recording (``mmf-rl train data.root=WORK/push_forecaster``) in the run
+  ``WORK/forecaster_held_out_absolute``, with ``--forecaster-steps`` steps of
+  ``--forecaster-batch-size``. ``--forecast-target absolute`` (the default): the absolute position,
+  the goal's frame, from a forecaster trained on partial windows with burst cuts
+  (``data.partial_windows=true loss.step_drop_prob=0.5 loss.step_cut=burst``), so that its latch
+  refreshes at every camera frame; ``gripper``: the position relative to the gripper, whole windows
+  (the earlier default; its runs keep their untagged names, ``WORK/forecaster_held_out``). The
+  ``absolute`` runs are tagged (``..._heldout_absolute_...``). Unused with ``--forecaster``;
 * its forecast scale calibrated per presence pattern on its validation split, as ``mmf-rl
   calibrate`` fits it (`mmf_rl.eval.scale_fit`), before it forecasts anything: ``mmf-rl train``
   fits it at the end of the training (``calibrate=true``, its default); a forecaster without a
@@ -119,8 +125,8 @@ Design (what the policies see, and why):
   refused, never reused or resumed. Not with ``--dagger``.
 * The forecast: `ForecastTransform` (``denormalize=False``) on the same live sensors after the
   outage, i.e. the forecaster's own missing-modality inference; the policy reads its ``loc`` and
-  ``log(scale)`` (the object's planar position relative to the gripper over the next T steps,
-  `FORECAST_TARGET`, and how sure the forecaster is). Training uses the forecaster's forecasts of
+  ``log(scale)`` (the object's planar position over the next T steps, absolute or relative to the
+  gripper, `FORECAST_TARGETS`, and how sure the forecaster is). Training uses the forecaster's forecasts of
   the training frames under the same outage each sample is under, built by the same window rules
   (tests/rl/test_bc.py checks that the offline windows and forecasts equal the transforms' online
   ones).
@@ -138,19 +144,20 @@ Design (what the policies see, and why):
 * The forecaster is held out: it is trained on a recording of its own, never on the episodes the
   policies imitate. Trained on them, it forecasts the frames the policies learn from far more
   accurately than any frame it meets in closed loop (it overfits its training episodes): the
-  policies then learn to rely on forecasts better than any they will get, and a forecast of the
-  object's position relative to the gripper gives away the demonstrated action itself. So the two
+  policies then learn to rely on forecasts better than any they will get, and a forecast of where
+  the object goes gives away the demonstrated action itself. So the two
   stages are fitted on different data, as for any stacked model. The policies train and are
   validated on their own recording, forecast by this forecaster. The ``with`` policies' runs are
-  tagged (``bc_with_..._heldout_forecasts_seed<S>``, ``dagger_markov_..._heldout_...``; results in
-  ``WORK/heldout`` unless ``--out``, after any other tag of the run); the ``without`` policies read
+  tagged (``bc_with_..._heldout_absolute_forecasts_seed<S>``, ``dagger_markov_..._heldout_absolute_...``;
+  results in ``WORK/heldout_absolute`` unless ``--out``, after any other tag of the run; without
+  ``_absolute`` for ``--forecast-target gripper``); the ``without`` policies read
   no forecast and are the ordinary ones. ``--held-out-forecaster`` is accepted and changes nothing
   (it was the option's name before it became the default).
 * ``--in-sample-forecaster``: the old setup, kept for comparison: the forecaster is trained on the
   policies' own recording (``mmf-rl train data.root=WORK/push``, run ``WORK/forecaster``), so the
-  ``with`` policies learn from forecasts of the very frames it was trained on. Its runs keep the
-  untagged names (``bc_with_forecasts_seed<S>``; results in ``WORK``), so older work directories
-  resume. Refused with ``--held-out-forecaster`` or ``--forecaster-data``.
+  ``with`` policies learn from forecasts of the very frames it was trained on. With ``--forecast-target
+  gripper`` its runs keep the untagged names (``bc_with_forecasts_seed<S>``; results in ``WORK``),
+  so older work directories resume. Refused with ``--held-out-forecaster`` or ``--forecaster-data``.
 * ``--forecaster PATH``: a forecaster of your own; nothing is trained. Its ``with`` policies train
   in runs of their own (``bc_with_..._given_forecasts_seed<S>``, ``dagger_markov_..._given_...``;
   results in ``WORK/given`` unless ``--out``, after any other tag of the run), never in those of the
@@ -287,12 +294,22 @@ REPLAY_SEED = 7001
 # The seed of each recording the script makes (under WORK): episode i depends only on (seed, i), so
 # the two share no episode.
 RECORDING_SEEDS = {"push": 0, "push_forecaster": 1}
-# The forecaster's target: the object's planar position relative to the gripper's (observation.state
-# dims 0-1), not the data config's displacement from now.
-FORECAST_TARGET = [
-    "data.target.relative=false",
-    "data.target.relative_to={feature:observation.state,dims:[0,1]}",
-]
+# The forecaster's target, and how it is trained, per --forecast-target: the object's planar position
+# (not the data config's displacement from now) in the goal's frame, learnt from partial windows with
+# burst cuts; or relative to the gripper's (observation.state dims 0-1), from whole windows.
+FORECAST_TARGETS = {
+    "absolute": [
+        "data.target.relative=false",
+        "data.target.relative_to=null",
+        "data.partial_windows=true",
+        "loss.step_drop_prob=0.5",
+        "loss.step_cut=burst",
+    ],
+    "gripper": [
+        "data.target.relative=false",
+        "data.target.relative_to={feature:observation.state,dims:[0,1]}",
+    ],
+}
 
 
 class RunRefusal(ValueError):
@@ -473,8 +490,16 @@ def training_recording(args, data_config: dict) -> dict:
 
 
 def forecaster_run_dir(args) -> Path:
-    """The forecaster's run: the held-out one (the default) never resumes the in-sample one."""
-    return (args.work / ("forecaster_held_out" if args.held_out_forecaster else "forecaster")).resolve()
+    """The forecaster's run: the held-out one (the default) never resumes the in-sample one, nor one
+    of another target."""
+    name = "forecaster_held_out" if args.held_out_forecaster else "forecaster"
+    return (args.work / f"{name}{target_tag(args)}").resolve()
+
+
+def target_tag(args) -> str:
+    """In the names of the forecasters trained here on the absolute target, and of the runs of the
+    ``with`` policies that read them (the gripper-relative target keeps the older, untagged names)."""
+    return "_absolute" if args.forecaster is None and args.forecast_target == "absolute" else ""
 
 
 def build_forecaster(args, data: Path, phases: dict[str, float]) -> Path:
@@ -483,7 +508,7 @@ def build_forecaster(args, data: Path, phases: dict[str, float]) -> Path:
         "name=bc_forecaster",
         f"run_dir={forecaster_run_dir(args)}",
         f"data.root={data}",
-        *FORECAST_TARGET,
+        *FORECAST_TARGETS[args.forecast_target],
         "trainer.seed=0",
         "trainer.progress_bar=false",
     ]
@@ -526,8 +551,8 @@ def forecaster_tag(args) -> str:
     here on its own recording (the default) or given with ``--forecaster``; none for the in-sample
     one, so older work directories resume."""
     if args.held_out_forecaster:
-        return "_heldout"
-    return "_given" if args.forecaster is not None else ""
+        return "_heldout" + target_tag(args)
+    return "_given" if args.forecaster is not None else target_tag(args)
 
 
 def steady_tag(args) -> str:
@@ -802,6 +827,14 @@ def add_training_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bc-image-channels", type=int, nargs="+", default=[16, 32, 32, 32])
     parser.add_argument(
         "--dropout", type=float, default=0.3, help="training outage probability of camera and force"
+    )
+    parser.add_argument(
+        "--forecast-target",
+        choices=list(FORECAST_TARGETS),
+        default="absolute",
+        help="the forecaster trained here forecasts the object's absolute planar position, from partial "
+        "windows (absolute, the default), or its position relative to the gripper, from whole windows "
+        "(gripper: the earlier default); unused with --forecaster",
     )
     parser.add_argument(
         "--train-outages",

@@ -18,6 +18,7 @@ import yaml
 from benchmarks.bc_push import (
     Forecaster,
     build_recording,
+    forecaster_run_dir,
     parse_args,
     policy_run_dir,
     record_or_check_forecaster,
@@ -64,8 +65,18 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     assert BCPolicy.from_checkpoint(work / with_run / "checkpoints").config.latched_forecast == latched
 
 
-# The plain policies: a style drawn per episode, one action per step, the forecast of the live sensors.
-PLAIN = ["--demonstrations", "drawn", "--action-chunk", "1", "--latched-forecast", "none"]
+# The plain policies: a style drawn per episode, one action per step, the forecast of the live sensors
+# relative to the gripper, from whole windows.
+PLAIN = [
+    "--demonstrations",
+    "drawn",
+    "--action-chunk",
+    "1",
+    "--latched-forecast",
+    "none",
+    "--forecast-target",
+    "gripper",
+]
 
 
 def tiny_argv(
@@ -506,15 +517,19 @@ def test_bc_push_defaults_are_steady_demonstrations_chunks_of_8_and_the_precisio
     default = parse_args(["--quick", "--work", str(work)])
     assert default.steady_demonstrations and default.action_chunk == 8
     assert default.latched_forecast == "precision" and default.held_out_forecaster
-    assert default.out == work / "steady_chunk8_heldout"
+    assert default.forecast_target == "absolute" and default.out == work / "steady_chunk8_heldout_absolute"
     assert policy_run_dir(default, "with", 0, 0) == (
-        work / "bc_steady_chunk8_with_latched_precision_heldout_forecasts_seed0"
+        work / "bc_steady_chunk8_with_latched_precision_heldout_absolute_forecasts_seed0"
     )
+    assert forecaster_run_dir(default) == (work / "forecaster_held_out_absolute").resolve()
+    gripper = parse_args(["--work", str(work), "--forecast-target", "gripper"])
+    assert gripper.out == work / "steady_chunk8_heldout"  # the earlier default's runs keep their names
+    assert forecaster_run_dir(gripper) == (work / "forecaster_held_out").resolve()
     assert parse_args(["--work", str(work)]).record_episodes == 1000
     given = parse_args(["--work", str(work), "--data", "mine", "--latched-forecast", "none"])
     assert not given.steady_demonstrations and given.latched_forecast is None  # --data is used as it is
     drawn = parse_args(["--work", str(work), "--demonstrations", "drawn"])
-    assert not drawn.steady_demonstrations and drawn.out == work / "chunk8_heldout"
+    assert not drawn.steady_demonstrations and drawn.out == work / "chunk8_heldout_absolute"
     with pytest.raises(SystemExit):
         parse_args(["--work", str(work), "--demonstrations", "drawn", "--data", "mine"])
     assert "--demonstrations drawn records the policies' recording, but --data" in capsys.readouterr().err
