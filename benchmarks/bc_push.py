@@ -234,6 +234,7 @@ from mmf_rl.cli import configure_logging
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.datasets.lerobot_source import open_dataset_metadata
 from mmf_rl.datasets.provenance import PROVENANCE_FILE, describe_provenance, read_recording_provenance
+from mmf_rl.envs.modality_dropout import ModalityDropout
 from mmf_rl.eval.report import write_json
 from mmf_rl.eval.scale_fit import PatternFit, fit_table
 from mmf_rl.record import CAMERA_KEY, RecordConfig, record
@@ -242,7 +243,6 @@ from mmf_rl.rl import (
     Demonstrations,
     EncoderChoice,
     ForecastTable,
-    ForecastTransform,
     HistoryWindow,
     train_bc,
     validation_errors,
@@ -256,6 +256,7 @@ from mmf_rl.rl.bc_evaluation import (
     evaluate_bc,
     figure,
     loss_table,
+    served_forecast,
     success_table,
     summary_line,
     validation_table,
@@ -280,7 +281,7 @@ from mmf_rl.rl.experiment import (
     train_or_resume,
     write_results,
 )
-from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
+from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable
 from mmf_rl.rl.outage_evaluation import Condition, outage_conditions
 from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.trainers import TrainerConfig, seed_everything
@@ -368,15 +369,6 @@ class Forecaster:
             return table
         return LatchedForecastTable.for_trained(
             table, demonstrations, *self.loaded, rule=args.latched_forecast
-        )
-
-    def served_transform(self, args) -> ForecastTransform:
-        """The forecast transform the ``with`` policies read in closed loop (`bc_env`'s)."""
-        model, stats, data_config = self.loaded
-        if not args.latched_forecast:
-            return ForecastTransform.for_trained(model, stats, data_config, denormalize=False)
-        return LatchedForecastTransform.for_trained(
-            model, stats, data_config, rule=args.latched_forecast, denormalize=False
         )
 
     def extended(self, table: ForecastTable, demonstrations: Demonstrations) -> ForecastTable:
@@ -715,17 +707,23 @@ def dagger_episodes(args, seed: int, round_: int, policies: dict[str, BCPolicy],
     return episodes, rows
 
 
-def replayed_labels(args) -> list[str]:
-    """The outage process of each replay `replayed_outages` makes, in its order (what the checkpoints
-    of a policy trained on them record)."""
-    return [condition.label for _ in range(args.replay_draws) for condition in outage_conditions(args.outage)]
+def replay_processes(args) -> list[tuple[str, ModalityDropout | None]]:
+    """``(label, outage process)`` of each replay: every condition the run plays, ``--replay-draws``
+    times each with seeds from `REPLAY_SEED` (the labels are what a policy trained on them records)."""
+    processes = []
+    for draw in range(args.replay_draws):
+        for i, condition in enumerate(outage_conditions(args.outage)):
+            seed = REPLAY_SEED + 100 * draw + i
+            failing = sensor_outage(condition.sensor, condition.outage, seed) if condition.sensor else None
+            processes.append((condition.label, failing))
+    return processes
 
 
 def check_replayed_run(args, run_dir: Path, meta: dict) -> None:
     """Refuses to reuse or resume the policy of ``run_dir`` (its checkpoint's ``meta``) when it was
     trained on other replays than this run's (another ``--outage`` or ``--replay-draws``): the results
     would say it was trained on these."""
-    trained_on, replayed = meta.get("replayed_outages"), replayed_labels(args)
+    trained_on, replayed = meta.get("replayed_outages"), [label for label, _ in replay_processes(args)]
     if trained_on != replayed:
         raise RunRefusal(
             f"{run_dir} holds a policy trained on the outages replayed through {trained_on}, this run "
@@ -735,21 +733,16 @@ def check_replayed_run(args, run_dir: Path, meta: dict) -> None:
 
 
 def replayed_outages(args, forecaster: Forecaster, demonstrations: Demonstrations, phases) -> ReplayedOutages:
-    """The training split replayed through every condition the run plays, ``--replay-draws`` times
-    each (seeds from `REPLAY_SEED`), with the ``with`` policies' window and forecast transform (no
-    forecast when no ``with`` policy is trained: ``--variants without``)."""
-    outages = []
-    for draw in range(args.replay_draws):
-        for i, condition in enumerate(outage_conditions(args.outage)):
-            seed = REPLAY_SEED + 100 * draw + i
-            failing = sensor_outage(condition.sensor, condition.outage, seed) if condition.sensor else None
-            outages.append((condition.label, failing))
+    """The training split replayed through `replay_processes`, with the ``with`` policies' window and
+    forecast transform (no forecast when no ``with`` policy is trained: ``--variants without``)."""
+    outages = replay_processes(args)
     window = HistoryWindow(
         demonstrations.specs, demonstrations.normalizer.stats, demonstrations.history, demonstrations.stride
     )
     print(f"bc_push: replaying the training episodes through {len(outages)} outage processes")
     with timed_phase(phases, "replay the training outages"):
-        forecast = forecaster.served_transform(args) if "with" in args.variants else None
+        with_policies = "with" in args.variants
+        forecast = served_forecast(forecaster.loaded, args.latched_forecast) if with_policies else None
         return ReplayedOutages.replay(demonstrations, "train", outages, window, forecast)
 
 

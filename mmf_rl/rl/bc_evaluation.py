@@ -28,17 +28,22 @@ def bc_env(
     ``forecaster``: `mmf_rl.models.loading.load_trained_model`'s triple."""
     readers = []
     if policy is not None:
-        model, stats, data_config = forecaster
-        forecast = None
-        if policy.config.latched_forecast is not None:
-            rule = policy.config.latched_forecast
-            forecast = LatchedForecastTransform.for_trained(
-                model, stats, data_config, rule=rule, denormalize=False
-            )
-        elif policy.config.forecast_shape is not None:
-            forecast = ForecastTransform.for_trained(model, stats, data_config, denormalize=False)
+        reads = policy.config.forecast_shape is not None
+        forecast = served_forecast(forecaster, policy.config.latched_forecast) if reads else None
         readers = policy.transforms(forecast)
     return push_env(image_size, condition.sensor, condition.outage, seed, readers)
+
+
+def served_forecast(forecaster: tuple, latched_rule: str | None) -> ForecastTransform:
+    """The forecast transform a policy that reads forecasts reads, in the forecaster's normalised
+    frame: the `LatchedForecastTransform` of ``latched_rule``, or (``None``) the fresh forecast.
+    ``forecaster``: `mmf_rl.models.loading.load_trained_model`'s triple."""
+    model, stats, data_config = forecaster
+    if latched_rule is None:
+        return ForecastTransform.for_trained(model, stats, data_config, denormalize=False)
+    return LatchedForecastTransform.for_trained(
+        model, stats, data_config, rule=latched_rule, denormalize=False
+    )
 
 
 @torch.no_grad()

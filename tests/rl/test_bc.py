@@ -67,15 +67,11 @@ def batch_with_forecasts(demonstrations, forecasts, frames: torch.Tensor, absent
 
 def recorded_steps(demonstrations, frames: torch.Tensor, image_absent: bool) -> list[TensorDict]:
     """The recorded frames as the env's per-step observations (single frames, presence flags)."""
-    steps = []
-    for f in frames.tolist():
-        step = TensorDict(batch_size=[])
-        for spec in demonstrations.specs:
-            value = demonstrations._obs[spec.name][f].clone()
-            absent = image_absent and spec.name == "image"
-            step.set(spec.obs_key, value.zero_() if absent else value)
-            step.set(spec.present_key, torch.tensor(not absent))
-        steps.append(step)
+    steps = list(demonstrations.env_observation(frames).unbind(0))
+    if image_absent:
+        for step in steps:
+            step.get(keys.obs_key("image")).zero_()
+            step.set(keys.present_key("image"), torch.tensor(False))
     return steps
 
 
