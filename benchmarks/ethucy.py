@@ -6,15 +6,18 @@
     mmf-rl bench ethucy --quick --out runs/bench_ethucy_quick
 
 For each fold (its test scene held out; train/val from the other scenes' ``_train``/``_val`` files):
-the paper model (the attention CVAE, ``model.prior=learned`` so that its 20 samples come from
-``p(z | X)``; the fold's data config: ``deepsets`` neighbours, conv scene), LF-LSTM and MulT are
-trained ONCE on all modalities, their scene crops through lerobot's default image transforms
-(``augment=lerobot``) and every training window turned by a random angle (``augment.rotation=180``);
-the baselines see an absent modality as zeros (the zero-fill protocol of the push accuracy
-benchmark); constant velocity and constant velocity with sampled heading noise (its angle std
-chosen on the fold's val split) need no training. Every model is scored in four modes (all
-modalities, without ``scene``, without ``neighbours``, trajectory only) on the same test windows:
-ADE/FDE of the point forecast and minADE20/minFDE20 per agent over 20 samples
+the paper model (the attention CVAE with ``model.prior=learned``; the fold's data config: ``deepsets``
+neighbours, conv scene), LF-LSTM and MulT are trained ONCE on all modalities, their scene crops
+through lerobot's default image transforms (``augment=lerobot``) and every training window turned by
+a random angle (``augment.rotation=180``); the baselines see an absent modality as zeros (the
+zero-fill protocol of the push accuracy benchmark); constant velocity and constant velocity with
+sampled heading noise (its angle std chosen on the fold's val split) need no training. The paper
+model's 20 samples are the codes of a learned sampler (DLow, which AgentFormer's published numbers
+use too: ``model.learned_samples=20``, trained after the forecaster with the forecaster frozen,
+``sampler.steps``); the row ``paper model, prior samples`` scores the same weights with 20 draws
+from ``p(z | X)``. Every model is scored in four modes (all modalities, without ``scene``, without
+``neighbours``, trajectory only) on the same test windows: ADE/FDE of the point forecast and
+minADE20/minFDE20 per agent over 20 samples
 (:mod:`mmf_rl.eval.trajectories`).
 
 The data is converted into ``--data`` when its fold configs are absent (``mmf-rl import ethucy``);
@@ -45,9 +48,11 @@ import torch
 # handler of its own on the root logger would print every library message a second time.
 logger = logging.getLogger("mmf_rl.benchmarks.ethucy")
 REPO = Path(__file__).resolve().parents[1]
+NUM_SAMPLES = 20  # the K of minADE20 / minFDE20
 PAPER, CV, CV_NOISE = "paper model", "constant velocity", "constant velocity + heading noise"
+PAPER_PRIOR = "paper model, prior samples"  # the paper model's weights, 20 draws from p(z | X)
 TRAINED = {  # label -> model overrides
-    PAPER: ("model=forecaster", "model.prior=learned"),
+    PAPER: ("model=forecaster", "model.prior=learned", f"model.learned_samples={NUM_SAMPLES}"),
     "LF-LSTM": ("model=lf_lstm",),
     "MulT": ("model=mult",),
 }
@@ -73,8 +78,8 @@ IMAGE_SIZE = 32
 @dataclass(frozen=True)
 class Budget:
     """``folds``: where the models are trained (constant velocity is scored on all five); the paper
-    model trains ``steps`` x ``batch_size``, the slower per-frame baselines ``baseline_steps`` x
-    ``baseline_batch``."""
+    model trains ``steps`` x ``batch_size``, then its learned sampler ``sampler_steps`` (of the
+    sampler's default batch), the slower per-frame baselines ``baseline_steps`` x ``baseline_batch``."""
 
     name: str
     folds: tuple[str, ...]
@@ -82,24 +87,27 @@ class Budget:
     batch_size: int
     baseline_steps: int
     baseline_batch: int
+    sampler_steps: int
     lr: float = 1e-3
 
 
 QUICK = Budget(
-    "quick mode: models trained on folds eth, hotel, zara1; 800 steps, baselines 300",
+    "quick mode: models trained on folds eth, hotel, zara1; 800 steps + learned sampler 500, baselines 300",
     ("eth", "hotel", "zara1"),
     800,
     64,
     300,
     64,
+    500,
 )
 FULL = Budget(
-    "full mode: 5 folds; 3000 steps, baselines 1000",
+    "full mode: 5 folds; 3000 steps + learned sampler 1500, baselines 1000",
     ("eth", "hotel", "univ", "zara1", "zara2"),
     3000,
     64,
     1000,
     64,
+    1500,
 )
 
 
@@ -168,6 +176,7 @@ def train_overrides(args, budget: Budget, fold: str, label: str, run_dir: Path) 
         f"trainer.batch_size={budget.batch_size if paper else budget.baseline_batch}",
         f"trainer.lr={budget.lr}",
         f"trainer.seed={args.seed}",
+        *([f"sampler.steps={budget.sampler_steps}"] if paper else []),
         f"trainer.eval_every={max(steps // 4, 1)}",
         f"trainer.checkpoint_every={steps}",
         f"trainer.warmup_steps={min(100, steps // 10)}",
@@ -199,7 +208,12 @@ def recipe(args, budget: Budget, fold: str, label: str) -> list[str]:
 
 # Settings this file began to override after runs had recorded their recipes, with the value those
 # runs trained with (the configuration's default then): a recipe without one of them had that value.
-IMPLIED_BEFORE_OVERRIDDEN = {"trainer.seed": "0", "augment.rotation": "0"}
+IMPLIED_BEFORE_OVERRIDDEN = {
+    "trainer.seed": "0",
+    "augment.rotation": "0",
+    "model.learned_samples": "0",
+    "sampler.steps": "0",
+}
 # Settings this file once passed to every trained model though some models' loss never read them (the
 # baselines' NLL has no KL to warm up): a recipe recording one where this file no longer passes it
 # trained the same.
@@ -209,8 +223,7 @@ RECORDED_UNREAD = frozenset({"loss.kl_warmup_steps"})
 def recipe_differences(expected: list[str], found: list[str]) -> list[str]:
     """``key: expected X, found Y`` for every setting the two recipes disagree on."""
     want, have = (dict(setting.split("=", 1) for setting in r) for r in (expected, found))
-    if any(key in want for key in IMPLIED_BEFORE_OVERRIDDEN):
-        have = IMPLIED_BEFORE_OVERRIDDEN | have
+    have = {key: value for key, value in IMPLIED_BEFORE_OVERRIDDEN.items() if key in want} | have
     have = {key: value for key, value in have.items() if key in want or key not in RECORDED_UNREAD}
     return [
         f"{key}: expected {want.get(key, 'absent')}, found {have.get(key, 'absent')}"
@@ -267,6 +280,12 @@ def score(model, data, split: str, args, deterministic: bool = False) -> dict:
     )
 
 
+def prior_scores(model, data, args) -> dict:
+    """The paper model's scores with 20 draws from its prior instead of its learned sampler's codes."""
+    with model.drawing_from_the_prior():
+        return score(model, data, "test", args)
+
+
 def run_trained(args, budget: Budget, fold: str, label: str, data) -> dict:
     """Train one model on the fold, score it on the test scene; ``scores.json`` written last."""
     import shutil
@@ -285,6 +304,7 @@ def run_trained(args, budget: Budget, fold: str, label: str, data) -> dict:
     model, _, _ = load_trained_model(run_dir / "checkpoints", map_location=args.device)
     result = {
         "scores": score(model, data, "test", args, deterministic=label != PAPER),
+        **({"prior_scores": prior_scores(model, data, args)} if label == PAPER else {}),
         "recipe": recipe(args, budget, fold, label),
         "train_seconds": trained,
         "val_ade": val_curve(run_dir),
@@ -364,7 +384,7 @@ def draw_fold(args, fold: str, data) -> Path:
     picks = ids[torch.linspace(0, len(ids) - 1, FIGURE_WINDOWS).long()]
     batch = data.batch(picks)
     torch.manual_seed(0)
-    samples = model.eval().sample(batch.exclude(keys.TARGET), 20).get(keys.FORECAST_SAMPLES)
+    samples = model.eval().sample(batch.exclude(keys.TARGET), NUM_SAMPLES).get(keys.FORECAST_SAMPLES)
     stats = data.normalizer.stats
 
     def positions(b):
@@ -374,7 +394,10 @@ def draw_fold(args, fold: str, data) -> Path:
 
     examples = world_examples(batch, samples.detach(), positions, data.normalizer.denormalize_target)
     scene = ethucy.load_scene(args.raw, ethucy.SCENE_OF[ethucy.FOLDS[fold][0]])
-    title = f"{fold}: paper model, 20 samples (orange), ground truth (green), observed 8 steps (white)"
+    title = (
+        f"{fold}: paper model, {NUM_SAMPLES} learned samples (orange), ground truth (green), "
+        "observed 8 steps (white)"
+    )
     return plot_forecasts_on_image(
         scene.image, scene.to_pixel, examples, args.out / fold / "forecasts.png", title
     )
@@ -386,6 +409,8 @@ def run_fold(args, budget: Budget, fold: str) -> dict[str, dict]:
     results = {}
     for label in TRAINED if fold in budget.folds else ():
         results[label] = completed(args, fold, label) or run_trained(args, budget, fold, label, data)
+    if PAPER in results:
+        results[PAPER_PRIOR] = {"scores": results[PAPER]["prior_scores"]}
     if completed(args, fold, CV) and completed(args, fold, CV_NOISE):
         results |= {label: completed(args, fold, label) for label in (CV, CV_NOISE)}
     else:
@@ -405,7 +430,7 @@ def average_section(title: str, average: dict) -> list[str]:
     rises = "; ".join(
         f"{m}: without scene {relative_rise(average[m], 'without_scene'):+.0%}, without neighbours "
         f"{relative_rise(average[m], 'without_neighbours'):+.0%}"
-        for m in (PAPER, "LF-LSTM", "MulT")
+        for m in (PAPER, PAPER_PRIOR, "LF-LSTM", "MulT")
         if m in average
     )
     lines = [f"## {title}\n", scores_table(average, DETERMINISTIC), "", note, ""]

@@ -32,7 +32,8 @@ def write_scores(args, fold: str, label: str, **fields) -> Path:
 def complete_fold(args, budget: bench.Budget, fold: str) -> None:
     """Every row of ``fold`` completed with ``budget``'s recipe, its figure drawn."""
     for label in ALL_ROWS:
-        write_scores(args, fold, label, recipe=bench.recipe(args, budget, fold, label))
+        prior = {"prior_scores": {}} if label == bench.PAPER else {}
+        write_scores(args, fold, label, recipe=bench.recipe(args, budget, fold, label), **prior)
     (args.out / fold / "forecasts.png").touch()
 
 
@@ -48,7 +49,7 @@ def test_completed_runs_of_this_recipe_are_reused_not_computed_again(tmp_path, m
     monkeypatch.setattr(bench, "run_constant_velocity", must_not_run)
     assert bench.stale_runs(args, bench.QUICK, ["eth"]) == []
     results = bench.run_fold(args, bench.QUICK, "eth")
-    assert list(results) == ALL_ROWS
+    assert list(results) == [*bench.TRAINED, bench.PAPER_PRIOR, bench.CV, bench.CV_NOISE]
     assert results[bench.PAPER]["recipe"] == bench.recipe(args, bench.QUICK, "eth", bench.PAPER)
 
 
@@ -89,6 +90,7 @@ def test_another_model_recipe_names_every_differing_setting():
     assert bench.recipe_differences(paper, lstm) == [
         "model: expected forecaster, found lf_lstm",
         "model.prior: expected learned, found absent",
+        "model.learned_samples: expected 20, found 0",
     ]
 
 
@@ -137,6 +139,7 @@ def test_what_a_run_writes_is_the_recipe_its_resume_checks(tmp_path, monkeypatch
     monkeypatch.setattr(mmf_rl.trainers.train_command, "train", train)
     monkeypatch.setattr(mmf_rl.models, "load_trained_model", lambda *_, **__: (None, None, None))
     monkeypatch.setattr(bench, "score", lambda *_, **__: {"all": {"min_ade_k": 1.0}})
+    monkeypatch.setattr(bench, "prior_scores", lambda *_: {"all": {"min_ade_k": 2.0}})
     monkeypatch.setattr(bench, "constant_velocity", lambda *_: None)
     args = bench_args(tmp_path, "out", "--quick")
     for label in bench.TRAINED:
@@ -158,6 +161,18 @@ def test_a_run_trained_before_the_windows_were_turned_is_refused_as_unturned(tmp
     )
     assert bench.stale_runs(args, bench.QUICK, ["eth"]) == [
         f"{args.out / 'eth' / bench.slug(bench.PAPER)}: augment.rotation: expected 180, found 0"
+    ]
+
+
+def test_a_paper_model_trained_before_the_learned_sampler_is_refused_as_one_without(tmp_path):
+    args = bench_args(tmp_path, "out", "--quick")
+    recipe = bench.recipe(args, bench.QUICK, "eth", bench.PAPER)
+    assert {"model.learned_samples=20", "sampler.steps=500"} <= set(recipe)
+    before = [s for s in recipe if not s.startswith(("model.learned_samples=", "sampler.steps="))]
+    write_scores(args, "eth", bench.PAPER, recipe=before)
+    assert bench.stale_runs(args, bench.QUICK, ["eth"]) == [
+        f"{args.out / 'eth' / bench.slug(bench.PAPER)}: model.learned_samples: expected 20, found 0; "
+        "sampler.steps: expected 500, found 0"
     ]
 
 

@@ -245,12 +245,12 @@ def _same_weights(model, state: dict[str, torch.Tensor]) -> bool:
     return own.keys() == theirs.keys() and all(torch.equal(v.cpu(), theirs[k]) for k, v in own.items())
 
 
-def _save_to_checkpoint(model, path: Path) -> Path:
-    """Re-save checkpoint ``path`` at its step with the model's factors and fit (its ``last``
-    pointer unchanged)."""
+def save_to_checkpoint(model, path: Path, **meta) -> Path:
+    """Re-save checkpoint ``path`` at its step with the model's weights, factors and fit, and ``meta``
+    over its stored meta (its ``last`` pointer unchanged)."""
     checkpoint = load_checkpoint(path)
     directory = checkpoint.path.parent
-    meta = {k: v for k, v in checkpoint.meta.items() if k not in ("format_version", "step")}
+    meta = {k: v for k, v in checkpoint.meta.items() if k not in ("format_version", "step")} | meta
     meta["calibration"] = model.calibration
     last = list_checkpoints(directory)[-1:] == [checkpoint.path]
     return save_checkpoint(
@@ -294,7 +294,7 @@ def save_calibration(model, source: TrainedModelSource) -> list[Path]:
             export = twin
     written = []
     if checkpoint is not None:
-        written.append(_save_to_checkpoint(model, checkpoint))
+        written.append(save_to_checkpoint(model, checkpoint))
     if export is not None:
         model.save_pretrained(export)
         written.append(export)
@@ -310,5 +310,5 @@ def calibrate_after_training(model, data, checkpoint: Path, device: torch.device
         return "forecast scale not recalibrated: the val split has no window"
     fits = fit_scale_calibration(model, data.loader("val", 256), DEFAULT_MIN_WINDOWS, device)
     model.calibration = calibration_record(model, fits, "val", DEFAULT_MIN_WINDOWS, data.config.root)
-    _save_to_checkpoint(model, checkpoint)
+    save_to_checkpoint(model, checkpoint)
     return f"forecast scale recalibrated per presence pattern on the val split:\n{fit_table(fits, 'val')}"

@@ -7,6 +7,7 @@ from mmf_rl.objectives.common import (
     model_settings_of,
 )
 from mmf_rl.objectives.config import LossConfig, default_loss_config
+from mmf_rl.objectives.diverse_sampling import DiverseSamplingLoss
 from mmf_rl.objectives.elbo import ELBOLoss
 from mmf_rl.objectives.missing_modality import MissingModalityLoss
 from mmf_rl.objectives.nll import GaussianNLLLoss
@@ -23,6 +24,7 @@ from mmf_rl.objectives.registry import (
 
 __all__ = [
     "CombinedLoss",
+    "DiverseSamplingLoss",
     "ELBOLoss",
     "ForecasterLossBase",
     "GLOBAL_LOSS_SETTINGS",

@@ -19,6 +19,7 @@ config, and the calibration's fit).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -31,7 +32,7 @@ import torch
 import torch.distributed as dist
 from omegaconf import OmegaConf
 
-from mmf_rl.checkpoint import CheckpointError, list_checkpoints, remove_leftovers
+from mmf_rl.checkpoint import CheckpointError, list_checkpoints, load_checkpoint, remove_leftovers
 from mmf_rl.configuration import (
     ConfigError,
     load_config,
@@ -43,12 +44,13 @@ from mmf_rl.configuration import (
 from mmf_rl.datasets import AugmentConfig, DataConfig, TrainingAugmentation, WindowDataset
 from mmf_rl.devices import resolve_device
 from mmf_rl.eval.metrics import evaluate_forecasts
-from mmf_rl.eval.scale_fit import calibrate_after_training
+from mmf_rl.eval.scale_fit import calibrate_after_training, save_to_checkpoint
 from mmf_rl.models import build_loss, build_model, check_loss_settings, init_weights_from, saved_config
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.loading import RUN_EXPORT_DIR
 from mmf_rl.models.registry import DEFAULT_MODEL
 from mmf_rl.objectives import LossConfig, default_loss_config
+from mmf_rl.trainers.latent_sampler import SamplerConfig, check_sampler_settings, train_latent_sampler
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
 logger = logging.getLogger(__name__)
@@ -247,24 +249,26 @@ def check_loss_settings_read(cfg, loss_cfg: LossConfig) -> None:
         check_loss_settings(to_container(cfg.model), loss_cfg, default_loss_config())
 
 
+def training_augmentation(cfg, data: WindowDataset, seed: int) -> TrainingAugmentation | None:
+    """The run's augmentation of training batches (``augment`` group), ``None`` when it does nothing."""
+    augment_cfg = AugmentConfig.from_dict(to_container(cfg.augment) if "augment" in cfg else None)
+    if augment_cfg.enable or augment_cfg.rotation:
+        return TrainingAugmentation(augment_cfg, data.specs, seed)
+    return None
+
+
 def make_trainer(cfg, model, model_name: str, loss, data: WindowDataset, trainer_cfg, run_dir, ranks, device):
     """The `Trainer` of the run: its train loader (augmented if configured), validation on the val
     split, checkpoints that carry the config and the normalisation statistics."""
     rank, world_size = ranks
     seed_everything(trainer_cfg.seed + rank)  # then each rank draws its own latents
-    augment_cfg = AugmentConfig.from_dict(to_container(cfg.augment) if "augment" in cfg else None)
-    augment = (
-        TrainingAugmentation(augment_cfg, data.specs, trainer_cfg.seed)
-        if augment_cfg.enable or augment_cfg.rotation
-        else None
-    )
     loader = data.loader(
         "train",
         trainer_cfg.batch_size,
         seed=trainer_cfg.seed,
         rank=rank,
         world_size=world_size,
-        augment=augment,
+        augment=training_augmentation(cfg, data, trainer_cfg.seed),
     )
     val_loader = data.loader("val", max(trainer_cfg.batch_size, 256))
     denormalize = data.normalizer.denormalize_target
@@ -300,6 +304,8 @@ def save_trained_model(cfg, model, data: WindowDataset, trainer: Trainer, metric
     unless ``calibrate=false``), ready for from_pretrained / push_to_hub, in ``run_dir/model``."""
     run_dir = Path(cfg.run_dir)
     model.normalization_stats, model.data_config = data.normalizer.stats, data.config.to_dict()
+    if getattr(model, "latent_sampler", None) is not None:
+        train_sampler_once(cfg, model, data, trainer)
     if cfg.calibrate:
         logger.info("%s", calibrate_after_training(model, data, trainer.last_checkpoint, device))
     model.save_pretrained(run_dir / PRETRAINED_DIR)
@@ -312,6 +318,22 @@ def save_trained_model(cfg, model, data: WindowDataset, trainer: Trainer, metric
     )
 
 
+def sampler_config(cfg) -> SamplerConfig:
+    return SamplerConfig.from_dict(to_container(cfg.sampler) if "sampler" in cfg else None)
+
+
+def train_sampler_once(cfg, model, data: WindowDataset, trainer: Trainer) -> None:
+    """Train the model's learned sampler after the forecaster and store it in the last checkpoint, unless
+    that checkpoint already holds it trained with these settings (a resumed run that had finished)."""
+    settings = dataclasses.asdict(sampler_config(cfg))
+    if load_checkpoint(trainer.last_checkpoint).meta.get("learned_sampler") == settings:
+        logger.info("learned sampler already trained in %s", trainer.last_checkpoint)
+        return
+    augment = training_augmentation(cfg, data, trainer.config.seed)
+    logger.info("%s", train_latent_sampler(model, data, sampler_config(cfg), augment, trainer.config.seed))
+    save_to_checkpoint(model, trainer.last_checkpoint, learned_sampler=settings)
+
+
 def train(cfg) -> Path:
     check_name(str(cfg.name))
     device = resolve_device(cfg.device)
@@ -319,6 +341,7 @@ def train(cfg) -> Path:
     trainer_cfg = TrainerConfig.from_dict(to_container(cfg.trainer))
     loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
     check_loss_settings_read(cfg, loss_cfg)
+    check_sampler_settings(int(cfg.model.get("learned_samples", 0)), sampler_config(cfg))
     run_dir = prepare_run_dir(cfg, rank)
     data = open_windows(cfg, DataConfig.from_dict(to_container(cfg.data)), world_size)
     model, model_name, loss = build_model_and_loss(cfg, data, trainer_cfg, loss_cfg, rank, device)

@@ -65,6 +65,11 @@ class ForecasterConfig:
             ``decode_under_actions`` decodes ``B × N × K`` rows for ``N`` candidates). It also
             applies to a validation loss computed in eval mode. :meth:`MultimodalForecaster.sample`
             always samples, from the global RNG.
+        learned_samples: ``K`` of a learned sampler (DLow, :mod:`mmf_rl.models.latent_sampler`): a
+            network on the fused representation that makes ``K`` latent codes per history, trained
+            after the forecaster with the forecaster frozen (``mmf-rl train sampler.steps=N``);
+            :meth:`MultimodalForecaster.sample` then decodes those codes when asked for ``K`` samples.
+            ``0`` (default): no sampler; ``sample`` draws from the prior.
         predictive_samples: ``K`` of ``eval_latent="predictive"``: an even number ``>= 2`` (the
             ``ε_k`` come in antithetic pairs ``±ε``); unused by the other eval latents.
         fusion: the multimodal encoder of the posterior: ``"agnostic"`` (the paper's
@@ -113,6 +118,7 @@ class ForecasterConfig:
     prior: Literal["standard", "learned"] = "standard"
     posterior_uses_target: bool | None = None
     eval_latent: Literal["mean", "sample", "predictive", "posterior"] = "mean"
+    learned_samples: int = 0
     predictive_samples: int = 16
     fusion: str = "agnostic"
     decoder_input: Literal["tokens", "mixed", "pair_streams", "mixed_pair_streams"] = "mixed"
@@ -185,6 +191,15 @@ class ForecasterConfig:
                 "ForecasterConfig: eval_latent='posterior' decodes at the mean of q(z|X), which a posterior "
                 "that reads the target cannot give at test time; set posterior_uses_target=false (and "
                 "prior=standard) or choose another eval_latent"
+            )
+        if (
+            isinstance(self.learned_samples, bool)
+            or not isinstance(self.learned_samples, int)
+            or (self.learned_samples < 0)
+        ):
+            raise ValueError(
+                "ForecasterConfig.learned_samples must be a whole number >= 0 (0: no learned sampler), "
+                f"found {self.learned_samples!r}"
             )
         if (
             not isinstance(self.predictive_samples, int)

@@ -80,10 +80,17 @@ Open points of the paper, and what this implementation does:
   row is also decoded from ``K`` reparameterised draws ``z ~ p(z | X)`` in the same decoder pass,
   their means written to ``("forecast_from_prior", "samples")`` ``[B, K, T, D]``, unmixed: the loss
   scores the best one.
+* **Learned sampler (DLow, Yuan & Kitani 2020; not in the paper).** With ``learned_samples = K`` a
+  small network on the fused representation makes ``K`` latent codes per history
+  (:mod:`mmf_rl.models.latent_sampler`), trained after the forecaster with the forecaster frozen
+  (:class:`~mmf_rl.objectives.DiverseSamplingLoss`); :meth:`MultimodalForecaster.sample` decodes them
+  when asked for ``K`` samples. Independent prior draws cover the futures unevenly, which best-of-``K``
+  metrics punish; the point forecast is unchanged.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import torch
@@ -98,6 +105,7 @@ from mmf_rl.models.encoders import build_encoder, mlp, num_tokens
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.fusion import FusionShape, build_fusion
 from mmf_rl.models.hub import PretrainedModel
+from mmf_rl.models.latent_sampler import LatentSampler
 from mmf_rl.models.registry import register_model
 from mmf_rl.models.rows import compute_on_rows
 from mmf_rl.models.scale_calibration import PresenceScaleCalibration
@@ -230,6 +238,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         encoder_shape = self._register_token_layout()
         self._build_latent_heads(encoder_shape)
         self._build_decoder(encoder_shape)
+        self._build_latent_sampler()
         # The ε_k of eval_latent="predictive". Not persistent: checkpoints stay as they were, and a
         # model saved before the option existed loads unchanged.
         self.register_buffer(
@@ -299,6 +308,17 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             if config.action_dim
             else None
         )
+
+    def _build_latent_sampler(self) -> None:
+        """The learned sampler (``learned_samples > 0``), its weights drawn from a forked RNG: a forecaster
+        built with one starts from the weights and random draws of one built without."""
+        config = self.config
+        self.latent_sampler = None
+        if config.learned_samples:
+            with torch.random.fork_rng(devices=[]):
+                self.latent_sampler = LatentSampler(
+                    self.fusion.out_rows * config.d_model, config.d_latent, config.learned_samples
+                )
 
     def _declare_keys(self) -> None:
         """``in_keys`` and ``out_keys``: the batch contract's inputs and everything forward writes."""
@@ -743,13 +763,17 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
         """Decode ``num_samples`` latents drawn from :meth:`eval_distribution` (the prior ``p(z | X)``,
-        or ``q(z | X)`` with ``eval_latent="posterior"``) in one batched pass.
+        or ``q(z | X)`` with ``eval_latent="posterior"``) in one batched pass; with a learned sampler of
+        ``K = num_samples`` codes, decode its codes instead (:meth:`learned_samples`).
 
         Writes ``("forecast", "samples")`` ``[B, K, T, D]``: the mean of ``p(y | X, z_k)`` for each
         ``z_k``. Other outputs are left untouched. Use under ``torch.no_grad()`` for evaluation.
         """
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, found {num_samples}")
+        if self.latent_sampler is not None and num_samples == self.latent_sampler.num_samples:
+            td.set(keys.FORECAST_SAMPLES, self.learned_samples(td)[0])
+            return td
         self.validate(td)
         tokens, present = self.encode(td)
         batch = present.shape[0]
@@ -767,6 +791,45 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         )
         td.set(keys.FORECAST_SAMPLES, loc.view(num_samples, batch, *loc.shape[1:]).transpose(0, 1))
         return td
+
+    def learned_samples(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The learned sampler's ``K`` forecasts of ``td``'s histories: their means ``[B, K, T, D]``, and
+        its codes and spreads ``[B, K, d_z]`` in the prior's standard coordinates (the KL term's).
+
+        The history's encoding runs without gradient (the sampler trains on a frozen forecaster); the
+        decoder runs with it, so that the forecasts' loss reaches the codes."""
+        if self.latent_sampler is None:
+            raise ValueError(
+                "learned_samples: this forecaster has no learned sampler; build it with "
+                "model.learned_samples=K and train it with sampler.steps > 0"
+            )
+        self.validate(td)
+        with torch.no_grad():
+            tokens, present = self.encode(td)
+            prepared = self.decoder_tokens(tokens, present)
+            features = self.fuse(tokens, present, prepared)
+            prior_loc, prior_scale = self._prior_from(features, features.shape[0], features.device)
+        codes, spreads = self.latent_sampler(features)
+        batch, draws = codes.shape[:2]
+        # Row k * B + b is code k of history b, as in sample.
+        z = (prior_loc.unsqueeze(1) + prior_scale.unsqueeze(1) * codes).transpose(0, 1).flatten(0, 1)
+        action = self.embed_actions(td)
+        loc, _ = self._decode_prepared(
+            prepared.repeat(draws, 1, 1),
+            present.repeat(draws, 1),
+            z,
+            None if action is None else action.repeat(draws, 1),
+        )
+        return loc.view(draws, batch, *loc.shape[1:]).transpose(0, 1), codes, spreads
+
+    @contextlib.contextmanager
+    def drawing_from_the_prior(self):
+        """Within it, :meth:`sample` draws from the prior even with a learned sampler: to compare the two."""
+        sampler, self.latent_sampler = self.latent_sampler, None
+        try:
+            yield self
+        finally:
+            self.latent_sampler = sampler
 
     def forecast_under_actions(
         self, td: TensorDictBase, actions: torch.Tensor
