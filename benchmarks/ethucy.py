@@ -79,7 +79,8 @@ IMAGE_SIZE = 32
 class Budget:
     """``folds``: where the models are trained (constant velocity is scored on all five); the paper
     model trains ``steps`` x ``batch_size``, then its learned sampler ``sampler_steps`` (of the
-    sampler's default batch), the slower per-frame baselines ``baseline_steps`` x ``baseline_batch``."""
+    sampler's default batch), the slower per-frame baselines ``baseline_steps`` x ``baseline_batch``;
+    every trained model is validated ``evaluations`` times, evenly over its steps."""
 
     name: str
     folds: tuple[str, ...]
@@ -88,19 +89,21 @@ class Budget:
     baseline_steps: int
     baseline_batch: int
     sampler_steps: int
+    evaluations: int
     lr: float = 1e-3
 
 
-# The quick mode's baselines train 250 steps (300 before the learned sampler) so that the sampler's
-# steps fit its 15 minutes from nothing (docs/results.md).
+# The quick mode's 15 minutes from nothing hold the learned sampler's steps when its baselines train
+# 200 steps (300 before the sampler) and every model is validated twice (docs/results.md).
 QUICK = Budget(
-    "quick mode: models trained on folds eth, hotel, zara1; 800 steps + learned sampler 500, baselines 250",
+    "quick mode: models trained on folds eth, hotel, zara1; 800 steps + learned sampler 150, baselines 200",
     ("eth", "hotel", "zara1"),
     800,
     64,
-    250,
+    200,
     64,
-    500,
+    150,
+    2,
 )
 FULL = Budget(
     "full mode: 5 folds; 3000 steps + learned sampler 1500, baselines 1000",
@@ -110,6 +113,7 @@ FULL = Budget(
     1000,
     64,
     1500,
+    4,
 )
 
 
@@ -179,7 +183,7 @@ def train_overrides(args, budget: Budget, fold: str, label: str, run_dir: Path) 
         f"trainer.lr={budget.lr}",
         f"trainer.seed={args.seed}",
         *([f"sampler.steps={budget.sampler_steps}"] if paper else []),
-        f"trainer.eval_every={max(steps // 4, 1)}",
+        f"trainer.eval_every={max(steps // budget.evaluations, 1)}",
         f"trainer.checkpoint_every={steps}",
         f"trainer.warmup_steps={min(100, steps // 10)}",
         # The ELBO's KL warm-up, the paper model's only: the baselines' NLL reads no loss setting.
@@ -263,8 +267,8 @@ def check_reused(args, budget: Budget, folds) -> None:
 
 
 def val_curve(run_dir: Path) -> list[tuple[int, float]]:
-    """``(step, val ADE in metres)`` the trainer logged four times: the only evidence the budget is
-    read from (the test scene is never looked at for it)."""
+    """``(step, val ADE in metres)`` the trainer logged at each of the budget's evaluations: the only
+    evidence the budget is read from (the test scene is never looked at for it)."""
     path = run_dir / "logs" / "scalars" / "val" / "ade.csv"
     if not path.is_file():
         return []

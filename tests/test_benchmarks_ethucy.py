@@ -167,12 +167,12 @@ def test_a_run_trained_before_the_windows_were_turned_is_refused_as_unturned(tmp
 def test_a_paper_model_trained_before_the_learned_sampler_is_refused_as_one_without(tmp_path):
     args = bench_args(tmp_path, "out", "--quick")
     recipe = bench.recipe(args, bench.QUICK, "eth", bench.PAPER)
-    assert {"model.learned_samples=20", "sampler.steps=500"} <= set(recipe)
+    assert {"model.learned_samples=20", "sampler.steps=150"} <= set(recipe)
     before = [s for s in recipe if not s.startswith(("model.learned_samples=", "sampler.steps="))]
     write_scores(args, "eth", bench.PAPER, recipe=before)
     assert bench.stale_runs(args, bench.QUICK, ["eth"]) == [
         f"{args.out / 'eth' / bench.slug(bench.PAPER)}: model.learned_samples: expected 20, found 0; "
-        "sampler.steps: expected 500, found 0"
+        "sampler.steps: expected 150, found 0"
     ]
 
 
