@@ -12,7 +12,9 @@ weights. ``resume=true`` continues the run in ``run_dir`` exactly where its last
 ``save_pretrained`` directory's) weights, with a new optimizer and schedule, at step 0, and the
 normalisation statistics of this run's data. With ``calibrate=true`` (the default) the trained
 model's forecast scale is then recalibrated per presence pattern on the val split (what
-``mmf-rl calibrate`` does) and the last checkpoint re-saved with the factors. The final model is
+``mmf-rl calibrate`` does) and the last checkpoint re-saved with the factors. A model with a learned
+sampler (``model.learned_samples=K``) has it trained first, for ``sampler.steps``, on the frozen
+forecaster (:mod:`mmf_rl.trainers.latent_sampler`). The final model is
 also written with ``save_pretrained`` to ``run_dir/model`` (weights, config, statistics, data
 config, and the calibration's fit).
 """
