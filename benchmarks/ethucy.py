@@ -92,6 +92,16 @@ class Budget:
     evaluations: int
     lr: float = 1e-3
 
+    def __post_init__(self):
+        # The trainer also validates at the last step: steps that the evaluations do not divide
+        # would validate once more than meant, each pass a few seconds of a per-frame baseline.
+        for name in ("steps", "baseline_steps"):
+            if getattr(self, name) % self.evaluations:
+                raise ValueError(
+                    f"Budget {self.name!r}: {name}={getattr(self, name)} is not a multiple of "
+                    f"evaluations={self.evaluations}"
+                )
+
 
 # The quick mode's 15 minutes from nothing hold the learned sampler's steps when its baselines train
 # 200 steps (300 before the sampler) and every model is validated twice (docs/results.md).

@@ -176,6 +176,14 @@ def test_a_paper_model_trained_before_the_learned_sampler_is_refused_as_one_with
     ]
 
 
+def test_a_budget_validates_exactly_its_evaluations():
+    for budget in (bench.QUICK, bench.FULL):
+        for steps in (budget.steps, budget.baseline_steps):
+            assert steps // (steps // budget.evaluations) == budget.evaluations
+    with pytest.raises(ValueError, match="baseline_steps=250 is not a multiple of evaluations=4"):
+        bench.Budget("odd", ("eth",), 800, 64, 250, 64, 150, 4)
+
+
 def test_fold_configs_converted_before_the_planar_dims_were_declared_are_refused(tmp_path):
     args = bench_args(tmp_path, "out", "--quick")
     args.data.mkdir(parents=True, exist_ok=True)
