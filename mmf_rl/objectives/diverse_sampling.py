@@ -9,7 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 
 from mmf_rl import keys
-from mmf_rl.objectives.common import ForecasterLossBase, reduce_batch
+from mmf_rl.objectives.common import ForecasterLossBase, gaussian_kl_to_standard, reduce_batch
 
 
 class DiverseSamplingLoss(ForecasterLossBase):
@@ -111,8 +111,8 @@ class DiverseSamplingLoss(ForecasterLossBase):
         distance = (flat.unsqueeze(2) - flat.unsqueeze(1)).square().sum(-1)
         j, k = torch.triu_indices(flat.shape[1], flat.shape[1], 1, device=flat.device)
         closeness = (-distance[:, j, k] / self.diversity_scale).exp().mean(-1)
-        variance = spreads.square() + 1e-8
-        kl = (0.5 * (variance + codes.square() - 1 - variance.log())).sum((1, 2))
+        # The spreads' signs carry nothing; the floor keeps the log finite where a spread is 0.
+        kl = gaussian_kl_to_standard(codes, (spreads.square() + 1e-8).sqrt()).sum((1, 2))
         return TensorDict(
             loss_best_of_k=self.weights["best_of_k"] * reduce_batch(best, self.reduction),
             loss_diversity=self.weights["diversity"] * reduce_batch(closeness, self.reduction),

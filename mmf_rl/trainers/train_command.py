@@ -327,12 +327,13 @@ def sampler_config(cfg) -> SamplerConfig:
 def train_sampler_once(cfg, model, data: WindowDataset, trainer: Trainer) -> None:
     """Train the model's learned sampler after the forecaster and store it in the last checkpoint, unless
     that checkpoint already holds it trained with these settings (a resumed run that had finished)."""
-    settings = dataclasses.asdict(sampler_config(cfg))
+    config = sampler_config(cfg)
+    settings = dataclasses.asdict(config)
     if load_checkpoint(trainer.last_checkpoint).meta.get("learned_sampler") == settings:
         logger.info("learned sampler already trained in %s", trainer.last_checkpoint)
         return
     augment = training_augmentation(cfg, data, trainer.config.seed)
-    logger.info("%s", train_latent_sampler(model, data, sampler_config(cfg), augment, trainer.config.seed))
+    logger.info("%s", train_latent_sampler(model, data, config, augment, trainer.config.seed))
     save_to_checkpoint(model, trainer.last_checkpoint, learned_sampler=settings)
 
 

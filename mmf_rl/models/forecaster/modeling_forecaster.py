@@ -782,15 +782,22 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         # Row k * B + b is sample k of batch element b.
         noise = torch.randn(num_samples * batch, self.config.d_latent, device=present.device)
         z = prior_loc.repeat(num_samples, 1) + prior_scale.repeat(num_samples, 1) * noise
+        td.set(keys.FORECAST_SAMPLES, self._decode_draws(td, prepared, present, z))
+        return td
+
+    def _decode_draws(self, td: TensorDictBase, prepared, present, z: torch.Tensor) -> torch.Tensor:
+        """The decoder's means ``[B, K, T, D]`` of ``B`` prepared histories under ``K × B`` latents ``z``
+        (row ``k * B + b``: latent ``k`` of history ``b``), with ``td``'s actions for a world model."""
+        batch = present.shape[0]
+        draws = z.shape[0] // batch
         action = self.embed_actions(td)
         loc, _ = self._decode_prepared(
-            prepared.repeat(num_samples, 1, 1),
-            present.repeat(num_samples, 1),
+            prepared.repeat(draws, 1, 1),
+            present.repeat(draws, 1),
             z,
-            None if action is None else action.repeat(num_samples, 1),
+            None if action is None else action.repeat(draws, 1),
         )
-        td.set(keys.FORECAST_SAMPLES, loc.view(num_samples, batch, *loc.shape[1:]).transpose(0, 1))
-        return td
+        return loc.view(draws, batch, *loc.shape[1:]).transpose(0, 1)
 
     def learned_samples(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The learned sampler's ``K`` forecasts of ``td``'s histories: their means ``[B, K, T, D]``, and
@@ -810,17 +817,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             features = self.fuse(tokens, present, prepared)
             prior_loc, prior_scale = self._prior_from(features, features.shape[0], features.device)
         codes, spreads = self.latent_sampler(features)
-        batch, draws = codes.shape[:2]
         # Row k * B + b is code k of history b, as in sample.
         z = (prior_loc.unsqueeze(1) + prior_scale.unsqueeze(1) * codes).transpose(0, 1).flatten(0, 1)
-        action = self.embed_actions(td)
-        loc, _ = self._decode_prepared(
-            prepared.repeat(draws, 1, 1),
-            present.repeat(draws, 1),
-            z,
-            None if action is None else action.repeat(draws, 1),
-        )
-        return loc.view(draws, batch, *loc.shape[1:]).transpose(0, 1), codes, spreads
+        return self._decode_draws(td, prepared, present, z), codes, spreads
 
     @contextlib.contextmanager
     def drawing_from_the_prior(self):
