@@ -157,8 +157,8 @@ class ModalitySpec:
     (checked when a model is built); default by kind (``DEFAULT_ENCODER``). Built in: ``conv``
     (frames stacked on channels: cheap, and motion is visible to the first layer) or ``conv_gru``
     (per-frame ConvNet + GRU) for images, ``gru`` or ``mlp`` (flattened window) for sequences,
-    ``deepsets`` for sequences of ``K`` agent slots per step (invariant to slot order), ``mlp``
-    for vectors.
+    ``deepsets`` (pooled by mean and max) or ``set_attention`` (pooled by attention) for sequences of
+    ``K`` agent slots per step (both invariant to slot order), ``mlp`` for vectors.
     """
 
     name: str

@@ -168,11 +168,23 @@ def test_a_paper_model_trained_before_the_learned_sampler_is_refused_as_one_with
     args = bench_args(tmp_path, "out", "--quick")
     recipe = bench.recipe(args, bench.QUICK, "eth", bench.PAPER)
     assert {"model.learned_samples=20", "sampler.steps=150"} <= set(recipe)
-    before = [s for s in recipe if not s.startswith(("model.learned_samples=", "sampler.steps="))]
+    before = [s for s in recipe if not s.startswith(("model.learned_samples=", "sampler."))]
     write_scores(args, "eth", bench.PAPER, recipe=before)
     assert bench.stale_runs(args, bench.QUICK, ["eth"]) == [
         f"{args.out / 'eth' / bench.slug(bench.PAPER)}: model.learned_samples: expected 20, found 0; "
-        "sampler.steps: expected 150, found 0"
+        "sampler.steps: expected 150, found 0; sampler.diversity_weight: expected 5.0, found 20.0; "
+        "sampler.diversity_scale: expected 5.0, found 10.0"
+    ]
+
+
+def test_a_sampler_trained_with_other_diversity_weights_is_refused(tmp_path):
+    args = bench_args(tmp_path, "out", "--quick")
+    recipe = bench.recipe(args, bench.QUICK, "eth", bench.PAPER)
+    eth_weights = [s for s in recipe if not s.startswith("sampler.diversity_")]  # the defaults were 20 / 10
+    write_scores(args, "eth", bench.PAPER, recipe=eth_weights)
+    assert bench.stale_runs(args, bench.QUICK, ["eth"]) == [
+        f"{args.out / 'eth' / bench.slug(bench.PAPER)}: sampler.diversity_weight: expected 5.0, found 20.0; "
+        "sampler.diversity_scale: expected 5.0, found 10.0"
     ]
 
 

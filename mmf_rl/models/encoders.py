@@ -13,8 +13,9 @@ whole windows builds it through :func:`build_encoder`.
 With ``("present_steps", m)`` the forecaster zeroes a window's absent steps before any encoder
 reads them. A step-token encoder (``tokens_are_steps``: ``steps``, ``conv_frames``) then has the
 tokens of those steps masked out of attention. A whole-window encoder (``mlp``, ``gru``, ``conv``,
-``conv_gru``, ``conv_patches``, ``deepsets``) sees the zeroed steps only: its input layout has no
-slot for a step mask without changing its weights' shapes (and so every saved checkpoint).
+``conv_gru``, ``conv_patches``, ``deepsets``, ``set_attention``) sees the zeroed steps only: its input
+layout has no slot for a step mask without changing its weights' shapes (and so every saved
+checkpoint).
 
 No BatchNorm anywhere: the forecaster encodes only the samples where a modality is present,
 and batch statistics would make one sample's output depend on which others are present.
@@ -300,33 +301,45 @@ def mlp_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> Fla
     return FlatMLPEncoder(in_dim, d_model, **kwargs)
 
 
-class DeepSetsEncoder(nn.Module):
+class _AgentSlots(nn.Module):
+    """Base of the encoders of a window of agent slots ``[N, H, K * slot_dim]``: each step holds ``K``
+    slots of ``slot_dim`` values whose last one is the slot's validity (1 = an agent, 0 = an empty slot,
+    left unnormalised by the data config's ``raw_dims``)."""
+
+    def __init__(self, spec: ModalitySpec, slot_dim: int, encoder: str):
+        super().__init__()
+        if slot_dim < 2 or spec.shape[0] % slot_dim:
+            raise ValueError(
+                f"{encoder} encoder for {spec.name!r}: the feature's {spec.shape[0]} dims must be K slots of "
+                f"slot_dim={slot_dim} values (the last one the validity); set encoder_kwargs.slot_dim"
+            )
+        self.slot_dim = slot_dim
+
+    def slots(self, seq: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The slots' values ``[N, H, K, slot_dim - 1]`` (zeros in empty slots, so they are never read)
+        and validity ``bool [N, H, K, 1]``."""
+        slots = seq.unflatten(-1, (-1, self.slot_dim))
+        valid = slots[..., -1:] > 0.5
+        return torch.where(valid, slots[..., :-1], torch.zeros_like(slots[..., :-1])), valid
+
+
+class DeepSetsEncoder(_AgentSlots):
     """Slot-order-invariant encoder of a window of agent slots ``[N, H, K * slot_dim]`` -> ``[N, d]``.
 
-    Each step holds ``K`` slots of ``slot_dim`` values whose last one is the slot's validity
-    (1 = an agent, 0 = an empty slot, left unnormalised by the data config's ``raw_dims``). A
-    shared MLP embeds every slot; a masked mean and max over the valid slots pool each step
+    A shared MLP embeds every slot; a masked mean and max over the valid slots pool each step
     (DeepSets), so permuting slots changes nothing and an empty slot's values are never read; a
     step without any valid slot pools to zeros. A GRU then summarises the steps.
     """
 
     def __init__(self, spec: ModalitySpec, d_model: int, slot_dim: int = 5, hidden_dim: int | None = None):
-        super().__init__()
-        if slot_dim < 2 or spec.shape[0] % slot_dim:
-            raise ValueError(
-                f"deepsets encoder for {spec.name!r}: the feature's {spec.shape[0]} dims must be K slots of "
-                f"slot_dim={slot_dim} values (the last one the validity); set encoder_kwargs.slot_dim"
-            )
-        self.slot_dim = slot_dim
+        super().__init__(spec, slot_dim, "deepsets")
         hidden = hidden_dim or d_model
         self.slot = mlp(slot_dim - 1, hidden, hidden)
         self.step = nn.Linear(2 * hidden, d_model)
         self.gru = nn.GRU(d_model, d_model, batch_first=True)
 
     def forward(self, seq: torch.Tensor) -> torch.Tensor:
-        slots = seq.unflatten(-1, (-1, self.slot_dim))  # [N, H, K, slot_dim]
-        valid = slots[..., -1:] > 0.5
-        values = torch.where(valid, slots[..., :-1], torch.zeros_like(slots[..., :-1]))
+        values, valid = self.slots(seq)
         embedded = self.slot(values)
         count = valid.sum(-2)
         mean = (embedded * valid).sum(-2) / count.clamp_min(1)
@@ -339,6 +352,50 @@ class DeepSetsEncoder(nn.Module):
 @register_encoder("deepsets", kinds=("sequence",))
 def deepsets_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> DeepSetsEncoder:
     return DeepSetsEncoder(spec, d_model, **kwargs)
+
+
+class SetAttentionEncoder(_AgentSlots):
+    """Slot-order-invariant encoder of a window of agent slots ``[N, H, K * slot_dim]`` -> ``[N, d]``
+    that weighs the agents by what they do: at each step the valid slots attend to each other (one
+    Transformer layer), then a learned query pools them by attention (Set Transformer's PMA, Lee et al.
+    2019), so one agent on a collision course can outweigh many that walk away, where a mean dilutes it.
+    A learned "nobody" token is always among the keys: a step without any valid slot pools to it,
+    never to the values of empty slots. A GRU then summarises the steps.
+    """
+
+    def __init__(
+        self,
+        spec: ModalitySpec,
+        d_model: int,
+        slot_dim: int = 5,
+        hidden_dim: int | None = None,
+        num_heads: int = 4,
+    ):
+        super().__init__(spec, slot_dim, "set_attention")
+        self.slot = mlp(slot_dim - 1, hidden_dim or d_model, d_model)
+        self.nobody = nn.Parameter(torch.randn(1, 1, d_model) * 0.02)
+        self.mix = nn.TransformerEncoderLayer(
+            d_model, num_heads, dim_feedforward=2 * d_model, dropout=0.0, batch_first=True
+        )
+        self.query = nn.Parameter(torch.randn(1, 1, d_model) * 0.02)
+        self.pool = nn.MultiheadAttention(d_model, num_heads, batch_first=True)
+        self.gru = nn.GRU(d_model, d_model, batch_first=True)
+
+    def forward(self, seq: torch.Tensor) -> torch.Tensor:
+        values, valid = self.slots(seq)
+        n, steps = values.shape[:2]
+        embedded = self.slot(values).flatten(0, 1)  # [N * H, K, d]
+        tokens = torch.cat([self.nobody.expand(len(embedded), -1, -1), embedded], 1)
+        ignored = torch.cat([valid.new_zeros(len(embedded), 1), ~valid.flatten(0, 1)[..., 0]], 1)
+        mixed = self.mix(tokens, src_key_padding_mask=ignored)
+        query = self.query.expand(len(mixed), -1, -1)
+        pooled = self.pool(query, mixed, mixed, key_padding_mask=ignored, need_weights=False)[0]
+        return self.gru(pooled.view(n, steps, -1))[1][-1]
+
+
+@register_encoder("set_attention", kinds=("sequence",))
+def set_attention_encoder(spec: ModalitySpec, history: int, d_model: int, **kwargs) -> SetAttentionEncoder:
+    return SetAttentionEncoder(spec, d_model, **kwargs)
 
 
 def build_encoder(spec: ModalitySpec, history: int, d_model: int) -> nn.Module:

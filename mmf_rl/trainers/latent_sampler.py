@@ -37,8 +37,8 @@ class SamplerConfig:
     batch_size: int = 64
     lr: float = 1e-3
     best_of_k_weight: float = 5.0
-    diversity_weight: float = 20.0
-    diversity_scale: float = 10.0
+    diversity_weight: float = 5.0
+    diversity_scale: float = 5.0
     kl_weight: float = 0.1
     kl_floor: float = 10.0
     drop_prob: float = 0.5
