@@ -23,9 +23,9 @@ class DiverseSamplingLoss(ForecasterLossBase):
     - ``loss_kl``: ``Σ_k KL(N(b_k, a_k²) || N(0, I))`` of the codes and spreads in the prior's standard
       coordinates, at least ``kl_floor`` nats (below it the term stops pulling): the codes stay where the
       prior, which the decoder was trained against, puts mass.
-    Each weighted. The defaults are one of AgentFormer's per-scene ETH/UCY settings (its hotel, zara1 and
-    zara2 one; eth's pushes harder, 20 / 10), the one that did best on the five folds' validation
-    scenes; ``diversity_scale`` is in square metres there: for a target in other units, scale it.
+    Each weighted. The defaults are AgentFormer's ETH/UCY setting for hotel, zara1 and zara2 (eth's pushes
+    harder, 20 / 10), which did as well as any of its settings on the five folds' validation scenes;
+    ``diversity_scale`` is in square metres there: for a target in other units, scale it.
 
     Each present modality that is not required is dropped with probability ``drop_prob`` per window
     (one always stays): the sampler then learns codes for every presence pattern it may meet.
