@@ -10,6 +10,10 @@ from mmf_rl.checkpoint import CheckpointError
 from mmf_rl.models.hub import check_state_dict
 from mmf_rl.models.loading import load_trained_model, trained_location
 
+# A learned sampler is trained on the forecaster it samples from, after it; fine-tuning changes that
+# forecaster, so a source's sampler is never copied, and this run's own (if it has one) trains anew.
+SAMPLER_PREFIX = "latent_sampler."
+
 
 def init_weights_from(model: nn.Module, source_path) -> Path:
     """Fine-tuning: copy the weights of a trained model (``init_from``) into ``model``, built for this run.
@@ -17,7 +21,8 @@ def init_weights_from(model: nn.Module, source_path) -> Path:
     The source may be anything :func:`load_trained_model` reads. A different model type, a
     modality missing on either side or of another kind or shape, or a parameter of another shape
     is an error naming it (this run's value first, then the source's). The source's scale factors
-    (``mmf-rl calibrate``) are not copied. Returns the source's path.
+    (``mmf-rl calibrate``) and learned sampler are not copied: a run with ``model.learned_samples=K``
+    may start from a source without a sampler, and the reverse. Returns the source's path.
     """
     location = trained_location(Path(source_path))
     source, _, _ = load_trained_model(location)
@@ -45,14 +50,15 @@ def init_weights_from(model: nn.Module, source_path) -> Path:
         if k != "modalities" and source.config.to_dict().get(k) != v
     )
     try:
-        check_state_dict(model, source.state_dict(), f"init_from={source_path}")
+        check_state_dict(model, source.state_dict(), f"init_from={source_path}", skip=SAMPLER_PREFIX)
     except CheckpointError as error:
         hint = ", ".join(
             f"model.{k}: this run {getattr(model.config, k)!r}, source {getattr(source.config, k)!r}"
             for k in differing
         )
         raise CheckpointError(f"{error}{'; the configs differ in ' + hint if hint else ''}") from None
-    model.load_state_dict(source.state_dict())
+    forecaster = {k: v for k, v in source.state_dict().items() if not k.startswith(SAMPLER_PREFIX)}
+    model.load_state_dict(forecaster, strict=False)
     # The source's scale factors were fitted for its weights, not for the ones fine-tuning makes.
     model.scale_calibration.reset()
     return location

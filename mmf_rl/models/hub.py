@@ -186,10 +186,15 @@ def read_pretrained_config(model_id: str, **kwargs) -> dict:
     return json.loads(pretrained_file(model_id, CONFIG_NAME, **hub).read_text())
 
 
-def check_state_dict(model, state: dict, where: str) -> None:
+def check_state_dict(model, state: dict, where: str, skip: str | None = None) -> None:
     """Raise unless ``state`` (completed by :func:`~mmf_rl.checkpoint.state_with_defaults`) fits
-    ``model`` exactly; the error names each parameter with both shapes."""
-    mismatch = state_mismatch(model.state_dict(), state_with_defaults(model, state))
+    ``model`` exactly, entries whose names start with ``skip`` left out on both sides; the error names
+    each parameter with both shapes."""
+
+    def kept(entries: dict) -> dict:
+        return {k: v for k, v in entries.items() if skip is None or not k.startswith(skip)}
+
+    mismatch = state_mismatch(kept(model.state_dict()), kept(state_with_defaults(model, state)))
     if mismatch:
         known = known_mismatch(model, state)
         raise CheckpointError(

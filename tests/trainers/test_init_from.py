@@ -55,6 +55,26 @@ def test_fine_tuning_starts_from_the_weights_at_step_zero(trained_run, recorded_
     assert torch.equal(*forecasts)
 
 
+def test_a_sampler_is_never_copied_and_a_run_may_add_one(trained_run, recorded_push_root, tmp_path):
+    """A run with a learned sampler starts from a source without one (its forecaster copied, its sampler
+    trained anew), and a run without one starts from that run: only the forecaster's weights travel."""
+    source = load_checkpoint(trained_run / "run" / "checkpoints")
+    overrides = push_train_overrides(recorded_push_root, trained_run / "cache", tmp_path / "with", steps=3)
+    sampler = ["model.learned_samples=4", "sampler.steps=4", "sampler.batch_size=8"]
+    assert cli(["train", *overrides, *sampler, f"init_from={trained_run / 'run'}", "trainer.lr=0.0"]) == 0
+    with_sampler = load_checkpoint(tmp_path / "with" / "checkpoints")
+    assert with_sampler.meta["learned_sampler"]["steps"] == 4
+    sampler_keys = {k for k in with_sampler.model_state if k.startswith("latent_sampler.")}
+    assert sampler_keys and sampler_keys.isdisjoint(source.model_state)
+    assert all(torch.equal(with_sampler.model_state[k], v) for k, v in source.model_state.items())
+
+    back = [*overrides, f"run_dir={tmp_path / 'without'}", f"init_from={tmp_path / 'with'}", "trainer.lr=0.0"]
+    assert cli(["train", *back]) == 0
+    without = load_checkpoint(tmp_path / "without" / "checkpoints")
+    assert set(without.model_state) == set(source.model_state)
+    assert all(torch.equal(without.model_state[k], v) for k, v in source.model_state.items())
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
