@@ -49,15 +49,15 @@ def init_weights_from(model: nn.Module, source_path) -> Path:
         for k, v in model.config.to_dict().items()
         if k != "modalities" and source.config.to_dict().get(k) != v
     )
+    forecaster = {k: v for k, v in source.state_dict().items() if not k.startswith(SAMPLER_PREFIX)}
     try:
-        check_state_dict(model, source.state_dict(), f"init_from={source_path}", skip=SAMPLER_PREFIX)
+        check_state_dict(model, forecaster, f"init_from={source_path}", skip=SAMPLER_PREFIX)
     except CheckpointError as error:
         hint = ", ".join(
             f"model.{k}: this run {getattr(model.config, k)!r}, source {getattr(source.config, k)!r}"
             for k in differing
         )
         raise CheckpointError(f"{error}{'; the configs differ in ' + hint if hint else ''}") from None
-    forecaster = {k: v for k, v in source.state_dict().items() if not k.startswith(SAMPLER_PREFIX)}
     model.load_state_dict(forecaster, strict=False)
     # The source's scale factors were fitted for its weights, not for the ones fine-tuning makes.
     model.scale_calibration.reset()
