@@ -30,6 +30,8 @@ class ModalityConfig:
             ``observation.<cam>_camera_valid``, as the recorder writes it) if the dataset has it.
         required: an absent modality (missing video, NaN span) is an error, not a warning.
         encoder: the unimodal encoder (``mmf_rl.models.encoders``); unset: the kind's default.
+        encoder_kwargs: keyword arguments of that encoder, where the feature's layout decides them
+            (e.g. ``slot_dim`` of an agent-slot encoder).
         raw_dims: indices (after ``dims``) left unnormalised, so flags such as a per-slot
             ``valid`` keep their exact 0/1 meaning, which a mean/std shift would make data-dependent.
         allow_absent: accept losing the modality on more than half of the frames; without it that
@@ -48,6 +50,7 @@ class ModalityConfig:
     valid_feature: str | None = None
     required: bool = False
     encoder: str | None = None
+    encoder_kwargs: dict | None = None
     raw_dims: list[int] | None = None
     allow_absent: bool = False
     planar: list[list[int]] | None = None

@@ -14,9 +14,13 @@ where it was not annotated and nothing is interpolated or zero-filled there. Per
   backward-difference velocity (m/s). At a segment's first step the velocity is 0, like the first
   displacement of Social-GAN's relative tracks; a central or forward difference would read a
   future position (the velocity leak).
-* ``observation.neighbours`` ``[K * 5]``: the K nearest other agents annotated at that frame,
-  nearest first, each ``[dx, dy, dvx, dvy, valid]`` relative to the agent; empty slots are
-  zeros with ``valid = 0`` (the data config leaves the ``valid`` dims unnormalised).
+* ``observation.neighbours`` ``[K * S * 5]``: the K nearest other agents annotated at that frame,
+  nearest first, each a slot of its last S steps (oldest first), every step ``[dx, dy, dvx, dvy,
+  seen]`` relative to the agent's state at that frame. A slot is one person over its S steps, so
+  an encoder can read where each neighbour is going, not only where someone is at each frame (the
+  K nearest are re-chosen every frame). A step where the neighbour was not annotated is zeros with
+  ``seen = 0``; the newest step's ``seen`` is the slot's validity, and an empty slot is all zeros
+  (the data config leaves the ``seen`` dims unnormalised).
 * ``observation.images.scene``: a crop of the scene's reference frame centred on the agent
   (north-up, or heading-up), through the world->pixel maps of the data's README;
   ``observation.scene_camera_valid``
@@ -56,7 +60,7 @@ logger = logging.getLogger(__name__)
 
 STEP_S = 0.4  # every 10 video frames at 25 fps, the literature's step for every file
 FRAME_STEP = 10  # raw frame numbers between consecutive steps
-SLOT_DIM = 5  # dx, dy, dvx, dvy, valid
+SLOT_DIM = 5  # per neighbour step: dx, dy, dvx, dvy, seen
 TRAJECTORY_KEY = "observation.trajectory"
 NEIGHBOURS_KEY = "observation.neighbours"
 SCENE_KEY = "observation.images.scene"
@@ -121,6 +125,25 @@ class CropConfig:
     pixels: int = 64
     metres: float = 8.0
     heading: bool = False
+
+
+@dataclass(frozen=True)
+class NeighbourConfig:
+    """The ``count`` nearest agents per frame, each with its last ``steps`` steps (1: that frame only)."""
+
+    count: int = 8
+    steps: int = 1
+
+    def __post_init__(self):
+        if self.count < 1 or self.steps < 1:
+            raise ValueError(
+                f"--neighbours {self.count} --neighbour-steps {self.steps}: expected at least 1 agent "
+                "and 1 step"
+            )
+
+    @property
+    def slot_dim(self) -> int:
+        return self.steps * SLOT_DIM
 
 
 @dataclass(frozen=True)
@@ -211,26 +234,50 @@ def with_velocities(table: pd.DataFrame) -> pd.DataFrame:
     return table.sort_values(["frame", "agent"], ignore_index=True)
 
 
-def neighbour_slots(table: pd.DataFrame, num_slots: int) -> np.ndarray:
-    """``float32 [len(table), K * 5]``: per row, its K nearest co-annotated agents (same frame)."""
-    out = np.zeros((len(table), num_slots, SLOT_DIM), dtype=np.float32)
+def neighbour_slots(table: pd.DataFrame, neighbours: NeighbourConfig) -> np.ndarray:
+    """``float32 [len(table), K * S * 5]``: per row, its K nearest co-annotated agents (same frame),
+    each with its last S steps relative to the row's agent at that frame."""
+    nearest = nearest_agents(table, neighbours.count)
     state = table[["x", "y", "vx", "vy"]].to_numpy()
+    agents, frames = table["agent"].to_numpy(), table["frame"].to_numpy()
+    annotated = pd.MultiIndex.from_arrays([agents, frames])
+    out = np.zeros((len(table), neighbours.count, neighbours.steps, SLOT_DIM), dtype=np.float32)
+    for step in range(neighbours.steps):
+        back = (neighbours.steps - 1 - step) * FRAME_STEP
+        wanted = pd.MultiIndex.from_arrays(
+            [agents[nearest].ravel(), np.repeat(frames - back, neighbours.count)]
+        )
+        row = annotated.get_indexer(wanted).reshape(nearest.shape)
+        seen = (nearest >= 0) & (row >= 0)
+        relative = state[row] - state[:, None, :]
+        out[:, :, step, :4] = np.where(seen[..., None], relative, 0.0)
+        out[:, :, step, 4] = seen
+    return out.reshape(len(table), -1)
+
+
+def nearest_agents(table: pd.DataFrame, count: int) -> np.ndarray:
+    """``int [len(table), count]``: per row, the rows of its ``count`` nearest co-annotated agents
+    (same frame), nearest first; -1 where fewer agents are there."""
+    nearest = np.full((len(table), count), -1, dtype=np.int64)
+    xy = table[["x", "y"]].to_numpy()
     for rows in table.groupby("frame").indices.values():
         if len(rows) < 2:
             continue
-        relative = state[rows][None, :, :] - state[rows][:, None, :]  # [agent, other, 4]
-        distance = np.hypot(relative[..., 0], relative[..., 1])
+        offset = xy[rows][None, :, :] - xy[rows][:, None, :]  # [agent, other, 2]
+        distance = np.hypot(offset[..., 0], offset[..., 1])
         np.fill_diagonal(distance, np.inf)
-        order = np.argsort(distance, axis=1)[:, :num_slots]
-        count = min(num_slots, len(rows) - 1)
-        picked = np.take_along_axis(relative, order[..., None], axis=1)[:, :count]
-        out[rows, :count, :4] = picked
-        out[rows, :count, 4] = 1.0
-    return out.reshape(len(table), num_slots * SLOT_DIM)
+        order = np.argsort(distance, axis=1, kind="stable")[:, : min(count, len(rows) - 1)]
+        nearest[rows, : order.shape[1]] = rows[order]
+    return nearest
 
 
-def dataset_features(num_slots: int, crop: CropConfig) -> dict[str, dict]:
-    slot_names = [f"n{k}.{f}" for k in range(num_slots) for f in ("dx", "dy", "dvx", "dvy", "valid")]
+def dataset_features(neighbours: NeighbourConfig, crop: CropConfig) -> dict[str, dict]:
+    slot_names = [
+        f"n{k}.{f}" if neighbours.steps == 1 else f"n{k}.t{step - neighbours.steps + 1}.{f}"
+        for k in range(neighbours.count)
+        for step in range(neighbours.steps)
+        for f in ("dx", "dy", "dvx", "dvy", "valid" if neighbours.steps == 1 else "seen")
+    ]
     return {
         TRAJECTORY_KEY: {"dtype": "float32", "shape": (4,), "names": ["x", "y", "vx", "vy"]},
         NEIGHBOURS_KEY: {"dtype": "float32", "shape": (len(slot_names),), "names": slot_names},
@@ -246,14 +293,14 @@ def dataset_features(num_slots: int, crop: CropConfig) -> dict[str, dict]:
 
 
 def sequence_episodes(
-    table: pd.DataFrame, scene: Scene | None, num_slots: int, crop: CropConfig, min_length: int
+    table: pd.DataFrame, scene: Scene | None, neighbours: NeighbourConfig, crop: CropConfig, min_length: int
 ) -> list[dict[str, np.ndarray]]:
     """One file's track segments of at least ``min_length`` steps, each a dict of per-frame arrays.
 
     Neighbours come from the whole file, so a short segment still counts as someone's neighbour.
     """
     table = with_velocities(table)
-    neighbours = neighbour_slots(table, num_slots)
+    slots = neighbour_slots(table, neighbours)
     episodes = []
     for _track, rows in sorted(table.groupby(["agent", "segment"]).indices.items()):
         if len(rows) < min_length:
@@ -269,7 +316,7 @@ def sequence_episodes(
         episodes.append(
             {
                 TRAJECTORY_KEY: part[["x", "y", "vx", "vy"]].to_numpy(np.float32),
-                NEIGHBOURS_KEY: neighbours[rows],
+                NEIGHBOURS_KEY: slots[rows],
                 SCENE_KEY: images,
                 SCENE_VALID_KEY: np.full((len(rows), 1), scene is not None),
                 AGENT_KEY: part[["agent"]].to_numpy(np.int64),
@@ -303,7 +350,7 @@ def write_dataset(
     root: Path,
     tables: dict[str, list[tuple[str, pd.DataFrame]]],
     raw_dir: Path,
-    num_slots: int = 8,
+    neighbours: NeighbourConfig = NeighbourConfig(),
     crop: CropConfig = CropConfig(),
     min_length: int = HISTORY + HORIZON,
     progress: Callable[[str], None] = logger.info,
@@ -323,7 +370,7 @@ def write_dataset(
     dataset = LeRobotDataset.create(
         repo_id=f"local/{Path(root).name}",
         fps=1.0 / STEP_S,
-        features=dataset_features(num_slots, crop),
+        features=dataset_features(neighbours, crop),
         root=root,
         use_videos=False,
     )
@@ -339,7 +386,7 @@ def write_dataset(
                     scene_name = SCENE_OF.get(sequence)
                     if scene_name is not None and scene_name not in scenes:
                         scenes[scene_name] = load_scene(raw_dir, scene_name)
-                    episodes = sequence_episodes(table, scenes.get(scene_name), num_slots, crop, min_length)
+                    episodes = sequence_episodes(table, scenes.get(scene_name), neighbours, crop, min_length)
                     parts[name] += [save_episode(dataset, episode, sequence) for episode in episodes]
                 except Exception as error:
                     raise PartError(name, f"{type(error).__name__}: {error}") from error
@@ -360,7 +407,7 @@ def save_episode(dataset, episode: dict[str, np.ndarray], task: str) -> int:
 def data_config(
     root: Path,
     split: dict[str, list[int]],
-    num_slots: int,
+    neighbours: NeighbourConfig,
     crop: CropConfig,
     episodes: list[int] | None = None,
 ) -> dict:
@@ -370,6 +417,7 @@ def data_config(
     configs that select the same episodes share one cache build. Every key is written (defaults
     included), so any of them can be overridden on the command line.
     """
+    steps = neighbours.count * neighbours.steps  # neighbour steps per frame, every one a SLOT_DIM block
     config = {
         "root": str(Path(root).resolve()),
         "repo_id": f"local/{Path(root).name}",
@@ -384,10 +432,9 @@ def data_config(
             "neighbours": {
                 "feature": NEIGHBOURS_KEY,
                 "encoder": "deepsets",
-                "raw_dims": list(range(SLOT_DIM - 1, num_slots * SLOT_DIM, SLOT_DIM)),
-                "planar": [
-                    [k * SLOT_DIM + d, k * SLOT_DIM + d + 1] for k in range(num_slots) for d in (0, 2)
-                ],
+                "encoder_kwargs": {"slot_dim": neighbours.slot_dim},
+                "raw_dims": list(range(SLOT_DIM - 1, steps * SLOT_DIM, SLOT_DIM)),
+                "planar": [[k * SLOT_DIM + d, k * SLOT_DIM + d + 1] for k in range(steps) for d in (0, 2)],
             },
             # A heading-up crop turns with the agent, so it has no north to turn.
             "scene": {"feature": SCENE_KEY, "top_down": not crop.heading},
@@ -431,11 +478,11 @@ def _failure(parts: list[str], detail: str, files: dict[str, tuple[str, Path]]) 
 
 
 def _write_shards(
-    roots: list[Path], shards: list[dict], raw_dir: Path, num_slots: int, crop, files: dict
+    roots: list[Path], shards: list[dict], raw_dir: Path, neighbours: NeighbourConfig, crop, files: dict
 ) -> list[dict[str, list[int]]]:
     """Write each shard into its root in a worker process of its own; their episodes per part, in
     order. The first failure stops them all and is raised as a `ConversionError` naming its part."""
-    args = [(root, shard, raw_dir, num_slots, crop) for root, shard in zip(roots, shards, strict=True)]
+    args = [(root, shard, raw_dir, neighbours, crop) for root, shard in zip(roots, shards, strict=True)]
     try:
         return run_shards(write_dataset, args, lambda _shard, line: logger.info("%s", line))
     except ShardError as failure:
@@ -449,7 +496,7 @@ def write_parts(
     tables: dict[str, list[tuple[str, pd.DataFrame]]],
     files: dict[str, tuple[str, Path]],
     raw_dir: Path,
-    num_slots: int,
+    neighbours: NeighbourConfig,
     crop: CropConfig,
     workers: int,
 ) -> tuple[Path, dict[str, list[int]]]:
@@ -462,11 +509,11 @@ def write_parts(
     dataset = work / DATASET_NAME
     if len(shards) == 1:  # no worker process: spares a second import of torch and lerobot
         try:
-            return dataset, write_dataset(dataset, tables, raw_dir, num_slots, crop)
+            return dataset, write_dataset(dataset, tables, raw_dir, neighbours, crop)
         except PartError as error:
             raise _failure([error.part], error.detail, files) from error
     roots = [work / f"shard-{k}" for k in range(len(shards))]
-    written = _write_shards(roots, shards, raw_dir, num_slots, crop, files)
+    written = _write_shards(roots, shards, raw_dir, neighbours, crop, files)
     counts = [sum(len(episodes) for episodes in shard.values()) for shard in written]
     offsets = np.cumsum([0, *counts[:-1]]).tolist()
     # A shard without an episode (only tracks too short) has nothing to add, nor the metadata to join.
@@ -487,7 +534,7 @@ def convert(
     raw_dir: Path,
     folds: list[str],
     out: Path,
-    num_slots: int = 8,
+    neighbours: NeighbourConfig = NeighbourConfig(),
     crop: CropConfig = CropConfig(),
     workers: int | None = None,
 ) -> list[Path]:
@@ -509,12 +556,12 @@ def convert(
     tables = {part: [(sequence, read_sequence(path))] for part, (sequence, path) in files.items()}
     workers = min(workers or default_workers(), len(tables))
     with staging_dir(out, STAGING_PREFIX, "choose a writable --out") as work:
-        dataset, parts = write_parts(work, tables, files, raw_dir, num_slots, crop, workers)
+        dataset, parts = write_parts(work, tables, files, raw_dir, neighbours, crop, workers)
         os.rename(dataset, root)
     everything = sorted(e for episodes in parts.values() for e in episodes)
     paths = []
     for fold in folds:
-        config = data_config(root, fold_split(raw_dir, fold, parts), num_slots, crop, everything)
+        config = data_config(root, fold_split(raw_dir, fold, parts), neighbours, crop, everything)
         path = out / f"{fold}.yaml"
         header = (
             f"# ETH/UCY fold {fold!r} (test: {', '.join(FOLDS[fold])}) over the dataset {root}, "
@@ -558,6 +605,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="a fold (repeatable; default all): converts only the files it reads",
     )
     ethucy.add_argument("--neighbours", type=int, default=8, help="K nearest agents per step")
+    ethucy.add_argument(
+        "--neighbour-steps",
+        type=int,
+        default=1,
+        help="steps of each neighbour's own track per slot (1: the frame only)",
+    )
     ethucy.add_argument("--crop-pixels", type=int, default=64, help="scene crop side in pixels")
     ethucy.add_argument("--crop-metres", type=float, default=8.0, help="scene crop side in metres")
     ethucy.add_argument(
@@ -577,7 +630,8 @@ def main(argv: list[str]) -> int:
     crop = CropConfig(args.crop_pixels, args.crop_metres, args.crop_heading)
     try:
         folds = args.fold or sorted(FOLDS)
-        paths = convert(args.raw_dir, folds, args.out, args.neighbours, crop, args.workers)
+        neighbours = NeighbourConfig(args.neighbours, args.neighbour_steps)
+        paths = convert(args.raw_dir, folds, args.out, neighbours, crop, args.workers)
         for path in paths:
             logger.info("fold %s: train with `mmf-rl train data=%s`", path.stem, path)
     except (OSError, ValueError, ConversionError) as error:

@@ -610,7 +610,14 @@ class LeRobotSource:
             self._require_feature(valid, f"{what} valid_feature")
         else:
             valid = next((c for c in _validity_candidates(feature) if c in self.features), None)
-        spec = ModalitySpec(name=name, kind=kind, shape=shape, encoder=cfg.encoder, required=cfg.required)
+        spec = ModalitySpec(
+            name=name,
+            kind=kind,
+            shape=shape,
+            encoder=cfg.encoder,
+            encoder_kwargs=dict(cfg.encoder_kwargs or {}),
+            required=cfg.required,
+        )
         return ResolvedModality(spec=spec, feature=feature, dims=dims, valid_feature=valid, storage=storage)
 
     def video_path(self, episode: int, feature: str) -> Path:

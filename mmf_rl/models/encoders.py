@@ -311,7 +311,8 @@ class _AgentSlots(nn.Module):
         if slot_dim < 2 or spec.shape[0] % slot_dim:
             raise ValueError(
                 f"{encoder} encoder for {spec.name!r}: the feature's {spec.shape[0]} dims must be K slots of "
-                f"slot_dim={slot_dim} values (the last one the validity); set encoder_kwargs.slot_dim"
+                f"slot_dim={slot_dim} values (the last one the validity); set the data config's "
+                f"modalities.{spec.name}.encoder_kwargs.slot_dim"
             )
         self.slot_dim = slot_dim
 

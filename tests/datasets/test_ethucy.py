@@ -48,7 +48,7 @@ def converted(tmp_path_factory) -> tuple[Path, dict, dict]:
         "test": [("biwi_eth", _slice("biwi_eth"))],
     }
     split = ethucy.write_dataset(root, tables, RAW)
-    config = ethucy.data_config(root, split, 8, ethucy.CropConfig())
+    config = ethucy.data_config(root, split, ethucy.NeighbourConfig(), ethucy.CropConfig())
     config["cache_dir"] = str(root.parent / "cache")
     return root, config, {"agent": agent, "gone": gone, "tables": tables}
 
@@ -115,7 +115,7 @@ def test_a_frame_without_neighbours_has_only_invalid_slots():
     table = ethucy.with_velocities(_slice("biwi_eth"))
     alone = table.groupby("frame")["agent"].transform("size").to_numpy() == 1
     assert alone.any(), "the eth slice starts with a lone pedestrian"
-    slots = ethucy.neighbour_slots(table, 8).reshape(len(table), 8, ethucy.SLOT_DIM)
+    slots = ethucy.neighbour_slots(table, ethucy.NeighbourConfig()).reshape(len(table), 8, ethucy.SLOT_DIM)
     assert (slots[alone] == 0).all()
     crowded = table.groupby("frame")["agent"].transform("size").to_numpy()
     # Valid slots: exactly min(K, others) of them, the nearest first.
@@ -124,15 +124,49 @@ def test_a_frame_without_neighbours_has_only_invalid_slots():
     assert (np.diff(distance, axis=1)[slots[:, 1:, 4] == 1] >= 0).all()
 
 
-def _episodes(tables, crop: ethucy.CropConfig) -> list[dict[str, np.ndarray]]:
+def test_a_neighbour_slot_is_one_agent_over_its_steps():
+    """With tracks, each slot's steps are the same person's annotated positions back in time (relative
+    to the agent now), its newest step the per-frame slot; a step where that person was not annotated,
+    as for an agent that leaves and comes back, is zeros with ``seen = 0``."""
+    table, agent, gone = _with_gap(_slice("crowds_zara01"))
+    table = ethucy.with_velocities(table)
+    steps = 4
+    tracks = ethucy.neighbour_slots(table, ethucy.NeighbourConfig(8, steps))
+    tracks = tracks.reshape(len(table), 8, steps, ethucy.SLOT_DIM)
+    frame_only = ethucy.neighbour_slots(table, ethucy.NeighbourConfig())
+    frame_only = frame_only.reshape(len(table), 8, ethucy.SLOT_DIM)
+    np.testing.assert_array_equal(tracks[:, :, -1], frame_only)
+    nearest = ethucy.nearest_agents(table, 8)
+    position = {(a, f): (x, y) for a, f, x, y in table[["agent", "frame", "x", "y"]].itertuples(index=False)}
+    xy, agents, frames = table[["x", "y"]].to_numpy(), table["agent"].to_numpy(), table["frame"].to_numpy()
+    seen_gap = unseen = 0
+    for row, slot in zip(*np.nonzero(nearest >= 0), strict=True):
+        other = agents[nearest[row, slot]]
+        for step in range(steps):
+            frame = frames[row] - (steps - 1 - step) * ethucy.FRAME_STEP
+            values = tracks[row, slot, step]
+            if (other, frame) in position:
+                assert values[4] == 1
+                relative = np.subtract(position[other, frame], xy[row])
+                np.testing.assert_allclose(values[:2], relative, atol=1e-5)
+            else:
+                assert (values == 0).all()
+                unseen += 1
+                seen_gap += int(other == agent and frame in gone)
+    assert seen_gap > 0 and unseen > seen_gap  # the leaving agent's gap, and tracks that start late
+    assert (tracks[nearest < 0] == 0).all()
+
+
+def _episodes(tables, crop: ethucy.CropConfig, neighbour_steps: int = 1) -> list[dict[str, np.ndarray]]:
     scene = ethucy.load_scene(RAW, "seq_eth")
-    return ethucy.sequence_episodes(tables, scene, 8, crop, ethucy.HISTORY + ethucy.HORIZON)
+    neighbours = ethucy.NeighbourConfig(steps=neighbour_steps)
+    return ethucy.sequence_episodes(tables, scene, neighbours, crop, ethucy.HISTORY + ethucy.HORIZON)
 
 
-@pytest.mark.parametrize("heading", [False, True])
-def test_no_input_reads_a_future_position(heading):
+@pytest.mark.parametrize(("heading", "neighbour_steps"), [(False, 1), (True, 1), (False, ethucy.HISTORY)])
+def test_no_input_reads_a_future_position(heading, neighbour_steps):
     """The velocity leak: moving every agent's positions after frame `now` (the agent's own and its
-    neighbours') must leave every input of frames up to `now` unchanged."""
+    neighbours', their tracks included) must leave every input of frames up to `now` unchanged."""
     table = _slice("biwi_eth")
     now = int(np.sort(table["frame"].unique())[SLICE_STEPS // 2])
     moved = table.copy()
@@ -140,7 +174,7 @@ def test_no_input_reads_a_future_position(heading):
     rng = np.random.default_rng(0)
     moved.loc[future, ["x", "y"]] += rng.normal(0.0, 1.0, (int(future.sum()), 2))
     crop = ethucy.CropConfig(heading=heading)
-    before, after = _episodes(table, crop), _episodes(moved, crop)
+    before, after = _episodes(table, crop, neighbour_steps), _episodes(moved, crop, neighbour_steps)
     assert len(before) == len(after) > 0
     checked = changed = 0
     for a, b in zip(before, after, strict=True):
@@ -223,14 +257,14 @@ def test_fold_configs_over_one_dataset_share_one_cache_build(converted):
     swapped = {"train": split["train"], "val": split["test"], "test": split["val"]}
     paths = []
     for fold_split in (split, swapped):
-        fold = ethucy.data_config(root, fold_split, 8, ethucy.CropConfig(), everything)
+        fold = ethucy.data_config(root, fold_split, ethucy.NeighbourConfig(), ethucy.CropConfig(), everything)
         paths.append(
             cache_path(LeRobotSource(DataConfig.from_dict(fold | {"cache_dir": config["cache_dir"]})))
         )
     assert paths[0] == paths[1]
     # Without the explicit selection, a split that leaves episodes out would key its own build.
     partial = ethucy.data_config(
-        root, {"train": split["train"], "test": split["test"]}, 8, ethucy.CropConfig()
+        root, {"train": split["train"], "test": split["test"]}, ethucy.NeighbourConfig(), ethucy.CropConfig()
     )
     assert (
         cache_path(LeRobotSource(DataConfig.from_dict(partial | {"cache_dir": config["cache_dir"]})))
@@ -452,3 +486,34 @@ def test_turned_windows_keep_velocities_the_steps_of_positions(converted):
     )
     scene = turned.get(obs_key("scene"))
     assert config["modalities"]["scene"]["top_down"] and not torch.equal(scene, plain.get(obs_key("scene")))
+
+
+def test_neighbour_tracks_train_through_the_cli_with_the_slot_size_the_config_names(tmp_path):
+    """`--neighbour-steps`: the data config hands the agent-slot encoder its slot size (one neighbour's
+    steps), and the trained model keeps it."""
+    import yaml
+
+    from mmf_rl.cli import main
+    from mmf_rl.models import load_trained_model
+
+    neighbours = ethucy.NeighbourConfig(count=4, steps=3)
+    tables = {
+        "train": [("crowds_zara01", _slice("crowds_zara01"))],
+        "val": [("crowds_zara03", _slice("crowds_zara03"))],
+        "test": [("biwi_eth", _slice("biwi_eth"))],
+    }
+    root = tmp_path / "tracks"
+    split = ethucy.write_dataset(root, tables, RAW, neighbours, ethucy.CropConfig(pixels=16))
+    config = ethucy.data_config(root, split, neighbours, ethucy.CropConfig(pixels=16))
+    assert config["modalities"]["neighbours"]["encoder_kwargs"] == {"slot_dim": 3 * ethucy.SLOT_DIM}
+    data = tmp_path / "tracks.yaml"
+    data.write_text(yaml.safe_dump(config | {"cache_dir": str(tmp_path / "cache")}))
+    run = tmp_path / "run"
+    small = ["model.d_model=16", "model.d_latent=4", "model.num_heads=2", "model.mlp_hidden=32"]
+    steps = ["trainer.total_steps=2", "trainer.batch_size=8", "trainer.eval_every=2"]
+    steps += ["trainer.warmup_steps=1"]
+    quiet = ["trainer.progress_bar=false", "logger=csv", "num_workers=0", "augment.rotation=180"]
+    assert main(["train", f"data={data}", f"run_dir={run}", *small, *steps, *quiet]) == 0
+    model, _, _ = load_trained_model(run / "checkpoints", map_location="cpu")
+    spec = next(s for s in model.config.modalities if s.name == "neighbours")
+    assert spec.shape == (4 * 3 * ethucy.SLOT_DIM,) and spec.encoder_kwargs == {"slot_dim": 15}
