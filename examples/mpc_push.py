@@ -51,9 +51,9 @@ planner = SequenceCEMPlanner(
     world_model,
     PushObjective(),
     env.action_spec,
-    num_candidates=128,
-    num_iterations=4,
-    num_elites=16,
+    num_candidates=256,
+    num_iterations=6,
+    num_elites=32,
     seed=args.seed,
 )
 

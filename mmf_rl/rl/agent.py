@@ -81,9 +81,9 @@ class PushMPCAgent:
 
     checkpoint: Path | tuple[Path, ...]
     image_size: int = 64
-    num_candidates: int = 128
-    num_iterations: int = 4
-    num_elites: int = 16
+    num_candidates: int = 256
+    num_iterations: int = 6
+    num_elites: int = 32
     reach_weight: float = 0.5
     uncertainty_weight: float = 0.0
 
