@@ -241,12 +241,11 @@ def neighbour_slots(table: pd.DataFrame, neighbours: NeighbourConfig) -> np.ndar
     state = table[["x", "y", "vx", "vy"]].to_numpy()
     agents, frames = table["agent"].to_numpy(), table["frame"].to_numpy()
     annotated = pd.MultiIndex.from_arrays([agents, frames])
+    neighbour_agents = agents[nearest].ravel()  # garbage where nearest is -1: never seen below
     out = np.zeros((len(table), neighbours.count, neighbours.steps, SLOT_DIM), dtype=np.float32)
     for step in range(neighbours.steps):
         back = (neighbours.steps - 1 - step) * FRAME_STEP
-        wanted = pd.MultiIndex.from_arrays(
-            [agents[nearest].ravel(), np.repeat(frames - back, neighbours.count)]
-        )
+        wanted = pd.MultiIndex.from_arrays([neighbour_agents, np.repeat(frames - back, neighbours.count)])
         row = annotated.get_indexer(wanted).reshape(nearest.shape)
         seen = (nearest >= 0) & (row >= 0)
         relative = state[row] - state[:, None, :]
@@ -417,7 +416,7 @@ def data_config(
     configs that select the same episodes share one cache build. Every key is written (defaults
     included), so any of them can be overridden on the command line.
     """
-    steps = neighbours.count * neighbours.steps  # neighbour steps per frame, every one a SLOT_DIM block
+    blocks = neighbours.count * neighbours.steps  # SLOT_DIM blocks per frame, one per neighbour step
     config = {
         "root": str(Path(root).resolve()),
         "repo_id": f"local/{Path(root).name}",
@@ -433,8 +432,8 @@ def data_config(
                 "feature": NEIGHBOURS_KEY,
                 "encoder": "deepsets",
                 "encoder_kwargs": {"slot_dim": neighbours.slot_dim},
-                "raw_dims": list(range(SLOT_DIM - 1, steps * SLOT_DIM, SLOT_DIM)),
-                "planar": [[k * SLOT_DIM + d, k * SLOT_DIM + d + 1] for k in range(steps) for d in (0, 2)],
+                "raw_dims": list(range(SLOT_DIM - 1, blocks * SLOT_DIM, SLOT_DIM)),
+                "planar": [[k * SLOT_DIM + d, k * SLOT_DIM + d + 1] for k in range(blocks) for d in (0, 2)],
             },
             # A heading-up crop turns with the agent, so it has no north to turn.
             "scene": {"feature": SCENE_KEY, "top_down": not crop.heading},

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from mmf_rl.envs.torchrl_env import push_action_spec, push_observation, push_observation_spec
-from mmf_rl.rl.cem import IS_INIT, Objective, SequenceCEMPlanner
+from mmf_rl.rl.cem import IS_INIT, NUM_CANDIDATES, NUM_ELITES, NUM_ITERATIONS, Objective, SequenceCEMPlanner
 from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
 from mmf_rl.rl.push_objective import PushObjective
 from mmf_rl.rl.world_model import WorldModel
@@ -81,9 +81,9 @@ class PushMPCAgent:
 
     checkpoint: Path | tuple[Path, ...]
     image_size: int = 64
-    num_candidates: int = 256
-    num_iterations: int = 6
-    num_elites: int = 32
+    num_candidates: int = NUM_CANDIDATES
+    num_iterations: int = NUM_ITERATIONS
+    num_elites: int = NUM_ELITES
     reach_weight: float = 0.5
     uncertainty_weight: float = 0.0
 

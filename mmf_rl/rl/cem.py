@@ -22,6 +22,9 @@ from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
 from mmf_rl.rl.world_model import WorldModel
 
 IS_INIT = "is_init"  # torchrl's InitTracker flag: the first step of an episode
+# The CEM's default sizes, the push MPC's (`PushMPCAgent`, `benchmarks/mpc_push.py`): smaller ones
+# (128 x 4, 16 elites) ran out of time on more pushes, most often without the force sensor.
+NUM_CANDIDATES, NUM_ITERATIONS, NUM_ELITES = 256, 6, 32
 
 Objective = Callable[..., torch.Tensor]
 # An objective's attribute: when true, it is called with ``forecast_scale=`` as well (see
@@ -77,8 +80,7 @@ class SequenceCEMPlanner(TensorDictModuleBase):
             the attribute (or with it false) is called with the three arguments alone, so a
             user's objective needs nothing more.
         action_spec: the env's bounded action spec (``[A]``).
-        num_candidates, num_iterations, num_elites: CEM sizes. The defaults are the push MPC's:
-            smaller ones (128 x 4, 16 elites) ran out of time on more pushes, most without force.
+        num_candidates, num_iterations, num_elites: CEM sizes.
         init_std: standard deviation of the first sampling distribution, in units of the
             training data's action std.
         min_std: floor of the refitted standard deviation (same units), so sampling never
@@ -92,9 +94,9 @@ class SequenceCEMPlanner(TensorDictModuleBase):
         objective: Objective,
         action_spec: Bounded,
         *,
-        num_candidates: int = 256,
-        num_iterations: int = 6,
-        num_elites: int = 32,
+        num_candidates: int = NUM_CANDIDATES,
+        num_iterations: int = NUM_ITERATIONS,
+        num_elites: int = NUM_ELITES,
         init_std: float = 1.0,
         min_std: float = 0.05,
         seed: int = 0,
