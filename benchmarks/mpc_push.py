@@ -193,6 +193,7 @@ def aggregation_config(args) -> AggregationConfig:
             "num_elites": args.elites,
             "reach_weight": args.reach_weight,
             "uncertainty_weight": args.uncertainty_weight,
+            "keep_out_weight": args.keep_out_weight,
         },
         train_overrides=training_overrides(args),
     )
@@ -239,6 +240,13 @@ def add_planner_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--elites", type=int, default=PushMPCAgent.num_elites)
     parser.add_argument("--reach-weight", type=float, default=PushMPCAgent.reach_weight)
     parser.add_argument(
+        "--keep-out-weight",
+        type=float,
+        default=PushMPCAgent.keep_out_weight,
+        help="PushObjective's keep_out_weight: metres of goal distance per metre the approaching gripper "
+        "is below travel height near the block (0: no term)",
+    )
+    parser.add_argument(
         "--uncertainty-weight",
         type=float,
         default=PushMPCAgent.uncertainty_weight,
@@ -257,8 +265,9 @@ def parse_args() -> argparse.Namespace:
     check_aggregation_arguments(parser, args, world_models_given=bool(args.checkpoint))
     if args.ensemble and len(args.checkpoint or args.world_model_seeds) < 2:
         parser.error("--ensemble needs 2 world models at least (--checkpoint A B or --world-model-seeds 0 1)")
-    if not args.uncertainty_weight >= 0.0:
-        parser.error(f"--uncertainty-weight must be >= 0 (a penalty), found {args.uncertainty_weight}")
+    for flag in ("uncertainty_weight", "keep_out_weight"):
+        if not getattr(args, flag) >= 0.0:
+            parser.error(f"--{flag.replace('_', '-')} must be >= 0 (a penalty), found {getattr(args, flag)}")
     return resolve_budget(args, BUDGETS, "mpc")
 
 
@@ -277,7 +286,11 @@ def main() -> None:
     with timed_phase(phases, "play"):
         rows, raw = evaluate_mpc(
             checkpoints,
-            PushObjective(reach_weight=args.reach_weight, uncertainty_weight=args.uncertainty_weight),
+            PushObjective(
+                reach_weight=args.reach_weight,
+                uncertainty_weight=args.uncertainty_weight,
+                keep_out_weight=args.keep_out_weight,
+            ),
             conditions,
             sizes,
             args.episodes,
@@ -346,7 +359,8 @@ def report(args, rows: dict, aggregation: list[dict], checkpoints: list[Path], h
         f"# MPC on the multimodal push task\n\n{header}\n\n{budget}; world models: "
         f"{', '.join(f'`{c}`' for c in checkpoints)}{planned}; CEM {args.candidates} candidates × "
         f"{args.iterations} iterations, {args.elites} elites; objective: reach weight {args.reach_weight}, "
-        f"uncertainty weight {args.uncertainty_weight}\n\n{results_table(rows)}\n"
+        f"uncertainty weight {args.uncertainty_weight}, keep-out weight {args.keep_out_weight}\n\n"
+        f"{results_table(rows)}\n"
     )
     if aggregation:
         text += (

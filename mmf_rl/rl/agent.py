@@ -21,7 +21,7 @@ import torch
 from mmf_rl.envs.torchrl_env import push_action_spec, push_observation, push_observation_spec
 from mmf_rl.rl.cem import IS_INIT, NUM_CANDIDATES, NUM_ELITES, NUM_ITERATIONS, Objective, SequenceCEMPlanner
 from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
-from mmf_rl.rl.push_objective import PushObjective
+from mmf_rl.rl.push_objective import KEEP_OUT_WEIGHT, PushObjective
 from mmf_rl.rl.world_model import WorldModel
 
 
@@ -75,8 +75,8 @@ class PushMPCAgent:
     Constructing it loads the checkpoint once and builds an agent, so a bad path or a model that
     is not a push world model fails here, in the caller, not in every recording worker.
     ``image_size`` is the recording's (the window resizes frames to the model's size).
-    The sizes, ``reach_weight`` and ``uncertainty_weight`` are `SequenceCEMPlanner`'s and
-    `PushObjective`'s; their defaults are `benchmarks/mpc_push.py`'s.
+    The sizes and the weights (``reach_weight``, ``uncertainty_weight``, ``keep_out_weight``) are
+    `SequenceCEMPlanner`'s and `PushObjective`'s; their defaults are `benchmarks/mpc_push.py`'s.
     """
 
     checkpoint: Path | tuple[Path, ...]
@@ -86,6 +86,7 @@ class PushMPCAgent:
     num_elites: int = NUM_ELITES
     reach_weight: float = 0.5
     uncertainty_weight: float = 0.0
+    keep_out_weight: float = KEEP_OUT_WEIGHT
 
     def __post_init__(self):
         given = self.checkpoint
@@ -101,7 +102,11 @@ class PushMPCAgent:
     def __call__(self) -> MPCActor:
         return MPCActor(
             self.world_model(),
-            PushObjective(reach_weight=self.reach_weight, uncertainty_weight=self.uncertainty_weight),
+            PushObjective(
+                reach_weight=self.reach_weight,
+                uncertainty_weight=self.uncertainty_weight,
+                keep_out_weight=self.keep_out_weight,
+            ),
             self.image_size,
             num_candidates=self.num_candidates,
             num_iterations=self.num_iterations,

@@ -20,6 +20,13 @@ block, it aims for contact (`CONTACT_DISTANCE`) and pushes. With a single mode
 (contact distance throughout), traces of the agent showed it descending onto the block's back
 edge from above and then pushing from on top: the block tipped or was pressed into the table,
 moved a few millimetres per step, and long pushes ran out of time.
+
+The world model rarely saw the gripper run into the block from the front or the side, so its
+forecasts do not warn of it; the approach term alone let the planner cut the corner, rising while
+already moving over the block, and the fingers caught it and pushed it away from the goal, often
+off the table. Outside the push (in the approach mode) a third term keeps the gripper out of the
+block's reach (`KEEP_OUT_RADIUS` around the forecast object) unless it is at travel height there:
+the scripted pusher's "lift straight up first" as a cost the planner weighs.
 """
 
 from __future__ import annotations
@@ -39,6 +46,12 @@ LINE_WIDTH = 0.02
 # The gripper counts as at pushing height this close above the object's centre (a third of the
 # travel height above it).
 LOW = CLEARANCE / 3
+# Closer than this to the object's centre (in the plane) the fingers can catch a block turned by up
+# to 45 degrees: the approach keeps out of it unless at travel height.
+KEEP_OUT_RADIUS = CONTACT_DISTANCE + BEHIND_MARGIN
+# Metres of goal distance per metre below travel height there: enough to outweigh any progress a
+# plan can make by cutting the corner (a few centimetres).
+KEEP_OUT_WEIGHT = 10.0
 
 
 class PushObjective:
@@ -62,7 +75,8 @@ class PushObjective:
             ``forecast_scale=``; at 0 (the default) it never asks, and plans as without the term.
 
     ``__call__(forecast [n, N, T, 2], actions [n, N, S, 4], context [n])`` returns rewards
-    ``[n, N, T]``: ``-(|object_t - goal| + reach_weight * reach_t + uncertainty_weight * |std_t|)``
+    ``[n, N, T]``: ``-(|object_t - goal| + reach_weight * reach_t + uncertainty_weight * |std_t| +
+    keep_out_weight * intrusion_t)``
     (``forecast_scale [n, N, T, 2]``: ``std_t``, needed when ``uncertainty_weight > 0``) with the
     object's position ``object_t`` = now + the forecast displacement (the push world model
     forecasts displacements, `data.target.relative`) and ``target_t`` the point behind
@@ -70,21 +84,30 @@ class PushObjective:
     `CONTACT_DISTANCE` once the gripper is low behind the object: the module docstring's two
     modes), ``reach_t`` the gripper's planar distance to it plus ``height_weight`` times its
     height error (pushing height only when behind the object on the line, travel height
-    elsewhere).
+    elsewhere), and ``intrusion_t`` the gripper's depth below travel height while within
+    `KEEP_OUT_RADIUS` of ``object_t`` and not where it may be low (0 in contact mode).
     """
 
     in_keys = [OBJECT_POSE, GOAL, keys.obs_key("proprio")]
 
     def __init__(
-        self, reach_weight: float = 0.5, height_weight: float = 2.0, uncertainty_weight: float = 0.0
+        self,
+        reach_weight: float = 0.5,
+        height_weight: float = 2.0,
+        uncertainty_weight: float = 0.0,
+        keep_out_weight: float = KEEP_OUT_WEIGHT,
     ):
-        if not uncertainty_weight >= 0.0:  # NaN too
-            raise ValueError(
-                f"PushObjective: uncertainty_weight must be >= 0 (a penalty on the forecast's spread), "
-                f"found {uncertainty_weight}; use 0 to plan without it"
-            )
+        for name, weight, what in [
+            ("uncertainty_weight", uncertainty_weight, "the forecast's spread"),
+            ("keep_out_weight", keep_out_weight, "the gripper low near the block"),
+        ]:
+            if not weight >= 0.0:  # NaN too
+                raise ValueError(
+                    f"PushObjective: {name} must be >= 0 (a penalty on {what}), found {weight}; use 0 "
+                    "to plan without it"
+                )
         self.reach_weight, self.height_weight = reach_weight, height_weight
-        self.uncertainty_weight = uncertainty_weight
+        self.uncertainty_weight, self.keep_out_weight = uncertainty_weight, keep_out_weight
 
     @property
     def uses_forecast_scale(self) -> bool:
@@ -131,6 +154,11 @@ class PushObjective:
         height = pose[..., 2] + CLEARANCE * (~may_be_low).float()
         reach = planar + self.height_weight * (gripper[..., 2] - height).abs()
         rewards = -(goal_distance + self.reach_weight * reach)
+        if self.keep_out_weight:
+            near = (gripper[..., :2] - obj).norm(dim=-1) < KEEP_OUT_RADIUS
+            depth = (pose[..., 2] + CLEARANCE - gripper[..., 2]).clamp_min(0.0)
+            intrusion = (near & ~may_be_low & ~pushing).float() * depth
+            rewards = rewards - self.keep_out_weight * intrusion
         if self.uses_forecast_scale:
             rewards = rewards - self.uncertainty_weight * self._spread(forecast_scale, forecast.shape)
         return rewards

@@ -179,6 +179,42 @@ def test_push_objective_brings_a_high_gripper_down_at_the_pre_push_point_not_on_
     assert rewards[0, 0, -1] > rewards[0, 1, -1]
 
 
+def test_push_objective_lifts_over_the_block_before_crossing_it():
+    # The failure seen in closed loop: a gripper starting low between the block and the goal cut
+    # the corner to the pre-push point, rising while already over the block; the fingers caught it
+    # and pushed it off the table. The world model does not forecast that collision (the forecast
+    # here: the object stays), so only the keep-out term can rank lifting first higher.
+    context = push_context(
+        torch.tensor([1.30, 0.75]), torch.tensor([1.45, 0.75]), torch.tensor([1.36, 0.75, 0.425])
+    )
+    steps = 4
+    candidates = torch.zeros(1, 2, steps, 4)
+    candidates[0, 0, :, 0], candidates[0, 0, :, 2] = -1.0, 0.5  # back over the block, rising slowly
+    candidates[0, 1, :2, 2], candidates[0, 1, 2:, 0] = 1.0, -1.0  # up to travel height, then back
+    still = torch.zeros(1, 2, steps, 2)
+    with_term = PushObjective()(still, candidates, context).sum(-1)
+    without = PushObjective(keep_out_weight=0.0)(still, candidates, context).sum(-1)
+    assert with_term[0, 1] > with_term[0, 0]
+    assert without[0, 0] > without[0, 1]  # the corner cut wins without the term
+    torch.testing.assert_close(with_term[0, 1], without[0, 1])  # lifting first pays nothing
+
+
+def test_push_objective_keep_out_never_acts_on_a_push():
+    # In contact mode the fingers are meant to touch the block: pushing plans score as without the
+    # term, whatever their height.
+    context = push_context(
+        torch.tensor([1.30, 0.75]),
+        torch.tensor([1.40, 0.75]),
+        torch.tensor([1.30 - CONTACT_DISTANCE, 0.75, 0.425]),
+    )
+    actions = torch.rand(1, 8, 3, 4, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    forecast = torch.zeros(1, 8, 3, 2)
+    torch.testing.assert_close(
+        PushObjective()(forecast, actions, context),
+        PushObjective(keep_out_weight=0.0)(forecast, actions, context),
+    )
+
+
 def test_planner_names_the_history_window_the_env_lacks(push_world_model):
     planner = SequenceCEMPlanner(push_world_model, PushObjective(), ACTIONS)
     with pytest.raises(KeyError, match=r"history_window\(\)"):
@@ -221,10 +257,11 @@ def test_push_objective_ranks_the_wider_forecast_lower_when_the_means_are_equal(
     torch.testing.assert_close(rewards[0, 0], without[0, 0] - 2.0 * 0.01 * 2**0.5)
 
 
-def test_push_objective_refuses_a_negative_uncertainty_weight_or_a_missing_scale():
-    for weight in (-0.1, float("nan")):
-        with pytest.raises(ValueError, match="uncertainty_weight must be >= 0.*use 0 to plan without it"):
-            PushObjective(uncertainty_weight=weight)
+def test_push_objective_refuses_a_negative_weight_or_a_missing_scale():
+    for name in ("uncertainty_weight", "keep_out_weight"):
+        for weight in (-0.1, float("nan")):
+            with pytest.raises(ValueError, match=f"{name} must be >= 0.*use 0 to plan without it"):
+                PushObjective(**{name: weight})
     context = push_context(
         torch.tensor([1.30, 0.75]), torch.tensor([1.40, 0.75]), torch.tensor([1.2, 0.75, 0.5])
     )
