@@ -155,8 +155,9 @@ class PushObjective:
         reach = planar + self.height_weight * (gripper[..., 2] - height).abs()
         rewards = -(goal_distance + self.reach_weight * reach)
         if self.keep_out_weight:
+            # Where the gripper may not be low, ``height`` is travel height: the depth below it.
             near = (gripper[..., :2] - obj).norm(dim=-1) < KEEP_OUT_RADIUS
-            depth = (pose[..., 2] + CLEARANCE - gripper[..., 2]).clamp_min(0.0)
+            depth = (height - gripper[..., 2]).clamp_min(0.0)
             intrusion = (near & ~may_be_low & ~pushing).float() * depth
             rewards = rewards - self.keep_out_weight * intrusion
         if self.uses_forecast_scale:
