@@ -9,6 +9,9 @@ import re
 import subprocess
 from pathlib import Path
 
+from benchmarks import accuracy as bench
+from mmf_rl.compare import entries as catalogue
+from mmf_rl.configuration import compose_config, to_container
 from tests.conftest import run_bench
 
 SUMMARY = re.compile(
@@ -64,3 +67,25 @@ def test_runs_of_another_budget_are_refused_before_anything_runs(tmp_path):
     run = accuracy(*argv, "--data", str(tmp_path / "push"), "--out", str(out), cwd=tmp_path)
     assert run.returncode == 1 and "holds runs of another budget than 2 steps of batch 8" in run.stderr
     assert not (tmp_path / "push").exists()  # refused before recording
+
+
+def test_every_mode_names_entries_that_exist_and_the_standard_mode_has_what_its_summary_needs():
+    labels = [e.label for e in bench.ENTRIES]
+    assert len(set(labels)) == len(labels)
+    for name, mode in bench.MODES.items():
+        assert mode.entries is None or set(mode.entries) <= set(labels), name
+    needed = [catalogue.PAPER, *catalogue.ZERO_FILL, *catalogue.RETRAINED, *catalogue.FUSION_ABLATIONS]
+    assert {e.label for e in needed} <= set(bench.STANDARD.entries)
+    assert bench.FULL.entries is None  # the full mode keeps the searches the defaults came from
+
+
+def test_no_entry_trains_the_same_config_as_another():
+    """An override that restates a default (``model.decoder_input=mixed`` once it became the default)
+    would make an entry a second copy of another: compared on the composed configs, not the overrides."""
+    configs = {}
+    for entry in bench.ENTRIES:
+        if entry.kind == "retrained":  # the base's recipe, trained per subset
+            continue
+        config = json.dumps(to_container(compose_config("train", list(entry.overrides))), sort_keys=True)
+        assert config not in configs, f"{entry.label!r} trains {configs.get(config)!r}'s config"
+        configs[config] = entry.label
