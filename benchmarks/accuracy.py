@@ -81,9 +81,9 @@ QUICK = Budget(32, 32, 300, (0, 1, 2), ("paper", "paper w/o L_mis", "LF-LSTM", "
 # compared on). results.md gives the wall time and projects this mode's time from the per-step times of
 # the run that wrote it.
 STANDARD_ENTRIES = (
-    "paper",
+    catalogue.PAPER.label,
     "paper, decoder reads raw tokens",
-    "paper prior=learned",
+    catalogue.PAPER_LEARNED.label,
     "paper eval_latent=posterior",
     "paper, pair-stream decoder, linear z, per-step vector tokens",
     *(e.label for e in (*catalogue.ZERO_FILL, *catalogue.RETRAINED, *catalogue.FUSION_ABLATIONS)),

@@ -265,9 +265,14 @@ def parse_args() -> argparse.Namespace:
     check_aggregation_arguments(parser, args, world_models_given=bool(args.checkpoint))
     if args.ensemble and len(args.checkpoint or args.world_model_seeds) < 2:
         parser.error("--ensemble needs 2 world models at least (--checkpoint A B or --world-model-seeds 0 1)")
-    for flag in ("uncertainty_weight", "keep_out_weight"):
-        if not getattr(args, flag) >= 0.0:
-            parser.error(f"--{flag.replace('_', '-')} must be >= 0 (a penalty), found {getattr(args, flag)}")
+    try:  # the objective checks its weights: built here, a bad flag fails before any recording
+        args.objective = PushObjective(
+            reach_weight=args.reach_weight,
+            uncertainty_weight=args.uncertainty_weight,
+            keep_out_weight=args.keep_out_weight,
+        )
+    except ValueError as error:
+        parser.error(str(error))
     return resolve_budget(args, BUDGETS, "mpc")
 
 
@@ -286,11 +291,7 @@ def main() -> None:
     with timed_phase(phases, "play"):
         rows, raw = evaluate_mpc(
             checkpoints,
-            PushObjective(
-                reach_weight=args.reach_weight,
-                uncertainty_weight=args.uncertainty_weight,
-                keep_out_weight=args.keep_out_weight,
-            ),
+            args.objective,
             conditions,
             sizes,
             args.episodes,
