@@ -21,7 +21,7 @@ import torch
 from mmf_rl.envs.torchrl_env import push_action_spec, push_observation, push_observation_spec
 from mmf_rl.rl.cem import IS_INIT, NUM_CANDIDATES, NUM_ELITES, NUM_ITERATIONS, Objective, SequenceCEMPlanner
 from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
-from mmf_rl.rl.push_objective import KEEP_OUT_WEIGHT, PushObjective
+from mmf_rl.rl.push_objective import KEEP_OUT_WEIGHT, REACH_WEIGHT, PushObjective
 from mmf_rl.rl.world_model import WorldModel
 
 
@@ -84,7 +84,7 @@ class PushMPCAgent:
     num_candidates: int = NUM_CANDIDATES
     num_iterations: int = NUM_ITERATIONS
     num_elites: int = NUM_ELITES
-    reach_weight: float = 0.5
+    reach_weight: float = REACH_WEIGHT
     uncertainty_weight: float = 0.0
     keep_out_weight: float = KEEP_OUT_WEIGHT
 

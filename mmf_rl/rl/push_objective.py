@@ -49,6 +49,8 @@ LOW = CLEARANCE / 3
 # Closer than this to the object's centre (in the plane) the fingers can catch a block turned by up
 # to 45 degrees: the approach keeps out of it unless at travel height.
 KEEP_OUT_RADIUS = CONTACT_DISTANCE + BEHIND_MARGIN
+# Metres of goal distance per metre of the gripper's distance to where it should be.
+REACH_WEIGHT = 0.5
 # Metres of goal distance per metre below travel height there: enough to outweigh any progress a
 # plan can make by cutting the corner (a few centimetres).
 KEEP_OUT_WEIGHT = 10.0
@@ -92,7 +94,7 @@ class PushObjective:
 
     def __init__(
         self,
-        reach_weight: float = 0.5,
+        reach_weight: float = REACH_WEIGHT,
         height_weight: float = 2.0,
         uncertainty_weight: float = 0.0,
         keep_out_weight: float = KEEP_OUT_WEIGHT,
