@@ -25,12 +25,12 @@ class LossConfig:
     """How a model's losses are weighted; each model's registry entry picks the terms it uses
     (``@register_model(..., loss=...)``) unless ``terms`` names others.
 
-    The defaults are the losses' own (β = 1 without warm-up, ``L_mis`` at weight 1 with a detached
-    teacher); a training run takes its values from ``configs/loss/<name>.yaml``. Each term reads some of
-    the settings (its ``config_fields``), some only under a condition (its ``unread_settings``: e.g.
-    ``best_of_k_samples`` only with ``best_of_k_weight > 0``): one changed from its default that none of
-    the run's terms reads is refused (``check_settings_read``); ``terms``, which chooses the terms, is
-    exempt.
+    The defaults are the losses' own (β = 1 without warm-up, ``L_mis`` at weight 1, trained end to
+    end as the paper does); a training run takes its values from ``configs/loss/<name>.yaml``. Each
+    term reads some of the settings (its ``config_fields``), some only under a condition (its
+    ``unread_settings``: e.g. ``best_of_k_samples`` only with ``best_of_k_weight > 0``): one changed
+    from its default that none of the run's terms reads is refused (``check_settings_read``);
+    ``terms``, which chooses the terms, is exempt.
 
     Args:
         kl_weight: ``β`` of the ELBO's KL term once warm (:class:`~mmf_rl.objectives.ELBOLoss`).
@@ -60,7 +60,7 @@ class LossConfig:
     kl_weight: float = 1.0
     kl_warmup_steps: int = 0
     missing_modality_weight: float = 1.0
-    detach_teacher: bool = True
+    detach_teacher: bool = False
     gsnn_weight: float = 0.0
     best_of_k_weight: float = 0.0
     best_of_k_samples: int = 20

@@ -61,10 +61,10 @@ class MissingModalityLoss(ForecasterLossBase):
         forecaster: a :class:`~mmf_rl.models.MultimodalForecaster`.
         weight: multiplies ``loss_mis``.
         detach_teacher: stop the gradient through the teacher's side (the full-input forecast and,
-            with a learned prior, the full-input prior; default). The paper trains both sides
-            jointly and calls the full-modality side the teacher without saying whether it is
-            detached; detaching keeps ``L_mis`` from pulling the full-modality forecast toward the
-            degraded one, which only the ELBO should shape.
+            with a learned prior, the full-input prior). The default trains both sides jointly, as
+            the paper does: ``L_mis`` then also pulls the full-input forecast toward what the kept
+            modalities can support, which measured more accurate with every sensor as well as
+            without one (docs/results.md). Detaching leaves the full-input forecast to the ELBO.
         max_dropped: the most modalities dropped from one sample (``>= 1``), ``None``: no cap
             (up to ``M_i - 1``).
         dropped_nll_weight: weight of ``loss_mis_nll``, the Gaussian NLL of the target under the
@@ -145,7 +145,7 @@ class MissingModalityLoss(ForecasterLossBase):
         forecaster,
         *,
         weight: float = 1.0,
-        detach_teacher: bool = True,
+        detach_teacher: bool = False,
         max_dropped: int | None = 1,
         dropped_nll_weight: float = 0.0,
         prior_weight: float = 1.0,

@@ -120,12 +120,12 @@ def test_a_setting_is_compared_with_the_defaults_given():
             "forecaster",
             LossConfig(
                 missing_modality_weight=0.0,
-                detach_teacher=False,
+                detach_teacher=True,
                 max_dropped=2,
                 dropped_nll_weight=1.0,
                 step_drop_prob=0.3,
             ),
-            "loss.detach_teacher=false, loss.max_dropped=2, loss.dropped_nll_weight=1.0, "
+            "loss.detach_teacher=true, loss.max_dropped=2, loss.dropped_nll_weight=1.0, "
             "loss.step_drop_prob=0.3 are read by the 'mis' term only with loss.missing_modality_weight > 0 "
             "(found 0.0, which turns it off); set that or remove them",
         ),
@@ -177,7 +177,7 @@ def test_a_setting_read_only_under_a_condition_the_config_or_model_leaves_off_is
 def test_the_same_settings_pass_with_their_condition_on():
     forecaster = small_registered_model("forecaster")
     on = LossConfig(
-        detach_teacher=False,
+        detach_teacher=True,
         max_dropped=2,
         dropped_nll_weight=1.0,
         step_drop_prob=0.3,

@@ -13,7 +13,7 @@ from mmf_rl.objectives import LossConfig
 from tests.conftest import HORIZON, TARGET_DIM, make_batch
 from tests.reliability.test_nonfinite_inputs import MODEL_CONFIGS, small_model
 
-LOSS_CONFIG = LossConfig(kl_weight=1.0, kl_warmup_steps=0, missing_modality_weight=1.0, detach_teacher=True)
+LOSS_CONFIG = LossConfig(kl_weight=1.0, kl_warmup_steps=0, missing_modality_weight=1.0)
 
 
 @pytest.mark.parametrize("name", sorted(MODEL_CONFIGS))
