@@ -29,10 +29,11 @@ Entries (``ENTRIES``; a new model option is one line there):
 
 The dataset is recorded if ``--data`` does not exist (the mode's episode count x 50 steps at 64x64).
 Completed runs are reused: an interrupted benchmark resumes (delete ``--out`` to start over); a completed
-run of other steps or batch size is refused (the report says every model trained with one budget). A run
-lives in ``<out>/<the entry's label as a slug>/seed<k>``, so an entry whose label changes is trained again:
-move the old directory to keep its runs (``paper_gru_vector_encoders__issue__6`` is now
-``paper__gru_vector_encoders``). Writes
+run of other steps or batch size, or whose config differs from the one this build composes for its
+entry (a changed default included), is refused (the report says every model trained with one budget and
+as its entry says). A run lives in ``<out>/<the entry's label as a slug>/seed<k>``, so an entry whose
+label changes is trained again: move the old directory to keep its runs (the check accepts a run moved
+to another directory or ``--out``). Writes
 ``<out>/results.md`` and ``<out>/results.json`` and ends with one line:
 ``summary: paper model best or tied in X/Y subsets (zero-fill baselines), R/3 paper subsets vs
 retrained; fusion spread S; mean degradation paper P%, best baseline Q%`` (``-`` where the run

@@ -394,3 +394,26 @@ def save_config(cfg: DictConfig | dict, path: Path, header: str = "") -> None:
 
 def load_config(path: Path) -> DictConfig:
     return OmegaConf.load(path)
+
+
+def config_changes(saved: dict, current: dict, ignore=frozenset()) -> tuple[dict, dict]:
+    """How the config ``current`` differs from a run's ``saved`` one (both plain containers), by dotted
+    key: ``(added, changed)``, the settings ``saved`` lacks (a newer mmf-rl added them) with their
+    current value, and the settings whose value differs as ``(saved, current)``. Keys in ``ignore``
+    are left out."""
+
+    def flat(d: dict, prefix: str = ""):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                yield from flat(v, f"{prefix}{k}.")
+            else:
+                yield f"{prefix}{k}", v
+
+    a, b = dict(flat(saved)), dict(flat(current))
+    added = {k: b[k] for k in sorted(set(b) - set(a) - set(ignore))}
+    changed = {
+        k: (a.get(k), b.get(k))
+        for k in sorted(set(a) | set(b))
+        if k not in added and k not in ignore and a.get(k) != b.get(k)
+    }
+    return added, changed

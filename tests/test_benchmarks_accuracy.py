@@ -65,7 +65,8 @@ def test_runs_of_another_budget_are_refused_before_anything_runs(tmp_path):
     stale.write_text(json.dumps({"steps": 3, "batch_size": 8}))
     argv = ["--tiny", "--entries", "paper", "--seeds", "0", "--steps", "2"]
     run = accuracy(*argv, "--data", str(tmp_path / "push"), "--out", str(out), cwd=tmp_path)
-    assert run.returncode == 1 and "holds runs of another budget than 2 steps of batch 8" in run.stderr
+    assert run.returncode == 1 and "would not train (2 steps of batch 8" in run.stderr
+    assert "paper/seed0: 3 steps of batch 8" in run.stderr
     assert not (tmp_path / "push").exists()  # refused before recording
 
 

@@ -68,6 +68,5 @@ def test_smoke_run_on_the_real_recording_writes_the_results_and_resumes(tmp_path
     assert json.loads((out / "results.json").read_text())["info"]["reused"] == 2
     # Another budget in the same --out is refused before any training.
     refused = humanoid(*argv, "--steps", "3", cwd=tmp_path)
-    assert (
-        refused.returncode == 1 and "holds runs of another budget than 3 steps of batch 4" in refused.stderr
-    )
+    assert refused.returncode == 1 and "would not train (3 steps of batch 4" in refused.stderr
+    assert "paper/seed0: 2 steps of batch 4" in refused.stderr

@@ -2,9 +2,10 @@
 
 Every entry is trained with the same steps, batch size and seeds on the same data (the data config's
 split by episode), scored on every presence subset of the test split, and each cell gets a paired
-bootstrap interval over test episodes (over blocks of consecutive windows when the test split has
-too few episodes). Completed runs in ``--out`` are reused, so an interrupted comparison resumes.
-Writes ``<out>/results.md`` and ``<out>/results.json``, prints the report and ends with one line:
+bootstrap interval over test episodes (over blocks of consecutive windows when the test split has too
+few episodes). Completed runs in ``--out`` are reused, so an interrupted comparison resumes; one
+trained with another budget or config (a default changed since included) is refused. Writes
+``<out>/results.md`` and ``<out>/results.json``, prints the report and ends with one line:
 ``summary: all sensors paper MSE A vs best baseline B (NAME): paper/best = R (target <= X); mean
 degradation without a sensor paper P%, best baseline Q%``.
 """

@@ -104,24 +104,55 @@ def check_entries(study: Study) -> None:
         )
 
 
+# Where a run lives and what runs it: a run copied or moved to another ``--out`` is still the same run.
+PLACE_SETTINGS = frozenset({"run_dir", "data.cache_dir", "device", "num_workers"})
+
+
 def check_reused(study: Study) -> None:
-    """A completed run of another budget in ``study.out`` would silently mix budgets in one table."""
-    budget = study.budget
+    """A completed run in ``study.out`` trained with another budget, or with a config other than the one
+    this build composes for it (an entry's options, or a default changed since), would silently mix
+    models in one table: refused, naming the runs and the settings."""
+    plans = {
+        run_dir: (trained, seed, extra)
+        for e in study.entries
+        for trained, seed, run_dir, extra, _ in run_plan(e, study)
+    }
     stale = [
-        f"{run_dir} ({r['steps']} steps of batch {r['batch_size']})"
-        for entry in study.entries
-        for _, _, run_dir, _, _ in run_plan(entry, study)
-        if (r := completed(run_dir)) is not None
-        and (r["steps"], r["batch_size"]) != (budget.steps, budget.batch_size)
+        f"{run_dir}: {reason}"
+        for run_dir, (trained, seed, extra) in plans.items()
+        if (reason := stale_reason(trained, seed, study, run_dir, extra))
     ]
     if stale:
+        shown = stale[:12] + ([f"... and {len(stale) - 12} more"] if len(stale) > 12 else [])
         raise ValueError(
-            f"{study.out} holds runs of another budget than {budget.steps} steps of "
-            f"batch {budget.batch_size}:\n  " + "\n  ".join(stale) + "\nuse another --out or delete them"
+            f"{study.out} holds completed runs that this comparison would not train "
+            f"({study.budget.steps} steps of batch {study.budget.batch_size}, each entry's config as this "
+            "build composes it):\n  " + "\n  ".join(shown) + "\nuse another --out, or delete those runs "
+            "to train them again"
         )
 
 
-@torch.no_grad()
+def stale_reason(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[str, ...]) -> str:
+    """How the completed run in ``run_dir`` differs from the one this comparison would train there
+    (empty: it does not, or the run is not complete). Loss settings the model's terms do not read
+    (``L_mis``'s for LF-LSTM) change nothing and are not compared."""
+    from mmf_rl.configuration import config_changes, load_config, to_container
+    from mmf_rl.models import loss_settings_read
+    from mmf_rl.objectives import LossConfig
+    from mmf_rl.trainers.train_command import RUN_CONFIG
+
+    if (r := completed(run_dir)) is None:
+        return ""
+    if (r["steps"], r["batch_size"]) != (study.budget.steps, study.budget.batch_size):
+        return f"{r['steps']} steps of batch {r['batch_size']}"
+    composed = to_container(compose_train(entry, seed, study, run_dir, extra))
+    read = loss_settings_read(composed["model"], LossConfig.from_dict(composed["loss"])) | {"terms"}
+    unread = {f"loss.{name}" for name in composed["loss"] if name not in read}
+    saved = to_container(load_config(run_dir / RUN_CONFIG))
+    _, changed = config_changes(saved, composed, PLACE_SETTINGS | unread)
+    return ", ".join(f"trained with {k}={old!r} (now {new!r})" for k, (old, new) in list(changed.items())[:4])
+
+
 def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str, dict[str, list]]:
     """Every test window's squared error (mean over ``T x D``, normalised target) per presence subset,
     with its window id and episode: ``{subset: {"window", "episode", "squared_error"}}``.

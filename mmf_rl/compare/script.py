@@ -149,8 +149,8 @@ class PushRecording:
 
 def check_study(study: Study, title: str) -> None:
     """Exit with a message naming the script (``title``) if an entry does not compose, or ``study.out``
-    holds completed runs of another budget: seconds after the start instead of after the first
-    trainings."""
+    holds completed runs of another budget or config: seconds after the start instead of after the
+    first trainings."""
     try:
         check_entries(study)
         check_reused(study)

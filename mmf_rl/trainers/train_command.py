@@ -37,6 +37,7 @@ from omegaconf import OmegaConf
 from mmf_rl.checkpoint import CheckpointError, list_checkpoints, load_checkpoint, remove_leftovers
 from mmf_rl.configuration import (
     ConfigError,
+    config_changes,
     load_config,
     parse_config_command,
     report_command_error,
@@ -133,32 +134,19 @@ def check_resumable(run_dir: Path, cfg) -> None:
     if not saved_path.is_file():
         raise CheckpointError(f"resume=true but {saved_path} does not exist: nothing to resume in {run_dir}")
     saved = OmegaConf.to_container(load_config(saved_path))
-    current = to_container(cfg)
-
-    def flat(d, prefix=""):
-        for k, v in d.items():
-            if isinstance(v, dict):
-                yield from flat(v, f"{prefix}{k}.")
-            else:
-                yield f"{prefix}{k}", v
-
-    a, b = dict(flat(saved)), dict(flat(current))
+    added, changed = config_changes(saved, to_container(cfg), RESUMABLE_CHANGES)
     # Settings a newer mmf-rl added since the run started: the saved config cannot hold them, and
     # refusing them would make every run unresumable after an upgrade. They are taken as composed
     # now (their defaults, unless set on this command line) and named.
-    added = sorted(set(b) - set(a))
     if added:
         warnings.warn(
             f"resuming {run_dir}: its {saved_path.name} predates the settings "
-            + ", ".join(f"{k}={b[k]!r}" for k in added)
+            + ", ".join(f"{k}={v!r}" for k, v in added.items())
             + "; the resumed run uses these values",
             stacklevel=2,
         )
-    changed = sorted(
-        k for k in set(a) | set(b) if k not in added and a.get(k) != b.get(k) and k not in RESUMABLE_CHANGES
-    )
     if changed:
-        details = ", ".join(f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in changed[:8])
+        details = ", ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in list(changed.items())[:8])
         raise CheckpointError(
             f"resume=true with a config that differs from {saved_path} ({details}); resume with "
             "the same config, or train into a new run_dir"

@@ -6,15 +6,19 @@ from __future__ import annotations
 import dataclasses
 import json
 import runpy
+import shutil
 from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from mmf_rl.compare import entries, runs
 from mmf_rl.compare.entries import Budget, Entry, Study
+from mmf_rl.configuration import save_config
 from mmf_rl.models import MODELS
 from mmf_rl.objectives import default_loss_config
+from mmf_rl.trainers.train_command import RUN_CONFIG
 from tests.compare.helpers import PUSH_MODALITIES
 
 REPO = Path(__file__).resolve().parents[2]
@@ -86,15 +90,47 @@ def test_every_benchmark_entry_sets_only_loss_options_its_model_reads(benchmark,
     runs.check_entries(study(tmp_path, benchmark_entries(benchmark)))
 
 
+def complete_run(s: Study, entry: Entry, steps: int = 1000, **changes) -> Path:
+    """A completed run of ``entry`` (seed 0) in ``s.out`` as ``run_one`` leaves it, its composed config
+    with ``changes`` (dotted keys) applied."""
+    run_dir = s.out / entries.slug(entry.label) / "seed0"
+    cfg = runs.compose_train(entry, 0, s, run_dir)
+    for key, value in changes.items():
+        OmegaConf.update(cfg, key, value)
+    save_config(cfg, run_dir / RUN_CONFIG)
+    result = run_dir / "eval" / "window_errors.json"
+    result.parent.mkdir(parents=True)
+    result.write_text(json.dumps({"steps": steps, "batch_size": 32, "subsets": {}}))
+    return run_dir
+
+
 def test_completed_runs_of_another_budget_are_refused(tmp_path):
     s = study(tmp_path)
-    result = s.out / "paper" / "seed0" / "eval" / "window_errors.json"
-    result.parent.mkdir(parents=True)
-    result.write_text(json.dumps({"steps": 1000, "batch_size": 32, "subsets": {}}))
+    complete_run(s, entries.PAPER)
     runs.check_reused(s)
-    result.write_text(json.dumps({"steps": 3, "batch_size": 32, "subsets": {}}))
-    with pytest.raises(ValueError, match=r"holds runs of another budget than 1000 steps of batch 32"):
+    shutil.rmtree(s.out)
+    complete_run(s, entries.PAPER, steps=3)
+    with pytest.raises(ValueError, match=r"paper/seed0: 3 steps of batch 32\n.*use another --out"):
         runs.check_reused(s)
+
+
+def test_completed_runs_trained_with_another_config_are_refused(tmp_path):
+    # A default changed since the run trained reads as a change too.
+    s = study(tmp_path)
+    complete_run(s, entries.PAPER, **{"loss.detach_teacher": True, "model.d_model": 32})
+    with pytest.raises(
+        ValueError, match=r"paper/seed0: trained with loss.detach_teacher=True \(now False\), "
+    ):
+        runs.check_reused(s)
+
+
+def test_a_run_moved_to_another_out_or_changed_where_its_model_ignores_it_is_reused(tmp_path):
+    s = study(tmp_path, (entries.PAPER, entries.LF_LSTM))
+    complete_run(s, entries.LF_LSTM, **{"loss.detach_teacher": True})  # L_mis: not LF-LSTM's loss
+    complete_run(s, entries.PAPER)
+    moved = dataclasses.replace(s, out=tmp_path / "elsewhere")  # another run_dir and cache_dir
+    shutil.move(s.out, moved.out)
+    runs.check_reused(moved)
 
 
 def test_training_rate_is_the_last_logged_throughput(tmp_path):
