@@ -134,22 +134,14 @@ def check_reused(study: Study) -> None:
 
 def stale_reason(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[str, ...]) -> str:
     """How the completed run in ``run_dir`` differs from the one this comparison would train there
-    (empty: it does not, or the run is not complete). Loss settings the model's terms do not read
-    (``L_mis``'s for LF-LSTM) change nothing and are not compared."""
-    from mmf_rl.configuration import config_changes, load_config, to_container
-    from mmf_rl.models import loss_settings_read
-    from mmf_rl.objectives import LossConfig
-    from mmf_rl.trainers.train_command import RUN_CONFIG
+    (empty: it does not, or the run is not complete)."""
+    from mmf_rl.trainers.train_command import trained_differently
 
     if (r := completed(run_dir)) is None:
         return ""
     if (r["steps"], r["batch_size"]) != (study.budget.steps, study.budget.batch_size):
         return f"{r['steps']} steps of batch {r['batch_size']}"
-    composed = to_container(compose_train(entry, seed, study, run_dir, extra))
-    read = loss_settings_read(composed["model"], LossConfig.from_dict(composed["loss"])) | {"terms"}
-    unread = {f"loss.{name}" for name in composed["loss"] if name not in read}
-    saved = to_container(load_config(run_dir / RUN_CONFIG))
-    _, changed = config_changes(saved, composed, PLACE_SETTINGS | unread)
+    changed = trained_differently(run_dir, compose_train(entry, seed, study, run_dir, extra), PLACE_SETTINGS)
     return ", ".join(f"trained with {k}={old!r} (now {new!r})" for k, (old, new) in list(changed.items())[:4])
 
 

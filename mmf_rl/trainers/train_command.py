@@ -48,7 +48,14 @@ from mmf_rl.datasets import AugmentConfig, DataConfig, TrainingAugmentation, Win
 from mmf_rl.devices import resolve_device
 from mmf_rl.eval.metrics import evaluate_forecasts
 from mmf_rl.eval.scale_fit import calibrate_after_training, save_to_checkpoint
-from mmf_rl.models import build_loss, build_model, check_loss_settings, init_weights_from, saved_config
+from mmf_rl.models import (
+    build_loss,
+    build_model,
+    check_loss_settings,
+    init_weights_from,
+    loss_settings_read,
+    saved_config,
+)
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.loading import RUN_EXPORT_DIR
 from mmf_rl.models.registry import DEFAULT_MODEL
@@ -127,6 +134,18 @@ def truncate_csv_logs(log_dir: Path, step: int) -> None:
             tmp = path.with_name(f".{path.name}.tmp")
             tmp.write_text("".join(kept))
             os.replace(tmp, path)
+
+
+def trained_differently(run_dir: Path, cfg, ignore=frozenset()) -> dict[str, tuple]:
+    """The settings the run in ``run_dir`` trained with another value than ``cfg`` (composed now) holds,
+    ``{dotted key: (trained, now)}``: the run is not the one ``cfg`` would train. Left out: ``ignore``,
+    settings a newer mmf-rl added (their defaults keep the old behaviour), and loss settings the
+    model's terms do not read (``L_mis``'s for LF-LSTM)."""
+    current = to_container(cfg)
+    read = loss_settings_read(current["model"], LossConfig.from_dict(current["loss"])) | {"terms"}
+    unread = {f"loss.{name}" for name in current["loss"] if name not in read}
+    saved = OmegaConf.to_container(load_config(run_dir / RUN_CONFIG))
+    return config_changes(saved, current, set(ignore) | unread)[1]
 
 
 def check_resumable(run_dir: Path, cfg) -> None:
