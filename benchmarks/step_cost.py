@@ -3,7 +3,8 @@
     .venv/bin/python benchmarks/step_cost.py                  # the standard budget: batch 32, 32x32
     .venv/bin/python benchmarks/step_cost.py --threads 1 --rounds 6
 
-The variants (``VARIANTS``: the default, the paper's raw-token decoder, per-frame image tokens)
+The variants (``VARIANTS``: the default, the paper's raw-token decoder, ``L_mis`` with its teacher
+detached, per-frame image tokens)
 and MulT train in turn, ``--steps`` steps each per round, on the push-like batch
 (``mmf_rl.datasets.synthetic.push_like_batch``); the first round warms up and is dropped.
 Interleaving the models round by round means a machine that slows down slows every model alike,
@@ -28,6 +29,7 @@ from mmf_rl.objectives import LossConfig
 VARIANTS = {
     "forecaster (default)": ((), "conv"),
     "forecaster, raw tokens (the paper)": (("model.decoder_input=tokens",), "conv"),
+    "forecaster, L_mis teacher detached": (("loss.detach_teacher=true",), "conv"),
     "forecaster, per-frame image tokens": ((), "conv_frames"),
     "MulT": (("model=mult",), "conv"),
 }
@@ -39,7 +41,7 @@ def build(overrides: tuple[str, ...], image_encoder: str, image_size: int):
     modalities[0] = type(modalities[0])("image", "image", modalities[0].shape, encoder=image_encoder)
     torch.manual_seed(0)
     model = build_model(to_container(cfg.model), modalities, history=10, horizon=10, target_dim=2).train()
-    # No variant sets a loss option: the loss config group's defaults, which every model gets.
+    # The loss config as composed: its group's defaults unless the variant sets one.
     loss = build_loss(cfg.model.name, model, LossConfig.from_dict(to_container(cfg.loss)), check_unread=False)
     return model, loss, torch.optim.Adam(model.parameters(), lr=1e-3)
 

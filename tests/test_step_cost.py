@@ -7,6 +7,7 @@ from tests.conftest import run_bench
 VARIANTS = [
     "forecaster (default)",
     "forecaster, raw tokens (the paper)",
+    "forecaster, L_mis teacher detached",
     "forecaster, per-frame image tokens",
     "MulT",
 ]
