@@ -214,8 +214,11 @@ def train_overrides(args, budget: Budget, fold: str, label: str, run_dir: Path) 
 # window cache and the run live, the device. The run's directory already names its fold. A trained
 # run's recipe is its training overrides without these: what this file decides, recorded in
 # scores.json rather than read back from the run's config.yaml, which holds every composed setting,
-# so that any setting a newer mmf-rl adds would refuse every completed run.
+# so that any setting a newer mmf-rl adds would refuse every completed run. A default changed since a
+# run trained is not in its recipe: ``changed_defaults`` compares the config.yaml for those.
 MACHINE_SETTINGS = frozenset({"data", "data.cache_dir", "run_dir", "device"})
+# The same places in a composed config (the fold's data config names its dataset's root).
+MACHINE_CONFIG_KEYS = frozenset({"data.root", "data.cache_dir", "run_dir", "device", "num_workers"})
 
 
 def recipe(args, budget: Budget, fold: str, label: str) -> list[str]:
@@ -269,7 +272,26 @@ def stale_runs(args, budget: Budget, folds) -> list[str]:
                 stale.append(f"{run_dir}: {unknown}")
             elif differences := recipe_differences(recipe(args, budget, fold, label), done["recipe"]):
                 stale.append(f"{run_dir}: " + "; ".join(differences))
+            elif label in TRAINED and (changed := changed_defaults(args, budget, fold, label)):
+                stale.append(
+                    f"{run_dir}: "
+                    + ", ".join(f"trained with {k}={a!r} (now {b!r})" for k, (a, b) in changed.items())
+                )
     return stale
+
+
+def changed_defaults(args, budget: Budget, fold: str, label: str) -> dict[str, tuple]:
+    """The settings a trained run's config.yaml holds with another value than this build composes from
+    the same recipe: defaults changed since it trained. Composing needs the fold's data config: before
+    the conversion wrote it, nothing is compared."""
+    from mmf_rl.configuration import compose_config
+    from mmf_rl.trainers.train_command import RUN_CONFIG, trained_differently
+
+    run_dir = args.out / fold / slug(label)
+    if not (args.data / f"{fold}.yaml").is_file() or not (run_dir / RUN_CONFIG).is_file():
+        return {}
+    cfg = compose_config("train", train_overrides(args, budget, fold, label, run_dir))
+    return trained_differently(run_dir, cfg, MACHINE_CONFIG_KEYS)
 
 
 def check_reused(args, budget: Budget, folds) -> None:

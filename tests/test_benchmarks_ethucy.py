@@ -10,10 +10,13 @@ from pathlib import Path
 import pytest
 
 from benchmarks import ethucy as bench
-from mmf_rl.configuration import compose_config, to_container
+from mmf_rl.configuration import compose_config, save_config, to_container
 from mmf_rl.models import check_loss_settings
 from mmf_rl.objectives import LossConfig, default_loss_config
+from mmf_rl.trainers.train_command import RUN_CONFIG
 from tests.conftest import run_bench
+
+REPO = Path(__file__).resolve().parents[1]
 
 ALL_ROWS = [*bench.TRAINED, bench.CV, bench.CV_NOISE]
 
@@ -83,6 +86,23 @@ def test_a_completed_run_of_another_mode_is_refused_before_anything_runs(tmp_pat
     assert "use another --out, or delete a listed directory" in run.stderr
     assert path.is_file()  # nothing deleted
     assert not full.data.exists()  # refused before converting the data
+
+
+def test_a_run_trained_before_a_default_changed_is_refused(tmp_path):
+    """Its recipe (the overrides) is this one; its config.yaml holds the old default. The same old value
+    of a loss setting a baseline does not read changes nothing."""
+    args = bench_args(tmp_path, "out", "--quick")
+    complete_fold(args, bench.QUICK, "eth")
+    args.data.mkdir()
+    shutil.copy(REPO / "configs" / "data" / "push.yaml", args.data / "eth.yaml")  # stands in for the fold's
+    for label in bench.TRAINED:
+        run_dir = args.out / "eth" / bench.slug(label)
+        cfg = compose_config("train", bench.train_overrides(args, bench.QUICK, "eth", label, run_dir))
+        cfg.loss.detach_teacher = not cfg.loss.detach_teacher
+        save_config(cfg, run_dir / RUN_CONFIG)
+    assert bench.stale_runs(args, bench.QUICK, ["eth"]) == [
+        f"{args.out / 'eth' / bench.slug(bench.PAPER)}: trained with loss.detach_teacher=True (now False)"
+    ]
 
 
 def test_another_model_recipe_names_every_differing_setting():
