@@ -145,6 +145,7 @@ def stale_reason(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tu
     return ", ".join(f"trained with {k}={old!r} (now {new!r})" for k, (old, new) in list(changed.items())[:4])
 
 
+@torch.no_grad()
 def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str, dict[str, list]]:
     """Every test window's squared error (mean over ``T x D``, normalised target) per presence subset,
     with its window id and episode: ``{subset: {"window", "episode", "squared_error"}}``.
