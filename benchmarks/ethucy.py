@@ -272,26 +272,22 @@ def stale_runs(args, budget: Budget, folds) -> list[str]:
                 stale.append(f"{run_dir}: {unknown}")
             elif differences := recipe_differences(recipe(args, budget, fold, label), done["recipe"]):
                 stale.append(f"{run_dir}: " + "; ".join(differences))
-            elif label in TRAINED and (changed := changed_defaults(args, budget, fold, label)):
-                stale.append(
-                    f"{run_dir}: "
-                    + ", ".join(f"trained with {k}={a!r} (now {b!r})" for k, (a, b) in changed.items())
-                )
+            elif label in TRAINED and (changed := changed_defaults(args, budget, fold, label, run_dir)):
+                stale.append(f"{run_dir}: {changed}")
     return stale
 
 
-def changed_defaults(args, budget: Budget, fold: str, label: str) -> dict[str, tuple]:
+def changed_defaults(args, budget: Budget, fold: str, label: str, run_dir: Path) -> str:
     """The settings a trained run's config.yaml holds with another value than this build composes from
-    the same recipe: defaults changed since it trained. Composing needs the fold's data config: before
-    the conversion wrote it, nothing is compared."""
+    the same recipe (defaults changed since it trained), described; empty: none. Composing needs the
+    fold's data config: before the conversion wrote it, nothing is compared."""
     from mmf_rl.configuration import compose_config
-    from mmf_rl.trainers.train_command import RUN_CONFIG, trained_differently
+    from mmf_rl.trainers.train_command import RUN_CONFIG, describe_trained_differently, trained_differently
 
-    run_dir = args.out / fold / slug(label)
     if not (args.data / f"{fold}.yaml").is_file() or not (run_dir / RUN_CONFIG).is_file():
-        return {}
+        return ""
     cfg = compose_config("train", train_overrides(args, budget, fold, label, run_dir))
-    return trained_differently(run_dir, cfg, MACHINE_CONFIG_KEYS)
+    return describe_trained_differently(trained_differently(run_dir, cfg, MACHINE_CONFIG_KEYS))
 
 
 def check_reused(args, budget: Budget, folds) -> None:

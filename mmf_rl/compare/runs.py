@@ -135,14 +135,14 @@ def check_reused(study: Study) -> None:
 def stale_reason(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[str, ...]) -> str:
     """How the completed run in ``run_dir`` differs from the one this comparison would train there
     (empty: it does not, or the run is not complete)."""
-    from mmf_rl.trainers.train_command import trained_differently
+    from mmf_rl.trainers.train_command import describe_trained_differently, trained_differently
 
     if (r := completed(run_dir)) is None:
         return ""
     if (r["steps"], r["batch_size"]) != (study.budget.steps, study.budget.batch_size):
         return f"{r['steps']} steps of batch {r['batch_size']}"
     changed = trained_differently(run_dir, compose_train(entry, seed, study, run_dir, extra), PLACE_SETTINGS)
-    return ", ".join(f"trained with {k}={old!r} (now {new!r})" for k, (old, new) in list(changed.items())[:4])
+    return describe_trained_differently(changed, limit=4)
 
 
 @torch.no_grad()

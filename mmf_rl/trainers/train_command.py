@@ -148,6 +148,12 @@ def trained_differently(run_dir: Path, cfg, ignore=frozenset()) -> dict[str, tup
     return config_changes(saved, current, set(ignore) | unread)[1]
 
 
+def describe_trained_differently(changed: dict[str, tuple], limit: int | None = None) -> str:
+    """``trained_differently``'s result as one line, its first ``limit`` settings (all: ``None``)."""
+    shown = list(changed.items())[:limit]
+    return ", ".join(f"trained with {k}={old!r} (now {new!r})" for k, (old, new) in shown)
+
+
 def check_resumable(run_dir: Path, cfg) -> None:
     saved_path = run_dir / RUN_CONFIG
     if not saved_path.is_file():
