@@ -20,7 +20,9 @@ this script has registered them: in ``mmf-rl eval`` or ``load_trained_model`` th
 The recording is made if ``--data`` does not exist, by ``mmf_rl.compare.script`` as for
 ``benchmarks/accuracy.py`` (same default path, episodes and seed, so the two share it). Completed runs
 in ``--out`` are reused: an interrupted run resumes. Writes ``<out>/results.md`` (MSE per row and
-presence subset, mean over seeds; all-sensor 95% paired bootstrap intervals against MulT) and
+presence subset, mean over seeds; all-sensor 95% paired bootstrap intervals against MulT; each row's
+all-sensor MSE on training windows beside test, which tells a row that fits worse from one that
+generalises worse) and
 ``<out>/results.json``, and ends with one line: ``summary: MulT all A; MulT on the paper's tokens B
 (fixed-query readout C); paper D``
 (all-sensor MSE means; ``-`` for a row not run).
@@ -493,7 +495,7 @@ def summary_line(table: Table) -> tuple[str, dict[str, float | None]]:
     return line, means
 
 
-def markdown(study: Study, table: Table, info: dict) -> str:
+def markdown(study: Study, table: Table, info: dict, fit: dict) -> str:
     budget, labels = study.budget, [e.label for e in study.entries]
     return (
         "# The gap to MulT with every sensor: hybrids of MulT and the paper model\n\n"
@@ -507,6 +509,7 @@ def markdown(study: Study, table: Table, info: dict) -> str:
         "95% percentile bootstrap over the test episodes, paired (the same resamples for every row).\n\n"
         + against_mult(table, labels)
         + "\n\n"
+        + report.fit_section(fit)
     )
 
 
@@ -526,12 +529,13 @@ def main(argv: list[str] | None = None) -> int:
         "reused": outcome.reused,
     }
     line, summary = summary_line(table)
-    text = markdown(study, table, info) + f"{line}\n"
+    text = markdown(study, table, info, collected.fit) + f"{line}\n"
     results = {
         "mode": args.budget.__dict__,
         "info": info,
         "cells": report.cells_json(table),
         "summary": summary,
+        "fit": collected.fit,
     }
     script.report_results(args.out, text, results)
     return 0

@@ -9,6 +9,8 @@ import re
 import subprocess
 from pathlib import Path
 
+import pytest
+
 from benchmarks import accuracy as bench
 from mmf_rl.compare import entries as catalogue
 from mmf_rl.configuration import compose_config, to_container
@@ -50,6 +52,8 @@ def test_a_tiny_run_writes_the_report_and_the_summary_line(recorded_push_root, t
     }
     assert results["subsets"][:3] == ["all", "without_proprio", "without_force"]
     assert results["kinds"] == {"paper": "paper", "LF-LSTM": "zero-fill"}
+    assert results["fit"]["LF-LSTM"]["test"] == pytest.approx(results["cells"]["LF-LSTM"]["all"]["mean"])
+    assert "| LF-LSTM | " in text.split("## Fit: every sensor, training windows against test")[1]
 
 
 def test_unknown_entries_are_refused_before_anything_runs(tmp_path):

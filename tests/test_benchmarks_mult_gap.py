@@ -47,6 +47,11 @@ def test_a_tiny_run_writes_every_row_and_the_summary_line(recorded_push_root, tm
     results = json.loads((out / "results.json").read_text())
     assert sorted(results["cells"]) == sorted(TINY_ROWS)
     assert results["summary"]["paper"] == pytest.approx(results["cells"]["paper"]["all"]["mean"])
+    # Every row's fit: its all-sensor MSE on training windows beside the test cell's.
+    assert sorted(results["fit"]) == sorted(TINY_ROWS)
+    for label, fit in results["fit"].items():
+        assert fit["test"] == pytest.approx(results["cells"][label]["all"]["mean"]) and fit["train"] > 0
+    assert "## Fit: every sensor, training windows against test" in text
 
 
 def test_unknown_rows_are_refused_before_anything_runs(tmp_path, registered_models):

@@ -1,4 +1,5 @@
-"""Read what the completed runs wrote: per-window errors, timings, coverage and the latent's KL."""
+"""Read what the completed runs wrote: per-window errors, timings, coverage, the latent's KL and the fit
+of the training windows."""
 
 from __future__ import annotations
 
@@ -51,6 +52,22 @@ def entry_kl(entry: Entry, study: Study) -> float | None:
     return statistics.fmean(values) if values else None
 
 
+def entry_fit(entry: Entry, study: Study) -> dict[str, float] | None:
+    """``{"train", "test"}``: the entry's MSE with every sensor on training windows and on the test split,
+    mean over seeds; ``None`` when a run predates the training-window score or the entry is only
+    trained per subset (the retrained baselines)."""
+    train, test = [], []
+    for trained, _, run_dir, _, subset in run_plan(entry, study):
+        result = completed(run_dir)
+        if trained is not entry or subset not in ("", "all"):
+            continue
+        if result.get("train_mse") is None or "all" not in result["subsets"]:
+            return None
+        train.append(result["train_mse"])
+        test.append(statistics.fmean(result["subsets"]["all"]["squared_error"]))
+    return {"train": statistics.fmean(train), "test": statistics.fmean(test)} if train else None
+
+
 def timing(runs: dict[str, list[dict]]) -> dict[str, dict[str, float]]:
     """Per entry: measured ms per training step (the training loop), the rest of a run (data and model
     setup, validation, checkpoint, evaluation) in seconds, and how many runs were trained at once while
@@ -80,6 +97,7 @@ class Collected:
     bases: dict[str, str] = field(default_factory=dict)
     coverage: dict[str, tuple[dict[str, float], bool]] = field(default_factory=dict)
     kl: dict[str, float | None] = field(default_factory=dict)
+    fit: dict[str, dict[str, float] | None] = field(default_factory=dict)
 
     def constant_velocity_mse(self) -> float | None:
         return next(
@@ -102,4 +120,5 @@ def collect_runs(study: Study) -> Collected:
             out.bases[entry.label] = entry.base.label
         out.coverage[entry.label] = entry_coverage(entry, study)
         out.kl[entry.label] = entry_kl(entry, study)
+        out.fit[entry.label] = entry_fit(entry, study)
     return out

@@ -1,5 +1,5 @@
 """The comparison as markdown: MSE tables with paired intervals, degradations, fusion verdicts,
-coverage, the latent's KL and run times; and its results.json cells."""
+coverage, the latent's KL, the fit of the training windows and run times; and its results.json cells."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from mmf_rl.compare.bootstrap import (
     overlap,
 )
 from mmf_rl.compare.collect import Collected
+from mmf_rl.compare.runs import FIT_WINDOWS
 from mmf_rl.compare.summary import reference_of
 
 # The forecast's 90% interval should cover this share of the test futures in every subset.
@@ -136,6 +137,24 @@ def kl_section(kl: dict[str, float | None]) -> str:
     )
 
 
+def fit_section(fit: dict[str, dict[str, float] | None]) -> str:
+    rows = [
+        f"| {label} | {f['train']:.4f} | {f['test']:.4f} | {f['test'] - f['train']:+.4f} |"
+        for label, f in fit.items()
+        if f is not None
+    ]
+    if not rows:
+        return ""
+    return (
+        "## Fit: every sensor, training windows against test (MSE, mean over seeds)\n\n"
+        f"Train: up to {FIT_WINDOWS} training windows drawn once, the same for every run. A model behind "
+        "on test and behind on train does not fit its data; one behind on test only does not "
+        "generalise.\n\n| entry | train | test | test - train |\n|---|---|---|---|\n"
+        + "\n".join(rows)
+        + "\n\n"
+    )
+
+
 def coverage_section(coverage: dict[str, tuple[dict[str, float], bool]], table: Table, title: Title) -> str:
     if not coverage:
         return ""
@@ -199,7 +218,7 @@ def results_sections(
     reference: str = "",
 ) -> str:
     """Everything between a report's header and its run times: MSE, ablations, degradation, fusion
-    verdicts, coverage and the latent's KL."""
+    verdicts, coverage, the latent's KL and the fit of the training windows."""
     labels = [
         *table.labels("paper", "variant", "zero-fill", "retrained"),
         *table.labels("fusion", "ablation"),
@@ -213,6 +232,7 @@ def results_sections(
         + fusion_verdicts(table, comparisons.get("all", {}))
         + coverage_section(collected.coverage, table, title)
         + kl_section(collected.kl)
+        + fit_section(collected.fit)
     )
 
 
@@ -239,7 +259,7 @@ def cells_json(table: Table) -> dict:
 
 def tables_json(table: Table, collected: Collected, comparisons: dict, measured: dict) -> dict:
     """What the report's tables show, for a results.json: the subsets, every cell, the paired
-    differences, the run times, the coverage and the latent's KL."""
+    differences, the run times, the coverage, the latent's KL and the fit."""
     return {
         "subsets": table.subsets,
         "cells": cells_json(table),
@@ -247,6 +267,7 @@ def tables_json(table: Table, collected: Collected, comparisons: dict, measured:
         "timing": measured,
         "coverage_90": {label: cells for label, (cells, _) in collected.coverage.items()},
         "kl": collected.kl,
+        "fit": collected.fit,
     }
 
 

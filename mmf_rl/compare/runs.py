@@ -3,7 +3,8 @@ is complete and reused.
 
 Each run is trained with ``mmf-rl train``'s ``train(cfg)``, evaluated on every presence subset of its
 test split with ``mmf-rl eval``'s ``run_evaluation(cfg)``, and then run over the test windows once
-more to keep every window's squared error with its episode, which the paired bootstrap needs.
+more to keep every window's squared error with its episode, which the paired bootstrap needs, and over
+a draw of training windows for its fit.
 """
 
 from __future__ import annotations
@@ -145,13 +146,8 @@ def stale_reason(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tu
     return describe_trained_differently(changed, limit=4)
 
 
-@torch.no_grad()
-def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str, dict[str, list]]:
-    """Every test window's squared error (mean over ``T x D``, normalised target) per presence subset,
-    with its window id and episode: ``{subset: {"window", "episode", "squared_error"}}``.
-
-    The windows and normalisation are those of ``run_evaluation`` (the test split in order, the
-    checkpoint's statistics); ``run_one`` checks the means agree with its MSE."""
+def trained_model_and_data(run_dir: Path, device: str):
+    """A run's last checkpoint (eval mode) and its windows, normalised with the checkpoint's statistics."""
     from mmf_rl.datasets import DataConfig, WindowDataset
     from mmf_rl.datasets.splits import Normalizer
     from mmf_rl.models import load_trained_model
@@ -159,6 +155,17 @@ def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str
     model, stats, data_config = load_trained_model(run_dir / "checkpoints", map_location=device)
     data = WindowDataset(DataConfig.from_dict(data_config))
     data.normalizer = Normalizer(stats)
+    return model, data
+
+
+@torch.no_grad()
+def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str, dict[str, list]]:
+    """Every test window's squared error (mean over ``T x D``, normalised target) per presence subset,
+    with its window id and episode: ``{subset: {"window", "episode", "squared_error"}}``.
+
+    The windows and normalisation are those of ``run_evaluation`` (the test split in order, the
+    checkpoint's statistics); ``run_one`` checks the means agree with its MSE."""
+    model, data = trained_model_and_data(run_dir, device)
     out = {}
     for name, subset in subsets([s.name for s in data.specs]):  # the trained data's modalities
         rows = subset_errors(model, data, subset, device, batch_size)
@@ -167,13 +174,16 @@ def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str
     return out
 
 
-def subset_errors(model, data, subset: dict[str, bool], device: str, batch_size: int) -> dict[str, list]:
+def subset_errors(
+    model, data, subset: dict[str, bool], device: str, batch_size: int, split: str = "test", windows=None
+) -> dict[str, list]:
+    """Every window's squared error under ``subset`` on ``split`` (its windows, or the given ones)."""
     from mmf_rl import keys
     from mmf_rl.datasets import apply_presence_subset
 
     rows: dict[str, list] = {"window": [], "episode": [], "squared_error": []}
-    for chunk in data.split_windows["test"].split(batch_size):
-        batch = data.batch(chunk, "test")
+    for chunk in (data.split_windows[split] if windows is None else windows).split(batch_size):
+        batch = data.batch(chunk, split)
         # apply_presence_subset keeps the windows that still have one of the subset's modalities.
         kept = torch.zeros(len(chunk), dtype=torch.bool)
         for m, keep in subset.items():
@@ -186,6 +196,24 @@ def subset_errors(model, data, subset: dict[str, bool], device: str, batch_size:
         rows["episode"] += data.window_episode[chunk[kept]].tolist()
         rows["squared_error"] += ((loc - batch.get(keys.TARGET)) ** 2).mean((1, 2)).cpu().tolist()
     return rows
+
+
+# Training windows a run's fit is scored on: enough for a stable mean, a few seconds of forward passes.
+FIT_WINDOWS = 2000
+
+
+@torch.no_grad()
+def train_mse(run_dir: Path, device: str, windows: int = FIT_WINDOWS, batch_size: int = 256) -> float:
+    """The point forecast's MSE (normalised target, every sensor the data has) on up to ``windows``
+    training windows, drawn once with a generator seeded 0 (the same windows for every run of a
+    recording). Beside the test MSE it tells a model that does not fit its training windows from one
+    that fits them and does not generalise."""
+    model, data = trained_model_and_data(run_dir, device)
+    train = data.split_windows["train"]
+    drawn = train[torch.randperm(len(train), generator=torch.Generator().manual_seed(0))[:windows]]
+    every_sensor = dict.fromkeys((spec.name for spec in data.specs), True)
+    errors = subset_errors(model, data, every_sensor, device, batch_size, "train", drawn)["squared_error"]
+    return statistics.fmean(errors)
 
 
 def evaluate(run_dir: Path, seed: int, device: str) -> dict:
@@ -229,6 +257,7 @@ def run_one(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[s
     summary = evaluate(run_dir, seed, study.device)
     errors = window_errors(run_dir, study.device)
     check_agreement(run_dir, errors, summary)
+    fit = train_mse(run_dir, study.device)
     total = time.perf_counter() - start
     budget = study.budget
     step_seconds = budget.batch_size / training_rate(run_dir)
@@ -241,6 +270,7 @@ def run_one(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[s
         "batch_size": budget.batch_size,
         "constant_velocity": summary.get("constant_velocity"),
         "subsets": errors,
+        "train_mse": fit,
     }
     write_json(run_dir / "eval" / "window_errors.json", result)  # last: its presence marks the run complete
     logger.info(

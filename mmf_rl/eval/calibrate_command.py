@@ -51,7 +51,8 @@ def run_calibration(cfg) -> dict:
             "use split=train or record more episodes"
         )
     torch.manual_seed(0)  # eval_latent="sample" draws: a refit gives the same factors
-    fits = fit_scale_calibration(model, data.loader(cfg.split, cfg.batch_size), cfg.min_windows, device)
+    every_window = data.loader(cfg.split, cfg.batch_size, shuffle=False)  # train's loader would drop its tail
+    fits = fit_scale_calibration(model, every_window, cfg.min_windows, device)
     model.calibration = calibration_record(model, fits, cfg.split, cfg.min_windows, data.config.root)
     written = save_calibration(model.cpu(), source)
     kept = [fit.pattern for fit in fits if not fit.fitted]

@@ -230,7 +230,7 @@ def run_evaluation(cfg) -> dict:
     overrides = {name: cfg[name] for name in LATENT_SETTINGS if cfg[name] is not None}
     model, data = load_for_evaluation(cfg, source, overrides, device)
     unfit = unfit_for_latent(model)
-    loader = data.loader(cfg.split, cfg.batch_size)
+    loader = data.loader(cfg.split, cfg.batch_size, shuffle=False)  # every window once, train too
     denormalize = data.normalizer.denormalize_target
     torch.manual_seed(cfg.seed)  # best-of-K draws are repeatable
 

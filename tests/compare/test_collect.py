@@ -53,3 +53,30 @@ def test_coverage_and_kl_are_read_per_run_from_the_run_a_cell_comes_from(tmp_pat
     assert cells == pytest.approx(expected)
     assert not recalibrated  # seed 1's runs kept the scale as trained
     assert collect.entry_kl(entry, study) == pytest.approx(expected["all"])
+
+
+def write_completed(run_dir, test_errors: list[float], train_mse: float | None) -> None:
+    result = {"subsets": {"all": {"squared_error": test_errors}}}
+    if train_mse is not None:
+        result["train_mse"] = train_mse
+    (run_dir / "eval").mkdir(parents=True, exist_ok=True)
+    (run_dir / "eval" / "window_errors.json").write_text(json.dumps(result))
+
+
+def test_fit_is_the_mean_over_the_entrys_own_runs_and_absent_for_runs_scored_before_it(tmp_path):
+    study = Study(tmp_path, Budget(4, 8, (0, 1)), (entries.PAPER,), tuple(PUSH_MODALITIES))
+    (_, _, seed0, _, _), (_, _, seed1, _, _) = entries.run_plan(entries.PAPER, study)
+    write_completed(seed0, [0.2, 0.4], train_mse=0.1)
+    write_completed(seed1, [0.5], train_mse=None)  # a run completed before train_mse was recorded
+    assert collect.entry_fit(entries.PAPER, study) is None
+    write_completed(seed1, [0.5], train_mse=0.3)
+    assert collect.entry_fit(entries.PAPER, study) == pytest.approx({"train": 0.2, "test": 0.4})
+
+
+def test_a_retrained_entry_has_no_fit_of_its_own(tmp_path):
+    # Its all-sensor cell is its base's run, whose fit the base's own row shows.
+    entry = next(e for e in entries.CATALOGUE if e.label == "LF-LSTM (retrained)")
+    study = Study(tmp_path, Budget(4, 8, (0,)), (entry,), tuple(PUSH_MODALITIES), retrained_for=PAPER_SUBSETS)
+    for _, _, run_dir, _, _ in entries.run_plan(entry, study):
+        write_completed(run_dir, [0.5], train_mse=0.3)
+    assert collect.entry_fit(entry, study) is None

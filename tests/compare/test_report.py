@@ -69,3 +69,11 @@ def test_block_intervals_say_what_they_cover():
     assert report.intervals_text("episode", [1, 2, 3], [1, 2, 3], block=20).startswith(
         "Intervals: percentile bootstrap over the 3 test episodes (2000 resamples"
     )
+
+
+def test_the_fit_section_sets_train_beside_test_and_is_left_out_without_scores():
+    text = report.fit_section({"paper": {"train": 0.25, "test": 0.35}, "MulT (retrained)": None})
+    assert text.startswith("## Fit: every sensor, training windows against test")
+    assert "| paper | 0.2500 | 0.3500 | +0.1000 |" in text.splitlines()
+    assert "MulT (retrained)" not in text
+    assert report.fit_section({"paper": None}) == ""

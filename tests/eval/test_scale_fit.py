@@ -11,6 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from mmf_rl import keys
 from mmf_rl.checkpoint import LAST_POINTER, list_checkpoints, load_checkpoint
 from mmf_rl.cli import main as cli
+from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.scale_fit import (
     HALF_WIDTH_90,
     calibration_header,
@@ -212,3 +213,20 @@ def test_calibrate_names_bad_input_in_one_line(push_run, capsys, arguments, mess
     assert cli(["calibrate", *(a.replace("RUN", str(push_run)) for a in arguments)]) == 1
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+def test_eval_and_calibrate_on_the_train_split_read_every_training_window(push_run, capsys):
+    # The training loader shuffles and drops the tail that does not fill a batch: with a split smaller
+    # than the batch, eval and calibrate would have read no window at all.
+    trained = load_checkpoint(push_run / "checkpoints", with_trainer_state=False).meta["config"]["data"]
+    windows = len(WindowDataset(DataConfig.from_dict(trained)).split_windows["train"])
+    assert 0 < windows < 256
+    args = [f"checkpoint={push_run}", "split=train", "num_samples=0", "plots=false", "batch_size=256"]
+    assert cli(["eval", *args]) == 0
+    results = json.loads((push_run / "eval" / "results.json").read_text())
+    assert results["subsets"]["all"]["windows"] == windows
+    assert cli(["calibrate", f"checkpoint={push_run}", "split=train", "min_windows=4", "batch_size=256"]) == 0
+    capsys.readouterr()
+    record = load_checkpoint(push_run / "checkpoints", with_trainer_state=False).meta["calibration"]
+    assert record["split"] == "train"
+    assert {p["windows"] for p in record["patterns"]} == {windows}  # no sensor fails in this recording
