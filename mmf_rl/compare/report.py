@@ -146,7 +146,7 @@ def fit_section(fit: dict[str, dict[str, float] | None]) -> str:
     if not rows:
         return ""
     return (
-        "## Fit: every sensor, training windows against test (MSE, mean over seeds)\n\n"
+        "## Fit: every sensor, training windows against test (normalised MSE, mean over seeds)\n\n"
         f"Train: up to {FIT_WINDOWS} training windows drawn once, the same for every run. A model behind "
         "on test and behind on train does not fit its data; one behind on test only does not "
         "generalise.\n\n| entry | train | test | test - train |\n|---|---|---|---|\n"
