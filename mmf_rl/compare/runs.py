@@ -158,14 +158,18 @@ def trained_model_and_data(run_dir: Path, device: str):
     return model, data
 
 
-@torch.no_grad()
 def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str, dict[str, list]]:
     """Every test window's squared error (mean over ``T x D``, normalised target) per presence subset,
     with its window id and episode: ``{subset: {"window", "episode", "squared_error"}}``.
 
     The windows and normalisation are those of ``run_evaluation`` (the test split in order, the
     checkpoint's statistics); ``run_one`` checks the means agree with its MSE."""
-    model, data = trained_model_and_data(run_dir, device)
+    return scored_windows(*trained_model_and_data(run_dir, device), device, batch_size)
+
+
+@torch.no_grad()
+def scored_windows(model, data, device: str, batch_size: int = 256) -> dict[str, dict[str, list]]:
+    """:func:`window_errors` of a loaded model and its windows."""
     out = {}
     for name, subset in subsets([s.name for s in data.specs]):  # the trained data's modalities
         rows = subset_errors(model, data, subset, device, batch_size)
@@ -202,13 +206,19 @@ def subset_errors(
 FIT_WINDOWS = 2000
 
 
-@torch.no_grad()
 def train_mse(run_dir: Path, device: str, windows: int = FIT_WINDOWS, batch_size: int = 256) -> float:
     """The point forecast's MSE (normalised target, every sensor the data has) on up to ``windows``
     training windows, drawn once with a generator seeded 0 (the same windows for every run of a
     recording). Beside the test MSE it tells a model that does not fit its training windows from one
     that fits them and does not generalise."""
-    model, data = trained_model_and_data(run_dir, device)
+    return training_windows_mse(*trained_model_and_data(run_dir, device), device, windows, batch_size)
+
+
+@torch.no_grad()
+def training_windows_mse(
+    model, data, device: str, windows: int = FIT_WINDOWS, batch_size: int = 256
+) -> float:
+    """:func:`train_mse` of a loaded model and its windows."""
     train = data.split_windows["train"]
     drawn = train[torch.randperm(len(train), generator=torch.Generator().manual_seed(0))[:windows]]
     every_sensor = dict.fromkeys((spec.name for spec in data.specs), True)
@@ -255,9 +265,10 @@ def run_one(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[s
     train(compose_train(entry, seed, study, run_dir, extra))
     trained = time.perf_counter() - start
     summary = evaluate(run_dir, seed, study.device)
-    errors = window_errors(run_dir, study.device)
+    model, data = trained_model_and_data(run_dir, study.device)  # loaded once for both passes
+    errors = scored_windows(model, data, study.device)
     check_agreement(run_dir, errors, summary)
-    fit = train_mse(run_dir, study.device)
+    fit = training_windows_mse(model, data, study.device)
     total = time.perf_counter() - start
     budget = study.budget
     step_seconds = budget.batch_size / training_rate(run_dir)
