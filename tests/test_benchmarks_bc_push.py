@@ -15,19 +15,19 @@ import pandas as pd
 import pytest
 import yaml
 
-from benchmarks.bc_push import (
-    Forecaster,
-    build_recording,
-    forecaster_run_dir,
-    parse_args,
-    policy_run_dir,
-    record_or_check_forecaster,
-    warn_of_in_sample_forecasts,
-)
+from benchmarks.bc_push import parse_args
 from mmf_rl.checkpoint import list_checkpoints
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets.provenance import PROVENANCE_FILE, read_recording_provenance
 from mmf_rl.rl import BCPolicy
+from mmf_rl.rl.bc_push_experiment import (
+    Forecaster,
+    build_recording,
+    forecaster_run_dir,
+    policy_run_dir,
+    record_or_check_forecaster,
+    warn_of_in_sample_forecasts,
+)
 from tests.conftest import push_train_overrides
 
 

@@ -6,8 +6,9 @@ forecast as a policy input. What the push experiments (``benchmarks/mpc_push.py`
 build on lives in the submodules: closed-loop play under sensor outages (`closed_loop`,
 `outage_evaluation`, `mpc_evaluation`, `bc_evaluation`), data aggregation (`aggregation`), DAgger
 (`dagger`), action chunks with temporal ensembling for BC (`action_chunks`), training outages replayed
-through the env's outage processes (`replayed_outages`) and their shared command-line pieces
-(`experiment`)."""
+through the env's outage processes (`replayed_outages`), their shared command-line pieces
+(`experiment`), and the push BC experiment's building and report (`bc_push_experiment`,
+`bc_push_report`)."""
 
 from mmf_rl.rl.agent import MPCActor, PushMPCAgent
 from mmf_rl.rl.bc import DEFAULT_DROPOUT, BCConfig, BCPolicy, EncoderChoice, train_bc, validation_errors
