@@ -1,5 +1,6 @@
-"""Human-trajectory scoring as the ETH/UCY literature reports it: the four test modes, per-scene and
-average tables in metres, the published reference table, forecasts drawn on a scene image.
+"""Human-trajectory scoring as the ETH/UCY literature reports it: the four test modes, a model scored
+in them on a split, constant velocity with its heading noise picked on val, per-scene and average
+tables in metres, the published reference table, forecasts drawn on a scene image.
 
 A mode is a presence subset over the trajectory data's modalities: ``all``, ``without_scene``,
 ``without_neighbours`` and ``trajectory_only``. Every model is scored in every mode on the same
@@ -12,6 +13,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -19,9 +21,15 @@ matplotlib.use("Agg")  # files only: no display on training machines
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from torch import nn  # noqa: E402
 
 from mmf_rl import keys  # noqa: E402
 from mmf_rl.eval.metrics import evaluate_presence_subsets  # noqa: E402
+from mmf_rl.models import build_model  # noqa: E402
+
+if TYPE_CHECKING:
+    from mmf_rl.datasets import WindowDataset
+    from mmf_rl.datasets.ethucy import Scene
 
 logger = logging.getLogger(__name__)
 
@@ -75,6 +83,43 @@ def score_modes(
         for row in rows.values():
             row |= {"min_ade_k": row["ade"], "min_fde_k": row["fde"]}
     return {mode: {k: rows[mode][k] for k in (*METRICS, "windows")} for mode in MODES}
+
+
+def score_split(
+    model, data: WindowDataset, split: str, batch_size: int, device="cpu", deterministic: bool = False
+) -> Scores:
+    """:func:`score_modes` of ``model`` on ``data``'s ``split`` windows, in the target's units; its
+    samples drawn from a fixed seed, so scoring a model again gives the same numbers."""
+    torch.manual_seed(0)
+    loader = data.loader(split, batch_size)
+    model = model.to(device).eval()
+    return score_modes(model, loader, data.normalizer.denormalize_target, device, deterministic=deterministic)
+
+
+def constant_velocity_model(data: WindowDataset, heading_noise: float = 0.0) -> nn.Module:
+    """The constant-velocity baseline on ``data``'s windows, in eval mode: with ``heading_noise`` (the
+    std in radians) its samples turn the last velocity, in the target's units (the data's target std)."""
+    std = data.normalizer.stats["target/std"].tolist()
+    return build_model(
+        {"name": "constant_velocity", "heading_noise": heading_noise, "target_scale": std},
+        data.specs,
+        data.config.history,
+        data.config.horizon,
+        len(std),
+    ).eval()
+
+
+def best_heading_noise(
+    data: WindowDataset, grid: Sequence[float], batch_size: int, device="cpu"
+) -> tuple[float, dict[float, float]]:
+    """The std of ``grid`` whose constant velocity with heading noise has the lowest all-modality
+    minADE20 on ``data``'s val split, and each std's val minADE20: picked on val, never on the test
+    scene."""
+    on_val = {}
+    for sigma in grid:
+        scores = score_split(constant_velocity_model(data, sigma), data, "val", batch_size, device)
+        on_val[sigma] = scores["all"]["min_ade_k"]
+    return min(on_val, key=on_val.get), on_val
 
 
 def average_over_scenes(
@@ -176,6 +221,37 @@ def plot_forecasts_on_image(
     fig.savefig(path)
     plt.close(fig)
     return path
+
+
+def observed_positions(batch, stats: Mapping[str, torch.Tensor]) -> torch.Tensor:
+    """``[B, H, 2]``: the observed ``trajectory`` modality's first two dims (the positions) in world
+    units, denormalised with the data's statistics ``stats``."""
+    trajectory = batch.get((keys.OBS, "trajectory"))[..., :2]
+    return trajectory * stats["trajectory/std"][:2] + stats["trajectory/mean"][:2]
+
+
+def draw_test_samples(
+    model,
+    data: WindowDataset,
+    windows: int,
+    scene: Scene,
+    path: Path,
+    title: str,
+    num_samples: int = NUM_SAMPLES,
+) -> Path:
+    """``model``'s ``num_samples`` samples, the ground truth and the observed past of ``windows`` test
+    windows spread evenly over the test split, drawn on the ``scene``'s reference frame through its
+    world -> pixel map (:func:`plot_forecasts_on_image`); the samples drawn from a fixed seed, so a
+    figure repeats."""
+    ids = data.split_windows["test"]
+    batch = data.batch(ids[torch.linspace(0, len(ids) - 1, windows).long()])
+    torch.manual_seed(0)
+    samples = model.eval().sample(batch.exclude(keys.TARGET), num_samples).get(keys.FORECAST_SAMPLES)
+    stats = data.normalizer.stats
+    examples = world_examples(
+        batch, samples.detach(), lambda b: observed_positions(b, stats), data.normalizer.denormalize_target
+    )
+    return plot_forecasts_on_image(scene.image, scene.to_pixel, examples, path, title)
 
 
 def world_examples(batch, samples: torch.Tensor, position_of: Callable, denormalize: Callable) -> list[dict]:

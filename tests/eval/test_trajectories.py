@@ -89,3 +89,42 @@ def test_examples_are_placed_in_the_world_and_drawn_on_the_image(tmp_path):
         image, lambda xy: xy[..., ::-1] + 20, examples, tmp_path / "f.png", "test"
     )
     assert path.stat().st_size > 1000
+
+
+@pytest.fixture(scope="module")
+def eth_fold(tmp_path_factory):
+    """The eth fold's windows, converted from a cut of the real ETH/UCY files (skipped without them)."""
+    import yaml
+
+    from mmf_rl.datasets import DataConfig, WindowDataset, ethucy
+    from tests.datasets.conftest import SHARED_DATA, cut_ethucy_raw
+
+    if not (SHARED_DATA / "ethucy" / "trajectories").is_dir():
+        pytest.skip(f"ETH/UCY data not at {SHARED_DATA / 'ethucy'} (set MMF_RL_SHARED_DATA)")
+    tmp = tmp_path_factory.mktemp("eth_fold")
+    [path] = ethucy.convert(cut_ethucy_raw(tmp, steps=40, agents=8), ["eth"], tmp / "out", workers=1)
+    config = yaml.safe_load(path.read_text()) | {"cache_dir": str(tmp / "cache"), "image_size": [16, 16]}
+    return WindowDataset(DataConfig.from_dict(config))
+
+
+def test_constant_velocity_of_a_real_fold_scores_again_the_same_and_repeats_its_sample(eth_fold):
+    from mmf_rl.eval.trajectories import constant_velocity_model, score_split
+
+    plain = score_split(constant_velocity_model(eth_fold), eth_fold, "test", batch_size=8)
+    assert plain["all"]["windows"] > 0
+    # Without heading noise its 20 samples are one forecast: the best of 20 is that forecast's error.
+    assert plain["all"]["min_ade_k"] == pytest.approx(plain["all"]["ade"])
+    noisy = constant_velocity_model(eth_fold, heading_noise=0.3)
+    first, again = (score_split(noisy, eth_fold, "test", batch_size=8) for _ in range(2))
+    assert first == again  # the samples are drawn from a fixed seed
+    assert first["all"]["min_ade_k"] < first["all"]["ade"]
+
+
+def test_heading_noise_is_picked_on_val_as_the_grid_value_of_lowest_min_ade(eth_fold):
+    from mmf_rl.eval.trajectories import best_heading_noise, constant_velocity_model, score_split
+
+    grid = (0.0, 0.2, 1.5)
+    best, on_val = best_heading_noise(eth_fold, grid, batch_size=8)
+    assert set(on_val) == set(grid) and on_val[best] == min(on_val.values())
+    val = score_split(constant_velocity_model(eth_fold, 1.5), eth_fold, "val", batch_size=8)
+    assert on_val[1.5] == val["all"]["min_ade_k"]
