@@ -7,10 +7,11 @@ export MUJOCO_GL ?= egl
 setup:
 	@bash scripts/setup.sh
 
+# --durations: every log lists the slowest tests, so the suite's time budget can be kept.
 test: setup
 	.venv/bin/ruff check .
 	.venv/bin/ruff format --check .
-	$(VENV_PY) -m pytest -q tests
+	$(VENV_PY) -m pytest -q --durations=25 tests
 
 demo: setup
 	$(VENV_PY) -m mmf_rl.cli demo
