@@ -12,7 +12,7 @@ import torch
 from safetensors.torch import load_file
 
 from mmf_rl import keys
-from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
+from mmf_rl.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.configuration import compose_config, config_dir, to_container
 from mmf_rl.datasets import WindowDataset
@@ -219,7 +219,9 @@ def test_killed_training_resumes_to_the_weights_of_an_uninterrupted_run(override
     )
     try:
         deadline = time.monotonic() + 300
-        while not any(int(p.name.split("_")[1]) >= 3 for p in list_checkpoints(killed / "checkpoints")):
+        # The `last` pointer, which resume and the assertion below read, moves after each checkpoint
+        # is complete: wait on it, not on the checkpoint directories.
+        while last_step(killed / "checkpoints") < 3:
             assert process.poll() is None, "training ended before it could be killed"
             assert time.monotonic() < deadline
             time.sleep(0.02)
@@ -236,6 +238,14 @@ def test_killed_training_resumes_to_the_weights_of_an_uninterrupted_run(override
     reference, resumed = final_weights(tmp_path / "reference"), final_weights(killed)
     for name, value in reference.items():
         torch.testing.assert_close(resumed[name], value, rtol=1e-5, atol=1e-6, msg=name)
+
+
+def last_step(directory: Path) -> int:
+    """The step of the checkpoint ``directory``'s ``last`` pointer names (-1: none yet)."""
+    try:
+        return int(resolve_checkpoint(directory).name.split("_")[1])
+    except CheckpointError:
+        return -1
 
 
 def free_port() -> int:
