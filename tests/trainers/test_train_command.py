@@ -12,7 +12,7 @@ import torch
 from safetensors.torch import load_file
 
 from mmf_rl import keys
-from mmf_rl.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint
+from mmf_rl.checkpoint import CheckpointError, load_checkpoint, read_meta, resolve_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.configuration import compose_config, config_dir, to_container
 from mmf_rl.datasets import WindowDataset
@@ -243,7 +243,7 @@ def test_killed_training_resumes_to_the_weights_of_an_uninterrupted_run(override
 def last_step(directory: Path) -> int:
     """The step of the checkpoint ``directory``'s ``last`` pointer names (-1: none yet)."""
     try:
-        return int(resolve_checkpoint(directory).name.split("_")[1])
+        return int(read_meta(resolve_checkpoint(directory))["step"])
     except CheckpointError:
         return -1
 
