@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import warnings
 from collections.abc import Iterator
+from pathlib import Path
 
 import torch
 from tensordict import MemoryMappedTensor, TensorDict
 
 from mmf_rl.datasets.augment import TrainingAugmentation
-from mmf_rl.datasets.cache import action_offsets, open_cache, window_offsets
+from mmf_rl.datasets.cache import CACHE_META, action_offsets, open_cache, window_offsets
 from mmf_rl.datasets.config import OBSERVED, SPLIT_NAMES, DataConfig
 from mmf_rl.datasets.lerobot_source import LeRobotSource
 from mmf_rl.datasets.planar import check_pairs, rotate_frames, rotate_pairs
@@ -25,12 +27,23 @@ from mmf_rl.keys import (
     zero_absent_steps,
 )
 
+logger = logging.getLogger(__name__)
+
 # A modality absent on more of the frames than this is an error unless its config sets `allow_absent`.
 MAX_ABSENT_FRACTION = 0.5
 # Image bytes gathered through one mapping of the cache's image columns before they are mapped
 # afresh (`WindowDataset._map_images`): what bounds the pages a reader keeps resident. Image
 # tables no larger than this stay mapped once.
 REMAP_IMAGE_BYTES = 64 * 2**20
+# A modality's missing or undecodable files a warning or error names; it then says how many more.
+SHOWN_FILES = 3
+
+
+def _first_files(problems: list[str], root: Path) -> str:
+    """``N file(s): A, B, C and M more``: the first SHOWN_FILES of a modality's problem files."""
+    shown = ", ".join(p.removeprefix(f"{root}/") for p in problems[:SHOWN_FILES])
+    more = f" and {len(problems) - SHOWN_FILES} more" if len(problems) > SHOWN_FILES else ""
+    return f"{len(problems)} file(s): {shown}{more}"
 
 
 def _plain(tensor: torch.Tensor) -> torch.Tensor:
@@ -175,23 +188,39 @@ class WindowDataset:
             problems.setdefault(name, []).extend(f"{p} (missing)" for p in paths)
         for name, errors in self.report["undecodable_files"].items():
             problems.setdefault(name, []).extend(f"{p} (undecodable: {e})" for p, e in errors.items())
+        if problems:
+            # The warning and the error show each modality's first files; `mmf-rl -v` logs them all.
+            logger.debug("dataset %s: every missing or undecodable file: %s", source.root, problems)
         required = [n for n in problems if source.modalities[n].spec.required]
         if required:
-            lines = "; ".join(f"{n!r} ({source.modalities[n].feature}): {problems[n]}" for n in required)
+            summary = self._problem_summary(source, problems, required)
             raise FileNotFoundError(
-                f"required modality absent from {source.root}: {lines}. Restore the files, or set "
-                f"`required: false` for it to train with the modality marked absent"
+                f"required modality absent from {source.root}:{summary}\n  Restore the files, or set "
+                "`required: false` for it to train with the modality marked absent"
             )
         self._check_mostly_absent(source, frames)
         if problems:
-            lines = "; ".join(
-                f"{n!r} ({source.modalities[n].feature}): {', '.join(p)}" for n, p in problems.items()
-            )
             warnings.warn(
                 f"dataset {source.root}: modality absent where these video files or parquet images are "
-                f"missing or undecodable, marked present=False there: {lines}",
+                "missing or undecodable, marked present=False there:"
+                + self._problem_summary(source, problems, list(problems)),
                 stacklevel=3,
             )
+
+    def _problem_summary(
+        self, source: LeRobotSource, problems: dict[str, list[str]], names: list[str]
+    ) -> str:
+        """Per modality of ``names``, how many files and the first few (relative to the dataset root);
+        then, on a line of its own, where the full list is. A recording with a misplaced video folder
+        misses every file, and a message naming each would run to thousands of characters."""
+        lines = "; ".join(
+            f"{n!r} ({source.modalities[n].feature}): {_first_files(problems[n], source.root)}" for n in names
+        )
+        return (
+            f" {lines}\n  The full list is in {self.cache_path / CACHE_META} (`missing_files`, "
+            f"`undecodable_files`) and in the log of `mmf-rl -v`; `mmf-rl inspect {source.root}` also "
+            "finds files under a near-miss path (video/ for videos/)"
+        )
 
     def _check_mostly_absent(self, source: LeRobotSource, frames: TensorDict) -> None:
         """A modality absent on more than half of the frames is an error unless its config accepts it

@@ -281,3 +281,53 @@ def camera_config(root, cache_dir, **overrides) -> DataConfig:
     }
     d.update(overrides)
     return DataConfig.from_dict(d)
+
+
+# --- a recording named like issue 55's: `state`, `actions`, a camera `image`, videos under `video/` ---
+
+UNCONVENTIONAL_EPISODES = [10, 9, 11, 10, 8, 10, 9, 10]
+UNCONVENTIONAL_STATE, UNCONVENTIONAL_ACTIONS, UNCONVENTIONAL_CAMERA = "state", "actions", "image"
+
+
+def make_unconventional_dataset(root: Path) -> Path:
+    """Record through ``LeRobotDataset.create`` a dataset whose features are not named `observation.*`:
+    ``actions`` (the commands, listed first) and ``state`` (4-D each) and a video camera ``image``,
+    one video file per episode (lerobot starts a new file once one passes ``video_files_size_in_mb``)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    vector = {"dtype": "float32", "shape": (4,), "names": None}
+    features = {
+        UNCONVENTIONAL_ACTIONS: vector,
+        UNCONVENTIONAL_STATE: vector,
+        UNCONVENTIONAL_CAMERA: {
+            "dtype": "video",
+            "shape": (CAMERA_HEIGHT, CAMERA_WIDTH, 3),
+            "names": ["height", "width", "channels"],
+        },
+    }
+    dataset = LeRobotDataset.create(
+        repo_id="local/unconventional", fps=10, features=features, root=root, use_videos=True, vcodec="h264"
+    )
+    dataset.meta.update_chunk_settings(video_files_size_in_mb=0.001)
+    for episode, length in enumerate(UNCONVENTIONAL_EPISODES):
+        for frame in range(length):
+            dataset.add_frame(
+                {
+                    UNCONVENTIONAL_STATE: joints_at(episode, frame),
+                    UNCONVENTIONAL_ACTIONS: joints_at(episode, frame + 1),
+                    UNCONVENTIONAL_CAMERA: camera_frame(episode, frame, 3),
+                    "task": "reach",
+                }
+            )
+        dataset.save_episode()
+    dataset.finalize()
+    return root
+
+
+@pytest.fixture(scope="session")
+def unconventional_root(tmp_path_factory) -> Path:
+    """The unconventional recording with its videos committed under ``video/`` while info.json's
+    ``video_path`` says ``videos/``: the camera is absent on every frame where training looks."""
+    root = make_unconventional_dataset(tmp_path_factory.mktemp("unconventional") / "bimanual")
+    (root / "videos").rename(root / "video")
+    return root

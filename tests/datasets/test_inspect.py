@@ -14,7 +14,9 @@ from mmf_rl.datasets.inspect import (
     _motion_ratio,
     choose_target,
     config_comments,
+    config_text,
     inspect_dataset,
+    ranked_targets,
     suggested_data_config,
 )
 from mmf_rl.datasets.provenance import PROVENANCE_FILE
@@ -33,6 +35,10 @@ from tests.datasets.conftest import (
     INVALID_IMAGE_EPISODE,
     NAN_FORCE_EPISODE,
     SO101_ROOT,
+    UNCONVENTIONAL_ACTIONS,
+    UNCONVENTIONAL_CAMERA,
+    UNCONVENTIONAL_EPISODES,
+    UNCONVENTIONAL_STATE,
     needs_so101,
 )
 from tests.datasets.test_provenance import SCRIPTED
@@ -140,15 +146,16 @@ def test_so101_cameras_are_reported_missing():
     report = inspect_dataset(SO101_ROOT)
     for camera in ("observation.images.front", "observation.images.top"):
         assert report["sensors"][camera]["outages"]["fraction"] == 1.0
+        assert report["sensors"][camera]["near_misses"] == 0  # no mp4 anywhere under the root
     assert report["sensors"]["observation.state"]["outages"]["fraction"] == 0.0
     config = suggested_data_config(report)
     assert config["target"]["feature"] == "observation.state"
-    # No video file: the cameras are accepted absent, with a comment saying so.
-    assert config["modalities"]["front"]["allow_absent"] and config["modalities"]["top"]["allow_absent"]
-    assert not config["modalities"]["state"]["allow_absent"]
-    assert any(
-        "front: allow_absent" in c and "video files are missing" in c for c in config_comments(report, config)
-    )
+    # No video file: the cameras could never be present, so they are left out, commented out with why.
+    assert set(config["modalities"]) == {"action", "state"}
+    assert config["image_size"] == [48, 64]  # the left-out cameras' size, for when they are restored
+    text = config_text(report, config)
+    assert "  # front left out: absent on all 1492 frames (1 video file missing)" in text
+    assert "\n  # top: observation.images.top\n" in text
 
 
 def test_the_readmes_inspect_train_eval_path(synthetic_root, tmp_path, monkeypatch, capsys):
@@ -250,3 +257,144 @@ def test_a_camera_that_decodes_neither_way_is_accepted_absent_with_the_error(syn
     config = DataConfig.from_dict({**config, "history": 4, "horizon": 3, "cache_dir": str(tmp_path)})
     with pytest.warns(UserWarning, match=rf"{video.name} \(undecodable"):
         assert not WindowDataset(config).presence["front"].any()
+
+
+# --- a recording not named like LeRobot's own (issue 55): `state`, `actions`, `image` under video/ ---
+
+
+def test_target_is_the_feature_named_state_not_the_actions_listed_before_it(unconventional_root):
+    report = inspect_dataset(unconventional_root)
+    assert report["vectors"] == [UNCONVENTIONAL_ACTIONS, UNCONVENTIONAL_STATE]  # both complete
+    config = suggested_data_config(report)
+    assert config["target"]["feature"] == UNCONVENTIONAL_STATE
+    rule, alternatives = config_comments(report, config)[:2]
+    assert rule.startswith(
+        f'# target {UNCONVENTIONAL_STATE}: picked by the rule "named as a state (state, *.state, '
+        'observation.*state*)"'
+    )
+    assert alternatives.startswith(
+        f"# target alternatives, best first: {UNCONVENTIONAL_ACTIONS} [named as an action or command"
+    )
+
+
+def test_targets_rank_by_meaning_then_outages():
+    vectors = {  # feature: fraction of frames absent, in the dataset's order
+        "action.joint_pos": 0.0,
+        "cmd_vel": 0.0,
+        "observation.force": 0.0,
+        "qpos": 0.0,
+        "observation.robot_state": 0.3,
+        "robot.state": 0.6,  # absent on most frames: after every other
+        "joint_states": 0.0,
+        "observation.object_pose": 0.0,
+        "temperature": 0.0,
+    }
+    report = {
+        "root": "/data/x",
+        "features": {},
+        "vectors": list(vectors),
+        "sensors": {f: {"outages": {"fraction": a}} for f, a in vectors.items()},
+    }
+    assert [f for f, _ in ranked_targets(report)] == [
+        "joint_states",  # named as a state, complete
+        "observation.robot_state",  # named as a state, 30% absent
+        "qpos",  # named as a position
+        "observation.object_pose",
+        "observation.force",  # another observation
+        "temperature",  # another vector
+        "action.joint_pos",  # commands, whatever else their name says
+        "cmd_vel",
+        "robot.state",
+    ]
+    with pytest.raises(ValueError, match=r"/data/x: the dataset has no numeric vector feature"):
+        ranked_targets({**report, "vectors": []})
+
+
+def test_a_camera_absent_on_every_frame_is_left_out_as_a_commented_out_entry(
+    unconventional_root, tmp_path, capsys
+):
+    path = tmp_path / "mine.yaml"
+    assert cli(["inspect", str(unconventional_root), "--write-config", str(path)]) == 0
+    out = capsys.readouterr().out
+    camera = out[out.index(f"  {UNCONVENTIONAL_CAMERA} (camera)") :]
+    assert camera.splitlines()[1] == (
+        "    left out of the suggested config (a commented-out entry): absent on every frame"
+    )
+    text = path.read_text()
+    entry = (
+        f"modalities:\n  # {UNCONVENTIONAL_CAMERA} left out: absent on all "
+        f"{sum(UNCONVENTIONAL_EPISODES)} frames ({len(UNCONVENTIONAL_EPISODES)} video files missing; "
+    )
+    assert entry in text and f"\n  # {UNCONVENTIONAL_CAMERA}: {UNCONVENTIONAL_CAMERA}\n" in text
+    written = yaml.safe_load(text)
+    assert set(written["modalities"]) == {UNCONVENTIONAL_ACTIONS, UNCONVENTIONAL_STATE}
+    assert written["image_size"] == [16, 32]
+    # Uncommented, the entry is the camera's modality.
+    restored = yaml.safe_load(text.replace(f"  # {UNCONVENTIONAL_CAMERA}: ", f"  {UNCONVENTIONAL_CAMERA}: "))
+    assert restored["modalities"][UNCONVENTIONAL_CAMERA] == UNCONVENTIONAL_CAMERA
+    # As written, the config builds its windows with no camera to warn about.
+    config = DataConfig.from_dict({**written, "history": 3, "horizon": 2, "cache_dir": str(tmp_path / "c")})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert {s.name for s in WindowDataset(config).specs} == set(written["modalities"])
+
+
+def test_every_sensor_absent_everywhere_is_an_error_naming_the_causes(unconventional_root):
+    report = inspect_dataset(unconventional_root)
+    for feature in report["vectors"]:
+        report["sensors"][feature]["outages"]["fraction"] = 1.0
+        report["sensors"][feature]["nonfinite_frames"] = report["frames"]
+    with pytest.raises(ValueError, match=r"every sensor is absent on every frame \(image: 8 video files"):
+        suggested_data_config(report)
+
+
+def test_video_files_under_a_near_miss_folder_are_reported_with_the_rename(unconventional_root, capsys):
+    report = inspect_dataset(unconventional_root)
+    camera = report["sensors"][UNCONVENTIONAL_CAMERA]
+    assert camera["episodes_without_video"] == len(UNCONVENTIONAL_EPISODES)
+    assert camera["near_misses"] == len(UNCONVENTIONAL_EPISODES) and camera["renames"] == [
+        ["video", "videos"]
+    ]
+    assert camera["sync"] is None  # never read where info.json does not say they are
+    assert cli(["inspect", str(unconventional_root)]) == 0
+    assert (
+        f"    8 of them are under a near-miss path (not read there): in {unconventional_root} rename "
+        "video to videos\n"
+    ) in capsys.readouterr().out
+
+
+def _renames_of(root):
+    return inspect_dataset(root)["sensors"][UNCONVENTIONAL_CAMERA]["renames"]
+
+
+def test_near_miss_chunk_and_file_names_are_reported_file_by_file(unconventional_root, tmp_path, capsys):
+    root = shutil.copytree(unconventional_root, tmp_path / "copy")
+    (root / "videos").mkdir()  # another camera's folder, in place: the camera's own folder is renamed
+    assert _renames_of(root) == [["video/image", "videos/image"]]
+    (root / "video" / "image").rename(root / "videos" / "image")
+    chunk = root / "videos" / "image" / "chunk-000"
+    chunk.rename(chunk.with_name("chunk_0"))
+    assert _renames_of(root) == [["videos/image/chunk_0", "videos/image/chunk-000"]]
+    for video in sorted((root / "videos" / "image" / "chunk_0").iterdir()):
+        video.rename(video.with_name(video.name.replace("-", "_")))
+    renames = _renames_of(root)
+    assert len(renames) == len(UNCONVENTIONAL_EPISODES) and renames[0] == [
+        "videos/image/chunk_0/file_000.mp4",
+        "videos/image/chunk-000/file-000.mp4",
+    ]
+    assert cli(["inspect", str(root)]) == 0
+    report = capsys.readouterr().out.split("suggested data config")[0]
+    (line,) = [line for line in report.splitlines() if "near-miss" in line]
+    assert line.endswith("videos/image/chunk-000/file-002.mp4 (and 5 more like them)")
+
+
+def test_data_files_under_a_near_miss_folder_are_an_error_with_the_rename(
+    unconventional_root, tmp_path, capsys
+):
+    root = shutil.copytree(unconventional_root, tmp_path / "copy")
+    (root / "data" / "chunk-000").rename(root / "data" / "chunk_000")
+    assert cli(["inspect", str(root)]) == 1
+    err = capsys.readouterr().err
+    assert f"{root / 'meta' / 'info.json'}: `data_path` 'data/chunk-{{chunk_index:03d}}" in err
+    assert f"data file(s) that are missing, e.g. {root}/data/chunk-000/file-000.parquet" in err
+    assert f"not read there: in {root} rename data/chunk_000 to data/chunk-000, then run" in err
