@@ -15,12 +15,14 @@ Entries (``ENTRIES``; a new model option is one line there):
 
 * ``paper``: the attention CVAE with the configuration defaults (ELBO + ``L_mis``); ``variant``
   rows: the same model with one of its options (learned prior, drop distribution, GSNN).
-* Baselines, two protocols for absent modalities at test time:
+* Baselines, three protocols for absent modalities at test time:
   - ``zero-fill``: trained once on all modalities; ``LF-LSTM`` and ``MulT`` see an absent
     modality as zeros, ``MVAE`` drops its expert from the product (its native handling);
   - ``retrained``: the paper's protocol, one model per subset trained with only that subset's
     modalities present (``+data.missing.<m>=1.0`` for the others); its ``all`` cell is the model
-    trained on all modalities.
+    trained on all modalities;
+  - ``trained for missing``: trained once with sensors removed, by modality dropout drawn every batch,
+    by ``L_mis`` beside its own term, or both (``mmf_rl.compare.entries.TRAINED_FOR_MISSING``).
 * Ablations of the paper's model: ``linear``, ``average``, ``sum``, ``cross_attention`` fusion
   (Table 4), also under the learned prior (``learned fusion``: there the fusion also gives the latent a
   test forecast decodes); without ``L_mis`` and with 50 % of the images missing in training (Table 5);
@@ -88,7 +90,9 @@ STANDARD_ENTRIES = (
     catalogue.PAPER_LEARNED.label,
     "paper eval_latent=posterior",
     "paper, pair-stream decoder, linear z, per-step vector tokens",
-    *(e.label for e in (*catalogue.ZERO_FILL, *catalogue.RETRAINED, *catalogue.FUSION_ABLATIONS)),
+    *(e.label for e in (*catalogue.ZERO_FILL, *catalogue.RETRAINED, *catalogue.TRAINED_FOR_MISSING)),
+    *(e.label for e in catalogue.FUSION_ABLATIONS),
+    catalogue.PAPER_DROPOUT.label,
     catalogue.NO_MIS.label,
     "paper, L_mis teacher detached",
     "paper, 50% image missing in training",
@@ -216,9 +220,12 @@ ENTRIES = [
     ),
     *catalogue.ZERO_FILL,
     *catalogue.RETRAINED,
+    *catalogue.TRAINED_FOR_MISSING,
     *catalogue.FUSION_ABLATIONS,
     *catalogue.LEARNED_FUSION_ABLATIONS,
     catalogue.NO_MIS,
+    catalogue.PAPER_DROPOUT,
+    catalogue.NO_MIS_DROPOUT,
     Entry("paper, L_mis teacher detached", "ablation", (*PAPER, "loss.detach_teacher=true")),
     Entry("paper, 50% image missing in training", "ablation", (*PAPER, "+data.missing.image=0.5")),
     # Not in the paper: the image encoder MulT and LF-LSTM use (a ConvNet per frame, then a GRU)

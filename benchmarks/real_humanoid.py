@@ -19,7 +19,9 @@ one token per frame, and with the pair-stream decoder over per-step tokens of jo
 linear latent (the push benchmark's closest entry to MulT), and with ``L_mis``'s teacher detached (no
 gradient through its full-input side; the default trains it end to end, as the paper does); the
 baselines LF-LSTM, MulT and MVAE, each trained once on every sensor and seeing an absent sensor as its
-own absence handling (zero-fill; MVAE drops the expert). Every entry: ``--steps`` steps of batch
+own absence handling (zero-fill; MVAE drops the expert), and each of them trained for missing sensors
+(modality dropout drawn every batch, ``L_mis`` beside its own term, or both), with the paper model
+with modality dropout too. Every entry: ``--steps`` steps of batch
 ``--batch-size`` for each seed, trained with ``mmf-rl train``'s ``train(cfg)`` and scored on every
 presence subset of the test split with ``mmf-rl eval``'s ``run_evaluation(cfg)``. The machinery
 (training, per-window errors, the paired bootstrap, the tables, the summary) is ``mmf_rl.compare``'s;
@@ -60,7 +62,7 @@ from mmf_rl.compare.bootstrap import (
     bootstrap_unit,
     build_table,
 )
-from mmf_rl.compare.entries import Entry, Study, select_entries, subsets
+from mmf_rl.compare.entries import BASELINE_KINDS, Entry, Study, select_entries, subsets
 from mmf_rl.compare.summary import paired_comparisons, summarize_against_best_baseline
 
 REPO = Path(__file__).resolve().parents[1]
@@ -136,6 +138,12 @@ ENTRIES = [
     Entry("LF-LSTM", "zero-fill", (*DATA, SENSOR_FEATURES, "model=lf_lstm")),
     Entry("MulT", "zero-fill", (*DATA, SENSOR_FEATURES, "model=mult")),
     Entry("MVAE", "zero-fill", (*DATA, SENSOR_FEATURES, "model=mvae")),
+    # The baselines trained for missing sensors (modality dropout, L_mis, both) and the paper model with
+    # modality dropout too: the catalogue's entries on this recording's data.
+    *(
+        Entry(e.label, e.kind, (*DATA, SENSOR_FEATURES, *e.overrides))
+        for e in (*catalogue.TRAINED_FOR_MISSING, catalogue.PAPER_DROPOUT)
+    ),
 ]
 
 
@@ -218,7 +226,7 @@ def markdown(table: Table, info: dict, runs: dict, summary: dict, comparisons: d
         + "## Test MSE (normalised target): mean over seeds [95% interval]\n\n"
         + report.intervals_text(info["unit"], info["groups"], info["split"]["test"], BLOCK)
         + "\n\n"
-        + report.mse_table(table, labels, table.labels("paper", "zero-fill"), title=subset_title)
+        + report.mse_table(table, labels, table.labels("paper", *BASELINE_KINDS), title=subset_title)
         + "\n\n"
         + (
             f"Reference: constant-velocity extrapolation of the joints, MSE {cv:.4f}; predicting the "

@@ -1,5 +1,5 @@
-"""`mmf-rl bench accuracy|bc|calibration|data|ethucy|humanoid|latch|model|mpc|mult_gap|step_cost
-[args]`: the scripts of command line.
+"""`mmf-rl bench accuracy|bc|calibration|data|ethucy|humanoid|latch|model|mpc|mult_gap|robust_training|
+step_cost [args]`: the scripts of command line.
 
 Each runs ``benchmarks/<script>.py`` of the repository checkout with the arguments that follow
 (``mmf-rl bench data --help`` shows them) and ends with that script's summary line. The scripts
@@ -33,6 +33,10 @@ BENCHMARKS = {
     ),
     "step_cost": ("step_cost.py", "training-step cost of forecaster variants against MulT, side by side"),
     "mult_gap": ("mult_gap.py", "hybrids of MulT and the paper model: where MulT's all-sensor lead is from"),
+    "robust_training": (
+        "robust_training.py",
+        "architecture x training for missing sensors; the forecaster best in every subset, chosen on val",
+    ),
     "ethucy": ("ethucy.py", "ETH/UCY pedestrians, 5 leave-one-scene-out folds: minADE20/minFDE20 in metres"),
 }
 EXAMPLES = [

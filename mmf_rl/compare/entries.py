@@ -6,7 +6,8 @@ An entry's ``kind`` says how its cells are read: ``paper`` (the model every row 
 seeing an absent one through its own absence handling), ``retrained`` (a baseline trained anew for
 each presence subset with only that subset present: the paper's protocol), ``fusion`` /
 ``learned fusion`` (the paper model with another fusion, under the standard / learned prior) and
-``ablation``.
+``ablation``; ``trained for missing`` (a baseline trained with sensors removed: modality dropout,
+``L_mis``, or both, and scored like a zero-fill one).
 """
 
 from __future__ import annotations
@@ -15,8 +16,18 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-KINDS = ("paper", "variant", "zero-fill", "retrained", "fusion", "learned fusion", "ablation")
-BASELINE_KINDS = ("zero-fill", "retrained")
+TRAINED_FOR_MISSING_KIND = "trained for missing"
+KINDS = (
+    "paper",
+    "variant",
+    "zero-fill",
+    "retrained",
+    TRAINED_FOR_MISSING_KIND,
+    "fusion",
+    "learned fusion",
+    "ablation",
+)
+BASELINE_KINDS = ("zero-fill", "retrained", TRAINED_FOR_MISSING_KIND)
 
 
 @dataclass(frozen=True)
@@ -72,6 +83,24 @@ MVAE = Entry("MVAE", "zero-fill", ("model=mvae",))
 MULT = Entry("MulT", "zero-fill", ("model=mult",))
 ZERO_FILL = (LF_LSTM, MVAE, MULT)
 RETRAINED = tuple(Entry(f"{e.label} (retrained)", "retrained", e.overrides, base=e) for e in ZERO_FILL)
+# Missing-sensor training, for any model: modality dropout drawn every batch, L_mis beside the model's
+# own term (its supervised term first), or both.
+DROPOUT = ("loss.modality_dropout=subsets",)
+OWN_TERM = {"LF-LSTM": "nll", "MVAE": "elbo", "MulT": "nll"}
+
+
+def missing_sensor_trainings(own_term: str) -> dict[str, tuple[str, ...]]:
+    """The trainings for missing sensors of a model whose supervised term is ``own_term``, by the suffix
+    of their entries' labels."""
+    l_mis = (f"loss.terms=[{own_term},mis]",)
+    return {"modality dropout": DROPOUT, "L_mis": l_mis, "modality dropout + L_mis": (*DROPOUT, *l_mis)}
+
+
+TRAINED_FOR_MISSING = tuple(
+    Entry(f"{e.label}, {training}", TRAINED_FOR_MISSING_KIND, (*e.overrides, *overrides))
+    for e in ZERO_FILL
+    for training, overrides in missing_sensor_trainings(OWN_TERM[e.label]).items()
+)
 FUSIONS = ("linear", "average", "sum", "cross_attention")
 FUSION_ABLATIONS = tuple(
     Entry(f"paper fusion={fusion}", "fusion", ("model=forecaster", f"model.fusion={fusion}"))
@@ -89,15 +118,20 @@ LEARNED_FUSION_ABLATIONS = tuple(
     for fusion in FUSIONS
 )
 NO_MIS = Entry("paper w/o L_mis", "ablation", ("model=forecaster", "loss=no_mis"))
+PAPER_DROPOUT = Entry("paper, modality dropout + L_mis", "variant", ("model=forecaster", *DROPOUT))
+NO_MIS_DROPOUT = Entry("paper, modality dropout", "variant", ("model=forecaster", "loss=no_mis", *DROPOUT))
 # The entries `mmf-rl compare` offers on any data: none names a modality.
 CATALOGUE = (
     PAPER,
     PAPER_LEARNED,
     *ZERO_FILL,
     *RETRAINED,
+    *TRAINED_FOR_MISSING,
     *FUSION_ABLATIONS,
     *LEARNED_FUSION_ABLATIONS,
     NO_MIS,
+    PAPER_DROPOUT,
+    NO_MIS_DROPOUT,
 )
 DEFAULT_ENTRIES = ("paper", *(e.label for e in ZERO_FILL))
 

@@ -15,6 +15,7 @@ from mmf_rl.compare.bootstrap import (
     overlap,
 )
 from mmf_rl.compare.collect import Collected
+from mmf_rl.compare.entries import BASELINE_KINDS
 from mmf_rl.compare.runs import FIT_WINDOWS
 from mmf_rl.compare.summary import reference_of
 
@@ -67,9 +68,13 @@ def fusion_verdicts(table: Table, differences: dict[str, dict]) -> str:
 
 
 def mse_table(table: Table, labels: list[str], contenders: list[str], title: Title) -> str:
-    """Subsets as rows (named by ``title``), entries as columns; bold: best of ``contenders``, ``=``: any
-    entry tied with it."""
-    lines = ["| subset | " + " | ".join(labels) + " |", "|---" * (len(labels) + 1) + "|"]
+    """Subsets as rows (named by ``title``), entries as columns, each entry's protocol (its kind) first;
+    bold: best of ``contenders``, ``=``: any entry tied with it."""
+    lines = [
+        "| subset | " + " | ".join(labels) + " |",
+        "|---" * (len(labels) + 1) + "|",
+        "| *protocol* | " + " | ".join(table.kinds.get(label, "") for label in labels) + " |",
+    ]
     for s in table.subsets:
         present = {label: table.cells[label][s] for label in contenders if s in table.cells[label]}
         best = min(present, key=lambda label: present[label].mean) if present else None
@@ -180,12 +185,12 @@ def episode_intervals_text(test_episodes: int) -> str:
 
 def mse_sections(table: Table, title: Title, intervals: str, reference: str) -> str:
     """The main MSE table (paper model, variants, baselines) and the ablation tables."""
-    main_labels = table.labels("paper", "variant", "zero-fill", "retrained")
+    main_labels = table.labels("paper", "variant", *BASELINE_KINDS)
     ablation_labels = ["paper", *table.labels("fusion", "ablation")]
     text = (
         f"## Test MSE (normalised target): mean over seeds [{LEVEL:.0%} interval]\n\n"
         + intervals
-        + mse_table(table, main_labels, table.labels("paper", "zero-fill", "retrained"), title)
+        + mse_table(table, main_labels, table.labels("paper", *BASELINE_KINDS), title)
         + "\n\n"
         + reference
     )
@@ -220,7 +225,7 @@ def results_sections(
     """Everything between a report's header and its run times: MSE, ablations, degradation, fusion
     verdicts, coverage, the latent's KL and the fit of the training windows."""
     labels = [
-        *table.labels("paper", "variant", "zero-fill", "retrained"),
+        *table.labels("paper", "variant", *BASELINE_KINDS),
         *table.labels("fusion", "ablation"),
         *table.labels("learned fusion"),
     ]

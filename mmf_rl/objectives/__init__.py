@@ -10,6 +10,7 @@ from mmf_rl.objectives.config import LossConfig, default_loss_config
 from mmf_rl.objectives.diverse_sampling import DiverseSamplingLoss
 from mmf_rl.objectives.elbo import ELBOLoss
 from mmf_rl.objectives.missing_modality import MissingModalityLoss
+from mmf_rl.objectives.modality_dropout import ModalityDropout, resolve_observed_dropout
 from mmf_rl.objectives.nll import GaussianNLLLoss
 from mmf_rl.objectives.registry import (
     GLOBAL_LOSS_SETTINGS,
@@ -32,6 +33,7 @@ __all__ = [
     "LOSS_TERMS",
     "LossConfig",
     "MissingModalityLoss",
+    "ModalityDropout",
     "build_loss_terms",
     "check_settings_read",
     "default_loss_config",
@@ -41,6 +43,7 @@ __all__ = [
     "loss_term",
     "model_settings_of",
     "register_loss_term",
+    "resolve_observed_dropout",
     "settings_read",
     "terms_reading",
 ]

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from mmf_rl.configuration import compose_config, reject_unknown_keys, to_container
 
 # Where L_mis's step cuts fall in a window: its last steps, or a run of steps anywhere.
 STEP_CUTS = ("tail", "burst")
+# `modality_dropout`'s named distributions (a mapping {modality: rate} is the third form).
+DROPOUT_CHOICES = (None, "subsets", "observed")
 
 
 def check_count(value, label: str, null: str | None = None) -> None:
@@ -18,6 +21,12 @@ def check_count(value, label: str, null: str | None = None) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         allowed = "" if null is None else f" or null{null}"
         raise ValueError(f"{label} must be a whole number >= 1{allowed}, found {value!r}")
+
+
+def check_rate(modality: str, rate) -> None:
+    """Raise a ValueError naming ``loss.modality_dropout.<modality>`` unless ``rate`` is in ``[0, 1)``."""
+    if isinstance(rate, bool) or not isinstance(rate, int | float) or not 0 <= rate < 1:
+        raise ValueError(f"loss.modality_dropout.{modality} must be a rate in [0, 1), found {rate!r}")
 
 
 @dataclass
@@ -55,6 +64,12 @@ class LossConfig:
             of consecutive present steps anywhere in the window (a sensor dropping out and back).
         terms: the loss terms to train with, by registered name (``mmf_rl.objectives.LOSS_TERMS``,
             ``@register_loss_term``); null: the model's own.
+        modality_dropout: remove modalities from each training batch, drawn anew every batch, before
+            every term (:class:`~mmf_rl.objectives.ModalityDropout`; any model): null (off),
+            ``"subsets"`` (a share ``modality_dropout_prob`` of the samples keeps a uniformly drawn
+            non-empty subset of its modalities), ``{modality: rate}`` (each removed with its rate) or
+            ``"observed"`` (those rates measured in the training split's own absences).
+        modality_dropout_prob: the share of samples ``"subsets"`` redraws, in ``(0, 1]``.
     """
 
     kl_weight: float = 1.0
@@ -71,8 +86,11 @@ class LossConfig:
     max_dropped_steps: int | None = None
     step_cut: str = "tail"
     terms: list[str] | None = None
+    modality_dropout: str | dict[str, float] | None = None
+    modality_dropout_prob: float = 0.5
 
     def __post_init__(self):
+        self._check_modality_dropout()
         check_count(self.max_dropped, "loss.max_dropped", null="")
         check_count(self.max_dropped_steps, "loss.max_dropped_steps", null=" (all but one present step)")
         check_count(self.best_of_k_samples, "loss.best_of_k_samples")
@@ -103,6 +121,27 @@ class LossConfig:
             self.terms = list(self.terms)
         if not isinstance(self.detach_teacher, bool):
             raise ValueError(f"loss.detach_teacher must be true or false, found {self.detach_teacher!r}")
+
+    def _check_modality_dropout(self) -> None:
+        choice = self.modality_dropout
+        if isinstance(choice, Mapping):
+            self.modality_dropout = dict(choice)
+            for name, rate in choice.items():
+                check_rate(name, rate)
+        elif choice not in DROPOUT_CHOICES:
+            raise ValueError(
+                f"loss.modality_dropout must be null, {' or '.join(map(repr, DROPOUT_CHOICES[1:]))} or a "
+                f"mapping {{modality: rate}}, found {choice!r}"
+            )
+        if not 0 < self.modality_dropout_prob <= 1:
+            raise ValueError(
+                f"loss.modality_dropout_prob must be in (0, 1], found {self.modality_dropout_prob}"
+            )
+        if self.modality_dropout != "subsets" and self.modality_dropout_prob != 0.5:
+            raise ValueError(
+                f"loss.modality_dropout_prob={self.modality_dropout_prob} is read only with "
+                f"loss.modality_dropout=subsets (found {choice!r}); set that or remove it"
+            )
 
     @classmethod
     def from_dict(cls, d: dict) -> LossConfig:

@@ -20,12 +20,14 @@ from mmf_rl.configuration import ConfigError
 from mmf_rl.objectives.combined import CombinedLoss
 from mmf_rl.objectives.common import ForecasterLossBase, model_settings_of
 from mmf_rl.objectives.config import LossConfig
+from mmf_rl.objectives.modality_dropout import with_modality_dropout
 
 logger = logging.getLogger(__name__)
 
 LOSS_TERMS: dict[str, type[ForecasterLossBase]] = {}
-# Settings of the loss config that choose terms rather than set one: no term reads them.
-GLOBAL_LOSS_SETTINGS = frozenset({"terms"})
+# Settings of the loss config that choose terms or act on every term (modality dropout, applied to the
+# batch before all of them) rather than set one: no term reads them.
+GLOBAL_LOSS_SETTINGS = frozenset({"terms", "modality_dropout", "modality_dropout_prob"})
 
 
 def register_loss_term(name: str):
@@ -167,7 +169,8 @@ def build_loss_terms(
     """The terms ``names`` for ``model``, weighted by ``loss_cfg``.
 
     A single term is returned as it is; several are a :class:`CombinedLoss` of those the config
-    leaves on (one forward pass). The structure decides the names of the loss's buffers in a
+    leaves on (one forward pass); with ``loss_cfg.modality_dropout``, wrapped in a
+    :class:`~mmf_rl.objectives.ModalityDropout`. The structure decides the names of the loss's buffers in a
     checkpoint, so it depends on the names given, not on which terms the config turns off.
 
     A setting changed from ``LossConfig()``'s default that none of the terms reads is a
@@ -191,6 +194,4 @@ def build_loss_terms(
     on = [term for term in terms.values() if term is not None]
     if not on:
         raise ValueError(f"the loss config turns off every loss term of {list(names)}; nothing to train")
-    if len(names) == 1:
-        return on[0]
-    return CombinedLoss(*on)
+    return with_modality_dropout(on[0] if len(names) == 1 else CombinedLoss(*on), loss_cfg)

@@ -59,7 +59,7 @@ from mmf_rl.models import (
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.loading import RUN_EXPORT_DIR
 from mmf_rl.models.registry import DEFAULT_MODEL
-from mmf_rl.objectives import LossConfig, default_loss_config
+from mmf_rl.objectives import LossConfig, default_loss_config, resolve_observed_dropout
 from mmf_rl.trainers.latent_sampler import SamplerConfig, check_sampler_settings, train_latent_sampler
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, TrainingStopped, seed_everything
 
@@ -249,7 +249,8 @@ def build_model_and_loss(
         if rank == 0:
             logger.info("fine-tuning from %s: weights copied, new optimizer, step 0", source)
     # The settings were checked by check_loss_settings_read (a new run) or are the run's own (resumed).
-    loss = build_loss(model_name, model, loss_cfg, check_unread=False)
+    absent = {name: outages["fraction"] for name, outages in data.observed_outages.items()}
+    loss = build_loss(model_name, model, resolve_observed_dropout(loss_cfg, absent), check_unread=False)
     return model, model_name, loss
 
 

@@ -300,3 +300,37 @@ def test_training_on_partial_windows_through_a_camera_outage_has_a_finite_loss(
     batch = dataset.batch(torch.arange(len(dataset)))
     steps, present = batch.get(keys.present_steps_key("image")), batch.get(keys.present_key("image"))
     assert bool((present & ~steps.all(1)).any()), "some windows hold the camera for some steps only"
+
+
+def small_mult_overrides(root, tmp_path, run) -> list[str]:
+    base = push_train_overrides(root, tmp_path / "cache", run, steps=4)
+    sizes = ["model.d_model=16", "model.head_hidden=32", "model.num_heads=2", "model.mlp_hidden=32"]
+    return [*(o for o in base if not o.startswith("model.")), "model=mult", *sizes]
+
+
+def logged(run: Path, name: str) -> torch.Tensor:
+    rows = (run / "logs" / "scalars" / "train" / f"{name}.csv").read_text().splitlines()
+    return torch.tensor([float(row.split(",")[-1]) for row in rows])
+
+
+def test_mult_trains_for_missing_sensors_with_modality_dropout_and_l_mis(recorded_push_root, tmp_path):
+    run = tmp_path / "run"
+    args = [*small_mult_overrides(recorded_push_root, tmp_path, run), "loss.modality_dropout=subsets"]
+    assert cli(["train", *args, "loss.terms=[nll,mis]"]) == 0
+    for name in ("loss_nll", "loss_mis", "dropout_fraction"):
+        assert len(logged(run, name)) and torch.isfinite(logged(run, name)).all(), name
+    assert 0 < float(logged(run, "dropout_fraction").mean()) < 1  # half the samples redrawn, some to all
+
+
+def test_observed_modality_dropout_replays_the_recordings_own_absence_rate(
+    recorded_push_root, tmp_path, capsys
+):
+    run = tmp_path / "complete"
+    args = [*small_mult_overrides(recorded_push_root, tmp_path, run), "loss.modality_dropout=observed"]
+    assert cli(["train", *args]) == 1
+    assert "no modality is ever absent in the training split" in capsys.readouterr().err
+    root = Path(shutil.copytree(recorded_push_root, tmp_path / "push"))
+    edit_frames(root, camera_outage_mid_episode)  # the camera out on 3 frames of every episode
+    run = tmp_path / "outage"
+    assert cli(["train", *small_mult_overrides(root, tmp_path, run), "loss.modality_dropout=observed"]) == 0
+    assert float(logged(run, "dropout_fraction").max()) > 0

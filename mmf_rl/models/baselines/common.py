@@ -1,4 +1,5 @@
-"""What the baselines share: their configuration, the zero-fill protocol, per-step tokenizers.
+"""What the baselines share: their configuration, the zero-fill protocol, per-step tokenizers, the
+``L_mis`` student pass.
 
 Every baseline follows the batch contract of :mod:`mmf_rl.keys`: it reads ``("obs", m)`` and
 ``("present", m)`` and writes a diagonal Gaussian ``("forecast", "loc"/"scale")`` ``[B, T, D]``,
@@ -145,6 +146,39 @@ def gaussian_head_output(raw: torch.Tensor, horizon: int, target_dim: int, min_s
     return loc, F.softplus(raw_scale) + min_scale
 
 
+def student_batch(td: TensorDictBase, modalities: list[ModalitySpec]) -> TensorDictBase | None:
+    """``L_mis``'s student input (:class:`~mmf_rl.objectives.MissingModalityLoss`): the observations and
+    presence of ``td`` with the ``("drop", m)`` modalities made absent; ``None`` when ``td`` has no such
+    masks. The baselines read presence per window only, so a step cut (``("drop_steps", m)``) is refused."""
+    drop_keys = [keys.drop_key(s.name) for s in modalities]
+    found = [k in td.keys(include_nested=True) for k in drop_keys]
+    if any(keys.drop_steps_key(s.name) in td.keys(include_nested=True) for s in modalities):
+        raise ValueError(
+            "batch has ('drop_steps', m) masks (L_mis step cuts, loss.step_drop_prob > 0), which this "
+            "baseline cannot apply: it reads presence per window, not per step; set loss.step_drop_prob=0 "
+            "or use model=forecaster"
+        )
+    if not any(found):
+        return None
+    if not all(found):
+        missing = [k for k, f in zip(drop_keys, found, strict=True) if not f]
+        raise KeyError(f"batch has some ('drop', m) masks but not {missing}; give one for every modality")
+    student = td.select(*[s.obs_key for s in modalities], *[s.present_key for s in modalities])
+    for spec, drop_key in zip(modalities, drop_keys, strict=True):
+        student.set(spec.present_key, td.get(spec.present_key) & ~td.get(drop_key))
+    if not presence(student, modalities).any(1).all():
+        raise ValueError(
+            "('drop', m) removes every present modality of some sample; keep at least one per sample"
+        )
+    return student
+
+
+def with_student(td: TensorDictBase, student: TensorDictBase) -> TensorDictBase:
+    """The teacher's inputs (``td``'s keys that ``student`` has) followed by the student's, ``[2B]``: one
+    pass computes both forecasts, as the paper model does."""
+    return torch.cat([td.select(*student.keys(include_nested=True, leaves_only=True)), student], dim=0)
+
+
 class DeterministicForecaster(TensorDictModuleBase, PretrainedModel):
     """Base of the baselines without a latent: ``forward`` computes ``loc``/``scale``; ``sample``
     repeats the mean ``K`` times (best-of-K of a deterministic model is its single forecast)."""
@@ -164,8 +198,20 @@ class DeterministicForecaster(TensorDictModuleBase, PretrainedModel):
         raise NotImplementedError
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
+        """Writes ``("forecast", ...)``; with ``("drop", m)`` masks (``L_mis``) also
+        ``("forecast_dropped", ...)``, the forecast without those modalities, in the same pass."""
         self.validate(td)
-        loc, scale = self.forecast(td)
+        student = student_batch(td, self.modalities)
+        if student is None:
+            loc, scale = self.forecast(td)
+        else:
+            loc, scale = self.forecast(with_student(td, student))
+            (loc, dropped_loc), (scale, dropped_scale) = loc.chunk(2), scale.chunk(2)
+            td.set(keys.FORECAST_DROPPED_LOC, dropped_loc)
+            td.set(
+                keys.FORECAST_DROPPED_SCALE,
+                self.scale_calibration(dropped_scale, presence(student, self.modalities)),
+            )
         td.set(keys.FORECAST_LOC, loc)
         td.set(keys.FORECAST_SCALE, self.scale_calibration(scale, presence(td, self.modalities)))
         return td

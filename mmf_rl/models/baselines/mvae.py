@@ -34,7 +34,9 @@ from mmf_rl.models.baselines.common import (
     BaselineConfig,
     gaussian_head_output,
     presence,
+    student_batch,
     validate_baseline_batch,
+    with_student,
 )
 from mmf_rl.models.encoders import build_encoder, mlp
 from mmf_rl.models.hub import PretrainedModel
@@ -120,20 +122,35 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
         return gaussian_head_output(self.decoder(z), cfg.horizon, cfg.target_dim, cfg.min_scale)
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
+        """Writes the forecast and latents; with ``("drop", m)`` masks (``L_mis``) also
+        ``("forecast_dropped", ...)``: decoded from the product of the kept experts, with the same noise
+        ``ε`` as the full input's ``z`` (the latent is the fusion here, so "the same ``z``" of the paper
+        model would make both forecasts equal)."""
         self.validate(td)
-        loc, scale = self.posterior(td)
+        student = student_batch(td, self.modalities)
+        both = td if student is None else with_student(td, student)
+        loc, scale = self.posterior(both)
+        noise = torch.zeros_like(scale[: td.shape[0]])
+        if self.training or self.config.eval_latent == "sample":
+            noise = torch.randn_like(noise)
+        z = loc + scale * noise.repeat(loc.shape[0] // noise.shape[0], 1)
+        forecast_loc, forecast_scale = self.decode(z)
+        forecast_scale = self.scale_calibration(forecast_scale, presence(both, self.modalities))
+        if student is not None:
+            (loc, _), (scale, _), (z, _) = loc.chunk(2), scale.chunk(2), z.chunk(2)
+            (forecast_loc, dropped_loc), (forecast_scale, dropped_scale) = (
+                forecast_loc.chunk(2),
+                forecast_scale.chunk(2),
+            )
+            td.set(keys.FORECAST_DROPPED_LOC, dropped_loc)
+            td.set(keys.FORECAST_DROPPED_SCALE, dropped_scale)
         td.set(keys.POSTERIOR_LOC, loc)
         td.set(keys.POSTERIOR_SCALE, scale)
         td.set(keys.PRIOR_LOC, torch.zeros_like(loc))
         td.set(keys.PRIOR_SCALE, torch.ones_like(scale))
-        if self.training or self.config.eval_latent == "sample":
-            z = loc + scale * torch.randn_like(scale)
-        else:
-            z = loc
         td.set(keys.LATENT, z)
-        forecast_loc, forecast_scale = self.decode(z)
         td.set(keys.FORECAST_LOC, forecast_loc)
-        td.set(keys.FORECAST_SCALE, self.scale_calibration(forecast_scale, presence(td, self.modalities)))
+        td.set(keys.FORECAST_SCALE, forecast_scale)
         return td
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
