@@ -20,15 +20,17 @@ are written under ``--out/<group>/<run>/<latent>/``; a re-run reuses the finishe
 
 ``--recalibrate`` answers the next question (the target: the 90% interval covers 80-97% of
 test futures in every presence subset): does a per-presence-pattern scale recalibration on the
-validation split (``mmf-rl calibrate``) get there? For each run and latent it writes two copies of
+validation split (``mmf-rl calibrate``) get there? For each run and latent it writes copies of
 the model under ``--out/<group>/<run>/<latent>/`` (``save_pretrained``; the run itself is not
-touched): ``raw``, its scale factors reset to ones (the scale as trained), and ``recalibrated``,
-fitted on the run's val split with ``--min-windows``; both are scored on ``--split``, as the rows
-``<latent>:raw`` and ``<latent>:recalibrated``.
+touched): ``raw``, its scale factors reset to ones (the scale as trained), and one per
+``--methods`` entry (``coverage``, the default fit, and ``temperature``, the NLL-optimal one),
+fitted by it on the run's val split with ``--min-windows``; each is scored on ``--split``, as the
+rows ``<latent>:raw`` and ``<latent>:<method>``.
 
 Writes ``--out/results.md`` and ``results.json``; ends with one ``summary:`` line per group and
-latent: the all-sensor MSE and the range over subsets of the 50% and 90% interval coverage (a
-calibrated scale: 0.5 and 0.9).
+latent: the all-sensor MSE, the range over subsets of the 50% and 90% interval coverage (a
+calibrated scale: 0.5 and 0.9), and of the 90% intervals' mean width (target units) and the CRPS
+(normalised): of two rows covering alike, the narrower, lower-CRPS one is the better.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ import time
 from pathlib import Path
 
 from mmf_rl.eval.report import write_json, write_text
+from mmf_rl.eval.scale_fit import CALIBRATION_METHODS, DEFAULT_METHOD
 
 METRICS = (
     ("mse", "MSE", "{:.4f}"),
@@ -47,6 +50,8 @@ METRICS = (
     ("nll", "NLL", "{:.1f}"),
     ("coverage_50", "cover 50%", "{:.2f}"),
     ("coverage_90", "cover 90%", "{:.2f}"),
+    ("width_90", "width 90%", "{:.3g}"),
+    ("crps", "CRPS", "{:.4f}"),
 )
 
 
@@ -79,20 +84,19 @@ def evaluate(run_dir: Path, latent: str, args, out_dir: Path | None = None) -> d
     return summary
 
 
-RECALIBRATION_VARIANTS = ("raw", "recalibrated")
-
-
 def recalibrated_copies(run_dir: Path, latent: str, args) -> dict[str, Path]:
-    """The run's model under ``latent`` as the ``raw`` and ``recalibrated`` copies (see the module
-    docstring), written once under ``--out``; the run is only read."""
+    """The run's model under ``latent`` as the ``raw`` copy and one per ``--methods`` entry (see the
+    module docstring), written once under ``--out``; the run is only read."""
     from mmf_rl.configuration import compose_config
     from mmf_rl.eval.calibrate_command import run_calibration
     from mmf_rl.models import load_trained_model
     from mmf_rl.models.hub import CALIBRATION_FILE
 
     base = args.out / run_dir.parent.name / run_dir.name / latent
-    copies = {variant: base / variant for variant in RECALIBRATION_VARIANTS}
-    if (copies["raw"] / "config.json").is_file() and (copies["recalibrated"] / CALIBRATION_FILE).is_file():
+    copies = {variant: base / variant for variant in ("raw", *args.methods)}
+    if (copies["raw"] / "config.json").is_file() and all(
+        (copies[method] / CALIBRATION_FILE).is_file() for method in args.methods
+    ):
         return copies
     overrides = {}
     if latent != "as-trained":
@@ -104,16 +108,18 @@ def recalibrated_copies(run_dir: Path, latent: str, args) -> dict[str, Path]:
     model.calibration = None
     for path in copies.values():
         model.save_pretrained(path)
-    run_calibration(
-        compose_config(
-            "calibrate",
-            [
-                f"checkpoint={copies['recalibrated']}",
-                f"min_windows={args.min_windows}",
-                f"device={args.device}",
-            ],
+    for method in args.methods:
+        run_calibration(
+            compose_config(
+                "calibrate",
+                [
+                    f"checkpoint={copies[method]}",
+                    f"method={method}",
+                    f"min_windows={args.min_windows}",
+                    f"device={args.device}",
+                ],
+            )
         )
-    )
     return copies
 
 
@@ -142,8 +148,18 @@ def summary_lines(tables: dict[str, dict]) -> list[str]:
                 f"summary: {group} {latent}: MSE all {subsets['all']['mse']:.4f}; "
                 f"coverage 50% {min(cover['50']):.2f}-{max(cover['50']):.2f}, "
                 f"90% {min(cover['90']):.2f}-{max(cover['90']):.2f} over {len(subsets)} subsets"
+                + sharpness(subsets)
             )
     return lines
+
+
+def sharpness(subsets: dict[str, dict[str, float]]) -> str:
+    """The summary's ranges of the 90% width and the CRPS ("" for evaluations written before them)."""
+    if any("crps" not in row for row in subsets.values()):
+        return ""
+    width = [row["width_90"] for row in subsets.values()]
+    crps = [row["crps"] for row in subsets.values()]
+    return f"; width 90% {min(width):.3g}-{max(width):.3g}, CRPS {min(crps):.4f}-{max(crps):.4f}"
 
 
 def markdown(tables: dict[str, dict], runs: dict[str, list[str]], args, minutes: float) -> str:
@@ -151,10 +167,10 @@ def markdown(tables: dict[str, dict], runs: dict[str, list[str]], args, minutes:
         "# Calibration by eval latent\n",
         f"`benchmarks/calibration.py` — {minutes:.1f} min; {args.split} split; K = {args.num_samples} "
         f"samples for minMSE@K; predictive: {args.predictive_samples} prior draws. Each cell: mean over the "
-        "group's runs."
+        "group's runs. 'width 90%' is in target units, CRPS on the normalised target."
         + (
-            " `<latent>:raw`: the scale as trained; `<latent>:recalibrated`: recalibrated per presence "
-            f"pattern on the val split (min_windows={args.min_windows})."
+            " `<latent>:raw`: the scale as trained; `<latent>:<method>`: recalibrated per presence "
+            f"pattern on the val split by that method (min_windows={args.min_windows})."
             if args.recalibrate
             else ""
         )
@@ -194,6 +210,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--min-windows", type=int, default=32, help="--recalibrate: mmf-rl calibrate's min_windows"
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        default=[DEFAULT_METHOD],
+        choices=sorted(CALIBRATION_METHODS),
+        help="--recalibrate: mmf-rl calibrate's methods, one recalibrated copy each",
     )
     args = parser.parse_args(argv)
     unknown = sorted(set(args.latents) - {"as-trained", "mean", "sample", "predictive"})

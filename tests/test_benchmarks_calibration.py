@@ -14,7 +14,8 @@ import torch
 from tests.conftest import run_bench
 
 SUMMARY = re.compile(
-    r"summary: (\S+) (\S+): MSE all (\S+); coverage 50% (\S+)-(\S+), 90% (\S+)-(\S+) over (\d+) subsets"
+    r"summary: (\S+) (\S+): MSE all (\S+); coverage 50% (\S+)-(\S+), 90% (\S+)-(\S+) over (\d+) subsets; "
+    r"width 90% (\S+)-(\S+), CRPS (\S+)-(\S+)$"
 )
 
 
@@ -52,8 +53,10 @@ def test_each_latent_is_scored_on_the_same_windows_and_summarised(learned_runs, 
         ("learned", "mean"),
         ("learned", "predictive"),
     ]
-    for _, _, mse, low50, high50, low90, high90, _ in lines:
+    for _, _, mse, low50, high50, low90, high90, _, *sharpness in lines:
         assert float(mse) > 0 and 0 <= float(low50) <= float(high50) <= 1 and float(low90) <= float(high90)
+        low_width, high_width, low_crps, high_crps = map(float, sharpness)
+        assert 0 < low_width <= high_width and 0 < low_crps <= high_crps
     result = json.loads((out / "results.json").read_text())
     table = result["tables"]["learned"]
     assert table["mean"].keys() == table["predictive"].keys()
@@ -83,7 +86,7 @@ def test_a_directory_that_is_not_a_run_is_refused(tmp_path, capsys):
     assert "not `mmf-rl train` run directories (no checkpoints/ inside)" in capsys.readouterr().err
 
 
-def test_recalibrate_scores_raw_and_val_recalibrated_copies_and_leaves_the_run_alone(
+def test_recalibrate_scores_raw_and_a_val_recalibrated_copy_per_method_and_leaves_the_run_alone(
     learned_runs, tmp_path, capsys
 ):
     from safetensors.torch import load_file
@@ -93,11 +96,13 @@ def test_recalibrate_scores_raw_and_val_recalibrated_copies_and_leaves_the_run_a
     before = {p: p.read_bytes() for p in stored}
     out = tmp_path / "out"
     argv = [str(run), "--out", str(out), "--num-samples", "0", "--latents", "mean"]
-    assert calibration([*argv, "--recalibrate", "--min-windows", "4"]) == 0
+    methods = ["--methods", "coverage", "temperature"]
+    assert calibration([*argv, "--recalibrate", "--min-windows", "4", *methods]) == 0
     lines = [m.groups() for m in map(SUMMARY.match, capsys.readouterr().out.splitlines()) if m]
     assert [(group, latent) for group, latent, *_ in lines] == [
         ("learned", "mean:raw"),
-        ("learned", "mean:recalibrated"),
+        ("learned", "mean:coverage"),
+        ("learned", "mean:temperature"),
     ]
     assert {p: p.read_bytes() for p in stored} == before and sorted(
         p for p in run.rglob("*") if p.is_file() and "eval" not in p.parts
@@ -105,18 +110,23 @@ def test_recalibrate_scores_raw_and_val_recalibrated_copies_and_leaves_the_run_a
     copies = out / "learned" / run.name / "mean"
     factors = {
         v: load_file(copies / v / "model.safetensors")["scale_calibration.factors"]
-        for v in ("raw", "recalibrated")
+        for v in ("raw", "coverage", "temperature")
     }
     assert torch.equal(factors["raw"], torch.ones_like(factors["raw"]))  # the run's own fit reset
-    assert not torch.equal(factors["recalibrated"], factors["raw"])
-    recalibrated = json.loads((copies / "recalibrated" / "eval" / "results.json").read_text())
-    assert recalibrated["scale_calibration"]["split"] == "val" and recalibrated["split"] == "test"
-    assert recalibrated["scale_calibration"]["factors"] == factors["recalibrated"].tolist()
+    assert not torch.equal(factors["coverage"], factors["raw"])
+    assert not torch.equal(factors["coverage"], factors["temperature"])
+    for method in ("coverage", "temperature"):
+        recalibrated = json.loads((copies / method / "eval" / "results.json").read_text())
+        assert recalibrated["scale_calibration"]["split"] == "val" and recalibrated["split"] == "test"
+        assert recalibrated["scale_calibration"]["method"] == method
+        assert recalibrated["scale_calibration"]["factors"] == factors[method].tolist()
     table = json.loads((out / "results.json").read_text())["tables"]["learned"]
-    # The same test windows and point forecasts; only the scale (so the coverage) changes.
+    # The same test windows and point forecasts; only the scale (so the coverage and width) changes.
     for subset, row in table["mean:raw"].items():
-        assert table["mean:recalibrated"][subset]["mse"] == pytest.approx(row["mse"])
+        assert table["mean:coverage"][subset]["mse"] == pytest.approx(row["mse"])
     assert any(
-        table["mean:recalibrated"][s]["coverage_90"] != row["coverage_90"]
-        for s, row in table["mean:raw"].items()
+        table["mean:coverage"][s]["coverage_90"] != row["coverage_90"] for s, row in table["mean:raw"].items()
+    )
+    assert any(
+        table["mean:coverage"][s]["width_90"] != row["width_90"] for s, row in table["mean:raw"].items()
     )

@@ -15,6 +15,11 @@ Per window, then averaged over windows:
   (summed over ``T × D``).
 * ``coverage_50`` / ``coverage_90``: share of the ``T × D`` target values inside the central
   50% / 90% interval of the forecast's Gaussian: a calibrated scale gives 0.5 / 0.9.
+* ``width_90``: mean width of those central 90% intervals, in the target's units: of two forecasts
+  that cover as well, the narrower says more (an interval can cover by being uselessly wide).
+* ``crps``: the continuous ranked probability score of the forecast's Gaussian, in the normalised
+  target frame, averaged over the ``T × D`` values: a proper score, rewarding calibration and
+  sharpness at once (lower is better; for a point forecast it is the absolute error).
 * ``kl`` (latent models): ``KL(q(z | X[, y]) || p(z | X))`` in nats, summed over ``d_z``: what the
   latent carries beyond the prior; near zero, the latent has collapsed and the forecast does not
   depend on it.
@@ -29,6 +34,7 @@ different window set, and a subset that removes a sensor could even look better 
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Mapping
 
@@ -83,6 +89,26 @@ def interval_coverage(
     return ((target - loc).abs() <= central_half_width(level) * scale).flatten(1).float().mean(-1)
 
 
+def interval_width(
+    loc: torch.Tensor, scale: torch.Tensor, level: float, denormalize: Callable[[torch.Tensor], torch.Tensor]
+) -> torch.Tensor:
+    """Per window ``[B]``: the mean width in units of the central ``level`` intervals of
+    ``N(loc, scale²)`` (``[B, T, D]`` each, normalised)."""
+    half = central_half_width(level) * scale
+    return (denormalize(loc + half) - denormalize(loc - half)).flatten(1).mean(-1)
+
+
+def gaussian_crps(target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """Per window ``[B]``: the mean over ``T × D`` values of the CRPS of ``N(loc, scale²)`` at
+    ``target``, in closed form (Gneiting & Raftery 2007),
+    ``scale · (z (2 Φ(z) - 1) + 2 φ(z) - 1 / sqrt(pi))`` with ``z = (target - loc) / scale``; one
+    line, so no scoring library (properscoring, scoringrules) is needed."""
+    z = (target - loc) / scale
+    normal = torch.distributions.Normal(0.0, 1.0)
+    crps = scale * (z * (2 * normal.cdf(z) - 1) + 2 * normal.log_prob(z).exp() - 1 / math.sqrt(math.pi))
+    return crps.flatten(1).mean(-1)
+
+
 def best_of_samples(
     samples: torch.Tensor, target: torch.Tensor, samples_units: torch.Tensor, target_units: torch.Tensor
 ) -> dict[str, torch.Tensor]:
@@ -114,6 +140,8 @@ def window_metrics(
     metrics = point_errors(loc, target, denormalize(loc), target_units)
     metrics["nll"] = gaussian_nll(target, loc, scale).flatten(1).sum(-1)
     metrics |= {name: interval_coverage(target, loc, scale, level) for name, level in COVERAGE_LEVELS.items()}
+    metrics["width_90"] = interval_width(loc, scale, COVERAGE_LEVELS["coverage_90"], denormalize)
+    metrics["crps"] = gaussian_crps(target, loc, scale)
     kl = latent_kl(model, batch, out)
     if kl is not None:
         metrics["kl"] = kl

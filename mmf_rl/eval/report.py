@@ -25,6 +25,8 @@ COLUMNS = [
     ("nll", "NLL", "{:.3f}"),
     ("coverage_50", "cover 50%", "{:.2f}"),
     ("coverage_90", "cover 90%", "{:.2f}"),
+    ("width_90", "width 90%", "{:.3g}"),
+    ("crps", "CRPS (norm.)", "{:.4f}"),
     ("kl", "KL (nats)", "{:.2f}"),
     ("degradation", "MSE vs all", "{:+.1%}"),
 ]
@@ -62,11 +64,13 @@ def markdown_table(
     k = f"K = {num_samples}" if num_samples else "K"
     lines.append("")
     lines.append(
-        f"MSE (norm.) is on the normalised target; MSE, ADE and FDE are in {units}. The min@K columns "
-        f"take each minimum on its own over {k} forecasts decoded from prior samples; the other columns "
-        "score the point forecast (a latent model's forecast by its eval_latent; by default the decode "
-        "of the prior's mean). 'cover p%' is the share "
-        "of target values inside the forecast Gaussian's central p% interval (calibrated: p%). Rows "
+        f"MSE (norm.) and CRPS (norm.) are on the normalised target; MSE, ADE, FDE and 'width 90%' are "
+        f"in {units}. The min@K columns take each minimum on its own over {k} forecasts decoded from "
+        "prior samples; the other columns score the point forecast (a latent model's forecast by its "
+        "eval_latent; by default the decode of the prior's mean). 'cover p%' is the share of target "
+        "values inside the forecast Gaussian's central p% interval (calibrated: p%); "
+        "'width 90%' is the mean width of the 90% intervals, and CRPS the Gaussian's continuous ranked "
+        "probability score (lower is better): a wider interval covers more without being better. Rows "
         "are paired: each is averaged over the same 'windows', those where every row keeps a present "
         "modality; 'available' is how many windows the row alone could be scored on. 'MSE vs all' "
         "is the relative change of MSE (norm.) against all modalities present, on those windows."

@@ -1,15 +1,26 @@
 """Fit a trained model's per-presence-pattern scale factors on held-out windows, and store them.
 
 The factors (:class:`~mmf_rl.models.scale_calibration.PresenceScaleCalibration`) are fitted in closed
-form: for each presence pattern ``p``, the NLL-optimal scalar temperature of the Gaussian forecast,
+form, for each presence pattern ``p``, on the standardised errors ``z = (y - loc) / scale`` of the
+T × D future values of the windows with pattern ``p``, by one of two methods:
 
-    s_p² = mean over the windows with pattern p and over the T × D future values of ((y - loc) / scale)²,
+* ``coverage`` (the default): split-conformal. ``s_p`` is the ``⌈(n + 1) · 0.9⌉``-th smallest of the
+  ``n`` values ``|z|`` (halfway to the next one), divided by the half width of the central 90%
+  interval of ``N(0, 1)``: the scaled 90% intervals then hold that share of the fitted values,
+  each value counted as ``coverage_90`` counts them (:mod:`mmf_rl.eval.metrics`). ``n`` counts
+  values, not windows: a window's values are not independent, so the finite-sample correction is
+  approximate, and negligible from a few windows on.
+  A few large errors (contact, a camera glitch) move a quantile by a few values only.
+* ``temperature``: the NLL-optimal scalar temperature of the Gaussian forecast,
+  ``s_p² = mean(z²)``. Large errors dominate the mean: on heavy-tailed errors it widens every
+  interval to fit the outliers, and the intervals over-cover.
 
-on every window of the batches under every presence subset of the evaluation
+The errors are taken on every window of the batches under every presence subset of the evaluation
 (:func:`~mmf_rl.datasets.presence_subsets`, applied as :func:`~mmf_rl.datasets.apply_presence_subset`
 does), each (window, pattern) pair once. The fit starts from the uncalibrated scale (the factors
 are reset to ones first), so refitting replaces earlier factors. A pattern seen in fewer than
-``min_windows`` windows keeps the factor 1: a temperature from a handful of windows would be noise.
+``min_windows`` windows gets the pooled fit, the same method on every (window, pattern) pair, as a
+factor from a handful of windows would be noise; when even those are fewer, it keeps the factor 1.
 Fit on the validation split (``mmf-rl calibrate`` does): the test split must stay unseen.
 
 :func:`save_calibration` writes the factors where the model was loaded from (a checkpoint is
@@ -47,14 +58,41 @@ from mmf_rl.models.scale_calibration import pattern_name
 
 DEFAULT_MIN_WINDOWS = 32
 FACTORS_KEY = "scale_calibration.factors"  # the factors' name in a registered model's state dict
-# For the 90% coverage the fit reports.
-HALF_WIDTH_90 = central_half_width(COVERAGE_LEVELS["coverage_90"])
+# The level the coverage fit holds, and the coverage the fit reports: the 90% the README promises.
+LEVEL_90 = COVERAGE_LEVELS["coverage_90"]
+HALF_WIDTH_90 = central_half_width(LEVEL_90)
+
+
+def coverage_factor(magnitudes: torch.Tensor) -> float:
+    """The split-conformal factor of the values ``|z|`` (see module docstring).
+
+    A hand-written quantile, not MAPIE, crepes or torchcp: they wrap a regressor and compute its
+    conformity scores themselves, where the scores here are the model's standardised errors, and
+    the fit is this one order statistic."""
+    ordered = magnitudes.sort().values
+    n = len(ordered)
+    # Fewer than 1 / (1 - level) - 1 values: the corrected rank is past the largest; take that.
+    rank = min(math.ceil((n + 1) * LEVEL_90), n)
+    # Any factor from the rank-th value up to the next covers the same fitted values; halfway,
+    # float32 rounding in the calibrated forecast cannot move the rank-th one out of its interval.
+    quantile = (ordered[rank - 1] + ordered[min(rank, n - 1)]) / 2
+    return float(quantile) / HALF_WIDTH_90
+
+
+def temperature_factor(magnitudes: torch.Tensor) -> float:
+    """The NLL-optimal temperature ``sqrt(mean(z²))`` of the values ``|z|``."""
+    return math.sqrt(float(magnitudes.square().mean()))
+
+
+CALIBRATION_METHODS = {"coverage": coverage_factor, "temperature": temperature_factor}
+DEFAULT_METHOD = "coverage"
 
 
 @dataclass(frozen=True)
 class PatternFit:
     """One presence pattern's fit: its windows, factor, and 90% coverage before and after on the
-    fitted windows (``fitted=False``: fewer than ``min_windows`` windows, the factor stays 1)."""
+    fitted windows. ``fitted=False``: fewer than ``min_windows`` windows, the factor is the pooled
+    fit's (``pooled=True``) or 1 (also in records written before the pooled fit existed)."""
 
     pattern: str
     index: int
@@ -63,6 +101,7 @@ class PatternFit:
     fitted: bool
     coverage_90_before: float
     coverage_90_after: float
+    pooled: bool = False
 
 
 def _calibration_module(model):
@@ -93,25 +132,34 @@ def fit_scale_calibration(
     batches: Iterable[TensorDictBase],
     min_windows: int = DEFAULT_MIN_WINDOWS,
     device: torch.device | str = "cpu",
+    method: str = DEFAULT_METHOD,
 ) -> list[PatternFit]:
     """Fit ``model.scale_calibration`` in place (see module docstring); one entry per pattern seen.
 
-    ``batches``: CPU batches with ``"target"`` (e.g. ``WindowDataset.loader("val", ...)``)."""
+    ``batches``: CPU batches with ``"target"`` (e.g. ``WindowDataset.loader("val", ...)``);
+    ``method``: a key of :data:`CALIBRATION_METHODS`."""
     calibration = _calibration_module(model)
     if min_windows < 1:
         raise ValueError(f"min_windows must be >= 1, found {min_windows}")
+    if method not in CALIBRATION_METHODS:
+        raise ValueError(
+            f"unknown calibration method {method!r}: choose among {', '.join(CALIBRATION_METHODS)}"
+        )
+    factor_of = CALIBRATION_METHODS[method]
     names = [s.name for s in model.modalities]
     calibration.reset()
     model.to(device).eval()
-    squared, windows, residuals = _standardised_residuals(model, calibration, batches, names, device)
+    windows, residuals = _standardised_residuals(model, calibration, batches, names, device)
     if not windows:
         raise ValueError("no window to fit the scale factors on: the batches are empty")
+    magnitudes = {index: torch.cat(parts) for index, parts in residuals.items()}
+    pooled = sum(windows.values()) >= min_windows
+    pooled_factor = factor_of(torch.cat(list(magnitudes.values()))) if pooled else 1.0
     fits = []
     for index in sorted(windows):
         fitted = windows[index] >= min_windows
-        factor = math.sqrt(squared[index] / windows[index]) if fitted else 1.0
+        factor = factor_of(magnitudes[index]) if fitted else pooled_factor
         calibration.factors[index] = factor
-        magnitudes = torch.cat(residuals[index])
         fits.append(
             PatternFit(
                 pattern=pattern_name(index, names),
@@ -119,20 +167,19 @@ def fit_scale_calibration(
                 windows=windows[index],
                 factor=float(calibration.factors[index]),
                 fitted=fitted,
-                coverage_90_before=float((magnitudes <= HALF_WIDTH_90).double().mean()),
-                coverage_90_after=float((magnitudes <= HALF_WIDTH_90 * factor).double().mean()),
+                coverage_90_before=float((magnitudes[index] <= HALF_WIDTH_90).double().mean()),
+                coverage_90_after=float((magnitudes[index] <= HALF_WIDTH_90 * factor).double().mean()),
+                pooled=not fitted and pooled,
             )
         )
     return fits
 
 
 def _standardised_residuals(model, calibration, batches, names: list[str], device):
-    """Per presence pattern: the sum over windows of each window's mean ``z²`` (``z = (y - loc) /
-    scale``), the window count, and every ``|z|`` (for the coverage), over every (window, pattern)
-    pair the evaluation's presence subsets give, each once."""
+    """Per presence pattern: the window count and every ``|z|`` (``z = (y - loc) / scale``), over
+    every (window, pattern) pair the evaluation's presence subsets give, each once."""
     subsets = list(presence_subsets(names))
     bits = calibration.bits.cpu()
-    squared = defaultdict(float)
     windows = defaultdict(int)
     residuals: dict[int, list[torch.Tensor]] = defaultdict(list)
     for batch in batches:
@@ -156,18 +203,20 @@ def _standardised_residuals(model, calibration, batches, names: list[str], devic
             z = ((window.get(keys.TARGET) - loc) / scale).flatten(1).double()
             for index in pattern.unique().tolist():
                 mine = pattern == index
-                squared[index] += float(z[mine].square().mean(1).sum())
                 windows[index] += int(mine.sum())
                 residuals[index].append(z[mine].abs().flatten())
-    return squared, windows, residuals
+    return windows, residuals
 
 
-def calibration_record(model, fits: list[PatternFit], split: str, min_windows: int, data_root) -> dict:
+def calibration_record(
+    model, fits: list[PatternFit], split: str, min_windows: int, data_root, method: str
+) -> dict:
     """What is stored with the model about its fit (``model.calibration``): the split, the
     settings, every pattern's fit and the factors it describes (so a reader can tell whether the
     weights still hold them)."""
     return {
         "split": split,
+        "method": method,
         "min_windows": min_windows,
         "data_root": str(data_root),
         "eval_latent": getattr(model.config, "eval_latent", None),
@@ -202,9 +251,14 @@ def calibration_header(record: dict | None) -> str:
     fitted = sum(p["fitted"] for p in record["patterns"])
     return (
         f"Forecast scale: recalibrated per presence pattern on the {record['split']} split "
-        f"(`mmf-rl calibrate`; {fitted} of {len(record['patterns'])} patterns fitted, "
-        f"min_windows={record['min_windows']})\n\n"
+        f"(`mmf-rl calibrate`, method={record_method(record)}; {fitted} of {len(record['patterns'])} "
+        f"patterns fitted, min_windows={record['min_windows']})\n\n"
     )
+
+
+def record_method(record: dict) -> str:
+    """The method of a recorded fit; records written before the choice existed were temperatures."""
+    return record.get("method", "temperature")
 
 
 def unfit_for_latent(model) -> str | None:
@@ -230,7 +284,11 @@ def fit_table(fits: list[PatternFit], split: str) -> str:
         "|---|---|---|---|",
     ]
     for fit in fits:
-        factor = f"{fit.factor:.3f}" if fit.fitted else "1 (kept: too few windows)"
+        factor = f"{fit.factor:.3f}"
+        if fit.pooled:
+            factor += " (pooled: too few windows)"
+        elif not fit.fitted:
+            factor = "1 (kept: too few windows)"
         lines.append(
             f"| {fit.pattern} | {fit.windows} | {factor} | "
             f"{fit.coverage_90_before:.3f} -> {fit.coverage_90_after:.3f} |"
@@ -303,12 +361,17 @@ def save_calibration(model, source: TrainedModelSource) -> list[Path]:
 
 def calibrate_after_training(model, data, checkpoint: Path, device: torch.device | str = "cpu") -> str:
     """``mmf-rl train calibrate=true``: fit the trained ``model`` on its run's val split (``data``, a
-    ``WindowDataset``) and re-save its last ``checkpoint`` with the factors; the message saying what
-    was done.
+    ``WindowDataset``) by the default method and re-save its last ``checkpoint`` with the factors;
+    the message saying what was done.
     """
     if len(data.split_windows["val"]) == 0:
         return "forecast scale not recalibrated: the val split has no window"
     fits = fit_scale_calibration(model, data.loader("val", 256), DEFAULT_MIN_WINDOWS, device)
-    model.calibration = calibration_record(model, fits, "val", DEFAULT_MIN_WINDOWS, data.config.root)
+    model.calibration = calibration_record(
+        model, fits, "val", DEFAULT_MIN_WINDOWS, data.config.root, DEFAULT_METHOD
+    )
     save_to_checkpoint(model, checkpoint)
-    return f"forecast scale recalibrated per presence pattern on the val split:\n{fit_table(fits, 'val')}"
+    return (
+        f"forecast scale recalibrated per presence pattern on the val split (method={DEFAULT_METHOD}):\n"
+        f"{fit_table(fits, 'val')}"
+    )

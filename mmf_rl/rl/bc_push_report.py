@@ -5,7 +5,7 @@ tables, the offline errors, the camera-loss target, the forecaster's scale fit a
 
 from __future__ import annotations
 
-from mmf_rl.eval.scale_fit import PatternFit, fit_table
+from mmf_rl.eval.scale_fit import PatternFit, fit_table, record_method
 from mmf_rl.rl.bc_evaluation import (
     VARIANTS,
     camera_loss,
@@ -101,7 +101,8 @@ def calibration_section(record: dict | None) -> str:
     fits = [PatternFit(**fit) for fit in record["patterns"]]
     return (
         f"\nForecast scale: calibrated per presence pattern on the {record['split']} split before any "
-        f"forecast (as `mmf-rl calibrate`, min_windows={record['min_windows']}):\n\n"
+        f"forecast (as `mmf-rl calibrate`, method={record_method(record)}, "
+        f"min_windows={record['min_windows']}):\n\n"
         f"{fit_table(fits, record['split'])}\n"
     )
 

@@ -16,7 +16,17 @@ from mmf_rl.eval.report import constant_velocity_warning
 from mmf_rl.models import load_trained_model
 from tests.conftest import SMALL_MODALITIES, push_train_overrides
 
-NEW_COLUMNS = ("available", "minMSE@K (norm.)", "minADE@K", "minFDE@K", "NLL", "cover 50%", "cover 90%")
+NEW_COLUMNS = (
+    "available",
+    "minMSE@K (norm.)",
+    "minADE@K",
+    "minFDE@K",
+    "NLL",
+    "cover 50%",
+    "cover 90%",
+    "width 90%",
+    "CRPS (norm.)",
+)
 
 
 @pytest.fixture(scope="module")
@@ -75,6 +85,7 @@ def test_learned_prior_eval_pairs_subsets_on_windows_with_failed_sensors(learned
     for row in rows.values():
         assert 0 <= row["coverage_50"] <= row["coverage_90"] <= 1
         assert row["min_mse_k"] >= 0 and row["min_fde_k"] >= 0 and row["nll"] == row["nll"]
+        assert row["width_90"] > 0 and row["crps"] > 0
     assert rows["all"]["degradation"] == 0
     # The learned prior's latents depend on the present modalities: the t-SNE has something to show.
     assert (run / "eval" / "latent_tsne.png").stat().st_size > 1000

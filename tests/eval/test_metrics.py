@@ -12,6 +12,7 @@ from mmf_rl.eval.metrics import (
     displacement_errors,
     evaluate_forecasts,
     evaluate_presence_subsets,
+    gaussian_crps,
     interval_coverage,
 )
 from mmf_rl.eval.report import markdown_table
@@ -87,7 +88,29 @@ def test_metrics_in_normalised_frame_and_units():
     )
     # |error| = 0.3 < 0.674 (the 50% half-width of N(0, 1)) everywhere: both intervals cover every value.
     assert metrics["coverage_50"] == 1.0 and metrics["coverage_90"] == 1.0
+    # Scale 1 (normalised): the 90% intervals are 2 * 1.645 wide, in units 10 times that.
+    assert metrics["width_90"] == pytest.approx(2 * 1.6449 * scale, rel=1e-4)
+    assert metrics["crps"] == pytest.approx(float(gaussian_crps(*torch.tensor([[[0.3]], [[0.0]], [[1.0]]]))))
     assert metrics["cv_mse"] > 0
+
+
+def test_gaussian_crps_is_the_integral_of_the_squared_cdf_error():
+    target, loc, scale = (
+        torch.tensor([0.3, -2.0, 5.0]),
+        torch.tensor([0.0, 1.0, 5.0]),
+        torch.tensor([1.0, 0.5, 2.0]),
+    )
+    grid = torch.linspace(-20, 20, 400_001, dtype=torch.float64)
+    for y, mu, sigma in zip(target, loc, scale, strict=True):
+        cdf = torch.distributions.Normal(mu.double(), sigma.double()).cdf(grid)
+        integral = torch.trapezoid((cdf - (grid >= y).double()) ** 2, grid)
+        assert float(gaussian_crps(y.view(1, 1, 1), mu.view(1, 1, 1), sigma.view(1, 1, 1))) == pytest.approx(
+            float(integral), rel=1e-4
+        )
+    # Forecasts on target: the sharper scores better. As the scale vanishes: the absolute error.
+    one = torch.ones(1, 1, 1)
+    assert gaussian_crps(one, one, 0.5 * one) < gaussian_crps(one, one, 2 * one)
+    assert float(gaussian_crps(0 * one, one, 1e-4 * one)) == pytest.approx(1.0, rel=1e-3)
 
 
 def test_baseline_needs_target_past():

@@ -12,12 +12,15 @@ from mmf_rl import keys
 from mmf_rl.checkpoint import LAST_POINTER, list_checkpoints, load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.eval.metrics import interval_coverage
 from mmf_rl.eval.scale_fit import (
+    CALIBRATION_METHODS,
     HALF_WIDTH_90,
     calibration_header,
     calibration_in_use,
     calibration_record,
     fit_scale_calibration,
+    fit_table,
     unfit_for_latent,
 )
 from mmf_rl.models import load_trained_model
@@ -52,27 +55,80 @@ def batches(count: int, size: int = 50, without_image: bool = False, seed: int =
     return [make_batch(size, present=absent, seed=seed + i) for i in range(count)]
 
 
-def test_the_fit_recovers_a_known_miscalibration_per_pattern():
+def heavy_tailed(data, outliers: float = 0.03, size: float = 15.0, seed: int = 0):
+    """``data`` with targets ``N(0, 1)`` but for a share ``outliers`` of the values, ``size`` times
+    larger: the few large errors of contact events or sensor glitches."""
+    g = torch.Generator().manual_seed(seed)
+    for batch in data:
+        target = batch.get(keys.TARGET)
+        jumps = torch.rand(target.shape, generator=g) < outliers
+        batch.set(keys.TARGET, torch.where(jumps, size * target, target))
+    return data
+
+
+@pytest.mark.parametrize("method", sorted(CALIBRATION_METHODS))
+def test_the_fit_recovers_a_known_miscalibration_per_pattern(method):
     sigma = torch.tensor([1.0, 0.5, 0.5, 2.0, 0.25, 1.0, 0.8, 0.5])  # pattern 0 (nothing) unused
     model = FixedGaussian(sigma)
     data = batches(4)  # 200 windows, every sensor present: each pattern once per window
-    fits = fit_scale_calibration(model, data, min_windows=32)
+    fits = fit_scale_calibration(model, data, min_windows=32, method=method)
     assert [fit.index for fit in fits] == list(range(1, 8))
     for fit in fits:
         assert fit.pattern == pattern_name(fit.index, NAMES) and fit.windows == 200 and fit.fitted
-        # 2000 values a pattern: the fitted temperature is within a few percent of the true one.
+        # 2000 Gaussian values a pattern: either fit is within a few percent of the true factor.
         assert fit.factor == pytest.approx(1 / float(sigma[fit.index]), rel=0.06)
         assert fit.coverage_90_after == pytest.approx(0.9, abs=0.03)
         expected_before = torch.special.erf(torch.tensor(HALF_WIDTH_90 * float(sigma[fit.index]) / 2**0.5))
         assert fit.coverage_90_before == pytest.approx(float(expected_before), abs=0.04)
     assert torch.equal(model.scale_calibration.factors[1:], torch.tensor([f.factor for f in fits]))
     # A refit starts from the uncalibrated scale: the same factors, not their square.
-    again = fit_scale_calibration(model, data, min_windows=32)
+    again = fit_scale_calibration(model, data, min_windows=32, method=method)
     assert [f.factor for f in again] == [f.factor for f in fits]
 
 
-def test_patterns_with_too_few_windows_keep_one_and_each_window_counts_once():
-    model = FixedGaussian(torch.full((8,), 0.5))
+def test_heavy_tailed_errors_the_coverage_fit_holds_90_percent_where_the_temperature_over_covers():
+    def held_out_coverage(model):
+        unseen = heavy_tailed(batches(8, seed=100), seed=1)
+        covered = [
+            interval_coverage(b.get(keys.TARGET), o.get(keys.FORECAST_LOC), o.get(keys.FORECAST_SCALE), 0.9)
+            for b in unseen
+            for o in [model(b.exclude(keys.TARGET))]
+        ]
+        return float(torch.cat(covered).mean())
+
+    model = FixedGaussian(torch.ones(8))
+    fitted_on = heavy_tailed(batches(4))  # 3% of the values 15 times larger
+    by_method = {}
+    for method in ("coverage", "temperature"):
+        fits = fit_scale_calibration(model, fitted_on, min_windows=32, method=method)
+        by_method[method] = (fits[-1], held_out_coverage(model))
+    (coverage, coverage_unseen), (temperature, temperature_unseen) = by_method.values()
+    # The outliers set the temperature: every interval widens ~2.6x and covers nearly everything.
+    assert temperature.factor > 2 and temperature.coverage_90_after > 0.96 and temperature_unseen > 0.96
+    # The coverage fit holds the nominal level on the windows it was fitted on and on unseen ones,
+    # with intervals less than half as wide.
+    assert coverage.coverage_90_after == pytest.approx(0.9, abs=0.01)
+    assert coverage_unseen == pytest.approx(0.9, abs=0.03)
+    assert coverage.factor < temperature.factor / 2
+
+
+def test_the_coverage_fit_is_the_corrected_quantile_of_the_standardised_errors():
+    # n = 9 values: rank ceil(10 * 0.9) = 9, the largest; the factor scales it to the 90% half width.
+    magnitudes = torch.arange(1.0, 10.0, dtype=torch.float64)
+    assert CALIBRATION_METHODS["coverage"](magnitudes) == pytest.approx(9 / HALF_WIDTH_90)
+    # n = 99: rank 90, the 90th smallest (not the 89.1th an uncorrected quantile would take), halfway
+    # to the 91st. Shuffled: the order of the values does not matter.
+    shuffled = torch.arange(1.0, 100.0)[torch.randperm(99, generator=torch.Generator().manual_seed(0))]
+    assert CALIBRATION_METHODS["coverage"](shuffled) == pytest.approx(90.5 / HALF_WIDTH_90)
+    # Too few values for the correction (rank 5 of 4): the largest.
+    assert CALIBRATION_METHODS["coverage"](torch.arange(1.0, 5.0)) == pytest.approx(4 / HALF_WIDTH_90)
+    assert CALIBRATION_METHODS["temperature"](torch.tensor([3.0, 4.0])) == pytest.approx(12.5**0.5)
+
+
+def test_patterns_with_too_few_windows_get_the_pooled_fit_and_each_window_counts_once():
+    sigma = torch.full((8,), 0.5)
+    sigma[[1, 3, 5, 7]] = 0.25  # the camera's patterns: their own fit would be 4, the others' 2
+    model = FixedGaussian(sigma)
     # 40 windows with every sensor, 40 without the camera: the camera's patterns have 40 windows,
     # the others 80 (a camera-less window under "all" and under "without_image" is one window).
     data = batches(1, 40) + batches(1, 40, without_image=True, seed=5)
@@ -86,13 +142,21 @@ def test_patterns_with_too_few_windows_keep_one_and_each_window_counts_once():
         "force+proprio": 80,
         "image+force+proprio": 40,
     }
-    for name, fit in fits.items():
-        assert fit.fitted == ("image" not in name)
-        assert (fit.factor == 1.0) == ("image" in name)
-        if "image" in name:
-            assert fit.coverage_90_after == fit.coverage_90_before
     factors = model.scale_calibration.factors
-    assert factors[1] == 1 and factors[6] == pytest.approx(2.0, rel=0.1)
+    pooled = factors[1]
+    # The pooled fit mixes the camera's 160 (window, pattern) pairs at 4 with the 240 others at 2.
+    assert 2.2 < pooled < 3.8 and factors[6] == pytest.approx(2.0, rel=0.1)
+    for name, fit in fits.items():
+        assert fit.fitted == ("image" not in name) and fit.pooled == ("image" in name)
+        if "image" in name:
+            assert fit.factor == pooled
+    table = fit_table(list(fits.values()), "val")
+    assert table.count(f"| {pooled:.3f} (pooled: too few windows) |") == 4
+    # Even every pattern together has too few windows: nothing to pool, the factors stay 1.
+    fits = fit_scale_calibration(model, data, min_windows=1000)
+    assert not any(fit.fitted or fit.pooled for fit in fits) and model.scale_calibration.is_identity()
+    assert all(fit.coverage_90_after == fit.coverage_90_before for fit in fits)
+    assert "| 1 (kept: too few windows) |" in fit_table(fits, "val")
 
 
 def test_bad_input_is_a_one_line_error():
@@ -101,6 +165,10 @@ def test_bad_input_is_a_one_line_error():
     model = FixedGaussian(torch.ones(8))
     with pytest.raises(ValueError, match="min_windows must be >= 1"):
         fit_scale_calibration(model, batches(1), min_windows=0)
+    with pytest.raises(
+        ValueError, match="unknown calibration method 'nll': choose among coverage, temperature"
+    ):
+        fit_scale_calibration(model, batches(1), method="nll")
     with pytest.raises(ValueError, match="no window to fit"):
         fit_scale_calibration(model, [])
     without_presence = batches(1)[0].exclude(keys.present_key("force"))
@@ -113,15 +181,19 @@ def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
     model.config = type("Config", (), {"eval_latent": "mean"})()
     assert calibration_in_use(model) is None and calibration_header(None) == ""
     fits = fit_scale_calibration(model, batches(1), min_windows=32)
-    model.calibration = calibration_record(model, fits, "val", 32, "/data/push")
+    model.calibration = calibration_record(model, fits, "val", 32, "/data/push", "coverage")
     record = calibration_in_use(model)
     assert record["split"] == "val"
     assert "recalibrated per presence pattern on the val split" in calibration_header(record)
+    assert "method=coverage;" in calibration_header(record)
+    # A record written before the method was a choice was a temperature fit.
+    older = {k: v for k, v in record.items() if k != "method"}
+    assert "method=temperature;" in calibration_header(older)
     assert unfit_for_latent(model) is None
     model.scale_calibration.factors[3] = 5.0  # factors that the record does not describe
     assert "fit is not recorded" in calibration_header(calibration_in_use(model))
     # Scored under another eval latent than the fit's: the factors describe another forecast.
-    model.calibration = calibration_record(model, fits, "val", 32, "/data/push")
+    model.calibration = calibration_record(model, fits, "val", 32, "/data/push", "coverage")
     model.config.eval_latent = "predictive"
     assert "fitted with eval_latent=mean" in unfit_for_latent(model)
     assert calibration_in_use(model) is None and model.scale_calibration.is_identity()
@@ -147,7 +219,7 @@ def stored_factors(run):
 def test_training_ends_with_a_calibration_on_val_stored_in_checkpoint_and_export(push_run):
     checkpoint, exported = stored_factors(push_run)
     record = checkpoint.meta["calibration"]
-    assert record["split"] == "val" and record["min_windows"] == 32
+    assert record["split"] == "val" and record["min_windows"] == 32 and record["method"] == "coverage"
     assert torch.equal(checkpoint.model_state[FACTORS], exported)
     assert exported.tolist() == record["factors"]
     assert json.loads((push_run / "model" / "calibration.json").read_text()) == record
@@ -205,6 +277,7 @@ def test_calibrate_refits_writes_back_and_eval_scores_with_the_factors(push_run,
     "arguments, message",
     [
         (["checkpoint=RUN", "split=test"], "split='test': the scale factors are fitted on val or train"),
+        (["checkpoint=RUN", "method=nll"], "method='nll': choose among coverage, temperature"),
         (["checkpoint=/nowhere/run"], "/nowhere/run does not exist"),
         ([], "checkpoint=PATH is required"),
     ],
@@ -230,3 +303,11 @@ def test_eval_and_calibrate_on_the_train_split_read_every_training_window(push_r
     record = load_checkpoint(push_run / "checkpoints", with_trainer_state=False).meta["calibration"]
     assert record["split"] == "train"
     assert {p["windows"] for p in record["patterns"]} == {windows}  # no sensor fails in this recording
+
+
+def test_calibrate_method_temperature_stores_the_nll_fit(push_run, capsys):
+    assert cli(["calibrate", f"checkpoint={push_run}", "min_windows=4", "method=temperature"]) == 0
+    assert "(method=temperature)" in capsys.readouterr().out
+    record = load_checkpoint(push_run / "checkpoints", with_trainer_state=False).meta["calibration"]
+    assert record["method"] == "temperature"
+    assert "method=temperature;" in calibration_header(record)
