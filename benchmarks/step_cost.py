@@ -4,8 +4,8 @@
     .venv/bin/python benchmarks/step_cost.py --threads 1 --rounds 6
 
 The variants (``VARIANTS``: the default, the paper's raw-token decoder, ``L_mis`` with its teacher
-detached, per-frame image tokens)
-and MulT train in turn, ``--steps`` steps each per round, on the push-like batch
+detached, per-frame image tokens), MulT and the recommended preset (MulT with modality dropout and
+``L_mis``) train in turn, ``--steps`` steps each per round, on the push-like batch
 (``mmf_rl.datasets.synthetic.push_like_batch``); the first round warms up and is dropped.
 Interleaving the models round by round means a machine that slows down slows every model alike,
 so the printed ratios hold where the absolute times do not. Prints each model's median ms per
@@ -31,6 +31,7 @@ VARIANTS = {
     "forecaster, raw tokens (the paper)": (("model.decoder_input=tokens",), "conv"),
     "forecaster, L_mis teacher detached": (("loss.detach_teacher=true",), "conv"),
     "forecaster, per-frame image tokens": ((), "conv_frames"),
+    "MulT trained for missing sensors (experiment=robust_mult)": (("experiment=robust_mult",), "conv"),
     "MulT": (("model=mult",), "conv"),
 }
 

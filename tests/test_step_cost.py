@@ -9,6 +9,7 @@ VARIANTS = [
     "forecaster, raw tokens (the paper)",
     "forecaster, L_mis teacher detached",
     "forecaster, per-frame image tokens",
+    "MulT trained for missing sensors (experiment=robust_mult)",
     "MulT",
 ]
 

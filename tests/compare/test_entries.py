@@ -24,7 +24,7 @@ def study(tmp_path: Path, labels: list[str], retrained_for=None) -> Study:
 def test_the_catalogue_is_labelled_once_and_names_no_modality():
     labels = [e.label for e in entries.CATALOGUE]
     assert len(labels) == len(set(labels)) and labels[0] == "paper"
-    assert set(entries.DEFAULT_ENTRIES) == {"paper", "LF-LSTM", "MVAE", "MulT"}
+    assert set(entries.DEFAULT_ENTRIES) == {"paper", "LF-LSTM", "MVAE", "MulT", "recommended"}
     assert not any("modalities" in o for e in entries.CATALOGUE for o in e.overrides)
     for entry in entries.CATALOGUE:
         if entry.kind == "retrained":
@@ -74,3 +74,15 @@ def test_a_retrained_entry_reuses_its_base_run_and_trains_one_model_per_subset(t
         tmp_path / "paper" / "seed0",
         tmp_path / "paper" / "seed1",
     ]
+
+
+def test_the_recommended_entry_trains_the_preset_the_readme_recommends(tmp_path):
+    """``recommended`` is ``experiment=robust_mult``: MulT with modality dropout and L_mis beside its NLL,
+    the same training as the catalogue's "MulT, modality dropout + L_mis"."""
+    from mmf_rl.compare.runs import compose_train
+
+    s = study(tmp_path, ["paper", "recommended", "MulT, modality dropout + L_mis"])
+    preset, spelled_out = (compose_train(e, 0, s, tmp_path / "run") for e in s.entries[1:])
+    assert preset.model == spelled_out.model and preset.loss == spelled_out.loss
+    assert preset.model.name == "mult" and preset.loss.modality_dropout == "subsets"
+    assert list(preset.loss.terms) == ["nll", "mis"] and preset.run_dir == str(tmp_path / "run")

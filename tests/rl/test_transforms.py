@@ -611,3 +611,30 @@ def test_an_explicit_presence_rule_overrides_the_run_and_warns_when_it_contradic
     (record,) = caplog.records
     assert f"per_step_presence={not partial_windows}" in record.getMessage()
     assert f"data.partial_windows={partial_windows}" in record.getMessage()
+
+
+def test_the_recommended_preset_trains_and_forecasts_in_an_env(recorded_push_root, tmp_path):
+    """``experiment=robust_mult`` (MulT trained for missing sensors) drops into the TorchRL env as the
+    paper model does: trained by ``mmf-rl train``, loaded by ``ForecastTransform.from_checkpoint``."""
+    from mmf_rl.cli import main as cli
+    from tests.conftest import push_train_overrides
+
+    run = tmp_path / "run"
+    base = push_train_overrides(recorded_push_root, tmp_path / "cache", run, steps=3)
+    sizes = ["model.d_model=16", "model.head_hidden=32", "model.num_heads=2", "model.mlp_hidden=32"]
+    assert (
+        cli(["train", "experiment=robust_mult", *(o for o in base if not o.startswith("model.")), *sizes])
+        == 0
+    )
+    transform = ForecastTransform.from_checkpoint(run / "checkpoints", num_samples=2)
+    assert transform.model.model_name == "mult"
+    env = TransformedEnv(
+        MultimodalPushTorchEnv(image_size=IMAGE_SIZE),
+        Compose(ModalityDropout(["image", "force"], outage_prob=0.5, seed=0), transform),
+    )
+    try:
+        rollout = env.rollout(4)
+        assert rollout.get(keys.FORECAST_LOC).shape == (4, 3, 2)
+        assert torch.isfinite(rollout.get(keys.FORECAST_LOC)).all()
+    finally:
+        env.close()
