@@ -18,10 +18,11 @@ recording, seeds 0 1 2; the humanoid slice: ``benchmarks/real_humanoid.py``'s da
 The recommendation is chosen on the validation split only: every cell's MSE per subset on val (mean
 over seeds); the pick is the cell whose worst ratio to the best val MSE of a subset is lowest (best
 everywhere if that ratio is 1). The test split then says whether it is best or tied (95% paired
-bootstrap) in every subset against every cell. Completed runs in ``--out`` are reused. Writes
+bootstrap; overlapping intervals) in every subset against every cell, and the paired intervals where a
+cell beats it. Completed runs in ``--out`` are reused. Writes
 ``<out>/results.md`` and ``<out>/results.json`` and ends with one line: ``summary: recommended (val)
-NAME; test best or tied in X/7 subsets against every cell; all sensors A (best cell B); mean degradation
-D%``.
+NAME; test best or tied in X/7 subsets against every cell (paired: beaten in K); all sensors A (best
+cell B); mean degradation D%``.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ import torch
 
 from mmf_rl.compare import entries as catalogue
 from mmf_rl.compare import report, script
-from mmf_rl.compare.bootstrap import Table, best_or_tied, bootstrap_unit, build_table
+from mmf_rl.compare.bootstrap import Table, best_or_tied, bootstrap_unit, build_table, difference_interval
 from mmf_rl.compare.entries import Entry, Study, run_plan, select_entries, subsets
 
 REPO = Path(__file__).resolve().parents[1]
@@ -134,6 +135,32 @@ def wins_against_all(table: Table, label: str) -> int:
     )
 
 
+def paired_table(table: Table, pick: str, title) -> str:
+    """The pick against every other cell, per subset: its MSE minus the cell's with the 95% paired
+    interval; ``worse``/``better`` where the interval excludes 0. Overlapping marginal intervals (the
+    "best or tied" count) hide a difference the paired interval finds."""
+    others = [label for label in table.kinds if label != pick]
+    lines = ["| cell | " + " | ".join(title(s) for s in table.subsets) + " |"]
+    lines.append("|---" * (len(table.subsets) + 1) + "|")
+    for other in others:
+        cells = []
+        for s in table.subsets:
+            low, high = difference_interval(table.cells[pick][s], table.cells[other][s])
+            verdict = " worse" if low > 0 else " better" if high < 0 else ""
+            cells.append(f"{table.cells[pick][s].mean - table.cells[other][s].mean:+.3f}{verdict}")
+        lines.append(f"| {other} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def subsets_lost(table: Table, pick: str) -> list[str]:
+    """The subsets where some cell beats ``pick`` beyond the paired interval."""
+    return [
+        s
+        for s in table.subsets
+        if any(difference_interval(table.cells[pick][s], table.cells[o][s])[0] > 0 for o in table.kinds)
+    ]
+
+
 def grid_table(table: Table) -> str:
     """Architecture rows x training columns: all-sensor test MSE [95% interval] / mean degradation."""
     lines = ["| architecture | " + " | ".join(TRAININGS) + " |", "|---" * (len(TRAININGS) + 1) + "|"]
@@ -162,6 +189,7 @@ def summary_line(table: Table, pick: str) -> tuple[str, dict]:
     summary = {
         "recommended": pick,
         "test_best_or_tied": wins_against_all(table, pick),
+        "subsets_lost_paired": subsets_lost(table, pick),
         "subsets": len(table.subsets),
         "all_sensors": table.cells[pick]["all"].mean,
         "best_all_sensors": best_all,
@@ -170,7 +198,8 @@ def summary_line(table: Table, pick: str) -> tuple[str, dict]:
     }
     line = (
         f"summary: recommended (val) {pick}; test best or tied in {summary['test_best_or_tied']}/"
-        f"{summary['subsets']} subsets against every cell; all sensors {summary['all_sensors']:.3f} (best "
+        f"{summary['subsets']} subsets against every cell (paired: beaten in "
+        f"{len(summary['subsets_lost_paired'])}); all sensors {summary['all_sensors']:.3f} (best "
         f"cell {best_all} {summary['best_all_sensors_mse']:.3f}); mean degradation "
         f"{100 * summary['mean_degradation']:.0f}%"
     )
@@ -192,6 +221,9 @@ def markdown(study: Study, table: Table, val: dict, pick: tuple[str, float], col
         + "\n\n## The recommendation, chosen on val\n\nVal MSE per subset, mean over seeds. Pick: "
         f"**{pick[0]}**, within {100 * (pick[1] - 1):.1f}% of the best cell in every subset.\n\n"
         + val_table(val, title)
+        + "\n\n## The pick against every cell (test, paired)\n\nIts MSE minus the cell's, mean over "
+        "seeds; `worse`/`better`: the 95% paired bootstrap interval excludes 0.\n\n"
+        + paired_table(table, pick[0], title)
         + "\n\n## Test MSE per subset\n\n"
         + report.mse_table(table, list(table.kinds), list(table.kinds), title)
         + "\n\n## Relative degradation\n\n"

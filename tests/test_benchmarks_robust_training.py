@@ -16,8 +16,8 @@ from tests.conftest import run_bench
 
 SCRIPT = runpy.run_path(str(Path(__file__).parents[1] / "benchmarks" / "robust_training.py"))
 SUMMARY = re.compile(
-    r"summary: recommended \(val\) (.+); test best or tied in (\d)/7 subsets against every cell; all sensors "
-    r"\d\.\d{3} \(best cell .+ \d\.\d{3}\); mean degradation -?\d+%"
+    r"summary: recommended \(val\) (.+); test best or tied in (\d)/7 subsets against every cell "
+    r"\(paired: beaten in \d\); all sensors \d\.\d{3} \(best cell .+ \d\.\d{3}\); mean degradation -?\d+%"
 )
 
 
@@ -60,6 +60,7 @@ def test_a_tiny_run_writes_the_grid_the_val_choice_and_the_summary_line(recorded
     text = (out / "results.md").read_text()
     assert "| architecture | complete windows | modality dropout | L_mis | modality dropout + L_mis |" in text
     assert "| *protocol* | paper | trained for missing |" in text
+    assert "## The pick against every cell (test, paired)" in text
     results = json.loads((out / "results.json").read_text())
     assert sorted(results["val"]) == ["MulT; modality dropout + L_mis", "paper"]
     assert results["summary"]["recommended"] in results["val"]
