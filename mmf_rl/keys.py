@@ -131,6 +131,19 @@ def drop_steps_key(modality: str) -> tuple[str, str]:
     return (DROP_STEPS, modality)
 
 
+def drop_masks(td, modalities) -> torch.Tensor | None:
+    """``[B, M]``: the batch's ``("drop", m)`` masks (``L_mis``'s student input) for ``modalities``
+    (``ModalitySpec``s) in order; ``None`` when it has none. Some but not all is a KeyError naming them."""
+    drop_keys = [drop_key(s.name) for s in modalities]
+    found = [k in td.keys(include_nested=True) for k in drop_keys]
+    if not any(found):
+        return None
+    if not all(found):
+        missing = [k for k, f in zip(drop_keys, found, strict=True) if not f]
+        raise KeyError(f"batch has some ('drop', m) masks but not {missing}; give one for every modality")
+    return torch.stack([td.get(k) for k in drop_keys], dim=1)
+
+
 ModalityKind = Literal["image", "sequence", "vector"]
 MODALITY_KINDS: tuple[str, ...] = get_args(ModalityKind)
 # What a model does with NaN/Inf under a present modality: refuse the batch, or read it as absent.

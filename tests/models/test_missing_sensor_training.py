@@ -51,16 +51,11 @@ def without_dropped(batch):
     return student
 
 
-def student_model(name):
-    # The paper model's student decodes the teacher's z: with eval_latent=zero both sides decode z = 0.
-    return small_registered_model(name)
-
-
 @pytest.mark.parametrize("name", GAUSSIAN_MODELS)
 def test_student_forecast_is_the_forecast_without_the_dropped_modalities(name):
     """Per sample, in one pass: the student's forecast equals the model's forecast with the dropped
     modalities absent (the paper model's student reads the teacher's z, here z = 0 in eval)."""
-    model = student_model(name)
+    model = small_registered_model(name)
     batch, _ = drops_of_every_pattern()
     with torch.no_grad():
         out = model(batch.clone())
@@ -71,7 +66,7 @@ def test_student_forecast_is_the_forecast_without_the_dropped_modalities(name):
 
 @pytest.mark.parametrize("name", GAUSSIAN_MODELS)
 def test_values_under_dropped_modalities_do_not_reach_the_student(name):
-    model = student_model(name)
+    model = small_registered_model(name)
     batch, _ = drops_of_every_pattern()
     garbage = batch.clone()
     g = torch.Generator().manual_seed(5)
@@ -92,7 +87,7 @@ def test_values_under_dropped_modalities_do_not_reach_the_student(name):
 
 @pytest.mark.parametrize("name", GAUSSIAN_MODELS)
 def test_a_drop_that_empties_a_sample_is_refused(name):
-    model = student_model(name)
+    model = small_registered_model(name)
     batch = make_batch(2)
     for spec in SMALL_MODALITIES:
         batch.set(keys.drop_key(spec.name), torch.tensor([True, False]))
@@ -102,7 +97,7 @@ def test_a_drop_that_empties_a_sample_is_refused(name):
 
 @pytest.mark.parametrize("name", ["lf_lstm", "mvae", "mult"])
 def test_a_baseline_refuses_step_cuts_with_the_fix(name):
-    model = student_model(name)
+    model = small_registered_model(name)
     batch = make_batch(2)
     for spec in SMALL_MODALITIES:
         batch.set(keys.drop_key(spec.name), torch.zeros(2, dtype=torch.bool))

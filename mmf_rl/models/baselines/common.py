@@ -150,22 +150,18 @@ def student_batch(td: TensorDictBase, modalities: list[ModalitySpec]) -> TensorD
     """``L_mis``'s student input (:class:`~mmf_rl.objectives.MissingModalityLoss`): the observations and
     presence of ``td`` with the ``("drop", m)`` modalities made absent; ``None`` when ``td`` has no such
     masks. The baselines read presence per window only, so a step cut (``("drop_steps", m)``) is refused."""
-    drop_keys = [keys.drop_key(s.name) for s in modalities]
-    found = [k in td.keys(include_nested=True) for k in drop_keys]
     if any(keys.drop_steps_key(s.name) in td.keys(include_nested=True) for s in modalities):
         raise ValueError(
             "batch has ('drop_steps', m) masks (L_mis step cuts, loss.step_drop_prob > 0), which this "
             "baseline cannot apply: it reads presence per window, not per step; set loss.step_drop_prob=0 "
             "or use model=forecaster"
         )
-    if not any(found):
+    drop = keys.drop_masks(td, modalities)
+    if drop is None:
         return None
-    if not all(found):
-        missing = [k for k, f in zip(drop_keys, found, strict=True) if not f]
-        raise KeyError(f"batch has some ('drop', m) masks but not {missing}; give one for every modality")
     student = td.select(*[s.obs_key for s in modalities], *[s.present_key for s in modalities])
-    for spec, drop_key in zip(modalities, drop_keys, strict=True):
-        student.set(spec.present_key, td.get(spec.present_key) & ~td.get(drop_key))
+    for i, spec in enumerate(modalities):
+        student.set(spec.present_key, td.get(spec.present_key) & ~drop[:, i])
     if not presence(student, modalities).any(1).all():
         raise ValueError(
             "('drop', m) removes every present modality of some sample; keep at least one per sample"

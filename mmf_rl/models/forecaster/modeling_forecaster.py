@@ -550,14 +550,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         return self.action_encoder(td.get(keys.FUTURE_ACTION).flatten(1))
 
     def _drop_mask(self, td: TensorDictBase) -> torch.Tensor | None:
-        drop_keys = [keys.drop_key(s.name) for s in self.modalities]
-        found = [k in td.keys(include_nested=True) for k in drop_keys]
-        if not any(found):
-            return None
-        if not all(found):
-            missing = [k for k, f in zip(drop_keys, found, strict=True) if not f]
-            raise KeyError(f"batch has some ('drop', m) masks but not {missing}; give one for every modality")
-        return torch.stack([td.get(k) for k in drop_keys], dim=1)
+        return keys.drop_masks(td, self.modalities)
 
     def _step_cuts(self, td: TensorDictBase) -> dict[int, torch.Tensor]:
         """The batch's ``("drop_steps", m)`` masks ``[B, H]`` (a modality without one has no cut), by
