@@ -230,6 +230,7 @@ def markdown(study: Study, table: Table, val: dict, pick: tuple[str, float], col
         + report.degradation_table(table, list(table.kinds), title)
         + "\n\n"
         + report.coverage_section(collected.coverage, table, title)
+        + report.interval_quality_section(collected.intervals, table, title)
     )
 
 

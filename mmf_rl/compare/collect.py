@@ -30,15 +30,29 @@ def entry_coverage(entry: Entry, study: Study) -> tuple[dict[str, float], bool]:
     """``({subset: 90% interval coverage, mean over seeds}, every run recalibrated)`` from the
     evaluations ``run_one`` wrote (``<run>/eval/results.json``), with each run's scale as it stored it
     (recalibrated per presence pattern on val when its training did: ``mmf-rl train calibrate=true``)."""
+    recalibrated = all(
+        json.loads((run_dir / "eval" / "results.json").read_text()).get("scale_calibration") is not None
+        for _, _, run_dir, _, _ in run_plan(entry, study)
+    )
+    return entry_metric(entry, study, "coverage_90"), recalibrated
+
+
+def entry_metric(entry: Entry, study: Study, metric: str) -> dict[str, float]:
+    """``{subset: metric, mean over seeds}`` of one metric of the evaluations' subset rows
+    (``<run>/eval/results.json``); subsets where a run lacks it (written before it existed) are left
+    out."""
     per_subset: dict[str, list[float]] = {}
-    recalibrated = True
     for _, _, run_dir, _, subset in run_plan(entry, study):
         scores = json.loads((run_dir / "eval" / "results.json").read_text())
-        recalibrated &= scores.get("scale_calibration") is not None
         for name, row in scores["subsets"].items():
-            if subset in ("", name) and row.get("coverage_90") is not None:
-                per_subset.setdefault(name, []).append(row["coverage_90"])
-    return {name: statistics.fmean(values) for name, values in per_subset.items()}, recalibrated
+            if subset in ("", name) and row.get(metric) is not None:
+                per_subset.setdefault(name, []).append(row[metric])
+    return {name: statistics.fmean(values) for name, values in per_subset.items()}
+
+
+# Beside the 90% coverage: the 50% coverage, and the sharpness and proper score that tell a
+# wider-and-therefore-covered interval from a good one.
+INTERVAL_METRICS = ("coverage_50", "width_90", "crps")
 
 
 def entry_kl(entry: Entry, study: Study) -> float | None:
@@ -96,6 +110,7 @@ class Collected:
     kinds: dict[str, str] = field(default_factory=dict)
     bases: dict[str, str] = field(default_factory=dict)
     coverage: dict[str, tuple[dict[str, float], bool]] = field(default_factory=dict)
+    intervals: dict[str, dict[str, dict[str, float]]] = field(default_factory=dict)
     kl: dict[str, float | None] = field(default_factory=dict)
     fit: dict[str, dict[str, float] | None] = field(default_factory=dict)
 
@@ -119,6 +134,7 @@ def collect_runs(study: Study) -> Collected:
         if entry.base is not None:
             out.bases[entry.label] = entry.base.label
         out.coverage[entry.label] = entry_coverage(entry, study)
+        out.intervals[entry.label] = {m: entry_metric(entry, study, m) for m in INTERVAL_METRICS}
         out.kl[entry.label] = entry_kl(entry, study)
         out.fit[entry.label] = entry_fit(entry, study)
     return out

@@ -172,6 +172,45 @@ def coverage_section(coverage: dict[str, tuple[dict[str, float], bool]], table: 
     )
 
 
+INTERVAL_TABLES = (
+    ("coverage_50", "50% interval coverage (target 0.50)", "{:.3f}"),
+    ("width_90", "90% interval mean width (target units)", "{:.3g}"),
+    ("crps", "CRPS (normalised; lower is better)", "{:.4f}"),
+)
+
+
+def interval_quality_section(
+    intervals: dict[str, dict[str, dict[str, float]]], table: Table, title: Title
+) -> str:
+    """The 50% coverage, the 90% intervals' width and the CRPS per entry and subset: of two entries
+    that cover alike, the narrower one with the lower CRPS is the better forecaster of its
+    uncertainty. Entries whose runs predate a metric are left out of its table."""
+    parts = []
+    for metric, heading, fmt in INTERVAL_TABLES:
+        rows = [
+            f"| {label} | " + " | ".join(fmt.format(c[s]) if s in c else "" for s in table.subsets) + " |"
+            for label, metrics in intervals.items()
+            if (c := metrics.get(metric))
+        ]
+        if rows:
+            parts.append(
+                f"### {heading}\n\n| entry | "
+                + " | ".join(title(s) for s in table.subsets)
+                + " |\n"
+                + "|---" * (len(table.subsets) + 1)
+                + "|\n"
+                + "\n".join(rows)
+                + "\n\n"
+            )
+    if not parts:
+        return ""
+    return (
+        "## Intervals: sharpness and a proper score on test (mean over seeds)\n\n"
+        "Coverage alone rewards width: a wide enough interval covers everything. The width and the "
+        "CRPS say what the coverage costs.\n\n" + "".join(parts)
+    )
+
+
 def episode_intervals_text(test_episodes: int) -> str:
     return (
         f"Intervals: percentile bootstrap over the {test_episodes} test episodes "
@@ -236,6 +275,7 @@ def results_sections(
         + "\n\n"
         + fusion_verdicts(table, comparisons.get("all", {}))
         + coverage_section(collected.coverage, table, title)
+        + interval_quality_section(collected.intervals, table, title)
         + kl_section(collected.kl)
         + fit_section(collected.fit)
     )
@@ -271,6 +311,7 @@ def tables_json(table: Table, collected: Collected, comparisons: dict, measured:
         "paired_differences": comparisons,
         "timing": measured,
         "coverage_90": {label: cells for label, (cells, _) in collected.coverage.items()},
+        "intervals": collected.intervals,
         "kl": collected.kl,
         "fit": collected.fit,
     }

@@ -40,7 +40,11 @@ def test_coverage_and_kl_are_read_per_run_from_the_run_a_cell_comes_from(tmp_pat
     for index, (_, seed, run_dir, _, subset) in enumerate(plan):
         value = 0.70 + 0.01 * index  # distinct per run: the cell must come from the right one
         scores = {
-            name: {"coverage_90": value + (0.5 if name != subset else 0), "kl": value}
+            name: {
+                "coverage_90": value + (0.5 if name != subset else 0),
+                "kl": value,
+                "width_90": 10 * value + (5 if name != subset else 0),
+            }
             for name, _ in subsets(PUSH_MODALITIES)
         }
         (run_dir / "eval").mkdir(parents=True)
@@ -53,6 +57,9 @@ def test_coverage_and_kl_are_read_per_run_from_the_run_a_cell_comes_from(tmp_pat
     assert cells == pytest.approx(expected)
     assert not recalibrated  # seed 1's runs kept the scale as trained
     assert collect.entry_kl(entry, study) == pytest.approx(expected["all"])
+    widths = collect.entry_metric(entry, study, "width_90")
+    assert widths == pytest.approx({s: 10 * v for s, v in expected.items()})
+    assert collect.entry_metric(entry, study, "crps") == {}  # runs scored before the CRPS existed
 
 
 def write_completed(run_dir, test_errors: list[float], train_mse: float | None) -> None:

@@ -27,6 +27,14 @@ def test_the_sections_are_the_ones_benchmarks_accuracy_wrote():
             "paper": (dict.fromkeys(PUSH_SUBSETS, 0.85), True),
             "LF-LSTM": ({"all": 0.7, "only_image": 0.9}, False),
         },
+        intervals={
+            "paper": {
+                "coverage_50": dict.fromkeys(PUSH_SUBSETS, 0.48),
+                "width_90": dict.fromkeys(PUSH_SUBSETS, 0.0123),
+                "crps": dict.fromkeys(PUSH_SUBSETS, 0.2),
+            },
+            "LF-LSTM": {"coverage_50": {"all": 0.3}, "width_90": {}, "crps": {}},
+        },
         kl={"paper": 1.234, "LF-LSTM": None},
     )
     measured = {
@@ -61,6 +69,19 @@ def test_coverage_is_judged_against_the_band():
         {"paper": ({"all": 0.85, "only_image": 0.75}, True)}, ["all", "only_image"], title=str
     )
     assert text.splitlines()[-1] == "| paper | 0.850 | 0.750 | 1/2 | recalibrated on val |"
+
+
+def test_interval_quality_tables_leave_out_entries_scored_before_a_metric():
+    table, _ = build_table(fixed_errors(), FIXED_KINDS, PUSH_SUBSETS, lead=PAPER_SUBSETS, bases=FIXED_BASES)
+    intervals = {
+        "paper": {"coverage_50": {"all": 0.5}, "width_90": {"all": 0.25}, "crps": {}},
+        "LF-LSTM": {"coverage_50": {}, "width_90": {}, "crps": {}},
+    }
+    text = report.interval_quality_section(intervals, table, title=str)
+    assert "### CRPS" not in text and "LF-LSTM" not in text
+    assert "| paper | 0.500 |" in text and "| paper | 0.25 |" in text
+    empty = {"paper": {"coverage_50": {}, "width_90": {}, "crps": {}}}
+    assert report.interval_quality_section(empty, table, title=str) == ""
 
 
 def test_block_intervals_say_what_they_cover():
