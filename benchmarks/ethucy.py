@@ -305,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from mmf_rl.cli import configure_logging
+    from mmf_rl.log import configure_logging
 
     configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
     raise SystemExit(main())

@@ -11,7 +11,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "mmf_rl"
 
 # Bottom to top; a module may import its own layer's modules or lower ones, never a higher layer.
 LAYERS: list[set[str]] = [
-    {"keys", "configuration", "checkpoint", "devices", "temp_dirs", "shards"},
+    {"keys", "configuration", "checkpoint", "devices", "temp_dirs", "shards", "log"},
     {"envs"},
     {"datasets"},
     {"record"},

@@ -348,6 +348,6 @@ def start_worker(threads: int, log_level: int | None) -> None:
     shown as the parent shows them (a spawned process starts without the CLI's logging setup)."""
     torch.set_num_threads(threads)
     if log_level is not None:
-        from mmf_rl.cli import configure_logging
+        from mmf_rl.log import configure_logging
 
         configure_logging(log_level)
