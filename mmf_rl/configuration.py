@@ -273,8 +273,8 @@ def config_or_overrides(name: str, config: DictConfig | None, overrides: Sequenc
         return compose_config(name, list(overrides))
     if overrides:
         raise ValueError(
-            f"pass a composed config or overrides, not both; to change a composed config, edit it or "
-            f"compose it again: compose_config({name!r}, [*overrides_it_had, *new_ones])"
+            f"pass a composed config or overrides, not both: edit the config, or compose it with every "
+            f"override (compose_config({name!r}, overrides))"
         )
     return config
 

@@ -117,7 +117,7 @@ def truncate_csv_logs(log_dir: Path, step: int) -> None:
             os.replace(tmp, path)
 
 
-def trained_differently(run_dir: Path, cfg, ignore=frozenset()) -> dict[str, tuple]:
+def trained_differently(run_dir: Path, cfg: DictConfig, ignore=frozenset()) -> dict[str, tuple]:
     """The settings the run in ``run_dir`` trained with another value than ``cfg`` (composed now) holds,
     ``{dotted key: (trained, now)}``: the run is not the one ``cfg`` would train. Left out: ``ignore``,
     settings a newer mmf-rl added (their defaults keep the old behaviour), and loss settings the
@@ -159,7 +159,11 @@ class TrainRunConfig:
         logger: ``csv``, ``tensorboard``, ``wandb`` or ``none``.
         num_workers: cache-building processes (``None``: one per core).
         model: the model group as plain data (its fields depend on ``model.name``).
-        data, trainer, loss, augment, sampler: the typed groups.
+        data: the data group.
+        trainer: the trainer group.
+        loss: the loss group.
+        augment: the augment group (training batches' augmentation).
+        sampler: the learned sampler's training (``model.learned_samples=K``).
         settings: the whole config as plain data, ``run_dir`` resolved: what the run saves as
             ``config.yaml`` and puts in its checkpoints, and what a resume is compared with.
     """
