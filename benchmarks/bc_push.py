@@ -54,7 +54,7 @@ from pathlib import Path
 
 import torch
 
-from mmf_rl.cli import configure_logging
+from mmf_rl.log import configure_logging
 from mmf_rl.rl.bc import ACTION_HEADS
 from mmf_rl.rl.bc_evaluation import VARIANTS, evaluate_bc, summary_line
 from mmf_rl.rl.bc_push_experiment import (

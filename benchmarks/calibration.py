@@ -10,7 +10,7 @@ predictive (``eval_latent=predictive``: the mean and variance of the mixture of 
 ``K`` prior draws, ``ForecasterConfig.predictive_samples``) give calibrated intervals without
 costing point accuracy?
 
-Every run directory (a ``mmf-rl train`` run) is scored by ``mmf-rl eval``'s ``run_evaluation`` on
+Every run directory (a ``mmf-rl train`` run) is scored by ``mmf_rl.evaluate`` (``mmf-rl eval``) on
 its own test split (``--split``: choose settings such as ``--predictive-samples`` on ``val``),
 on every presence subset, once per ``--latents`` entry (``as-trained`` keeps
 the run's own ``eval_latent``), with ``--num-samples`` prior samples for minMSE@K. Runs are grouped
@@ -56,10 +56,9 @@ METRICS = (
 
 
 def evaluate(run_dir: Path, latent: str, args, out_dir: Path | None = None) -> dict:
-    """``run_evaluation``'s summary of ``run_dir`` (a run or a saved model) under ``latent`` (reused
+    """``mmf_rl.evaluate``'s summary of ``run_dir`` (a run or a saved model) under ``latent`` (reused
     when already written), into ``out_dir`` (default ``--out/<group>/<run>/<latent>``)."""
-    from mmf_rl.configuration import compose_config
-    from mmf_rl.eval.eval_command import run_evaluation
+    import mmf_rl
 
     out_dir = out_dir or args.out / run_dir.parent.name / run_dir.name / latent
     done = out_dir / "results.json"
@@ -79,7 +78,7 @@ def evaluate(run_dir: Path, latent: str, args, out_dir: Path | None = None) -> d
     if latent == "predictive":
         overrides.append(f"predictive_samples={args.predictive_samples}")
     started = time.perf_counter()
-    summary = run_evaluation(compose_config("eval", overrides))
+    summary = mmf_rl.evaluate(overrides=overrides)
     print(f"  {run_dir} {latent}: {time.perf_counter() - started:.0f} s", flush=True)
     return summary
 
@@ -87,8 +86,7 @@ def evaluate(run_dir: Path, latent: str, args, out_dir: Path | None = None) -> d
 def recalibrated_copies(run_dir: Path, latent: str, args) -> dict[str, Path]:
     """The run's model under ``latent`` as the ``raw`` copy and one per ``--methods`` entry (see the
     module docstring), written once under ``--out``; the run is only read."""
-    from mmf_rl.configuration import compose_config
-    from mmf_rl.eval.calibrate_command import run_calibration
+    from mmf_rl.eval.calibration import calibrate
     from mmf_rl.models import load_trained_model
     from mmf_rl.models.hub import CALIBRATION_FILE
 
@@ -109,16 +107,13 @@ def recalibrated_copies(run_dir: Path, latent: str, args) -> dict[str, Path]:
     for path in copies.values():
         model.save_pretrained(path)
     for method in args.methods:
-        run_calibration(
-            compose_config(
-                "calibrate",
-                [
-                    f"checkpoint={copies[method]}",
-                    f"method={method}",
-                    f"min_windows={args.min_windows}",
-                    f"device={args.device}",
-                ],
-            )
+        calibrate(
+            overrides=[
+                f"checkpoint={copies[method]}",
+                f"method={method}",
+                f"min_windows={args.min_windows}",
+                f"device={args.device}",
+            ]
         )
     return copies
 

@@ -24,10 +24,10 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch
 
-from mmf_rl.cli import configure_logging
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
+from mmf_rl.log import configure_logging
 
 
 def make_dataset(root: Path, episodes: int, steps: int, image_size: int, workers: int) -> str:

@@ -147,16 +147,16 @@ def run_trained(args: argparse.Namespace, budget: Budget, fold: str, label: str,
     """Train one model on the fold, score it on the test scene; ``scores.json`` written last."""
     import shutil
 
+    import mmf_rl
     from mmf_rl.configuration import compose_config
     from mmf_rl.eval.report import write_json
     from mmf_rl.models import load_trained_model
-    from mmf_rl.trainers.train_command import train
 
     run_dir = args.out / fold / slug(label)
     if run_dir.exists():  # an interrupted run: start it again
         shutil.rmtree(run_dir)
     start = time.perf_counter()
-    train(compose_config("train", train_overrides(args, budget, fold, label, run_dir)))
+    mmf_rl.train(compose_config("train", train_overrides(args, budget, fold, label, run_dir)))
     trained = time.perf_counter() - start
     model, _, _ = load_trained_model(run_dir / "checkpoints", map_location=args.device)
     result = {
@@ -305,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from mmf_rl.cli import configure_logging
+    from mmf_rl.log import configure_logging
 
     configure_logging()  # the library's progress messages, as `mmf-rl bench` shows them
     raise SystemExit(main())

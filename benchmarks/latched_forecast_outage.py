@@ -21,9 +21,9 @@ import torch
 from tensordict import TensorDict
 
 from mmf_rl import keys
-from mmf_rl.cli import configure_logging
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.windows import WindowDataset
+from mmf_rl.log import configure_logging
 from mmf_rl.models.loading import load_trained_model
 from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTransform
 

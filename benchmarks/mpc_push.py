@@ -118,7 +118,7 @@ from pathlib import Path
 
 import torch
 
-from mmf_rl.cli import configure_logging
+from mmf_rl.log import configure_logging
 from mmf_rl.record import RecordConfig, record
 from mmf_rl.rl import PushMPCAgent, PushObjective
 from mmf_rl.rl.aggregation import (

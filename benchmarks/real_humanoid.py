@@ -22,8 +22,8 @@ baselines LF-LSTM, MulT and MVAE, each trained once on every sensor and seeing a
 own absence handling (zero-fill; MVAE drops the expert), and each of them trained for missing sensors
 (modality dropout drawn every batch, ``L_mis`` beside its own term, or both), with the paper model
 with modality dropout too. Every entry: ``--steps`` steps of batch
-``--batch-size`` for each seed, trained with ``mmf-rl train``'s ``train(cfg)`` and scored on every
-presence subset of the test split with ``mmf-rl eval``'s ``run_evaluation(cfg)``. The machinery
+``--batch-size`` for each seed, trained with ``mmf_rl.train`` (``mmf-rl train``) and scored on every
+presence subset of the test split with ``mmf_rl.evaluate`` (``mmf-rl eval``). The machinery
 (training, per-window errors, the paired bootstrap, the tables, the summary) is ``mmf_rl.compare``'s;
 only the data, the entries and the report are this file's.
 

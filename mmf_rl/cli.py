@@ -3,7 +3,7 @@
 Commands are imported lazily so that `mmf-rl --help` stays fast and a command's heavy
 dependencies (MuJoCo, lerobot) load only when it runs. What a command exists to print (a report,
 a table, a config) goes to stdout; its progress messages and warnings are log records of the
-``mmf_rl`` loggers, which this entry point (and only it) sends to stderr.
+``mmf_rl`` loggers, which this entry point sends to stderr (:func:`mmf_rl.log.configure_logging`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import logging
 import sys
 from pathlib import Path
 
-from tqdm.auto import tqdm
+from mmf_rl.log import configure_logging
 
 # command -> (module exposing `main(argv: list[str]) -> int | None`, or "module:function" for
 # another such function, one-line help)
@@ -93,46 +93,6 @@ LOG_LEVELS = {
     "-q": logging.WARNING,
     "--quiet": logging.WARNING,
 }
-LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
-
-
-class _ProgressSafeHandler(logging.Handler):
-    """Writes each record to the current ``sys.stderr`` through ``tqdm.write``, so that a message
-    does not tear a progress bar drawn there."""
-
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            tqdm.write(self.format(record), file=sys.stderr)
-        except Exception:
-            self.handleError(record)
-
-
-def configure_logging(level: int | None = None) -> None:
-    """Show the ``mmf_rl`` loggers' records of ``level`` and above on stderr (other libraries'
-    logging is left as it is). Calling it again only changes the level; ``None`` is INFO, or the
-    level of an earlier call (a benchmark script run by ``mmf-rl bench`` keeps the CLI's)."""
-    logger = logging.getLogger("mmf_rl")
-    configured = any(isinstance(handler, _ProgressSafeHandler) for handler in logger.handlers)
-    if level is not None or not configured:
-        logger.setLevel(logging.INFO if level is None else level)
-    if not configured:
-        handler = _ProgressSafeHandler()
-        handler.setFormatter(logging.Formatter(LOG_FORMAT, datefmt="%H:%M:%S"))
-        logger.addHandler(handler)
-        _root_handler_without_mmf_rl()
-
-
-def _root_handler_without_mmf_rl() -> None:
-    """A library that logs on the root logger (``logging.info(...)``, as some of lerobot does) makes
-    Python give the root a default handler, which would print every ``mmf_rl`` record a second
-    time: give it that default handler now, minus the records the ``mmf_rl`` handler prints. A root
-    logger already configured (by the user, or pytest) is left as it is."""
-    root = logging.getLogger()
-    if root.handlers:
-        return
-    logging.basicConfig()
-    for handler in root.handlers:
-        handler.addFilter(lambda record: record.name != "mmf_rl" and not record.name.startswith("mmf_rl."))
 
 
 def _usage() -> str:

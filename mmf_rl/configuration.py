@@ -18,7 +18,7 @@ the same:
   ``<group>/<name>.yaml`` become options of ``<group>``), and a group option may be a YAML file's
   path (``data=/path/to/mine.yaml``).
 * ``mmf-rl <command> --help`` lists the config groups and their options, ``--cfg`` prints the
-  composed config (see :func:`parse_config_command`).
+  composed config (see :func:`run_config_command`, the skeleton of every such command).
 """
 
 from __future__ import annotations
@@ -28,8 +28,10 @@ import hashlib
 import os
 import re
 import sys
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import TypeVar
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
@@ -42,6 +44,7 @@ REPLACED_MAPPINGS = ("data.modalities", "data.target", "data.missing", "data.act
 # OutageConfig): a dotted override sets one whether or not the entry gives it.
 ENTRIES = ("data.modalities.*", "data.target", "data.action", "data.missing.*")
 YAML_SUFFIXES = (".yaml", ".yml")
+T = TypeVar("T")
 
 
 class ConfigError(ValueError):
@@ -263,6 +266,19 @@ def compose_config(name: str, overrides: list[str], config_dirs: list[Path] = ()
     return cfg
 
 
+def config_or_overrides(name: str, config: DictConfig | None, overrides: Sequence[str]) -> DictConfig:
+    """What a Python entry point (``mmf_rl.train``, ``mmf_rl.evaluate``) runs: ``config`` as given, or
+    ``configs/<name>.yaml`` composed with ``overrides``."""
+    if config is None:
+        return compose_config(name, list(overrides))
+    if overrides:
+        raise ValueError(
+            f"pass a composed config or overrides, not both: edit the config, or compose it with every "
+            f"override (compose_config({name!r}, overrides))"
+        )
+    return config
+
+
 @dataclass
 class ConfigCommand:
     """A parsed ``mmf-rl <command> [--config-dir DIR] [--cfg] [overrides]`` command line."""
@@ -324,9 +340,7 @@ def add_config_dir_flag(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def parse_config_command(
-    argv: list[str], name: str, prog: str, description: str, examples: list[str]
-) -> ConfigCommand:
+def parse_config_command(argv: list[str], name: str, description: str, examples: list[str]) -> ConfigCommand:
     """Parse a Hydra-config command's arguments; ``--help`` prints usage, the config groups and their
     options, and ``examples`` (then exits, as argparse does)."""
     pre = argparse.ArgumentParser(add_help=False)
@@ -345,7 +359,7 @@ def parse_config_command(
         ]
     )
     parser = argparse.ArgumentParser(
-        prog=prog,
+        prog=f"mmf-rl {name}",
         description=description,
         epilog=epilog,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -359,6 +373,36 @@ def parse_config_command(
     )
     args = parser.parse_intermixed_args(argv)
     return ConfigCommand(overrides=args.overrides, config_dirs=args.config_dir, print_config=args.cfg)
+
+
+def run_config_command(
+    argv: list[str],
+    name: str,
+    description: str,
+    examples: list[str],
+    run: Callable[[DictConfig], T],
+    errors: tuple[type[Exception], ...],
+    show: Callable[[T], None] = lambda result: None,
+) -> int:
+    """``mmf-rl <name> [--config-dir DIR] [--cfg] [overrides]``, the skeleton every Hydra-config command
+    shares: parse the arguments (:func:`parse_config_command`), compose ``configs/<name>.yaml`` with the
+    overrides, then print it (``--cfg``) or ``run`` it and ``show`` the result on stdout.
+
+    Returns:
+        The exit code: 0, or 1 for an expected failure, one of ``errors`` (one line on stderr:
+        :func:`report_command_error`).
+    """
+    command = parse_config_command(argv, name, description, examples)
+    try:
+        cfg = command.compose(name)
+        if command.print_config:
+            print(OmegaConf.to_yaml(cfg), end="")
+            return 0
+        result = run(cfg)
+    except errors as err:
+        return report_command_error(f"mmf-rl {name}", err)
+    show(result)
+    return 0
 
 
 def report_command_error(command: str, error: Exception) -> int:

@@ -16,10 +16,10 @@ import time
 from pathlib import Path
 
 from mmf_rl.checkpoint import CheckpointError, list_checkpoints
-from mmf_rl.configuration import ConfigError, compose_config
-from mmf_rl.eval.eval_command import run_evaluation
+from mmf_rl.configuration import ConfigError
+from mmf_rl.eval.evaluation import evaluate
 from mmf_rl.record import RecordConfig, record
-from mmf_rl.trainers.train_command import train
+from mmf_rl.trainers.training import train
 
 logger = logging.getLogger(__name__)
 
@@ -63,9 +63,9 @@ def main(argv: list[str]) -> int:
             logger.info("%s has checkpoints: resuming (nothing to do if training had finished)", args.run_dir)
             overrides.append("resume=true")
         recorded = time.perf_counter()
-        train(compose_config("train", overrides))
+        train(overrides=overrides)
         trained = time.perf_counter()
-        summary = run_evaluation(compose_config("eval", [f"checkpoint={args.run_dir}"]))
+        summary = evaluate(overrides=[f"checkpoint={args.run_dir}"])
     except (ConfigError, CheckpointError, FileNotFoundError, ValueError, KeyError) as err:
         if os.environ.get("MMF_RL_DEBUG"):
             raise

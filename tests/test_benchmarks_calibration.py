@@ -31,7 +31,7 @@ def calibration(argv: list[str]) -> int:
 def learned_runs(recorded_push_root, tmp_path_factory):
     """Two seeds of a tiny learned-prior forecaster, as a benchmark entry's ``<entry>/seed<k>``."""
     from mmf_rl.configuration import compose_config
-    from mmf_rl.trainers.train_command import train
+    from mmf_rl.trainers.training import train
     from tests.conftest import push_train_overrides
 
     base = tmp_path_factory.mktemp("calibration")

@@ -31,7 +31,7 @@ from mmf_rl.compare.ethucy_recipe import (
 from mmf_rl.configuration import compose_config, save_config, to_container
 from mmf_rl.models import check_loss_settings
 from mmf_rl.objectives import LossConfig, default_loss_config
-from mmf_rl.trainers.train_command import RUN_CONFIG
+from mmf_rl.trainers.training import RUN_CONFIG
 from tests.conftest import run_bench
 
 REPO = Path(__file__).resolve().parents[1]
@@ -165,17 +165,17 @@ def test_a_scores_json_without_recipe_is_refused_as_unknown(tmp_path):
 def test_what_a_run_writes_is_the_recipe_its_resume_checks(tmp_path, monkeypatch):
     """The rows as ``run_trained`` and ``run_constant_velocity`` write them, their training and scoring
     replaced by stand-ins: this recipe accepts them, the full mode's refuses the trained ones."""
+    import mmf_rl
     import mmf_rl.configuration
     import mmf_rl.eval.trajectories
     import mmf_rl.models
-    import mmf_rl.trainers.train_command
 
     monkeypatch.setattr(mmf_rl.configuration, "compose_config", lambda name, overrides: overrides)
 
     def train(overrides):  # the trainer makes the run directory
         Path(next(o for o in overrides if o.startswith("run_dir="))[len("run_dir=") :]).mkdir(parents=True)
 
-    monkeypatch.setattr(mmf_rl.trainers.train_command, "train", train)
+    monkeypatch.setattr(mmf_rl, "train", train)
     monkeypatch.setattr(mmf_rl.models, "load_trained_model", lambda *_, **__: (None, None, None))
     monkeypatch.setattr(bench, "score", lambda *_, **__: {"all": {"min_ade_k": 1.0}})
     monkeypatch.setattr(bench, "prior_scores", lambda *_: {"all": {"min_ade_k": 2.0}})

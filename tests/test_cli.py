@@ -9,6 +9,7 @@ from omegaconf import OmegaConf
 
 from mmf_rl import cli
 from mmf_rl.configuration import DEFAULT_CONFIG_DIR, config_groups
+from mmf_rl.log import _ProgressSafeHandler, configure_logging
 
 
 @pytest.fixture
@@ -133,15 +134,15 @@ def test_train_cfg_prints_the_composed_config_and_trains_nothing(capsys, tmp_pat
 def test_a_script_run_by_the_cli_keeps_its_level_and_run_alone_shows_progress():
     logger = logging.getLogger("mmf_rl")
     try:
-        cli.configure_logging(logging.WARNING)  # `mmf-rl --quiet bench ...`
-        cli.configure_logging()  # then the benchmark script's own call
+        configure_logging(logging.WARNING)  # `mmf-rl --quiet bench ...`
+        configure_logging()  # then the benchmark script's own call
         assert logger.level == logging.WARNING
-        logger.handlers = [h for h in logger.handlers if not isinstance(h, cli._ProgressSafeHandler)]
-        cli.configure_logging()  # the script run alone
+        logger.handlers = [h for h in logger.handlers if not isinstance(h, _ProgressSafeHandler)]
+        configure_logging()  # the script run alone
         assert logger.level == logging.INFO
-        assert sum(isinstance(h, cli._ProgressSafeHandler) for h in logger.handlers) == 1
+        assert sum(isinstance(h, _ProgressSafeHandler) for h in logger.handlers) == 1
     finally:
-        cli.configure_logging(logging.INFO)
+        configure_logging(logging.INFO)
 
 
 def test_a_library_logging_on_the_root_logger_does_not_print_mmf_rl_records_twice():
@@ -149,7 +150,7 @@ def test_a_library_logging_on_the_root_logger_does_not_print_mmf_rl_records_twic
     gives the root its default handler; an ``mmf_rl`` record still prints once, another library's
     warning still prints."""
     script = (
-        "import logging; from mmf_rl.cli import configure_logging; configure_logging(); "
+        "import logging; from mmf_rl.log import configure_logging; configure_logging(); "
         "logging.info('a library on the root logger'); "
         "logging.getLogger('mmf_rl.data').info('cache built'); "
         "logging.getLogger('other.library').warning('careful')"

@@ -1,17 +1,20 @@
-"""The package's import graph only points down its layers (README, "Layout")."""
+"""The package's import graph only points down its layers (README, "Layout"), and a command's
+module is the CLI's alone."""
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "mmf_rl"
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "mmf_rl"
 
 # Bottom to top; a module may import its own layer's modules or lower ones, never a higher layer.
 LAYERS: list[set[str]] = [
-    {"keys", "configuration", "checkpoint", "devices", "temp_dirs", "shards"},
+    {"keys", "configuration", "checkpoint", "devices", "temp_dirs", "shards", "log"},
     {"envs"},
     {"datasets"},
     {"record"},
@@ -24,27 +27,27 @@ LAYERS: list[set[str]] = [
 RANK = {name: rank for rank, layer in enumerate(LAYERS) for name in layer}
 
 
+def imported_modules(path: Path) -> list[str]:
+    """The ``mmf_rl`` modules (or names) ``path`` imports, including inside functions (a lazy import is
+    still a dependency)."""
+    names = []
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names += [f"{node.module}.{a.name}" for a in node.names]  # a name may be a module
+        elif isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+    return [name for name in names if name.split(".")[0] == "mmf_rl"]
+
+
 def import_edges(package: Path) -> set[tuple[str, str, str]]:
-    """``(importing file, its top-level unit, imported top-level unit)`` for every ``mmf_rl`` import,
-    including imports inside functions (a lazy import is still a dependency)."""
+    """``(importing file, its top-level unit, imported top-level unit)`` for every ``mmf_rl`` import."""
     edges = set()
     for path in sorted(package.rglob("*.py")):
         unit = path.relative_to(package).parts[0].removesuffix(".py")
-        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                names = (
-                    [f"{node.module}.{a.name}" for a in node.names]
-                    if node.module == "mmf_rl"
-                    else [node.module]
-                )
-            elif isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
-            else:
-                continue
-            for name in names:
-                parts = name.split(".")
-                if parts[0] == "mmf_rl" and len(parts) > 1 and parts[1] != unit:
-                    edges.add((str(path.relative_to(package.parent)), unit, parts[1]))
+        for name in imported_modules(path):
+            parts = name.split(".")
+            if len(parts) > 1 and parts[1] != unit:
+                edges.add((str(path.relative_to(package.parent)), unit, parts[1]))
     return edges
 
 
@@ -95,3 +98,61 @@ def test_a_loop_within_a_layer_is_reported(tmp_path):
         "mmf_rl/eval/run.py: eval imports trainers, which imports eval back",
         "mmf_rl/trainers/run.py: trainers imports eval, which imports trainers back",
     ]
+
+
+# --- a command's module (`mmf_rl.eval.eval_command`, `mmf_rl.compare.command`) is the CLI's -------------
+
+
+COMMAND_MODULES = sorted(
+    ".".join(("mmf_rl", *path.relative_to(PACKAGE).with_suffix("").parts))
+    for path in PACKAGE.rglob("*.py")
+    if re.fullmatch(r"(\w+_)?command", path.stem)
+)
+CODE_DIRS = ("mmf_rl", "benchmarks", "examples", "scripts", "tests")
+
+
+def command_imports(repo: Path) -> list[str]:
+    """Imports of a command's module from outside its own unit of ``mmf_rl``. The CLI reaches the
+    commands by name; other code goes through ``mmf_rl.train``/``mmf_rl.evaluate`` or the module that
+    holds the command's logic, so that a command's module holds only its command line."""
+    problems = []
+    for path in sorted(p for top in CODE_DIRS for p in (repo / top).rglob("*.py")):
+        relative = path.relative_to(repo)
+        for name in imported_modules(path):
+            module = next((m for m in COMMAND_MODULES if name == m or name.startswith(f"{m}.")), None)
+            if module is not None and relative.parts[:2] != ("mmf_rl", module.split(".")[1]):
+                problems.append(f"{relative}: imports {module}")
+    return problems
+
+
+def test_no_command_module_is_imported_from_another_package():
+    assert command_imports(REPO) == []
+
+
+@pytest.mark.parametrize(
+    "path, source, expected",
+    [
+        (
+            "mmf_rl/demo.py",
+            "from mmf_rl.trainers.train_command import train\n",
+            "mmf_rl.trainers.train_command",
+        ),
+        (
+            "mmf_rl/rl/experiment.py",
+            "def f():\n    from mmf_rl.eval import eval_command\n",
+            "mmf_rl.eval.eval_command",
+        ),
+        ("benchmarks/x.py", "import mmf_rl.compare.command\n", "mmf_rl.compare.command"),
+        (
+            "tests/test_x.py",
+            "from mmf_rl.eval.calibrate_command import main\n",
+            "mmf_rl.eval.calibrate_command",
+        ),
+    ],
+)
+def test_a_command_module_imported_from_elsewhere_is_reported(tmp_path, path, source, expected):
+    (tmp_path / path).parent.mkdir(parents=True)
+    (tmp_path / path).write_text(source)
+    (tmp_path / "mmf_rl" / "eval").mkdir(parents=True, exist_ok=True)
+    (tmp_path / "mmf_rl" / "eval" / "calibration.py").write_text("from mmf_rl.eval.eval_command import x\n")
+    assert command_imports(tmp_path) == [f"{path}: imports {expected}"]

@@ -211,7 +211,7 @@ def changed_defaults(args: argparse.Namespace, budget: Budget, fold: str, label:
     the same recipe (defaults changed since it trained), described; empty: none. Composing needs the
     fold's data config: before the conversion wrote it, nothing is compared."""
     from mmf_rl.configuration import compose_config
-    from mmf_rl.trainers.train_command import RUN_CONFIG, describe_trained_differently, trained_differently
+    from mmf_rl.trainers.training import RUN_CONFIG, describe_trained_differently, trained_differently
 
     if not (args.data / f"{fold}.yaml").is_file() or not (run_dir / RUN_CONFIG).is_file():
         return ""

@@ -1,8 +1,8 @@
 """Train and score the runs of a comparison, resuming: a run whose ``eval/window_errors.json`` exists
 is complete and reused.
 
-Each run is trained with ``mmf-rl train``'s ``train(cfg)``, evaluated on every presence subset of its
-test split with ``mmf-rl eval``'s ``run_evaluation(cfg)``, and then run over the test windows once
+Each run is trained with ``mmf_rl.train`` (``mmf-rl train``), evaluated on every presence subset of
+its test split with ``mmf_rl.evaluate`` (``mmf-rl eval``), and then run over the test windows once
 more to keep every window's squared error with its episode, which the paired bootstrap needs, and over
 a draw of training windows for its fit.
 """
@@ -136,7 +136,7 @@ def check_reused(study: Study) -> None:
 def stale_reason(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[str, ...]) -> str:
     """How the completed run in ``run_dir`` differs from the one this comparison would train there
     (empty: it does not, or the run is not complete)."""
-    from mmf_rl.trainers.train_command import describe_trained_differently, trained_differently
+    from mmf_rl.trainers.training import describe_trained_differently, trained_differently
 
     if (r := completed(run_dir)) is None:
         return ""
@@ -162,7 +162,7 @@ def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str
     """Every test window's squared error (mean over ``T x D``, normalised target) per presence subset,
     with its window id and episode: ``{subset: {"window", "episode", "squared_error"}}``.
 
-    The windows and normalisation are those of ``run_evaluation`` (the test split in order, the
+    The windows and normalisation are those of ``mmf-rl eval`` (the test split in order, the
     checkpoint's statistics); ``run_one`` checks the means agree with its MSE."""
     return scored_windows(*trained_model_and_data(run_dir, device), device, batch_size)
 
@@ -226,9 +226,8 @@ def training_windows_mse(
     return statistics.fmean(errors)
 
 
-def evaluate(run_dir: Path, seed: int, device: str) -> dict:
-    from mmf_rl.configuration import compose_config
-    from mmf_rl.eval.eval_command import run_evaluation
+def evaluate_run(run_dir: Path, seed: int, device: str) -> dict:
+    from mmf_rl.eval.evaluation import evaluate
 
     overrides = [
         f"checkpoint={run_dir}",
@@ -238,7 +237,7 @@ def evaluate(run_dir: Path, seed: int, device: str) -> dict:
         f"out_dir={run_dir / 'eval'}",
         f"seed={seed}",
     ]
-    return run_evaluation(compose_config("eval", overrides))
+    return evaluate(overrides=overrides)
 
 
 def check_agreement(run_dir: Path, errors: dict[str, dict[str, list]], summary: dict) -> None:
@@ -248,7 +247,7 @@ def check_agreement(run_dir: Path, errors: dict[str, dict[str, list]], summary: 
         if abs(mse - reported) > 1e-4 * max(abs(reported), 1e-8) + 1e-7:
             raise RuntimeError(
                 f"{run_dir}: subset {name}: the per-window errors average {mse:.6g} but "
-                f"run_evaluation reports MSE {reported:.6g}; the two passes disagree on windows "
+                f"the evaluation reports MSE {reported:.6g}; the two passes disagree on windows "
                 "or normalisation"
             )
 
@@ -257,14 +256,14 @@ def run_one(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[s
     """Train one model, evaluate it, keep its per-window errors in ``window_errors.json`` (written last:
     its presence marks the run complete)."""
     from mmf_rl.eval.report import write_json
-    from mmf_rl.trainers.train_command import train
+    from mmf_rl.trainers.training import train
 
     if run_dir.exists():  # an interrupted run: start it again
         shutil.rmtree(run_dir)
     start = time.perf_counter()
     train(compose_train(entry, seed, study, run_dir, extra))
     trained = time.perf_counter() - start
-    summary = evaluate(run_dir, seed, study.device)
+    summary = evaluate_run(run_dir, seed, study.device)
     model, data = trained_model_and_data(run_dir, study.device)  # loaded once for both passes
     errors = scored_windows(model, data, study.device)
     check_agreement(run_dir, errors, summary)
@@ -348,6 +347,6 @@ def start_worker(threads: int, log_level: int | None) -> None:
     shown as the parent shows them (a spawned process starts without the CLI's logging setup)."""
     torch.set_num_threads(threads)
     if log_level is not None:
-        from mmf_rl.cli import configure_logging
+        from mmf_rl.log import configure_logging
 
         configure_logging(log_level)

@@ -210,7 +210,7 @@ def report_results(out: Path, text: str, results: dict) -> None:
 def run_as_script(main: Callable[[], int]) -> NoReturn:
     """``python benchmarks/X.py``: ``main``'s exit code, with the library's progress messages on stderr
     as ``mmf-rl bench X`` shows them."""
-    from mmf_rl.cli import configure_logging
+    from mmf_rl.log import configure_logging
 
     configure_logging()
     sys.exit(main())

@@ -16,12 +16,12 @@ import torch
 
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.configuration import compose_config
-from mmf_rl.eval.calibrate_command import run_calibration
+from mmf_rl.eval import calibration
 from mmf_rl.eval.report import write_json, write_text
 from mmf_rl.eval.scale_fit import calibration_in_use
 from mmf_rl.models.loading import load_trained_model
 from mmf_rl.rl.closed_loop import OUTAGES
-from mmf_rl.trainers.train_command import check_resumable, train
+from mmf_rl.trainers.training import TrainRunConfig, check_resumable, train
 
 logger = logging.getLogger(__name__)
 
@@ -91,7 +91,7 @@ def train_or_resume(overrides: list[str]) -> Path:
     if list_checkpoints(checkpoints):
         cfg.resume = True
         if load_checkpoint(checkpoints, with_trainer_state=False).step >= cfg.trainer.total_steps:
-            check_resumable(run_dir, cfg)
+            check_resumable(TrainRunConfig.from_config(cfg))
             logger.info("%s has ended (%d steps): used as it is", run_dir, cfg.trainer.total_steps)
             return checkpoints
     train(cfg)
@@ -119,7 +119,7 @@ def calibrated_forecaster(
         if data_root is not None:
             overrides.append(f"data_root={Path(data_root).resolve()}")
         try:
-            fitted = run_calibration(compose_config("calibrate", overrides))
+            fitted = calibration.calibrate(compose_config("calibrate", overrides))
         except ValueError as error:
             raise ValueError(
                 f"the forecaster {checkpoints} cannot be calibrated: {error}; or use its scale as trained "

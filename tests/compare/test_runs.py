@@ -18,7 +18,7 @@ from mmf_rl.compare.entries import Budget, Entry, Study
 from mmf_rl.configuration import save_config
 from mmf_rl.models import MODELS
 from mmf_rl.objectives import default_loss_config
-from mmf_rl.trainers.train_command import RUN_CONFIG
+from mmf_rl.trainers.training import RUN_CONFIG
 from tests.compare.helpers import PUSH_MODALITIES
 
 REPO = Path(__file__).resolve().parents[2]
@@ -148,7 +148,7 @@ def test_training_rate_is_the_last_logged_throughput(tmp_path):
 def push_run(recorded_push_root, tmp_path_factory) -> Path:
     """A run trained a few steps on data recorded by the project's recorder."""
     from mmf_rl.configuration import compose_config
-    from mmf_rl.trainers.train_command import train
+    from mmf_rl.trainers.training import train
     from tests.conftest import push_train_overrides
 
     base = tmp_path_factory.mktemp("compare_run")
@@ -158,11 +158,9 @@ def push_run(recorded_push_root, tmp_path_factory) -> Path:
 
 def evaluation(run: Path, *overrides: str) -> dict:
     from mmf_rl.configuration import compose_config
-    from mmf_rl.eval.eval_command import run_evaluation
+    from mmf_rl.eval.evaluation import evaluate
 
-    return run_evaluation(
-        compose_config("eval", [f"checkpoint={run}", "plots=false", "num_samples=0", *overrides])
-    )
+    return evaluate(compose_config("eval", [f"checkpoint={run}", "plots=false", "num_samples=0", *overrides]))
 
 
 def test_window_errors_average_to_the_evaluations_mse_on_recorded_push_data(push_run, tmp_path):

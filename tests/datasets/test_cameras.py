@@ -15,7 +15,7 @@ from mmf_rl.configuration import compose_config
 from mmf_rl.datasets import WindowDataset, lerobot_source
 from mmf_rl.datasets.lerobot_source import REPORTED_IMAGE_ERRORS
 from mmf_rl.keys import obs_key, present_key
-from mmf_rl.trainers.train_command import train
+from mmf_rl.trainers.training import train
 from tests.datasets.conftest import (
     BROKEN_ROWS,
     CAMERA_EPISODES,

@@ -11,7 +11,7 @@ from mmf_rl import keys
 from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import DataConfig, WindowDataset
-from mmf_rl.eval.eval_command import data_config_for_eval, first_shared_windows
+from mmf_rl.eval.evaluation import data_config_for_eval, first_shared_windows
 from mmf_rl.eval.report import constant_velocity_warning
 from mmf_rl.models import load_trained_model
 from tests.conftest import SMALL_MODALITIES, push_train_overrides

@@ -81,7 +81,7 @@ def test_the_forecaster_is_calibrated_once_and_its_forecasts_differ_only_in_scal
     def refit(cfg):
         raise AssertionError("refitted")
 
-    monkeypatch.setattr("mmf_rl.rl.experiment.run_calibration", refit)
+    monkeypatch.setattr("mmf_rl.eval.calibration.calibrate", refit)
     assert calibrated_forecaster(checkpoints)[1] == fit
     (plain, _, _), none = calibrated_forecaster(checkpoints, calibrate=False)
     assert none is None and plain.scale_calibration.is_identity()

@@ -17,8 +17,7 @@ from mmf_rl.cli import main as cli
 from mmf_rl.configuration import compose_config, config_dir, to_container
 from mmf_rl.datasets import WindowDataset
 from mmf_rl.models import build_loss, load_trained_model
-from mmf_rl.objectives import LossConfig
-from mmf_rl.trainers.train_command import check_loss_settings_read
+from mmf_rl.trainers.training import TrainRunConfig, check_loss_settings_read
 from tests.conftest import push_train_overrides, small_registered_model
 from tests.reliability.conftest import edit_frames, push_data_config
 
@@ -126,10 +125,10 @@ def test_every_shipped_loss_config_trains_the_models_it_is_used_with(loss, model
     # The loss config group warms the ELBO's KL up; LF-LSTM and MulT, trained without it, get that too,
     # and so does a KL weighted 0.
     cfg = compose_config("train", [*model, f"loss={loss}"])
-    loss_cfg = LossConfig.from_dict(to_container(cfg.loss))
-    check_loss_settings_read(cfg, loss_cfg)
+    run = TrainRunConfig.from_config(cfg)
+    check_loss_settings_read(run)
     name, settings = cfg.model.name, {k: v for k, v in to_container(cfg.model).items() if k != "name"}
-    build_loss(name, small_registered_model(name, **settings), loss_cfg, check_unread=False)
+    build_loss(name, small_registered_model(name, **settings), run.loss, check_unread=False)
 
 
 def test_a_loss_setting_the_models_terms_do_not_read_is_a_one_line_error_before_anything_is_made(

@@ -250,7 +250,7 @@ def test_early_stopping_on_a_metric_the_evaluation_lacks_is_an_error(synthetic_t
 
 def test_default_early_stopping_metric_is_one_the_train_command_reports(synthetic_task, tmp_path):
     trainer = build(synthetic_task, tmp_path, total_steps=6, early_stopping_patience=3)
-    # what `mmf-rl train` validates with (mmf_rl.trainers.train_command)
+    # what `mmf-rl train` validates with (mmf_rl.trainers.training.make_trainer)
     trainer.evaluate = lambda m: {
         f"val/{k}": v for k, v in evaluate_forecasts(m, [synthetic_task["test"][:64]], lambda t: t).items()
     }
