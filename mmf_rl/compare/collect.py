@@ -71,7 +71,15 @@ def entry_fit(entry: Entry, study: Study) -> dict[str, float] | None:
 def timing(runs: dict[str, list[dict]]) -> dict[str, dict[str, float]]:
     """Per entry: measured ms per training step (the training loop), the rest of a run (data and model
     setup, validation, checkpoint, evaluation) in seconds, and how many runs were trained at once while
-    they were measured (``jobs``; results written before it was recorded count as 1)."""
+    they were measured (``jobs``; results written before it was recorded count as 1).
+
+    Args:
+        runs (dict[str, list[dict]]): each entry's runs' ``window_errors.json`` results.
+
+    Returns:
+        ``{label: {"ms_per_step", "other_seconds", "runs", "batch_size", "jobs"}}`` for the entries with
+        runs.
+    """
     out = {}
     for label, results in runs.items():
         if results:
@@ -89,7 +97,18 @@ def timing(runs: dict[str, list[dict]]) -> dict[str, dict[str, float]]:
 
 @dataclass
 class Collected:
-    """Everything the report reads, per entry label."""
+    """Everything the report reads, per entry label.
+
+    Args:
+        errors (EntryErrors, optional): ``{label: {subset: [each seed's rows]}}``.
+        runs (dict[str, list[dict]], optional): the entry's own runs' results.
+        kinds (dict[str, str], optional): each entry's kind.
+        bases (dict[str, str], optional): each entry's base's label, where it has one.
+        coverage (dict[str, tuple[dict[str, float], bool]], optional): ``({subset: 90% coverage}, every
+            run recalibrated)``.
+        kl (dict[str, float | None], optional): the latent's KL with every sensor (``None``: no latent).
+        fit (dict[str, dict[str, float] | None], optional): ``{"train", "test"}`` MSE.
+    """
 
     errors: EntryErrors = field(default_factory=dict)
     runs: dict[str, list[dict]] = field(default_factory=dict)
@@ -100,6 +119,7 @@ class Collected:
     fit: dict[str, dict[str, float] | None] = field(default_factory=dict)
 
     def constant_velocity_mse(self) -> float | None:
+        """The constant-velocity reference's MSE some run recorded (``None``: none did)."""
         return next(
             (
                 r["constant_velocity"]["mse"]
@@ -112,6 +132,14 @@ class Collected:
 
 
 def collect_runs(study: Study) -> Collected:
+    """Read what the completed runs of every entry wrote.
+
+    Args:
+        study (Study): the comparison; every run it plans must be complete.
+
+    Returns:
+        The collected results.
+    """
     out = Collected()
     for entry in study.entries:
         out.errors[entry.label], out.runs[entry.label] = entry_results(entry, study)
