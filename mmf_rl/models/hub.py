@@ -108,7 +108,8 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
             save_directory (str | Path): the directory (created if needed).
 
         Keyword Args:
-            config (dict, optional): passed to the mixin (the model's own config is written anyway).
+            config (dict, optional): the mixin's; unused here: ``config.json`` always holds the model's
+                own config.
             repo_id (str, optional): the hub repository when pushing; ``None``: the directory's name.
             push_to_hub (bool, optional): also push the files to the hub. Defaults to ``False``.
             model_card_kwargs (dict, optional): passed to the model card.
