@@ -16,6 +16,7 @@ import sys
 import textwrap
 
 import pytest
+import torch
 
 EXPORTING_MODULES = (
     "mmf_rl",
@@ -206,6 +207,11 @@ def docstring_problems(obj) -> list[str]:
     return problems
 
 
+def doctests(obj, name: str) -> list[doctest.DocTest]:
+    """The doctests of ``obj``'s docstring and its methods', each with a namespace of its own."""
+    return doctest.DocTestFinder().find(obj, name, module=sys.modules[obj.__module__], globs={})
+
+
 def run_examples(obj, name: str) -> tuple[int, str]:
     """Run the ``>>>`` examples of ``obj``'s docstrings (its methods' included) in a namespace of their
     own: ``(examples run, failure report)``."""
@@ -233,17 +239,13 @@ def test_main_entry_points_have_examples():
         assert "Examples" in sections(doc) and ">>>" in doc, name
 
 
-def doctests(obj, name: str) -> list[doctest.DocTest]:
-    """The doctests of ``obj``'s docstring and its methods', each with a namespace of its own."""
-    return doctest.DocTestFinder().find(obj, name, module=sys.modules[obj.__module__], globs={})
-
-
 WITH_EXAMPLES = sorted(name for name, obj in PUBLIC.items() if any(t.examples for t in doctests(obj, name)))
 
 
 @pytest.mark.parametrize("name", WITH_EXAMPLES)
 def test_examples_run(name):
-    count, failures = run_examples(PUBLIC[name], name)
+    with torch.random.fork_rng(devices=[]):  # an example that seeds torch leaves the other tests' draws alone
+        count, failures = run_examples(PUBLIC[name], name)
     assert count > 0
     assert failures == "", failures
 
