@@ -236,8 +236,9 @@ class ModalitySpec:
             ``gru`` or ``mlp`` (flattened window) for sequences, ``deepsets`` (pooled by mean and max)
             or ``set_attention`` (pooled by attention) for sequences of ``K`` agent slots per step
             (both invariant to slot order), ``mlp`` for vectors.
-        required (bool, optional): the data pipeline treats a window without this modality as an
-            error instead of marking it absent. Defaults to ``False``.
+        required (bool, optional): every sample has it: the data pipeline leaves out the windows
+            without it (and refuses a recording whose files for it are missing), and
+            :class:`~mmf_rl.objectives.DiverseSamplingLoss` never drops it. Defaults to ``False``.
         encoder_kwargs (dict, optional): keyword arguments of the encoder (e.g. ``channels`` of
             ``conv``). Not part of equality or the hash.
 
