@@ -414,9 +414,9 @@ class ForecastTransform(_WindowTransform):
 
     Raises:
         ValueError: an action-conditioned model, ``num_samples < 0`` (or ``> 0`` for a model
-            without ``sample``), or ``stride < 1``.
-        KeyError: ``stats`` lacks a modality's or the target's statistics (when built), or the env
-            lacks a modality the model reads (when appended to it).
+            without ``sample``), ``stride < 1``, or (when appended to an env) an env that does not
+            emit a modality the model reads, or emits it with another kind or shape.
+        KeyError: ``stats`` lacks a modality's or the target's statistics.
 
     Examples:
         A forecaster on the simulated push env, behind its force sensor's outages:
@@ -792,7 +792,8 @@ class HistoryWindow(_WindowTransform):
             Defaults to ``False``.
 
     Raises:
-        ValueError: ``stride < 1``.
+        ValueError: ``stride < 1``, or (when appended to an env) an env that does not emit a modality
+            of ``specs``, or emits it with another kind or shape.
         KeyError: ``stats`` lacks a modality's or the target's statistics.
 
     Examples:
