@@ -682,6 +682,7 @@ class Trainer:
 
         Raises:
             TrainingStopped: too many non-finite losses in a row, or an exploding loss.
+            ValueError: early stopping on a metric ``evaluate`` does not return.
         """
         cfg = self.config
         self.model.train()
