@@ -435,9 +435,23 @@ class BCPolicy(TensorDictModule):
         """A policy for the windows, goal and action of ``demonstrations``; it reads forecasts of
         ``forecasts``' shape when given (its first ``forecast_steps``; their age, from a
         `LatchedForecastTable`), and the
-        object's position with ``privileged_object``. ``sizes``: `BCConfig` fields (``d_model``,
-        ``hidden``, ``depth``, ``action_chunk``, ``chunk_decay``, ``action_head``,
-        ``gmm_components``)."""
+        object's position with ``privileged_object``.
+
+        Args:
+            demonstrations (Demonstrations): its training samples (modalities, window, goal and action
+                dims, normalisation statistics).
+            forecasts (ForecastTable, optional): the forecasts it reads (a `LatchedForecastTable`: with
+                their age); ``None``: no forecast input.
+            encoders (EncoderChoice, optional): the modalities' encoders; ``None``: the defaults.
+            privileged_object (bool, optional): also read the object's true position. Defaults to
+                ``False``.
+            forecast_steps (int, optional): the first steps of each forecast it reads; ``None``: all.
+            **sizes: `BCConfig` fields (``d_model``, ``hidden``, ``depth``, ``action_chunk``,
+                ``chunk_decay``, ``action_head``, ``gmm_components``).
+
+        Returns:
+            The policy, untrained.
+        """
         if privileged_object:
             demonstrations.check_object_pose("train")
         encoders = encoders or EncoderChoice()
@@ -465,7 +479,19 @@ class BCPolicy(TensorDictModule):
         """The env transforms this policy reads from, in order: its `HistoryWindow`, then the
         forecaster's `ForecastTransform` (``denormalize=False``; a `LatchedForecastTransform` of the
         policy's rule for one trained on latched forecasts) for a policy that reads forecasts; for
-        an action-chunk policy, last, an `InitTracker` and its ensemble's state primer."""
+        an action-chunk policy, last, an `InitTracker` and its ensemble's state primer.
+
+        Args:
+            forecast (ForecastTransform, optional): the forecaster's transform, for a policy that reads
+                forecasts.
+
+        Returns:
+            The transforms, to put after the env's outages in a `Compose`.
+
+        Raises:
+            ValueError: a forecast transform the policy was not trained on (none, one too many, another
+                shape, denormalised, or another latch rule).
+        """
         return self._readers(forecast) + self._ensemble_transforms()
 
     def _ensemble_transforms(self) -> list:
@@ -524,14 +550,33 @@ class BCPolicy(TensorDictModule):
 
     def save(self, directory: str | os.PathLike, step: int = 0) -> Path:
         """Write the policy as a checkpoint (safetensors weights and statistics, ``meta.json`` config)
-        under ``directory``, atomically; returns its path."""
+        under ``directory``, atomically.
+
+        Args:
+            directory (str | os.PathLike): the checkpoints' directory.
+            step (int, optional): the step the checkpoint is named after. Defaults to ``0``.
+
+        Returns:
+            The checkpoint's path.
+        """
         return save_checkpoint(
             directory, step, self.state_dict(), meta=self.checkpoint_meta(), tensors=self.stats
         )
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike) -> BCPolicy:
-        """The policy of a checkpoint (or of the ``last`` one in a directory: a run's ``checkpoints/``)."""
+        """The policy of a checkpoint.
+
+        Args:
+            path (str | os.PathLike): a checkpoint, or a directory's ``last`` one (a run's
+                ``checkpoints/``).
+
+        Returns:
+            The policy, in eval mode.
+
+        Raises:
+            CheckpointError: a checkpoint that is not a behaviour-cloning policy's.
+        """
         checkpoint = load_checkpoint(path, with_trainer_state=False)
         if "bc_config" not in checkpoint.meta:
             raise CheckpointError(

@@ -403,7 +403,14 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         With ``("present_steps", m)`` in ``td``, the absent steps of a present window are zeroed before
         the encoder reads them; a step-token encoder's token of an absent step is also absent (a
         key-padding mask for the fusion and the decoder). Without it every step of a present modality
-        is present."""
+        is present.
+
+        Args:
+            td (TensorDictBase): a batch following `mmf_rl.keys`.
+
+        Returns:
+            ``(tokens, presence)``.
+        """
         columns = [
             self._encode_modality(
                 i,
@@ -889,9 +896,21 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     def decode_under_actions(
         self, tokens: torch.Tensor, present: torch.Tensor, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Decode encoded histories (:meth:`encode`: tokens ``[B, M, d]``, presence ``[B, M]``) under
-        ``[B, N, S, A]`` normalised action sequences, ``z`` from the prior by ``eval_latent`` (its mean
-        by default; ``"predictive"`` decodes ``B × N × K`` rows in one pass and moment-matches them)."""
+        """Decode encoded histories under action sequences, ``z`` from the prior by ``eval_latent`` (its
+        mean by default; ``"predictive"`` decodes ``B × N × K`` rows in one pass and moment-matches
+        them).
+
+        Args:
+            tokens (torch.Tensor): :meth:`encode`'s tokens ``[B, N, d]``.
+            present (torch.Tensor): its token presence ``[B, N]``.
+            actions (torch.Tensor): ``[B, N', S, A]`` normalised action sequences, ``N'`` per history.
+
+        Returns:
+            ``loc``, ``scale`` ``[B, N', T, D]``.
+
+        Raises:
+            ValueError: a model without action input, or ``actions`` of another shape.
+        """
         self._require_actions("decode_under_actions")
         expected = (tokens.shape[0], *self.config.action_shape)
         if actions.dim() != 4 or (actions.shape[0], *actions.shape[2:]) != expected:
@@ -922,7 +941,17 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self, tokens: torch.Tensor, present: torch.Tensor, decoder_tokens: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The latent distribution eval decodes from: ``q(z | X)`` with ``eval_latent="posterior"``
-        (eqs. 10 and 15 read literally), else the prior ``p(z | X)``."""
+        (eqs. 10 and 15 read literally), else the prior ``p(z | X)``.
+
+        Args:
+            tokens (torch.Tensor): :meth:`encode`'s tokens.
+            present (torch.Tensor): its token presence.
+            decoder_tokens (torch.Tensor, optional): :meth:`decoder_tokens` of them, when already
+                computed.
+
+        Returns:
+            ``loc``, ``scale`` ``[B, d_z]``.
+        """
         if self.config.eval_latent == "posterior":
             return self._posterior_from(self.fuse(tokens, present, decoder_tokens), None)
         return self.prior(tokens, present, decoder_tokens)
