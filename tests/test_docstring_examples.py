@@ -235,7 +235,7 @@ def test_exported_docstring_documents_arguments_returns_and_raises(name):
 def test_main_entry_points_have_examples():
     for name in MAIN_ENTRY_POINTS:
         module, _, attr = name.rpartition(".")
-        doc = inspect.getdoc(getattr(importlib.import_module(module), attr)) or ""
+        doc = inspect.cleandoc(getattr(importlib.import_module(module), attr).__doc__ or "")
         assert "Examples" in sections(doc) and ">>>" in doc, name
 
 
