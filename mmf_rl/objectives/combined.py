@@ -21,7 +21,8 @@ class CombinedLoss(ForecasterLossBase):
     Raises:
         ValueError: no loss, losses of different forecasters, or two losses that write the same entry
             (when called).
-        TypeError: a loss that is not a :class:`ForecasterLossBase`.
+        TypeError: a loss after the first that is not a :class:`ForecasterLossBase` (the first is read
+            for its ``forecaster`` before the check: an ``AttributeError`` when it has none).
 
     Examples:
         >>> import torch
