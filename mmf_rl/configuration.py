@@ -52,6 +52,14 @@ class ConfigError(ValueError):
 
 
 def config_dir() -> Path:
+    """The directory of the built-in configs: ``MMF_RL_CONFIG_DIR`` if set, else the package's.
+
+    Returns:
+        The directory holding ``train.yaml`` and the config groups.
+
+    Raises:
+        ConfigError: the directory has no ``train.yaml``.
+    """
     path = Path(os.environ.get("MMF_RL_CONFIG_DIR", DEFAULT_CONFIG_DIR))
     if not (path / "train.yaml").is_file():
         raise ConfigError(
@@ -62,7 +70,16 @@ def config_dir() -> Path:
 
 
 def reject_unknown_keys(cls, d: dict, where: str) -> None:
-    """A dataclass config built from plain data: name any key it does not have, and what it has."""
+    """Refuse plain data with keys a dataclass config does not have, naming them and the known ones.
+
+    Args:
+        cls (type): the dataclass.
+        d (dict): the plain data it is about to be built from.
+        where (str): what the error message calls the config (e.g. ``"ForecasterConfig"``).
+
+    Raises:
+        ValueError: ``d`` has a key that is not a field of ``cls``.
+    """
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(d) - known)
     if unknown:
@@ -70,7 +87,14 @@ def reject_unknown_keys(cls, d: dict, where: str) -> None:
 
 
 def config_groups(config_dirs: list[Path] = ()) -> dict[str, list[str]]:
-    """``{group: [option, ...]}`` found in the configs and in ``config_dirs``."""
+    """The config groups and their options, built in and in the user's directories.
+
+    Args:
+        config_dirs (list[Path], optional): more directories of ``<group>/<name>.yaml`` files.
+
+    Returns:
+        ``{group: [option, ...]}``, both sorted.
+    """
     groups: dict[str, set[str]] = {}
     for directory in [config_dir(), *config_dirs]:
         for path in Path(directory).glob("*/*"):
@@ -247,9 +271,21 @@ def _compose(name: str, overrides: list[str], config_dirs: list[Path]) -> DictCo
 
 
 def compose_config(name: str, overrides: list[str], config_dirs: list[Path] = ()) -> DictConfig:
-    """``configs/<name>.yaml`` + ``key=value`` / ``group=option`` overrides, resolved, struct mode.
+    """Compose ``configs/<name>.yaml`` with command-line overrides (see the module docstring).
 
-    ``config_dirs``: more directories of ``<group>/<name>.yaml`` files (``--config-dir``).
+    Args:
+        name (str): the config's name (``"train"``, ``"eval"``, ``"calibrate"``).
+        overrides (list[str]): ``key=value`` / ``group=option`` / ``+key=value`` overrides, Hydra's
+            grammar, applied in order.
+        config_dirs (list[Path], optional): more directories of ``<group>/<name>.yaml`` files
+            (``--config-dir``).
+
+    Returns:
+        The composed config, resolved, in struct mode.
+
+    Raises:
+        ConfigError: an unknown key or option, a bad value, a missing config file or directory, or a
+            user config that shadows a built-in one (Hydra's message, without its chained causes).
     """
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
@@ -268,7 +304,19 @@ def compose_config(name: str, overrides: list[str], config_dirs: list[Path] = ()
 
 def config_or_overrides(name: str, config: DictConfig | None, overrides: Sequence[str]) -> DictConfig:
     """What a Python entry point (``mmf_rl.train``, ``mmf_rl.evaluate``) runs: ``config`` as given, or
-    ``configs/<name>.yaml`` composed with ``overrides``."""
+    ``configs/<name>.yaml`` composed with ``overrides``.
+
+    Args:
+        name (str): the config composed when ``config`` is ``None`` (``"train"``, ``"eval"``, ...).
+        config (DictConfig | None): a composed config, used as given.
+        overrides (Sequence[str]): Hydra overrides; only without ``config``.
+
+    Returns:
+        The config to run.
+
+    Raises:
+        ValueError: both ``config`` and ``overrides`` given.
+    """
     if config is None:
         return compose_config(name, list(overrides))
     if overrides:
@@ -281,13 +329,27 @@ def config_or_overrides(name: str, config: DictConfig | None, overrides: Sequenc
 
 @dataclass
 class ConfigCommand:
-    """A parsed ``mmf-rl <command> [--config-dir DIR] [--cfg] [overrides]`` command line."""
+    """A parsed ``mmf-rl <command> [--config-dir DIR] [--cfg] [overrides]`` command line.
+
+    Args:
+        overrides (list[str]): the Hydra overrides, in command-line order.
+        config_dirs (list[Path]): the ``--config-dir`` directories.
+        print_config (bool): ``--cfg`` was given: print the composed config and exit.
+    """
 
     overrides: list[str]
     config_dirs: list[Path]
     print_config: bool
 
     def compose(self, name: str) -> DictConfig:
+        """The config ``name`` with this command line's overrides (:func:`compose_config`).
+
+        Args:
+            name (str): the config's name.
+
+        Returns:
+            The composed config.
+        """
         return compose_config(name, self.overrides, self.config_dirs)
 
 
@@ -327,8 +389,12 @@ def _settings_help(name: str, config_dirs: list[Path]) -> str:
 
 
 def add_config_dir_flag(parser: argparse.ArgumentParser) -> None:
-    """``--config-dir DIR``, repeatable: the user's own config directories, as every command composing
-    a Hydra config takes them."""
+    """Add ``--config-dir DIR``, repeatable: the user's own config directories, as every command
+    composing a Hydra config takes them.
+
+    Args:
+        parser (argparse.ArgumentParser): the command's parser, given the flag in place.
+    """
     parser.add_argument(
         "--config-dir",
         action="append",
@@ -342,7 +408,17 @@ def add_config_dir_flag(parser: argparse.ArgumentParser) -> None:
 
 def parse_config_command(argv: list[str], name: str, description: str, examples: list[str]) -> ConfigCommand:
     """Parse a Hydra-config command's arguments; ``--help`` prints usage, the config groups and their
-    options, and ``examples`` (then exits, as argparse does)."""
+    options, and ``examples`` (then exits, as argparse does).
+
+    Args:
+        argv (list[str]): the arguments after the command's name.
+        name (str): the config the command composes (its ``--help`` lists that config's groups).
+        description (str): the help's description.
+        examples (list[str]): example command lines, listed at the end of the help.
+
+    Returns:
+        The parsed command line.
+    """
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--config-dir", action="append", type=Path, default=[])
     known, _ = pre.parse_known_args(argv)
@@ -388,6 +464,15 @@ def run_config_command(
     shares: parse the arguments (:func:`parse_config_command`), compose ``configs/<name>.yaml`` with the
     overrides, then print it (``--cfg``) or ``run`` it and ``show`` the result on stdout.
 
+    Args:
+        argv (list[str]): the arguments after the command's name.
+        name (str): the config the command composes (``configs/<name>.yaml``).
+        description (str): the help's description.
+        examples (list[str]): example command lines, listed at the end of the help.
+        run (Callable[[DictConfig], T]): what the command does with the composed config.
+        errors (tuple[type[Exception], ...]): the expected failures, reported in one line.
+        show (Callable[[T], None], optional): prints ``run``'s result. Defaults to printing nothing.
+
     Returns:
         The exit code: 0, or 1 for an expected failure, one of ``errors`` (one line on stderr:
         :func:`report_command_error`).
@@ -409,7 +494,18 @@ def report_command_error(command: str, error: Exception) -> int:
     """A command's expected failure (bad config, missing file, bad data) as one line on stderr, exit
     code 1; with ``MMF_RL_DEBUG`` set the exception propagates with its traceback. Call it from the
     ``except`` block that caught ``error``. A ``KeyError`` shows its message without the quotes
-    ``str(KeyError)`` adds."""
+    ``str(KeyError)`` adds.
+
+    Args:
+        command (str): the command's name, the message's prefix.
+        error (Exception): the caught exception.
+
+    Returns:
+        ``1``, the command's exit code.
+
+    Raises:
+        Exception: ``error`` itself, when ``MMF_RL_DEBUG`` is set.
+    """
     if os.environ.get("MMF_RL_DEBUG"):
         raise error
     message = error.args[0] if isinstance(error, KeyError) and error.args else error
@@ -418,12 +514,25 @@ def report_command_error(command: str, error: Exception) -> int:
 
 
 def to_container(cfg: DictConfig) -> dict:
+    """A config as plain, resolved Python containers.
+
+    Args:
+        cfg (DictConfig): the config.
+
+    Returns:
+        A dict of dicts, lists and scalars, interpolations resolved.
+    """
     return OmegaConf.to_container(cfg, resolve=True)
 
 
 def write_text_atomic(path: Path, text: str) -> None:
     """Write ``text`` to a temp file beside ``path``, then rename it over ``path``: a reader sees the
-    old file or the new one, never a half-written one."""
+    old file or the new one, never a half-written one.
+
+    Args:
+        path (Path): the file to write (its parent directories are created).
+        text (str): its new content.
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(text)
@@ -431,12 +540,26 @@ def write_text_atomic(path: Path, text: str) -> None:
 
 
 def save_config(cfg: DictConfig | dict, path: Path, header: str = "") -> None:
-    """Write YAML atomically (temp file + rename), after ``header`` (comment lines)."""
+    """Write a config as YAML atomically (temp file + rename), after ``header``.
+
+    Args:
+        cfg (DictConfig | dict): the config.
+        path (Path): the YAML file to write.
+        header (str, optional): text written first (comment lines, each starting with ``#``).
+    """
     config = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
     write_text_atomic(path, header + OmegaConf.to_yaml(config))
 
 
 def load_config(path: Path) -> DictConfig:
+    """Read a YAML config (one :func:`save_config` wrote).
+
+    Args:
+        path (Path): the YAML file.
+
+    Returns:
+        The config, interpolations unresolved.
+    """
     return OmegaConf.load(path)
 
 
@@ -444,7 +567,17 @@ def config_changes(saved: dict, current: dict, ignore=frozenset()) -> tuple[dict
     """How the config ``current`` differs from a run's ``saved`` one (both plain containers), by dotted
     key: ``(added, changed)``, the settings ``saved`` lacks (a newer mmf-rl added them) with their
     current value, and the settings whose value differs as ``(saved, current)``. Keys in ``ignore``
-    are left out."""
+    are left out.
+
+    Args:
+        saved (dict): the run's saved config, plain containers.
+        current (dict): the config now, plain containers.
+        ignore (Collection[str], optional): dotted keys left out of both results.
+
+    Returns:
+        ``(added, changed)``: ``{key: current value}`` and ``{key: (saved value, current value)}``,
+        sorted by key.
+    """
 
     def flat(d: dict, prefix: str = ""):
         for k, v in d.items():

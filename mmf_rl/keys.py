@@ -100,20 +100,55 @@ PRIOR_DROPPED_SCALE = (PRIOR_DROPPED, SCALE)
 
 
 def obs_key(modality: str) -> tuple[str, str]:
+    """The key of a modality's observation window.
+
+    Args:
+        modality (str): the modality's name.
+
+    Returns:
+        ``("obs", modality)``.
+    """
     return (OBS, modality)
 
 
 def present_key(modality: str) -> tuple[str, str]:
+    """The key of a modality's per-sample presence flag.
+
+    Args:
+        modality (str): the modality's name.
+
+    Returns:
+        ``("present", modality)``.
+    """
     return (PRESENT, modality)
 
 
 def present_steps_key(modality: str) -> tuple[str, str]:
+    """The key of a modality's per-step presence flags (optional in a batch).
+
+    Args:
+        modality (str): the modality's name.
+
+    Returns:
+        ``("present_steps", modality)``.
+    """
     return (PRESENT_STEPS, modality)
 
 
 def zero_absent_steps(obs: torch.Tensor, present_steps: torch.Tensor) -> torch.Tensor:
-    """A window ``[B, H, *feat]`` with its absent steps (``present_steps`` ``[B, H]`` False) zeroed, so
-    the value stored under an absent step never reaches an encoder."""
+    """Zero the absent steps of a window, so the value stored under an absent step never reaches an
+    encoder.
+
+    Args:
+        obs (torch.Tensor): a window ``[B, H, *feat]``.
+        present_steps (torch.Tensor): ``bool [B, H]``, False at the absent steps.
+
+    Returns:
+        A tensor like ``obs`` with the absent steps set to zero.
+
+    Raises:
+        ValueError: ``present_steps`` is not ``[B, H]`` of the window (e.g. a single-vector modality).
+    """
     if obs.dim() < 2 or tuple(present_steps.shape) != tuple(obs.shape[:2]):
         raise ValueError(
             f"present_steps {tuple(present_steps.shape)} must be [B, H] of the window {tuple(obs.shape)}; "
@@ -124,16 +159,42 @@ def zero_absent_steps(obs: torch.Tensor, present_steps: torch.Tensor) -> torch.T
 
 
 def drop_key(modality: str) -> tuple[str, str]:
+    """The key of the per-sample mask that removes a modality for the missing-modality loss.
+
+    Args:
+        modality (str): the modality's name.
+
+    Returns:
+        ``("drop", modality)``.
+    """
     return (DROP, modality)
 
 
 def drop_steps_key(modality: str) -> tuple[str, str]:
+    """The key of the per-step mask that removes steps of a modality from that loss's degraded input.
+
+    Args:
+        modality (str): the modality's name.
+
+    Returns:
+        ``("drop_steps", modality)``.
+    """
     return (DROP_STEPS, modality)
 
 
 def drop_masks(td, modalities) -> torch.Tensor | None:
-    """``[B, M]``: the batch's ``("drop", m)`` masks (``L_mis``'s student input) for ``modalities``
-    (``ModalitySpec``s) in order; ``None`` when it has none. Some but not all is a KeyError naming them."""
+    """The batch's ``("drop", m)`` masks (``L_mis``'s student input), stacked in the modalities' order.
+
+    Args:
+        td (TensorDictBase): a batch ``[B]`` following this contract.
+        modalities (Sequence[ModalitySpec]): the model's modalities, in order.
+
+    Returns:
+        ``bool [B, M]``, or ``None`` when the batch has no ``("drop", m)`` mask.
+
+    Raises:
+        KeyError: the batch has the masks of some modalities but not of all (the error names them).
+    """
     drop_keys = [drop_key(s.name) for s in modalities]
     found = [k in td.keys(include_nested=True) for k in drop_keys]
     if not any(found):
@@ -161,17 +222,36 @@ DEFAULT_ENCODER: dict[str, str] = {"image": "conv", "sequence": "mlp", "vector":
 class ModalitySpec:
     """What one modality is: its name, kind, per-step feature shape and encoder.
 
-    ``kind``:
-      * ``"image"``: a window of RGB frames, ``uint8 [B, H, C, h, w]``; ``shape = (C, h, w)``.
-      * ``"sequence"``: a window of vectors, ``float32 [B, H, d]``; ``shape = (d,)``.
-      * ``"vector"``: one vector per sample, ``float32 [B, d]``; ``shape = (d,)``.
+    Args:
+        name (str): the modality's name, the ``m`` of its keys ``("obs", m)``, ``("present", m)``.
+        kind (str): ``"image"``: a window of RGB frames, ``uint8 [B, H, C, h, w]``, with
+            ``shape = (C, h, w)``; ``"sequence"``: a window of vectors, ``float32 [B, H, d]``, with
+            ``shape = (d,)``; ``"vector"``: one vector per sample, ``float32 [B, d]``, with
+            ``shape = (d,)``.
+        shape (tuple[int, ...]): the per-step feature shape (see ``kind``).
+        encoder (str, optional): the name of an encoder registered in :mod:`mmf_rl.models.encoders`
+            for this kind (checked when a model is built); ``None``: the kind's default
+            (``DEFAULT_ENCODER``). Built in: ``conv`` (frames stacked on channels: cheap, and motion
+            is visible to the first layer) or ``conv_gru`` (per-frame ConvNet + GRU) for images,
+            ``gru`` or ``mlp`` (flattened window) for sequences, ``deepsets`` (pooled by mean and max)
+            or ``set_attention`` (pooled by attention) for sequences of ``K`` agent slots per step
+            (both invariant to slot order), ``mlp`` for vectors.
+        required (bool, optional): every sample has it: the data pipeline leaves out the windows
+            without it (and refuses a recording whose files for it are missing), and
+            :class:`~mmf_rl.objectives.DiverseSamplingLoss` never drops it. Defaults to ``False``.
+        encoder_kwargs (dict, optional): keyword arguments of the encoder (e.g. ``channels`` of
+            ``conv``). Not part of equality or the hash.
 
-    ``encoder``: the name of an encoder registered in :mod:`mmf_rl.models.encoders` for this kind
-    (checked when a model is built); default by kind (``DEFAULT_ENCODER``). Built in: ``conv``
-    (frames stacked on channels: cheap, and motion is visible to the first layer) or ``conv_gru``
-    (per-frame ConvNet + GRU) for images, ``gru`` or ``mlp`` (flattened window) for sequences,
-    ``deepsets`` (pooled by mean and max) or ``set_attention`` (pooled by attention) for sequences of
-    ``K`` agent slots per step (both invariant to slot order), ``mlp`` for vectors.
+    Raises:
+        ValueError: an unknown ``kind``, or a ``shape`` of the wrong rank or with a dim below 1.
+
+    Examples:
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> force = ModalitySpec("force", "sequence", (6,))
+        >>> force.encoder, force.obs_key, force.obs_shape(history=4)
+        ('mlp', ('obs', 'force'), (4, 6))
+        >>> ModalitySpec("camera", "image", (3, 32, 32)).dtype
+        torch.uint8
     """
 
     name: str
@@ -198,21 +278,32 @@ class ModalitySpec:
 
     @property
     def obs_key(self) -> tuple[str, str]:
+        """``("obs", name)``."""
         return obs_key(self.name)
 
     @property
     def present_key(self) -> tuple[str, str]:
+        """``("present", name)``."""
         return present_key(self.name)
 
     @property
     def dtype(self) -> torch.dtype:
+        """The observation's dtype: ``uint8`` for images, else ``float32``."""
         return torch.uint8 if self.kind == "image" else torch.float32
 
     def obs_shape(self, history: int) -> tuple[int, ...]:
-        """Shape of one sample's observation (without the batch dim)."""
+        """Shape of one sample's observation (without the batch dim).
+
+        Args:
+            history (int): ``H``, steps per window (unused by a ``"vector"`` modality).
+
+        Returns:
+            ``(H, *shape)``, or ``shape`` for a ``"vector"`` modality.
+        """
         return self.shape if self.kind == "vector" else (history, *self.shape)
 
     def to_dict(self) -> dict:
+        """The spec as a plain dict (for a saved config); :meth:`from_dict` reads it back."""
         return {
             "name": self.name,
             "kind": self.kind,
@@ -224,6 +315,14 @@ class ModalitySpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> ModalitySpec:
+        """The spec :meth:`to_dict` wrote.
+
+        Args:
+            d (dict): the spec's fields (``shape`` as a list or tuple).
+
+        Returns:
+            A new :class:`ModalitySpec`.
+        """
         d = dict(d)
         d["shape"] = tuple(d["shape"])
         return cls(**d)
@@ -239,7 +338,14 @@ def _indices(rows: torch.Tensor) -> str:
 
 
 def nonfinite_rows(values: torch.Tensor) -> torch.Tensor:
-    """``[N]`` bool: the rows of ``values`` ``[N, ...]`` holding NaN or ±Inf (never for integer dtypes)."""
+    """The rows holding NaN or ±Inf (never any for an integer dtype).
+
+    Args:
+        values (torch.Tensor): ``[N, ...]``.
+
+    Returns:
+        ``bool [N]``, True where the row holds a non-finite value.
+    """
     if not values.is_floating_point():
         return torch.zeros(values.shape[0], dtype=torch.bool, device=values.device)
     return ~torch.isfinite(values).flatten(1).all(1) if values.dim() > 1 else ~torch.isfinite(values)
@@ -264,6 +370,25 @@ def validate_batch(
     writes into the batch), every sample has at least one present modality, ``"target"`` (if
     present or required) is ``float [B, T, D]``, and, for an action-conditioned model
     (``action_shape = (S, A)``), ``"future_action"`` is finite ``float32 [B, S, A]``.
+
+    Args:
+        td (TensorDictBase): the batch, batch size ``[B]``.
+        modalities (list[ModalitySpec]): the model's modalities.
+        history (int): ``H``, steps per window.
+        horizon (int, optional): ``T`` the target must have; ``None`` accepts any.
+        target_dim (int, optional): ``D`` the target must have; ``None`` accepts any.
+        require_target (bool, optional): a batch without ``"target"`` is an error (training).
+            Defaults to ``False``.
+        action_shape (tuple[int, int], optional): ``(S, A)`` of ``"future_action"`` for an
+            action-conditioned model; ``None``: not checked.
+        nonfinite (str, optional): ``"raise"`` (default) or ``"absent"``, what NaN/Inf under a present
+            modality means (see the module docstring).
+
+    Raises:
+        KeyError: a key of the contract is missing.
+        ValueError: a wrong dtype or shape, an empty batch, a sample with no present modality,
+            NaN/Inf under a present modality (with ``nonfinite="raise"``) or in the actions, or an
+            unknown ``nonfinite``.
     """
     if nonfinite not in NONFINITE_RULES:
         raise ValueError(f"nonfinite must be one of {NONFINITE_RULES}, found {nonfinite!r}")
@@ -299,7 +424,12 @@ def validate_batch(
 def mark_nonfinite_absent(td, modalities: list[ModalitySpec]) -> None:
     """Set ``("present", m)`` to False in ``td`` (in place) for the samples whose present
     ``("obs", m)`` holds NaN or ±Inf: the ``nonfinite="absent"`` rule, applied to a batch that
-    :func:`validate_batch` accepted with that rule."""
+    :func:`validate_batch` accepted with that rule.
+
+    Args:
+        td (TensorDictBase): the batch, changed in place (a batch without NaN/Inf keeps its tensors).
+        modalities (list[ModalitySpec]): the modalities to check.
+    """
     for spec in modalities:
         present = td.get(spec.present_key)
         bad = nonfinite_rows(td.get(spec.obs_key)) & present

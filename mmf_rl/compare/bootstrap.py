@@ -24,16 +24,27 @@ EntryErrors = dict[str, dict[str, list[ErrorRows]]]  # label -> subset -> the ro
 
 @dataclass
 class Cell:
-    """One entry x subset: MSE averaged over seeds, its bootstrap interval and resampled values."""
+    """One entry x subset: MSE averaged over seeds, its bootstrap interval and resampled values.
+
+    Args:
+        mean (float): the MSE, mean over seeds.
+        low (float): the interval's lower end.
+        high (float): its upper end.
+        per_seed (list[float]): each seed's MSE.
+        windows (int): the test windows scored.
+        samples (torch.Tensor): ``[resamples]``, the statistic on each resample (shared resamples make
+            two cells' difference a paired comparison).
+    """
 
     mean: float
     low: float
     high: float
     per_seed: list[float]
     windows: int
-    samples: torch.Tensor = field(repr=False)  # [resamples] the statistic on each resample
+    samples: torch.Tensor = field(repr=False)
 
     def to_dict(self) -> dict:
+        """The cell without its resamples, for a JSON report."""
         return {
             "mean": self.mean,
             "low": self.low,
@@ -46,7 +57,19 @@ class Cell:
 def episode_totals(
     episodes: Sequence, errors: Sequence[float], order: Sequence
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-group sum of ``errors`` and window count ``[E]``, groups (episodes) in ``order``."""
+    """Per-group sum of ``errors`` and window count, groups (episodes) in ``order``.
+
+    Args:
+        episodes (Sequence): each window's group.
+        errors (Sequence[float]): each window's squared error.
+        order (Sequence): the groups, in the order of the bootstrap's weights.
+
+    Returns:
+        ``(sums, counts)``, each float64 ``[E]``.
+
+    Raises:
+        ValueError: a window's group is not in ``order``.
+    """
     index = {episode: i for i, episode in enumerate(order)}
     unknown = sorted(set(episodes) - set(index))
     if unknown:
@@ -67,7 +90,16 @@ def bootstrap_weights(
     """``[resamples, E]``: how many times each episode is drawn in each resample (with replacement).
 
     Drawn once from one seeded generator and applied to every cell, so all entries, seeds and
-    subsets are compared on the same resampled test sets (a paired bootstrap)."""
+    subsets are compared on the same resampled test sets (a paired bootstrap).
+
+    Args:
+        num_episodes (int): ``E``, the groups resampled.
+        resamples (int, optional): the resamples. Defaults to ``2000``.
+        seed (int, optional): the generator's seed. Defaults to ``0``.
+
+    Returns:
+        float64 ``[resamples, E]``; each row sums to ``E``.
+    """
     generator = torch.Generator().manual_seed(seed)
     draws = torch.randint(num_episodes, (resamples, num_episodes), generator=generator)
     return torch.zeros(resamples, num_episodes, dtype=torch.float64).scatter_add_(
@@ -81,7 +113,28 @@ def bootstrap_cell(
     """The seed-mean MSE of one cell from each seed's ``episode_totals``, with its percentile interval.
 
     On each resample every seed's MSE is the window-weighted mean over the drawn episodes; the
-    statistic is their mean over seeds (the interval is over test episodes, not over seeds)."""
+    statistic is their mean over seeds (the interval is over test episodes, not over seeds).
+
+    Args:
+        totals (Sequence[tuple[torch.Tensor, torch.Tensor]]): each seed's :func:`episode_totals`.
+        weights (torch.Tensor): :func:`bootstrap_weights`, shared by every cell.
+        level (float, optional): the interval's coverage. Defaults to ``0.95``.
+
+    Returns:
+        The cell.
+
+    Raises:
+        ValueError: the seeds were scored on different windows.
+
+    Examples:
+        >>> from mmf_rl.compare import bootstrap_cell, bootstrap_weights, episode_totals
+        >>> episodes = [0, 0, 1, 1, 2, 2, 3, 3]  # two test windows in each of four episodes
+        >>> seeds = [[0.1, 0.3, 0.2, 0.2, 0.5, 0.1, 0.2, 0.4], [0.2, 0.2, 0.3, 0.1, 0.4, 0.2, 0.3, 0.3]]
+        >>> totals = [episode_totals(episodes, errors, order=[0, 1, 2, 3]) for errors in seeds]
+        >>> cell = bootstrap_cell(totals, bootstrap_weights(4))
+        >>> round(cell.mean, 3), cell.windows, cell.low <= cell.mean <= cell.high
+        (0.25, 8, True)
+    """
     sums = torch.stack([s for s, _ in totals])  # [S, E]
     counts = totals[0][1]
     if any(not torch.equal(c, counts) for _, c in totals):
@@ -122,12 +175,30 @@ def ordered_subsets(names: Sequence[str], lead: Sequence[str] = ()) -> list[str]
 
 @dataclass
 class Table:
-    subsets: list[str]  # headline order
-    cells: dict[str, dict[str, Cell]] = field(default_factory=dict)  # label -> subset -> cell
+    """The comparison's cells, entry by subset.
+
+    Args:
+        subsets (list[str]): the presence subsets, in headline order.
+        cells (dict[str, dict[str, Cell]], optional): ``{label: {subset: cell}}``.
+        kinds (dict[str, str], optional): each entry's kind (``paper``, ``zero-fill``, ...).
+        bases (dict[str, str], optional): ``{label: the entry it is compared with}``, for the kinds
+            that have one.
+    """
+
+    subsets: list[str]
+    cells: dict[str, dict[str, Cell]] = field(default_factory=dict)
     kinds: dict[str, str] = field(default_factory=dict)
-    bases: dict[str, str] = field(default_factory=dict)  # label -> the entry it is compared with
+    bases: dict[str, str] = field(default_factory=dict)
 
     def labels(self, *kinds: str) -> list[str]:
+        """The entries of these kinds, in table order.
+
+        Args:
+            *kinds (str): entry kinds.
+
+        Returns:
+            Their labels.
+        """
         return [label for label, kind in self.kinds.items() if kind in kinds]
 
     def degradation(self, label: str, subset: str) -> float:
@@ -135,6 +206,14 @@ class Table:
         return self.cells[label][subset].mean / self.cells[label]["all"].mean - 1
 
     def mean_degradation(self, label: str) -> float:
+        """The entry's :meth:`degradation` averaged over its subsets other than ``"all"``.
+
+        Args:
+            label (str): the entry.
+
+        Returns:
+            The mean relative MSE increase.
+        """
         return statistics.fmean(
             self.degradation(label, s) for s in self.subsets if s != "all" and s in self.cells[label]
         )
@@ -165,9 +244,21 @@ def build_table(
     lead: Sequence[str] = (),
     bases: dict[str, str] | None = None,
 ) -> tuple[Table, list]:
-    """Cells with paired bootstrap intervals from every entry's per-window errors; the bootstrap
-    resamples the groups of windows ``rows[unit]`` names (test episodes by default). Returns the table
-    (subsets ``lead`` first) and the groups."""
+    """Cells with paired bootstrap intervals from every entry's per-window errors.
+
+    Args:
+        errors (EntryErrors): ``{label: {subset: [each seed's rows]}}``, rows ``{"window", "episode",
+            "squared_error"}`` (``"block"`` too with ``unit="block"``).
+        kinds (dict[str, str]): each entry's kind.
+        subset_names (Sequence[str]): the subsets, in their order.
+        unit (str, optional): the row key naming the groups the bootstrap resamples (``"episode"``,
+            the default, or ``"block"``, :func:`bootstrap_unit`).
+        lead (Sequence[str], optional): the headline subsets, put first.
+        bases (dict[str, str], optional): each entry's base, for the kinds that have one.
+
+    Returns:
+        ``(table, groups)``: the table (subsets ``lead`` first) and the groups, sorted.
+    """
     groups = sorted({e for rows in all_rows(errors) for e in rows[unit]})
     weights = bootstrap_weights(len(groups))
     table = Table(subsets=ordered_subsets(subset_names, lead), kinds=dict(kinds), bases=dict(bases or {}))
@@ -200,9 +291,21 @@ def add_blocks(errors: EntryErrors, block: int) -> None:
 
 
 def bootstrap_unit(errors: EntryErrors, block: int, min_episodes: int = MIN_EPISODES) -> str:
-    """``"episode"`` with at least ``min_episodes`` test episodes, else ``"block"`` (added to the rows):
-    non-overlapping blocks of ``block`` consecutive windows of an episode (with ``block`` = H + T at
-    stride 1, windows of non-adjacent blocks share no frame)."""
+    """The group the bootstrap resamples: test episodes when there are enough, else blocks of windows.
+
+    Blocks are non-overlapping runs of ``block`` consecutive windows of an episode (with ``block`` =
+    H + T at stride 1, windows of non-adjacent blocks share no frame).
+
+    Args:
+        errors (EntryErrors): every entry's rows; given ``"block"`` entries in place when blocks are
+            chosen.
+        block (int): windows per block.
+        min_episodes (int, optional): the fewest test episodes an episode bootstrap needs. Defaults to
+            ``10``.
+
+    Returns:
+        ``"episode"`` or ``"block"``.
+    """
     episodes = {e for rows in all_rows(errors) for e in rows["episode"]}
     if len(episodes) >= min_episodes:
         return "episode"

@@ -40,7 +40,16 @@ def entry_coverage(entry: Entry, study: Study) -> tuple[dict[str, float], bool]:
 def entry_metric(entry: Entry, study: Study, metric: str) -> dict[str, float]:
     """``{subset: metric, mean over seeds}`` of one metric of the evaluations' subset rows
     (``<run>/eval/results.json``); subsets where a run lacks it (written before it existed) are left
-    out."""
+    out.
+
+    Args:
+        entry (Entry): the entry whose runs are read.
+        study (Study): the comparison the runs belong to.
+        metric (str): a key of the evaluation's subset rows, e.g. ``"width_90"``.
+
+    Returns:
+        ``{subset: mean over the runs that recorded it}``.
+    """
     per_subset: dict[str, list[float]] = {}
     for _, _, run_dir, _, subset in run_plan(entry, study):
         scores = json.loads((run_dir / "eval" / "results.json").read_text())
@@ -85,7 +94,15 @@ def entry_fit(entry: Entry, study: Study) -> dict[str, float] | None:
 def timing(runs: dict[str, list[dict]]) -> dict[str, dict[str, float]]:
     """Per entry: measured ms per training step (the training loop), the rest of a run (data and model
     setup, validation, checkpoint, evaluation) in seconds, and how many runs were trained at once while
-    they were measured (``jobs``; results written before it was recorded count as 1)."""
+    they were measured (``jobs``; results written before it was recorded count as 1).
+
+    Args:
+        runs (dict[str, list[dict]]): each entry's runs' ``window_errors.json`` results.
+
+    Returns:
+        ``{label: {"ms_per_step", "other_seconds", "runs", "batch_size", "jobs"}}`` for the entries with
+        runs.
+    """
     out = {}
     for label, results in runs.items():
         if results:
@@ -103,7 +120,20 @@ def timing(runs: dict[str, list[dict]]) -> dict[str, dict[str, float]]:
 
 @dataclass
 class Collected:
-    """Everything the report reads, per entry label."""
+    """Everything the report reads, per entry label.
+
+    Args:
+        errors (EntryErrors, optional): ``{label: {subset: [each seed's rows]}}``.
+        runs (dict[str, list[dict]], optional): the entry's own runs' results.
+        kinds (dict[str, str], optional): each entry's kind.
+        bases (dict[str, str], optional): each entry's base's label, where it has one.
+        coverage (dict[str, tuple[dict[str, float], bool]], optional): ``({subset: 90% coverage}, every
+            run recalibrated)``.
+        intervals (dict[str, dict[str, dict[str, float]]], optional): ``{metric: {subset: value}}``
+            for each of :data:`INTERVAL_METRICS` (50% coverage, 90% width, CRPS).
+        kl (dict[str, float | None], optional): the latent's KL with every sensor (``None``: no latent).
+        fit (dict[str, dict[str, float] | None], optional): ``{"train", "test"}`` MSE.
+    """
 
     errors: EntryErrors = field(default_factory=dict)
     runs: dict[str, list[dict]] = field(default_factory=dict)
@@ -115,6 +145,7 @@ class Collected:
     fit: dict[str, dict[str, float] | None] = field(default_factory=dict)
 
     def constant_velocity_mse(self) -> float | None:
+        """The constant-velocity reference's MSE some run recorded (``None``: none did)."""
         return next(
             (
                 r["constant_velocity"]["mse"]
@@ -127,6 +158,14 @@ class Collected:
 
 
 def collect_runs(study: Study) -> Collected:
+    """Read what the completed runs of every entry wrote.
+
+    Args:
+        study (Study): the comparison; every run it plans must be complete.
+
+    Returns:
+        The collected results.
+    """
     out = Collected()
     for entry in study.entries:
         out.errors[entry.label], out.runs[entry.label] = entry_results(entry, study)

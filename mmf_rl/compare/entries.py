@@ -32,11 +32,23 @@ BASELINE_KINDS = ("zero-fill", "retrained", TRAINED_FOR_MISSING_KIND)
 
 @dataclass(frozen=True)
 class Entry:
+    """One row of a comparison: a label and the training overrides that make it.
+
+    Args:
+        label (str): the row's name.
+        kind (str): one of ``KINDS`` (see the module docstring).
+        overrides (tuple[str, ...]): ``mmf-rl train`` overrides (e.g. ``("model=mult",)``).
+        base (Entry, optional): for ``retrained``, the zero-fill entry whose all-modality run gives its
+            ``"all"`` cell; for ``learned fusion``, the entry it is compared with (the same prior with
+            the paper's fusion); ``None`` for every other kind.
+
+    Raises:
+        ValueError: an unknown kind, or a base given to the wrong kind (or missing).
+    """
+
     label: str
-    kind: str  # one of KINDS
+    kind: str
     overrides: tuple[str, ...]
-    # retrained: the zero-fill entry whose all-modality run gives its "all" cell; learned fusion: the
-    # entry it is compared with (the same prior with the paper's fusion)
     base: Entry | None = None
 
     def __post_init__(self) -> None:
@@ -50,28 +62,48 @@ class Entry:
 
 @dataclass(frozen=True)
 class Budget:
-    """What every run of a comparison trains with."""
+    """What every run of a comparison trains with.
+
+    Args:
+        steps (int): training steps of each run.
+        batch_size (int): its batch size.
+        seeds (tuple[int, ...]): the training seeds, one run each.
+        image_size (int, optional): square images of this size; ``None``: the data config's.
+    """
 
     steps: int
     batch_size: int
     seeds: tuple[int, ...]
-    image_size: int | None = None  # square images of this size; None: the data config's
+    image_size: int | None = None
 
 
 @dataclass(frozen=True)
 class Study:
     """One comparison: its entries on one data config, its budget, where its runs go. Picklable, so
-    that worker processes (``jobs`` > 1) receive it whole."""
+    that worker processes (``jobs`` > 1) receive it whole.
+
+    Args:
+        out (Path): where its runs (and the window cache) go.
+        budget (Budget): what every run trains with.
+        entries (tuple[Entry, ...]): the rows.
+        modalities (tuple[str, ...]): the data config's modalities, in the order the subsets are named.
+        data_overrides (tuple[str, ...], optional): Hydra overrides choosing the data, after each
+            entry's own.
+        config_dirs (tuple[Path, ...], optional): the user's config directories (``--config-dir``).
+        device (str, optional): where runs train. Defaults to ``"cpu"``.
+        jobs (int, optional): runs trained at once, one process each. Defaults to ``1``.
+        retrained_for (tuple[str, ...], optional): the subsets a retrained baseline is trained for;
+            ``None``: every subset but ``"all"``.
+    """
 
     out: Path
     budget: Budget
     entries: tuple[Entry, ...]
-    modalities: tuple[str, ...]  # the data config's modalities, in the order the subsets are named
-    data_overrides: tuple[str, ...] = ()  # Hydra overrides choosing the data, after each entry's own
+    modalities: tuple[str, ...]
+    data_overrides: tuple[str, ...] = ()
     config_dirs: tuple[Path, ...] = ()
     device: str = "cpu"
     jobs: int = 1
-    # the subsets a retrained baseline is trained for; None: every subset but "all"
     retrained_for: tuple[str, ...] | None = None
 
 
@@ -156,6 +188,14 @@ def select_entries(
 
 
 def subsets(modalities: Sequence[str]) -> list[tuple[str, dict[str, bool]]]:
+    """The named presence subsets of ``modalities`` (:func:`mmf_rl.datasets.presence_subsets`), as a list.
+
+    Args:
+        modalities (Sequence[str]): the data's modalities.
+
+    Returns:
+        ``[(label, {modality: kept}), ...]``, ``"all"`` first.
+    """
     from mmf_rl.datasets import presence_subsets
 
     return list(presence_subsets(list(modalities)))
@@ -177,8 +217,31 @@ Run = tuple[Entry, int, Path, tuple[str, ...], str]
 
 
 def run_plan(entry: Entry, study: Study) -> list[Run]:
-    """The runs behind one entry's cells: ``(entry trained, seed, run_dir, extra overrides, subset)``;
-    ``subset`` is the one a retrained run's cell comes from, ``""`` when every subset counts."""
+    """The runs behind one entry's cells.
+
+    Args:
+        entry (Entry): the entry.
+        study (Study): its comparison.
+
+    Returns:
+        ``(entry trained, seed, run_dir, extra overrides, subset)`` per run; ``subset`` is the one a
+        retrained run's cell comes from, ``""`` when every subset counts.
+
+    Examples:
+        >>> from pathlib import Path
+        >>> from mmf_rl.compare import Budget, Entry, Study, run_plan
+        >>> baseline = Entry("MulT", "zero-fill", ("model=mult",))
+        >>> retrained = Entry("MulT (retrained)", "retrained", ("model=mult",), base=baseline)
+        >>> study = Study(Path("runs/compare"), Budget(steps=500, batch_size=64, seeds=(0,)),
+        ...               (baseline, retrained), modalities=("image", "force"))
+        >>> [(trained.label, str(run_dir), extra, subset) for trained, _, run_dir, extra, subset
+        ...  in run_plan(retrained, study)]  # doctest: +NORMALIZE_WHITESPACE
+        [('MulT', 'runs/compare/mult/seed0', (), 'all'),
+         ('MulT (retrained)', 'runs/compare/mult__retrained/without_image/seed0',
+          ('+data.missing.image=1.0',), 'without_image'),
+         ('MulT (retrained)', 'runs/compare/mult__retrained/without_force/seed0',
+          ('+data.missing.force=1.0',), 'without_force')]
+    """
     plan = []
     for seed in study.budget.seeds:
         if entry.kind != "retrained":

@@ -184,7 +184,16 @@ def interval_quality_section(
 ) -> str:
     """The 50% coverage, the 90% intervals' width and the CRPS per entry and subset: of two entries
     that cover alike, the narrower one with the lower CRPS is the better forecaster of its
-    uncertainty. Entries whose runs predate a metric are left out of its table."""
+    uncertainty. Entries whose runs predate a metric are left out of its table.
+
+    Args:
+        intervals (dict[str, dict[str, dict[str, float]]]): ``Collected.intervals``.
+        table (Table): the MSE table, for its subsets.
+        title (Title): a subset's column title.
+
+    Returns:
+        The markdown section, or ``""`` when no entry recorded any of the metrics.
+    """
     parts = []
     for metric, heading, fmt in INTERVAL_TABLES:
         rows = [

@@ -71,8 +71,14 @@ def compose_train(entry: Entry, seed: int, study: Study, run_dir: Path, extra: t
 
 
 def open_data(study: Study):
-    """Build (or open) the window cache once before the first training, so no run's time includes it;
-    returns the dataset (its splits name the test episodes)."""
+    """Build (or open) the window cache once before the first training, so no run's time includes it.
+
+    Args:
+        study (Study): the comparison (its first entry's data config, its cache directory).
+
+    Returns:
+        The dataset (its splits name the test episodes).
+    """
     from mmf_rl.configuration import to_container
     from mmf_rl.datasets import DataConfig, WindowDataset
 
@@ -83,7 +89,15 @@ def open_data(study: Study):
 def check_entries(study: Study) -> None:
     """Compose every entry's training config before the first training: an option this build lacks, or
     a loss option the entry's model does not train with, fails here in seconds, naming the entry, not
-    after an hour of runs."""
+    after an hour of runs.
+
+    Args:
+        study (Study): the comparison.
+
+    Raises:
+        ValueError: entries whose config does not compose or sets what their model ignores (each
+            named, with the reason).
+    """
     from mmf_rl.configuration import to_container
     from mmf_rl.models import check_loss_settings
     from mmf_rl.objectives import LossConfig, default_loss_config
@@ -112,7 +126,14 @@ PLACE_SETTINGS = frozenset({"run_dir", "data.cache_dir", "device", "num_workers"
 def check_reused(study: Study) -> None:
     """A completed run in ``study.out`` trained with another budget, or with a config other than the one
     this build composes for it (an entry's options, or a default changed since), would silently mix
-    models in one table: refused, naming the runs and the settings."""
+    models in one table: refused, naming the runs and the settings.
+
+    Args:
+        study (Study): the comparison.
+
+    Raises:
+        ValueError: such runs (up to 12 named, with how each differs).
+    """
     plans = {
         run_dir: (trained, seed, extra)
         for e in study.entries
@@ -163,7 +184,17 @@ def window_errors(run_dir: Path, device: str, batch_size: int = 256) -> dict[str
     with its window id and episode: ``{subset: {"window", "episode", "squared_error"}}``.
 
     The windows and normalisation are those of ``mmf-rl eval`` (the test split in order, the
-    checkpoint's statistics); ``run_one`` checks the means agree with its MSE."""
+    checkpoint's statistics); ``run_one`` checks the means agree with its MSE.
+
+    Args:
+        run_dir (Path): a trained run (its ``checkpoints/``).
+        device (str): where the model runs.
+        batch_size (int, optional): windows per forward pass. Defaults to ``256``.
+
+    Returns:
+        ``{subset: {"window": [...], "episode": [...], "squared_error": [...]}}`` for the subsets with
+        a window.
+    """
     return scored_windows(*trained_model_and_data(run_dir, device), device, batch_size)
 
 
@@ -254,7 +285,19 @@ def check_agreement(run_dir: Path, errors: dict[str, dict[str, list]], summary: 
 
 def run_one(entry: Entry, seed: int, study: Study, run_dir: Path, extra: tuple[str, ...] = ()) -> dict:
     """Train one model, evaluate it, keep its per-window errors in ``window_errors.json`` (written last:
-    its presence marks the run complete)."""
+    its presence marks the run complete). An interrupted run's directory is removed first.
+
+    Args:
+        entry (Entry): the entry trained.
+        seed (int): its training seed.
+        study (Study): the comparison (budget, data, device).
+        run_dir (Path): where the run goes.
+        extra (tuple[str, ...], optional): more overrides (a retrained run's removed modalities).
+
+    Returns:
+        What ``window_errors.json`` holds: timings, the budget, the constant-velocity reference, each
+        subset's per-window errors and the training-window MSE.
+    """
     from mmf_rl.eval.report import write_json
     from mmf_rl.trainers.training import train
 
@@ -308,7 +351,14 @@ def completed(run_dir: Path) -> dict | None:
 
 def run_pending(study: Study) -> tuple[int, int]:
     """Train and score every run the entries need that no earlier invocation completed, ``study.jobs``
-    at a time; returns (runs needed, runs reused)."""
+    at a time (a failed run stops the comparison with its error).
+
+    Args:
+        study (Study): the comparison.
+
+    Returns:
+        ``(runs needed, runs reused)``.
+    """
     runs = {}
     for entry in study.entries:
         for trained, seed, run_dir, extra, _ in run_plan(entry, study):

@@ -19,7 +19,16 @@ def summarize(
     """The paper-table line: where the paper model is best or tied against the zero-fill baselines (every
     subset), the baselines trained for missing sensors (every subset; said only when some ran), the
     retrained ones (the ``headline`` subsets), the fusion ablations' spread, and the mean
-    degradations. ``-`` where the table lacks the entries a number needs."""
+    degradations. ``-`` where the table lacks the entries a number needs.
+
+    Args:
+        table (Table): the comparison's table, with a ``"paper"`` entry.
+        headline (Sequence[str]): the subsets the retrained baselines are compared on.
+        headline_name (str, optional): what the line calls them. Defaults to ``"paper subsets"``.
+
+    Returns:
+        ``(line, numbers)``: the ``summary: ...`` line and the figures in it, by name.
+    """
     won, compared = table.wins(("zero-fill",), table.subsets)
     retrained_won, retrained_compared = table.wins(("retrained",), headline)
     spread = table.fusion_spread()
@@ -72,7 +81,16 @@ def mean_degradation_without_a_sensor(table: Table, label: str) -> float | None:
 def summarize_against_best_baseline(table: Table, target_ratio: float) -> tuple[str, dict]:
     """The line for the paper model against zero-fill baselines: its all-sensor MSE over the best
     baseline's (the target: at most ``target_ratio``), and its mean degradation without one sensor
-    against the most robust baseline's."""
+    against the most robust baseline's.
+
+    Args:
+        table (Table): the comparison's table, with a ``"paper"`` entry.
+        target_ratio (float): the paper model's all-sensor MSE over the best baseline's it should stay
+            under.
+
+    Returns:
+        ``(line, numbers)``: the ``summary: ...`` line and the figures in it, by name.
+    """
     baselines = [label for label in table.labels("zero-fill") if "all" in table.cells[label]]
     paper = table.cells["paper"]["all"].mean
     best = min(baselines, key=lambda label: table.cells[label]["all"].mean, default=None)
@@ -111,7 +129,15 @@ def reference_of(table: Table, label: str) -> str:
 
 def paired_comparisons(table: Table) -> dict[str, dict[str, dict]]:
     """Per subset: ``reference - rival`` intervals (paired) of each baseline against the paper model and
-    of each fusion ablation against the same model with the paper's fusion (``reference_of``)."""
+    of each fusion ablation against the same model with the paper's fusion (``reference_of``).
+
+    Args:
+        table (Table): the comparison's table.
+
+    Returns:
+        ``{subset: {rival: {"reference", "difference", "low", "high"}}}``: the reference's label, its
+        MSE minus the rival's, and that difference's interval.
+    """
     out: dict[str, dict[str, dict]] = {}
     for s in table.subsets:
         for label in table.labels(*BASELINE_KINDS, "fusion", "learned fusion"):

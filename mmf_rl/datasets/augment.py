@@ -60,20 +60,21 @@ class AugmentConfig:
     they are augmented; off by default.
 
     Args:
-        enable: augment the training images (never val or test).
-        max_num_transforms: how many of ``tfs`` are applied to an image at most (drawn by weight).
-        random_order: apply them in random order instead of the order of ``tfs``.
-        tfs: name → lerobot ``ImageTransformConfig`` (``weight``, ``type``, ``kwargs``); lerobot's
-            defaults (brightness, contrast, saturation, hue, sharpness, affine).
-        modalities: the image modalities to augment (default: every image modality).
-        rotation: turn each training window's ground plane by a random angle within ``±rotation``
-            degrees (``180``: any direction; ``0``: never), whether or not ``enable`` is set. The
-            data config says what turns (``planar`` dims, ``top_down`` cameras).
-        workers: processes that augment the next batches while the model trains on the current
-            one; ``0``: on the training thread, between steps. Either way the batches are the
-            same (to rounding, see the module's docstring). They start at the first batch,
-            spawned (they import torch and lerobot once per run), so a script that trains with
-            them guards its entry point with ``if __name__ == "__main__":``.
+        enable (bool, optional): augment the training images (never val or test).
+        max_num_transforms (int, optional): how many of ``tfs`` are applied to an image at most (drawn by
+            weight). Defaults to ``3``.
+        random_order (bool, optional): apply them in random order instead of the order of ``tfs``.
+        tfs (dict[str, dict], optional): name → lerobot ``ImageTransformConfig`` (``weight``, ``type``,
+            ``kwargs``); lerobot's defaults (brightness, contrast, saturation, hue, sharpness, affine).
+        modalities (list[str], optional): the image modalities to augment (default: every image modality).
+        rotation (float, optional): turn each training window's ground plane by a random angle within
+            ``±rotation`` degrees (``180``: any direction; ``0``: never), whether or not ``enable`` is set.
+            The data config says what turns (``planar`` dims, ``top_down`` cameras).
+        workers (int, optional): processes that augment the next batches while the model trains on the current
+            one (default ``1``); ``0``: on the training thread, between steps. Either way the batches are the
+            same (to rounding, see the module's docstring). They start at the first batch, spawned (they
+            import torch and lerobot once per run), so a script that trains with them guards its entry point
+            with ``if __name__ == "__main__":``.
     """
 
     enable: bool = False
@@ -86,6 +87,18 @@ class AugmentConfig:
 
     @classmethod
     def from_dict(cls, d: dict | None) -> AugmentConfig:
+        """Build from plain data (the Hydra ``augment`` config), checked.
+
+        Args:
+            d (dict, optional): the config's keys; ``None`` or empty: the defaults.
+
+        Returns:
+            The config.
+
+        Raises:
+            ValueError: an unknown key, ``max_num_transforms < 1``, ``rotation`` outside
+                ``[0, 180]`` or ``workers < 0``.
+        """
         d = dict(d or {})
         reject_unknown_keys(cls, d, "augment config")
         config = cls(**d)
@@ -145,6 +158,16 @@ class TrainingAugmentation:
 
     ``augmented`` augments a stream of batches, in ``config.workers`` processes when it is not 0;
     :meth:`close` stops them (the next stream starts them again).
+
+    Args:
+        config (AugmentConfig): what to do.
+        specs (list[ModalitySpec]): the data's modalities (the image ones are augmented).
+        seed (int): the seed of the transforms' and the turns' draws, with the batch's epoch, index and
+            rank: the same run augments the same way.
+
+    Raises:
+        ValueError: ``config.modalities`` names a modality that is not an image modality, or a
+            transform of ``config.tfs`` cannot be built.
     """
 
     def __init__(self, config: AugmentConfig, specs: list[ModalitySpec], seed: int):

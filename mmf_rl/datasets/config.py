@@ -21,27 +21,32 @@ class ModalityConfig:
     """One modality read from one dataset feature.
 
     Args:
-        feature: the dataset feature it reads (a camera ``observation.images.<cam>`` or a vector).
-        kind: ``"image"``, ``"sequence"`` (a vector window) or ``"vector"`` (the window's last step
-            only). Unset: from the feature's dtype, video/image → ``"image"``, vector → ``"sequence"``.
-        dims: the feature dims to keep (all when unset), for a vector that mixes several sensors.
-        valid_feature: a per-frame boolean feature saying when this modality is valid. Unset:
+        feature (str): the dataset feature it reads (a camera ``observation.images.<cam>`` or a vector).
+        kind (str, optional): ``"image"``, ``"sequence"`` (a vector window) or ``"vector"`` (the window's last
+            step only). Unset: from the feature's dtype, video/image → ``"image"``, vector → ``"sequence"``.
+        dims (list[int], optional): the feature dims to keep (all when unset), for a vector that mixes several
+            sensors.
+        valid_feature (str, optional): a per-frame boolean feature saying when this modality is valid. Unset:
             ``"<feature>_valid"`` (for a camera ``observation.images.<cam>``,
             ``observation.<cam>_camera_valid``, as the recorder writes it) if the dataset has it.
-        required: an absent modality (missing video, NaN span) is an error, not a warning.
-        encoder: the unimodal encoder (``mmf_rl.models.encoders``); unset: the kind's default.
-        encoder_kwargs: keyword arguments of that encoder, where the feature's layout decides them
-            (e.g. ``slot_dim`` of an agent-slot encoder).
-        raw_dims: indices (after ``dims``) left unnormalised, so flags such as a per-slot
-            ``valid`` keep their exact 0/1 meaning, which a mean/std shift would make data-dependent.
-        allow_absent: accept losing the modality on more than half of the frames; without it that
-            is an error, since the model would silently train without it (e.g. a declared camera
-            whose video files were never recorded).
-        planar: ``[x, y]`` pairs of dims (after ``dims``) that are vectors in the ground plane
-            (positions, velocities, offsets): ``augment.rotation`` turns them
+        required (bool, optional): an absent modality (missing video, NaN span) is an error, not a warning.
+        encoder (str, optional): the unimodal encoder (``mmf_rl.models.encoders``); unset: the kind's default.
+        encoder_kwargs (dict, optional): keyword arguments of that encoder, where the feature's layout decides
+            them (e.g. ``slot_dim`` of an agent-slot encoder).
+        raw_dims (list[int], optional): indices (after ``dims``) left unnormalised, so flags such as a
+            per-slot ``valid`` keep their exact 0/1 meaning, which a mean/std shift would make data-dependent.
+        allow_absent (bool, optional): accept losing the modality on more than half of the frames; without it
+            that is an error, since the model would silently train without it (e.g. a declared camera whose
+            video files were never recorded).
+        planar (list[list[int]], optional): ``[x, y]`` pairs of dims (after ``dims``) that are vectors in the
+            ground plane (positions, velocities, offsets): ``augment.rotation`` turns them
             (:mod:`~mmf_rl.datasets.planar`).
-        top_down: a camera that is a map of the ground plane (world ``x`` right, ``y`` up), turned
-            with the planar dims by ``augment.rotation``.
+        top_down (bool, optional): a camera that is a map of the ground plane (world ``x`` right, ``y`` up),
+            turned with the planar dims by ``augment.rotation``.
+
+    Raises:
+        ValueError: an unknown ``kind``, or ``dims``, ``raw_dims`` or ``planar`` that are not whole-number
+            indices (pairs).
     """
 
     feature: str
@@ -73,9 +78,10 @@ class TargetReference:
     observed frame (``target.relative_to``).
 
     Args:
-        feature: a vector feature of the dataset (for the push data the gripper position,
+        feature (str): a vector feature of the dataset (for the push data the gripper position,
             ``observation.state`` dims ``[0, 1]``).
-        dims: which of its dims, one per target dim, in the target's order (all when unset).
+        dims (list[int], optional): which of its dims, one per target dim, in the target's order (all when
+            unset).
     """
 
     feature: str
@@ -90,20 +96,22 @@ class TargetConfig:
     """The forecast variable.
 
     Args:
-        feature: a vector feature of the dataset.
-        dims: which of its dims to forecast (all when unset).
-        relative: forecast the change from the window's last observed frame (subtracted from the
-            future and from ``target_past``; the normalisation statistics then describe those
-            displacements) instead of absolute values. The model then predicts motion, not where
-            things are, which is what it needs when the target's current value is not one of its
-            inputs (the push task's object position).
-        relative_to: forecast the target minus another feature's dims at the window's last
-            observed frame (:class:`TargetReference`, e.g. the object's position relative to the
-            gripper: where the object is, in a frame a policy acts in). Subtracted from the future
-            and from ``target_past``; the normalisation statistics describe the offsets. Excludes
-            ``relative``.
-        planar: ``[x, y]`` pairs of the target's dims (after ``dims``) that are vectors in the ground
-            plane, turned by ``augment.rotation`` with the inputs' planar dims.
+        feature (str): a vector feature of the dataset.
+        dims (list[int], optional): which of its dims to forecast (all when unset).
+        relative (bool, optional): forecast the change from the window's last observed frame (subtracted from
+            the future and from ``target_past``; the normalisation statistics then describe those
+            displacements) instead of absolute values. The model then predicts motion, not where things are,
+            which is what it needs when the target's current value is not one of its inputs (the push task's
+            object position).
+        relative_to (TargetReference, optional): forecast the target minus another feature's dims at the
+            window's last observed frame (:class:`TargetReference`, e.g. the object's position relative to the
+            gripper: where the object is, in a frame a policy acts in). Subtracted from the future and from
+            ``target_past``; the normalisation statistics describe the offsets. Excludes ``relative``.
+        planar (list[list[int]], optional): ``[x, y]`` pairs of the target's dims (after ``dims``) that are
+            vectors in the ground plane, turned by ``augment.rotation`` with the inputs' planar dims.
+
+    Raises:
+        ValueError: both ``relative`` and ``relative_to`` set, or malformed ``dims`` or ``planar``.
     """
 
     feature: str
@@ -139,10 +147,10 @@ class ActionConfig:
     commands that move the system from the last observed frame to the last forecast one.
 
     Args:
-        feature: the action feature (LeRobot's ``"action"`` by default).
-        dims: which of its dims condition the model (all when unset).
-        planar: ``[x, y]`` pairs of those dims that are vectors in the ground plane (a commanded
-            displacement), turned by ``augment.rotation`` with the observations.
+        feature (str, optional): the action feature (LeRobot's ``"action"`` by default).
+        dims (list[int], optional): which of its dims condition the model (all when unset).
+        planar (list[list[int]], optional): ``[x, y]`` pairs of those dims that are vectors in the ground
+            plane (a commanded displacement), turned by ``augment.rotation`` with the observations.
     """
 
     feature: str = "action"
@@ -160,8 +168,8 @@ class OutageConfig:
     so a model trains for the outages its sensor shows (``mmf-rl inspect`` measures both).
 
     Args:
-        fraction: about this share of the training frames are out (in ``[0, 1)``).
-        mean_burst: the mean length of a simulated outage, in frames (``>= 1``).
+        fraction (float): about this share of the training frames are out (in ``[0, 1)``).
+        mean_burst (float): the mean length of a simulated outage, in frames (``>= 1``).
     """
 
     fraction: float
@@ -187,47 +195,77 @@ class DataConfig:
     """Everything the pipeline needs to turn a LeRobot dataset into forecasting windows.
 
     A sample at window index ``t`` observes frames ``t-(H-1)s .. t`` and forecasts
-    ``t+s .. t+Ts`` (``s = stride``), all inside one episode.
+    ``t+s .. t+Ts`` (``s = stride``), all inside one episode. :meth:`from_dict` builds it from plain
+    data (what the Hydra ``data`` config holds), where a modality may be given as just its feature name.
 
     Args:
-        modalities: the model's inputs, name → :class:`ModalityConfig` (or just a feature name).
-        target: the forecast variable (:class:`TargetConfig`).
-        root: the dataset's directory; ``None`` fetches ``repo_id`` from the Hugging Face hub.
-        repo_id: the dataset's hub name (its window cache is named after it when ``root`` is unset).
-        history: ``H``, observed steps per window.
-        horizon: ``T``, forecast steps per window.
-        stride: ``s``, frames between two steps of a window (subsamples a high frame rate).
-        image_size: ``[height, width]`` the camera frames are resized to in the cache.
-        include_target_past: add ``"target_past"``, the target's own history, to every window: the
-            input of the constant-velocity reference that ``eval`` reports.
-        split_fractions: train/val/test shares of the selected episodes, cut at random.
-        split_seed: the seed of that cut.
-        std_floor: the smallest normalisation std, so a constant feature does not blow up.
-        missing: the training missingness protocol. ``{modality: p}`` removes ``m`` from a fixed
-            fraction ``p`` of the training windows; ``{modality: {fraction, mean_burst}}`` replays
-            outages (:class:`OutageConfig`) on top of the data's own; ``"observed"`` replays, for
-            every modality, the outages measured in the training split
-            (``WindowDataset.observed_outages``).
-        missing_seed: the seed of those removals and replays.
-        tolerance_s: how far a decoded video frame may be from a row's ``timestamp`` (lerobot's
-            ``tolerance_s``).
-        cache_dir: where window caches live; unset: ``windows/`` under ``$MMF_RL_CACHE``, else
-            under ``~/.cache/mmf_rl``.
-        action: the actions applied over the horizon, added to every window for an
-            action-conditioned world model (:class:`ActionConfig`; none when unset).
-        episodes: the episode indices to use, as lerobot selects them (all when unset); only the
-            selected episodes are decoded into the window cache.
-        exclude_episodes: episodes removed from that selection (e.g. damaged ones).
-        split: ``{train: [...], val: [...], test: [...]}`` names the split instead of
-            ``split_fractions`` (a split left out is empty; without ``episodes``, the union of the
-            lists is the selection). The split is always by episode, so no window leaks across.
-        video_sync: how video frames are matched to parquet rows: ``"timestamp"`` decodes each
-            row's ``timestamp`` within ``tolerance_s`` (as lerobot does); ``"frame_index"`` decodes
-            frame ``k`` of an episode at ``k / fps`` of its video segment, for recordings whose
-            timestamps are wall-clock stamps drifting from ``k / fps`` (``mmf-rl inspect`` measures it).
-        partial_windows: a windowed modality present at some steps of a window (not all) is present
-            for it, with ``("present_steps", m)`` marking its steps, instead of absent for the whole
-            window. Applies to the windows the cache keeps (those with a modality present throughout).
+        modalities (dict[str, ModalityConfig]): the model's inputs, name → :class:`ModalityConfig`.
+        target (TargetConfig): the forecast variable.
+        root (str, optional): the dataset's directory; ``None`` fetches ``repo_id`` from the Hugging Face
+            hub.
+        repo_id (str, optional): the dataset's hub name (its window cache is named after it when ``root``
+            is unset). Defaults to ``"local/dataset"``.
+        history (int, optional): ``H``, observed steps per window. Defaults to ``10``.
+        horizon (int, optional): ``T``, forecast steps per window. Defaults to ``10``.
+        stride (int, optional): ``s``, frames between two steps of a window (subsamples a high frame
+            rate). Defaults to ``1``.
+        image_size (tuple[int, int], optional): ``(height, width)`` the camera frames are resized to in
+            the cache. Defaults to ``(64, 64)``.
+        include_target_past (bool, optional): add ``"target_past"``, the target's own history, to every
+            window: the input of the constant-velocity reference that ``eval`` reports. Defaults to
+            ``False``.
+        split_fractions (tuple[float, float, float], optional): train/val/test shares of the selected
+            episodes, cut at random. Defaults to ``(0.8, 0.1, 0.1)``.
+        split_seed (int, optional): the seed of that cut. Defaults to ``0``.
+        std_floor (float, optional): the smallest normalisation std, so a constant feature does not blow
+            up. Defaults to ``1e-3``.
+        missing (dict[str, float | OutageConfig] | str, optional): the training missingness protocol.
+            ``{modality: p}`` removes ``m`` from a fixed fraction ``p`` of the training windows;
+            ``{modality: {fraction, mean_burst}}`` replays outages (:class:`OutageConfig`) on top of the
+            data's own; ``"observed"`` replays, for every modality, the outages measured in the training
+            split (``WindowDataset.observed_outages``). Defaults to none.
+        missing_seed (int, optional): the seed of those removals and replays. Defaults to ``0``.
+        tolerance_s (float, optional): how far a decoded video frame may be from a row's ``timestamp``
+            (lerobot's ``tolerance_s``). Defaults to ``1e-4``.
+        cache_dir (str, optional): where window caches live; unset: ``windows/`` under
+            ``$MMF_RL_CACHE``, else under ``~/.cache/mmf_rl``.
+        action (ActionConfig, optional): the actions applied over the horizon, added to every window for
+            an action-conditioned world model (none when unset).
+        episodes (list[int], optional): the episode indices to use, as lerobot selects them (all when
+            unset); only the selected episodes are decoded into the window cache.
+        exclude_episodes (list[int], optional): episodes removed from that selection (e.g. damaged ones).
+        split (dict[str, list[int]], optional): ``{train: [...], val: [...], test: [...]}`` names the
+            split instead of ``split_fractions`` (a split left out is empty; without ``episodes``, the
+            union of the lists is the selection). The split is always by episode, so no window leaks
+            across.
+        video_sync (str, optional): how video frames are matched to parquet rows: ``"timestamp"``
+            (default) decodes each row's ``timestamp`` within ``tolerance_s`` (as lerobot does);
+            ``"frame_index"`` decodes frame ``k`` of an episode at ``k / fps`` of its video segment, for
+            recordings whose timestamps are wall-clock stamps drifting from ``k / fps`` (``mmf-rl
+            inspect`` measures it).
+        partial_windows (bool, optional): a windowed modality present at some steps of a window (not
+            all) is present for it, with ``("present_steps", m)`` marking its steps, instead of absent
+            for the whole window. Applies to the windows the cache keeps (those with a modality present
+            throughout). Defaults to ``False``.
+
+    Raises:
+        ValueError: an invalid setting (no modality, a reserved modality name, a size below 1, fractions
+            that do not sum to 1, a bad ``missing`` entry, an episode listed twice or in two splits, an
+            unknown ``video_sync``); the message names the key.
+
+    Examples:
+        >>> from mmf_rl.datasets import DataConfig
+        >>> config = DataConfig.from_dict({
+        ...     "root": "data/my_robot",
+        ...     "modalities": {"wrist": "observation.images.wrist", "joints": "observation.state"},
+        ...     "target": {"feature": "observation.state", "dims": [0, 1]},
+        ...     "history": 8,
+        ...     "horizon": 4,
+        ... })
+        >>> config.modalities["joints"]
+        ModalityConfig(feature='observation.state', kind=None, dims=None, ...)
+        >>> config.horizon, config.split_fractions
+        (4, (0.8, 0.1, 0.1))
     """
 
     modalities: dict[str, ModalityConfig]
@@ -347,7 +385,17 @@ class DataConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> DataConfig:
-        """Build from plain data. A modality may be given as just its feature name."""
+        """Build from plain data. A modality may be given as just its feature name.
+
+        Args:
+            d (dict): the config's keys (``modalities`` and ``target`` required).
+
+        Returns:
+            The config, checked.
+
+        Raises:
+            ValueError: an unknown or missing key, or an invalid setting.
+        """
         d = dict(d)
         reject_unknown_keys(cls, d, "data config")
         for required in ("modalities", "target"):
@@ -392,6 +440,7 @@ class DataConfig:
         )
 
     def to_dict(self) -> dict:
+        """The config as plain data, what :meth:`from_dict` reads back (a run saves it)."""
         d = asdict(self)
         d["image_size"] = list(self.image_size)
         d["split_fractions"] = list(self.split_fractions)

@@ -29,6 +29,14 @@ def training_dropout(
     Each modality's samples come from its own generator (seeded by ``seed`` and its name), so
     adding a modality to the protocol does not move the others' samples. A removal that would
     leave a sample with no modality at all is not applied: such a sample cannot be forecast.
+
+    Args:
+        present (dict[str, torch.Tensor]): ``bool [n]`` presence per modality.
+        missing (dict[str, float]): ``{modality: p}``, the fraction of samples to remove it from.
+        seed (int): the removals' seed.
+
+    Returns:
+        The new presence per modality (``present`` is not changed).
     """
     n = len(next(iter(present.values())))
     dropped = {}
@@ -122,6 +130,22 @@ def presence_subsets(modalities: list[str]) -> Iterator[tuple[str, dict[str, boo
 
     A subset equal to an earlier one (e.g. ``only_a`` when there are two modalities and
     ``without_b`` was given) is skipped, so each presence pattern is evaluated once.
+
+    Args:
+        modalities (list[str]): the modality names.
+
+    Yields:
+        ``(label, {modality: kept})`` per subset.
+
+    Examples:
+        >>> from mmf_rl.datasets import presence_subsets
+        >>> [label for label, _ in presence_subsets(["image", "force", "proprio"])]
+        ['all', 'without_image', 'without_force', 'without_proprio',
+         'only_image', 'only_force', 'only_proprio']
+        >>> dict(presence_subsets(["image", "force"]))  # only_image is without_force
+        {'all': {'image': True, 'force': True},
+         'without_image': {'image': False, 'force': True},
+         'without_force': {'image': True, 'force': False}}
     """
     names = list(modalities)
     candidates = [("all", set(names))]
@@ -138,8 +162,13 @@ def presence_subsets(modalities: list[str]) -> Iterator[tuple[str, dict[str, boo
 def apply_presence_subset(batch: TensorDictBase, subset: dict[str, bool]) -> TensorDictBase:
     """Mark the subset's excluded modalities absent, and keep the samples that still have one.
 
-    Returns a new TensorDict (possibly with fewer samples: an ``only_image`` subset drops the
-    samples whose camera was missing anyway).
+    Args:
+        batch (TensorDictBase): a batch following `mmf_rl.keys`; not changed.
+        subset (dict[str, bool]): ``{modality: kept}``, one of :func:`presence_subsets`.
+
+    Returns:
+        A new TensorDict, possibly with fewer samples: an ``only_image`` subset drops the samples
+        whose camera was missing anyway.
     """
     out = batch.exclude(PRESENT)  # a new TensorDict: the caller's presence stays untouched
     keep = torch.zeros(batch.batch_size[0], dtype=torch.bool)

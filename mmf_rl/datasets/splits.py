@@ -78,6 +78,25 @@ def split_episodes(
 
     Every split with a positive fraction gets at least one episode (so a 4-episode dataset still
     has a val and a test episode); train takes what is left and must keep at least one.
+
+    Args:
+        episodes (list[int]): the episode indices.
+        fractions (tuple[float, float, float]): train/val/test shares; val and test are rounded, train
+            gets the rest.
+        seed (int): the shuffle's seed.
+
+    Returns:
+        ``{"train": [...], "val": [...], "test": [...]}``, each sorted.
+
+    Raises:
+        ValueError: train would be left with no episode.
+
+    Examples:
+        >>> from mmf_rl.datasets import split_episodes
+        >>> split_episodes(list(range(10)), (0.8, 0.1, 0.1), seed=0)
+        {'train': [...], 'val': [...], 'test': [...]}
+        >>> {name: len(ids) for name, ids in split_episodes(list(range(4)), (0.8, 0.1, 0.1), 0).items()}
+        {'train': 2, 'val': 1, 'test': 1}
     """
     n = len(episodes)
     counts = {name: 0 for name in SPLIT_NAMES}
@@ -116,9 +135,14 @@ def mean_std(
 class Normalizer:
     """Normalises vector observations and the target with training-split statistics.
 
-    ``stats`` is a flat ``{"<modality>/mean": tensor, "<modality>/std": ..., "target/mean": ...}``
-    dict: store it beside a run (``safetensors.torch.save_file(normalizer.stats, ...)``) and
-    rebuild with ``Normalizer(stats)``.
+    Args:
+        stats (dict[str, torch.Tensor]): a flat ``{"<modality>/mean": tensor, "<modality>/std": ...,
+            "target/mean": ..., "target/std": ...}`` dict (stored as float32): store it beside a run
+            (``safetensors.torch.save_file(normalizer.stats, ...)``) and rebuild with
+            ``Normalizer(stats)``.
+
+    Raises:
+        KeyError: ``stats`` lacks ``"target/mean"`` or ``"target/std"``.
     """
 
     def __init__(self, stats: dict[str, torch.Tensor]):
@@ -128,12 +152,35 @@ class Normalizer:
                 raise KeyError(f"normalisation stats lack {required!r}; found {sorted(self.stats)}")
 
     def normalize(self, name: str, values: torch.Tensor) -> torch.Tensor:
+        """``(values - mean) / std`` with the statistics of ``name``.
+
+        Args:
+            name (str): a modality, ``"target"`` or ``"future_action"``.
+            values (torch.Tensor): ``[..., d]`` in the feature's units.
+
+        Returns:
+            The normalised values.
+        """
         return (values - self.stats[f"{name}/mean"]) / self.stats[f"{name}/std"]
 
     def denormalize_target(self, target: torch.Tensor) -> torch.Tensor:
-        """Normalised target (or forecast location) back to the target's units."""
+        """Normalised target (or forecast location) back to the target's units.
+
+        Args:
+            target (torch.Tensor): ``[..., D]`` in the normalised frame.
+
+        Returns:
+            ``target * std + mean``.
+        """
         return target * self.stats["target/std"] + self.stats["target/mean"]
 
     def denormalize_target_scale(self, scale: torch.Tensor) -> torch.Tensor:
-        """A forecast standard deviation back to the target's units."""
+        """A forecast standard deviation back to the target's units.
+
+        Args:
+            scale (torch.Tensor): ``[..., D]`` in the normalised frame.
+
+        Returns:
+            ``scale * std``.
+        """
         return scale * self.stats["target/std"]

@@ -78,9 +78,65 @@ class WindowDataset:
     absent, ``outages``, ``mean_burst``, ``max_burst``; ``missing: observed`` replays them),
     ``report`` (what was missing or skipped), ``cache_path``.
 
-    ``num_workers`` sets the decode processes of a build (default: one per core when there are
-    enough frames to repay their start-up). They are spawned, so a script that builds a cache
-    must guard its entry point with ``if __name__ == "__main__":``.
+    Args:
+        config (DataConfig): the dataset, its modalities and target, the window geometry, the split and
+            the training missingness protocol.
+        num_workers (int, optional): the decode processes of a cache build; ``None`` (default): one per
+            core when there are enough frames to repay their start-up, ``0``: none. They are spawned, so
+            a script that builds a cache must guard its entry point with
+            ``if __name__ == "__main__":``.
+
+    Raises:
+        FileNotFoundError: a ``required`` modality's files are missing or undecodable.
+        ValueError: a modality absent on more than half of the frames (unless ``allow_absent``), no
+            valid frame for a normalisation statistic, or ``planar``/``top_down``/``raw_dims`` that do
+            not fit the features; the message names the key and the fix.
+
+    Examples:
+        A tiny LeRobot recording of two vector features, written on the spot:
+
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> import numpy as np
+        >>> from lerobot.datasets.lerobot_dataset import LeRobotDataset
+        >>> from mmf_rl.datasets import DataConfig, WindowDataset
+        >>> tmp = Path(tempfile.mkdtemp())
+        >>> vector = {"dtype": "float32", "shape": (3,), "names": None}
+        >>> recording = LeRobotDataset.create(
+        ...     repo_id="local/tiny", fps=10, root=tmp / "tiny", use_videos=False,
+        ...     features={"observation.state": vector, "observation.force": vector},
+        ... )
+        >>> for episode in range(5):
+        ...     for frame in range(12):
+        ...         recording.add_frame({
+        ...             "observation.state": np.full(3, frame, dtype=np.float32),
+        ...             "observation.force": np.random.randn(3).astype(np.float32),
+        ...             "task": "push",
+        ...         })
+        ...     recording.save_episode()
+        >>> recording.finalize()
+
+        Its windows: 4 observed steps, 3 forecast, so 6 windows per 12-frame episode:
+
+        >>> config = DataConfig.from_dict({
+        ...     "root": str(tmp / "tiny"),
+        ...     "modalities": {"state": "observation.state", "force": "observation.force"},
+        ...     "target": {"feature": "observation.state", "dims": [0, 1]},
+        ...     "history": 4,
+        ...     "horizon": 3,
+        ...     "split_fractions": [0.6, 0.2, 0.2],
+        ...     "cache_dir": str(tmp / "cache"),
+        ... })
+        >>> data = WindowDataset(config, num_workers=0)
+        >>> [(spec.name, spec.kind, spec.shape) for spec in data.specs], data.target_dim
+        ([('force', 'sequence', (3,)), ('state', 'sequence', (3,))], 2)
+        >>> {split: len(windows) for split, windows in data.split_windows.items()}
+        {'train': 18, 'val': 6, 'test': 6}
+        >>> batch = next(iter(data.loader("train", batch_size=8)))
+        >>> batch["obs", "force"].shape, batch["present", "force"].shape, batch["target"].shape
+        (torch.Size([8, 4, 3]), torch.Size([8]), torch.Size([8, 3, 2]))
+        >>> import shutil
+        >>> shutil.rmtree(tmp)
     """
 
     def __init__(self, config: DataConfig, num_workers: int | None = None):
@@ -348,9 +404,18 @@ class WindowDataset:
     def batch(
         self, window_ids: torch.Tensor, split: str = "eval", angles: torch.Tensor | None = None
     ) -> TensorDict:
-        """The batch of windows ``window_ids``; ``split="train"`` applies the missingness protocol.
-        ``angles`` ``[B]`` (radians) turns each window's ground plane: its ``planar`` dims and
-        ``top_down`` cameras (:mod:`~mmf_rl.datasets.planar`)."""
+        """The batch of windows ``window_ids``, following `mmf_rl.keys` (vectors and target normalised).
+
+        Args:
+            window_ids (torch.Tensor): ``long [B]`` window indices (e.g. from ``split_windows``).
+            split (str, optional): ``"train"`` applies the training missingness protocol; any other
+                value reads the data's own presence. Defaults to ``"eval"``.
+            angles (torch.Tensor, optional): ``[B]`` radians that turn each window's ground plane: its
+                ``planar`` dims and ``top_down`` cameras (:mod:`~mmf_rl.datasets.planar`).
+
+        Returns:
+            A TensorDict of batch size ``[B]``.
+        """
         presence = self.train_presence if split == "train" else self.presence
         if self._image_table_bytes > REMAP_IMAGE_BYTES and self._image_bytes_read > REMAP_IMAGE_BYTES:
             self._map_images()
@@ -404,9 +469,26 @@ class WindowDataset:
         drop_last: bool | None = None,
         augment: TrainingAugmentation | None = None,
     ) -> WindowLoader:
-        """Batches of ``split``: shuffled (seeded, per epoch) for train by default, sequential otherwise.
-        ``augment`` transforms the image modalities and turns the ground plane of every batch (meant
-        for the training split)."""
+        """Batches of ``split`` (see :class:`WindowLoader`).
+
+        Args:
+            split (str): ``"train"``, ``"val"`` or ``"test"``.
+            batch_size (int): windows per batch.
+            shuffle (bool, optional): shuffle (seeded, per epoch); ``None`` (default): for ``"train"``
+                only.
+            seed (int, optional): the shuffle's seed. Defaults to ``0``.
+            rank (int, optional): this process's rank among ``world_size``. Defaults to ``0``.
+            world_size (int, optional): processes sharing the split. Defaults to ``1``.
+            drop_last (bool, optional): drop the last, smaller batch; ``None``: when shuffling.
+            augment (TrainingAugmentation, optional): transforms the image modalities and turns the
+                ground plane of every batch (meant for the training split).
+
+        Returns:
+            The loader; each iteration over it is one epoch.
+
+        Raises:
+            ValueError: ``augment`` turns the ground plane but the config marks nothing in it.
+        """
         if augment is not None and augment.rotation and not self.config.has_planar_values:
             raise ValueError(
                 "augment.rotation turns the ground plane, but the data config marks nothing in it: declare "
@@ -434,7 +516,21 @@ class WindowLoader:
     (the tail that does not divide is dropped, like ``DistributedSampler(drop_last=True)``), so DDP
     ranks step together. Sequential loaders cover every window exactly once across ranks.
     ``augment`` transforms the image modalities of every batch; :meth:`close` stops its worker
-    processes (the trainer calls it when training ends).
+    processes (the trainer calls it when training ends). :meth:`WindowDataset.loader` builds one.
+
+    Args:
+        dataset (WindowDataset): the windows.
+        split (str): ``"train"``, ``"val"`` or ``"test"``.
+        batch_size (int): windows per batch.
+        shuffle (bool): shuffle per epoch, else sequential.
+        seed (int, optional): the shuffle's seed. Defaults to ``0``.
+        rank (int, optional): this process's rank. Defaults to ``0``.
+        world_size (int, optional): processes sharing the split. Defaults to ``1``.
+        drop_last (bool, optional): drop the last, smaller batch; ``None`` (default): when shuffling.
+        augment (TrainingAugmentation, optional): the training augmentation applied to every batch.
+
+    Raises:
+        ValueError: an unknown split, a rank outside ``[0, world_size)`` or ``batch_size < 1``.
     """
 
     def __init__(
@@ -462,6 +558,11 @@ class WindowLoader:
         self.epoch = 0
 
     def set_epoch(self, epoch: int) -> None:
+        """Set the epoch the next iteration's permutation and augmentation are drawn for.
+
+        Args:
+            epoch (int): the epoch (a resumed run sets the one it stopped in).
+        """
         self.epoch = epoch
 
     def _ids(self) -> torch.Tensor:

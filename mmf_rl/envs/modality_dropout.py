@@ -64,7 +64,15 @@ def not_standalone(name: str) -> RuntimeError:
 
 @dataclass(frozen=True)
 class UniformBursts:
-    """Outage lengths uniform over ``[min_steps, max_steps]`` steps (inclusive)."""
+    """Outage lengths uniform over ``[min_steps, max_steps]`` steps (inclusive).
+
+    Args:
+        min_steps (int): the shortest outage, ``>= 1``.
+        max_steps (int): the longest outage, ``>= min_steps``.
+
+    Raises:
+        ValueError: unless ``1 <= min_steps <= max_steps``.
+    """
 
     min_steps: int
     max_steps: int
@@ -77,12 +85,28 @@ class UniformBursts:
             )
 
     def sample(self, shape: torch.Size, generator: torch.Generator) -> torch.Tensor:
+        """Draw outage lengths.
+
+        Args:
+            shape (torch.Size): the shape of the draws.
+            generator (torch.Generator): the generator drawn from.
+
+        Returns:
+            ``long`` lengths of ``shape``.
+        """
         return torch.randint(self.min_steps, self.max_steps + 1, shape, generator=generator)
 
 
 @dataclass(frozen=True)
 class GeometricBursts:
-    """Outage lengths geometric on ``{1, 2, ...}`` with mean ``mean_steps`` (memoryless recovery)."""
+    """Outage lengths geometric on ``{1, 2, ...}`` with mean ``mean_steps`` (memoryless recovery).
+
+    Args:
+        mean_steps (float): the mean outage length, ``>= 1`` (``1``: every outage lasts one step).
+
+    Raises:
+        ValueError: ``mean_steps < 1``.
+    """
 
     mean_steps: float
 
@@ -91,6 +115,15 @@ class GeometricBursts:
             raise ValueError(f"GeometricBursts needs mean_steps >= 1, found {self.mean_steps}")
 
     def sample(self, shape: torch.Size, generator: torch.Generator) -> torch.Tensor:
+        """Draw outage lengths.
+
+        Args:
+            shape (torch.Size): the shape of the draws.
+            generator (torch.Generator): the generator drawn from.
+
+        Returns:
+            ``long`` lengths of ``shape``.
+        """
         if self.mean_steps == 1:
             return torch.ones(shape, dtype=torch.long)
         # Inverse CDF: P(L > k) = (1 - p)^k with p = 1 / mean.
@@ -107,6 +140,21 @@ def outage_start_prob(fraction: float, mean_burst: float) -> float:
     the modality is up), outages ``mean_burst``, so the absent fraction is
     ``mean_burst / (mean_burst + 1 / p)``. A fraction above ``mean_burst / (mean_burst + 1)`` would
     need ``p > 1``: it is capped there (an outage after every single reading).
+
+    Args:
+        fraction (float): the share of steps the modality should be absent, in ``[0, 1)``.
+        mean_burst (float): the mean outage length in steps, ``>= 1``.
+
+    Returns:
+        ``p``, in ``[0, 1]``.
+
+    Raises:
+        ValueError: ``fraction`` outside ``[0, 1)`` or ``mean_burst < 1``.
+
+    Examples:
+        >>> from mmf_rl.envs import outage_start_prob
+        >>> outage_start_prob(0.2, mean_burst=5.0)  # absent 20% of the steps, 5 at a time
+        0.05
     """
     if not 0.0 <= fraction < 1.0 or mean_burst < 1:
         raise ValueError(
@@ -120,7 +168,19 @@ def replay_outages(outages: Mapping[str, Mapping[str, float]], seed: int = 0) ->
     """One ``ModalityDropout`` per modality that replays measured outages: ``{modality: {"fraction":
     f, "mean_burst": L}}`` (what ``mmf-rl inspect`` reports and ``WindowDataset.observed_outages``
     holds) becomes outages that start with ``outage_start_prob(f, L)`` and last ``GeometricBursts(L)``.
-    Modalities never or always absent (``f`` of 0 or 1) get no transform."""
+    Modalities never or always absent (``f`` of 0 or 1) get no transform.
+
+    Args:
+        outages (Mapping[str, Mapping[str, float]]): ``{modality: {"fraction": f, "mean_burst": L}}``.
+        seed (int, optional): the first transform's seed; the ``i``-th modality (sorted by name) gets
+            ``seed + i``. Defaults to ``0``.
+
+    Returns:
+        A `Compose` of one `ModalityDropout` (``outage="bursts"``) per modality with outages.
+
+    Raises:
+        ValueError: no modality has a fraction strictly between 0 and 1.
+    """
     transforms = [
         ModalityDropout(
             [name],
@@ -144,29 +204,53 @@ class ModalityDropout(Transform):
     """Seeded sensor outages: zero ``("obs", m)`` and clear ``("present", m)`` while ``m`` is out.
 
     Args:
-        modalities: names of the modalities that can fail.
-        outage_prob: one probability for all, or one per modality (a mapping over ``modalities``).
-            ``outage="bursts"``: probability that an outage starts at a step where the modality is
-            up; ``"episode"``: probability that the modality is out for the whole episode;
-            ``"dies"``: probability that it dies during the episode.
-        bursts: for ``"bursts"``, the outage length distribution (`UniformBursts` or
-            `GeometricBursts`); an outage lasts exactly the drawn number of steps unless the
-            episode ends first.
-        outage: ``"bursts"``, ``"episode"`` or ``"dies"`` (see the module docstring).
-        dies_after: for ``"dies"``, the number of readings the modality delivers before it dies
-            (`UniformBursts` or `GeometricBursts`, at least 1): with ``k`` drawn, observations
-            ``0 .. k-1`` of the episode (0 is the reset observation) are present and every later
-            one is absent. The default, uniform over 1..49, spreads the death over the push env's
-            50-step episodes; a ``k`` past the episode's end means it survives that episode.
-            `GeometricBursts(mean)` gives a constant failure rate per step.
-        seed: seed of the transform's own ``torch.Generator``; the same seed, outage type, env
-            batch size and sequence of resets and steps give the same outages.
+        modalities (Sequence[str]): names of the modalities that can fail.
+        outage_prob (float | Mapping[str, float], optional): one probability for all, or one per
+            modality (a mapping over ``modalities``). ``outage="bursts"``: probability that an
+            outage starts at a step where the modality is up; ``"episode"``: probability that the
+            modality is out for the whole episode; ``"dies"``: probability that it dies during the
+            episode. Defaults to ``0.05``.
+        bursts (UniformBursts | GeometricBursts, optional): for ``"bursts"``, the outage length
+            distribution; an outage lasts exactly the drawn number of steps unless the episode ends
+            first. Defaults to ``UniformBursts(1, 10)``.
+        outage (str, optional): ``"bursts"`` (default), ``"episode"`` or ``"dies"`` (see the module
+            docstring).
+        dies_after (UniformBursts | GeometricBursts, optional): for ``"dies"``, the number of
+            readings the modality delivers before it dies (at least 1): with ``k`` drawn,
+            observations ``0 .. k-1`` of the episode (0 is the reset observation) are present and
+            every later one is absent. The default, uniform over 1..49, spreads the death over the
+            push env's 50-step episodes; a ``k`` past the episode's end means it survives that
+            episode. `GeometricBursts(mean)` gives a constant failure rate per step.
+        seed (int, optional): seed of the transform's own ``torch.Generator``; the same seed, outage
+            type, env batch size and sequence of resets and steps give the same outages. Defaults to
+            ``0``.
 
     Every env (every row of a batched env) draws independently. The reset observation counts as
     a step. With ``"bursts"``, after an outage the modality delivers at least one reading before
     it can fail again, so each outage is one run of absent steps of the drawn length. A reset
     clears the outages of the envs that reset (honouring ``"_reset"`` masks) and draws afresh for
-    them: an ``"episode"`` or ``"dies"`` outage is drawn once per episode, at its reset.
+    them: an ``"episode"`` or ``"dies"`` outage is drawn once per episode, at its reset. The
+    transform keeps per-env state, so it only runs inside a `TransformedEnv`.
+
+    Raises:
+        ValueError: no modality, an unknown ``outage``, an ``outage_prob`` mapping that does not
+            name exactly ``modalities``, or a probability outside ``[0, 1]``.
+
+    Examples:
+        >>> from torchrl.envs import TransformedEnv
+        >>> from mmf_rl.envs import ModalityDropout, MultimodalPushTorchEnv, UniformBursts
+        >>> env = TransformedEnv(
+        ...     MultimodalPushTorchEnv(image_size=16),
+        ...     ModalityDropout(["image", "force"], outage_prob=0.3, bursts=UniformBursts(2, 3), seed=0),
+        ... )
+        >>> rollout = env.rollout(4)
+        >>> rollout["next", "present", "force"]  # out for two steps, then back
+        tensor([ True,  True, False, False])
+        >>> rollout["next", "obs", "force"][2:].abs().sum()  # an absent reading is zeroed
+        tensor(0.)
+        >>> rollout["next", "present", "proprio"].all()  # not listed: never out
+        tensor(True)
+        >>> env.close()
     """
 
     def __init__(
@@ -214,6 +298,17 @@ class ModalityDropout(Transform):
         self._batch_size: torch.Size | None = None
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        """Check the env has the modalities; the spec is unchanged (outages change values only).
+
+        Args:
+            observation_spec (Composite): the env's observation spec.
+
+        Returns:
+            ``observation_spec`` itself.
+
+        Raises:
+            KeyError: the env lacks ``("obs", m)`` or ``("present", m)`` of a listed modality.
+        """
         available = sorted(
             k[1] for k in observation_spec.keys(True, True) if isinstance(k, tuple) and k[0] == keys.OBS
         )
@@ -296,13 +391,35 @@ class ModalityDropout(Transform):
     def observe_reset(self, observation: TensorDictBase) -> TensorDictBase:
         """Draw every env's outages for a reset's ``observation`` (env batch ``[*batch]``) and apply
         them, as ``env.reset()`` does in a `TransformedEnv`: for a caller that replays recorded
-        episodes through the outages (`mmf_rl.rl.replayed_outages`)."""
+        episodes through the outages (`mmf_rl.rl.replayed_outages`).
+
+        Args:
+            observation (TensorDictBase): the reset observation, changed in place.
+
+        Returns:
+            ``observation`` with the outages applied.
+        """
         return self._reset(observation.empty(), observation)
 
     def observe_step(self, observation: TensorDictBase) -> TensorDictBase:
         """Advance every env's outages by a step's ``observation`` and apply them, as ``env.step()``
-        does in a `TransformedEnv` (see :meth:`observe_reset`)."""
+        does in a `TransformedEnv` (see :meth:`observe_reset`).
+
+        Args:
+            observation (TensorDictBase): the step's observation, changed in place.
+
+        Returns:
+            ``observation`` with the outages applied.
+        """
         return self._call(observation)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Refused: the outages are per-env state that only a `TransformedEnv`'s reset and step advance.
+
+        Args:
+            tensordict (TensorDictBase): unused.
+
+        Raises:
+            RuntimeError: always.
+        """
         raise not_standalone("ModalityDropout")

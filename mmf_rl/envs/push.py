@@ -121,12 +121,15 @@ class MultimodalPushEnv(MujocoFetchPushEnv):
     """FetchPush-v4 whose observation adds ``image``, ``force``, ``proprio`` and ``object_pose``.
 
     Args:
-        image_size: side of the square RGB image, in pixels.
-        camera: a key of `FREE_CAMERAS` or the name of a camera in the model XML
+        image_size (int, optional): side of the square RGB image, in pixels.
+        camera (str, optional): a key of `FREE_CAMERAS` or the name of a camera in the model XML
             (e.g. ``"external_camera_0"``, ``"head_camera_rgb"``).
-        reward_type: ``"sparse"`` or ``"dense"``, as in FetchPush.
+        reward_type (str, optional): ``"sparse"`` or ``"dense"``, as in FetchPush.
 
     Call `close()` when done: it frees the OpenGL context.
+
+    Raises:
+        ValueError: an ``image_size`` below 8, or a camera the model does not have.
     """
 
     def __init__(self, image_size: int = 64, camera: str = "front", reward_type: str = "sparse"):

@@ -47,7 +47,17 @@ STOP_RADII = (0.01, 0.025)
 
 @dataclass(frozen=True)
 class PusherStyle:
-    """Per-episode behaviour, drawn from the episode's generator by `sample`."""
+    """Per-episode behaviour of `ScriptedPusher`, drawn from the episode's generator by `sample`.
+
+    Args:
+        travel_speed (float): action-norm cap while travelling (FetchPush actions are in [-1, 1]).
+        push_lead (float): metres per step the push target runs ahead of the contact point.
+        approach_error (float): lateral error of the pre-push point, metres.
+        action_noise (float): std of Gaussian noise added to every action.
+        pause_rate (float): per-step probability of a pause.
+        reapproach_rate (float): per-step probability, while pushing, of backing off to re-approach.
+        stop_radius (float): object-goal distance at which the push stops, metres.
+    """
 
     travel_speed: float  # action-norm cap while travelling (FetchPush actions are in [-1, 1])
     push_lead: float  # metres per step the push target runs ahead of the contact point
@@ -59,6 +69,14 @@ class PusherStyle:
 
     @classmethod
     def sample(cls, rng: np.random.Generator) -> PusherStyle:
+        """A style drawn from the ranges the recorded episodes vary over.
+
+        Args:
+            rng (np.random.Generator): the episode's generator.
+
+        Returns:
+            The episode's style.
+        """
         return cls(
             travel_speed=rng.uniform(*TRAVEL_SPEEDS),
             push_lead=rng.uniform(*PUSH_LEADS),
@@ -181,15 +199,20 @@ class _PushScene:
 class ScriptedPusher:
     """Pushes the object to the goal; call `reset` with the episode's generator, then `act`.
 
-    ``exploration`` (default 0): per-step probability of an exploratory burst, 2-7 steps of one
-    uniformly random move, after which the state machine carries on from wherever the gripper
-    and the object ended up. Data for a world model needs them: without bursts the gripper moves
-    sideways almost only while pushing, so a model learns "the object follows the gripper" and a
-    planner exploits it; with them it also sees moves that miss or bump the block.
+    Args:
+        exploration (float, optional): per-step probability of an exploratory burst, 2-7 steps of
+            one uniformly random move, after which the state machine carries on from wherever the
+            gripper and the object ended up. Data for a world model needs them: without bursts the
+            gripper moves sideways almost only while pushing, so a model learns "the object follows
+            the gripper" and a planner exploits it; with them it also sees moves that miss or bump
+            the block. Defaults to ``0``.
+        steady (bool, optional): every episode in `PusherStyle.steady` instead of a style drawn per
+            episode, so the actions are a function of the state and the phase: demonstrations
+            without the pauses, noise and whims that a per-step imitation averages into a stalled
+            action. Defaults to ``False``.
 
-    ``steady``: every episode in `PusherStyle.steady` instead of a style drawn per episode, so the
-    actions are a function of the state and the phase: demonstrations without the pauses, noise
-    and whims that a per-step imitation averages into a stalled action.
+    Raises:
+        ValueError: ``exploration`` is not in ``[0, 1]``.
     """
 
     def __init__(self, exploration: float = 0.0, steady: bool = False) -> None:
@@ -198,6 +221,11 @@ class ScriptedPusher:
         self.reset(np.random.default_rng(0))
 
     def reset(self, rng: np.random.Generator) -> None:
+        """Start an episode: its style is drawn from ``rng`` (unless steady), the phase is approach.
+
+        Args:
+            rng (np.random.Generator): the episode's generator, drawn from at every step after.
+        """
         self.rng = rng
         self.style = PusherStyle.steady() if self.steady else PusherStyle.sample(rng)
         self.phase = "approach"
@@ -206,6 +234,14 @@ class ScriptedPusher:
         self.bursts.reset()
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """This step's action.
+
+        Args:
+            obs (dict[str, np.ndarray]): `MultimodalPushEnv`'s observation.
+
+        Returns:
+            A FetchPush action, float32 ``[4]`` in ``[-1, 1]`` (the fingers' command is 0).
+        """
         # Drawn first and only when exploring, so episodes without it stay what they always were;
         # the state machine sleeps through a burst and carries on from wherever it left things.
         burst = self.bursts.draw(self.rng)
@@ -407,14 +443,30 @@ def rollout(
 ) -> dict[str, np.ndarray]:
     """Run one episode and return its per-step arrays.
 
-    The scripted pusher acts (``exploration``: its random-move bursts; ``steady``: its one steady
-    style, see `ScriptedPusher`), or ``actor`` with the same bursts on top (`ExploringActor`).
+    The scripted pusher acts, or ``actor`` with the same exploration bursts on top (`ExploringActor`).
     Either is reset with the episode's generator after the env, so the start and the actor's draws
-    depend only on ``(seed, episode_index)``.
+    depend only on ``(seed, episode_index)``. The env is reset until the object starts far enough
+    from the goal that reaching it takes a push.
 
-    Frame ``t`` holds the observation before action ``t``. Keys: ``image`` ``[steps, h, w, 3]``
-    uint8; ``force``, ``proprio``, ``object_pose``, ``goal``, ``action`` float32 ``[steps, d]``;
-    ``success`` bool ``[steps]`` (object within the env's threshold of the goal).
+    Args:
+        env (MultimodalPushEnv): the env, reset here.
+        seed (int): the recording's seed.
+        episode_index (int): the episode's index; with ``seed`` it fixes the episode.
+        steps (int): frames to record (the episode is not cut at success).
+        exploration (float, optional): per-step probability of a random-move burst (`ScriptedPusher`).
+            Defaults to ``0``.
+        actor (Actor, optional): acts instead of the scripted pusher (e.g. an MPC agent).
+        steady (bool, optional): the scripted pusher's one steady style (`ScriptedPusher`). Defaults
+            to ``False``.
+
+    Returns:
+        The episode's arrays; frame ``t`` holds the observation before action ``t``: ``image``
+        ``uint8 [steps, h, w, 3]``; ``force``, ``proprio``, ``object_pose``, ``goal``, ``action``
+        ``float32 [steps, d]``; ``success`` ``bool [steps]`` (object within the env's threshold of
+        the goal).
+
+    Raises:
+        ValueError: ``steps < 1``.
     """
     if steps < 1:
         raise ValueError(f"steps={steps}: an episode needs at least 1 step.")

@@ -91,17 +91,26 @@ class MultimodalPushTorchEnv(EnvBase):
     """`MultimodalPushEnv` as a TorchRL env emitting ``("obs", m)`` and ``("present", m)``.
 
     Args:
-        image_size: side of the square RGB image, pixels.
-        camera: a camera `MultimodalPushEnv` accepts (``"front"`` is what `mmf-rl record` uses).
-        max_episode_steps: time limit; ``None`` keeps the registered 50 steps.
-        min_start_distance: resets are redrawn until the object starts at least this far (metres,
-            planar) from the goal, as in the recorded data (`mmf_rl.envs.scripted.reset_for_push`);
-            0 accepts FetchPush's own draws, some of which start already solved.
+        image_size (int, optional): side of the square RGB image, pixels. Defaults to ``64``.
+        camera (str, optional): a camera `MultimodalPushEnv` accepts (``"front"``, the default, is
+            what `mmf-rl record` uses).
+        max_episode_steps (int, optional): time limit; ``None`` keeps the registered 50 steps.
+        min_start_distance (float, optional): resets are redrawn until the object starts at least
+            this far (metres, planar) from the goal, as in the recorded data
+            (`mmf_rl.envs.scripted.reset_for_push`); 0 accepts FetchPush's own draws, some of which
+            start already solved.
 
-    Example:
-        >>> env = MultimodalPushTorchEnv(image_size=64)
-        >>> td = env.rollout(10)
-        >>> td["next", "obs", "image"].shape   # [10, 3, 64, 64]
+    Raises:
+        ValueError: an ``image_size`` below 8 or an unknown ``camera`` (from `MultimodalPushEnv`).
+
+    Examples:
+        >>> from mmf_rl.envs import MultimodalPushTorchEnv
+        >>> env = MultimodalPushTorchEnv(image_size=32)
+        >>> rollout = env.rollout(3)  # random actions
+        >>> rollout["next", "obs", "image"].shape, rollout["next", "obs", "force"].shape
+        (torch.Size([3, 3, 32, 32]), torch.Size([3, 6]))
+        >>> rollout["next", "present", "image"]
+        tensor([True, True, True])
         >>> env.close()
     """
 

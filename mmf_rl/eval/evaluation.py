@@ -219,21 +219,41 @@ def evaluate(config: DictConfig | None = None, *, overrides: Sequence[str] = ())
     write ``results.json``, ``results.md`` and the plots into the evaluation's ``out_dir``.
 
     Args:
-        config: a composed eval config, as ``mmf-rl eval --cfg`` prints it
+        config (DictConfig, optional): a composed eval config, as ``mmf-rl eval --cfg`` prints it
             (:func:`~mmf_rl.configuration.compose_config`, edited as you like). ``None``: compose
             ``configs/eval.yaml`` with ``overrides``. ``checkpoint`` is required.
-        overrides: Hydra overrides, as on the command line (``key=value``); only without ``config``.
+
+    Keyword Args:
+        overrides (Sequence[str], optional): Hydra overrides, as on the command line (``key=value``);
+            only without ``config``.
 
     Returns:
         The summary written to ``results.json`` (``subsets``: the metrics of each presence subset,
         ``constant_velocity``: the reference row, ``notes``, ...), with the markdown ``table`` and
         the ``plots`` written.
 
+    Raises:
+        ValueError: both ``config`` and ``overrides`` given.
+
     Examples:
+        A run trained for 2 steps on a tiny recording (as in :func:`mmf_rl.train`'s example), scored:
+
+        >>> import tempfile
+        >>> from pathlib import Path
         >>> import mmf_rl
-        >>> summary = mmf_rl.evaluate(overrides=["checkpoint=runs/quick", "plots=false"])
-        >>> mse = summary["subsets"]["all"]["mse"]  # every sensor present
-        >>> print(summary["table"])  # every presence subset, as the command prints it
+        >>> from mmf_rl.record import RecordConfig, record
+        >>> tmp = Path(tempfile.mkdtemp())
+        >>> root = record(RecordConfig(out=tmp / "push", episodes=6, steps=40, image_size=32))
+        >>> run_dir = mmf_rl.train(overrides=[
+        ...     f"data.root={root}", f"run_dir={tmp / 'run'}", "data.image_size=[32,32]",
+        ...     "data.history=4", "data.horizon=3", "model.d_model=16", "model.num_heads=2",
+        ...     "trainer.total_steps=2", "trainer.batch_size=8", "trainer.progress_bar=false",
+        ...     "logger=csv", "num_workers=0"])
+        >>> summary = mmf_rl.evaluate(overrides=[f"checkpoint={run_dir}", "plots=false"])
+        >>> sorted(summary["subsets"])[:3]  # every presence subset
+        ['all', 'only_force', 'only_image']
+        >>> summary["subsets"]["all"]["mse"] > 0
+        True
     """
     eval_cfg = EvalConfig.from_config(config_or_overrides("eval", config, overrides))
     check_eval_settings(eval_cfg)

@@ -50,7 +50,22 @@ BASELINE_PREFIX = "cv_"
 
 
 def displacement_errors(forecast: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-window ADE and FDE ``[B]`` for ``[B, T, D]`` forecasts in the target's units."""
+    """Per-window average and final displacement errors (Euclidean over the target's dims).
+
+    Args:
+        forecast (torch.Tensor): ``[B, T, D]`` forecasts, in the target's units.
+        target (torch.Tensor): ``[B, T, D]`` targets, in the same units.
+
+    Returns:
+        ``(ade, fde)``, each ``[B]``.
+
+    Examples:
+        >>> import torch
+        >>> from mmf_rl.eval import displacement_errors
+        >>> target = torch.zeros(1, 2, 2)
+        >>> displacement_errors(torch.tensor([[[3.0, 4.0], [0.0, 1.0]]]), target)
+        (tensor([3.]), tensor([1.]))
+    """
     distance = (forecast - target).norm(dim=-1)
     return distance.mean(-1), distance[:, -1]
 
@@ -70,7 +85,15 @@ def point_errors(
 
 
 def constant_velocity(target_past: torch.Tensor, horizon: int) -> torch.Tensor:
-    """Extrapolate the last step of ``[B, H, D]`` over ``horizon`` steps."""
+    """Extrapolate the last step of a past trajectory over the horizon.
+
+    Args:
+        target_past (torch.Tensor): ``[B, H, D]``, ``H >= 2``.
+        horizon (int): ``T``, steps to extrapolate.
+
+    Returns:
+        ``[B, T, D]``: the last position plus ``1..T`` times the last step.
+    """
     velocity = target_past[:, -1] - target_past[:, -2]
     steps = torch.arange(1, horizon + 1, dtype=target_past.dtype, device=target_past.device)
     return target_past[:, -1:] + velocity[:, None] * steps[None, :, None]
@@ -196,8 +219,40 @@ def evaluate_forecasts(
 ) -> dict[str, float]:
     """Average the metrics above over every window of ``batches`` (model in eval mode).
 
-    ``denormalize`` maps normalised targets to units (``Normalizer.denormalize_target``).
-    ``num_samples > 0`` adds the best-of-K errors.
+    Args:
+        model (nn.Module): a model following `mmf_rl.keys`; it never sees the target of a window.
+        batches (Iterable[TensorDictBase]): batches with ``"target"`` (e.g. a ``"test"`` loader).
+        denormalize (Callable[[torch.Tensor], torch.Tensor]): maps normalised targets to units
+            (``Normalizer.denormalize_target``).
+        num_samples (int, optional): ``K > 0`` adds the best-of-K errors (``model.sample``). Defaults
+            to ``0``.
+        with_baseline (bool, optional): add the constant-velocity reference's ``cv_*`` errors (needs
+            ``"target_past"``). Defaults to ``False``.
+
+    Returns:
+        ``{metric: mean over windows}`` (see the module docstring) plus ``windows``, their count;
+        ``{}`` when there is no window.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.eval import evaluate_forecasts
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> model = MultimodalForecaster(ForecasterConfig(
+        ...     modalities=[ModalitySpec("force", "sequence", (6,))],
+        ...     history=4, horizon=5, d_model=16, d_latent=4, num_heads=2,
+        ... )).eval()
+        >>> batch = TensorDict({
+        ...     ("obs", "force"): torch.randn(8, 4, 6), ("present", "force"): torch.ones(8, dtype=torch.bool),
+        ...     "target": torch.randn(8, 5, 2), "target_past": torch.randn(8, 4, 2),
+        ... }, batch_size=[8])
+        >>> metrics = evaluate_forecasts(model, [batch], lambda t: t * 0.1, num_samples=4, with_baseline=True)
+        >>> sorted(metrics)
+        ['ade', 'coverage_50', 'coverage_90', 'crps', 'cv_ade', 'cv_fde', 'cv_mse', 'cv_mse_units', 'fde',
+         'kl', 'min_ade_k', 'min_fde_k', 'min_mse_k', 'mse', 'mse_units', 'nll', 'width_90', 'windows']
+        >>> metrics["windows"]
+        8.0
     """
     totals: dict[str, float] = defaultdict(float)
     count = 0

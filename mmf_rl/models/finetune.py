@@ -22,7 +22,18 @@ def init_weights_from(model: nn.Module, source_path) -> Path:
     modality missing on either side or of another kind or shape, or a parameter of another shape
     is an error naming it (this run's value first, then the source's). The source's scale factors
     (``mmf-rl calibrate``) and learned sampler are not copied: a run with ``model.learned_samples=K``
-    may start from a source without a sampler, and the reverse. Returns the source's path.
+    may start from a source without a sampler, and the reverse.
+
+    Args:
+        model (nn.Module): the model of this run, changed in place.
+        source_path (str | Path): anything :func:`load_trained_model` reads.
+
+    Returns:
+        The source's location (a run's ``checkpoints/``, else the path given).
+
+    Raises:
+        CheckpointError: a different model type, differing modalities or a parameter of another shape
+            (this run's value first, then the source's).
     """
     location = trained_location(Path(source_path))
     source, _, _ = load_trained_model(location)

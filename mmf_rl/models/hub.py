@@ -66,7 +66,9 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
     """``save_pretrained`` / ``from_pretrained`` / ``push_to_hub`` for a registered model.
 
     The mixin's own loading is not strict (a missing weight would stay random): here every
-    weight must match, and a mismatch names the parameter with both shapes.
+    weight must match, and a mismatch names the parameter with both shapes. Mixed into every
+    registered model; not built on its own. :func:`mmf_rl.models.from_pretrained` loads any registered
+    model without knowing its class.
     """
 
     normalization_stats: dict | None = None
@@ -100,7 +102,22 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
         **push_to_hub_kwargs,
     ):
         """The mixin's ``save_pretrained``, written atomically: every file goes to a temporary
-        sibling directory first and is renamed into ``save_directory`` (``config.json`` last)."""
+        sibling directory first and is renamed into ``save_directory`` (``config.json`` last).
+
+        Args:
+            save_directory (str | Path): the directory (created if needed).
+
+        Keyword Args:
+            config (dict, optional): the mixin's; unused here: ``config.json`` always holds the model's
+                own config.
+            repo_id (str, optional): the hub repository when pushing; ``None``: the directory's name.
+            push_to_hub (bool, optional): also push the files to the hub. Defaults to ``False``.
+            model_card_kwargs (dict, optional): passed to the model card.
+            **push_to_hub_kwargs: passed to ``push_to_hub``.
+
+        Returns:
+            The hub commit's URL when pushing, else ``None``.
+        """
         final = Path(save_directory)
         final.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))

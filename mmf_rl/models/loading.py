@@ -32,8 +32,33 @@ def from_pretrained(
 ) -> nn.Module:
     """Any registered model saved by ``save_pretrained``: a local directory or a hub repository id.
 
-    ``config_overrides`` change settings of the saved config before the model is built (see
-    :func:`model_config_with_overrides`); ``kwargs`` go to the class's ``from_pretrained``."""
+    Args:
+        model_id (str | os.PathLike): the directory or the hub repository id.
+
+    Keyword Args:
+        config_overrides (dict, optional): settings of the saved config changed before the model is
+            built (see :func:`model_config_with_overrides`).
+        **kwargs: passed to the class's ``from_pretrained`` (``map_location``, ``revision``, ...).
+
+    Returns:
+        The model in eval mode, with ``normalization_stats``, ``data_config`` and ``calibration`` as
+        saved (``None`` where not).
+
+    Examples:
+        >>> import tempfile
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster, from_pretrained
+        >>> model = MultimodalForecaster(ForecasterConfig(
+        ...     modalities=[ModalitySpec("force", "sequence", (6,))], d_model=16, d_latent=4, num_heads=2,
+        ... ))
+        >>> directory = tempfile.mkdtemp()
+        >>> model.save_pretrained(directory)
+        >>> loaded = from_pretrained(directory, config_overrides={"eval_latent": "predictive"})
+        >>> type(loaded).__name__, loaded.config.eval_latent, loaded.training
+        ('MultimodalForecaster', 'predictive', False)
+        >>> import shutil
+        >>> shutil.rmtree(directory)
+    """
     saved = read_pretrained_config(str(model_id), **kwargs)
     config = model_config_with_overrides(saved, config_overrides, model_id)
     entry = model_entry(config.get("name", DEFAULT_MODEL))
@@ -52,11 +77,17 @@ TRAINED_MODEL_KINDS = (
 @dataclass(frozen=True)
 class TrainedModelSource:
     """What :func:`load_trained_model` reads: a checkpoint of a ``mmf-rl train`` run, or a directory
-    written by ``save_pretrained`` (an export or a hub download: it records no training step)."""
+    written by ``save_pretrained`` (an export or a hub download: it records no training step).
 
-    path: Path  # the checkpoint directory (step_*), or the save_pretrained directory
-    kind: str  # "checkpoint" | "save_pretrained"
-    step: int | None  # the checkpoint's training step; None for a save_pretrained directory
+    Args:
+        path (Path): the checkpoint directory (``step_*``), or the ``save_pretrained`` directory.
+        kind (str): ``"checkpoint"`` or ``"save_pretrained"``.
+        step (int | None): the checkpoint's training step; ``None`` for a ``save_pretrained`` directory.
+    """
+
+    path: Path
+    kind: str
+    step: int | None
 
 
 def trained_location(path: Path) -> Path:
@@ -65,8 +96,19 @@ def trained_location(path: Path) -> Path:
 
 
 def locate_trained_model(path) -> TrainedModelSource:
-    """Where the trained model ``path`` names is (see :data:`TRAINED_MODEL_KINDS`), without loading it;
-    anything else is a :class:`CheckpointError` saying what was found and what is expected."""
+    """Where the trained model ``path`` names is, without loading it.
+
+    Args:
+        path (str | Path): a run directory, its ``checkpoints/``, one checkpoint or a directory written
+            by ``save_pretrained`` (:data:`TRAINED_MODEL_KINDS`).
+
+    Returns:
+        The checkpoint (the run's last one for a run) or the ``save_pretrained`` directory.
+
+    Raises:
+        CheckpointError: ``path`` is none of these; the message says what was found and what is
+            expected.
+    """
     given = Path(path)
     location = trained_location(given)
     if (location / CONFIG_NAME).is_file() and not (location / META_FILE).is_file():
@@ -95,7 +137,23 @@ def load_trained_model(
     saved model config before the model is built, either way (:func:`model_config_with_overrides`;
     e.g. ``{"eval_latent": "predictive"}``). The model carries the stats and data config too
     (``normalization_stats``, ``data_config``), so ``model.save_pretrained(dir)`` exports all it needs,
-    and ``calibration``: how its scale factors were fitted (``mmf-rl calibrate``; ``None`` if never)."""
+    and ``calibration``: how its scale factors were fitted (``mmf-rl calibrate``; ``None`` if never).
+
+    Args:
+        path (str | Path): what :func:`locate_trained_model` accepts.
+        map_location (str | torch.device, optional): the device the model is moved to. Defaults to
+            ``"cpu"``.
+        config_overrides (dict, optional): settings of the saved model config to change.
+
+    Returns:
+        ``(model, stats, data_config)``: the model in eval mode, the normalisation statistics
+        (``Normalizer.stats``' form) and the data config as a dict.
+
+    Raises:
+        CheckpointError: ``path`` is not a trained model, or lacks the statistics, the data config or
+            the model config (the message says which).
+        ConfigError: a bad override.
+    """
     source = locate_trained_model(path)
     if source.kind == "save_pretrained":
         absent = [f for f in (NORMALIZATION_FILE, DATA_CONFIG_FILE) if not (source.path / f).is_file()]

@@ -43,6 +43,20 @@ def register_model(name: str, config_class: type, *, loss: Sequence[str]):
     ``horizon`` and ``target_dim``; ``loss`` names the loss terms the model trains with
     (``@register_loss_term``). Sets the class's ``model_name`` and ``config_class``, which its
     checkpoints and ``save_pretrained`` directories record.
+
+    Args:
+        name (str): the model's name (``model.name=...``).
+        config_class (type): its config dataclass.
+
+    Keyword Args:
+        loss (Sequence[str]): the loss terms it trains with (e.g. ``("elbo", "mis")``).
+
+    Returns:
+        The decorator; it returns the class itself and raises ``ValueError`` for a name another class
+        took.
+
+    Raises:
+        TypeError: ``loss`` is a string or empty.
     """
     if isinstance(loss, str) or not loss:
         raise TypeError(
@@ -63,7 +77,17 @@ def register_model(name: str, config_class: type, *, loss: Sequence[str]):
 
 
 def model_entry(name: str) -> ModelEntry:
-    """The registry entry of model ``name``."""
+    """The registry entry of model ``name``.
+
+    Args:
+        name (str): a registered model (``"forecaster"``, ``"lf_lstm"``, ``"mvae"``, ``"mult"``, ...).
+
+    Returns:
+        Its ``ModelEntry``: ``model_cls``, ``config_cls`` and ``loss_terms``.
+
+    Raises:
+        ValueError: no model has that name (the message lists the registered ones).
+    """
     if name not in MODELS:
         raise ValueError(
             f"unknown model {name!r}; expected one of {sorted(MODELS)} "
@@ -80,11 +104,37 @@ def build_model(
     target_dim: int,
     action_shape: tuple[int, int] | None = None,
 ) -> nn.Module:
-    """``model_cfg`` is the model config group (its ``name`` picks the entry); the data fixes the rest.
+    """Build a registered model from its config group's settings and the data's shapes.
 
-    ``action_shape = (S, A)`` (the data config sets ``action``) builds an action-conditioned world
-    model; only a model whose config has ``action_steps`` and ``action_dim`` (the paper's
-    forecaster) has that option.
+    Args:
+        model_cfg (dict): the model config group: ``name`` picks the entry (default ``"forecaster"``),
+            the other keys are its config's settings.
+        modalities (list[ModalitySpec]): the data's modalities (``WindowDataset.specs``).
+        history (int): ``H``.
+        horizon (int): ``T``.
+        target_dim (int): ``D``.
+        action_shape (tuple[int, int], optional): ``(S, A)`` when the data config sets ``action``: builds
+            an action-conditioned world model; only a model whose config has ``action_steps`` and
+            ``action_dim`` (the paper's forecaster) has that option.
+
+    Returns:
+        The model (in train mode).
+
+    Raises:
+        ValueError: an unknown model, a setting its config refuses, or actions for a model without
+            an action input.
+
+    Examples:
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import build_model
+        >>> modalities = [ModalitySpec("force", "sequence", (6,)), ModalitySpec("pose", "vector", (3,))]
+        >>> model = build_model({"name": "mult", "d_model": 16, "num_heads": 2}, modalities, 4, 5, 2)
+        >>> type(model).__name__, model.config.horizon
+        ('MulT', 5)
+        >>> sizes = {"d_model": 16, "num_heads": 2}  # no name: the forecaster
+        >>> world_model = build_model(sizes, modalities, 4, 5, 2, action_shape=(5, 4))
+        >>> world_model.config.action_shape
+        (5, 4)
     """
     cfg = dict(model_cfg)
     name = cfg.pop("name", DEFAULT_MODEL)
@@ -107,7 +157,15 @@ def build_model(
 
 
 def trained_loss_terms(name: str, loss_cfg: LossConfig) -> tuple[str, ...]:
-    """The loss terms model ``name`` trains with: the loss config's ``terms``, else the model's own."""
+    """The loss terms model ``name`` trains with: the loss config's ``terms``, else the model's own.
+
+    Args:
+        name (str): a registered model.
+        loss_cfg (LossConfig): the loss config.
+
+    Returns:
+        The terms' names.
+    """
     return tuple(loss_cfg.terms) if loss_cfg.terms is not None else model_entry(name).loss_terms
 
 
@@ -123,15 +181,31 @@ def model_settings_from_group(model_cfg: Mapping) -> dict:
 
 def loss_settings_read(model_cfg: Mapping, loss_cfg: LossConfig) -> frozenset[str]:
     """The settings of ``loss_cfg`` that the loss of the model config group ``model_cfg`` reads (e.g. not
-    ``kl_warmup_steps`` with ``model=lf_lstm``, nor with ``loss.kl_weight=0``): without building it."""
+    ``kl_warmup_steps`` with ``model=lf_lstm``, nor with ``loss.kl_weight=0``): without building it.
+
+    Args:
+        model_cfg (Mapping): the model config group (its ``name`` and settings).
+        loss_cfg (LossConfig): the loss config.
+
+    Returns:
+        The names of the settings read.
+    """
     name = model_cfg.get("name", DEFAULT_MODEL)
     return settings_read(trained_loss_terms(name, loss_cfg), loss_cfg, model_settings_from_group(model_cfg))
 
 
 def check_loss_settings(model_cfg: Mapping, loss_cfg: LossConfig, defaults: LossConfig | None = None) -> None:
     """Refuse a setting of ``loss_cfg`` changed from ``defaults`` (``LossConfig()``) that the loss terms
-    the model config group ``model_cfg`` trains with do not read (a :class:`ConfigError` naming it):
-    without building the model."""
+    the model config group ``model_cfg`` trains with do not read: without building the model.
+
+    Args:
+        model_cfg (Mapping): the model config group (its ``name`` and settings).
+        loss_cfg (LossConfig): the loss config.
+        defaults (LossConfig, optional): what counts as unchanged; ``None``: ``LossConfig()``.
+
+    Raises:
+        ConfigError: such a setting, named with the terms that would read it.
+    """
     name = model_cfg.get("name", DEFAULT_MODEL)
     check_settings_read(
         trained_loss_terms(name, loss_cfg),
@@ -143,18 +217,45 @@ def check_loss_settings(model_cfg: Mapping, loss_cfg: LossConfig, defaults: Loss
 
 
 def build_loss(name: str, model: nn.Module, loss_cfg: LossConfig, *, check_unread: bool = True) -> nn.Module:
-    """The losses model ``name`` trains with (or the loss config's ``terms``), weighted by the loss config;
-    ``check_unread``: as :func:`~mmf_rl.objectives.build_loss_terms`."""
+    """The losses model ``name`` trains with (or the loss config's ``terms``), weighted by the loss config.
+
+    Args:
+        name (str): the model's registered name.
+        model (nn.Module): the built model.
+        loss_cfg (LossConfig): the loss config.
+
+    Keyword Args:
+        check_unread (bool, optional): as :func:`~mmf_rl.objectives.build_loss_terms`. Defaults to
+            ``True``.
+
+    Returns:
+        The loss module (one term, or a :class:`~mmf_rl.objectives.CombinedLoss`).
+    """
     return build_loss_terms(trained_loss_terms(name, loss_cfg), model, loss_cfg, check_unread=check_unread)
 
 
 def saved_config(name: str, model: nn.Module) -> dict:
-    """What a checkpoint stores to rebuild ``model``: its registry name and full config."""
+    """What a checkpoint stores to rebuild ``model``: its registry name and full config.
+
+    Args:
+        name (str): the model's registered name.
+        model (nn.Module): the model.
+
+    Returns:
+        ``{"name": name, **model.config.to_dict()}``.
+    """
     return {"name": name, **model.config.to_dict()}
 
 
 def model_from_saved_config(saved: dict) -> nn.Module:
-    """Rebuild a model from the ``model_config`` a checkpoint stores (see :func:`saved_config`)."""
+    """Rebuild a model from the ``model_config`` a checkpoint stores (see :func:`saved_config`).
+
+    Args:
+        saved (dict): the saved config (its ``name``, default ``"forecaster"``, and fields).
+
+    Returns:
+        The model, with fresh weights.
+    """
     cfg = dict(saved)
     entry = model_entry(cfg.pop("name", DEFAULT_MODEL))
     return entry.model_cls(entry.config_cls.from_dict(cfg))
@@ -166,8 +267,19 @@ def _settings(config_cls: type) -> set[str]:
 
 def model_config_with_overrides(saved: dict, overrides: dict | None, where) -> dict:
     """A saved model config (:func:`saved_config`'s form) with ``overrides`` of its settings (e.g. an
-    eval's ``eval_latent``), checked by the model's config class: a setting the model does not
-    have, or a bad value, is a :class:`ConfigError` naming it and the model saved at ``where``."""
+    eval's ``eval_latent``), checked by the model's config class.
+
+    Args:
+        saved (dict): the saved model config.
+        overrides (dict, optional): the settings to change; ``None`` or empty: none.
+        where (str | Path): where the model was saved, named in the errors.
+
+    Returns:
+        A new saved config with the overrides.
+
+    Raises:
+        ConfigError: a setting the model does not have, or a bad value, naming it and the model.
+    """
     if not overrides:
         return dict(saved)
     name = saved.get("name", DEFAULT_MODEL)

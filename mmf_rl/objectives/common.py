@@ -14,20 +14,53 @@ _LOG_2PI = math.log(2 * math.pi)
 
 
 def gaussian_nll(value: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """Elementwise ``-log N(value; loc, scale²)``."""
+    """Elementwise ``-log N(value; loc, scale²)``.
+
+    Args:
+        value (torch.Tensor): the observed values.
+        loc (torch.Tensor): the Gaussian's mean (broadcast with ``value``).
+        scale (torch.Tensor): its standard deviation, ``> 0``.
+
+    Returns:
+        The negative log-density of each element.
+
+    Examples:
+        >>> import torch
+        >>> from mmf_rl.objectives import gaussian_nll
+        >>> gaussian_nll(torch.tensor([0.0, 1.0]), torch.zeros(2), torch.ones(2))  # 0.5 log 2π, + 0.5
+        tensor([0.9189, 1.4189])
+    """
     return 0.5 * (((value - loc) / scale) ** 2 + _LOG_2PI) + scale.log()
 
 
 def gaussian_kl(
     loc_p: torch.Tensor, scale_p: torch.Tensor, loc_q: torch.Tensor, scale_q: torch.Tensor
 ) -> torch.Tensor:
-    """Elementwise ``KL(N(loc_p, scale_p²) || N(loc_q, scale_q²))``."""
+    """Elementwise ``KL(N(loc_p, scale_p²) || N(loc_q, scale_q²))``.
+
+    Args:
+        loc_p (torch.Tensor): the mean of ``p``.
+        scale_p (torch.Tensor): the standard deviation of ``p``, ``> 0``.
+        loc_q (torch.Tensor): the mean of ``q``.
+        scale_q (torch.Tensor): the standard deviation of ``q``, ``> 0``.
+
+    Returns:
+        The KL divergence of each element (sum over the last dim for a diagonal Gaussian).
+    """
     var_ratio = (scale_p / scale_q) ** 2
     return 0.5 * (var_ratio + ((loc_p - loc_q) / scale_q) ** 2 - 1 - var_ratio.log())
 
 
 def gaussian_kl_to_standard(loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """Elementwise ``KL(N(loc, scale²) || N(0, 1))``."""
+    """Elementwise ``KL(N(loc, scale²) || N(0, 1))``.
+
+    Args:
+        loc (torch.Tensor): the mean.
+        scale (torch.Tensor): the standard deviation, ``> 0``.
+
+    Returns:
+        The KL divergence of each element.
+    """
     return 0.5 * (scale**2 + loc**2 - 1) - scale.log()
 
 
@@ -38,8 +71,15 @@ def best_of_k_mse(target: torch.Tensor, samples: torch.Tensor) -> torch.Tensor:
 
 
 def model_settings_of(model) -> dict:
-    """A built model's settings by name (the fields of its dataclass ``config``; none for a module
-    without one): what a loss term's reads may depend on (:meth:`ForecasterLossBase.unread_settings`)."""
+    """A built model's settings by name: what a loss term's reads may depend on
+    (:meth:`ForecasterLossBase.unread_settings`).
+
+    Args:
+        model (nn.Module): a built model.
+
+    Returns:
+        The fields of its dataclass ``config``, ``{name: value}``; empty for a module without one.
+    """
     config = getattr(model, "config", None)
     if not dataclasses.is_dataclass(config):
         return {}
@@ -80,6 +120,13 @@ class ForecasterLossBase(LossModule):
     reads: a registered term lists every one it reads, so that a setting none of a model's terms reads
     is refused (``build_loss_terms``) rather than silently ignored. A term that reads some of them only
     under a condition (another setting, the model's prior) says so in :meth:`unread_settings`.
+
+    Args:
+        forecaster (nn.Module): the model the loss runs.
+        reduction (str, optional): ``"mean"`` (default) | ``"sum"`` | ``"none"`` over the batch.
+
+    Raises:
+        ValueError: an unknown ``reduction``.
     """
 
     REDUCTIONS = ("mean", "sum", "none")
@@ -110,9 +157,18 @@ class ForecasterLossBase(LossModule):
 
     @classmethod
     def from_config(cls, forecaster, loss_cfg) -> ForecasterLossBase | None:
-        """This loss for ``forecaster`` as the loss config group (a ``LossConfig``) sets it; ``None``
-        when the config turns it off. By default the loss's own defaults: a loss with settings in
-        the loss config overrides this and lists them in ``config_fields``."""
+        """This loss for ``forecaster`` as the loss config group sets it.
+
+        By default the loss's own defaults: a loss with settings in the loss config overrides this and
+        lists them in ``config_fields``.
+
+        Args:
+            forecaster (nn.Module): the model.
+            loss_cfg (LossConfig): the loss config.
+
+        Returns:
+            The loss, or ``None`` when the config turns it off.
+        """
         return cls(forecaster)
 
     @classmethod
@@ -120,7 +176,15 @@ class ForecasterLossBase(LossModule):
         """The settings of ``config_fields`` that change nothing this term computes under ``loss_cfg`` for
         a model with ``model_settings`` (:func:`model_settings_of`), each with the condition under which
         it would, e.g. ``"only with loss.best_of_k_weight > 0 (found 0.0)"``. None by default: a term whose
-        reads are conditional overrides this, so that such a setting is refused, not silently ignored."""
+        reads are conditional overrides this, so that such a setting is refused, not silently ignored.
+
+        Args:
+            loss_cfg (LossConfig): the loss config.
+            model_settings (Mapping): the model's settings (:func:`model_settings_of`).
+
+        Returns:
+            ``{setting: condition}``.
+        """
         return {}
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
@@ -136,13 +200,36 @@ class ForecasterLossBase(LossModule):
         return own + [k for k in getattr(self.forecaster, "in_keys", []) if k not in own]
 
     def prepare(self, td: TensorDictBase) -> TensorDictBase:
-        """Add the inputs this loss needs from the forecaster's forward pass (none by default)."""
+        """Add the inputs this loss needs from the forecaster's forward pass (none by default).
+
+        Args:
+            td (TensorDictBase): the batch (a shallow copy of the caller's), changed in place.
+
+        Returns:
+            ``td``.
+        """
         return td
 
     def loss_from_outputs(self, td: TensorDictBase) -> TensorDict:
+        """The loss terms from the forecaster's outputs (each subclass computes its own).
+
+        Args:
+            td (TensorDictBase): the batch after :meth:`prepare` and the forecaster's forward pass.
+
+        Returns:
+            The ``loss_*`` entries and diagnostics.
+        """
         raise NotImplementedError
 
     def forward(self, td: TensorDictBase) -> TensorDict:
+        """:meth:`prepare`, the forecaster and :meth:`loss_from_outputs` on a shallow copy of ``td``.
+
+        Args:
+            td (TensorDictBase): a batch following `mmf_rl.keys`, with ``"target"``; not changed.
+
+        Returns:
+            The ``loss_*`` entries and diagnostics.
+        """
         return self.loss_from_outputs(self.forecaster(self.prepare(td.clone(False))))
 
     def _get(self, td: TensorDictBase, key):

@@ -42,34 +42,57 @@ class LossConfig:
     ``terms``, which chooses the terms, is exempt.
 
     Args:
-        kl_weight: ``β`` of the ELBO's KL term once warm (:class:`~mmf_rl.objectives.ELBOLoss`).
-        kl_warmup_steps: training updates over which ``β`` grows linearly to ``kl_weight`` (0: constant).
-        missing_modality_weight: weight of ``L_mis`` (:class:`~mmf_rl.objectives.MissingModalityLoss`);
-            0 trains without it (the paper's ablation, ``loss=no_mis``).
-        detach_teacher: stop the gradient through ``L_mis``'s full-modality side.
-        gsnn_weight: > 0 also decodes from ``z ~ p(z|X)`` in training and adds that NLL with this weight
-            (Sohn et al.'s GSNN term); models without a prior decode refuse it.
-        best_of_k_weight: > 0 also decodes ``best_of_k_samples`` draws ``z ~ p(z|X)`` per window in
-            training and adds this weight times the MSE of the closest one to the target (Bhattacharyya
-            et al.'s best-of-many term); models without a prior decode refuse it.
-        best_of_k_samples: ``K``, the draws of that term (20: the minADE20 / minFDE20 of ETH/UCY).
-        max_dropped: ``L_mis`` drops ``k ~ U{1..min(max_dropped, M_i - 1)}`` present modalities per
-            sample; 1 is the paper's setting, ``None`` up to ``M_i - 1`` (single-modality inputs trained).
-        dropped_nll_weight: > 0 adds the target's NLL under the degraded forecast beside ``L_mis``.
-        dropped_prior_weight: learned prior only: weight of ``KL(p(z|X) || p(z|X without the dropped))``.
-        step_drop_prob: probability that ``L_mis`` cuts the last steps of one windowed modality of a
-            sample instead of dropping whole modalities (a sensor dying mid-window); 0: never.
-        max_dropped_steps: the most steps such a tail cut removes; ``None``: all but one present step.
-        step_cut: where those steps are: ``"tail"``, the last ones (a sensor dying); ``"burst"``, a run
-            of consecutive present steps anywhere in the window (a sensor dropping out and back).
-        terms: the loss terms to train with, by registered name (``mmf_rl.objectives.LOSS_TERMS``,
-            ``@register_loss_term``); null: the model's own.
-        modality_dropout: remove modalities from each training batch, drawn anew every batch, before
-            every term (:class:`~mmf_rl.objectives.ModalityDropout`; any model): null (off),
-            ``"subsets"`` (a share ``modality_dropout_prob`` of the samples keeps a uniformly drawn
+        kl_weight (float, optional): ``β`` of the ELBO's KL term once warm
+            (:class:`~mmf_rl.objectives.ELBOLoss`).
+        kl_warmup_steps (int, optional): training updates over which ``β`` grows linearly to ``kl_weight`` (0:
+            constant).
+        missing_modality_weight (float, optional): weight of ``L_mis``
+            (:class:`~mmf_rl.objectives.MissingModalityLoss`); 0 trains without it (the paper's ablation,
+            ``loss=no_mis``).
+        detach_teacher (bool, optional): stop the gradient through ``L_mis``'s full-modality side.
+        gsnn_weight (float, optional): > 0 also decodes from ``z ~ p(z|X)`` in training and adds that NLL with
+            this weight (Sohn et al.'s GSNN term); models without a prior decode refuse it.
+        best_of_k_weight (float, optional): > 0 also decodes ``best_of_k_samples`` draws ``z ~ p(z|X)`` per
+            window in training and adds this weight times the MSE of the closest one to the target
+            (Bhattacharyya et al.'s best-of-many term); models without a prior decode refuse it.
+        best_of_k_samples (int, optional): ``K``, the draws of that term (20: the minADE20 / minFDE20 of
+            ETH/UCY).
+        max_dropped (int, optional): ``L_mis`` drops ``k ~ U{1..min(max_dropped, M_i - 1)}`` present
+            modalities per sample; 1 is the paper's setting, ``None`` up to ``M_i - 1`` (single-modality
+            inputs trained).
+        dropped_nll_weight (float, optional): > 0 adds the target's NLL under the degraded forecast beside
+            ``L_mis``.
+        dropped_prior_weight (float, optional): learned prior only: weight of ``KL(p(z|X) || p(z|X without the
+            dropped))``.
+        step_drop_prob (float, optional): probability that ``L_mis`` cuts the last steps of one windowed
+            modality of a sample instead of dropping whole modalities (a sensor dying mid-window); 0: never.
+        max_dropped_steps (int, optional): the most steps such a tail cut removes; ``None``: all but one
+            present step.
+        step_cut (str, optional): where those steps are: ``"tail"``, the last ones (a sensor dying);
+            ``"burst"``, a run of consecutive present steps anywhere in the window (a sensor dropping out and
+            back).
+        terms (list[str], optional): the loss terms to train with, by registered name
+            (``mmf_rl.objectives.LOSS_TERMS``, ``@register_loss_term``); null: the model's own.
+        modality_dropout (str | dict[str, float], optional): remove modalities from each training batch, drawn
+            anew every batch, before every term (:class:`~mmf_rl.objectives.ModalityDropout`; any model): null
+            (off), ``"subsets"`` (a share ``modality_dropout_prob`` of the samples keeps a uniformly drawn
             non-empty subset of its modalities), ``{modality: rate}`` (each removed with its rate) or
             ``"observed"`` (those rates measured in the training split's own absences).
-        modality_dropout_prob: the share of samples ``"subsets"`` redraws, in ``(0, 1]``.
+        modality_dropout_prob (float, optional): the share of samples ``"subsets"`` redraws, in ``(0, 1]``.
+
+    Raises:
+        ValueError: a negative weight, a count below 1, a probability out of range, an unknown
+            ``step_cut`` or ``modality_dropout``, an empty ``terms``, or ``modality_dropout_prob`` set
+            without ``modality_dropout="subsets"``; the message names the ``loss.`` key.
+
+    Examples:
+        >>> from mmf_rl.objectives import LossConfig
+        >>> LossConfig(kl_warmup_steps=500, modality_dropout="subsets").missing_modality_weight
+        1.0
+        >>> LossConfig.from_dict({"kl_weigth": 0.5})
+        Traceback (most recent call last):
+            ...
+        ValueError: loss config: unknown keys ['kl_weigth']; expected a subset of [...]
     """
 
     kl_weight: float = 1.0
@@ -145,6 +168,17 @@ class LossConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> LossConfig:
+        """Build from plain data (the Hydra ``loss`` config).
+
+        Args:
+            d (dict): the settings.
+
+        Returns:
+            The config.
+
+        Raises:
+            ValueError: an unknown key or an invalid value.
+        """
         reject_unknown_keys(cls, d, "loss config")
         return cls(**d)
 
@@ -152,5 +186,12 @@ class LossConfig:
 def default_loss_config(config_dirs=()) -> LossConfig:
     """The loss settings ``mmf-rl train`` composes when none is chosen (``configs/train.yaml``'s loss
     option, ``configs/loss/default.yaml``): what a run gets without asking, e.g. the ELBO's KL warm-up,
-    which a model trained without the ELBO gets too. ``config_dirs``: as ``--config-dir``."""
+    which a model trained without the ELBO gets too.
+
+    Args:
+        config_dirs (Sequence[Path], optional): more config directories, as ``--config-dir``.
+
+    Returns:
+        The composed loss config.
+    """
     return LossConfig.from_dict(to_container(compose_config("train", [], list(config_dirs)).loss))

@@ -31,13 +31,46 @@ class DiverseSamplingLoss(ForecasterLossBase):
     (one always stays): the sampler then learns codes for every presence pattern it may meet.
 
     Args:
-        forecaster: a :class:`~mmf_rl.models.MultimodalForecaster` with ``learned_samples > 0``.
-        target_scale: ``[D]``, the target's units per normalised unit (its std); ``None``: ones.
-        best_of_k_weight, diversity_weight, kl_weight: the terms' weights.
-        diversity_scale: the squared distance between two forecasts at which their closeness is ``1/e``.
-        kl_floor: the KL below which ``loss_kl`` is constant (nats per history, over all ``K`` codes).
-        drop_prob: the probability of dropping each droppable present modality.
-        reduction: ``"mean"`` | ``"sum"`` | ``"none"`` over the batch.
+        forecaster (nn.Module): a :class:`~mmf_rl.models.MultimodalForecaster` with ``learned_samples > 0``.
+        target_scale (torch.Tensor, optional): ``[D]``, the target's units per normalised unit (its std);
+            ``None``: ones.
+        best_of_k_weight (float, optional): the weight of ``loss_best_of_k``. Defaults to ``5.0``.
+        diversity_weight (float, optional): the weight of ``loss_diversity``. Defaults to ``5.0``.
+        diversity_scale (float, optional): the squared distance between two forecasts at which their closeness
+            is ``1/e``.
+        kl_weight (float, optional): the weight of ``loss_kl``. Defaults to ``0.1``.
+        kl_floor (float, optional): the KL below which ``loss_kl`` is constant (nats per history, over all
+            ``K`` codes). Defaults to ``10.0``.
+        drop_prob (float, optional): the probability of dropping each droppable present modality. Defaults
+            to ``0.5``.
+        reduction (str, optional): ``"mean"`` (default) | ``"sum"`` | ``"none"`` over the batch.
+
+    Calling it on a batch returns ``loss_best_of_k``, ``loss_diversity`` and ``loss_kl``, each weighted.
+
+    Raises:
+        ValueError: a forecaster without a learned sampler, ``diversity_scale <= 0``, ``drop_prob``
+            outside ``[0, 1)``, or an unknown ``reduction``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> from mmf_rl.objectives import DiverseSamplingLoss
+        >>> model = MultimodalForecaster(ForecasterConfig(
+        ...     modalities=[ModalitySpec("force", "sequence", (6,)), ModalitySpec("pose", "vector", (3,))],
+        ...     history=4, horizon=5, target_dim=2, d_model=16, d_latent=4, num_heads=2, learned_samples=3,
+        ... ))
+        >>> batch = TensorDict({
+        ...     ("obs", "force"): torch.randn(8, 4, 6), ("present", "force"): torch.ones(8, dtype=torch.bool),
+        ...     ("obs", "pose"): torch.randn(8, 3), ("present", "pose"): torch.ones(8, dtype=torch.bool),
+        ...     "target": torch.randn(8, 5, 2),
+        ... }, batch_size=[8])
+        >>> loss = DiverseSamplingLoss(model).train()  # the sampler trains, the forecaster stays in eval
+        >>> model.training, model.latent_sampler.training
+        (False, True)
+        >>> sorted(loss(batch).keys())
+        ['loss_best_of_k', 'loss_diversity', 'loss_kl']
     """
 
     @dataclass

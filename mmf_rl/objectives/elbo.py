@@ -45,21 +45,51 @@ class ELBOLoss(ForecasterLossBase):
     spread.
 
     Args:
-        forecaster: a :class:`~mmf_rl.models.MultimodalForecaster` (or any module writing the
+        forecaster (nn.Module): a :class:`~mmf_rl.models.MultimodalForecaster` (or any module writing the
             same keys).
-        kl_weight: ``β`` once warm.
-        kl_warmup_steps: ``β`` grows linearly from ``kl_weight / kl_warmup_steps`` to
-            ``kl_weight`` over this many training updates (0: constant). The update count is a
-            buffer, so it is saved and restored with the loss's ``state_dict``.
-        gsnn_weight: ``w`` of the GSNN term (0, the default: no term, no extra decode).
-        best_of_k_weight: ``w`` of the best-of-K term (0, the default: no term, no extra decode).
-        best_of_k_samples: its ``K`` (>= 1).
-        reduction: ``"mean"`` | ``"sum"`` | ``"none"`` over the batch.
 
-    Returns a TensorDict with ``loss_nll``, ``loss_kl`` (already weighted by ``β``), with
-    ``gsnn_weight > 0`` ``loss_gsnn`` (weighted), with ``best_of_k_weight > 0`` ``loss_best_of_k``
-    (weighted) and the detached diagnostic ``best_of_k_mse`` (its unweighted mean), and the
-    detached diagnostics ``kl`` (unweighted) and ``kl_weight``.
+    Keyword Args:
+        kl_weight (float, optional): ``β`` once warm. Defaults to ``1.0``.
+        kl_warmup_steps (int, optional): ``β`` grows linearly from ``kl_weight / kl_warmup_steps`` to
+            ``kl_weight`` over this many training updates (0, the default: constant). The update count
+            is a buffer, so it is saved and restored with the loss's ``state_dict``.
+        gsnn_weight (float, optional): ``w`` of the GSNN term (0, the default: no term, no extra decode).
+        best_of_k_weight (float, optional): ``w`` of the best-of-K term (0, the default: no term, no extra
+            decode).
+        best_of_k_samples (int, optional): its ``K`` (>= 1). Defaults to ``20``.
+        reduction (str, optional): ``"mean"`` (default) | ``"sum"`` | ``"none"`` over the batch.
+
+    Calling it on a batch returns a TensorDict with ``loss_nll``, ``loss_kl`` (already weighted by
+    ``β``), with ``gsnn_weight > 0`` ``loss_gsnn`` (weighted), with ``best_of_k_weight > 0``
+    ``loss_best_of_k`` (weighted) and the detached diagnostic ``best_of_k_mse`` (its unweighted mean),
+    and the detached diagnostics ``kl`` (unweighted) and ``kl_weight``.
+
+    Raises:
+        ValueError: a negative weight or warm-up, ``best_of_k_samples < 1``, or an unknown
+            ``reduction``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> from mmf_rl.objectives import ELBOLoss
+        >>> model = MultimodalForecaster(ForecasterConfig(
+        ...     modalities=[ModalitySpec("force", "sequence", (6,)), ModalitySpec("pose", "vector", (3,))],
+        ...     history=4, horizon=5, target_dim=2, d_model=16, d_latent=4, num_heads=2,
+        ... ))
+        >>> batch = TensorDict({
+        ...     ("obs", "force"): torch.randn(8, 4, 6), ("present", "force"): torch.ones(8, dtype=torch.bool),
+        ...     ("obs", "pose"): torch.randn(8, 3), ("present", "pose"): torch.ones(8, dtype=torch.bool),
+        ...     "target": torch.randn(8, 5, 2),
+        ... }, batch_size=[8])
+        >>> loss = ELBOLoss(model, kl_weight=0.5)
+        >>> out = loss(batch)
+        >>> sorted(out.keys())
+        ['kl', 'kl_weight', 'loss_kl', 'loss_nll']
+        >>> sum(value for key, value in out.items() if key.startswith("loss_")).backward()
+        >>> sorted(ELBOLoss(model, gsnn_weight=1.0, best_of_k_weight=1.0, best_of_k_samples=4)(batch).keys())
+        ['best_of_k_mse', 'kl', 'kl_weight', 'loss_best_of_k', 'loss_gsnn', 'loss_kl', 'loss_nll']
     """
 
     @dataclass
@@ -192,6 +222,7 @@ class ELBOLoss(ForecasterLossBase):
         return td
 
     def current_kl_weight(self) -> float:
+        """``β`` at the current update count (``kl_weight`` once the warm-up is over)."""
         if not self.kl_warmup_steps:
             return self.kl_weight
         return self.kl_weight * min(1.0, (int(self.num_updates) + 1) / self.kl_warmup_steps)

@@ -58,31 +58,62 @@ class MissingModalityLoss(ForecasterLossBase):
     detached like the forecast's).
 
     Args:
-        forecaster: a :class:`~mmf_rl.models.MultimodalForecaster`.
-        weight: multiplies ``loss_mis``.
-        detach_teacher: stop the gradient through the teacher's side (the full-input forecast and,
-            with a learned prior, the full-input prior). The default trains both sides jointly, as
-            the paper does: ``L_mis`` then also pulls the full-input forecast toward what the kept
-            modalities can support, which measured more accurate with every sensor as well as
-            without one (docs/results.md). Detaching leaves the full-input forecast to the ELBO.
-        max_dropped: the most modalities dropped from one sample (``>= 1``), ``None``: no cap
-            (up to ``M_i - 1``).
-        dropped_nll_weight: weight of ``loss_mis_nll``, the Gaussian NLL of the target under the
-            degraded forecast (0, the default: no such term).
-        prior_weight: weight of ``loss_mis_prior`` (used only with a learned prior).
-        step_drop_prob: probability (in ``[0, 1]``) that a sample's drop is a tail cut of one
-            windowed modality instead of whole modalities (0, the default: never).
-        max_dropped_steps: the most steps a tail cut removes (``>= 1``); ``None``: up to all but
-            one of the modality's present steps.
-        step_cut: ``"tail"`` (the default: the last present steps) or ``"burst"`` (a run of
+        forecaster (nn.Module): a :class:`~mmf_rl.models.MultimodalForecaster`.
+
+    Keyword Args:
+        weight (float, optional): multiplies ``loss_mis``. Defaults to ``1.0``.
+        detach_teacher (bool, optional): stop the gradient through the teacher's side (the full-input forecast
+            and, with a learned prior, the full-input prior). The default trains both sides jointly, as the
+            paper does: ``L_mis`` then also pulls the full-input forecast toward what the kept modalities can
+            support, which measured more accurate with every sensor as well as without one (docs/results.md).
+            Detaching leaves the full-input forecast to the ELBO.
+        max_dropped (int, optional): the most modalities dropped from one sample (``>= 1``; default ``1``),
+            ``None``: no cap (up to ``M_i - 1``).
+        dropped_nll_weight (float, optional): weight of ``loss_mis_nll``, the Gaussian NLL of the target under
+            the degraded forecast (0, the default: no such term).
+        prior_weight (float, optional): weight of ``loss_mis_prior`` (used only with a learned prior).
+            Defaults to ``1.0``.
+        step_drop_prob (float, optional): probability (in ``[0, 1]``) that a sample's drop is a tail cut of
+            one windowed modality instead of whole modalities (0, the default: never).
+        max_dropped_steps (int, optional): the most steps a tail cut removes (``>= 1``); ``None``: up to all
+            but one of the modality's present steps.
+        step_cut (str, optional): ``"tail"`` (the default: the last present steps) or ``"burst"`` (a run of
             consecutive present steps anywhere in the window), `STEP_CUTS`.
-        reduction: ``"mean"`` (over eligible samples) | ``"sum"`` | ``"none"`` (per sample, 0
+        reduction (str, optional): ``"mean"`` (over eligible samples) | ``"sum"`` | ``"none"`` (per sample, 0
             where nothing was dropped).
 
-    Returns ``loss_mis`` (weighted), ``loss_mis_nll`` and ``loss_mis_prior`` when they apply, and
-    the detached diagnostics ``mis_kl`` (unweighted), ``mis_fraction`` (share of samples that had
-    a modality or steps dropped), ``mis_dropped`` (mean number of whole modalities dropped over the
-    samples that had some) and, with tail cuts, ``mis_tail_fraction`` (share of samples cut).
+    Calling it on a batch returns ``loss_mis`` (weighted), ``loss_mis_nll`` and ``loss_mis_prior`` when
+    they apply, and the detached diagnostics ``mis_kl`` (unweighted), ``mis_fraction`` (share of samples
+    that had a modality or steps dropped), ``mis_dropped`` (mean number of whole modalities dropped over
+    the samples that had some) and, with tail cuts, ``mis_tail_fraction`` (share of samples cut).
+
+    Raises:
+        ValueError: a negative weight, ``max_dropped`` or ``max_dropped_steps`` below 1,
+            ``step_drop_prob`` outside ``[0, 1]`` (or above 0 for a model without a windowed modality),
+            an unknown ``step_cut`` or ``reduction``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> from mmf_rl.objectives import MissingModalityLoss
+        >>> model = MultimodalForecaster(ForecasterConfig(
+        ...     modalities=[ModalitySpec("force", "sequence", (6,)), ModalitySpec("pose", "vector", (3,))],
+        ...     history=4, horizon=5, target_dim=2, d_model=16, d_latent=4, num_heads=2,
+        ... ))
+        >>> batch = TensorDict({
+        ...     ("obs", "force"): torch.randn(8, 4, 6), ("present", "force"): torch.ones(8, dtype=torch.bool),
+        ...     ("obs", "pose"): torch.randn(8, 3), ("present", "pose"): torch.ones(8, dtype=torch.bool),
+        ...     "target": torch.randn(8, 5, 2),
+        ... }, batch_size=[8])
+        >>> loss = MissingModalityLoss(model, weight=1.0)
+        >>> out = loss(batch)
+        >>> sorted(out.keys())
+        ['loss_mis', 'mis_dropped', 'mis_fraction', 'mis_kl']
+        >>> out["mis_fraction"]  # every sample has two modalities: one was dropped from each
+        tensor(1.)
+        >>> out["loss_mis"].backward()
     """
 
     @dataclass

@@ -64,17 +64,44 @@ class ModalityDropout(ForecasterLossBase):
       not named: never), e.g. the data's own observed absence rates (``loss.modality_dropout=observed``).
 
     Args:
-        loss: the wrapped forecaster loss.
-        subset_prob: ``subsets``' share of samples redrawn, in ``(0, 1]``.
-        rates: per modality of the forecaster, its removal probability in ``[0, 1)``.
+        loss (ForecasterLossBase): the wrapped forecaster loss.
 
-    Returns the wrapped loss's entries plus ``dropout_fraction``, the share of samples that lost at
-    least one modality to the dropout.
+    Keyword Args:
+        subset_prob (float, optional): ``subsets``' share of samples redrawn, in ``(0, 1]``.
+        rates (Mapping[str, float], optional): per modality of the forecaster, its removal probability in
+            ``[0, 1)``.
+
+    Give exactly one of ``subset_prob`` and ``rates``. Calling it on a batch returns the wrapped loss's
+    entries plus ``dropout_fraction``, the share of samples that lost at least one modality to the
+    dropout.
+
+    Raises:
+        ValueError: both or neither of ``subset_prob`` and ``rates``, ``subset_prob`` outside
+            ``(0, 1]``, or ``rates`` naming a modality the forecaster lacks or a rate outside ``[0, 1)``.
 
     Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
         >>> from mmf_rl.objectives import GaussianNLLLoss, ModalityDropout
-        >>> loss = ModalityDropout(GaussianNLLLoss(model), subset_prob=0.5)  # doctest: +SKIP
-        >>> loss(batch)["loss_nll"]  # doctest: +SKIP
+        >>> model = MultimodalForecaster(ForecasterConfig(
+        ...     modalities=[ModalitySpec("force", "sequence", (6,)), ModalitySpec("pose", "vector", (3,))],
+        ...     history=4, horizon=5, target_dim=2, d_model=16, d_latent=4, num_heads=2,
+        ... ))
+        >>> batch = TensorDict({
+        ...     ("obs", "force"): torch.randn(8, 4, 6), ("present", "force"): torch.ones(8, dtype=torch.bool),
+        ...     ("obs", "pose"): torch.randn(8, 3), ("present", "pose"): torch.ones(8, dtype=torch.bool),
+        ...     "target": torch.randn(8, 5, 2),
+        ... }, batch_size=[8])
+        >>> torch.manual_seed(1)  # the draws use the global RNG
+        <torch._C.Generator object at ...>
+        >>> loss = ModalityDropout(GaussianNLLLoss(model), rates={"force": 0.5})
+        >>> out = loss(batch)
+        >>> sorted(out.keys())
+        ['dropout_fraction', 'loss_nll']
+        >>> out["dropout_fraction"]  # the share of samples that trained without the force
+        tensor(0.5000)
     """
 
     def __init__(
@@ -107,7 +134,14 @@ class ModalityDropout(ForecasterLossBase):
         return self.loss._loss_in_keys()
 
     def kept(self, present: torch.Tensor) -> torch.Tensor:
-        """``[B, M]``: the modalities each sample keeps of its ``present`` ones."""
+        """The modalities each sample keeps of its ``present`` ones (a fresh draw).
+
+        Args:
+            present (torch.Tensor): ``bool [B, M]``, the forecaster's modalities in order.
+
+        Returns:
+            ``bool [B, M]``, within ``present``, with at least one per row that had one.
+        """
         if self.rates is not None:
             rates = torch.tensor([self.rates.get(m, 0.0) for m in self.modality_names], device=present.device)
             return drop_at_rates(present, rates)
@@ -148,10 +182,20 @@ def with_modality_dropout(loss: ForecasterLossBase, loss_cfg) -> ForecasterLossB
 
 
 def resolve_observed_dropout(loss_cfg, absent_fraction: Mapping[str, float]):
-    """``loss_cfg`` with ``modality_dropout=observed`` replaced by ``absent_fraction``, each modality's
-    share of absent frames in the training split (``WindowDataset.observed_outages``); other configs as
-    they are. Refused where the data has no absence to replay (a rate of 0 everywhere would train
-    nothing new)."""
+    """Resolve ``modality_dropout=observed`` to the training data's absence rates.
+
+    Args:
+        loss_cfg (LossConfig): the loss config.
+        absent_fraction (Mapping[str, float]): each modality's share of absent frames in the training
+            split (the ``fraction`` of ``WindowDataset.observed_outages``).
+
+    Returns:
+        ``loss_cfg`` with ``modality_dropout`` set to the nonzero rates (a new config); any other
+        config as it is.
+
+    Raises:
+        ValueError: no modality is ever absent (a rate of 0 everywhere would train nothing new).
+    """
     if loss_cfg.modality_dropout != OBSERVED:
         return loss_cfg
     rates = {name: float(fraction) for name, fraction in absent_fraction.items() if fraction > 0}

@@ -20,10 +20,41 @@ class GaussianNLLLoss(ForecasterLossBase):
     ``loss_nll``, so every model is fitted to the same objective on the forecast.
 
     Args:
-        forecaster: any module writing ``("forecast", "loc"/"scale")``.
-        reduction: ``"mean"`` | ``"sum"`` | ``"none"`` over the batch.
+        forecaster (nn.Module): any module writing ``("forecast", "loc"/"scale")``.
+        reduction (str, optional): ``"mean"`` (default) | ``"sum"`` | ``"none"`` over the batch.
 
-    Returns a TensorDict with ``loss_nll``. The loss config has no setting for it.
+    Calling it on a batch returns a TensorDict with ``loss_nll``. The loss config has no setting for it.
+
+    Raises:
+        ValueError: an unknown ``reduction``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> from mmf_rl.objectives import GaussianNLLLoss
+        >>> model = MultimodalForecaster(ForecasterConfig(
+        ...     modalities=[ModalitySpec("force", "sequence", (6,)), ModalitySpec("pose", "vector", (3,))],
+        ...     history=4, horizon=5, target_dim=2, d_model=16, d_latent=4, num_heads=2,
+        ... ))
+        >>> batch = TensorDict({
+        ...     ("obs", "force"): torch.randn(8, 4, 6), ("present", "force"): torch.ones(8, dtype=torch.bool),
+        ...     ("obs", "pose"): torch.randn(8, 3), ("present", "pose"): torch.ones(8, dtype=torch.bool),
+        ...     "target": torch.randn(8, 5, 2),
+        ... }, batch_size=[8])
+        >>> loss = GaussianNLLLoss(model)
+        >>> out = loss(batch)  # runs the model on a shallow copy: `batch` is left as it was
+        >>> out
+        TensorDict(
+            fields={
+                loss_nll: Tensor(shape=torch.Size([]), device=cpu, dtype=torch.float32, is_shared=False)},
+            batch_size=torch.Size([]),
+            device=None,
+            is_shared=False)
+        >>> out["loss_nll"].backward()
+        >>> GaussianNLLLoss(model, reduction="none")(batch)["loss_nll"].shape  # one per sample
+        torch.Size([8])
     """
 
     @dataclass

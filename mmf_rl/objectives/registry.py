@@ -31,7 +31,15 @@ GLOBAL_LOSS_SETTINGS = frozenset({"terms", "modality_dropout", "modality_dropout
 
 
 def register_loss_term(name: str):
-    """Class decorator: the :class:`ForecasterLossBase` subclass it decorates is the loss term ``name``."""
+    """Class decorator: the :class:`ForecasterLossBase` subclass it decorates is the loss term ``name``.
+
+    Args:
+        name (str): the term's name, as ``loss.terms`` and a model's registry entry give it.
+
+    Returns:
+        The decorator; it returns the class unchanged and raises ``TypeError`` for a class that is not a
+        :class:`ForecasterLossBase`, ``ValueError`` for a name already taken by another class.
+    """
 
     def register(cls: type) -> type:
         if not (isinstance(cls, type) and issubclass(cls, ForecasterLossBase)):
@@ -50,7 +58,17 @@ def register_loss_term(name: str):
 
 
 def loss_term(name: str) -> type[ForecasterLossBase]:
-    """The class registered as loss term ``name``."""
+    """The class registered as loss term ``name``.
+
+    Args:
+        name (str): a registered term (``"nll"``, ``"elbo"``, ``"mis"``, ...).
+
+    Returns:
+        The term's class.
+
+    Raises:
+        ValueError: no term has that name (the message lists the registered ones).
+    """
     if name not in LOSS_TERMS:
         raise ValueError(
             f"unknown loss term {name!r}; registered: {sorted(LOSS_TERMS)} "
@@ -60,8 +78,20 @@ def loss_term(name: str) -> type[ForecasterLossBase]:
 
 
 def terms_reading(setting: str, names: Iterable[str] | None = None) -> list[str]:
-    """The loss terms among ``names`` (default: every registered one) whose ``from_config`` reads
-    ``loss.<setting>``."""
+    """The loss terms whose ``from_config`` reads ``loss.<setting>``.
+
+    Args:
+        setting (str): a :class:`LossConfig` field.
+        names (Iterable[str], optional): the terms to look at; ``None`` (default): every registered one.
+
+    Returns:
+        The names of the terms that list ``setting`` in their ``config_fields``.
+
+    Examples:
+        >>> from mmf_rl.objectives import terms_reading
+        >>> terms_reading("kl_weight"), terms_reading("max_dropped")
+        (['elbo'], ['mis'])
+    """
     return [
         name
         for name in (sorted(LOSS_TERMS) if names is None else names)
@@ -72,7 +102,16 @@ def terms_reading(setting: str, names: Iterable[str] | None = None) -> list[str]
 def settings_read(names: Iterable[str], loss_cfg: LossConfig, model_settings: Mapping) -> frozenset[str]:
     """The settings of ``loss_cfg`` that the terms ``names`` read for a model with ``model_settings``
     (:func:`~mmf_rl.objectives.common.model_settings_of`, or a model config group's settings): those
-    they list in ``config_fields`` but what the config or the model leaves unread (``unread_settings``)."""
+    they list in ``config_fields`` but what the config or the model leaves unread (``unread_settings``).
+
+    Args:
+        names (Iterable[str]): the terms.
+        loss_cfg (LossConfig): the loss config.
+        model_settings (Mapping): the model's settings.
+
+    Returns:
+        The names of the settings read.
+    """
     read = set()
     for name in names:
         term = loss_term(name)
@@ -92,9 +131,19 @@ def check_settings_read(
     own) and that none of the terms ``names`` reads for a model with ``model_settings``: training would
     silently ignore them.
 
-    ``model_name`` is the model the terms are for, named in the error. A :class:`ConfigError` names
-    each setting and either the terms that would read it and the terms in use, or the condition under
-    which a term in use would read it (another setting, the model's prior).
+    Args:
+        names (Sequence[str]): the terms in use.
+        loss_cfg (LossConfig): the loss config.
+
+    Keyword Args:
+        model_settings (Mapping): the model's settings (:func:`model_settings_of`).
+        model_name (str, optional): the model the terms are for, named in the error.
+        defaults (LossConfig, optional): what counts as unchanged; ``None``: ``LossConfig()``.
+
+    Raises:
+        ConfigError: a changed setting no term in use reads; it names each setting and either the terms
+            that would read it and the terms in use, or the condition under which a term in use would
+            read it (another setting, the model's prior).
     """
     defaults = LossConfig() if defaults is None else defaults
     changed = [
@@ -173,10 +222,41 @@ def build_loss_terms(
     :class:`~mmf_rl.objectives.ModalityDropout`. The structure decides the names of the loss's buffers in a
     checkpoint, so it depends on the names given, not on which terms the config turns off.
 
-    A setting changed from ``LossConfig()``'s default that none of the terms reads is a
-    :class:`ConfigError` (:func:`check_settings_read`); ``check_unread=False`` skips that, for a
-    caller that checked against other defaults (``mmf-rl train``: the loss config group's) or
-    rebuilds the loss of a run as it was trained.
+    Args:
+        names (Sequence[str]): the registered terms (e.g. a model entry's ``("elbo", "mis")``).
+        model (nn.Module): the model they train.
+        loss_cfg (LossConfig): their settings.
+
+    Keyword Args:
+        check_unread (bool, optional): refuse a setting changed from ``LossConfig()``'s default that none
+            of the terms reads (:func:`check_settings_read`; default). ``False`` skips that, for a caller
+            that checked against other defaults (``mmf-rl train``: the loss config group's) or rebuilds
+            the loss of a run as it was trained.
+
+    Returns:
+        The loss module.
+
+    Raises:
+        ValueError: no names, an unknown term, or a config that turns off every term.
+        ConfigError: an unread setting (with ``check_unread``).
+
+    Examples:
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> from mmf_rl.objectives import LossConfig, build_loss_terms
+        >>> model = MultimodalForecaster(ForecasterConfig(
+        ...     modalities=[ModalitySpec("force", "sequence", (6,)), ModalitySpec("pose", "vector", (3,))],
+        ...     history=4, horizon=5, d_model=16, d_latent=4, num_heads=2,
+        ... ))
+        >>> type(build_loss_terms(["elbo", "mis"], model, LossConfig())).__name__
+        'CombinedLoss'
+        >>> no_mis = LossConfig(missing_modality_weight=0)  # turns 'mis' off; the structure stays
+        >>> type(build_loss_terms(["elbo", "mis"], model, no_mis).losses[0]).__name__
+        'ELBOLoss'
+        >>> build_loss_terms(["nll"], model, LossConfig(kl_weight=0.5))
+        Traceback (most recent call last):
+            ...
+        mmf_rl.configuration.ConfigError: loss.kl_weight=0.5 is read by the 'elbo' term, which ...
     """
     if not names:
         raise ValueError(f"no loss terms given; expected names among {sorted(LOSS_TERMS)}")

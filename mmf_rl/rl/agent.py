@@ -32,6 +32,12 @@ class MPCActor:
     fills the window, as after an env reset), then the planner picks the action. `reset` reseeds
     the planner from the episode's generator and restarts its warm start, so an episode depends
     only on that generator.
+
+    Args:
+        world_model (WorldModel | EnsembleWorldModel): the world model planned with.
+        objective (Objective): what the planner maximises (`PushObjective`).
+        image_size (int): the env's camera size (its window resizes frames to the model's).
+        **planner_kwargs: `SequenceCEMPlanner`'s keyword arguments (sizes, ``seed``).
     """
 
     def __init__(
@@ -49,11 +55,24 @@ class MPCActor:
         self._new_episode = True
 
     def reset(self, rng: np.random.Generator) -> None:
+        """Start an episode: reseed the planner from ``rng`` and drop its warm start.
+
+        Args:
+            rng (np.random.Generator): the episode's generator.
+        """
         self.planner.generator.manual_seed(int(rng.integers(2**63)))
         self._new_episode = True
 
     @torch.no_grad()
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        """The planner's action for this observation.
+
+        Args:
+            obs (dict[str, np.ndarray]): `MultimodalPushEnv`'s observation.
+
+        Returns:
+            A FetchPush action, float32 ``[4]``.
+        """
         observation = push_observation(obs)
         # The recorder steps the gymnasium env, not a TorchRL one: the window is fed as
         # TransformedEnv feeds it at a reset and a step.
@@ -75,8 +94,18 @@ class PushMPCAgent:
     Constructing it loads the checkpoint once and builds an agent, so a bad path or a model that
     is not a push world model fails here, in the caller, not in every recording worker.
     ``image_size`` is the recording's (the window resizes frames to the model's size).
-    The sizes and the weights (``reach_weight``, ``uncertainty_weight``, ``keep_out_weight``) are
-    `SequenceCEMPlanner`'s and `PushObjective`'s; their defaults are `benchmarks/mpc_push.py`'s.
+    The sizes and the weights are `SequenceCEMPlanner`'s and `PushObjective`'s; their defaults are
+    `benchmarks/mpc_push.py`'s.
+
+    Args:
+        checkpoint (Path | tuple[Path, ...]): the world model (a path), or an ensemble's (paths).
+        image_size (int, optional): the recording's camera size. Defaults to ``64``.
+        num_candidates (int, optional): `SequenceCEMPlanner`'s. Defaults to ``256``.
+        num_iterations (int, optional): `SequenceCEMPlanner`'s. Defaults to ``6``.
+        num_elites (int, optional): `SequenceCEMPlanner`'s. Defaults to ``32``.
+        reach_weight (float, optional): `PushObjective`'s. Defaults to ``0.5``.
+        uncertainty_weight (float, optional): `PushObjective`'s. Defaults to ``0``.
+        keep_out_weight (float, optional): `PushObjective`'s. Defaults to ``10.0``.
     """
 
     checkpoint: Path | tuple[Path, ...]
@@ -95,6 +124,7 @@ class PushMPCAgent:
         self()
 
     def world_model(self) -> WorldModel | EnsembleWorldModel:
+        """Load the world model (or the ensemble) at ``checkpoint``."""
         if isinstance(self.checkpoint, tuple):
             return EnsembleWorldModel.from_checkpoints(self.checkpoint)
         return WorldModel.from_checkpoint(self.checkpoint)

@@ -112,20 +112,36 @@ ACTION_HEADS = ("mse", "gmm")  # `BCConfig.action_head`
 class BCConfig:
     """What a `BCPolicy` reads and its sizes.
 
-    ``modalities``: the sensor windows (their ``encoder`` and ``encoder_kwargs`` are the
-    policy's own); ``history``, ``stride``: the window (`HistoryWindow`); ``goal_dim``,
-    ``action_dim``; ``forecast_shape``: ``(T, D)`` of the forecast input, ``None`` for a policy
-    without it; ``forecast_steps``: the first n of its T steps the policy reads (``None``: all);
-    ``latched_forecast``: the rule of the `LatchedForecastTransform` whose forecast
-    and age it reads (``None``: a `ForecastTransform`'s forecast, no age); ``privileged_object``:
-    the policy also reads the object's true planar position (privileged state, never removed by an
-    outage: a diagnostic of what limits the policy, not a policy to deploy); ``d_model``: size of
-    each modality's embedding; ``hidden``, ``depth``: the MLP head's width and number of hidden
-    layers; ``action_chunk``: k, the actions predicted per step (1: one, the per-step policy;
-    k > 1: a chunk executed with temporal ensembling, `TemporalEnsemble`), ``chunk_decay``: the
-    ensemble's ``m`` (ACT's weights ``exp(-m·i)``, ``i = 0`` the oldest prediction);
-    ``action_head``: ``"mse"`` (the action, trained by mean squared error) or ``"gmm"`` (a
-    mixture of ``gmm_components`` Gaussians per action step, `mmf_rl.rl.gmm_head`).
+    Args:
+        modalities (list[ModalitySpec]): the sensor windows (their ``encoder`` and ``encoder_kwargs``
+            are the policy's own).
+        history (int): the window's steps (`HistoryWindow`).
+        stride (int, optional): frames between two window steps. Defaults to ``1``.
+        goal_dim (int, optional): dims of the goal. Defaults to ``3``.
+        action_dim (int, optional): dims of the action. Defaults to ``4``.
+        forecast_shape (tuple[int, int], optional): ``(T, D)`` of the forecast input; ``None``: a policy
+            without it.
+        forecast_steps (int, optional): the first n of its T steps the policy reads (``None``: all).
+        latched_forecast (str, optional): the rule of the `LatchedForecastTransform` whose forecast and
+            age it reads (``None``: a `ForecastTransform`'s forecast, no age).
+        privileged_object (bool, optional): the policy also reads the object's true planar position
+            (privileged state, never removed by an outage: a diagnostic of what limits the policy, not
+            a policy to deploy). Defaults to ``False``.
+        d_model (int, optional): size of each modality's embedding. Defaults to ``64``.
+        hidden (int, optional): the MLP head's width. Defaults to ``256``.
+        depth (int, optional): the MLP head's number of hidden layers. Defaults to ``2``.
+        action_chunk (int, optional): k, the actions predicted per step (1, the default: one, the
+            per-step policy; k > 1: a chunk executed with temporal ensembling, `TemporalEnsemble`).
+        chunk_decay (float, optional): the ensemble's ``m`` (ACT's weights ``exp(-m·i)``, ``i = 0`` the
+            oldest prediction). Defaults to ``0.01``.
+        action_head (str, optional): ``"mse"`` (default: the action, trained by mean squared error) or
+            ``"gmm"`` (a mixture of ``gmm_components`` Gaussians per action step, `mmf_rl.rl.gmm_head`).
+        gmm_components (int, optional): the mixture's components. Defaults to ``5``.
+
+    Raises:
+        ValueError: ``latched_forecast`` without a forecast input or outside the rules,
+            ``forecast_steps`` outside ``1..T``, ``action_chunk < 1``, a negative ``chunk_decay``, an
+            unknown ``action_head`` or ``gmm_components < 1``.
     """
 
     modalities: list[ModalitySpec]
@@ -178,6 +194,7 @@ class BCConfig:
             )
 
     def to_dict(self) -> dict:
+        """The config as plain data, what :meth:`from_dict` reads back (a checkpoint stores it)."""
         return {
             "modalities": [m.to_dict() for m in self.modalities],
             "history": self.history,
@@ -206,6 +223,17 @@ class BCConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> BCConfig:
+        """Build from plain data.
+
+        Args:
+            d (dict): the fields.
+
+        Returns:
+            The config.
+
+        Raises:
+            ValueError: an unknown key or an invalid value.
+        """
         reject_unknown_keys(cls, d, "BC policy config")
         return cls(**d)
 
@@ -214,7 +242,15 @@ class BCConfig:
 class EncoderChoice:
     """The encoder a `BCPolicy` gives each modality kind (`mmf_rl.models.encoders`); images get a
     narrower ConvNet than the forecaster's by default: the policy trains on every frame of the
-    recording, not on forecasting windows."""
+    recording, not on forecasting windows.
+
+    Args:
+        image (str, optional): the image modalities' encoder. Defaults to ``"conv"``.
+        image_channels (tuple[int, ...], optional): its ConvNet channels. Defaults to
+            ``(16, 32, 32, 32)``.
+        vector (str, optional): the vector and sequence modalities' encoder. Defaults to ``"mlp"``.
+        vector_kwargs (dict, optional): its keyword arguments.
+    """
 
     image: str = "conv"
     image_channels: tuple[int, ...] = (16, 32, 32, 32)
@@ -222,6 +258,14 @@ class EncoderChoice:
     vector_kwargs: dict = field(default_factory=dict)
 
     def spec(self, spec: ModalitySpec) -> ModalitySpec:
+        """``spec`` with this choice's encoder for its kind.
+
+        Args:
+            spec (ModalitySpec): a modality of the data.
+
+        Returns:
+            A copy with ``encoder`` and ``encoder_kwargs`` replaced.
+        """
         if spec.kind == "image":
             return replace(spec, encoder=self.image, encoder_kwargs={"channels": tuple(self.image_channels)})
         return replace(spec, encoder=self.vector, encoder_kwargs=dict(self.vector_kwargs))
@@ -315,8 +359,9 @@ class BCPolicy(TensorDictModule):
     from it ``"action"`` (``"action_chunk"``): the mean of the most likely component.
 
     Args:
-        config: what it reads and its sizes.
-        stats: normalisation statistics of its training data (`Demonstrations.normalizer.stats`):
+        config (BCConfig): what it reads and its sizes.
+        stats (Mapping[str, torch.Tensor]): normalisation statistics of its training data
+            (`Demonstrations.normalizer.stats`):
             the sensor windows' (``"<m>/mean"``, ``"<m>/std"``, ``"target/..."``, for its
             `HistoryWindow`) and the goal's (``"goal/mean"``, ``"goal/std"``); with
             ``privileged_object``, the object's planar position's (``"object_position/..."``).
@@ -390,9 +435,23 @@ class BCPolicy(TensorDictModule):
         """A policy for the windows, goal and action of ``demonstrations``; it reads forecasts of
         ``forecasts``' shape when given (its first ``forecast_steps``; their age, from a
         `LatchedForecastTable`), and the
-        object's position with ``privileged_object``. ``sizes``: `BCConfig` fields (``d_model``,
-        ``hidden``, ``depth``, ``action_chunk``, ``chunk_decay``, ``action_head``,
-        ``gmm_components``)."""
+        object's position with ``privileged_object``.
+
+        Args:
+            demonstrations (Demonstrations): its training samples (modalities, window, goal and action
+                dims, normalisation statistics).
+            forecasts (ForecastTable, optional): the forecasts it reads (a `LatchedForecastTable`: with
+                their age); ``None``: no forecast input.
+            encoders (EncoderChoice, optional): the modalities' encoders; ``None``: the defaults.
+            privileged_object (bool, optional): also read the object's true position. Defaults to
+                ``False``.
+            forecast_steps (int, optional): the first steps of each forecast it reads; ``None``: all.
+            **sizes: `BCConfig` fields (``d_model``, ``hidden``, ``depth``, ``action_chunk``,
+                ``chunk_decay``, ``action_head``, ``gmm_components``).
+
+        Returns:
+            The policy, untrained.
+        """
         if privileged_object:
             demonstrations.check_object_pose("train")
         encoders = encoders or EncoderChoice()
@@ -420,7 +479,19 @@ class BCPolicy(TensorDictModule):
         """The env transforms this policy reads from, in order: its `HistoryWindow`, then the
         forecaster's `ForecastTransform` (``denormalize=False``; a `LatchedForecastTransform` of the
         policy's rule for one trained on latched forecasts) for a policy that reads forecasts; for
-        an action-chunk policy, last, an `InitTracker` and its ensemble's state primer."""
+        an action-chunk policy, last, an `InitTracker` and its ensemble's state primer.
+
+        Args:
+            forecast (ForecastTransform, optional): the forecaster's transform, for a policy that reads
+                forecasts.
+
+        Returns:
+            The transforms, to put after the env's outages in a `Compose`.
+
+        Raises:
+            ValueError: a forecast transform the policy was not trained on (none, one too many, another
+                shape, denormalised, or another latch rule).
+        """
         return self._readers(forecast) + self._ensemble_transforms()
 
     def _ensemble_transforms(self) -> list:
@@ -479,14 +550,33 @@ class BCPolicy(TensorDictModule):
 
     def save(self, directory: str | os.PathLike, step: int = 0) -> Path:
         """Write the policy as a checkpoint (safetensors weights and statistics, ``meta.json`` config)
-        under ``directory``, atomically; returns its path."""
+        under ``directory``, atomically.
+
+        Args:
+            directory (str | os.PathLike): the checkpoints' directory.
+            step (int, optional): the step the checkpoint is named after. Defaults to ``0``.
+
+        Returns:
+            The checkpoint's path.
+        """
         return save_checkpoint(
             directory, step, self.state_dict(), meta=self.checkpoint_meta(), tensors=self.stats
         )
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike) -> BCPolicy:
-        """The policy of a checkpoint (or of the ``last`` one in a directory: a run's ``checkpoints/``)."""
+        """The policy of a checkpoint.
+
+        Args:
+            path (str | os.PathLike): a checkpoint, or a directory's ``last`` one (a run's
+                ``checkpoints/``).
+
+        Returns:
+            The policy, in eval mode.
+
+        Raises:
+            CheckpointError: a checkpoint that is not a behaviour-cloning policy's.
+        """
         checkpoint = load_checkpoint(path, with_trainer_state=False)
         if "bc_config" not in checkpoint.meta:
             raise CheckpointError(
@@ -511,12 +601,30 @@ def validation_errors(
     forecasts: ForecastTable | LatchedForecastTable | None = None,
     batch_size: int = 256,
 ) -> dict[str, float]:
-    """Mean squared action error on ``split``, with all sensors (``mse_all``) and with each subset
-    of ``droppable`` removed from every sample (``mse_no_image``, ...); ``loss``: their mean.
+    """Mean squared action error on ``split``, with all sensors and with each subset of ``droppable``
+    removed from every sample.
+
     For an action-chunk policy, the error of the chunk's first action (the one it predicts for
     now, as a per-step policy does: the two compare), from its network alone (`BCPolicy.predictor`:
     no ensemble over past chunks, the frames being independent). For a ``"gmm"`` policy, the error of
-    the action it acts with (its most likely component's mean), so the two heads compare."""
+    the action it acts with (its most likely component's mean), so the two heads compare.
+
+    Args:
+        policy (BCPolicy): the policy (put back in its mode after).
+        demonstrations (Demonstrations): the samples.
+        split (str, optional): the split scored. Defaults to ``"val"``.
+        droppable (Sequence[str], optional): the sensors whose subsets are removed. Defaults to
+            ``("image", "force")``.
+        forecasts (ForecastTable | LatchedForecastTable, optional): the forecasts under each outage,
+            for a policy that reads them.
+        batch_size (int, optional): samples per batch. Defaults to ``256``.
+
+    Returns:
+        ``mse_all``, ``mse_no_<m>...`` per subset, and ``loss``, their mean.
+
+    Raises:
+        ValueError: the split has no demonstration frame.
+    """
     if not len(demonstrations.split_frames[split]):
         raise ValueError(f"validation_errors: the {split!r} split has no demonstration frame")
     was_training = policy.training
@@ -650,7 +758,32 @@ def train_bc(
     forecasts. ``outages`` (with ``dropout={}``): each sample's outage is a replay of the env's
     outage processes instead (`ReplayedOutages`, replayed with the policy's forecast transform when
     it reads forecasts); validation still removes each subset of the sensors it drops, with
-    ``forecasts``. Returns the last validation errors (`validation_errors`, ``val/`` prefix).
+    ``forecasts``.
+
+    Args:
+        policy (BCPolicy): the policy, trained in place.
+        demonstrations (Demonstrations): the recording's samples.
+        config (TrainerConfig): steps, batch size, optimiser, schedule, seed, evaluation, checkpoints.
+
+    Keyword Args:
+        dropout (Mapping[str, float], optional): ``{modality: p}`` removed per sample. Defaults to
+            ``DEFAULT_DROPOUT`` (image and force at 0.3).
+        forecasts (ForecastTable | LatchedForecastTable, optional): the forecasts under each outage,
+            for a policy that reads them.
+        outages (ReplayedOutages, optional): replayed env outages instead of ``dropout``.
+        run_dir (str | os.PathLike, optional): where ``checkpoints/`` go; ``None``: none.
+        logger (torchrl.record.loggers.Logger, optional): where to log.
+        resume (bool, optional): continue the last checkpoint under ``run_dir``. Defaults to ``False``.
+
+    Returns:
+        The last validation errors (`validation_errors`, ``val/`` prefix); ``{}`` without a
+        validation split.
+
+    Raises:
+        ValueError: forecasts that do not fit the policy (missing or unread, of another latch rule, or
+            not covering the frames or the removed sensors), replayed outages with ``dropout`` or served
+            through another window or forecast than the policy reads, or ``resume`` without
+            ``run_dir``.
     """
     _check_replayed_outages(policy, outages, dropout)
     removed = list(dropout) if outages is None else list(outages.droppable)

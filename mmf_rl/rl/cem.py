@@ -70,22 +70,59 @@ class SequenceCEMPlanner(TensorDictModuleBase):
     the model has no idea what changing it would do.
 
     Args:
-        world_model: a `WorldModel` or an `EnsembleWorldModel` (its ``forecast_scale`` is then the
-            members' disagreement).
-        objective: ``(forecast [n, N, T, D], actions [n, N, S, A], context) -> rewards [n, N, T]``
-            with an ``in_keys`` attribute naming the context keys it reads. An objective that also
-            scores the forecast's uncertainty sets ``uses_forecast_scale = True``; it is then called
-            with ``forecast_scale=`` the forecast's standard deviation ``[n, N, T, D]`` in target
-            units (`WorldModel.forecast_distribution`, from the same decode). An objective without
-            the attribute (or with it false) is called with the three arguments alone, so a
-            user's objective needs nothing more.
-        action_spec: the env's bounded action spec (``[A]``).
-        num_candidates, num_iterations, num_elites: CEM sizes.
-        init_std: standard deviation of the first sampling distribution, in units of the
-            training data's action std.
-        min_std: floor of the refitted standard deviation (same units), so sampling never
-            collapses.
-        seed: seed of the planner's own generator.
+        world_model (WorldModel | EnsembleWorldModel): the world model (an ensemble's
+            ``forecast_scale`` is the members' disagreement).
+        objective (Objective): ``(forecast [n, N, T, D], actions [n, N, S, A], context) -> rewards [n, N, T]``
+            with an ``in_keys`` attribute naming the context keys it reads. An objective that also scores the
+            forecast's uncertainty sets ``uses_forecast_scale = True``; it is then called with
+            ``forecast_scale=`` the forecast's standard deviation ``[n, N, T, D]`` in target units
+            (`WorldModel.forecast_distribution`, from the same decode). An objective without the attribute (or
+            with it false) is called with the three arguments alone, so a user's objective needs nothing more.
+        action_spec (Bounded): the env's bounded action spec (``[A]``; a batched env's ``[*batch, A]``
+            repeats one env's bounds).
+
+    Keyword Args:
+        num_candidates (int, optional): action sequences sampled per iteration. Defaults to ``256``.
+        num_iterations (int, optional): refits of the sampling distribution. Defaults to ``6``.
+        num_elites (int, optional): the best candidates it is refitted to. Defaults to ``32``.
+        init_std (float, optional): standard deviation of the first sampling distribution, in units of
+            the training data's action std. Defaults to ``1.0``.
+        min_std (float, optional): floor of the refitted standard deviation (same units), so sampling
+            never collapses. Defaults to ``0.05``.
+        seed (int, optional): seed of the planner's own generator. Defaults to ``0``.
+
+    Raises:
+        ValueError: not ``1 <= num_elites <= num_candidates``, ``num_iterations < 1``, or an
+            ``action_spec`` whose last dim is not the world model's action dim.
+
+    Examples:
+        >>> import torch
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> force = ModalitySpec("force", "sequence", (6,))
+        >>> proprio = ModalitySpec("proprio", "sequence", (17,))
+        >>> sizes = dict(history=4, horizon=5, d_model=16, d_latent=4, num_heads=2)
+        >>> sizes.update(action_dim=4, action_steps=5)  # the push env's actions over the 5 steps
+        >>> model = MultimodalForecaster(ForecasterConfig([force, proprio], **sizes))  # untrained world model
+        >>> stats = {  # its training run's normalisation statistics (a checkpoint's tensors)
+        ...     "force/mean": torch.zeros(6), "force/std": torch.ones(6),
+        ...     "proprio/mean": torch.zeros(17), "proprio/std": torch.ones(17),
+        ...     "target/mean": torch.zeros(2), "target/std": torch.ones(2),
+        ...     "future_action/mean": torch.zeros(4), "future_action/std": torch.ones(4),
+        ... }
+        >>> from torchrl.envs import InitTracker, TransformedEnv, Compose
+        >>> from mmf_rl.envs import MultimodalPushTorchEnv
+        >>> from mmf_rl.rl import PushObjective, SequenceCEMPlanner, WorldModel
+        >>> world_model = WorldModel(model, stats)
+        >>> env = TransformedEnv(
+        ...     MultimodalPushTorchEnv(image_size=16), Compose(InitTracker(), world_model.history_window())
+        ... )
+        >>> sizes = dict(num_candidates=32, num_iterations=2, num_elites=4)
+        >>> planner = SequenceCEMPlanner(world_model, PushObjective(), env.action_spec, **sizes)
+        >>> rollout = env.rollout(2, planner)  # a CEM decision per step, warm-started from the last
+        >>> rollout["action"].shape, bool(rollout["action"].abs().max() <= 1)
+        (torch.Size([2, 4]), True)
+        >>> env.close()
     """
 
     def __init__(
@@ -146,7 +183,17 @@ class SequenceCEMPlanner(TensorDictModuleBase):
 
     @torch.no_grad()
     def plan(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The CEM's final mean sequences ``[*batch, S, A]`` (raw actions) for the envs of ``tensordict``."""
+        """The CEM's final mean sequences for the envs of ``tensordict``.
+
+        Args:
+            tensordict (TensorDictBase): the env's output, with ``"history"`` and the objective's keys.
+
+        Returns:
+            ``[*batch, S, A]`` raw actions.
+
+        Raises:
+            KeyError: no ``"history"`` (the env lacks the world model's `HistoryWindow`).
+        """
         if keys.HISTORY not in tensordict.keys():
             raise KeyError(
                 f"SequenceCEMPlanner reads {keys.HISTORY!r}, which the env does not write: append the world "
@@ -174,5 +221,13 @@ class SequenceCEMPlanner(TensorDictModuleBase):
         return self._raw(mean).reshape(*batch, *mean.shape[1:])
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Write ``"action"``: the first action of :meth:`plan`'s sequences.
+
+        Args:
+            tensordict (TensorDictBase): the env's output.
+
+        Returns:
+            ``tensordict``.
+        """
         tensordict.set("action", self.plan(tensordict)[..., 0, :])
         return tensordict

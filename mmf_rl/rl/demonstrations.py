@@ -72,7 +72,19 @@ def _episode_starts(episode: torch.Tensor, first_row: int) -> torch.Tensor:
 
 def drop_sets(droppable: Sequence[str]) -> list[tuple[str, ...]]:
     """Every subset of ``droppable``; subset ``i`` holds the modalities whose bit is set in ``i``
-    (bit ``j`` for ``droppable[j]``), so a batch's absent flags index it directly."""
+    (bit ``j`` for ``droppable[j]``), so a batch's absent flags index it directly.
+
+    Args:
+        droppable (Sequence[str]): the modalities that can be removed.
+
+    Returns:
+        The ``2 ** len(droppable)`` subsets, as tuples.
+
+    Examples:
+        >>> from mmf_rl.rl import drop_sets
+        >>> drop_sets(["image", "force"])
+        [(), ('image',), ('force',), ('image', 'force')]
+    """
     return [tuple(m for j, m in enumerate(droppable) if i >> j & 1) for i in range(2 ** len(droppable))]
 
 
@@ -80,12 +92,15 @@ class Demonstrations:
     """The frames of a recording as behaviour-cloning samples.
 
     Args:
-        data: the recording's window cache (a `WindowDataset` of the data config the policy and
-            the forecaster read: modalities, history, stride, image size, split).
-        goal_feature, action_feature: vector features of the recording read as the goal the
-            policy is given and the action it imitates.
-        object_feature: the object's pose (privileged state, `OBJECT_POSE` in a batch); ``None``
-            for a recording without it.
+        data (WindowDataset): the recording's window cache (of the data config the policy and the
+            forecaster read: modalities, history, stride, image size, split).
+        goal_feature (str, optional): the vector feature read as the goal the policy is given.
+            Defaults to the recorder's ``observation.goal``.
+        action_feature (str, optional): the vector feature read as the action it imitates. Defaults
+            to ``action``.
+        object_feature (str, optional): the object's pose (privileged state, `OBJECT_POSE` in a
+            batch); ``None`` for a recording without it. Defaults to the recorder's
+            ``observation.object_pose``.
 
     Attributes: ``specs``, ``history``, ``stride`` (the data config's), ``normalizer`` (the
     training split's statistics, with ``goal/mean``, ``goal/std`` and those of the object's planar
@@ -384,7 +399,13 @@ class ForecastTable:
     (`Demonstrations.window`), the forecaster's training one (`for_trained`). A removal covers
     every step of the window: with per-step presence, the forecasts a `ForecastTransform` makes
     in the first H-1 steps of an env outage (a sensor that died mid-window, still present at its
-    earlier steps) have no entry here.
+    earlier steps) have no entry here. Built by `compute` or `for_trained`.
+
+    Args:
+        loc (torch.Tensor): the forecasts' means, ``float32 [N, 2**len(droppable), T, D]``.
+        scale (torch.Tensor): their standard deviations, same shape.
+        droppable (tuple[str, ...]): the modalities whose subsets index the second dim.
+        per_step_presence (bool, optional): the windows' presence rule. Defaults to ``False``.
     """
 
     loc: torch.Tensor
@@ -558,23 +579,33 @@ class DemonstrationLoader:
     """Behaviour-cloning batches of one split, with the `WindowLoader` protocol.
 
     Args:
-        demonstrations: the samples.
-        split: ``"train"``, ``"val"`` or ``"test"``.
-        batch_size: samples per batch.
-        dropout: ``{modality: p}``: each sample loses each of these modalities with probability
-            ``p``, independently (drawn per epoch from ``seed``; a sample never loses all of its
-            modalities: the draws that would are not applied).
-        absent: modalities removed from every sample (an evaluation under a fixed outage).
-        forecasts: a `ForecastTable` covering the outages: batches then carry
+        demonstrations (Demonstrations): the samples.
+        split (str): ``"train"``, ``"val"`` or ``"test"``.
+        batch_size (int): samples per batch.
+
+    Keyword Args:
+        dropout (Mapping[str, float], optional): ``{modality: p}``: each sample loses each of these modalities
+            with probability ``p``, independently (drawn per epoch from ``seed``; a sample never loses all of
+            its modalities: the draws that would are not applied).
+        absent (Sequence[str], optional): modalities removed from every sample (an evaluation under a
+            fixed outage).
+        forecasts (ForecastTable, optional): a `ForecastTable` covering the outages: batches then carry
             ``("forecast", "loc"/"scale")`` of the outage each sample is under (a
             `mmf_rl.rl.latched_forecast.LatchedForecastTable`: the latched forecast and its age).
-        outages: a `mmf_rl.rl.replayed_outages.ReplayedOutages` instead of ``dropout``: each
-            sample's outage is one replay of the env's outage processes, with the forecast served
-            there (when ``forecasts`` is given: the policy reads forecasts).
-        action_chunk: k > 1: batches carry the next k demonstrated actions and their mask
+        outages (ReplayedOutages, optional): a `mmf_rl.rl.replayed_outages.ReplayedOutages` instead of
+            ``dropout``: each sample's outage is one replay of the env's outage processes, with the forecast
+            served there (when ``forecasts`` is given: the policy reads forecasts).
+        action_chunk (int, optional): k > 1: batches carry the next k demonstrated actions and their mask
             (`Demonstrations.action_chunks`), an action-chunk policy's targets.
-        shuffle: default: for ``"train"``; ``seed`` orders the epochs (``(seed, epoch)``).
-        drop_last: default: when shuffled.
+        shuffle (bool, optional): shuffle each epoch; ``None`` (default): for ``"train"``.
+        seed (int, optional): orders the epochs and draws the dropout (``(seed, epoch)``). Defaults to
+            ``0``.
+        drop_last (bool, optional): drop the last, smaller batch; ``None`` (default): when shuffled.
+
+    Raises:
+        ValueError: an unknown split, ``batch_size`` or ``action_chunk`` below 1, ``dropout``/``absent``
+            naming a modality the demonstrations lack or a probability outside ``[0, 1]``, or
+            ``outages`` with ``dropout`` or ``absent``.
     """
 
     def __init__(
@@ -618,6 +649,11 @@ class DemonstrationLoader:
         self.seed, self.epoch = seed, 0
 
     def set_epoch(self, epoch: int) -> None:
+        """Set the epoch the next iteration's order and dropout are drawn for.
+
+        Args:
+            epoch (int): the epoch.
+        """
         self.epoch = epoch
 
     def __len__(self) -> int:

@@ -44,8 +44,46 @@ class EnsembleWorldModel:
     model config). Otherwise the constructor raises, naming the member and the difference.
 
     Args:
-        members: the world models, on one device.
-        names: what errors call each member (default ``member i``; `from_checkpoints`: its path).
+        members (Sequence[WorldModel]): the world models, on one device.
+        names (Sequence[str], optional): what errors call each member (default ``member i``;
+            `from_checkpoints`: its path).
+
+    Raises:
+        ValueError: no member, as many names as members, or a member that does not match the first
+            (named, with the difference).
+
+    Examples:
+        >>> import torch
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> force = ModalitySpec("force", "sequence", (6,))
+        >>> proprio = ModalitySpec("proprio", "sequence", (17,))
+        >>> sizes = dict(history=4, horizon=5, d_model=16, d_latent=4, num_heads=2)
+        >>> sizes.update(action_dim=4, action_steps=5)  # the push env's actions over the 5 steps
+        >>> model = MultimodalForecaster(ForecasterConfig([force, proprio], **sizes))
+        >>> stats = {  # its training run's normalisation statistics (a checkpoint's tensors)
+        ...     "force/mean": torch.zeros(6), "force/std": torch.ones(6),
+        ...     "proprio/mean": torch.zeros(17), "proprio/std": torch.ones(17),
+        ...     "target/mean": torch.zeros(2), "target/std": torch.ones(2),
+        ...     "future_action/mean": torch.zeros(4), "future_action/std": torch.ones(4),
+        ... }
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.rl import EnsembleWorldModel, WorldModel
+        >>> members = [WorldModel(MultimodalForecaster(model.config), stats) for _ in range(3)]  # 3 inits
+        >>> ensemble = EnsembleWorldModel(members)
+        >>> window = TensorDict({
+        ...     ("obs", "force"): torch.randn(2, 4, 6),
+        ...     ("present", "force"): torch.ones(2, dtype=torch.bool),
+        ...     ("obs", "proprio"): torch.randn(2, 4, 17),
+        ...     ("present", "proprio"): torch.ones(2, dtype=torch.bool),
+        ... }, batch_size=[2])
+        >>> tokens, present, valid = ensemble.encode(window)
+        >>> tokens.shape  # [n, K members, N tokens, d]
+        torch.Size([2, 3, 2, 16])
+        >>> actions = torch.zeros(2, 8, 5, 4)  # 8 candidate sequences per window
+        >>> mean, disagreement = ensemble.forecast_distribution(tokens, present, valid, actions)
+        >>> mean.shape, bool((disagreement > 0).all())
+        (torch.Size([2, 8, 5, 2]), True)
     """
 
     def __init__(self, members: Sequence[WorldModel], names: Sequence[str] | None = None):
@@ -75,7 +113,15 @@ class EnsembleWorldModel:
     def from_checkpoints(
         cls, paths: Sequence[str | os.PathLike], map_location: str | torch.device = "cpu"
     ) -> EnsembleWorldModel:
-        """The ensemble of the world models at ``paths`` (each what `WorldModel.from_checkpoint` reads)."""
+        """The ensemble of the world models at ``paths``.
+
+        Args:
+            paths (Sequence[str | os.PathLike]): each what `WorldModel.from_checkpoint` reads.
+            map_location (str | torch.device, optional): their device. Defaults to ``"cpu"``.
+
+        Returns:
+            The ensemble; errors name each member by its path.
+        """
         return cls([WorldModel.from_checkpoint(p, map_location) for p in paths], [str(p) for p in paths])
 
     def history_window(self) -> HistoryWindow:
@@ -97,8 +143,16 @@ class EnsembleWorldModel:
 
     @torch.no_grad()
     def encode(self, window: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Every member's tokens ``[n, K, N, d]`` and token presence ``[n, K, N]``, and ``valid`` ``[n]``
-        (the rows with a present modality: the same for every member, as they read one window)."""
+        """Encode history windows with every member.
+
+        Args:
+            window (TensorDictBase): ``n`` history windows.
+
+        Returns:
+            Every member's tokens ``[n, K, N, d]`` and token presence ``[n, K, N]``, and ``valid``
+            ``[n]`` (the rows with a present modality: the same for every member, as they read one
+            window).
+        """
         encoded = [member.encode(window) for member in self.members]
         tokens = torch.stack([e[0] for e in encoded], dim=1)
         present = torch.stack([e[1] for e in encoded], dim=1)
@@ -108,8 +162,17 @@ class EnsembleWorldModel:
     def forecast(
         self, tokens: torch.Tensor, present: torch.Tensor, valid: torch.Tensor, actions: torch.Tensor
     ) -> torch.Tensor:
-        """The members' mean forecast ``[n, N, T, D]`` (target units) for raw action sequences
-        ``[n, N, S, A]``."""
+        """The members' mean forecast for raw action sequences.
+
+        Args:
+            tokens (torch.Tensor): :meth:`encode`'s tokens ``[n, K, N, d]``.
+            present (torch.Tensor): its token presence ``[n, K, N]``.
+            valid (torch.Tensor): its ``valid`` ``[n]``.
+            actions (torch.Tensor): ``[n, N, S, A]`` raw actions.
+
+        Returns:
+            ``[n, N, T, D]``, target units.
+        """
         return self._member_forecasts(tokens, present, valid, actions).mean(0)
 
     @torch.no_grad()
@@ -118,7 +181,17 @@ class EnsembleWorldModel:
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`forecast` and the members' disagreement, both ``[n, N, T, D]`` in target units. Rows
         without a present modality get every member's marginal mean, equal across members (their
-        statistics match): no disagreement there."""
+        statistics match): no disagreement there.
+
+        Args:
+            tokens (torch.Tensor): :meth:`encode`'s tokens ``[n, K, N, d]``.
+            present (torch.Tensor): its token presence ``[n, K, N]``.
+            valid (torch.Tensor): its ``valid`` ``[n]``.
+            actions (torch.Tensor): ``[n, N, S, A]`` raw actions.
+
+        Returns:
+            ``(mean, disagreement)``, each ``[n, N, T, D]``.
+        """
         forecasts = self._member_forecasts(tokens, present, valid, actions)
         return forecasts.mean(0), forecasts.std(0, correction=0)
 

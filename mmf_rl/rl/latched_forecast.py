@@ -74,17 +74,29 @@ class LatchedForecastTransform(ForecastTransform):
     ``state_dict`` carries it, ``.to(device)`` moves it).
 
     Args:
-        model, stats, stride, denormalize, trace, per_step_presence: as `ForecastTransform`
-            (``per_step_presence`` applies to the fresh forecast).
-        latch_on: the modalities whose presence makes a forecast worth latching (default: every
-            image modality).
-        rule: one of ``RULES``. The default, ``"precision"``, forecasts the object best through a
-            camera outage on held-out push episodes, for a relative target and one relative to
-            the gripper alike (`benchmarks/latched_forecast_outage.py`).
-        relative: the model forecasts displacements from the target's current value
-            (``data.target.relative``).
-        reference: ``(env key, dims)`` of the reference a ``data.target.relative_to`` target is
-            measured from, read raw (in the target's units) from the env's output.
+        model (nn.Module): as `ForecastTransform`.
+        stats (Mapping[str, torch.Tensor]): as `ForecastTransform`.
+
+    Keyword Args:
+        stride (int, optional): as `ForecastTransform`. Defaults to ``1``.
+        latch_on (Sequence[str], optional): the modalities whose presence makes a forecast worth
+            latching (default: every image modality).
+        rule (str, optional): one of ``RULES``. The default, ``"precision"``, forecasts the object best
+            through a camera outage on held-out push episodes, for a relative target and one relative
+            to the gripper alike (`benchmarks/latched_forecast_outage.py`).
+        relative (bool, optional): the model forecasts displacements from the target's current value
+            (``data.target.relative``). Defaults to ``False``.
+        reference (tuple[NestedKey, Sequence[int]], optional): ``(env key, dims)`` of the reference a
+            ``data.target.relative_to`` target is measured from, read raw (in the target's units) from
+            the env's output.
+        denormalize (bool, optional): as `ForecastTransform`. Defaults to ``True``.
+        trace (bool, optional): as `ForecastTransform`. Defaults to ``True``.
+        per_step_presence (bool, optional): as `ForecastTransform` (applies to the fresh forecast).
+            Defaults to ``False``.
+
+    Raises:
+        ValueError: an unknown ``rule``, both ``relative`` and ``reference``, a ``latch_on`` the model
+            does not read, or a bad ``reference``; and what `ForecastTransform` raises.
     """
 
     def __init__(
@@ -367,11 +379,26 @@ class LatchedForecastTable:
     ``("forecast", "age")``.
 
     Args:
-        table: the forecaster's `ForecastTable`; ``latch_on`` must be among its ``droppable``.
-        demonstrations: its demonstrations (episode starts, the reference's raw values).
-        stats: the forecaster's normalisation statistics (the latch is re-based in target units).
-        rule, stride, relative, reference, latch_on: as `LatchedForecastTransform`
-            (`target_frame` reads ``relative`` and ``reference`` from a run's data config).
+        table (ForecastTable): the forecaster's table; ``latch_on`` must be among its ``droppable``.
+        demonstrations (Demonstrations): its demonstrations (episode starts, the reference's raw
+            values).
+        stats (Mapping[str, torch.Tensor]): the forecaster's normalisation statistics (the latch is
+            re-based in target units).
+        rule (str, optional): as `LatchedForecastTransform`. Defaults to ``"precision"``.
+        stride (int, optional): the forecaster's data stride. Defaults to ``1``.
+        relative (bool, optional): as `LatchedForecastTransform` (`target_frame` reads it from a run's
+            data config). Defaults to ``False``.
+        reference (tuple[NestedKey, Sequence[int]], optional): as `LatchedForecastTransform`, an
+            ``("obs", m)`` key of the demonstrations.
+        latch_on (tuple[str, ...], optional): as `LatchedForecastTransform`. Defaults to
+            ``("image",)``.
+        max_age (int, optional): the largest age drawn, in env steps. Defaults to ``50``.
+        never_latched (float, optional): the probability of no latch (the fresh forecast, age 0).
+            Defaults to ``0.2``.
+
+    Raises:
+        ValueError: an unknown ``rule``, a ``latch_on`` the table does not cover, ``max_age < 1``,
+            ``never_latched`` outside ``[0, 1]`` or a reference that is not an ``("obs", m)`` key.
     """
 
     table: ForecastTable

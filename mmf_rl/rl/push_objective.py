@@ -65,16 +65,20 @@ class PushObjective:
     camera and force sensors are the ones that fail).
 
     Args:
-        reach_weight: weight of the gripper's distance to its target against the forecast
-            object→goal distance.
-        height_weight: weight of the gripper's height error against its planar distance.
-        uncertainty_weight: weight (>= 0) of the forecast's own uncertainty: each step's reward
-            loses ``uncertainty_weight`` times the norm of the forecast's 2-D standard deviation
-            of the object's position (metres). A plan whose outcome the world model cannot tell
-            (e.g. a long push that may slip sideways) then scores below an equally promising
-            plan it is sure of. Above 0 the objective sets ``uses_forecast_scale``, so the
-            planners (`SequenceCEMPlanner`, `ForecasterWorldModelEnv`) pass it
-            ``forecast_scale=``; at 0 (the default) it never asks, and plans as without the term.
+        reach_weight (float, optional): weight of the gripper's distance to its target against the
+            forecast object→goal distance. Defaults to ``REACH_WEIGHT`` (0.5).
+        height_weight (float, optional): weight of the gripper's height error against its planar
+            distance. Defaults to ``2.0``.
+        uncertainty_weight (float, optional): weight (>= 0) of the forecast's own uncertainty: each step's
+            reward loses ``uncertainty_weight`` times the norm of the forecast's 2-D standard deviation of the
+            object's position (metres). A plan whose outcome the world model cannot tell (e.g. a long push
+            that may slip sideways) then scores below an equally promising plan it is sure of. Above 0 the
+            objective sets ``uses_forecast_scale``, so the planners (`SequenceCEMPlanner`,
+            `ForecasterWorldModelEnv`) pass it ``forecast_scale=``; at 0 (the default) it never asks, and
+            plans as without the term.
+        keep_out_weight (float, optional): weight (>= 0) of ``intrusion_t``, the gripper's depth below
+            travel height near the forecast object outside a push. Defaults to ``KEEP_OUT_WEIGHT``
+            (10.0).
 
     ``__call__(forecast [n, N, T, 2], actions [n, N, S, 4], context [n])`` returns rewards
     ``[n, N, T]``: ``-(|object_t - goal| + reach_weight * reach_t + uncertainty_weight * |std_t| +
@@ -88,6 +92,9 @@ class PushObjective:
     height error (pushing height only when behind the object on the line, travel height
     elsewhere), and ``intrusion_t`` the gripper's depth below travel height while within
     `KEEP_OUT_RADIUS` of ``object_t`` and not where it may be low (0 in contact mode).
+
+    Raises:
+        ValueError: a negative (or NaN) ``uncertainty_weight`` or ``keep_out_weight``.
     """
 
     in_keys = [OBJECT_POSE, GOAL, keys.obs_key("proprio")]

@@ -42,14 +42,20 @@ EPISODES_PER_PASS = 256
 class ReplayedOutages:
     """What the policy reads at each replayed frame, once per replay (see the module doc).
 
-    Attributes:
-        labels: the outage process of each replay (``"all"``: none), ``R`` of them.
-        replayed: ``bool [N]`` over the demonstrations' cache rows: the frames replayed.
-        absent: ``{m: bool [R, N]}``: the policy's window lacks ``m`` (every modality it reads).
-        forecast: ``{key: [R, N, ...]}``: what the forecast transform served (empty without one).
-        history, stride: the window's (`HistoryWindow`): a policy trained on the replay must read
+    Built by :meth:`replay`.
+
+    Args:
+        labels (list[str]): the outage process of each replay (``"all"``: none), ``R`` of them.
+        replayed (torch.Tensor): ``bool [N]`` over the demonstrations' cache rows: the frames replayed.
+        absent (dict[str, torch.Tensor]): ``{m: bool [R, N]}``: the policy's window lacks ``m`` (every
+            modality it reads).
+        forecast (dict[NestedKey, torch.Tensor]): ``{key: [R, N, ...]}``: what the forecast transform
+            served (empty without one).
+        history (int): the window's steps (`HistoryWindow`): a policy trained on the replay must read
             the same, or its window's absences are not those stored.
-        rule: the `LatchedForecastTransform` rule of the forecast served (``None``: fresh or none).
+        stride (int): the window's stride, likewise.
+        rule (str | None): the `LatchedForecastTransform` rule of the forecast served (``None``: fresh
+            or none).
     """
 
     labels: list[str]

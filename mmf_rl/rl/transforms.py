@@ -348,26 +348,28 @@ class ForecastTransform(_WindowTransform):
     """Runs a trained forecaster on the last H steps of every env; writes ``("forecast", ...)``.
 
     Args:
-        model: a forecaster from the model registry (``config.modalities``, ``config.history``,
-            ``config.horizon``, ``config.target_dim``); it is put in eval mode and run without
-            gradients. An action-conditioned world model cannot forecast without the
+        model (nn.Module): a forecaster from the model registry (``config.modalities``,
+            ``config.history``, ``config.horizon``, ``config.target_dim``); it is put in eval mode and
+            run without gradients. An action-conditioned world model cannot forecast without the
             future actions: plan with it instead (`HistoryWindow` + `mmf_rl.rl`).
-        stats: the normalisation statistics of its training run (a checkpoint's ``tensors``):
-            ``"<m>/mean"``, ``"<m>/std"`` for every non-image modality, ``"target/mean"``,
-            ``"target/std"``.
-        stride: frames between two window steps (the data config's ``stride``).
-        per_step_presence: ``True`` keeps a windowed modality present while present at one step of
-            the window at least, with ``("present_steps", m)`` marking its steps (the model masks the
-            absent ones), instead of absent unless present at every step. Runs the eager forward.
-            Default ``False`` here; `for_trained` / `from_checkpoint` follow the run's training.
-        num_samples: ``K > 0`` also writes ``("forecast", "samples")`` ``[*batch, K, T, D]``, one
-            forecast per prior latent draw (costs a second, eager forward).
-        denormalize: ``True`` writes forecasts in the target's units (for the push data: metres,
-            world frame; a run trained with ``data.target.relative`` forecasts displacements from
-            the current step, as the push config does, one with ``data.target.relative_to`` offsets
-            from a reference at the current step), ``False`` in the normalised frame the model was
-            trained in.
-        trace: ``True`` (the default) runs the paper's forecaster (`MultimodalForecaster`) as
+        stats (Mapping[str, torch.Tensor]): the normalisation statistics of its training run (a
+            checkpoint's ``tensors``): ``"<m>/mean"``, ``"<m>/std"`` for every non-image modality,
+            ``"target/mean"``, ``"target/std"``.
+
+    Keyword Args:
+        stride (int, optional): frames between two window steps (the data config's ``stride``).
+            Defaults to ``1``.
+        per_step_presence (bool, optional): ``True`` keeps a windowed modality present while present at one
+            step of the window at least, with ``("present_steps", m)`` marking its steps (the model masks the
+            absent ones), instead of absent unless present at every step. Runs the eager forward. Default
+            ``False`` here; `for_trained` / `from_checkpoint` follow the run's training.
+        num_samples (int, optional): ``K > 0`` also writes ``("forecast", "samples")`` ``[*batch, K, T, D]``,
+            one forecast per prior latent draw (costs a second, eager forward).
+        denormalize (bool, optional): ``True`` (default) writes forecasts in the target's units (for the push
+            data: metres, world frame; a run trained with ``data.target.relative`` forecasts displacements
+            from the current step, as the push config does, one with ``data.target.relative_to`` offsets from
+            a reference at the current step), ``False`` in the normalised frame the model was trained in.
+        trace (bool, optional): ``True`` (the default) runs the paper's forecaster (`MultimodalForecaster`) as
             frozen `torch.jit.trace` graphs on plain tensors: the whole forecast when every env
             has every sensor, else one graph per modality encoder and one for the rest
             (:meth:`~MultimodalForecaster.forecast_from_tokens`: prior, latent, decoder). No
@@ -406,6 +408,44 @@ class ForecastTransform(_WindowTransform):
     model's device; ``transform.to(device)`` moves the model, the history and the statistics
     together (buffers), so a step copies nothing but the env's observation onto that device, and
     ``state_dict`` carries the history of a running transform.
+
+    A trained run's transform: ``ForecastTransform.from_checkpoint("runs/push/checkpoints")``. It
+    keeps per-env state, so it only runs inside a `TransformedEnv`.
+
+    Raises:
+        ValueError: an action-conditioned model, ``num_samples < 0`` (or ``> 0`` for a model
+            without ``sample``), ``stride < 1``, or (when appended to an env) an env that does not
+            emit a modality the model reads, or emits it with another kind or shape.
+        KeyError: ``stats`` lacks a modality's or the target's statistics.
+
+    Examples:
+        A forecaster on the simulated push env, behind its force sensor's outages:
+
+        >>> import torch
+        >>> from torchrl.envs import Compose, TransformedEnv
+        >>> from mmf_rl.envs import ModalityDropout, MultimodalPushTorchEnv
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> force = ModalitySpec("force", "sequence", (6,))
+        >>> proprio = ModalitySpec("proprio", "sequence", (17,))
+        >>> sizes = dict(history=4, horizon=5, d_model=16, d_latent=4, num_heads=2)
+        >>> model = MultimodalForecaster(ForecasterConfig([force, proprio], **sizes))  # untrained
+        >>> stats = {  # its training run's normalisation statistics (a checkpoint's tensors)
+        ...     "force/mean": torch.zeros(6), "force/std": torch.ones(6),
+        ...     "proprio/mean": torch.zeros(17), "proprio/std": torch.ones(17),
+        ...     "target/mean": torch.zeros(2), "target/std": torch.ones(2),
+        ... }
+        >>> from mmf_rl.rl import ForecastTransform
+        >>> env = TransformedEnv(MultimodalPushTorchEnv(image_size=16), Compose(
+        ...     ModalityDropout(["force"], outage_prob=0.5, seed=0),
+        ...     ForecastTransform(model, stats),
+        ... ))
+        >>> rollout = env.rollout(3)
+        >>> rollout["next", "forecast", "loc"].shape  # [steps, T, D], in the target's units
+        torch.Size([3, 5, 2])
+        >>> rollout["next", "present", "force"], rollout["next", "forecast", "valid"]
+        (tensor([False, False, False]), tensor([True, True, True]))
+        >>> env.close()
     """
 
     def __init__(
@@ -453,12 +493,19 @@ class ForecastTransform(_WindowTransform):
         cls, path: str | os.PathLike, *, map_location: str | torch.device = "cpu", **options
     ) -> ForecastTransform:
         """Load the model, its weights, normalisation stats and window stride from a checkpoint
-        (`for_trained`, a subclass's too: `LatchedForecastTransform` adds its target frame);
-        ``options``: ``num_samples``, ``denormalize``, ``trace``, ``per_step_presence`` (a subclass's:
-        also its own, e.g. ``latch_on``, ``rule``).
+        (`for_trained`, a subclass's too: `LatchedForecastTransform` adds its target frame).
 
-        ``path``: a checkpoint directory or a directory with a ``last`` pointer (a run's
-        ``checkpoints/``).
+        Args:
+            path (str | os.PathLike): what `load_trained_model` reads: a run directory, its
+                ``checkpoints/``, one checkpoint or a ``save_pretrained`` directory.
+
+        Keyword Args:
+            map_location (str | torch.device, optional): the model's device. Defaults to ``"cpu"``.
+            **options: ``num_samples``, ``denormalize``, ``trace``, ``per_step_presence`` (a
+                subclass's: also its own, e.g. ``latch_on``, ``rule``).
+
+        Returns:
+            The transform.
         """
         return cls.for_trained(*load_trained_model(path, map_location), **options)
 
@@ -473,9 +520,21 @@ class ForecastTransform(_WindowTransform):
         **options,
     ) -> ForecastTransform:
         """The transform of a trained model (`load_trained_model`'s triple): the stride of its data
-        config, and per-step presence as it was trained (``data.partial_windows``; an explicit
-        ``per_step_presence`` overrides it, `trained_per_step_presence`). ``options``: the other
-        keyword arguments of the constructor."""
+        config, and per-step presence as it was trained.
+
+        Args:
+            model (nn.Module): the trained model.
+            stats (Mapping[str, torch.Tensor]): its normalisation statistics.
+            data_config (Mapping): its data config (``stride``, ``partial_windows``).
+
+        Keyword Args:
+            per_step_presence (bool, optional): overrides the run's ``data.partial_windows`` (with a
+                warning when it contradicts the training, `trained_per_step_presence`).
+            **options: the other keyword arguments of the constructor.
+
+        Returns:
+            The transform.
+        """
         options["per_step_presence"] = trained_per_step_presence(data_config, per_step_presence, cls.__name__)
         return cls(model, stats, stride=int(data_config.get("stride", 1)), **options)
 
@@ -724,12 +783,42 @@ class HistoryWindow(_WindowTransform):
     conditions a world model on the real history (`mmf_rl.rl.SequenceCEMPlanner`).
 
     Args:
-        specs: the model's modalities (``model.config.modalities``).
-        stats: the normalisation statistics of its training run.
-        history: ``H``, window steps.
-        stride: frames between two window steps.
-        per_step_presence: ``True`` also writes ``("history", "present_steps", m)`` ``bool
-            [*batch, H]`` of each windowed modality, present when present at one step at least.
+        specs (Sequence[ModalitySpec]): the model's modalities (``model.config.modalities``).
+        stats (Mapping[str, torch.Tensor]): the normalisation statistics of its training run.
+        history (int): ``H``, window steps.
+        stride (int, optional): frames between two window steps. Defaults to ``1``.
+        per_step_presence (bool, optional): ``True`` also writes ``("history", "present_steps", m)``
+            ``bool [*batch, H]`` of each windowed modality, present when present at one step at least.
+            Defaults to ``False``.
+
+    Raises:
+        ValueError: ``stride < 1``, or (when appended to an env) an env that does not emit a modality
+            of ``specs``, or emits it with another kind or shape.
+        KeyError: ``stats`` lacks a modality's or the target's statistics.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.envs import Compose, TransformedEnv
+        >>> from mmf_rl.envs import ModalityDropout, MultimodalPushTorchEnv
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> force = ModalitySpec("force", "sequence", (6,))
+        >>> proprio = ModalitySpec("proprio", "sequence", (17,))
+        >>> sizes = dict(history=4, horizon=5, d_model=16, d_latent=4, num_heads=2)
+        >>> model = MultimodalForecaster(ForecasterConfig([force, proprio], **sizes))  # untrained
+        >>> stats = {  # its training run's normalisation statistics (a checkpoint's tensors)
+        ...     "force/mean": torch.zeros(6), "force/std": torch.ones(6),
+        ...     "proprio/mean": torch.zeros(17), "proprio/std": torch.ones(17),
+        ...     "target/mean": torch.zeros(2), "target/std": torch.ones(2),
+        ... }
+        >>> from mmf_rl.rl import HistoryWindow
+        >>> env = TransformedEnv(MultimodalPushTorchEnv(image_size=16), HistoryWindow.for_model(model, stats))
+        >>> window = env.rollout(3)["next", "history"]  # a model batch, one per step
+        >>> window["obs", "force"].shape, window["present", "proprio"]
+        (torch.Size([3, 4, 6]), tensor([True, True, True]))
+        >>> model.eval()(window[-1:].clone())["forecast", "loc"].shape
+        torch.Size([1, 5, 2])
+        >>> env.close()
     """
 
     def __init__(
@@ -756,8 +845,18 @@ class HistoryWindow(_WindowTransform):
         stride: int = 1,
         per_step_presence: bool = False,
     ) -> HistoryWindow:
-        """The window ``model`` reads (its modalities and history); ``per_step_presence``: as its run
-        was trained (``data.partial_windows``, `trained_per_step_presence`)."""
+        """The window ``model`` reads (its modalities and history).
+
+        Args:
+            model (nn.Module): a model of the registry.
+            stats (Mapping[str, torch.Tensor]): its normalisation statistics.
+            stride (int, optional): its data's stride. Defaults to ``1``.
+            per_step_presence (bool, optional): as its run was trained (``data.partial_windows``,
+                `trained_per_step_presence`). Defaults to ``False``.
+
+        Returns:
+            The transform.
+        """
         return cls(model.config.modalities, stats, model.config.history, stride, per_step_presence)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:

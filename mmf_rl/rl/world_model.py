@@ -33,6 +33,52 @@ class WorldModel:
     FetchPush's finger command) are read as their training value whatever a planner asks: the
     model knows nothing about changing them, and normalising by the floor would blow a small
     change up into an input thousands of stds away.
+
+    A trained run's: ``WorldModel.from_checkpoint("runs/world_model")``.
+
+    Args:
+        model (MultimodalForecaster): an action-conditioned forecaster (``action_dim > 0``); put in
+            eval mode.
+        stats (Mapping[str, torch.Tensor]): its training run's normalisation statistics, with
+            ``"future_action/mean"`` and ``"future_action/std"``.
+        stride (int, optional): its data's stride (its history window's). Defaults to ``1``.
+        std_floor (float, optional): its data config's ``std_floor``: an action dim whose std is at it
+            never varied in training. Defaults to ``1e-3``.
+        per_step_presence (bool, optional): its history window's presence rule (the run's
+            ``data.partial_windows``). Defaults to ``False``.
+
+    Raises:
+        ValueError: a model without action input.
+        KeyError: ``stats`` lacks the action's statistics.
+
+    Examples:
+        >>> import torch
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> force = ModalitySpec("force", "sequence", (6,))
+        >>> proprio = ModalitySpec("proprio", "sequence", (17,))
+        >>> sizes = dict(history=4, horizon=5, d_model=16, d_latent=4, num_heads=2)
+        >>> sizes.update(action_dim=4, action_steps=5)  # the push env's actions over the 5 steps
+        >>> model = MultimodalForecaster(ForecasterConfig([force, proprio], **sizes))  # untrained world model
+        >>> stats = {  # its training run's normalisation statistics (a checkpoint's tensors)
+        ...     "force/mean": torch.zeros(6), "force/std": torch.ones(6),
+        ...     "proprio/mean": torch.zeros(17), "proprio/std": torch.ones(17),
+        ...     "target/mean": torch.zeros(2), "target/std": torch.ones(2),
+        ...     "future_action/mean": torch.zeros(4), "future_action/std": torch.ones(4),
+        ... }
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.rl import WorldModel
+        >>> world_model = WorldModel(model, stats)
+        >>> window = TensorDict({  # two history windows, as HistoryWindow writes them
+        ...     ("obs", "force"): torch.randn(2, 4, 6),
+        ...     ("present", "force"): torch.tensor([True, False]),
+        ...     ("obs", "proprio"): torch.randn(2, 4, 17),
+        ...     ("present", "proprio"): torch.ones(2, dtype=torch.bool),
+        ... }, batch_size=[2])
+        >>> encoded = world_model.encode(window)  # once per decision
+        >>> candidates = torch.rand(2, 64, 5, 4) * 2 - 1  # 64 raw action sequences per window
+        >>> world_model.forecast(*encoded, candidates).shape  # [n, N, T, D], target units
+        torch.Size([2, 64, 5, 2])
     """
 
     def __init__(
@@ -68,10 +114,21 @@ class WorldModel:
         map_location: str | torch.device = "cpu",
         per_step_presence: bool | None = None,
     ) -> WorldModel:
-        """The world model of a trained run (what `load_trained_model` reads); an error names ``path``
-        (an ensemble loads several). Its history window has per-step presence as the run was
-        trained (``data.partial_windows``), unless ``per_step_presence`` says otherwise
-        (`trained_per_step_presence`)."""
+        """The world model of a trained run.
+
+        Args:
+            path (str | os.PathLike): what `load_trained_model` reads.
+            map_location (str | torch.device, optional): the model's device. Defaults to ``"cpu"``.
+            per_step_presence (bool, optional): overrides the presence rule the run trained with
+                (``data.partial_windows``, `trained_per_step_presence`).
+
+        Returns:
+            The world model, with its run's stride and ``std_floor``.
+
+        Raises:
+            ValueError: the run's model is not a world model; the message names ``path`` (an
+                ensemble loads several).
+        """
         model, stats, data_config = load_trained_model(path, map_location)
         per_step_presence = trained_per_step_presence(data_config, per_step_presence, f"WorldModel {path}")
         try:
@@ -106,8 +163,15 @@ class WorldModel:
 
     @torch.no_grad()
     def encode(self, window: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Tokens ``[n, N, d]``, token presence ``[n, N]`` and ``valid`` ``[n]`` of ``n`` history windows
-        (``N`` tokens: see :meth:`MultimodalForecaster.encode`)."""
+        """Encode history windows, once per decision.
+
+        Args:
+            window (TensorDictBase): ``n`` history windows (a ``"history"`` entry of `HistoryWindow`).
+
+        Returns:
+            Tokens ``[n, N, d]``, token presence ``[n, N]`` and ``valid`` ``[n]`` (``N`` tokens: see
+            :meth:`MultimodalForecaster.encode`).
+        """
         specs = self.model.modalities
         # NaN/Inf under a present modality (a window built by hand) reads as absent, as in HistoryWindow.
         window = window.clone(False)
@@ -130,7 +194,17 @@ class WorldModel:
     def forecast(
         self, tokens: torch.Tensor, present: torch.Tensor, valid: torch.Tensor, actions: torch.Tensor
     ) -> torch.Tensor:
-        """Forecast ``[n, N, T, D]`` (target units) for raw action sequences ``[n, N, S, A]``."""
+        """Forecast encoded histories under raw action sequences.
+
+        Args:
+            tokens (torch.Tensor): :meth:`encode`'s tokens ``[n, N, d]``.
+            present (torch.Tensor): its token presence ``[n, N]``.
+            valid (torch.Tensor): its ``valid`` ``[n]``.
+            actions (torch.Tensor): ``[n, N, S, A]`` raw actions (the env's units).
+
+        Returns:
+            ``[n, N, T, D]`` forecasts, in the target's units.
+        """
         normalized, _ = self._decode(tokens, present, valid, actions)
         return self.normalizer.denormalize_target(normalized)
 
@@ -142,7 +216,17 @@ class WorldModel:
         same decode. The standard deviation is the decoder's predictive one (times the checkpoint's
         ``scale_calibration`` factors when it was calibrated) scaled by the target's training std:
         a forecast's spread has no offset, also for a target relative to now. Rows that cannot be
-        encoded get the target's training std (the marginal, beside the marginal mean)."""
+        encoded get the target's training std (the marginal, beside the marginal mean).
+
+        Args:
+            tokens (torch.Tensor): :meth:`encode`'s tokens ``[n, N, d]``.
+            present (torch.Tensor): its token presence ``[n, N]``.
+            valid (torch.Tensor): its ``valid`` ``[n]``.
+            actions (torch.Tensor): ``[n, N, S, A]`` raw actions.
+
+        Returns:
+            ``(forecast, std)``, each ``[n, N, T, D]``.
+        """
         normalized, scale = self._decode(tokens, present, valid, actions)
         return self.normalizer.denormalize_target(normalized), self.normalizer.denormalize_target_scale(scale)
 

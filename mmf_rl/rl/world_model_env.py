@@ -44,21 +44,58 @@ class ForecasterWorldModelEnv(ModelBasedEnvBase):
     `EnsembleWorldModel`) that wraps it with its normalisation.
 
     Args:
-        world_model: the trained world model, or an `EnsembleWorldModel` (the state then holds every
-            member's encoding, and a penalising objective gets the members' disagreement).
-        objective: ``(forecast, actions, context) -> rewards [n, N, T]`` with ``in_keys`` (the
-            context keys it reads, carried unchanged through the imagined state); one that sets
+        world_model (WorldModel | EnsembleWorldModel): the trained world model, or an ensemble (the
+            state then holds every member's encoding, and a penalising objective gets the members'
+            disagreement).
+        objective (Objective): ``(forecast, actions, context) -> rewards [n, N, T]`` with ``in_keys``
+            (the context keys it reads, carried unchanged through the imagined state); one that sets
             ``uses_forecast_scale`` also gets ``forecast_scale=``, as in `SequenceCEMPlanner`.
-        action_spec: one real env's action spec (``[A]``; the imagined batch is whatever the
+        action_spec (Bounded): one real env's action spec (``[A]``; the imagined batch is whatever the
             reset tensordict's is).
-        context_spec: specs of the objective's context keys (take them from the real env's
+        context_spec (Composite): specs of the objective's context keys (take them from the real env's
             observation spec).
 
-    Example:
-        >>> state = wm_env.reset(real_tensordict.select("history", *objective.in_keys))
-        >>> action = CEMPlanner(wm_env, planning_horizon=10, optim_steps=3, num_candidates=64,
-        ...                     top_k=8).planning(state)
-        >>> # or, as the real env's policy: real_env.rollout(50, ImaginedPlanningPolicy(planner, wm_env))
+    Reset it from a real env's tensordict (a ``reset`` without ``"history"`` is a ``KeyError``);
+    stepping past the ``S`` steps one forecast covers is a ``RuntimeError``.
+
+    Raises:
+        ValueError: an ``action_spec`` of another shape than the world model's actions.
+
+    Examples:
+        >>> import torch
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> force = ModalitySpec("force", "sequence", (6,))
+        >>> proprio = ModalitySpec("proprio", "sequence", (17,))
+        >>> sizes = dict(history=4, horizon=5, d_model=16, d_latent=4, num_heads=2)
+        >>> sizes.update(action_dim=4, action_steps=5)  # the push env's actions over the 5 steps
+        >>> model = MultimodalForecaster(ForecasterConfig([force, proprio], **sizes))  # untrained world model
+        >>> stats = {  # its training run's normalisation statistics (a checkpoint's tensors)
+        ...     "force/mean": torch.zeros(6), "force/std": torch.ones(6),
+        ...     "proprio/mean": torch.zeros(17), "proprio/std": torch.ones(17),
+        ...     "target/mean": torch.zeros(2), "target/std": torch.ones(2),
+        ...     "future_action/mean": torch.zeros(4), "future_action/std": torch.ones(4),
+        ... }
+        >>> from torchrl.envs import TransformedEnv
+        >>> from torchrl.modules.planners import CEMPlanner
+        >>> from mmf_rl.envs import MultimodalPushTorchEnv
+        >>> from mmf_rl.rl import ForecasterWorldModelEnv, ImaginedPlanningPolicy, PushObjective, WorldModel
+        >>> world_model = WorldModel(model, stats)
+        >>> real_env = TransformedEnv(MultimodalPushTorchEnv(image_size=16), world_model.history_window())
+        >>> objective = PushObjective()
+        >>> wm_env = ForecasterWorldModelEnv(
+        ...     world_model, objective, real_env.action_spec, real_env.observation_spec
+        ... )
+        >>> real = real_env.reset()
+        >>> state = wm_env.reset(real.select("history", *objective.in_keys))  # encodes the history once
+        >>> imagined = wm_env.rollout(10, tensordict=state, auto_reset=False)  # random actions
+        >>> imagined["next", "reward"].shape  # done after the model's S = 5 action steps
+        torch.Size([5, 1])
+        >>> planner = CEMPlanner(wm_env, planning_horizon=5, optim_steps=2, num_candidates=16, top_k=4)
+        >>> policy = ImaginedPlanningPolicy(planner, wm_env)  # the real env's policy
+        >>> policy(real)["action"].shape
+        torch.Size([4])
+        >>> real_env.close()
     """
 
     def __init__(
@@ -169,7 +206,12 @@ class ImaginedPlanningPolicy(TensorDictModuleBase):
 
     Each call resets the world-model env from the real tensordict (``"history"`` and the
     objective's context: the history is encoded once) and asks ``planner`` (torchrl's
-    `CEMPlanner`, `MPPIPlanner`, ... built on that env) for the action to take.
+    `CEMPlanner`, `MPPIPlanner`, ... built on that env) for the action to take. See
+    `ForecasterWorldModelEnv`'s example.
+
+    Args:
+        planner (MPCPlannerBase): a torchrl planner built on ``world_model_env``.
+        world_model_env (ForecasterWorldModelEnv): the imagined env.
     """
 
     def __init__(self, planner: MPCPlannerBase, world_model_env: ForecasterWorldModelEnv):

@@ -25,12 +25,20 @@ class SamplerConfig:
     has ``learned_samples > 0``, which needs ``steps > 0``.
 
     Args:
-        steps: optimizer updates of the sampler (0: no sampler to train).
-        batch_size: windows per update; each is decoded ``K`` times.
-        lr: Adam's peak learning rate (cosine decay to zero over ``steps``).
-        best_of_k_weight, diversity_weight, diversity_scale, kl_weight, kl_floor, drop_prob:
-            :class:`~mmf_rl.objectives.DiverseSamplingLoss`'s (``diversity_scale`` in the target's
-            squared units).
+        steps (int, optional): optimizer updates of the sampler (0, the default: no sampler to train).
+        batch_size (int, optional): windows per update; each is decoded ``K`` times. Defaults to ``64``.
+        lr (float, optional): Adam's peak learning rate (cosine decay to zero over ``steps``). Defaults to
+            ``1e-3``.
+        best_of_k_weight (float, optional): :class:`~mmf_rl.objectives.DiverseSamplingLoss`'s. Defaults
+            to ``5.0``.
+        diversity_weight (float, optional): its. Defaults to ``5.0``.
+        diversity_scale (float, optional): its, in the target's squared units. Defaults to ``5.0``.
+        kl_weight (float, optional): its. Defaults to ``0.1``.
+        kl_floor (float, optional): its. Defaults to ``10.0``.
+        drop_prob (float, optional): its. Defaults to ``0.5``.
+
+    Raises:
+        ValueError: ``steps`` or ``batch_size`` not a whole number (``steps >= 0``, ``batch_size >= 1``).
     """
 
     steps: int = 0

@@ -49,42 +49,53 @@ class TrainerConfig:
     """Optimisation and bookkeeping of one run.
 
     Args:
-        total_steps: optimizer updates of the run.
-        batch_size: windows per update, per rank (used by whoever builds the loader).
-        lr: AdamW's peak learning rate.
-        weight_decay: AdamW's decoupled weight decay.
-        lr_schedule: ``"cosine"`` (decay to zero over the run after the warmup) or ``"constant"``.
-        warmup_steps: updates of linear warmup to ``lr``, so the first steps of a fresh model do
-            not take full-size updates.
-        grad_clip_norm: the gradients' global norm is clipped to this (``None``: no clipping).
-        log_every: updates between two logged lines of the losses.
-        eval_every: updates between two evaluations (and at the end of the run).
-        checkpoint_every: updates between two checkpoints (and at the end of the run).
-        keep_checkpoints: the newest checkpoints kept; older ones are pruned.
-        early_stopping_patience: stop after this many evaluations in a row without a lower
+        total_steps (int, optional): optimizer updates of the run. Defaults to ``1000``.
+        batch_size (int, optional): windows per update, per rank (used by whoever builds the loader).
+            Defaults to ``128``.
+        lr (float, optional): AdamW's peak learning rate. Defaults to ``1e-3``.
+        weight_decay (float, optional): AdamW's decoupled weight decay. Defaults to ``0``.
+        lr_schedule (str, optional): ``"cosine"`` (default: decay to zero over the run after the warmup)
+            or ``"constant"``.
+        warmup_steps (int, optional): updates of linear warmup to ``lr``, so the first steps of a fresh
+            model do not take full-size updates. Defaults to ``50``.
+        grad_clip_norm (float, optional): the gradients' global norm is clipped to this (``None``: no
+            clipping). Defaults to ``1.0``.
+        log_every (int, optional): updates between two logged lines of the losses. Defaults to ``25``.
+        eval_every (int, optional): updates between two evaluations (and at the end of the run).
+            Defaults to ``250``.
+        checkpoint_every (int, optional): updates between two checkpoints (and at the end of the run).
+            Defaults to ``250``.
+        keep_checkpoints (int, optional): the newest checkpoints kept; older ones are pruned. Defaults to
+            ``2``.
+        early_stopping_patience (int, optional): stop after this many evaluations in a row without a lower
             ``early_stopping_metric`` (``None``: never).
-        early_stopping_metric: the metric that decides it; one of those the evaluation returns.
-        max_nonfinite_steps: a step whose loss is NaN/Inf is skipped (no update) and counted; more
-            than this many in a row stop the run.
-        loss_explosion_threshold: a finite total loss above it stops the run, naming the last good
-            checkpoint.
-        seed: seeds the initial weights, the loader's order and the latent draws.
-        progress_bar: show tqdm's bar on rank 0.
-        precision: ``"fp32"``, or ``"bf16"``/``"fp16"`` autocast of the model's forward (the losses
-            stay fp32; ``"fp16"`` is CUDA-only and scales the loss with a ``GradScaler``).
-        compile: ``torch.compile`` the training forward.
-        fused_optimizer: AdamW's fused kernel (one kernel for all parameters instead of a loop of
-            small ops per parameter): a faster step at small batches, but its rounding differs from
-            the loop's, and data-parallel ranks then drift apart from a one-process run by more than
-            the loop lets them. ``False`` (default): torch's own choice (the per-parameter loop on
-            CPU, its multi-tensor ``foreach`` form on CUDA).
-        prefetch: make the next batch (and copy it to the device) on a background thread while
-            the current step runs; the batches and results are the same either way. ``"auto"``
-            (default): on CUDA, and on CPU when worker processes make the batches (image
-            augmentation with ``augment.workers``: the thread mostly waits on them). Otherwise on
-            CPU the step's own threads already use every core, so a batch made beside it competes
-            with the step instead of overlapping it (docs/results.md has the measured cost);
-            ``True`` prefetches on CPU too (cores to spare), ``False`` never.
+        early_stopping_metric (str, optional): the metric that decides it; one of those the evaluation
+            returns.
+        max_nonfinite_steps (int, optional): a step whose loss is NaN/Inf is skipped (no update) and counted;
+            more than this many in a row stop the run.
+        loss_explosion_threshold (float, optional): a finite total loss above it stops the run, naming the
+            last good checkpoint.
+        seed (int, optional): seeds the initial weights, the loader's order and the latent draws.
+        progress_bar (bool, optional): show tqdm's bar on rank 0.
+        precision (str, optional): ``"fp32"``, or ``"bf16"``/``"fp16"`` autocast of the model's forward (the
+            losses stay fp32; ``"fp16"`` is CUDA-only and scales the loss with a ``GradScaler``).
+        compile (bool, optional): ``torch.compile`` the training forward.
+        fused_optimizer (bool, optional): AdamW's fused kernel (one kernel for all parameters instead of a
+            loop of small ops per parameter): a faster step at small batches, but its rounding differs from
+            the loop's, and data-parallel ranks then drift apart from a one-process run by more than the loop
+            lets them. ``False`` (default): torch's own choice (the per-parameter loop on CPU, its
+            multi-tensor ``foreach`` form on CUDA).
+        prefetch (bool | str, optional): make the next batch (and copy it to the device) on a background
+            thread while the current step runs; the batches and results are the same either way. ``"auto"``
+            (default): on CUDA, and on CPU when worker processes make the batches (image augmentation with
+            ``augment.workers``: the thread mostly waits on them). Otherwise on CPU the step's own threads
+            already use every core, so a batch made beside it competes with the step instead of overlapping it
+            (docs/results.md has the measured cost); ``True`` prefetches on CPU too (cores to spare),
+            ``False`` never.
+
+    Raises:
+        ValueError: an unknown ``precision``, ``prefetch`` or ``lr_schedule``, a count below 1 or a
+            negative rate, norm or patience (the message names the ``trainer.`` key).
     """
 
     total_steps: int = 1000
@@ -143,11 +154,27 @@ class TrainerConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainerConfig:
+        """Build from plain data (the Hydra ``trainer`` config).
+
+        Args:
+            d (dict): the settings.
+
+        Returns:
+            The config.
+
+        Raises:
+            ValueError: an unknown key or an invalid value.
+        """
         reject_unknown_keys(cls, d, "trainer config")
         return cls(**d)
 
 
 def seed_everything(seed: int) -> None:
+    """Seed Python's, NumPy's and torch's global generators.
+
+    Args:
+        seed (int): the seed (NumPy gets it modulo ``2**32``).
+    """
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
@@ -258,23 +285,66 @@ class Trainer:
     """Trains ``model`` by summing the ``loss_*`` entries of ``loss_module`` over ``loader`` batches.
 
     Args:
-        model: the module whose weights are checkpointed (the loss module's forecaster).
-        loss_module: a torchrl ``LossModule`` returning ``loss_*`` entries.
-        loader: re-iterable, one epoch per iteration, deterministic given ``set_epoch``. If it
-            has them, its ``batch_making`` (one of :data:`~mmf_rl.datasets.prefetch.BATCH_MAKING`;
-            default ``"thread_safe"``) says where a batch may be made ahead, and its ``close()``
-            is called when training ends (it may own worker processes).
-        config: :class:`TrainerConfig`.
-        run_dir: where ``checkpoints/`` go (only rank 0 writes); ``None``: no checkpoints.
-        logger: a ``torchrl.record.loggers.Logger`` (rank 0 only), or ``None``.
-        evaluate: ``evaluate(model) -> {name: value}``, called every ``eval_every`` steps and at
-            the end; its values are logged as ``name`` and can drive early stopping.
-        checkpoint_meta / checkpoint_tensors: stored with every checkpoint (config, data
-            fingerprint, normalisation statistics).
-        rank, world_size: data-parallel position (``torch.distributed`` must be initialised
-            when ``world_size > 1``).
+        model (torch.nn.Module): the module whose weights are checkpointed (the loss module's
+            forecaster).
+        loss_module (torch.nn.Module): a torchrl ``LossModule`` returning ``loss_*`` entries.
+        loader (Iterable[TensorDictBase]): re-iterable, one epoch per iteration, with ``set_epoch(epoch)``
+            and deterministic given it (a :class:`~mmf_rl.datasets.WindowLoader`). If it has them,
+            its ``batch_making`` (one of :data:`~mmf_rl.datasets.prefetch.BATCH_MAKING`; default
+            ``"thread_safe"``) says where a batch may be made ahead, and its ``close()`` is called when
+            training ends (it may own worker processes).
+        config (TrainerConfig): the optimisation and bookkeeping.
+
+    Keyword Args:
+        run_dir (str | Path, optional): where ``checkpoints/`` go (only rank 0 writes); ``None``: no
+            checkpoints.
+        logger (torchrl.record.loggers.Logger, optional): where rank 0 logs; ``None``: nowhere.
+        evaluate (Callable[[torch.nn.Module], dict[str, float]], optional): ``evaluate(model) ->
+            {name: value}``, called every ``eval_every`` steps and at the end; its values are logged
+            as ``name`` and can drive early stopping.
+        checkpoint_meta (dict, optional): stored with every checkpoint (the config, the data's
+            fingerprint).
+        checkpoint_tensors (dict[str, torch.Tensor], optional): tensors stored with every checkpoint
+            (the normalisation statistics).
+        rank (int, optional): this process's data-parallel rank. Defaults to ``0``.
+        world_size (int, optional): data-parallel processes (``torch.distributed`` must be initialised
+            when ``> 1``). Defaults to ``1``.
 
     Batches are moved to the model's device (pinned, ``non_blocking``, on CUDA).
+
+    Raises:
+        ValueError: a loader with an unknown ``batch_making``, or a ``precision`` the device cannot
+            run.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> from mmf_rl.objectives import ELBOLoss
+        >>> from mmf_rl.trainers import Trainer, TrainerConfig
+        >>> model = MultimodalForecaster(ForecasterConfig(
+        ...     modalities=[ModalitySpec("force", "sequence", (6,))],
+        ...     history=4, horizon=5, d_model=16, d_latent=4, num_heads=2,
+        ... ))
+        >>> batch = TensorDict({
+        ...     ("obs", "force"): torch.randn(8, 4, 6), ("present", "force"): torch.ones(8, dtype=torch.bool),
+        ...     "target": torch.randn(8, 5, 2),
+        ... }, batch_size=[8])
+        >>> class Batches(list):  # a WindowLoader would also draw a new order per epoch
+        ...     def set_epoch(self, epoch):
+        ...         pass
+        >>> trainer = Trainer(
+        ...     model,
+        ...     ELBOLoss(model),
+        ...     Batches([batch, batch]),
+        ...     TrainerConfig(total_steps=6, warmup_steps=0, progress_bar=False),
+        ...     evaluate=lambda model: {"val/loss": 0.0},
+        ... )
+        >>> trainer.train()
+        {'val/loss': 0.0}
+        >>> trainer.step
+        6
     """
 
     def __init__(
@@ -337,8 +407,17 @@ class Trainer:
     # -- hooks ------------------------------------------------------------------------------------
 
     def register_op(self, dest: str, op: Callable) -> None:
-        """Call ``op`` at ``dest``: ``batch_process(batch) -> batch``, ``post_loss(trainer)``,
-        ``post_optim(trainer)``, ``post_steps(trainer)``, ``post_steps_log(trainer, logs)``."""
+        """Call ``op`` at ``dest``, as torchrl's ``Trainer`` hooks.
+
+        Args:
+            dest (str): ``"batch_process"`` (``op(batch) -> batch``), ``"post_loss"``,
+                ``"post_optim"``, ``"post_steps"`` (``op(trainer)``) or ``"post_steps_log"``
+                (``op(trainer, logs)``).
+            op (Callable): the hook.
+
+        Raises:
+            ValueError: an unknown ``dest``.
+        """
         if dest not in self.ops:
             raise ValueError(f"unknown hook point {dest!r}; expected one of {list(OPS)}")
         self.ops[dest].append(op)
@@ -419,7 +498,15 @@ class Trainer:
         return self.last_checkpoint
 
     def resume(self, path: str | Path) -> None:
-        """Continue from a checkpoint (or a directory's ``last`` one): weights and trainer state."""
+        """Continue from a checkpoint (or a directory's ``last`` one): weights and trainer state.
+
+        Args:
+            path (str | Path): a checkpoint, or a ``checkpoints/`` directory.
+
+        Raises:
+            RuntimeError: the checkpoint holds weights only, or was written by another number of
+                ranks.
+        """
         checkpoint = load_checkpoint(path)
         load_model_state(self.model, checkpoint)
         if checkpoint.trainer_state is None:
@@ -588,7 +675,15 @@ class Trainer:
         return True
 
     def train(self) -> dict[str, float]:
-        """Run until ``total_steps`` (or early stopping); return the last evaluation's metrics."""
+        """Run until ``total_steps`` (or early stopping).
+
+        Returns:
+            The last evaluation's metrics (``{}`` without ``evaluate``).
+
+        Raises:
+            TrainingStopped: too many non-finite losses in a row, or an exploding loss.
+            ValueError: early stopping on a metric ``evaluate`` does not return.
+        """
         cfg = self.config
         self.model.train()
         self.loss_module.train()

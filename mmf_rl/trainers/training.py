@@ -399,24 +399,45 @@ def train(config: DictConfig | None = None, *, overrides: Sequence[str] = ()) ->
     (``save_pretrained``) in the run directory.
 
     Args:
-        config: a composed train config, as ``mmf-rl train --cfg`` prints it
+        config (DictConfig, optional): a composed train config, as ``mmf-rl train --cfg`` prints it
             (:func:`~mmf_rl.configuration.compose_config`, edited as you like). ``None``: compose
             ``configs/train.yaml`` with ``overrides``.
-        overrides: Hydra overrides, as on the command line (``group=option``, ``key=value``); only
-            without ``config``.
+
+    Keyword Args:
+        overrides (Sequence[str], optional): Hydra overrides, as on the command line
+            (``group=option``, ``key=value``); only without ``config``.
 
     Returns:
         The run directory (resolved).
 
+    Raises:
+        ValueError: both ``config`` and ``overrides`` given.
+
     Examples:
+        A tiny push recording, then 2 training steps of a small paper model on it:
+
+        >>> import tempfile
+        >>> from pathlib import Path
         >>> import mmf_rl
+        >>> from mmf_rl.record import RecordConfig, record
+        >>> tmp = Path(tempfile.mkdtemp())
+        >>> root = record(RecordConfig(out=tmp / "push", episodes=6, steps=40, image_size=32))
+        >>> small = ["data.image_size=[32,32]", "data.history=4", "data.horizon=3",
+        ...          "model.d_model=16", "model.num_heads=2", "trainer.batch_size=8",
+        ...          "trainer.progress_bar=false", "logger=csv", "num_workers=0"]
         >>> run_dir = mmf_rl.train(
-        ...     overrides=["data.root=data/push", "trainer.total_steps=200", "run_dir=runs/quick"]
+        ...     overrides=[f"data.root={root}", "trainer.total_steps=2", f"run_dir={tmp / 'run'}", *small]
         ... )
+        >>> (run_dir / "model" / "model.safetensors").exists()
+        True
+
+        The same with a composed config, edited before training:
+
         >>> from mmf_rl.configuration import compose_config
-        >>> cfg = compose_config("train", ["model=lf_lstm", "data.root=data/push"])
-        >>> cfg.trainer.total_steps = 200
-        >>> run_dir = mmf_rl.train(cfg)
+        >>> cfg = compose_config("train", [f"data.root={root}", f"run_dir={tmp / 'edited'}", *small])
+        >>> cfg.trainer.total_steps = 2
+        >>> mmf_rl.train(cfg).name
+        'edited'
     """
     run = TrainRunConfig.from_config(config_or_overrides("train", config, overrides))
     device = resolve_device(run.device)

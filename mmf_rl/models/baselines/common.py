@@ -31,15 +31,20 @@ class BaselineConfig:
     """Sizes shared by every baseline; each baseline's config adds its own fields.
 
     Args:
-        modalities: one :class:`ModalitySpec` per input modality.
-        history: ``H``, past steps per window.
-        horizon: ``T``, future steps forecast.
-        target_dim: ``D``, dims of the forecast variable.
-        d_model: width of every per-modality representation.
-        head_hidden: hidden width of the output head.
-        min_scale: floor added to every predicted standard deviation.
-        nonfinite: NaN/Inf under a present modality: ``"raise"`` (default) or ``"absent"`` (read
-            as absent), as :func:`mmf_rl.keys.mark_nonfinite_absent` applies it.
+        modalities (list[ModalitySpec]): one :class:`ModalitySpec` per input modality (at least one).
+        history (int, optional): ``H``, past steps per window. Defaults to ``10``.
+        horizon (int, optional): ``T``, future steps forecast. Defaults to ``10``.
+        target_dim (int, optional): ``D``, dims of the forecast variable. Defaults to ``2``.
+        d_model (int, optional): width of every per-modality representation. Defaults to ``64``.
+        head_hidden (int, optional): hidden width of the output head. Defaults to ``256``.
+        min_scale (float, optional): floor added to every predicted standard deviation. Defaults to
+            ``1e-3``.
+        nonfinite (str, optional): NaN/Inf under a present modality: ``"raise"`` (default) or
+            ``"absent"`` (read as absent), as :func:`mmf_rl.keys.mark_nonfinite_absent` applies it.
+
+    Raises:
+        ValueError: no modality, duplicate names, an unknown encoder, a size below 1, ``min_scale <= 0``
+            or an unknown ``nonfinite`` (the message names the config class and field).
     """
 
     modalities: list[ModalitySpec] = field(default_factory=list)
@@ -76,12 +81,24 @@ class BaselineConfig:
             )
 
     def to_dict(self) -> dict:
+        """The config as plain data (modalities as dicts), what :meth:`from_dict` reads back."""
         d = asdict(self)
         d["modalities"] = [m.to_dict() for m in self.modalities]
         return d
 
     @classmethod
     def from_dict(cls, d: dict):
+        """Build from plain data.
+
+        Args:
+            d (dict): the fields (modalities as :class:`ModalitySpec` or their dicts).
+
+        Returns:
+            The config.
+
+        Raises:
+            ValueError: an unknown key or an invalid value.
+        """
         reject_unknown_keys(cls, d, cls.__name__)
         return cls(**d)
 
@@ -213,6 +230,15 @@ class DeterministicForecaster(TensorDictModuleBase, PretrainedModel):
         return td
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
+        """Write ``("forecast", "samples")`` ``[B, K, T, D]``: the point forecast ``K`` times.
+
+        Args:
+            td (TensorDictBase): a batch following `mmf_rl.keys`; written in place.
+            num_samples (int, optional): ``K``. Defaults to ``20``.
+
+        Returns:
+            ``td``.
+        """
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, found {num_samples}")
         self.validate(td)

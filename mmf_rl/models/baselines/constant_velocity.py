@@ -27,8 +27,29 @@ from mmf_rl.models.registry import register_model
 
 @dataclass
 class ConstantVelocityConfig(BaselineConfig):
-    """:class:`BaselineConfig` plus the sampler's ``heading_noise`` (radians, std of the turn of
-    each sample) and ``target_scale`` (per-dim std of the normalised target; ``None``: 1)."""
+    """:class:`BaselineConfig` of :class:`ConstantVelocity`, plus its sampler's settings.
+
+    Args:
+        modalities (list[ModalitySpec]): one :class:`ModalitySpec` per input modality (at least one).
+        history (int, optional): ``H``, past steps per window. Defaults to ``10``.
+        horizon (int, optional): ``T``, future steps forecast. Defaults to ``10``.
+        target_dim (int, optional): ``D``, dims of the forecast variable. Defaults to ``2``.
+        d_model (int, optional): width of every per-modality representation. Defaults to ``64``.
+        head_hidden (int, optional): hidden width of the output head. Defaults to ``256``.
+        min_scale (float, optional): floor added to every predicted standard deviation. Defaults to
+            ``1e-3``.
+        nonfinite (str, optional): NaN/Inf under a present modality: ``"raise"`` (default) or
+            ``"absent"`` (read as absent), as :func:`mmf_rl.keys.mark_nonfinite_absent` applies it.
+        heading_noise (float, optional): radians, the std of the turn of each sample (``0``, the default:
+            every sample is the point forecast); needs ``target_dim = 2``.
+        target_scale (list[float], optional): the per-dim std of the normalised target, so the turn is
+            made in the target's units; ``None``: 1.
+
+    Raises:
+        ValueError: no modality, duplicate names, an unknown encoder, a size below 1, ``min_scale <= 0`` or an
+            unknown ``nonfinite``, a negative ``heading_noise``, ``heading_noise`` with ``target_dim != 2``,
+            or ``target_scale`` not ``target_dim`` positive numbers.
+    """
 
     heading_noise: float = 0.0
     target_scale: list[float] | None = None
@@ -53,7 +74,28 @@ class ConstantVelocityConfig(BaselineConfig):
 
 @register_model("constant_velocity", ConstantVelocityConfig, loss=("nll",))
 class ConstantVelocity(DeterministicForecaster):
-    """Extrapolates the last step of ``"target_past"``; unit scale (see module docstring)."""
+    """Extrapolates the last step of ``"target_past"``; unit scale (see module docstring).
+
+    Reads ``"target_past"`` ``[B, H, D]`` (``H >= 2``; a missing one is a ``KeyError`` when called) and
+    writes ``("forecast", "loc"/"scale")``. The modalities are validated but never read.
+
+    Args:
+        config (ConstantVelocityConfig): the sizes and the sampler's settings.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models.baselines import ConstantVelocity, ConstantVelocityConfig
+        >>> config = ConstantVelocityConfig([ModalitySpec("pose", "vector", (3,))], history=3, horizon=2)
+        >>> batch = TensorDict({
+        ...     ("obs", "pose"): torch.zeros(1, 3), ("present", "pose"): torch.ones(1, dtype=torch.bool),
+        ...     "target_past": torch.tensor([[[0.0, 0.0], [1.0, 0.5], [2.0, 1.0]]]),
+        ... }, batch_size=[1])
+        >>> ConstantVelocity(config)(batch)["forecast", "loc"]
+        tensor([[[3.0000, 1.5000],
+                 [4.0000, 2.0000]]])
+    """
 
     def __init__(self, config: ConstantVelocityConfig):
         super().__init__(config)
@@ -82,6 +124,16 @@ class ConstantVelocity(DeterministicForecaster):
         return loc, torch.ones_like(loc)
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
+        """Write ``("forecast", "samples")`` ``[B, K, T, D]``: the point forecast, each sample's last
+        velocity turned by an angle drawn from ``N(0, heading_noise²)`` (global RNG).
+
+        Args:
+            td (TensorDictBase): a batch with ``"target_past"``; written in place.
+            num_samples (int, optional): ``K``. Defaults to ``20``.
+
+        Returns:
+            ``td``.
+        """
         if self.config.heading_noise == 0:
             return super().sample(td, num_samples)
         if num_samples < 1:

@@ -46,8 +46,27 @@ from mmf_rl.models.scale_calibration import PresenceScaleCalibration
 
 @dataclass
 class MVAEConfig(BaselineConfig):
-    """:class:`BaselineConfig` plus ``d_latent`` and ``eval_latent``: the latent ``forward``
-    decodes in eval mode, ``"mean"`` (the posterior mean: deterministic) or ``"sample"``."""
+    """:class:`BaselineConfig` of :class:`MVAE`, plus its latent.
+
+    Args:
+        modalities (list[ModalitySpec]): one :class:`ModalitySpec` per input modality (at least one).
+        history (int, optional): ``H``, past steps per window. Defaults to ``10``.
+        horizon (int, optional): ``T``, future steps forecast. Defaults to ``10``.
+        target_dim (int, optional): ``D``, dims of the forecast variable. Defaults to ``2``.
+        d_model (int, optional): width of every per-modality representation. Defaults to ``64``.
+        head_hidden (int, optional): hidden width of the output head. Defaults to ``256``.
+        min_scale (float, optional): floor added to every predicted standard deviation. Defaults to
+            ``1e-3``.
+        nonfinite (str, optional): NaN/Inf under a present modality: ``"raise"`` (default) or
+            ``"absent"`` (read as absent), as :func:`mmf_rl.keys.mark_nonfinite_absent` applies it.
+        d_latent (int, optional): ``d_z``. Defaults to ``16``.
+        eval_latent (str, optional): the latent ``forward`` decodes in eval mode: ``"mean"`` (default,
+            the posterior mean: deterministic) or ``"sample"`` (a posterior draw).
+
+    Raises:
+        ValueError: no modality, duplicate names, an unknown encoder, a size below 1, ``min_scale <= 0``
+            or an unknown ``nonfinite``, or an unknown ``eval_latent``.
+    """
 
     d_latent: int = 16
     eval_latent: Literal["mean", "sample"] = "mean"
@@ -72,6 +91,29 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
     Writes ``("forecast", "loc"/"scale")``, ``("posterior", ...)``, ``("prior", ...)`` and
     ``"latent"``. In train mode ``z`` is a reparameterised posterior sample. In eval mode the
     forecast's scale is multiplied by its presence pattern's factor (``scale_calibration``).
+    Trained with :class:`~mmf_rl.objectives.ELBOLoss` (its registry entry's loss).
+
+    Args:
+        config (MVAEConfig): the sizes and the eval latent.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models.baselines import MVAE, MVAEConfig
+        >>> force, pose = ModalitySpec("force", "sequence", (6,)), ModalitySpec("pose", "vector", (3,))
+        >>> model = MVAE(MVAEConfig([force, pose], history=4, horizon=5, d_model=16, d_latent=4)).eval()
+        >>> batch = TensorDict({
+        ...     ("obs", "force"): torch.randn(3, 4, 6),
+        ...     ("present", "force"): torch.tensor([True, True, False]),  # the third sample lost it
+        ...     ("obs", "pose"): torch.randn(3, 3),
+        ...     ("present", "pose"): torch.ones(3, dtype=torch.bool),
+        ... }, batch_size=[3])
+        >>> out = model(batch)
+        >>> out["forecast", "loc"].shape, out["posterior", "loc"].shape
+        (torch.Size([3, 5, 2]), torch.Size([3, 4]))
+        >>> model.sample(batch, num_samples=6)["forecast", "samples"].shape  # K posterior draws
+        torch.Size([3, 6, 5, 2])
     """
 
     # It decodes from its posterior only, so the ELBO refuses the GSNN term (loss.gsnn_weight).
@@ -154,7 +196,15 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
         return td
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:
-        """``("forecast", "samples")`` ``[B, K, T, D]``: decoded means of ``K`` posterior samples."""
+        """Write ``("forecast", "samples")`` ``[B, K, T, D]``: decoded means of ``K`` posterior samples.
+
+        Args:
+            td (TensorDictBase): a batch following `mmf_rl.keys`; written in place.
+            num_samples (int, optional): ``K``. Defaults to ``20``.
+
+        Returns:
+            ``td``.
+        """
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, found {num_samples}")
         self.validate(td)

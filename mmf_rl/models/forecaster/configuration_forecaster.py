@@ -21,87 +21,116 @@ class ForecasterConfig:
     """Sizes and choices of :class:`MultimodalForecaster`.
 
     Args:
-        modalities: one :class:`ModalitySpec` per input modality; their order fixes the rows of
-            the learned modality embeddings ``P^E`` and ``P^D``.
-        history: ``H``, past steps per window.
-        horizon: ``T``, future steps forecast.
-        target_dim: ``D``, dims of the forecast variable.
-        d_model: ``d``, the common width of modality tokens.
-        d_latent: ``d_z``.
-        num_heads: heads of every attention block.
-        num_encoder_layers: ``L``: ``L - 1`` pre-LN Transformer layers, then the fixed-query
-            aggregation layer (the paper uses ``L = 2``).
-        mlp_hidden: hidden width of the Transformer MLPs and the decoder's shared MLP.
-        head_hidden: hidden width of the posterior and output heads.
-        min_scale: floor added to every predicted standard deviation.
-        prior: ``"standard"`` (default, the paper's fixed ``N(0, I)``) or ``"learned"``: a
-            conditional prior ``p(z|X)`` computed by a head on the multimodal encoder's fused
-            representation of the present modalities, so the fusion shapes every test-time
+        modalities (list[ModalitySpec]): one :class:`ModalitySpec` (or its dict) per input modality, at
+            least one; their order fixes the rows of the learned modality embeddings ``P^E`` and ``P^D``.
+        history (int, optional): ``H``, past steps per window. Defaults to ``10``.
+        horizon (int, optional): ``T``, future steps forecast. Defaults to ``10``.
+        target_dim (int, optional): ``D``, dims of the forecast variable. Defaults to ``2``.
+        d_model (int, optional): ``d``, the common width of modality tokens. Defaults to ``64``.
+        d_latent (int, optional): ``d_z``. Defaults to ``16``.
+        num_heads (int, optional): heads of every attention block (``d_model`` must divide by it).
+            Defaults to ``4``.
+        num_encoder_layers (int, optional): ``L``: ``L - 1`` pre-LN Transformer layers, then the fixed-query
+            aggregation layer (the paper uses ``L = 2``, the default).
+        mlp_hidden (int, optional): hidden width of the Transformer MLPs and the decoder's shared MLP.
+            Defaults to ``128``.
+        head_hidden (int, optional): hidden width of the posterior and output heads. Defaults to ``256``.
+        min_scale (float, optional): floor added to every predicted standard deviation. Defaults to
+            ``1e-3``.
+        prior (str, optional): ``"standard"`` (default, the paper's fixed
+            ``N(0, I)``) or ``"learned"``: a conditional prior ``p(z|X)`` computed by a head on the multimodal
+            encoder's fused representation of the present modalities, so the fusion shapes every test-time
             forecast (the latent is drawn from it at test time). ``loss_kl`` becomes
             ``KL(q(z|X, y) || p(z|X))``. The default stays ``"standard"`` by measurement (see
-            docs/results.md): the learned prior is no more accurate, and its forecast scale,
-            trained on posterior draws that know ``y``, is overconfident when decoded at the
-            prior's mean.
-        posterior_uses_target: whether the future ``y`` enters the posterior head in training
+            docs/results.md): the learned prior is no more accurate, and its forecast scale, trained on
+            posterior draws that know ``y``, is overconfident when decoded at the prior's mean.
+        posterior_uses_target (bool, optional): whether the future ``y`` enters the posterior head in training
             (a CVAE's ``q(z|X, y)``). ``None`` (default): ``True`` with the learned prior (which
             needs it: a posterior that sees only ``X`` can copy the prior), ``False`` with the
             standard prior (the paper's literal ``q(z|X)``): with the standard prior, ``True``
             lets ``z`` carry the future that the ``N(0, I)`` draws at test time do not know, so
             forecasts get worse and seed-dependent (see docs/results.md).
-        eval_latent: the latent(s) ``forward`` and
-            :meth:`~MultimodalForecaster.decode_under_actions` decode in eval mode: ``"mean"``
-            (default: the prior's mean, a deterministic forecast; ``z = 0`` under the standard
-            prior), ``"sample"`` (one draw from the prior, from the global RNG) or
-            ``"predictive"``: ``K = predictive_samples`` fixed prior draws
-            ``z_k = μ_p + σ_p ε_k`` decoded in one batched pass, and the forecast is the
-            moment-matched Gaussian of their mixture, ``loc = mean_k μ_k``,
-            ``scale = sqrt(mean_k σ_k² + var_k μ_k)``: the spread of the prior samples enters the
-            forecast's scale: it fixes the learned prior's overconfident scale without retraining
-            (``mmf-rl eval ... eval_latent=predictive``). The ``ε_k`` are fixed (seeded, antithetic
-            pairs), so the forecast is deterministic and leaves the global RNG alone.
-            ``"posterior"``: the mean of ``q(z | X)``, the fusion's posterior (the paper's eqs. 10
-            and 15 read literally; needs a posterior that does not read the
-            target). Cost of ``"predictive"``: every eval decode runs on ``K×`` the rows (a planner's
-            ``decode_under_actions`` decodes ``B × N × K`` rows for ``N`` candidates). It also
-            applies to a validation loss computed in eval mode. :meth:`MultimodalForecaster.sample`
+        eval_latent (str, optional): the latent(s)
+            ``forward`` and :meth:`~MultimodalForecaster.decode_under_actions` decode in eval mode: ``"mean"``
+            (default: the prior's mean, a deterministic forecast; ``z = 0`` under the standard prior),
+            ``"sample"`` (one draw from the prior, from the global RNG) or ``"predictive"``:
+            ``K = predictive_samples`` fixed prior draws ``z_k = μ_p + σ_p ε_k`` decoded in one batched pass,
+            and the forecast is the moment-matched Gaussian of their mixture, ``loc = mean_k μ_k``,
+            ``scale = sqrt(mean_k σ_k² + var_k μ_k)``: the spread of the prior samples enters the forecast's
+            scale: it fixes the learned prior's overconfident scale without retraining
+            (``mmf-rl eval ... eval_latent=predictive``). The ``ε_k`` are fixed (seeded, antithetic pairs), so
+            the forecast is deterministic and leaves the global RNG alone. ``"posterior"``: the mean of
+            ``q(z | X)``, the fusion's posterior (the paper's eqs. 10 and 15 read literally; needs a posterior
+            that does not read the target). Cost of ``"predictive"``: every eval decode runs on ``K×`` the
+            rows (a planner's ``decode_under_actions`` decodes ``B × N × K`` rows for ``N`` candidates). It
+            also applies to a validation loss computed in eval mode. :meth:`MultimodalForecaster.sample`
             always samples, from the global RNG.
-        learned_samples: ``K`` of a learned sampler (DLow, :mod:`mmf_rl.models.latent_sampler`): a
-            network on the fused representation that makes ``K`` latent codes per history, trained
-            after the forecaster with the forecaster frozen (``mmf-rl train sampler.steps=N``);
-            :meth:`MultimodalForecaster.sample` then decodes those codes when asked for ``K`` samples.
-            ``0`` (default): no sampler; ``sample`` draws from the prior.
-        predictive_samples: ``K`` of ``eval_latent="predictive"``: an even number ``>= 2`` (the
-            ``ε_k`` come in antithetic pairs ``±ε``); unused by the other eval latents.
-        fusion: the multimodal encoder of the posterior: ``"agnostic"`` (the paper's
-            modality-agnostic attention) or an ablation of :mod:`mmf_rl.models.fusion`
+        learned_samples (int, optional): ``K`` of a learned sampler (DLow,
+            :mod:`mmf_rl.models.latent_sampler`): a network on the fused representation that makes ``K``
+            latent codes per history, trained after the forecaster with the forecaster frozen
+            (``mmf-rl train sampler.steps=N``); :meth:`MultimodalForecaster.sample` then decodes those codes
+            when asked for ``K`` samples. ``0`` (default): no sampler; ``sample`` draws from the prior.
+        predictive_samples (int, optional): ``K`` of ``eval_latent="predictive"``: an even number ``>= 2``
+            (the ``ε_k`` come in antithetic pairs ``±ε``); unused by the other eval latents. Defaults to
+            ``16``.
+        fusion (str, optional): the multimodal encoder of the posterior: ``"agnostic"`` (default, the
+            paper's modality-agnostic attention) or an ablation of :mod:`mmf_rl.models.fusion`
             (``"linear"``, ``"average"``, ``"sum"``, ``"cross_attention"``).
-        decoder_input: what the decoder reads: ``"mixed"`` (default: the unimodal encoders' tokens
-            after the multimodal encoder's self-attention layers, so the fusion acts on every
-            forecast whatever the prior; a fusion without such layers passes them through) or
-            ``"tokens"`` (the paper read literally: the raw tokens, and under the standard prior
-            the fusion shapes only training). A saved config without it loads as ``"tokens"``.
-            ``"pair_streams"`` (MulT's streams): for each ordered pair ``(i, j)`` of modalities, a
-            cross-modal layer of its own lets ``i``'s last present token attend to ``j``'s present
-            tokens; the decoder reads the ``M × M`` readouts (absent when ``i`` or ``j`` is), each
-            with ``p^D_i`` (:class:`~mmf_rl.models.attention.PairStreams`). ``"mixed_pair_streams"``:
-            the same streams over the mixed tokens, so the fusion acts on every forecast.
-        pair_self: the self pairs ``i <- i`` of the pair streams: ``"always"`` read (default) or only
-            when ``i`` is the only present modality (``"alone"``: with two or more, the decoder reads
-            MulT's ``M (M - 1)`` cross pairs alone; the self-pair layers then learn only from windows
-            with one modality left, which ``L_mis`` dropping one of three never makes). Unused without
-            pair streams.
-        decoder_latent: how ``z`` (and a world model's actions) enter the decoder's tokens ``H0``:
-            ``"joint"`` (default, the paper: the shared MLP over ``[x̄ + p^D, z (, a)]``),
-            ``"linear"`` (``H0 = x̄ + p^D + W [z (, a)]``: no MLP over every token) or ``"none"`` (a
-            deterministic decoder that ignores ``z``; the actions still enter, linearly). A saved
-            config without it loads as ``"joint"``.
-        action_dim: ``A``; with ``action_steps``, makes the model an action-conditioned world
+        decoder_input (str, optional): what the
+            decoder reads: ``"mixed"`` (default: the unimodal encoders' tokens after the multimodal encoder's
+            self-attention layers, so the fusion acts on every forecast whatever the prior; a fusion without
+            such layers passes them through) or ``"tokens"`` (the paper read literally: the raw tokens, and
+            under the standard prior the fusion shapes only training). A saved config without it loads as
+            ``"tokens"``. ``"pair_streams"`` (MulT's streams): for each ordered pair ``(i, j)`` of modalities,
+            a cross-modal layer of its own lets ``i``'s last present token attend to ``j``'s present tokens;
+            the decoder reads the ``M × M`` readouts (absent when ``i`` or ``j`` is), each with ``p^D_i``
+            (:class:`~mmf_rl.models.attention.PairStreams`). ``"mixed_pair_streams"``: the same streams over
+            the mixed tokens, so the fusion acts on every forecast.
+        pair_self (str, optional): the self pairs ``i <- i`` of the pair streams:
+            ``"always"`` read (default) or only when ``i`` is the only present modality (``"alone"``: with two
+            or more, the decoder reads MulT's ``M (M - 1)`` cross pairs alone; the self-pair layers then learn
+            only from windows with one modality left, which ``L_mis`` dropping one of three never makes).
+            Unused without pair streams.
+        decoder_latent (str, optional): how ``z`` (and a world model's actions)
+            enter the decoder's tokens ``H0``: ``"joint"`` (default, the paper: the shared MLP over
+            ``[x̄ + p^D, z (, a)]``), ``"linear"`` (``H0 = x̄ + p^D + W [z (, a)]``: no MLP over every token)
+            or ``"none"`` (a deterministic decoder that ignores ``z``; the actions still enter, linearly). A
+            saved config without it loads as ``"joint"``.
+        action_dim (int, optional): ``A``; with ``action_steps``, makes the model an action-conditioned world
             model that reads ``"future_action"`` ``[B, action_steps, A]`` (the actions applied
             over the horizon). ``0`` (default): no action input, the paper's forecaster.
-        action_steps: ``S``, frames of actions over the horizon (``T × stride`` in the data).
-        nonfinite: NaN/Inf under a present modality of an input batch: ``"raise"`` (default; the
-            error names the key and the samples) or ``"absent"`` (those samples' modality is
+        action_steps (int, optional): ``S``, frames of actions over the horizon (``T × stride`` in the data).
+        nonfinite (str, optional): NaN/Inf under a present modality of an input batch: ``"raise"``
+            (default; the error names the key and the samples) or ``"absent"`` (those samples' modality is
             read as absent). See :func:`mmf_rl.keys.validate_batch`.
+
+    Raises:
+        ValueError: no modality or duplicate names, an unknown encoder or fusion, a size below 1,
+            ``d_model`` not divisible by ``num_heads``, ``min_scale <= 0``, an option outside its choices,
+            ``predictive_samples`` odd or below 2, ``action_dim`` and ``action_steps`` not both set or both
+            0, or a latent setup that cannot work (``prior="learned"`` with
+            ``posterior_uses_target=False``, ``eval_latent="posterior"`` with a posterior that reads the
+            target); the message names the field.
+
+    Examples:
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig
+        >>> camera = ModalitySpec("camera", "image", (3, 32, 32))
+        >>> force = ModalitySpec("force", "sequence", (6,))
+        >>> config = ForecasterConfig(
+        ...     modalities=[camera, force],
+        ...     history=8,
+        ...     horizon=10,
+        ...     prior="learned",
+        ... )
+        >>> config.modality_names, config.posterior_reads_target
+        (['camera', 'force'], True)
+        >>> ForecasterConfig.from_dict(config.to_dict()) == config
+        True
+        >>> ForecasterConfig(modalities=config.modalities, d_model=30, num_heads=4)
+        Traceback (most recent call last):
+            ...
+        ValueError: ForecasterConfig: d_model=30 must be divisible by num_heads=4
     """
 
     modalities: list[ModalitySpec] = field(default_factory=list)
@@ -229,6 +258,7 @@ class ForecasterConfig:
 
     @property
     def modality_names(self) -> list[str]:
+        """The modalities' names, in order."""
         return [m.name for m in self.modalities]
 
     @property
@@ -242,12 +272,25 @@ class ForecasterConfig:
         return (self.action_steps, self.action_dim) if self.action_dim else None
 
     def to_dict(self) -> dict:
+        """The config as plain data (modalities as dicts), what :meth:`from_dict` reads back."""
         d = asdict(self)
         d["modalities"] = [m.to_dict() for m in self.modalities]
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> ForecasterConfig:
+        """Build from plain data (a saved config, or the Hydra model config's sizes).
+
+        Args:
+            d (dict): the fields; a config saved before ``decoder_input`` existed loads as
+                ``"tokens"``, the decoder it described.
+
+        Returns:
+            The config.
+
+        Raises:
+            ValueError: an unknown key or an invalid value.
+        """
         reject_unknown_keys(cls, d, "ForecasterConfig")
         # A config saved before decoder_input existed describes a decoder that read the raw tokens.
         return cls(**{"decoder_input": "tokens", **d})

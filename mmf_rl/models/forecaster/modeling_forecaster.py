@@ -220,11 +220,35 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     by its presence pattern's factor (``scale_calibration``: ones until ``mmf-rl calibrate`` fits
     them; see :mod:`mmf_rl.models.scale_calibration`).
 
-    Example:
-        >>> cfg = ForecasterConfig(modalities=[ModalitySpec("force", "sequence", (6,))], history=10)
-        >>> model = MultimodalForecaster(cfg).eval()
-        >>> td = model(batch)           # batch follows mmf_rl.keys
-        >>> td["forecast", "loc"].shape  # [B, T, D]
+    Args:
+        config (ForecasterConfig): the sizes and choices.
+
+    Examples:
+        A forecaster of two modalities, on a batch where the third sample lost its force sensor:
+
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from mmf_rl.keys import ModalitySpec
+        >>> from mmf_rl.models import ForecasterConfig, MultimodalForecaster
+        >>> config = ForecasterConfig(
+        ...     modalities=[ModalitySpec("force", "sequence", (6,)), ModalitySpec("pose", "vector", (3,))],
+        ...     history=4, horizon=5, target_dim=2, d_model=16, d_latent=4, num_heads=2,
+        ... )
+        >>> model = MultimodalForecaster(config).eval()
+        >>> batch = TensorDict({
+        ...     ("obs", "force"): torch.randn(3, 4, 6),
+        ...     ("present", "force"): torch.tensor([True, True, False]),
+        ...     ("obs", "pose"): torch.randn(3, 3),
+        ...     ("present", "pose"): torch.ones(3, dtype=torch.bool),
+        ... }, batch_size=[3])
+        >>> out = model(batch)  # written into `batch`
+        >>> out["forecast", "loc"].shape, out["forecast", "scale"].shape  # [B, T, D]
+        (torch.Size([3, 5, 2]), torch.Size([3, 5, 2]))
+        >>> batch["obs", "force"][2] = float("nan")  # the value under an absent modality is never read
+        >>> torch.equal(model(batch.clone())["forecast", "loc"], out["forecast", "loc"])
+        True
+        >>> model.sample(batch, num_samples=4)["forecast", "samples"].shape  # best-of-K draws
+        torch.Size([3, 4, 5, 2])
     """
 
     def __init__(self, config: ForecasterConfig):
@@ -379,7 +403,14 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         With ``("present_steps", m)`` in ``td``, the absent steps of a present window are zeroed before
         the encoder reads them; a step-token encoder's token of an absent step is also absent (a
         key-padding mask for the fusion and the decoder). Without it every step of a present modality
-        is present."""
+        is present.
+
+        Args:
+            td (TensorDictBase): a batch following `mmf_rl.keys`.
+
+        Returns:
+            ``(tokens, presence)``.
+        """
         columns = [
             self._encode_modality(
                 i,
@@ -600,6 +631,14 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     # -- TensorDict API --------------------------------------------------------------------------
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
+        """Forecast ``td``'s windows (see the class docstring for what is read and written).
+
+        Args:
+            td (TensorDictBase): a batch ``[B]`` following `mmf_rl.keys`; written in place.
+
+        Returns:
+            ``td``, with the forecast, the latent and the distributions.
+        """
         self.validate(td, require_target=self.training and self.target_encoder is not None)
         tokens, present = self.encode(td)
         tokens_kept, kept = self._student_input(td, tokens, present)
@@ -761,6 +800,13 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
 
         Writes ``("forecast", "samples")`` ``[B, K, T, D]``: the mean of ``p(y | X, z_k)`` for each
         ``z_k``. Other outputs are left untouched. Use under ``torch.no_grad()`` for evaluation.
+
+        Args:
+            td (TensorDictBase): a batch following `mmf_rl.keys`; written in place.
+            num_samples (int, optional): ``K``. Defaults to ``20``.
+
+        Returns:
+            ``td``.
         """
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, found {num_samples}")
@@ -832,7 +878,14 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         ``actions`` is ``[B, N, S, A]`` in the normalised frame of ``"future_action"``. Each
         history is encoded once and decoded for its ``N`` sequences in one batched pass (a
         planner that scores several batches of candidates for one history calls :meth:`encode`
-        once and :meth:`decode_under_actions` per batch). Returns ``loc``, ``scale`` ``[B, N, T, D]``.
+        once and :meth:`decode_under_actions` per batch).
+
+        Args:
+            td (TensorDictBase): ``B`` history windows following `mmf_rl.keys`.
+            actions (torch.Tensor): ``[B, N, S, A]`` candidate action sequences, normalised.
+
+        Returns:
+            ``loc``, ``scale`` ``[B, N, T, D]``.
         """
         self._require_actions("forecast_under_actions")
         keys.validate_batch(td, self.modalities, self.config.history, nonfinite=self.config.nonfinite)
@@ -843,9 +896,21 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
     def decode_under_actions(
         self, tokens: torch.Tensor, present: torch.Tensor, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Decode encoded histories (:meth:`encode`: tokens ``[B, M, d]``, presence ``[B, M]``) under
-        ``[B, N, S, A]`` normalised action sequences, ``z`` from the prior by ``eval_latent`` (its mean
-        by default; ``"predictive"`` decodes ``B × N × K`` rows in one pass and moment-matches them)."""
+        """Decode encoded histories under action sequences, ``z`` from the prior by ``eval_latent`` (its
+        mean by default; ``"predictive"`` decodes ``B × N × K`` rows in one pass and moment-matches
+        them).
+
+        Args:
+            tokens (torch.Tensor): :meth:`encode`'s tokens ``[B, N, d]``.
+            present (torch.Tensor): its token presence ``[B, N]``.
+            actions (torch.Tensor): ``[B, N', S, A]`` normalised action sequences, ``N'`` per history.
+
+        Returns:
+            ``loc``, ``scale`` ``[B, N', T, D]``.
+
+        Raises:
+            ValueError: a model without action input, or ``actions`` of another shape.
+        """
         self._require_actions("decode_under_actions")
         expected = (tokens.shape[0], *self.config.action_shape)
         if actions.dim() != 4 or (actions.shape[0], *actions.shape[2:]) != expected:
@@ -876,7 +941,17 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self, tokens: torch.Tensor, present: torch.Tensor, decoder_tokens: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The latent distribution eval decodes from: ``q(z | X)`` with ``eval_latent="posterior"``
-        (eqs. 10 and 15 read literally), else the prior ``p(z | X)``."""
+        (eqs. 10 and 15 read literally), else the prior ``p(z | X)``.
+
+        Args:
+            tokens (torch.Tensor): :meth:`encode`'s tokens.
+            present (torch.Tensor): its token presence.
+            decoder_tokens (torch.Tensor, optional): :meth:`decoder_tokens` of them, when already
+                computed.
+
+        Returns:
+            ``loc``, ``scale`` ``[B, d_z]``.
+        """
         if self.config.eval_latent == "posterior":
             return self._posterior_from(self.fuse(tokens, present, decoder_tokens), None)
         return self.prior(tokens, present, decoder_tokens)
