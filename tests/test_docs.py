@@ -68,35 +68,35 @@ def site_copy(tmp_path: Path) -> Path:
     return root
 
 
-@pytest.mark.parametrize(
-    "breakage, expected",
-    [
-        ("a broken link", "contains a link 'no_such_page.md'"),
-        ("a page missing from the nav", 'not included in the "nav" configuration'),
-        ("a broken anchor", "does not contain an anchor '#no-such-section'"),
-        ("a docstring that does not render", "Failed to get 'name: description' pair"),
-        ("an API page of a module that does not exist", "Could not collect 'mmf_rl.no_such_module'"),
-    ],
-)
-def test_the_strict_build_fails_on(breakage, expected, tmp_path):
+def test_the_strict_build_fails_on_a_broken_link_or_anchor_a_page_off_the_nav_or_a_bad_docstring(tmp_path):
+    """One build of a copy holding four breakages: strict mode reports every warning before it aborts."""
     root = site_copy(tmp_path)
     page = root / "docs" / "getting-started.md"
-    if breakage == "a broken link":
-        page.write_text(page.read_text() + "\nSee [this](no_such_page.md).\n")
-    elif breakage == "a page missing from the nav":
-        (root / "docs" / "orphan.md").write_text("# Orphan\n")
-    elif breakage == "a broken anchor":
-        page.write_text(page.read_text() + "\nSee [this](models.md#no-such-section).\n")
-    elif breakage == "a docstring that does not render":
-        (root / "docs_broken.py").write_text(
-            'def f(a):\n    """Do.\n\n    Args:\n        a the first, without its colon\n    """\n'
-        )
-        (root / "docs" / "api" / "keys.md").write_text("# keys\n\n::: docs_broken.f\n")
-    else:
-        (root / "docs" / "api" / "keys.md").write_text("# keys\n\n::: mmf_rl.no_such_module\n")
+    broken = "\nSee [this](no_such_page.md) and [that](models.md#no-such-section).\n"
+    page.write_text(page.read_text() + broken)
+    (root / "docs" / "orphan.md").write_text("# Orphan\n")
+    (root / "docs_broken.py").write_text(
+        'def f(a):\n    """Do.\n\n    Args:\n        a the first, without its colon\n    """\n'
+    )
+    (root / "docs" / "api" / "keys.md").write_text("# keys\n\n::: docs_broken.f\n")
     build = mkdocs_build(root, tmp_path / "site")
-    assert build.returncode != 0, f"the strict build passed with {breakage}"
-    assert expected in build.stdout + build.stderr
+    assert build.returncode != 0, "the strict build passed"
+    output = build.stdout + build.stderr
+    for breakage, expected in [
+        ("a broken link", "contains a link 'no_such_page.md'"),
+        ("a broken anchor", "does not contain an anchor '#no-such-section'"),
+        ("a page missing from the nav", 'not included in the "nav" configuration:\n  - orphan.md'),
+        ("a docstring that does not render", "Failed to get 'name: description' pair"),
+    ]:
+        assert expected in output, f"the build did not report {breakage}:\n{output[-3000:]}"
+
+
+def test_the_strict_build_fails_on_an_api_page_of_a_module_that_does_not_exist(tmp_path):
+    root = site_copy(tmp_path)
+    (root / "docs" / "api" / "keys.md").write_text("# keys\n\n::: mmf_rl.no_such_module\n")
+    build = mkdocs_build(root, tmp_path / "site")
+    assert build.returncode != 0, "the strict build passed"
+    assert "Could not collect 'mmf_rl.no_such_module'" in build.stdout + build.stderr
 
 
 def benchmark_scripts() -> list[str]:
