@@ -2,7 +2,7 @@
 VENV_PY := .venv/bin/python
 export MUJOCO_GL ?= egl
 
-.PHONY: setup test demo bench
+.PHONY: setup test demo bench docs
 
 setup:
 	@bash scripts/setup.sh
@@ -18,3 +18,8 @@ demo: setup
 
 bench: setup
 	$(VENV_PY) benchmarks/model_throughput.py
+
+# The documentation site (mkdocs.yml, docs/) into site/; --strict: a broken link or a docstring that does
+# not render fails (tests/test_docs.py builds it too).
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(VENV_PY) -m mkdocs build --strict

@@ -19,7 +19,7 @@ SEQUENCES = [spec for spec in SMALL_MODALITIES if spec.kind == "sequence"]
 
 def extend_examples() -> list[str]:
     """The README's "Extend it" python blocks, in order: fusion, model, loss term."""
-    section = README.read_text().split("### Extend it", 1)[1].split("\n## ", 1)[0]
+    section = README.read_text().split("## Extend it\n", 1)[1].split("\n## ", 1)[0]
     return re.findall(r"```python\n(.*?)```", section, flags=re.S)
 
 
