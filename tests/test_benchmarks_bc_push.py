@@ -16,11 +16,7 @@ import pytest
 import yaml
 
 from benchmarks.bc_push import parse_args
-from mmf_rl.checkpoint import list_checkpoints
-from mmf_rl.cli import main as cli
-from mmf_rl.datasets.provenance import PROVENANCE_FILE, read_recording_provenance
-from mmf_rl.rl import BCPolicy
-from mmf_rl.rl.bc_push_experiment import (
+from benchmarks.push.bc_experiment import (
     Forecaster,
     build_recording,
     forecaster_run_dir,
@@ -28,6 +24,10 @@ from mmf_rl.rl.bc_push_experiment import (
     record_or_check_forecaster,
     warn_of_in_sample_forecasts,
 )
+from mmf_rl.checkpoint import list_checkpoints
+from mmf_rl.cli import main as cli
+from mmf_rl.datasets.provenance import PROVENANCE_FILE, read_recording_provenance
+from mmf_rl.rl import BCPolicy
 from tests.conftest import push_train_overrides
 
 

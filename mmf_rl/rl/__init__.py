@@ -2,13 +2,10 @@
 transforms, the world model (and an ensemble of them), a model-based env for torchrl's planners,
 a vectorised CEM planner for model-predictive control with the push task's objective, the MPC agent the
 recorder records with (`PushMPCAgent`), and behaviour cloning from recorded demonstrations with the
-forecast as a policy input. What the push experiments (``benchmarks/mpc_push.py``, ``benchmarks/bc_push.py``)
-build on lives in the submodules: closed-loop play under sensor outages (`closed_loop`,
-`outage_evaluation`, `mpc_evaluation`, `bc_evaluation`), data aggregation (`aggregation`), DAgger
-(`dagger`), action chunks with temporal ensembling for BC (`action_chunks`), training outages replayed
-through the env's outage processes (`replayed_outages`), their shared command-line pieces
-(`experiment`), and the push BC experiment's building and report (`bc_push_experiment`,
-`bc_push_report`)."""
+forecast as a policy input (action chunks with temporal ensembling: `action_chunks`), trained on
+outages drawn per sample or replayed through the env's outage processes (`replayed_outages`). The push
+experiments built on them (``benchmarks/mpc_push.py``, ``benchmarks/bc_push.py``) live beside the
+package, in ``benchmarks/push/``."""
 
 from mmf_rl.rl.agent import MPCActor, PushMPCAgent
 from mmf_rl.rl.bc import DEFAULT_DROPOUT, BCConfig, BCPolicy, EncoderChoice, train_bc, validation_errors

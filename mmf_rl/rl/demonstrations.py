@@ -10,7 +10,7 @@ policy cloned from these windows therefore sees in closed loop the windows it wa
 The object's pose column is read too, for a diagnostic policy told where the object is (a `BCConfig`
 option); a batch carries it under the key the env emits it with.
 `Demonstrations.with_episodes` adds episodes played in the env (DAgger's labelled states,
-`mmf_rl.rl.dagger`) to the training split.
+`benchmarks/push/dagger.py`) to the training split.
 
 `ForecastTable` holds a trained forecaster's forecast of every demonstration frame, once per
 set of modalities a training outage may remove (:func:`drop_sets`), computed from the same
@@ -231,7 +231,7 @@ class Demonstrations:
                     f"Demonstrations.with_episodes: episode {index} has {key!r} "
                     f"{None if given is None else (given.dtype, list(given.shape[1:]))}, the recording "
                     f"{(values.dtype, list(values.shape[1:]))} per frame; add frames as the push env "
-                    "emits them (mmf_rl.rl.dagger.demonstration_frames)"
+                    "emits them (demonstration_frames of benchmarks/push/dagger.py)"
                 )
         labels = torch.cat([frames.get(GOAL), frames.get(ACTION)], -1)
         if len(frames) == 0 or not bool(labels.isfinite().all()):

@@ -11,6 +11,9 @@ from tensordict import TensorDict
 from torchrl.envs import Compose, InitTracker, SerialEnv, TransformedEnv
 from torchrl.envs.utils import step_mdp
 
+from benchmarks.push.bc_evaluation import bc_env
+from benchmarks.push.dagger import EXPERT_ACTION, demonstration_frames, labelled_episodes
+from benchmarks.push.outage_evaluation import Condition
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError
 from mmf_rl.datasets import DataConfig, WindowDataset
@@ -29,11 +32,8 @@ from mmf_rl.rl import (
 )
 from mmf_rl.rl.action_chunks import ACTION_CHUNK, PAST_CHUNKS, PAST_CHUNKS_FILLED
 from mmf_rl.rl.bc import BCConfig
-from mmf_rl.rl.bc_evaluation import bc_env
-from mmf_rl.rl.dagger import EXPERT_ACTION, demonstration_frames, labelled_episodes
 from mmf_rl.rl.demonstrations import DEMONSTRATED_CHUNK, DEMONSTRATED_CHUNK_MASK
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
-from mmf_rl.rl.outage_evaluation import Condition
 from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
 from tests.rl.test_action_chunks import act_ensemble
 

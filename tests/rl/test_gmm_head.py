@@ -11,14 +11,14 @@ from tensordict.nn import TensorDictModule
 from torch import distributions as D
 from torchrl.objectives import BCLoss
 
+from benchmarks.push.bc_evaluation import bc_env
+from benchmarks.push.dagger import labelled_episodes
+from benchmarks.push.outage_evaluation import Condition
 from mmf_rl.rl import BCPolicy, train_bc, validation_errors
 from mmf_rl.rl.action_chunks import ACTION_CHUNK, PAST_CHUNKS_FILLED
 from mmf_rl.rl.bc import BCConfig
-from mmf_rl.rl.bc_evaluation import bc_env
-from mmf_rl.rl.dagger import labelled_episodes
 from mmf_rl.rl.demonstrations import DEMONSTRATED_CHUNK, DEMONSTRATED_CHUNK_MASK
 from mmf_rl.rl.gmm_head import GMM_KEYS, GMM_LOC, GMM_LOGITS, GMM_SCALE, GMMActionLoss, most_likely_mean
-from mmf_rl.rl.outage_evaluation import Condition
 from mmf_rl.trainers.trainer import seed_everything
 from tests.rl.test_action_chunks import act_ensemble
 from tests.rl.test_bc import IMAGE_SIZE, TINY_TRAINING, make_policy

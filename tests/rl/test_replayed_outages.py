@@ -7,6 +7,7 @@ import json
 import pytest
 import torch
 
+from benchmarks.push.closed_loop import sensor_outage
 from mmf_rl import keys
 from mmf_rl.checkpoint import list_checkpoints
 from mmf_rl.envs.torchrl_env import GOAL
@@ -19,7 +20,6 @@ from mmf_rl.rl import (
     replayed_outages,
     train_bc,
 )
-from mmf_rl.rl.closed_loop import sensor_outage
 from mmf_rl.rl.demonstrations import ACTION
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.replayed_outages import ReplayedOutages

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from mmf_rl.rl.outage_evaluation import Condition, Timed, outage_conditions
+from benchmarks.push.outage_evaluation import Condition, Timed, outage_conditions
 
 
 def test_conditions_are_all_sensors_then_each_sensor_failing_each_way():

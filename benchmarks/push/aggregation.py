@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.push.experiment import timed_phase, train_or_resume
 from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.models import RUN_EXPORT_DIR
 from mmf_rl.record import CAMERA_KEY, GOAL_KEY, OBJECT_POSE_KEY, RecordConfig, merge_recordings, record
 from mmf_rl.rl.agent import PushMPCAgent
-from mmf_rl.rl.experiment import timed_phase, train_or_resume
 
 logger = logging.getLogger(__name__)
 

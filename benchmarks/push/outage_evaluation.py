@@ -11,13 +11,13 @@ from typing import NamedTuple
 from tensordict import TensorDictBase
 from torchrl.envs import TransformedEnv
 
-from mmf_rl.rl.closed_loop import SENSORS, play, summarise
+from benchmarks.push.closed_loop import SENSORS, play, summarise
 
 
 class Condition(NamedTuple):
     label: str  # "all", or the failing sensor and how it fails: "no-camera (bursts)"
     sensor: str | None  # the modality that fails; None: every sensor works
-    outage: str | None  # how it fails, a key of `mmf_rl.rl.closed_loop.OUTAGES`
+    outage: str | None  # how it fails, a key of `benchmarks.push.closed_loop.OUTAGES`
 
 
 def outage_conditions(outages: list[str]) -> list[Condition]:

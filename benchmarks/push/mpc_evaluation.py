@@ -11,8 +11,7 @@ import torch
 from torchrl.envs import TransformedEnv
 from torchrl.modules.planners import CEMPlanner
 
-from mmf_rl.rl.cem import SequenceCEMPlanner
-from mmf_rl.rl.closed_loop import (
+from benchmarks.push.closed_loop import (
     RandomPolicy,
     ScriptedPolicy,
     camera_size,
@@ -21,8 +20,9 @@ from mmf_rl.rl.closed_loop import (
     push_env,
     summarise,
 )
+from benchmarks.push.outage_evaluation import Condition, Timed, play_conditions, success_cells
+from mmf_rl.rl.cem import SequenceCEMPlanner
 from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
-from mmf_rl.rl.outage_evaluation import Condition, Timed, play_conditions, success_cells
 from mmf_rl.rl.push_objective import PushObjective
 from mmf_rl.rl.world_model import WorldModel
 from mmf_rl.rl.world_model_env import ForecasterWorldModelEnv, ImaginedPlanningPolicy

@@ -14,13 +14,13 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.push.closed_loop import OUTAGES
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.configuration import compose_config
 from mmf_rl.eval.calibrate_command import run_calibration
 from mmf_rl.eval.report import write_json, write_text
 from mmf_rl.eval.scale_fit import calibration_in_use
 from mmf_rl.models.loading import load_trained_model
-from mmf_rl.rl.closed_loop import OUTAGES
 from mmf_rl.trainers.train_command import check_resumable, train
 
 logger = logging.getLogger(__name__)

@@ -7,13 +7,9 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from mmf_rl import keys
-from mmf_rl.envs.scripted import MarkovPusher
-from mmf_rl.envs.torchrl_env import GOAL
-from mmf_rl.rl import BCPolicy, DemonstrationLoader, EncoderChoice
-from mmf_rl.rl.bc_evaluation import bc_env
-from mmf_rl.rl.closed_loop import ScriptedPolicy
-from mmf_rl.rl.dagger import (
+from benchmarks.push.bc_evaluation import bc_env
+from benchmarks.push.closed_loop import ScriptedPolicy
+from benchmarks.push.dagger import (
     EXPERT_ACTION,
     ROUND_SEEDS,
     demonstration_frames,
@@ -22,7 +18,11 @@ from mmf_rl.rl.dagger import (
     round_seed,
     save_episodes,
 )
-from mmf_rl.rl.outage_evaluation import Condition
+from benchmarks.push.outage_evaluation import Condition
+from mmf_rl import keys
+from mmf_rl.envs.scripted import MarkovPusher
+from mmf_rl.envs.torchrl_env import GOAL
+from mmf_rl.rl import BCPolicy, DemonstrationLoader, EncoderChoice
 from mmf_rl.trainers.trainer import seed_everything
 from tests.rl.conftest import BC_DROPPABLE
 

@@ -1,12 +1,11 @@
 """The results page of the push behaviour-cloning experiment (``benchmarks/bc_push.py``): the run's
 budget and what its policies read, the recording the forecaster learnt from, the success and loss
 tables, the offline errors, the camera-loss target, the forecaster's scale fit and the DAgger rounds.
-`mmf_rl.rl.bc_evaluation` makes the tables; this module words the rest."""
+`benchmarks.push.bc_evaluation` makes the tables; this module words the rest."""
 
 from __future__ import annotations
 
-from mmf_rl.eval.scale_fit import PatternFit, fit_table, record_method
-from mmf_rl.rl.bc_evaluation import (
+from benchmarks.push.bc_evaluation import (
     VARIANTS,
     camera_loss,
     camera_target_met,
@@ -15,9 +14,10 @@ from mmf_rl.rl.bc_evaluation import (
     success_table,
     validation_table,
 )
-from mmf_rl.rl.bc_push_experiment import Forecaster
+from benchmarks.push.bc_experiment import Forecaster
+from benchmarks.push.outage_evaluation import outage_conditions
+from mmf_rl.eval.scale_fit import PatternFit, fit_table, record_method
 from mmf_rl.rl.demonstrations import Demonstrations
-from mmf_rl.rl.outage_evaluation import outage_conditions
 
 
 def results_page(

@@ -11,10 +11,10 @@ import statistics
 import torch
 from torchrl.envs import TransformedEnv
 
+from benchmarks.push.closed_loop import ScriptedPolicy, camera_size, over_seeds, play, push_env, summarise
+from benchmarks.push.outage_evaluation import Condition, play_conditions, success_cells
 from mmf_rl.rl.bc import BCPolicy
-from mmf_rl.rl.closed_loop import ScriptedPolicy, camera_size, over_seeds, play, push_env, summarise
 from mmf_rl.rl.latched_forecast import LatchedForecastTransform
-from mmf_rl.rl.outage_evaluation import Condition, play_conditions, success_cells
 from mmf_rl.rl.transforms import ForecastTransform
 
 VARIANTS = ("without", "with")  # forecasts

@@ -3,7 +3,7 @@
 A round of DAgger (Ross, Gordon and Bagnell, 2011) rolls out the learner, asks the expert what it
 would have done in every state the learner visited, adds those labelled states to the
 demonstrations and retrains on the union. Here the learner is a `BCPolicy` in the push env with
-every sensor, reading what it reads in the test (`mmf_rl.rl.bc_evaluation.bc_env`); the expert is
+every sensor, reading what it reads in the test (`benchmarks.push.bc_evaluation.bc_env`); the expert is
 the pusher that recorded the demonstrations in its state-only form (`MarkovPusher`), which reads
 the full state (the object's pose, emitted by the env beside the sensors, never read by the
 policy). DAgger assumes an expert policy of the state; the recording pusher is a state machine
@@ -31,10 +31,10 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import TransformedEnv
 
+from benchmarks.push.closed_loop import ScriptedPolicy, episode_result, episode_steps
 from mmf_rl.envs.scripted import MarkovPusher
 from mmf_rl.envs.torchrl_env import GOAL, OBJECT_POSE
 from mmf_rl.keys import ModalitySpec
-from mmf_rl.rl.closed_loop import ScriptedPolicy, episode_result, episode_steps
 from mmf_rl.rl.demonstrations import ACTION
 
 logger = logging.getLogger(__name__)
@@ -74,7 +74,7 @@ def labelled_episodes(
     env: TransformedEnv, learner, episodes: int, seed: int, max_steps: int | None = None
 ) -> Iterator[tuple[TensorDictBase, dict]]:
     """``episodes`` episodes of ``learner`` in ``env`` (episode ``i`` reset with seed ``seed + i``, as
-    `mmf_rl.rl.closed_loop.play`), each step labelled by the scripted pusher as a function of the
+    `benchmarks.push.closed_loop.play`), each step labelled by the scripted pusher as a function of the
     state (`MarkovPusher`). Yields each episode's rollout (``EXPERT_ACTION`` beside the
     learner's ``"action"``) and its `episode_result`. ``env`` needs an ``InitTracker`` (`bc_env`'s
     env has one); ``max_steps``: default the env's time limit."""

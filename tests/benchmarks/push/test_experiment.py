@@ -9,17 +9,17 @@ from pathlib import Path
 import pytest
 import torch
 
-from mmf_rl.checkpoint import CheckpointError
-from mmf_rl.datasets import DataConfig, WindowDataset
-from mmf_rl.models.loading import load_trained_model
-from mmf_rl.rl import Demonstrations, ForecastTable, drop_sets
-from mmf_rl.rl.experiment import (
+from benchmarks.push.experiment import (
     add_common_arguments,
     calibrated_forecaster,
     merged_overrides,
     resolve_budget,
     train_or_resume,
 )
+from mmf_rl.checkpoint import CheckpointError
+from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.models.loading import load_trained_model
+from mmf_rl.rl import Demonstrations, ForecastTable, drop_sets
 from tests.conftest import push_train_overrides
 from tests.rl.conftest import BC_DROPPABLE as DROPPABLE
 
@@ -81,7 +81,7 @@ def test_the_forecaster_is_calibrated_once_and_its_forecasts_differ_only_in_scal
     def refit(cfg):
         raise AssertionError("refitted")
 
-    monkeypatch.setattr("mmf_rl.rl.experiment.run_calibration", refit)
+    monkeypatch.setattr("benchmarks.push.experiment.run_calibration", refit)
     assert calibrated_forecaster(checkpoints)[1] == fit
     (plain, _, _), none = calibrated_forecaster(checkpoints, calibrate=False)
     assert none is None and plain.scale_calibration.is_identity()
@@ -107,7 +107,7 @@ def test_an_ended_training_is_used_as_it_is_unless_its_config_changed(
     def train(cfg):
         raise AssertionError("trained again")
 
-    monkeypatch.setattr("mmf_rl.rl.experiment.train", train)
+    monkeypatch.setattr("benchmarks.push.experiment.train", train)
     overrides = [
         *push_train_overrides(
             recorded_push_root, uncalibrated_run.parent / "cache", uncalibrated_run, steps=4

@@ -7,7 +7,7 @@ import argparse
 
 import pytest
 
-from mmf_rl.rl.aggregation import (
+from benchmarks.push.aggregation import (
     AggregationConfig,
     add_aggregation_arguments,
     aggregate_data,

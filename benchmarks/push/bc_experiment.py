@@ -19,6 +19,18 @@ from pathlib import Path
 
 from tqdm.auto import tqdm
 
+from benchmarks.push.bc_evaluation import VARIANTS, bc_env, served_forecast
+from benchmarks.push.closed_loop import camera_size, sensor_outage, summarise
+from benchmarks.push.dagger import (
+    EXPERT_NAME,
+    demonstration_frames,
+    labelled_episodes,
+    load_episodes,
+    round_seed,
+    save_episodes,
+)
+from benchmarks.push.experiment import calibrated_forecaster, merged_overrides, timed_phase, train_or_resume
+from benchmarks.push.outage_evaluation import Condition, outage_conditions
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.datasets.lerobot_source import open_dataset_metadata
@@ -27,20 +39,8 @@ from mmf_rl.envs.modality_dropout import ModalityDropout
 from mmf_rl.eval.report import write_json
 from mmf_rl.record import CAMERA_KEY, RecordConfig, record
 from mmf_rl.rl.bc import BCPolicy, EncoderChoice, train_bc, validation_errors
-from mmf_rl.rl.bc_evaluation import VARIANTS, bc_env, served_forecast
-from mmf_rl.rl.closed_loop import camera_size, sensor_outage, summarise
-from mmf_rl.rl.dagger import (
-    EXPERT_NAME,
-    demonstration_frames,
-    labelled_episodes,
-    load_episodes,
-    round_seed,
-    save_episodes,
-)
 from mmf_rl.rl.demonstrations import Demonstrations, ForecastTable
-from mmf_rl.rl.experiment import calibrated_forecaster, merged_overrides, timed_phase, train_or_resume
 from mmf_rl.rl.latched_forecast import LatchedForecastTable
-from mmf_rl.rl.outage_evaluation import Condition, outage_conditions
 from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.rl.transforms import HistoryWindow
 from mmf_rl.trainers import TrainerConfig, seed_everything

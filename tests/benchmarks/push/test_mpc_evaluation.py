@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import torch
 
+from benchmarks.push.closed_loop import over_seeds
+from benchmarks.push.mpc_evaluation import StaticObjectModel, evaluate_mpc, results_table
+from benchmarks.push.outage_evaluation import Condition
 from mmf_rl.rl.cem import SequenceCEMPlanner
-from mmf_rl.rl.closed_loop import over_seeds
-from mmf_rl.rl.mpc_evaluation import StaticObjectModel, evaluate_mpc, results_table
-from mmf_rl.rl.outage_evaluation import Condition
 from mmf_rl.rl.push_objective import PushObjective
 
 
