@@ -59,6 +59,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.push.bc_evaluation import VARIANTS, evaluate_bc, summary_line
 from benchmarks.push.bc_experiment import (
+    ACTION_HEADS,
     DEFAULT_ACTION_CHUNK,
     DEMONSTRATIONS,
     FORECAST_TARGETS,
@@ -82,7 +83,6 @@ from benchmarks.push.experiment import (
 )
 from benchmarks.push.outage_evaluation import outage_conditions
 from mmf_rl.cli import configure_logging
-from mmf_rl.rl.bc import ACTION_HEADS
 from mmf_rl.rl.latched_forecast import RULES
 
 BUDGETS = {

@@ -30,6 +30,7 @@ from benchmarks.push.dagger import (
     save_episodes,
 )
 from benchmarks.push.experiment import calibrated_forecaster, merged_overrides, timed_phase, train_or_resume
+from benchmarks.push.gmm_head import GMMPolicy
 from benchmarks.push.outage_evaluation import Condition, outage_conditions
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.datasets import DataConfig, WindowDataset
@@ -48,6 +49,8 @@ from mmf_rl.trainers import TrainerConfig, seed_everything
 logger = logging.getLogger(__name__)
 
 DROPPABLE = ("image", "force")  # the sensors a training sample may lose
+# The policy of each --action-head: the regression of the action (mse), or a Gaussian mixture per step.
+ACTION_HEADS = {"mse": BCPolicy, "gmm": GMMPolicy}
 TRAIN_OUTAGES = ("independent", "replayed")
 # First seed of the outage processes replayed for training; the played conditions use --seed's.
 REPLAY_SEED = 7001
@@ -426,10 +429,11 @@ def build_policy(
         record_or_check_forecaster(run_dir, forecaster, new_run=not checkpoints)
     if last is not None and replay:
         check_replayed_run(args, run_dir, last.meta)
+    policy_class = ACTION_HEADS[args.action_head]
     if last is not None and last.step >= config.total_steps:
-        return BCPolicy.from_checkpoint(run_dir / "checkpoints")
+        return policy_class.from_checkpoint(run_dir / "checkpoints")
     seed_everything(seed)  # the same initial encoder weights for both variants
-    policy = BCPolicy.for_demonstrations(
+    policy = policy_class.for_demonstrations(
         demonstrations,
         table,
         encoders=EncoderChoice(image_channels=tuple(args.bc_image_channels)),
@@ -437,7 +441,6 @@ def build_policy(
         d_model=args.bc_d_model,
         hidden=args.bc_hidden,
         action_chunk=args.action_chunk,
-        action_head=args.action_head,
         forecast_steps=args.forecast_steps if variant == "with" else None,
     )
     dagger = f", DAgger round {round_}" if round_ else ""
@@ -455,7 +458,7 @@ def build_policy(
             run_dir=run_dir,
             resume=bool(checkpoints),
         )
-    return BCPolicy.from_checkpoint(run_dir / "checkpoints")
+    return policy_class.from_checkpoint(run_dir / "checkpoints")
 
 
 def replay_processes(args) -> list[tuple[str, ModalityDropout | None]]:

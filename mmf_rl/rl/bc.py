@@ -40,12 +40,9 @@ next k actions (``"action_chunk"``), trained on the demonstrator's next k action
 policy acts with ACT's temporal ensemble of its past chunks (`TemporalEnsemble`), whose state
 lives in the tensordict: `BCPolicy.transforms` then adds an `InitTracker` and the state's primer.
 
-With ``action_head="gmm"`` (`BCConfig`; default ``"mse"``, the regression above) the network
-predicts a Gaussian mixture per action step (`mmf_rl.rl.gmm_head`, robomimic's BC-GMM) under
-``"action_gmm"``, is trained by its negative log-likelihood (`GMMActionLoss`), and acts with the
-mean of its most likely component: the demonstrations' "move" and "stay" labels of similar states
-stay two modes instead of averaging into a shrunken action. It composes with action chunks (one
-mixture per chunk step; the chunk of modes then goes through the ensemble).
+A policy with another action head subclasses `BCPolicy` (its network, ``out_keys``, the ``mode``
+that turns the head's output into the action, its `loss`, its config), as the push experiment's
+Gaussian-mixture head does (``benchmarks/push/gmm_head.py``, measured not to help there).
 
 In an env, the policy reads what its transforms write; put `ModalityDropout` before them::
 
@@ -88,14 +85,6 @@ from mmf_rl.rl.demonstrations import (
     ForecastTable,
     drop_sets,
 )
-from mmf_rl.rl.gmm_head import (
-    GMM_KEYS,
-    GMM_LOC,
-    GMM_LOGITS,
-    GMMActionLoss,
-    gmm_parameters,
-    most_likely_mean,
-)
 from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow, require_stats
@@ -105,7 +94,6 @@ from mmf_rl.trainers.trainer import Trainer, TrainerConfig
 # camera and the force sensor independently with this probability (proprioception, the robot's
 # own joint readings, is never removed).
 DEFAULT_DROPOUT = {"image": 0.3, "force": 0.3}
-ACTION_HEADS = ("mse", "gmm")  # `BCConfig.action_head`
 
 
 @dataclass
@@ -123,9 +111,7 @@ class BCConfig:
     each modality's embedding; ``hidden``, ``depth``: the MLP head's width and number of hidden
     layers; ``action_chunk``: k, the actions predicted per step (1: one, the per-step policy;
     k > 1: a chunk executed with temporal ensembling, `TemporalEnsemble`), ``chunk_decay``: the
-    ensemble's ``m`` (ACT's weights ``exp(-m·i)``, ``i = 0`` the oldest prediction);
-    ``action_head``: ``"mse"`` (the action, trained by mean squared error) or ``"gmm"`` (a
-    mixture of ``gmm_components`` Gaussians per action step, `mmf_rl.rl.gmm_head`).
+    ensemble's ``m`` (ACT's weights ``exp(-m·i)``, ``i = 0`` the oldest prediction).
     """
 
     modalities: list[ModalitySpec]
@@ -142,8 +128,6 @@ class BCConfig:
     depth: int = 2
     action_chunk: int = 1
     chunk_decay: float = 0.01
-    action_head: str = "mse"
-    gmm_components: int = 5
 
     def __post_init__(self):
         self.modalities = [
@@ -171,11 +155,6 @@ class BCConfig:
                 f"BCConfig: action_chunk must be >= 1 and chunk_decay >= 0, found {self.action_chunk}, "
                 f"{self.chunk_decay}"
             )
-        if self.action_head not in ACTION_HEADS or self.gmm_components < 1:
-            raise ValueError(
-                f"BCConfig: action_head must be one of {list(ACTION_HEADS)} and gmm_components >= 1, found "
-                f"{self.action_head!r}, {self.gmm_components}"
-            )
 
     def to_dict(self) -> dict:
         return {
@@ -193,8 +172,6 @@ class BCConfig:
             "depth": self.depth,
             "action_chunk": self.action_chunk,
             "chunk_decay": self.chunk_decay,
-            "action_head": self.action_head,
-            "gmm_components": self.gmm_components,
         }
 
     @property
@@ -206,6 +183,10 @@ class BCConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> BCConfig:
+        # Checkpoints written while this config named the head: "mse" is this policy's (a mixture
+        # head's config is the push experiment's, benchmarks/push/gmm_head.py).
+        if d.get("action_head") == "mse":
+            d = {k: v for k, v in d.items() if k not in ("action_head", "gmm_components")}
         reject_unknown_keys(cls, d, "BC policy config")
         return cls(**d)
 
@@ -229,11 +210,13 @@ class EncoderChoice:
 
 class BCNetwork(nn.Module):
     """The policy's network on plain tensors, in `BCPolicy.in_keys` order; any leading batch shape.
-    Returns the action ``[*B, A]``, or with ``action_chunk`` k > 1 the chunk ``[*B, k, A]``; with
-    the ``"gmm"`` head the mixture's ``(loc, scale, logits)`` instead (`gmm_parameters`), with a
-    chunk dim k after ``*B`` for a chunk policy."""
+    Returns the action ``[*B, A]``, or with ``action_chunk`` k > 1 the chunk ``[*B, k, A]``: what
+    `head_output` makes of the MLP head's ``outputs_per_step`` numbers per action step (default: the
+    action dims)."""
 
-    def __init__(self, config: BCConfig, stats: Mapping[str, torch.Tensor]):
+    def __init__(
+        self, config: BCConfig, stats: Mapping[str, torch.Tensor], outputs_per_step: int | None = None
+    ):
         super().__init__()
         self.config = config
         self.encoders = nn.ModuleDict(
@@ -247,12 +230,9 @@ class BCNetwork(nn.Module):
         inputs += 2 * read[0] * read[1] if read else 0
         inputs += config.latched_forecast is not None  # the age
         inputs += OBJECT_PLANAR_DIMS if config.privileged_object else 0
-        per_step = config.action_dim
-        if config.action_head == "gmm":  # per component: a mean and a scale per action dim, a logit
-            per_step = config.gmm_components * (2 * config.action_dim + 1)
         self.head = MLP(
             in_features=inputs,
-            out_features=per_step * config.action_chunk,
+            out_features=(outputs_per_step or config.action_dim) * config.action_chunk,
             num_cells=[config.hidden] * config.depth,
             activation_class=nn.ReLU,
         )
@@ -295,13 +275,13 @@ class BCNetwork(nn.Module):
             position = inputs[-1].reshape(n, -1)[:, :OBJECT_PLANAR_DIMS]
             features.append((position - self.object_mean) / self.object_std)
         raw = self.head(torch.cat(features, -1))
-        if config.action_head == "gmm":
-            steps = (config.action_chunk,) if config.action_chunk > 1 else ()
-            return gmm_parameters(raw.reshape(*batch, *steps, -1), config.gmm_components, config.action_dim)
-        actions = torch.tanh(raw)
-        if config.action_chunk > 1:
-            return actions.reshape(*batch, config.action_chunk, config.action_dim)
-        return actions.reshape(*batch, config.action_dim)
+        steps = (config.action_chunk,) if config.action_chunk > 1 else ()
+        return self.head_output(raw.reshape(*batch, *steps, -1))
+
+    def head_output(self, raw: torch.Tensor) -> torch.Tensor:
+        """The network's output from the head's ``[*B, (k,) outputs_per_step]``: the action in the box
+        ``[-1, 1]``."""
+        return torch.tanh(raw)
 
 
 class BCPolicy(TensorDictModule):
@@ -310,9 +290,7 @@ class BCPolicy(TensorDictModule):
     ``in_keys``/``out_keys`` are its network's. With ``action_chunk`` k > 1 the network writes
     ``"action_chunk"`` and the policy's `TemporalEnsemble` (``ensemble``) then writes ``"action"``
     from it and its state (``ensemble.in_keys``/``out_keys``): the policy acts in an env with
-    `transforms`; `predictor` is the network alone, for batches of independent frames. With the
-    ``"gmm"`` head the network writes the mixture (`GMM_KEYS`) and the policy's ``mode`` writes
-    from it ``"action"`` (``"action_chunk"``): the mean of the most likely component.
+    `transforms`; `predictor` is the network alone, for batches of independent frames.
 
     Args:
         config: what it reads and its sizes.
@@ -320,10 +298,22 @@ class BCPolicy(TensorDictModule):
             the sensor windows' (``"<m>/mean"``, ``"<m>/std"``, ``"target/..."``, for its
             `HistoryWindow`) and the goal's (``"goal/mean"``, ``"goal/std"``); with
             ``privileged_object``, the object's planar position's (``"object_position/..."``).
+        network, out_keys, mode: another action head's (a subclass's): its network, the keys it
+            writes and the module that writes ``"action"`` (``"action_chunk"``) from them. Default:
+            a `BCNetwork` writing the action (chunk) itself, no ``mode``.
     """
 
-    def __init__(self, config: BCConfig, stats: Mapping[str, torch.Tensor]):
-        network = BCNetwork(config, stats)
+    config_class = BCConfig  # what `from_checkpoint` reads the config with
+
+    def __init__(
+        self,
+        config: BCConfig,
+        stats: Mapping[str, torch.Tensor],
+        network: BCNetwork | None = None,
+        out_keys: list | None = None,
+        mode: TensorDictModule | None = None,
+    ):
+        network = BCNetwork(config, stats) if network is None else network
         in_keys = (
             [(keys.HISTORY, *s.obs_key) for s in config.modalities]
             + [(keys.HISTORY, *s.present_key) for s in config.modalities]
@@ -335,14 +325,9 @@ class BCPolicy(TensorDictModule):
             in_keys.append(keys.FORECAST_AGE)
         if config.privileged_object:
             in_keys.append(OBJECT_POSE)
-        chunked, gmm = config.action_chunk > 1, config.action_head == "gmm"
-        action_key = ACTION_CHUNK if chunked else ACTION
-        super().__init__(network, in_keys=in_keys, out_keys=GMM_KEYS if gmm else [action_key])
-        self.mode = (
-            TensorDictModule(most_likely_mean, in_keys=[GMM_LOC, GMM_LOGITS], out_keys=[action_key])
-            if gmm
-            else None
-        )
+        chunked = config.action_chunk > 1
+        super().__init__(network, in_keys=in_keys, out_keys=out_keys or [ACTION_CHUNK if chunked else ACTION])
+        self.mode = mode
         self.config = config
         self.stats = {k: v.detach().float().clone() for k, v in stats.items()}
         self.ensemble = (
@@ -350,8 +335,8 @@ class BCPolicy(TensorDictModule):
         )
 
     def forward(self, tensordict, *args, **kwargs):
-        """The network's output; with the mixture head, then its mode's action (chunk); with action
-        chunks, then the ensemble's action (`TemporalEnsemble`)."""
+        """The network's output; with a ``mode``, then its action (chunk); with action chunks, then
+        the ensemble's action (`TemporalEnsemble`)."""
         tensordict = super().forward(tensordict, *args, **kwargs)
         if self.mode is not None:
             tensordict = self.mode(tensordict)
@@ -367,15 +352,14 @@ class BCPolicy(TensorDictModule):
     def _network(self) -> TensorDictModule:
         return TensorDictModule(self.module, in_keys=self.in_keys, out_keys=self.out_keys)
 
-    def mixture(self) -> TensorDictModule:
-        """The network alone of a ``"gmm"`` policy, sharing its weights: writes the mixture
-        (`GMM_KEYS`) of each row of a batch, what `GMMActionLoss` scores."""
-        if self.mode is None:
-            raise ValueError(
-                f"BCPolicy.mixture: this policy's head is {self.config.action_head!r}, not a mixture; "
-                "build it with action_head='gmm'"
-            )
-        return self._network()  # a mixture policy's network writes GMM_KEYS
+    def loss(self):
+        """The loss that trains this policy's head (`train_bc`): torchrl's `BCLoss` (mean squared
+        error); for an action-chunk policy `ActionChunkLoss` on the next k actions."""
+        return (
+            ActionChunkLoss(self.predictor())
+            if self.config.action_chunk > 1
+            else BCLoss(self, loss_function="mse")
+        )
 
     @classmethod
     def for_demonstrations(
@@ -390,13 +374,12 @@ class BCPolicy(TensorDictModule):
         """A policy for the windows, goal and action of ``demonstrations``; it reads forecasts of
         ``forecasts``' shape when given (its first ``forecast_steps``; their age, from a
         `LatchedForecastTable`), and the
-        object's position with ``privileged_object``. ``sizes``: `BCConfig` fields (``d_model``,
-        ``hidden``, ``depth``, ``action_chunk``, ``chunk_decay``, ``action_head``,
-        ``gmm_components``)."""
+        object's position with ``privileged_object``. ``sizes``: fields of its config (`BCConfig`:
+        ``d_model``, ``hidden``, ``depth``, ``action_chunk``, ``chunk_decay``)."""
         if privileged_object:
             demonstrations.check_object_pose("train")
         encoders = encoders or EncoderChoice()
-        config = BCConfig(
+        config = cls.config_class(
             modalities=[encoders.spec(s) for s in demonstrations.specs],
             history=demonstrations.history,
             stride=demonstrations.stride,
@@ -493,7 +476,7 @@ class BCPolicy(TensorDictModule):
                 f"{checkpoint.path} is not a behaviour-cloning policy (no 'bc_config' in its meta.json); "
                 "pass a checkpoint written by train_bc or BCPolicy.save"
             )
-        policy = cls(BCConfig.from_dict(checkpoint.meta["bc_config"]), checkpoint.tensors)
+        policy = cls(cls.config_class.from_dict(checkpoint.meta["bc_config"]), checkpoint.tensors)
         load_model_state(policy, checkpoint)
         return policy.eval()
 
@@ -515,8 +498,8 @@ def validation_errors(
     of ``droppable`` removed from every sample (``mse_no_image``, ...); ``loss``: their mean.
     For an action-chunk policy, the error of the chunk's first action (the one it predicts for
     now, as a per-step policy does: the two compare), from its network alone (`BCPolicy.predictor`:
-    no ensemble over past chunks, the frames being independent). For a ``"gmm"`` policy, the error of
-    the action it acts with (its most likely component's mean), so the two heads compare."""
+    no ensemble over past chunks, the frames being independent). For a policy with a ``mode``, the
+    error of the action it acts with, so any two heads compare."""
     if not len(demonstrations.split_frames[split]):
         raise ValueError(f"validation_errors: the {split!r} split has no demonstration frame")
     was_training = policy.training
@@ -620,14 +603,6 @@ def _outages_meta(dropout: Mapping[str, float], outages: ReplayedOutages | None)
     return {"dropout": {}, "replayed_outages": list(outages.labels)}
 
 
-def _bc_loss(policy: BCPolicy):
-    """The loss that trains ``policy``'s head (see `train_bc`)."""
-    chunked = policy.config.action_chunk > 1
-    if policy.config.action_head == "gmm":
-        return GMMActionLoss(policy.mixture(), chunked=chunked)
-    return ActionChunkLoss(policy.predictor()) if chunked else BCLoss(policy, loss_function="mse")
-
-
 def train_bc(
     policy: BCPolicy,
     demonstrations: Demonstrations,
@@ -640,9 +615,7 @@ def train_bc(
     logger=None,
     resume: bool = False,
 ) -> dict[str, float]:
-    """Clone the demonstrations' actions into ``policy`` (torchrl's `BCLoss`, mean squared error;
-    an action-chunk policy: `ActionChunkLoss` on the next k actions; a ``"gmm"`` policy:
-    `GMMActionLoss`, the mixture's negative log-likelihood of the action or chunk) with the
+    """Clone the demonstrations' actions into ``policy`` (by its `BCPolicy.loss`) with the
     project's `Trainer`: ``config`` sets steps, batch size, optimiser, schedule, seed (the batch
     order and the dropout draws), evaluation and checkpoints (under ``run_dir/checkpoints``;
     ``resume`` continues the last one). ``dropout`` removes sensors per sample (see
@@ -669,7 +642,7 @@ def train_bc(
     with warnings.catch_warnings():
         # torchrl 0.13 warns that a loss without a target network declares none.
         warnings.filterwarnings("ignore", message="The name target_actor_network_params")
-        loss = _bc_loss(policy)
+        loss = policy.loss()
 
     def evaluate(model: BCPolicy) -> dict[str, float]:
         errors = validation_errors(model, demonstrations, "val", removed, forecasts)

@@ -491,6 +491,27 @@ def test_without_the_option_a_policy_keeps_its_parameters_and_an_old_checkpoint_
     torch.testing.assert_close(loaded(batch.clone()).get("action"), ordinary(batch.clone()).get("action"))
 
 
+def test_a_checkpoint_of_the_time_the_config_named_its_head_loads_as_the_regression_policy(
+    demonstrations, tmp_path
+):
+    """``action_head: "mse"`` and ``gmm_components`` in a checkpoint's config (written while the package
+    had the mixture head, now benchmarks/push/gmm_head.py's) are the regression policy's; a mixture's
+    config is refused."""
+    policy = make_policy(demonstrations, seed=3).eval()
+    path = policy.save(tmp_path / "old")
+    meta = json.loads((path / "meta.json").read_text())
+    meta["bc_config"] |= {"action_head": "mse", "gmm_components": 5}
+    (path / "meta.json").write_text(json.dumps(meta))
+    loaded = BCPolicy.from_checkpoint(tmp_path / "old")
+    assert loaded.config == policy.config and loaded.mode is None and loaded.out_keys == ["action"]
+    batch = demonstrations.batch(demonstrations.split_frames["val"][:4])
+    torch.testing.assert_close(loaded(batch.clone()).get("action"), policy(batch.clone()).get("action"))
+    meta["bc_config"]["action_head"] = "gmm"
+    (path / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="unknown keys \\['action_head', 'gmm_components'\\]"):
+        BCPolicy.from_checkpoint(tmp_path / "old")
+
+
 def test_a_privileged_policy_trains_and_its_offline_batches_are_what_it_read_online(
     demonstrations, forecaster, tmp_path
 ):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import pytest
@@ -13,15 +14,29 @@ from torchrl.objectives import BCLoss
 
 from benchmarks.push.bc_evaluation import bc_env
 from benchmarks.push.dagger import labelled_episodes
+from benchmarks.push.gmm_head import (
+    GMM_KEYS,
+    GMM_LOC,
+    GMM_LOGITS,
+    GMM_SCALE,
+    GMMActionLoss,
+    GMMConfig,
+    GMMPolicy,
+    most_likely_mean,
+)
 from benchmarks.push.outage_evaluation import Condition
 from mmf_rl.rl import BCPolicy, train_bc, validation_errors
 from mmf_rl.rl.action_chunks import ACTION_CHUNK, PAST_CHUNKS_FILLED
-from mmf_rl.rl.bc import BCConfig
 from mmf_rl.rl.demonstrations import DEMONSTRATED_CHUNK, DEMONSTRATED_CHUNK_MASK
-from mmf_rl.rl.gmm_head import GMM_KEYS, GMM_LOC, GMM_LOGITS, GMM_SCALE, GMMActionLoss, most_likely_mean
 from mmf_rl.trainers.trainer import seed_everything
 from tests.rl.test_action_chunks import act_ensemble
-from tests.rl.test_bc import IMAGE_SIZE, TINY_TRAINING, make_policy
+from tests.rl.test_bc import IMAGE_SIZE, TINY, TINY_ENCODERS, TINY_TRAINING, make_policy
+
+
+def make_gmm_policy(demonstrations, seed: int = 0, **options) -> GMMPolicy:
+    """`make_policy`'s tiny policy with the mixture head."""
+    seed_everything(seed)
+    return GMMPolicy.for_demonstrations(demonstrations, encoders=TINY_ENCODERS, **TINY, **options)
 
 
 def fixed_mixture(values: dict[tuple, torch.Tensor]) -> TensorDictModule:
@@ -81,7 +96,7 @@ def test_the_action_is_the_mean_of_the_most_likely_component():
 def two_mode_fit(policy: BCPolicy, batch: TensorDict, steps: int = 300) -> torch.Tensor:
     """Fit ``policy`` to ``batch`` (the same input on every row, two actions) with its head's loss;
     returns its action on that input afterwards."""
-    loss = GMMActionLoss(policy.mixture()) if policy.config.action_head == "gmm" else BCLoss(policy)
+    loss = GMMActionLoss(policy.mixture()) if isinstance(policy, GMMPolicy) else BCLoss(policy)
     optimizer = torch.optim.Adam(policy.parameters(), lr=3e-3)
     for _ in range(steps):
         optimizer.zero_grad()
@@ -99,47 +114,50 @@ def test_on_two_modes_the_mixture_acts_on_one_where_the_regression_averages_them
     batch.set("action", torch.cat([torch.zeros(16, 4), torch.full((16, 4), 0.8)]) + noise)
     regression = two_mode_fit(make_policy(demonstrations, seed=0), batch)
     torch.testing.assert_close(regression, torch.full((4,), 0.4), atol=0.05, rtol=0)
-    mixture = two_mode_fit(make_policy(demonstrations, seed=0, action_head="gmm"), batch)
+    mixture = two_mode_fit(make_gmm_policy(demonstrations, seed=0), batch)
     distance = torch.minimum(mixture.abs(), (mixture - 0.8).abs())
     assert (distance < 0.1).all() and ((mixture - 0.4).abs() > 0.3).all(), mixture
 
 
-def test_the_mse_head_is_the_default_and_an_old_config_builds_it_bit_for_bit(demonstrations, tmp_path):
-    explicit = make_policy(demonstrations, seed=3, action_head="mse", gmm_components=5)
-    old = explicit.config.to_dict()
-    del old["action_head"], old["gmm_components"]
-    seed_everything(3)
-    before = BCPolicy(BCConfig.from_dict(old), demonstrations.normalizer.stats)
-    assert before.config == explicit.config and before.mode is None and explicit.out_keys == ["action"]
-    mine, theirs = explicit.state_dict(), before.state_dict()
-    assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine)
-    metrics = [
-        train_bc(policy, demonstrations, TINY_TRAINING, run_dir=tmp_path / name)
-        for name, policy in (("explicit", explicit), ("before", before))
-    ]
-    assert metrics[0] == metrics[1]
-    assert all(torch.equal(v, before.state_dict()[k]) for k, v in explicit.state_dict().items())
-    with pytest.raises(ValueError, match="action_head must be one of"):
-        replace(explicit.config, action_head="diffusion")
-    with pytest.raises(ValueError, match="gmm_components >= 1"):
-        replace(explicit.config, action_head="gmm", gmm_components=0)
-    with pytest.raises(ValueError, match="build it with action_head='gmm'"):
-        explicit.mixture()
+def test_its_checkpoints_are_the_packages_and_each_head_refuses_the_others(demonstrations, tmp_path):
+    """The mixture policy's config reads and writes what the package's did when it had the head
+    (``action_head: "gmm"``, ``gmm_components``); each policy class loads its own checkpoints only."""
+    mixture = make_gmm_policy(demonstrations, seed=3, gmm_components=2)
+    written = mixture.config.to_dict()
+    assert written["action_head"] == "gmm" and written["gmm_components"] == 2
+    assert GMMConfig.from_dict(written) == mixture.config
+    regression = make_policy(demonstrations, seed=3)
+    mine, theirs = regression.state_dict(), mixture.state_dict()
+    assert mine.keys() == theirs.keys() and regression.mode is None and regression.out_keys == ["action"]
+    for name in mine:  # the encoders, drawn before the head from the same seed, are the same
+        if name.startswith("module.encoders."):
+            assert torch.equal(mine[name], theirs[name]), name
+    mixture.save(tmp_path / "mixture")
+    saved = regression.save(tmp_path / "regression")
+    with pytest.raises(ValueError, match="unknown keys \\['action_head', 'gmm_components'\\]"):
+        BCPolicy.from_checkpoint(tmp_path / "mixture")
+    with pytest.raises(ValueError, match="the 'mse' head, not a mixture"):
+        GMMPolicy.from_checkpoint(tmp_path / "regression")
+    old = json.loads((saved / "meta.json").read_text())["bc_config"]
+    with pytest.raises(ValueError, match="the 'mse' head, not a mixture"):
+        GMMConfig.from_dict({**old, "action_head": "mse", "gmm_components": 5})
+    with pytest.raises(ValueError, match="gmm_components must be >= 1"):
+        replace(mixture.config, gmm_components=0)
 
 
 def test_a_gmm_policy_trains_round_trips_its_checkpoint_and_is_scored_on_the_action_it_takes(
     demonstrations, tmp_path
 ):
-    policy = make_policy(demonstrations, seed=2, action_head="gmm", gmm_components=3)
+    policy = make_gmm_policy(demonstrations, seed=2, gmm_components=3)
     assert policy.out_keys == GMM_KEYS
     initial = {k: v.clone() for k, v in policy.state_dict().items()}
     metrics = train_bc(policy, demonstrations, TINY_TRAINING, run_dir=tmp_path / "run")
     assert all(torch.isfinite(torch.tensor(v)) for v in metrics.values())
-    loaded = BCPolicy.from_checkpoint(tmp_path / "run" / "checkpoints")
+    loaded = GMMPolicy.from_checkpoint(tmp_path / "run" / "checkpoints")
     trained = loaded.state_dict()
     assert trained.keys() == initial.keys()
     assert not all(torch.equal(trained[k], initial[k]) for k in initial if k.startswith("module.head."))
-    assert loaded.config.action_head == "gmm" and loaded.config.gmm_components == 3
+    assert isinstance(loaded.config, GMMConfig) and loaded.config.gmm_components == 3
     batch = demonstrations.batch(demonstrations.split_frames["val"])
     with torch.no_grad():
         acted = loaded(batch.exclude("action"))
@@ -156,9 +174,9 @@ def test_a_gmm_chunk_policy_plays_an_episode_through_bc_env_with_the_ensemble(
     demonstrations, forecaster, tmp_path
 ):
     k = 4
-    policy = make_policy(demonstrations, action_head="gmm", action_chunk=k)
+    policy = make_gmm_policy(demonstrations, action_chunk=k)
     train_bc(policy, demonstrations, TINY_TRAINING, run_dir=tmp_path)
-    loaded = BCPolicy.from_checkpoint(tmp_path / "checkpoints")
+    loaded = GMMPolicy.from_checkpoint(tmp_path / "checkpoints")
     env = bc_env(loaded, forecaster, IMAGE_SIZE, Condition("bursts", "image", "bursts"), seed=0)
     try:
         ((rollout, _),) = list(labelled_episodes(env, loaded, 1, seed=0, max_steps=12))

@@ -1,4 +1,7 @@
-"""A Gaussian-mixture action head for a behaviour-cloning policy (robomimic's BC-GMM).
+"""A Gaussian-mixture action head for a behaviour-cloning policy (robomimic's BC-GMM): `GMMPolicy`,
+``benchmarks/bc_push.py --action-head gmm``. Measured not to help on push (0% success where the
+regression head's reached 56%: docs/results.md, "A Gaussian-mixture head instead"), so it lives
+with that experiment.
 
 Where the demonstrations hold several actions for similar states (the recording's pusher pauses
 and holds still after a push, so "move" and "stay" both label the same kind of state), a
@@ -10,11 +13,13 @@ action (`GMMActionLoss`), and acts with one mode instead of the average (`most_l
 
 With action chunks (k > 1) there is one mixture per step of the chunk (over that step's action
 dims), not one over the whole chunk: the loss then masks the steps past the episode's end per
-step, exactly as `ActionChunkLoss` does, and each step's mode is chosen on its own.
+step, exactly as `ActionChunkLoss` does, and each step's mode is chosen on its own; the chunk of modes
+then goes through the policy's temporal ensemble.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
@@ -23,7 +28,9 @@ from tensordict.nn import TensorDictModule, dispatch
 from tensordict.utils import NestedKey
 from torch import distributions as D
 
-from mmf_rl.rl.action_chunks import DemonstrationLoss
+from mmf_rl.configuration import reject_unknown_keys
+from mmf_rl.rl.action_chunks import ACTION_CHUNK, DemonstrationLoss
+from mmf_rl.rl.bc import BCConfig, BCNetwork, BCPolicy
 from mmf_rl.rl.demonstrations import ACTION, DEMONSTRATED_CHUNK, DEMONSTRATED_CHUNK_MASK
 
 # The mixture's parameters: means ``[*B, (k,) C, A]`` in the action box, scales of the same shape,
@@ -117,3 +124,70 @@ class GMMActionLoss(DemonstrationLoss):
         log_likelihood = mixture.log_prob(tensordict.get(keys.demonstrated_chunk))  # [B, k]
         mask = tensordict.get(keys.demonstrated_chunk_mask).to(log_likelihood.dtype)
         return TensorDict({"loss_bc": -(log_likelihood * mask).sum() / mask.sum()})
+
+
+@dataclass
+class GMMConfig(BCConfig):
+    """A `BCConfig` with ``gmm_components`` Gaussians per action step. Its dict names the head
+    (``action_head: "gmm"``), as the package's config did when it had the choice: checkpoints of
+    either time load."""
+
+    gmm_components: int = 5
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.gmm_components < 1:
+            raise ValueError(f"GMMConfig: gmm_components must be >= 1, found {self.gmm_components}")
+
+    def to_dict(self) -> dict:
+        return {**super().to_dict(), "action_head": "gmm", "gmm_components": self.gmm_components}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> GMMConfig:
+        d = dict(d)
+        head = d.pop("action_head", None)
+        if head != "gmm":
+            raise ValueError(
+                f"GMMConfig: the config is of a policy with the {head or 'mse'!r} head, not a mixture; "
+                "load it with BCPolicy"
+            )
+        reject_unknown_keys(cls, d, "BC mixture policy config")
+        return cls(**d)
+
+
+class GMMNetwork(BCNetwork):
+    """`BCNetwork` whose head writes the mixture's ``(loc, scale, logits)`` (`gmm_parameters`), with a
+    chunk dim k after ``*B`` for a chunk policy."""
+
+    def __init__(self, config: GMMConfig, stats: Mapping[str, torch.Tensor]):
+        # Per component: a mean and a scale per action dim, and a logit.
+        super().__init__(config, stats, outputs_per_step=config.gmm_components * (2 * config.action_dim + 1))
+
+    def head_output(self, raw: torch.Tensor):
+        return gmm_parameters(raw, self.config.gmm_components, self.config.action_dim)
+
+
+class GMMPolicy(BCPolicy):
+    """A `BCPolicy` whose network writes the mixture (`GMM_KEYS`) and whose ``mode`` writes from it
+    ``"action"`` (``"action_chunk"``): the mean of the most likely component. Trained by
+    `GMMActionLoss` (its `loss`), scored by `validation_errors` on the action it takes."""
+
+    config_class = GMMConfig
+
+    def __init__(self, config: GMMConfig, stats: Mapping[str, torch.Tensor]):
+        action_key = ACTION_CHUNK if config.action_chunk > 1 else ACTION
+        super().__init__(
+            config,
+            stats,
+            network=GMMNetwork(config, stats),
+            out_keys=GMM_KEYS,
+            mode=TensorDictModule(most_likely_mean, in_keys=[GMM_LOC, GMM_LOGITS], out_keys=[action_key]),
+        )
+
+    def mixture(self) -> TensorDictModule:
+        """The network alone, sharing this policy's weights: writes the mixture (`GMM_KEYS`) of each
+        row of a batch, what `GMMActionLoss` scores."""
+        return self._network()
+
+    def loss(self) -> GMMActionLoss:
+        return GMMActionLoss(self.mixture(), chunked=self.config.action_chunk > 1)
