@@ -32,6 +32,7 @@ from benchmarks.push.dagger import (
 from benchmarks.push.experiment import calibrated_forecaster, merged_overrides, timed_phase, train_or_resume
 from benchmarks.push.gmm_head import GMMPolicy
 from benchmarks.push.outage_evaluation import Condition, outage_conditions
+from benchmarks.push.replayed_outages import ReplayedOutages
 from mmf_rl.checkpoint import list_checkpoints, load_checkpoint
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.datasets.lerobot_source import open_dataset_metadata
@@ -42,7 +43,6 @@ from mmf_rl.record import CAMERA_KEY, RecordConfig, record
 from mmf_rl.rl.bc import BCPolicy, EncoderChoice, train_bc, validation_errors
 from mmf_rl.rl.demonstrations import Demonstrations, ForecastTable
 from mmf_rl.rl.latched_forecast import LatchedForecastTable
-from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.rl.transforms import HistoryWindow
 from mmf_rl.trainers import TrainerConfig, seed_everything
 

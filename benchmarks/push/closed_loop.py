@@ -39,7 +39,7 @@ def camera_size(modalities: list[keys.ModalitySpec]) -> int:
 
 def sensor_outage(sensor: str, outage: str, seed: int) -> ModalityDropout:
     """``sensor`` failing the ``outage`` way of `OUTAGES`, seeded: the push experiments' outage
-    process (in the env, and replayed on recordings to train on: `mmf_rl.rl.replayed_outages`)."""
+    process (in the env, and replayed on recordings to train on: `benchmarks.push.replayed_outages`)."""
     return ModalityDropout([sensor], seed=seed, **OUTAGES[outage])
 
 

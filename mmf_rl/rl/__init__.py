@@ -3,18 +3,23 @@ transforms, the world model (and an ensemble of them), a model-based env for tor
 a vectorised CEM planner for model-predictive control with the push task's objective, the MPC agent the
 recorder records with (`PushMPCAgent`), and behaviour cloning from recorded demonstrations with the
 forecast as a policy input (action chunks with temporal ensembling: `action_chunks`), trained on
-outages drawn per sample or replayed through the env's outage processes (`replayed_outages`). The push
-experiments built on them (``benchmarks/mpc_push.py``, ``benchmarks/bc_push.py``) live beside the
-package, in ``benchmarks/push/``."""
+outages drawn per sample (or by an `OutageSampler`). The push experiments built on them
+(``benchmarks/mpc_push.py``, ``benchmarks/bc_push.py``) live beside the package, in
+``benchmarks/push/``."""
 
 from mmf_rl.rl.agent import MPCActor, PushMPCAgent
 from mmf_rl.rl.bc import DEFAULT_DROPOUT, BCConfig, BCPolicy, EncoderChoice, train_bc, validation_errors
 from mmf_rl.rl.cem import SequenceCEMPlanner
-from mmf_rl.rl.demonstrations import DemonstrationLoader, Demonstrations, ForecastTable, drop_sets
+from mmf_rl.rl.demonstrations import (
+    DemonstrationLoader,
+    Demonstrations,
+    ForecastTable,
+    OutageSampler,
+    drop_sets,
+)
 from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.push_objective import PushObjective
-from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.rl.world_model import WorldModel
 from mmf_rl.rl.world_model_env import ForecasterWorldModelEnv, ImaginedPlanningPolicy
@@ -35,9 +40,9 @@ __all__ = [
     "LatchedForecastTable",
     "LatchedForecastTransform",
     "MPCActor",
+    "OutageSampler",
     "PushMPCAgent",
     "PushObjective",
-    "ReplayedOutages",
     "SequenceCEMPlanner",
     "WorldModel",
     "drop_sets",

@@ -30,9 +30,8 @@ to the demonstrated action) and the project's `Trainer` (checkpoints: safetensor
 config in ``meta.json``, the normalisation statistics beside them; resumable). Training removes
 sensors at random per sample (``dropout``), so the policy has seen outages before it meets one;
 the policy that reads forecasts is trained on the forecasts made under the same outages. Or each
-sample's outage is a replay of the env's own outage processes through the transforms the policy
-reads (``outages``, `mmf_rl.rl.replayed_outages`): what it reads then follows the process, as in
-closed loop.
+sample's outage is drawn by an `OutageSampler` (``outages``), e.g. replays of the env's own outage
+processes through the transforms the policy reads (``benchmarks/push/replayed_outages.py``).
 
 With ``action_chunk`` k > 1 (`BCConfig`; default 1, the per-step policy) the network predicts the
 next k actions (``"action_chunk"``), trained on the demonstrator's next k actions of the episode
@@ -83,10 +82,10 @@ from mmf_rl.rl.demonstrations import (
     DemonstrationLoader,
     Demonstrations,
     ForecastTable,
+    OutageSampler,
     drop_sets,
 )
 from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
-from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow, require_stats
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig
 
@@ -558,49 +557,29 @@ def _check_training_inputs(
         )
     if forecasts is not None and set(removed) - set(forecasts.droppable):
         raise ValueError(
-            f"train_bc: training removes {sorted(removed)} (dropout, or the replayed outages) but the "
+            f"train_bc: training removes {sorted(removed)} (dropout, or the drawn outages) but the "
             f"forecasts cover outages of {list(forecasts.droppable)} only; compute the ForecastTable with "
             f"droppable={sorted(removed)}"
         )
 
 
-def _check_replayed_outages(
-    policy: BCPolicy, outages: ReplayedOutages | None, dropout: Mapping[str, float]
-) -> None:
-    """Raise unless ``outages`` replace ``dropout`` and were replayed through what ``policy`` reads
-    in closed loop: its window, and its forecast (with the age and rule of a latched one) or none."""
+def _check_outages(policy: BCPolicy, outages: OutageSampler | None, dropout: Mapping[str, float]) -> None:
+    """Raise unless ``outages`` replace ``dropout`` and were drawn for what ``policy`` reads."""
     if outages is None:
         return
-    config = policy.config
     if dropout:
         raise ValueError(
-            f"train_bc: replayed outages replace the dropout, found dropout={dict(dropout)}; pass "
+            f"train_bc: drawn outages replace the dropout, found dropout={dict(dropout)}; pass "
             "dropout={} with them"
         )
-    if (outages.history, outages.stride) != (config.history, config.stride):
-        raise ValueError(
-            f"train_bc: the outages were replayed through a window of {outages.history} steps, stride "
-            f"{outages.stride}, the policy reads {config.history}, stride {config.stride}; replay them "
-            "through policy.history_window()"
-        )
-    if config.forecast_shape is None:
-        return
-    served, rule = outages.forecast.get(keys.FORECAST_LOC), outages.rule
-    if served is None or tuple(served.shape[-2:]) != config.forecast_shape or rule != config.latched_forecast:
-        found = "no forecast" if served is None else f"forecasts {list(served.shape[-2:])}, latch rule {rule}"
-        raise ValueError(
-            f"train_bc: the policy reads forecasts {list(config.forecast_shape)} (T, D), latch rule "
-            f"{config.latched_forecast} (None: fresh), the replayed outages served {found}; replay them with "
-            "the forecast transform the policy reads in closed loop (LatchedForecastTransform of its rule "
-            "for a latched policy, ForecastTransform else; denormalize=False)"
-        )
+    outages.check_reads(policy)
 
 
-def _outages_meta(dropout: Mapping[str, float], outages: ReplayedOutages | None) -> dict:
+def _outages_meta(dropout: Mapping[str, float], outages: OutageSampler | None) -> dict:
     """What the checkpoint records of the training outages."""
     if outages is None:
         return {"dropout": dict(dropout)}
-    return {"dropout": {}, "replayed_outages": list(outages.labels)}
+    return {"dropout": {}, **outages.checkpoint_meta()}
 
 
 def train_bc(
@@ -610,7 +589,7 @@ def train_bc(
     *,
     dropout: Mapping[str, float] = DEFAULT_DROPOUT,
     forecasts: ForecastTable | LatchedForecastTable | None = None,
-    outages: ReplayedOutages | None = None,
+    outages: OutageSampler | None = None,
     run_dir: str | os.PathLike | None = None,
     logger=None,
     resume: bool = False,
@@ -620,12 +599,12 @@ def train_bc(
     order and the dropout draws), evaluation and checkpoints (under ``run_dir/checkpoints``;
     ``resume`` continues the last one). ``dropout`` removes sensors per sample (see
     `DemonstrationLoader`); ``forecasts`` must cover those outages when the policy reads
-    forecasts. ``outages`` (with ``dropout={}``): each sample's outage is a replay of the env's
-    outage processes instead (`ReplayedOutages`, replayed with the policy's forecast transform when
-    it reads forecasts); validation still removes each subset of the sensors it drops, with
-    ``forecasts``. Returns the last validation errors (`validation_errors`, ``val/`` prefix).
+    forecasts. ``outages`` (with ``dropout={}``): each sample's outage is drawn by this
+    `OutageSampler` instead, made for what the policy reads; validation still removes each subset
+    of the sensors it drops, with ``forecasts``. Returns the last validation errors
+    (`validation_errors`, ``val/`` prefix).
     """
-    _check_replayed_outages(policy, outages, dropout)
+    _check_outages(policy, outages, dropout)
     removed = list(dropout) if outages is None else list(outages.droppable)
     _check_training_inputs(policy, demonstrations, removed, forecasts)
     chunk = policy.config.action_chunk

@@ -1,4 +1,6 @@
-"""Training outages drawn by the env's own outage processes: `ReplayedOutages`.
+"""Training outages drawn by the env's own outage processes: `ReplayedOutages`, the `OutageSampler` of
+``benchmarks/bc_push.py --train-outages replayed``. Measured to change nothing (docs/results.md, "Training
+on the outages the test plays, replayed"), so it lives with that experiment.
 
 `DemonstrationLoader`'s ``dropout`` removes a sensor from a sample's whole window, independently
 per sample, and a `LatchedForecastTable` draws the latch's age at random. In closed loop a sensor
@@ -16,6 +18,9 @@ the forecast (and age) served. A training batch draws one replay per sample (`dr
         policy.history_window(), LatchedForecastTransform.for_trained(..., denormalize=False),
     )
     train_bc(policy, demonstrations, config, dropout={}, forecasts=table, outages=replayed)
+
+`train_bc` refuses a replay made through another window or forecast than the policy reads
+(`ReplayedOutages.check_reads`).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from torchrl.envs.transforms import Transform
 
 from mmf_rl import keys
 from mmf_rl.envs.modality_dropout import ModalityDropout
+from mmf_rl.rl.bc import BCPolicy
 from mmf_rl.rl.demonstrations import Demonstrations
 from mmf_rl.rl.transforms import HistoryWindow
 
@@ -108,6 +114,38 @@ class ReplayedOutages:
         absent = {m: a[which, frames] for m, a in self.absent.items()}
         served = {k: v[which, frames] for k, v in self.forecast.items()} if with_forecasts else {}
         return absent, served
+
+    def check_reads(self, policy: BCPolicy) -> None:
+        """Raise unless these outages were replayed through what ``policy`` reads in closed loop: its
+        window, and its forecast (with the age and rule of a latched one) or none."""
+        config = policy.config
+        if (self.history, self.stride) != (config.history, config.stride):
+            raise ValueError(
+                f"train_bc: the outages were replayed through a window of {self.history} steps, stride "
+                f"{self.stride}, the policy reads {config.history}, stride {config.stride}; replay them "
+                "through policy.history_window()"
+            )
+        if config.forecast_shape is None:
+            return
+        served, rule = self.forecast.get(keys.FORECAST_LOC), self.rule
+        if (
+            served is None
+            or tuple(served.shape[-2:]) != config.forecast_shape
+            or rule != config.latched_forecast
+        ):
+            found = (
+                "no forecast" if served is None else f"forecasts {list(served.shape[-2:])}, latch rule {rule}"
+            )
+            raise ValueError(
+                f"train_bc: the policy reads forecasts {list(config.forecast_shape)} (T, D), latch rule "
+                f"{config.latched_forecast} (None: fresh), the replayed outages served {found}; replay them "
+                "with the forecast transform the policy reads in closed loop (LatchedForecastTransform of "
+                "its rule for a latched policy, ForecastTransform else; denormalize=False)"
+            )
+
+    def checkpoint_meta(self) -> dict:
+        """The replays' labels, which a run checks before it reuses the policy."""
+        return {"replayed_outages": list(self.labels)}
 
     @property
     def droppable(self) -> tuple[str, ...]:

@@ -7,7 +7,9 @@ import json
 import pytest
 import torch
 
+from benchmarks.push import replayed_outages
 from benchmarks.push.closed_loop import sensor_outage
+from benchmarks.push.replayed_outages import ReplayedOutages
 from mmf_rl import keys
 from mmf_rl.checkpoint import list_checkpoints
 from mmf_rl.envs.torchrl_env import GOAL
@@ -17,12 +19,10 @@ from mmf_rl.rl import (
     ForecastTable,
     ForecastTransform,
     HistoryWindow,
-    replayed_outages,
     train_bc,
 )
 from mmf_rl.rl.demonstrations import ACTION
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
-from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.trainers.trainer import TrainerConfig
 from tests.rl.test_bc import make_policy
 
