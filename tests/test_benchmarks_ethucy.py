@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks import ethucy as bench
-from mmf_rl.compare.ethucy_recipe import (
+from benchmarks.pedestrians.recipe import (
     CV,
     CV_NOISE,
     CV_RECIPES,
@@ -165,8 +165,8 @@ def test_a_scores_json_without_recipe_is_refused_as_unknown(tmp_path):
 def test_what_a_run_writes_is_the_recipe_its_resume_checks(tmp_path, monkeypatch):
     """The rows as ``run_trained`` and ``run_constant_velocity`` write them, their training and scoring
     replaced by stand-ins: this recipe accepts them, the full mode's refuses the trained ones."""
+    import benchmarks.pedestrians.scoring
     import mmf_rl.configuration
-    import mmf_rl.eval.trajectories
     import mmf_rl.models
     import mmf_rl.trainers.train_command
 
@@ -179,8 +179,8 @@ def test_what_a_run_writes_is_the_recipe_its_resume_checks(tmp_path, monkeypatch
     monkeypatch.setattr(mmf_rl.models, "load_trained_model", lambda *_, **__: (None, None, None))
     monkeypatch.setattr(bench, "score", lambda *_, **__: {"all": {"min_ade_k": 1.0}})
     monkeypatch.setattr(bench, "prior_scores", lambda *_: {"all": {"min_ade_k": 2.0}})
-    monkeypatch.setattr(mmf_rl.eval.trajectories, "constant_velocity_model", lambda *_: None)
-    monkeypatch.setattr(mmf_rl.eval.trajectories, "best_heading_noise", lambda *_: (0.05, {0.05: 1.0}))
+    monkeypatch.setattr(benchmarks.pedestrians.scoring, "constant_velocity_model", lambda *_: None)
+    monkeypatch.setattr(benchmarks.pedestrians.scoring, "best_heading_noise", lambda *_: (0.05, {0.05: 1.0}))
     args = bench_args(tmp_path, "out", "--quick")
     for label in TRAINED:
         bench.run_trained(args, QUICK, "zara1", label, None)

@@ -5,8 +5,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from benchmarks.pedestrians import scoring
 from mmf_rl import keys
-from mmf_rl.eval import trajectories
 from mmf_rl.keys import ModalitySpec
 from mmf_rl.models import build_model
 
@@ -38,54 +38,54 @@ def _scores(ade: float, fde: float, min_ade: float, min_fde: float) -> dict:
 
 def test_constant_velocity_scores_the_same_in_every_mode_and_its_error_is_the_kink():
     model = build_model({"name": "constant_velocity"}, SPECS, HISTORY, HORIZON, 2).eval()
-    scores = trajectories.score_modes(model, [_walks(6), _walks(5, seed=1)], lambda t: t)
-    assert list(scores) == list(trajectories.MODES)
-    for mode in trajectories.MODES:
+    scores = scoring.score_modes(model, [_walks(6), _walks(5, seed=1)], lambda t: t)
+    assert list(scores) == list(scoring.MODES)
+    for mode in scoring.MODES:
         assert scores[mode]["windows"] == 11
         assert scores[mode]["ade"] == pytest.approx(0.3) and scores[mode]["fde"] == pytest.approx(0.3)
         assert scores[mode]["min_ade_k"] == pytest.approx(scores[mode]["ade"])  # 20 equal samples
-    assert trajectories.score_modes(model, [_walks(6)], lambda t: t, deterministic=True)["all"][
+    assert scoring.score_modes(model, [_walks(6)], lambda t: t, deterministic=True)["all"][
         "min_fde_k"
     ] == pytest.approx(0.3)
 
 
 def test_averages_are_over_scenes_and_the_summary_line_has_the_documented_form():
     def model(a: float) -> dict:
-        return {mode: _scores(a, 2 * a, a / 2, a) for mode in trajectories.MODES}
+        return {mode: _scores(a, 2 * a, a / 2, a) for mode in scoring.MODES}
 
     per_scene = {
         "eth": {"paper": model(0.2), "cv": model(0.5), "lstm": model(0.4), "mult": model(0.6)},
         "hotel": {"paper": model(0.4), "cv": model(0.7), "lstm": model(0.2), "mult": model(0.2)},
     }
-    assert trajectories.average_over_scenes(per_scene, ["hotel"])["lstm"]["all"]["ade"] == pytest.approx(0.2)
+    assert scoring.average_over_scenes(per_scene, ["hotel"])["lstm"]["all"]["ade"] == pytest.approx(0.2)
     per_scene["hotel"].pop("mult")
-    average = trajectories.average_over_scenes(per_scene)
+    average = scoring.average_over_scenes(per_scene)
     assert "mult" not in average
     assert average["paper"]["all"]["min_ade_k"] == pytest.approx(0.15)
     average["paper"]["without_scene"]["min_ade_k"] = 0.2
-    line = trajectories.summary_line(average, "paper", "cv", ["lstm", "cv"], "quick mode")
+    line = scoring.summary_line(average, "paper", "cv", ["lstm", "cv"], "quick mode")
     assert line == (
         "summary: paper model minADE20/minFDE20 avg 0.15/0.30 (without scene 0.20/0.30, without "
         "neighbours 0.15/0.30); constant velocity 0.30/0.60; best baseline lstm 0.15/0.30 (quick mode)"
     )
-    assert trajectories.relative_rise(average["paper"], "without_scene") == pytest.approx(1 / 3)
-    table = trajectories.scores_table(average, deterministic=["lstm"])
+    assert scoring.relative_rise(average["paper"], "without_scene") == pytest.approx(1 / 3)
+    table = scoring.scores_table(average, deterministic=["lstm"])
     assert "| lstm | 0.15/0.30 † | 0.30/0.60 |" in table
-    assert "AgentFormer (leak fixed) | 0.23 / 0.39" in trajectories.published_table()
+    assert "AgentFormer (leak fixed) | 0.23 / 0.39" in scoring.published_table()
 
 
 def test_examples_are_placed_in_the_world_and_drawn_on_the_image(tmp_path):
     batch = _walks(2)
     position = torch.tensor([[10.0, 5.0], [1.0, 1.0]])
     samples = batch.get(keys.TARGET)[:, None].expand(-1, 3, -1, -1)
-    examples = trajectories.world_examples(
+    examples = scoring.world_examples(
         batch, samples, lambda b: b.get(keys.TARGET_PAST) + position[:, None], lambda t: t
     )
     np.testing.assert_allclose(examples[0]["past"][-1], [10.0, 5.0])
     np.testing.assert_allclose(examples[0]["future"], (batch.get(keys.TARGET)[0] + position[0]).numpy())
     assert examples[1]["samples"].shape == (3, HORIZON, 2)
     image = np.zeros((48, 64, 3), dtype=np.uint8)
-    path = trajectories.plot_forecasts_on_image(
+    path = scoring.plot_forecasts_on_image(
         image, lambda xy: xy[..., ::-1] + 20, examples, tmp_path / "f.png", "test"
     )
     assert path.stat().st_size > 1000
@@ -108,7 +108,7 @@ def eth_fold(tmp_path_factory):
 
 
 def test_constant_velocity_of_a_real_fold_scores_again_the_same_and_repeats_its_sample(eth_fold):
-    from mmf_rl.eval.trajectories import constant_velocity_model, score_split
+    from benchmarks.pedestrians.scoring import constant_velocity_model, score_split
 
     plain = score_split(constant_velocity_model(eth_fold), eth_fold, "test", batch_size=8)
     assert plain["all"]["windows"] > 0
@@ -121,7 +121,7 @@ def test_constant_velocity_of_a_real_fold_scores_again_the_same_and_repeats_its_
 
 
 def test_heading_noise_is_picked_on_val_as_the_grid_value_of_lowest_min_ade(eth_fold):
-    from mmf_rl.eval.trajectories import best_heading_noise, constant_velocity_model, score_split
+    from benchmarks.pedestrians.scoring import best_heading_noise, constant_velocity_model, score_split
 
     grid = (0.0, 0.2, 1.5)
     best, on_val = best_heading_noise(eth_fold, grid, batch_size=8)

@@ -4,8 +4,7 @@ with this invocation's recipe.
 A row's recipe is what its numbers depend on besides the data: a trained model's training overrides
 (the mode's budget, the model, the augmentation, the seed), a constant-velocity row's heading-noise
 grid. Each run records its recipe in its ``scores.json``; before anything runs, the benchmark refuses
-to reuse a completed run whose recipe differs, or that records none. They serve that benchmark alone;
-they live in the package so that the script and its tests import them as any other module.
+to reuse a completed run whose recipe differs, or that records none.
 """
 
 from __future__ import annotations
