@@ -28,16 +28,20 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
 from tensordict import TensorDict
 from torch.utils.flop_counter import FlopCounterMode
 
-from mmf_rl.datasets.synthetic import push_like_batch
+# Run as `python benchmarks/X.py` or by `mmf-rl bench`: the checkout is what makes `benchmarks` importable.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.synthetic.push_like import build_for_push, push_like_batch
 from mmf_rl.devices import resolve_device
 from mmf_rl.models import MODELS
-from mmf_rl.models.push_like import build_for_push
 from mmf_rl.trainers.trainer import (
     PRECISIONS,
     TrainerConfig,

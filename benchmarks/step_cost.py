@@ -16,12 +16,17 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
 
+# Run as `python benchmarks/X.py` or by `mmf-rl bench`: the checkout is what makes `benchmarks` importable.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.synthetic.push_like import push_like_batch, push_modalities
 from mmf_rl.configuration import compose_config, to_container
-from mmf_rl.datasets.synthetic import push_like_batch, push_modalities
 from mmf_rl.models import build_loss, build_model
 from mmf_rl.objectives import LossConfig
 

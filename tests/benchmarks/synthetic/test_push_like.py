@@ -6,9 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from benchmarks.synthetic.push_like import build_for_push, push_like_batch
 from mmf_rl import keys
-from mmf_rl.datasets.synthetic import push_like_batch
-from mmf_rl.models.push_like import build_for_push
 
 
 def forecast_and_gradients(name: str, channels_last: bool):

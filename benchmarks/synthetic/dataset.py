@@ -1,4 +1,5 @@
-"""A small synthetic LeRobot v3.0 dataset (video + vectors) for tests, benchmarks and demos.
+"""A small synthetic LeRobot v3.0 dataset (video + vectors), for the data benchmarks
+(``benchmarks/data_throughput.py``, ``benchmarks/cache_scale.py``) and the dataset tests.
 
 A square moves across a camera image while its planar pose is recorded; a force-like vector
 has NaN spans (a dropped sensor) and the camera has a validity feature with invalid spans
@@ -10,11 +11,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import torch
-from tensordict import TensorDict
-
-from mmf_rl import keys
-from mmf_rl.keys import ModalitySpec
 
 IMAGE_FEATURE = "observation.images.front"
 # lerobot 0.4.4 treats any feature whose name contains "image" as a camera when aggregating
@@ -119,33 +115,3 @@ def _synthetic_frame(
         POSE_FEATURE: pose,
         "task": "push the square",
     }
-
-
-def push_modalities(image_size: int = 64) -> list[ModalitySpec]:
-    """The push benchmark's modalities: a square RGB image, force (6-D) and proprioception (20-D)."""
-    return [
-        ModalitySpec("image", "image", (3, image_size, image_size)),
-        ModalitySpec("force", "sequence", (6,)),
-        ModalitySpec("proprio", "sequence", (20,)),
-    ]
-
-
-def push_like_batch(
-    batch_size: int, history: int = 10, horizon: int = 10, seed: int = 0, image_size: int = 64
-) -> TensorDict:
-    """A random batch shaped like the push benchmark's (``push_modalities``, a 2-D target), mostly
-    complete samples and some with one sensor out: the mix the model trains on. For timing a model
-    without a recording."""
-    g = torch.Generator().manual_seed(seed)
-    data = {
-        keys.obs_key("image"): torch.randint(
-            0, 256, (batch_size, history, 3, image_size, image_size), generator=g, dtype=torch.uint8
-        ),
-        keys.obs_key("force"): torch.randn(batch_size, history, 6, generator=g),
-        keys.obs_key("proprio"): torch.randn(batch_size, history, 20, generator=g),
-        keys.TARGET: torch.randn(batch_size, horizon, 2, generator=g),
-    }
-    for spec in push_modalities(image_size):
-        data[spec.present_key] = torch.rand(batch_size, generator=g) > 0.15
-    data[keys.present_key("proprio")] |= ~(data[keys.present_key("image")] | data[keys.present_key("force")])
-    return TensorDict(data, batch_size=[batch_size])
