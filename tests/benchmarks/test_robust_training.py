@@ -14,7 +14,7 @@ from mmf_rl.compare.entries import Budget, Study
 from mmf_rl.compare.runs import compose_train
 from tests.conftest import run_bench
 
-SCRIPT = runpy.run_path(str(Path(__file__).parents[1] / "benchmarks" / "robust_training.py"))
+SCRIPT = runpy.run_path(str(Path(__file__).parents[2] / "benchmarks" / "robust_training.py"))
 SUMMARY = re.compile(
     r"summary: recommended \(val\) (.+); test best or tied in (\d)/7 subsets against every cell "
     r"\(paired: beaten in \d\); all sensors \d\.\d{3} \(best cell .+ \d\.\d{3}\); mean degradation -?\d+%"

@@ -34,7 +34,7 @@ from mmf_rl.objectives import LossConfig, default_loss_config
 from mmf_rl.trainers.train_command import RUN_CONFIG
 from tests.conftest import run_bench
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 ALL_ROWS = [*TRAINED, CV, CV_NOISE]
 

@@ -13,7 +13,7 @@ import pytest
 
 from tests.conftest import run_bench
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 G1 = Path(os.environ.get("MMF_RL_SHARED_DATA", REPO.parent / "shared" / "data")) / "g1_pick_bottle_small"
 SUMMARY = re.compile(
     r"summary: all sensors paper MSE (\S+) vs best baseline (\S+) \((.+)\): paper/best = (\S+) "
