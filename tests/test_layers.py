@@ -1,4 +1,6 @@
-"""The package's import graph only points down its layers (README, "Layout")."""
+"""The package's import graph only points down its layers (README, "Layout"); the benchmarks sit on top:
+they import the package, which never imports them (nor the tests), and their packages never import a
+script."""
 
 from __future__ import annotations
 
@@ -7,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "mmf_rl"
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "mmf_rl"
+BENCHMARKS = REPO / "benchmarks"
 
 # Bottom to top; a module may import its own layer's modules or lower ones, never a higher layer.
 LAYERS: list[set[str]] = [
@@ -48,6 +52,38 @@ def import_edges(package: Path) -> set[tuple[str, str, str]]:
     return edges
 
 
+def imported_modules(path: Path) -> set[str]:
+    """The modules ``path`` imports by absolute name, at its top or inside a function; ``from a import
+    b`` gives ``a`` and ``a.b`` (``b`` may be a module)."""
+    modules = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            modules |= {node.module} | {f"{node.module}.{a.name}" for a in node.names}
+        elif isinstance(node, ast.Import):
+            modules |= {a.name for a in node.names}
+    return modules
+
+
+def upward_imports(package: Path, benchmarks: Path) -> list[str]:
+    """Imports of the benchmarks or the tests by ``package``, and of a benchmark script (a module at the
+    top of ``benchmarks``) by a benchmark package: each points up, from a layer its importer is under."""
+    scripts = {f"benchmarks.{path.stem}" for path in benchmarks.glob("*.py") if path.stem != "__init__"}
+    problems = []
+    for path in sorted(package.rglob("*.py")):
+        above = outermost(m for m in imported_modules(path) if m.split(".")[0] in ("benchmarks", "tests"))
+        problems += [f"{path.relative_to(package.parent)} imports {m}" for m in above]
+    for path in sorted(benchmarks.glob("*/**/*.py")):
+        above = outermost(m for m in imported_modules(path) if ".".join(m.split(".")[:2]) in scripts)
+        problems += [f"{path.relative_to(benchmarks.parent)} imports the script {m}" for m in above]
+    return problems
+
+
+def outermost(modules) -> list[str]:
+    """``modules`` without those inside another of them (``a.b.c`` when ``a.b`` is there), sorted."""
+    modules = set(modules)
+    return sorted(m for m in modules if not any(m.startswith(f"{o}.") for o in modules))
+
+
 def layer_violations(package: Path) -> list[str]:
     problems = []
     edges = import_edges(package)
@@ -65,6 +101,29 @@ def layer_violations(package: Path) -> list[str]:
 
 def test_imports_only_point_down():
     assert layer_violations(PACKAGE) == []
+
+
+def test_the_package_never_imports_the_benchmarks_and_their_packages_never_import_a_script():
+    assert upward_imports(PACKAGE, BENCHMARKS) == []
+
+
+def test_an_import_of_the_benchmarks_lazy_or_not_or_of_a_script_is_reported(tmp_path):
+    files = {
+        "mmf_rl/rl/bc.py": "def train():\n    from benchmarks.push.gmm_head import GMMPolicy\n",
+        "mmf_rl/datasets/windows.py": "import tests.conftest\n",
+        "benchmarks/bc_push.py": "from benchmarks.push.closed_loop import OUTAGES\n",
+        "benchmarks/push/closed_loop.py": "import mmf_rl.rl\nfrom benchmarks.bc_push import main\n",
+        "benchmarks/push/dagger.py": "from benchmarks import bc_push, push\n",
+    }
+    for name, text in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    assert upward_imports(tmp_path / "mmf_rl", tmp_path / "benchmarks") == [
+        "mmf_rl/datasets/windows.py imports tests.conftest",
+        "mmf_rl/rl/bc.py imports benchmarks.push.gmm_head",
+        "benchmarks/push/closed_loop.py imports the script benchmarks.bc_push",
+        "benchmarks/push/dagger.py imports the script benchmarks.bc_push",
+    ]
 
 
 @pytest.mark.parametrize(
