@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/cache_scale.py --quick          # N = 10k only
     .venv/bin/python benchmarks/cache_scale.py --sizes 20000 --work-dir /data/scale
 
-For each N a synthetic LeRobot v3.0 dataset (`mmf_rl.datasets.synthetic`, lerobot's own writer:
+For each N a synthetic LeRobot v3.0 dataset (`benchmarks.synthetic.dataset`, lerobot's own writer:
 a 64x64 video camera, state, force and pose vectors, episodes of 250 frames) is written once
 under ``--work-dir`` and reused by later runs (lerobot's writer is slow at 1M frames: docs/results.md
 gives its time). Its cache is built in a fresh subprocess, which reports its wall

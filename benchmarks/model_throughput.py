@@ -18,7 +18,7 @@ loss scaling for fp16 (CUDA only); one training line per precision.
 
 Speed-up candidates, off by default, to compare on a quiet machine against a run without them:
 ``--channels-last`` stores the ConvNets' weights NHWC, so oneDNN runs the convolutions in that
-layout (same forecasts and gradients: tests/models/test_push_like.py); ``--compile`` wraps the
+layout (same forecasts and gradients: tests/benchmarks/synthetic/test_push_like.py); ``--compile`` wraps the
 loss module in ``torch.compile`` (the first steps, excluded from the timing, pay the compilation).
 The optimizer is the trainer's AdamW (its per-parameter loop); ``--fused-optimizer`` times its fused
 kernel instead (``trainer.fused_optimizer=true``).

@@ -6,7 +6,7 @@
 The variants (``VARIANTS``: the default, the paper's raw-token decoder, ``L_mis`` with its teacher
 detached, per-frame image tokens), MulT and the recommended preset (MulT with modality dropout and
 ``L_mis``) train in turn, ``--steps`` steps each per round, on the push-like batch
-(``mmf_rl.datasets.synthetic.push_like_batch``); the first round warms up and is dropped.
+(``benchmarks.synthetic.push_like.push_like_batch``); the first round warms up and is dropped.
 Interleaving the models round by round means a machine that slows down slows every model alike,
 so the printed ratios hold where the absolute times do not. Prints each model's median ms per
 step and its ratio to MulT's.
