@@ -15,7 +15,7 @@ a sensor fails, better than the same policy without it? Target: the policy with 
 most half the success the policy without them loses when the camera is off.
 
 What it builds when absent, under ``--work`` (a re-run reuses the recordings, resumes or skips the
-trainings; docs/bc_push.md says what and why, `mmf_rl.rl.bc_push_experiment` builds them):
+trainings; docs/benchmarks/bc_push.md says what and why, `benchmarks.push.bc_experiment` builds them):
 
 * the policies' recording, by the scripted pusher in one steady style (``WORK/push_steady``), or
   ``--data``;
@@ -42,7 +42,7 @@ Every policy plays the same seeded episodes under the same seeded outages (``all
 minutes of each phase go to ``results.md`` (measured run times: docs/results.md). Ends with ``summary:
 BC success all A%/A2%, no-camera B%/B2%, no-force C%/C2% (without/with forecasts); camera loss
 without/with forecasts episode X/Y pts, bursts ... (target with <= without/2: met for K of N outage
-types)`` (docs/bc_push.md, "Play and the summary line").
+types)`` (docs/benchmarks/bc_push.md, "Play and the summary line").
 """
 
 from __future__ import annotations
@@ -54,10 +54,12 @@ from pathlib import Path
 
 import torch
 
-from mmf_rl.log import configure_logging
-from mmf_rl.rl.bc import ACTION_HEADS
-from mmf_rl.rl.bc_evaluation import VARIANTS, evaluate_bc, summary_line
-from mmf_rl.rl.bc_push_experiment import (
+# Run as `python benchmarks/X.py` or by `mmf-rl bench`: the checkout is what makes `benchmarks` importable.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.push.bc_evaluation import VARIANTS, evaluate_bc, summary_line
+from benchmarks.push.bc_experiment import (
+    ACTION_HEADS,
     DEFAULT_ACTION_CHUNK,
     DEMONSTRATIONS,
     FORECAST_TARGETS,
@@ -69,12 +71,19 @@ from mmf_rl.rl.bc_push_experiment import (
     train_policies,
     training_replay,
 )
-from mmf_rl.rl.bc_push_report import results_page
-from mmf_rl.rl.closed_loop import OUTAGES
-from mmf_rl.rl.dagger import ROUND_SEEDS
-from mmf_rl.rl.experiment import add_common_arguments, resolve_budget, run_header, timed_phase, write_results
+from benchmarks.push.bc_report import results_page
+from benchmarks.push.closed_loop import OUTAGES
+from benchmarks.push.dagger import ROUND_SEEDS
+from benchmarks.push.experiment import (
+    add_common_arguments,
+    resolve_budget,
+    run_header,
+    timed_phase,
+    write_results,
+)
+from benchmarks.push.outage_evaluation import outage_conditions
+from mmf_rl.log import configure_logging
 from mmf_rl.rl.latched_forecast import RULES
-from mmf_rl.rl.outage_evaluation import outage_conditions
 
 BUDGETS = {
     "quick": {

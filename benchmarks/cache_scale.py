@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/cache_scale.py --quick          # N = 10k only
     .venv/bin/python benchmarks/cache_scale.py --sizes 20000 --work-dir /data/scale
 
-For each N a synthetic LeRobot v3.0 dataset (`mmf_rl.datasets.synthetic`, lerobot's own writer:
+For each N a synthetic LeRobot v3.0 dataset (`benchmarks.synthetic.dataset`, lerobot's own writer:
 a 64x64 video camera, state, force and pose vectors, episodes of 250 frames) is written once
 under ``--work-dir`` and reused by later runs (lerobot's writer is slow at 1M frames: docs/results.md
 gives its time). Its cache is built in a fresh subprocess, which reports its wall
@@ -41,6 +41,7 @@ from pathlib import Path
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # the checkout: `benchmarks.synthetic` importable, run as a script
 EPISODE_FRAMES = 250
 IMAGE_SIZE = 64
 BATCH_SIZE = 256
@@ -55,8 +56,8 @@ VIDEO_FILE_MB = 1
 
 
 def data_config(root: Path, cache_dir: Path):
+    from benchmarks.synthetic.dataset import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
     from mmf_rl.datasets.config import DataConfig
-    from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 
     return DataConfig.from_dict(
         {
@@ -77,7 +78,7 @@ def dataset(work_dir: Path, frames: int) -> Path:
 
     A partial or older-layout one is rewritten.
     """
-    from mmf_rl.datasets.synthetic import make_synthetic_dataset
+    from benchmarks.synthetic.dataset import make_synthetic_dataset
 
     root = work_dir / f"synthetic-{frames}"
     done = root / ".complete"

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
 import warnings
@@ -24,8 +25,11 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import torch
 
+# Run as `python benchmarks/X.py` or by `mmf-rl bench`: the checkout is what makes `benchmarks` importable.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.synthetic.dataset import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.config import DataConfig
-from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
 from mmf_rl.log import configure_logging
 
@@ -35,7 +39,7 @@ def make_dataset(root: Path, episodes: int, steps: int, image_size: int, workers
     try:
         from mmf_rl.record import RecordConfig, record
     except ImportError:
-        from mmf_rl.datasets.synthetic import make_synthetic_dataset
+        from benchmarks.synthetic.dataset import make_synthetic_dataset
 
         make_synthetic_dataset(root, [steps] * episodes, image_size=image_size)
         return "synthetic (mmf_rl.record is not available)"

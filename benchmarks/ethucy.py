@@ -18,13 +18,13 @@ use too: ``model.learned_samples=20``, trained after the forecaster with the for
 from ``p(z | X)``. Every model is scored in four modes (all modalities, without ``scene``, without
 ``neighbours``, trajectory only) on the same test windows: ADE/FDE of the point forecast and
 minADE20/minFDE20 per agent over 20 samples
-(:mod:`mmf_rl.eval.trajectories`).
+(:mod:`benchmarks.pedestrians.scoring`).
 
 The data is converted into ``--data`` when its fold configs are absent (``mmf-rl import ethucy``);
 the window cache is built once for all folds (``--data``/cache). Completed runs
 (``<out>/<fold>/<model>/scores.json``) are reused, so an interrupted benchmark resumes; delete
 ``--out`` to start over. Each ``scores.json`` records its recipe (a trained model's training
-overrides, a constant-velocity row's heading noise grid: `mmf_rl.compare.ethucy_recipe`), and before
+overrides, a constant-velocity row's heading noise grid: `benchmarks.pedestrians.recipe`), and before
 anything runs a completed run whose recipe differs from this invocation's (another mode, or a recipe
 changed since), or records none, is refused with the settings that differ: train it into another
 ``--out``, or delete its directory to compute it again. Writes ``<out>/results.md``,
@@ -39,10 +39,14 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 import time
 from pathlib import Path
 
-from mmf_rl.compare.ethucy_recipe import (
+# Run as `python benchmarks/X.py` or by `mmf-rl bench`: the checkout is what makes `benchmarks` importable.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.pedestrians.recipe import (
     CV,
     CV_NOISE,
     CV_RECIPES,
@@ -132,7 +136,7 @@ def val_curve(run_dir: Path) -> list[tuple[int, float]]:
 
 def score(model, data, split: str, args: argparse.Namespace, deterministic: bool = False) -> dict:
     """``model``'s scores on ``split`` at the invocation's batch size and device."""
-    from mmf_rl.eval.trajectories import score_split
+    from benchmarks.pedestrians.scoring import score_split
 
     return score_split(model, data, split, args.batch_size, args.device, deterministic=deterministic)
 
@@ -176,8 +180,8 @@ def run_trained(args: argparse.Namespace, budget: Budget, fold: str, label: str,
 
 def run_constant_velocity(args: argparse.Namespace, fold: str, data) -> dict[str, dict]:
     """Both constant-velocity rows; the sampler's angle std is the val split's best minADE20."""
+    from benchmarks.pedestrians.scoring import best_heading_noise, constant_velocity_model
     from mmf_rl.eval.report import write_json
-    from mmf_rl.eval.trajectories import best_heading_noise, constant_velocity_model
 
     results = {}
     run_dir = args.out / fold / slug(CV)
@@ -206,8 +210,8 @@ def run_constant_velocity(args: argparse.Namespace, fold: str, data) -> dict[str
 def draw_fold(args: argparse.Namespace, fold: str, data) -> Path:
     """The paper model's 20 samples, the ground truth and the observed past of a few test agents,
     on the test scene's reference frame through its world->pixel map."""
+    from benchmarks.pedestrians.scoring import draw_test_samples
     from mmf_rl.datasets import ethucy
-    from mmf_rl.eval.trajectories import draw_test_samples
     from mmf_rl.models import load_trained_model
 
     model, _, _ = load_trained_model(args.out / fold / slug(PAPER) / "checkpoints", map_location="cpu")
@@ -238,7 +242,7 @@ def run_fold(args: argparse.Namespace, budget: Budget, fold: str) -> dict[str, d
 
 
 def average_section(title: str, average: dict) -> list[str]:
-    from mmf_rl.eval.trajectories import relative_rise, scores_table
+    from benchmarks.pedestrians.scoring import relative_rise, scores_table
 
     note = (
         "† deterministic: its 20 samples are equal, so minADE20/minFDE20 = ADE/FDE. Metres; 8 observed / "
@@ -255,7 +259,7 @@ def average_section(title: str, average: dict) -> list[str]:
 
 
 def markdown(per_fold: dict, averages: dict[str, dict], budget: Budget, seconds: dict) -> str:
-    from mmf_rl.eval.trajectories import published_table, scores_table
+    from benchmarks.pedestrians.scoring import published_table, scores_table
 
     parts = [f"# ETH/UCY ({budget.name})\n"]
     for title, average in averages.items():
@@ -273,9 +277,9 @@ def markdown(per_fold: dict, averages: dict[str, dict], budget: Budget, seconds:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from benchmarks.pedestrians.scoring import average_over_scenes, summary_line
     from mmf_rl.datasets import ethucy
     from mmf_rl.eval.report import write_json, write_text
-    from mmf_rl.eval.trajectories import average_over_scenes, summary_line
 
     args = parse_args(argv)
     budget = QUICK if args.quick else FULL

@@ -18,7 +18,7 @@ loss scaling for fp16 (CUDA only); one training line per precision.
 
 Speed-up candidates, off by default, to compare on a quiet machine against a run without them:
 ``--channels-last`` stores the ConvNets' weights NHWC, so oneDNN runs the convolutions in that
-layout (same forecasts and gradients: tests/models/test_push_like.py); ``--compile`` wraps the
+layout (same forecasts and gradients: tests/benchmarks/synthetic/test_push_like.py); ``--compile`` wraps the
 loss module in ``torch.compile`` (the first steps, excluded from the timing, pay the compilation).
 The optimizer is the trainer's AdamW (its per-parameter loop); ``--fused-optimizer`` times its fused
 kernel instead (``trainer.fused_optimizer=true``).
@@ -28,16 +28,20 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
 from tensordict import TensorDict
 from torch.utils.flop_counter import FlopCounterMode
 
-from mmf_rl.datasets.synthetic import push_like_batch
+# Run as `python benchmarks/X.py` or by `mmf-rl bench`: the checkout is what makes `benchmarks` importable.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.synthetic.push_like import build_for_push, push_like_batch
 from mmf_rl.devices import resolve_device
 from mmf_rl.models import MODELS
-from mmf_rl.models.push_like import build_for_push
 from mmf_rl.trainers.trainer import (
     PRECISIONS,
     TrainerConfig,

@@ -32,8 +32,8 @@ step-wise CEMPlanner eps.  0       10
 aggregation rounds         0       0     (--aggregate; 100 episodes each, --aggregate-episodes)
 =========================  ======  =====
 
-Data aggregation (``--aggregate ROUNDS``, PETS-style, `mmf_rl.rl.aggregation`): after the first world models
-are trained, each round records ``--aggregate-episodes`` episodes with the current MPC agent
+Data aggregation (``--aggregate ROUNDS``, PETS-style, `benchmarks.push.aggregation`): after the first
+world models are trained, each round records ``--aggregate-episodes`` episodes with the current MPC agent
 (`mmf_rl.rl.PushMPCAgent`: the planner and objective below, all sensors up) plus the recorder's
 random-move bursts (``--aggregate-exploration``, the meaning of ``mmf-rl record
 --exploration``), merges them with that world model's training data (lerobot's
@@ -118,10 +118,10 @@ from pathlib import Path
 
 import torch
 
-from mmf_rl.log import configure_logging
-from mmf_rl.record import RecordConfig, record
-from mmf_rl.rl import PushMPCAgent, PushObjective
-from mmf_rl.rl.aggregation import (
+# Run as `python benchmarks/X.py` or by `mmf-rl bench`: the checkout is what makes `benchmarks` importable.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.push.aggregation import (
     FIRST_RECORDING,
     SUCCESS_DISTANCE,
     AggregationConfig,
@@ -131,10 +131,19 @@ from mmf_rl.rl.aggregation import (
     check_aggregation_arguments,
     train_world_model,
 )
-from mmf_rl.rl.closed_loop import OUTAGES
-from mmf_rl.rl.experiment import add_common_arguments, resolve_budget, run_header, timed_phase, write_results
-from mmf_rl.rl.mpc_evaluation import evaluate_mpc, results_table
-from mmf_rl.rl.outage_evaluation import outage_conditions
+from benchmarks.push.closed_loop import OUTAGES
+from benchmarks.push.experiment import (
+    add_common_arguments,
+    resolve_budget,
+    run_header,
+    timed_phase,
+    write_results,
+)
+from benchmarks.push.mpc_evaluation import evaluate_mpc, results_table
+from benchmarks.push.outage_evaluation import outage_conditions
+from mmf_rl.log import configure_logging
+from mmf_rl.record import RecordConfig, record
+from mmf_rl.rl import PushMPCAgent, PushObjective
 
 BUDGETS = {
     "quick": {

@@ -6,7 +6,7 @@
 The variants (``VARIANTS``: the default, the paper's raw-token decoder, ``L_mis`` with its teacher
 detached, per-frame image tokens), MulT and the recommended preset (MulT with modality dropout and
 ``L_mis``) train in turn, ``--steps`` steps each per round, on the push-like batch
-(``mmf_rl.datasets.synthetic.push_like_batch``); the first round warms up and is dropped.
+(``benchmarks.synthetic.push_like.push_like_batch``); the first round warms up and is dropped.
 Interleaving the models round by round means a machine that slows down slows every model alike,
 so the printed ratios hold where the absolute times do not. Prints each model's median ms per
 step and its ratio to MulT's.
@@ -16,12 +16,17 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import torch
 
+# Run as `python benchmarks/X.py` or by `mmf-rl bench`: the checkout is what makes `benchmarks` importable.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.synthetic.push_like import push_like_batch, push_modalities
 from mmf_rl.configuration import compose_config, to_container
-from mmf_rl.datasets.synthetic import push_like_batch, push_modalities
 from mmf_rl.models import build_loss, build_model
 from mmf_rl.objectives import LossConfig
 

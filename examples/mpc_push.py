@@ -20,10 +20,17 @@ import argparse
 import torch
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 
-from mmf_rl.envs.modality_dropout import ModalityDropout
+from mmf_rl.envs.modality_dropout import ModalityDropout, UniformBursts
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
 from mmf_rl.rl import PushObjective, SequenceCEMPlanner, WorldModel
-from mmf_rl.rl.closed_loop import OUTAGES, camera_size
+
+# How the sensor fails, as benchmarks/mpc_push.py plays it: off for the whole episode; in outages of
+# 2-8 steps starting with probability 0.2 at each step it is up; or for good after 1-49 steps.
+OUTAGES = {
+    "episode": {"outage": "episode", "outage_prob": 1.0},
+    "bursts": {"outage": "bursts", "outage_prob": 0.2, "bursts": UniformBursts(2, 8)},
+    "dies": {"outage": "dies", "outage_prob": 1.0, "dies_after": UniformBursts(1, 49)},
+}
 
 parser = argparse.ArgumentParser(description="MPC with a push world model")
 parser.add_argument("--checkpoint", default="runs/world_model/checkpoints")
@@ -38,11 +45,12 @@ torch.set_num_threads(2)
 world_model = WorldModel.from_checkpoint(args.checkpoint)
 history = world_model.history_window()  # writes ("history", ...): the model's input window, every step
 
-# The real env, rendering the camera at the model's size: the outage (if any, with the benchmark's
-# `ModalityDropout` settings) happens before the history sees the sensors.
+# The real env, rendering the camera at the size the model was trained on: the outage (if any) happens
+# before the history sees the sensors.
 transforms = [ModalityDropout([args.drop], seed=args.seed, **OUTAGES[args.outage])] if args.drop else []
+image_size = next(m for m in world_model.modalities if m.name == "image").shape[-1]
 env = TransformedEnv(
-    MultimodalPushTorchEnv(image_size=camera_size(world_model.modalities)),
+    MultimodalPushTorchEnv(image_size=image_size),
     Compose(*transforms, history, InitTracker()),
 )
 

@@ -4,9 +4,9 @@ import os
 
 import pytest
 
+from benchmarks.synthetic.dataset import make_synthetic_dataset
 from mmf_rl.bench import BENCHMARKS
 from mmf_rl.cli import main as cli
-from mmf_rl.datasets.synthetic import make_synthetic_dataset
 
 
 def test_bench_data_runs_on_any_dataset_with_its_data_config(tmp_path, capsys):

@@ -127,6 +127,8 @@ def parameters(obj) -> list[str]:
     """The names a caller passes: the signature's (a class's without ``self``), ``*args``/``**kwargs``
     with their stars."""
     skip = 0
+    if inspect.isclass(obj) and getattr(obj, "_is_protocol", False):
+        return []  # a typing.Protocol is implemented, never constructed: its methods are the contract
     if inspect.isclass(obj):
         # The class's own __init__ (or __new__), not its metaclass's __call__ (torchrl's EnvBase has
         # one taking *args, **kwargs); none in Python (an exception class) or only a library mixin's
@@ -161,6 +163,8 @@ def own_body(func) -> list[ast.AST]:
 def raises_on_purpose(obj) -> bool:
     """``obj`` (a function, or a class's own ``__init__``/``__post_init__``) raises an exception it
     builds itself (not a bare re-raise)."""
+    if getattr(obj, "_is_protocol", False):
+        return False  # typing's __init__ of a Protocol refuses instantiation; the protocol raises nothing
     bodies = [obj] if inspect.isfunction(obj) else [vars(obj).get(n) for n in ("__init__", "__post_init__")]
     return any(
         isinstance(node, ast.Raise) and node.exc is not None

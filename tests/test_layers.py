@@ -1,5 +1,6 @@
 """The package's import graph only points down its layers (README, "Layout"), and a command's
-module is the CLI's alone."""
+module is the CLI's alone; the benchmarks sit on top: they import the package, which never imports them
+(nor the tests), and their packages never import a script."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "mmf_rl"
+BENCHMARKS = REPO / "benchmarks"
 
 # Bottom to top; a module may import its own layer's modules or lower ones, never a higher layer.
 LAYERS: list[set[str]] = [
@@ -27,16 +29,16 @@ LAYERS: list[set[str]] = [
 RANK = {name: rank for rank, layer in enumerate(LAYERS) for name in layer}
 
 
-def imported_modules(path: Path) -> list[str]:
-    """The ``mmf_rl`` modules (or names) ``path`` imports, including inside functions (a lazy import is
-    still a dependency)."""
-    names = []
+def imported_modules(path: Path) -> set[str]:
+    """The modules ``path`` imports by absolute name, at its top or inside a function; ``from a import
+    b`` gives ``a`` and ``a.b`` (``b`` may be a module)."""
+    modules = set()
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names += [f"{node.module}.{a.name}" for a in node.names]  # a name may be a module
+            modules |= {node.module} | {f"{node.module}.{a.name}" for a in node.names}
         elif isinstance(node, ast.Import):
-            names += [a.name for a in node.names]
-    return [name for name in names if name.split(".")[0] == "mmf_rl"]
+            modules |= {a.name for a in node.names}
+    return modules
 
 
 def import_edges(package: Path) -> set[tuple[str, str, str]]:
@@ -46,9 +48,29 @@ def import_edges(package: Path) -> set[tuple[str, str, str]]:
         unit = path.relative_to(package).parts[0].removesuffix(".py")
         for name in imported_modules(path):
             parts = name.split(".")
-            if len(parts) > 1 and parts[1] != unit:
+            if parts[0] == "mmf_rl" and len(parts) > 1 and parts[1] != unit:
                 edges.add((str(path.relative_to(package.parent)), unit, parts[1]))
     return edges
+
+
+def upward_imports(package: Path, benchmarks: Path) -> list[str]:
+    """Imports of the benchmarks or the tests by ``package``, and of a benchmark script (a module at the
+    top of ``benchmarks``) by a benchmark package: each points up, from a layer its importer is under."""
+    scripts = {f"benchmarks.{path.stem}" for path in benchmarks.glob("*.py") if path.stem != "__init__"}
+    problems = []
+    for path in sorted(package.rglob("*.py")):
+        above = outermost(m for m in imported_modules(path) if m.split(".")[0] in ("benchmarks", "tests"))
+        problems += [f"{path.relative_to(package.parent)} imports {m}" for m in above]
+    for path in sorted(benchmarks.glob("*/**/*.py")):
+        above = outermost(m for m in imported_modules(path) if ".".join(m.split(".")[:2]) in scripts)
+        problems += [f"{path.relative_to(benchmarks.parent)} imports the script {m}" for m in above]
+    return problems
+
+
+def outermost(modules) -> list[str]:
+    """``modules`` without those inside another of them (``a.b.c`` when ``a.b`` is there), sorted."""
+    modules = set(modules)
+    return sorted(m for m in modules if not any(m.startswith(f"{o}.") for o in modules))
 
 
 def layer_violations(package: Path) -> list[str]:
@@ -68,6 +90,29 @@ def layer_violations(package: Path) -> list[str]:
 
 def test_imports_only_point_down():
     assert layer_violations(PACKAGE) == []
+
+
+def test_the_package_never_imports_the_benchmarks_and_their_packages_never_import_a_script():
+    assert upward_imports(PACKAGE, BENCHMARKS) == []
+
+
+def test_an_import_of_the_benchmarks_lazy_or_not_or_of_a_script_is_reported(tmp_path):
+    files = {
+        "mmf_rl/rl/bc.py": "def train():\n    from benchmarks.push.gmm_head import GMMPolicy\n",
+        "mmf_rl/datasets/windows.py": "import tests.conftest\n",
+        "benchmarks/bc_push.py": "from benchmarks.push.closed_loop import OUTAGES\n",
+        "benchmarks/push/closed_loop.py": "import mmf_rl.rl\nfrom benchmarks.bc_push import main\n",
+        "benchmarks/push/dagger.py": "from benchmarks import bc_push, push\n",
+    }
+    for name, text in files.items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(text)
+    assert upward_imports(tmp_path / "mmf_rl", tmp_path / "benchmarks") == [
+        "mmf_rl/datasets/windows.py imports tests.conftest",
+        "mmf_rl/rl/bc.py imports benchmarks.push.gmm_head",
+        "benchmarks/push/closed_loop.py imports the script benchmarks.bc_push",
+        "benchmarks/push/dagger.py imports the script benchmarks.bc_push",
+    ]
 
 
 @pytest.mark.parametrize(
@@ -118,10 +163,17 @@ def command_imports(repo: Path) -> list[str]:
     problems = []
     for path in sorted(p for top in CODE_DIRS for p in (repo / top).rglob("*.py")):
         relative = path.relative_to(repo)
-        for name in imported_modules(path):
-            module = next((m for m in COMMAND_MODULES if name == m or name.startswith(f"{m}.")), None)
-            if module is not None and relative.parts[:2] != ("mmf_rl", module.split(".")[1]):
-                problems.append(f"{relative}: imports {module}")
+        modules = {
+            m
+            for name in imported_modules(path)
+            for m in COMMAND_MODULES
+            if name == m or name.startswith(f"{m}.")
+        }
+        problems += [
+            f"{relative}: imports {m}"
+            for m in sorted(modules)
+            if relative.parts[:2] != ("mmf_rl", m.split(".")[1])
+        ]
     return problems
 
 

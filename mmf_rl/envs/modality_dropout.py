@@ -391,7 +391,7 @@ class ModalityDropout(Transform):
     def observe_reset(self, observation: TensorDictBase) -> TensorDictBase:
         """Draw every env's outages for a reset's ``observation`` (env batch ``[*batch]``) and apply
         them, as ``env.reset()`` does in a `TransformedEnv`: for a caller that replays recorded
-        episodes through the outages (`mmf_rl.rl.replayed_outages`).
+        episodes through the outages (``benchmarks/push/replayed_outages.py``).
 
         Args:
             observation (TensorDictBase): the reset observation, changed in place.

@@ -366,7 +366,7 @@ class MarkovPusher(ScriptedPusher):
     """`ScriptedPusher` as a function of the observation: its phase is inferred from the state at
     every call, never carried over from the calls before, so one state always gets one action.
 
-    This is the expert DAgger labels with (`mmf_rl.rl.dagger`): DAgger assumes an expert policy of
+    This is the expert DAgger labels with (`benchmarks/push/dagger.py`): DAgger assumes an expert policy of
     the state, asked at states the learner drives it to. The stateful pusher's phase follows the
     trajectory it drove itself; along the learner's it falls out of step with the state (still
     "approaching" when the learner is already behind the block at pushing height, "retreating" for

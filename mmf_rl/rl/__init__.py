@@ -2,22 +2,24 @@
 transforms, the world model (and an ensemble of them), a model-based env for torchrl's planners,
 a vectorised CEM planner for model-predictive control with the push task's objective, the MPC agent the
 recorder records with (`PushMPCAgent`), and behaviour cloning from recorded demonstrations with the
-forecast as a policy input. What the push experiments (``benchmarks/mpc_push.py``, ``benchmarks/bc_push.py``)
-build on lives in the submodules: closed-loop play under sensor outages (`closed_loop`,
-`outage_evaluation`, `mpc_evaluation`, `bc_evaluation`), data aggregation (`aggregation`), DAgger
-(`dagger`), action chunks with temporal ensembling for BC (`action_chunks`), training outages replayed
-through the env's outage processes (`replayed_outages`), their shared command-line pieces
-(`experiment`), and the push BC experiment's building and report (`bc_push_experiment`,
-`bc_push_report`)."""
+forecast as a policy input (action chunks with temporal ensembling: `action_chunks`), trained on
+outages drawn per sample (or by an `OutageSampler`). The push experiments built on them
+(``benchmarks/mpc_push.py``, ``benchmarks/bc_push.py``) live beside the package, in
+``benchmarks/push/``."""
 
 from mmf_rl.rl.agent import MPCActor, PushMPCAgent
 from mmf_rl.rl.bc import DEFAULT_DROPOUT, BCConfig, BCPolicy, EncoderChoice, train_bc, validation_errors
 from mmf_rl.rl.cem import SequenceCEMPlanner
-from mmf_rl.rl.demonstrations import DemonstrationLoader, Demonstrations, ForecastTable, drop_sets
+from mmf_rl.rl.demonstrations import (
+    DemonstrationLoader,
+    Demonstrations,
+    ForecastTable,
+    OutageSampler,
+    drop_sets,
+)
 from mmf_rl.rl.ensemble_world_model import EnsembleWorldModel
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
 from mmf_rl.rl.push_objective import PushObjective
-from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow
 from mmf_rl.rl.world_model import WorldModel
 from mmf_rl.rl.world_model_env import ForecasterWorldModelEnv, ImaginedPlanningPolicy
@@ -38,9 +40,9 @@ __all__ = [
     "LatchedForecastTable",
     "LatchedForecastTransform",
     "MPCActor",
+    "OutageSampler",
     "PushMPCAgent",
     "PushObjective",
-    "ReplayedOutages",
     "SequenceCEMPlanner",
     "WorldModel",
     "drop_sets",

@@ -30,9 +30,8 @@ to the demonstrated action) and the project's `Trainer` (checkpoints: safetensor
 config in ``meta.json``, the normalisation statistics beside them; resumable). Training removes
 sensors at random per sample (``dropout``), so the policy has seen outages before it meets one;
 the policy that reads forecasts is trained on the forecasts made under the same outages. Or each
-sample's outage is a replay of the env's own outage processes through the transforms the policy
-reads (``outages``, `mmf_rl.rl.replayed_outages`): what it reads then follows the process, as in
-closed loop.
+sample's outage is drawn by an `OutageSampler` (``outages``), e.g. replays of the env's own outage
+processes through the transforms the policy reads (``benchmarks/push/replayed_outages.py``).
 
 With ``action_chunk`` k > 1 (`BCConfig`; default 1, the per-step policy) the network predicts the
 next k actions (``"action_chunk"``), trained on the demonstrator's next k actions of the episode
@@ -40,12 +39,9 @@ next k actions (``"action_chunk"``), trained on the demonstrator's next k action
 policy acts with ACT's temporal ensemble of its past chunks (`TemporalEnsemble`), whose state
 lives in the tensordict: `BCPolicy.transforms` then adds an `InitTracker` and the state's primer.
 
-With ``action_head="gmm"`` (`BCConfig`; default ``"mse"``, the regression above) the network
-predicts a Gaussian mixture per action step (`mmf_rl.rl.gmm_head`, robomimic's BC-GMM) under
-``"action_gmm"``, is trained by its negative log-likelihood (`GMMActionLoss`), and acts with the
-mean of its most likely component: the demonstrations' "move" and "stay" labels of similar states
-stay two modes instead of averaging into a shrunken action. It composes with action chunks (one
-mixture per chunk step; the chunk of modes then goes through the ensemble).
+A policy with another action head subclasses `BCPolicy` (its network, ``out_keys``, the ``mode``
+that turns the head's output into the action, its `loss`, its config), as the push experiment's
+Gaussian-mixture head does (``benchmarks/push/gmm_head.py``, measured not to help there).
 
 In an env, the policy reads what its transforms write; put `ModalityDropout` before them::
 
@@ -86,18 +82,10 @@ from mmf_rl.rl.demonstrations import (
     DemonstrationLoader,
     Demonstrations,
     ForecastTable,
+    OutageSampler,
     drop_sets,
 )
-from mmf_rl.rl.gmm_head import (
-    GMM_KEYS,
-    GMM_LOC,
-    GMM_LOGITS,
-    GMMActionLoss,
-    gmm_parameters,
-    most_likely_mean,
-)
 from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTable, LatchedForecastTransform
-from mmf_rl.rl.replayed_outages import ReplayedOutages
 from mmf_rl.rl.transforms import ForecastTransform, HistoryWindow, require_stats
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig
 
@@ -105,7 +93,6 @@ from mmf_rl.trainers.trainer import Trainer, TrainerConfig
 # camera and the force sensor independently with this probability (proprioception, the robot's
 # own joint readings, is never removed).
 DEFAULT_DROPOUT = {"image": 0.3, "force": 0.3}
-ACTION_HEADS = ("mse", "gmm")  # `BCConfig.action_head`
 
 
 @dataclass
@@ -134,14 +121,10 @@ class BCConfig:
             per-step policy; k > 1: a chunk executed with temporal ensembling, `TemporalEnsemble`).
         chunk_decay (float, optional): the ensemble's ``m`` (ACT's weights ``exp(-m·i)``, ``i = 0`` the
             oldest prediction). Defaults to ``0.01``.
-        action_head (str, optional): ``"mse"`` (default: the action, trained by mean squared error) or
-            ``"gmm"`` (a mixture of ``gmm_components`` Gaussians per action step, `mmf_rl.rl.gmm_head`).
-        gmm_components (int, optional): the mixture's components. Defaults to ``5``.
 
     Raises:
         ValueError: ``latched_forecast`` without a forecast input or outside the rules,
-            ``forecast_steps`` outside ``1..T``, ``action_chunk < 1``, a negative ``chunk_decay``, an
-            unknown ``action_head`` or ``gmm_components < 1``.
+            ``forecast_steps`` outside ``1..T``, ``action_chunk < 1`` or a negative ``chunk_decay``.
     """
 
     modalities: list[ModalitySpec]
@@ -158,8 +141,6 @@ class BCConfig:
     depth: int = 2
     action_chunk: int = 1
     chunk_decay: float = 0.01
-    action_head: str = "mse"
-    gmm_components: int = 5
 
     def __post_init__(self):
         self.modalities = [
@@ -187,11 +168,6 @@ class BCConfig:
                 f"BCConfig: action_chunk must be >= 1 and chunk_decay >= 0, found {self.action_chunk}, "
                 f"{self.chunk_decay}"
             )
-        if self.action_head not in ACTION_HEADS or self.gmm_components < 1:
-            raise ValueError(
-                f"BCConfig: action_head must be one of {list(ACTION_HEADS)} and gmm_components >= 1, found "
-                f"{self.action_head!r}, {self.gmm_components}"
-            )
 
     def to_dict(self) -> dict:
         """The config as plain data, what :meth:`from_dict` reads back (a checkpoint stores it)."""
@@ -210,8 +186,6 @@ class BCConfig:
             "depth": self.depth,
             "action_chunk": self.action_chunk,
             "chunk_decay": self.chunk_decay,
-            "action_head": self.action_head,
-            "gmm_components": self.gmm_components,
         }
 
     @property
@@ -234,6 +208,10 @@ class BCConfig:
         Raises:
             ValueError: an unknown key or an invalid value.
         """
+        # Checkpoints written while this config named the head: "mse" is this policy's (a mixture
+        # head's config is the push experiment's, benchmarks/push/gmm_head.py).
+        if d.get("action_head") == "mse":
+            d = {k: v for k, v in d.items() if k not in ("action_head", "gmm_components")}
         reject_unknown_keys(cls, d, "BC policy config")
         return cls(**d)
 
@@ -273,11 +251,13 @@ class EncoderChoice:
 
 class BCNetwork(nn.Module):
     """The policy's network on plain tensors, in `BCPolicy.in_keys` order; any leading batch shape.
-    Returns the action ``[*B, A]``, or with ``action_chunk`` k > 1 the chunk ``[*B, k, A]``; with
-    the ``"gmm"`` head the mixture's ``(loc, scale, logits)`` instead (`gmm_parameters`), with a
-    chunk dim k after ``*B`` for a chunk policy."""
+    Returns the action ``[*B, A]``, or with ``action_chunk`` k > 1 the chunk ``[*B, k, A]``: what
+    `head_output` makes of the MLP head's ``outputs_per_step`` numbers per action step (default: the
+    action dims)."""
 
-    def __init__(self, config: BCConfig, stats: Mapping[str, torch.Tensor]):
+    def __init__(
+        self, config: BCConfig, stats: Mapping[str, torch.Tensor], outputs_per_step: int | None = None
+    ):
         super().__init__()
         self.config = config
         self.encoders = nn.ModuleDict(
@@ -291,12 +271,9 @@ class BCNetwork(nn.Module):
         inputs += 2 * read[0] * read[1] if read else 0
         inputs += config.latched_forecast is not None  # the age
         inputs += OBJECT_PLANAR_DIMS if config.privileged_object else 0
-        per_step = config.action_dim
-        if config.action_head == "gmm":  # per component: a mean and a scale per action dim, a logit
-            per_step = config.gmm_components * (2 * config.action_dim + 1)
         self.head = MLP(
             in_features=inputs,
-            out_features=per_step * config.action_chunk,
+            out_features=(outputs_per_step or config.action_dim) * config.action_chunk,
             num_cells=[config.hidden] * config.depth,
             activation_class=nn.ReLU,
         )
@@ -339,13 +316,13 @@ class BCNetwork(nn.Module):
             position = inputs[-1].reshape(n, -1)[:, :OBJECT_PLANAR_DIMS]
             features.append((position - self.object_mean) / self.object_std)
         raw = self.head(torch.cat(features, -1))
-        if config.action_head == "gmm":
-            steps = (config.action_chunk,) if config.action_chunk > 1 else ()
-            return gmm_parameters(raw.reshape(*batch, *steps, -1), config.gmm_components, config.action_dim)
-        actions = torch.tanh(raw)
-        if config.action_chunk > 1:
-            return actions.reshape(*batch, config.action_chunk, config.action_dim)
-        return actions.reshape(*batch, config.action_dim)
+        steps = (config.action_chunk,) if config.action_chunk > 1 else ()
+        return self.head_output(raw.reshape(*batch, *steps, -1))
+
+    def head_output(self, raw: torch.Tensor) -> torch.Tensor:
+        """The network's output from the head's ``[*B, (k,) outputs_per_step]``: the action in the box
+        ``[-1, 1]``."""
+        return torch.tanh(raw)
 
 
 class BCPolicy(TensorDictModule):
@@ -354,9 +331,7 @@ class BCPolicy(TensorDictModule):
     ``in_keys``/``out_keys`` are its network's. With ``action_chunk`` k > 1 the network writes
     ``"action_chunk"`` and the policy's `TemporalEnsemble` (``ensemble``) then writes ``"action"``
     from it and its state (``ensemble.in_keys``/``out_keys``): the policy acts in an env with
-    `transforms`; `predictor` is the network alone, for batches of independent frames. With the
-    ``"gmm"`` head the network writes the mixture (`GMM_KEYS`) and the policy's ``mode`` writes
-    from it ``"action"`` (``"action_chunk"``): the mean of the most likely component.
+    `transforms`; `predictor` is the network alone, for batches of independent frames.
 
     Args:
         config (BCConfig): what it reads and its sizes.
@@ -365,10 +340,24 @@ class BCPolicy(TensorDictModule):
             the sensor windows' (``"<m>/mean"``, ``"<m>/std"``, ``"target/..."``, for its
             `HistoryWindow`) and the goal's (``"goal/mean"``, ``"goal/std"``); with
             ``privileged_object``, the object's planar position's (``"object_position/..."``).
+        network (BCNetwork, optional): another action head's network (a subclass's); ``None``: a
+            `BCNetwork` writing the action (chunk) itself.
+        out_keys (list, optional): the keys ``network`` writes; ``None``: the action (chunk).
+        mode (TensorDictModule, optional): the module that writes ``"action"`` (``"action_chunk"``)
+            from ``out_keys``; ``None``: none, the network writes it.
     """
 
-    def __init__(self, config: BCConfig, stats: Mapping[str, torch.Tensor]):
-        network = BCNetwork(config, stats)
+    config_class = BCConfig  # what `from_checkpoint` reads the config with
+
+    def __init__(
+        self,
+        config: BCConfig,
+        stats: Mapping[str, torch.Tensor],
+        network: BCNetwork | None = None,
+        out_keys: list | None = None,
+        mode: TensorDictModule | None = None,
+    ):
+        network = BCNetwork(config, stats) if network is None else network
         in_keys = (
             [(keys.HISTORY, *s.obs_key) for s in config.modalities]
             + [(keys.HISTORY, *s.present_key) for s in config.modalities]
@@ -380,14 +369,9 @@ class BCPolicy(TensorDictModule):
             in_keys.append(keys.FORECAST_AGE)
         if config.privileged_object:
             in_keys.append(OBJECT_POSE)
-        chunked, gmm = config.action_chunk > 1, config.action_head == "gmm"
-        action_key = ACTION_CHUNK if chunked else ACTION
-        super().__init__(network, in_keys=in_keys, out_keys=GMM_KEYS if gmm else [action_key])
-        self.mode = (
-            TensorDictModule(most_likely_mean, in_keys=[GMM_LOC, GMM_LOGITS], out_keys=[action_key])
-            if gmm
-            else None
-        )
+        chunked = config.action_chunk > 1
+        super().__init__(network, in_keys=in_keys, out_keys=out_keys or [ACTION_CHUNK if chunked else ACTION])
+        self.mode = mode
         self.config = config
         self.stats = {k: v.detach().float().clone() for k, v in stats.items()}
         self.ensemble = (
@@ -395,8 +379,8 @@ class BCPolicy(TensorDictModule):
         )
 
     def forward(self, tensordict, *args, **kwargs):
-        """The network's output; with the mixture head, then its mode's action (chunk); with action
-        chunks, then the ensemble's action (`TemporalEnsemble`)."""
+        """The network's output; with a ``mode``, then its action (chunk); with action chunks, then
+        the ensemble's action (`TemporalEnsemble`)."""
         tensordict = super().forward(tensordict, *args, **kwargs)
         if self.mode is not None:
             tensordict = self.mode(tensordict)
@@ -412,15 +396,14 @@ class BCPolicy(TensorDictModule):
     def _network(self) -> TensorDictModule:
         return TensorDictModule(self.module, in_keys=self.in_keys, out_keys=self.out_keys)
 
-    def mixture(self) -> TensorDictModule:
-        """The network alone of a ``"gmm"`` policy, sharing its weights: writes the mixture
-        (`GMM_KEYS`) of each row of a batch, what `GMMActionLoss` scores."""
-        if self.mode is None:
-            raise ValueError(
-                f"BCPolicy.mixture: this policy's head is {self.config.action_head!r}, not a mixture; "
-                "build it with action_head='gmm'"
-            )
-        return self._network()  # a mixture policy's network writes GMM_KEYS
+    def loss(self):
+        """The loss that trains this policy's head (`train_bc`): torchrl's `BCLoss` (mean squared
+        error); for an action-chunk policy `ActionChunkLoss` on the next k actions."""
+        return (
+            ActionChunkLoss(self.predictor())
+            if self.config.action_chunk > 1
+            else BCLoss(self, loss_function="mse")
+        )
 
     @classmethod
     def for_demonstrations(
@@ -447,7 +430,7 @@ class BCPolicy(TensorDictModule):
                 ``False``.
             forecast_steps (int, optional): the first steps of each forecast it reads; ``None``: all.
             **sizes: `BCConfig` fields (``d_model``, ``hidden``, ``depth``, ``action_chunk``,
-                ``chunk_decay``, ``action_head``, ``gmm_components``).
+                ``chunk_decay``).
 
         Returns:
             The policy, untrained.
@@ -455,7 +438,7 @@ class BCPolicy(TensorDictModule):
         if privileged_object:
             demonstrations.check_object_pose("train")
         encoders = encoders or EncoderChoice()
-        config = BCConfig(
+        config = cls.config_class(
             modalities=[encoders.spec(s) for s in demonstrations.specs],
             history=demonstrations.history,
             stride=demonstrations.stride,
@@ -583,7 +566,7 @@ class BCPolicy(TensorDictModule):
                 f"{checkpoint.path} is not a behaviour-cloning policy (no 'bc_config' in its meta.json); "
                 "pass a checkpoint written by train_bc or BCPolicy.save"
             )
-        policy = cls(BCConfig.from_dict(checkpoint.meta["bc_config"]), checkpoint.tensors)
+        policy = cls(cls.config_class.from_dict(checkpoint.meta["bc_config"]), checkpoint.tensors)
         load_model_state(policy, checkpoint)
         return policy.eval()
 
@@ -606,8 +589,8 @@ def validation_errors(
 
     For an action-chunk policy, the error of the chunk's first action (the one it predicts for
     now, as a per-step policy does: the two compare), from its network alone (`BCPolicy.predictor`:
-    no ensemble over past chunks, the frames being independent). For a ``"gmm"`` policy, the error of
-    the action it acts with (its most likely component's mean), so the two heads compare.
+    no ensemble over past chunks, the frames being independent). For a policy with a ``mode``, the
+    error of the action it acts with, so any two heads compare.
 
     Args:
         policy (BCPolicy): the policy (put back in its mode after).
@@ -683,57 +666,29 @@ def _check_training_inputs(
         )
     if forecasts is not None and set(removed) - set(forecasts.droppable):
         raise ValueError(
-            f"train_bc: training removes {sorted(removed)} (dropout, or the replayed outages) but the "
+            f"train_bc: training removes {sorted(removed)} (dropout, or the drawn outages) but the "
             f"forecasts cover outages of {list(forecasts.droppable)} only; compute the ForecastTable with "
             f"droppable={sorted(removed)}"
         )
 
 
-def _check_replayed_outages(
-    policy: BCPolicy, outages: ReplayedOutages | None, dropout: Mapping[str, float]
-) -> None:
-    """Raise unless ``outages`` replace ``dropout`` and were replayed through what ``policy`` reads
-    in closed loop: its window, and its forecast (with the age and rule of a latched one) or none."""
+def _check_outages(policy: BCPolicy, outages: OutageSampler | None, dropout: Mapping[str, float]) -> None:
+    """Raise unless ``outages`` replace ``dropout`` and were drawn for what ``policy`` reads."""
     if outages is None:
         return
-    config = policy.config
     if dropout:
         raise ValueError(
-            f"train_bc: replayed outages replace the dropout, found dropout={dict(dropout)}; pass "
+            f"train_bc: drawn outages replace the dropout, found dropout={dict(dropout)}; pass "
             "dropout={} with them"
         )
-    if (outages.history, outages.stride) != (config.history, config.stride):
-        raise ValueError(
-            f"train_bc: the outages were replayed through a window of {outages.history} steps, stride "
-            f"{outages.stride}, the policy reads {config.history}, stride {config.stride}; replay them "
-            "through policy.history_window()"
-        )
-    if config.forecast_shape is None:
-        return
-    served, rule = outages.forecast.get(keys.FORECAST_LOC), outages.rule
-    if served is None or tuple(served.shape[-2:]) != config.forecast_shape or rule != config.latched_forecast:
-        found = "no forecast" if served is None else f"forecasts {list(served.shape[-2:])}, latch rule {rule}"
-        raise ValueError(
-            f"train_bc: the policy reads forecasts {list(config.forecast_shape)} (T, D), latch rule "
-            f"{config.latched_forecast} (None: fresh), the replayed outages served {found}; replay them with "
-            "the forecast transform the policy reads in closed loop (LatchedForecastTransform of its rule "
-            "for a latched policy, ForecastTransform else; denormalize=False)"
-        )
+    outages.check_reads(policy)
 
 
-def _outages_meta(dropout: Mapping[str, float], outages: ReplayedOutages | None) -> dict:
+def _outages_meta(dropout: Mapping[str, float], outages: OutageSampler | None) -> dict:
     """What the checkpoint records of the training outages."""
     if outages is None:
         return {"dropout": dict(dropout)}
-    return {"dropout": {}, "replayed_outages": list(outages.labels)}
-
-
-def _bc_loss(policy: BCPolicy):
-    """The loss that trains ``policy``'s head (see `train_bc`)."""
-    chunked = policy.config.action_chunk > 1
-    if policy.config.action_head == "gmm":
-        return GMMActionLoss(policy.mixture(), chunked=chunked)
-    return ActionChunkLoss(policy.predictor()) if chunked else BCLoss(policy, loss_function="mse")
+    return {"dropout": {}, **outages.checkpoint_meta()}
 
 
 def train_bc(
@@ -743,22 +698,19 @@ def train_bc(
     *,
     dropout: Mapping[str, float] = DEFAULT_DROPOUT,
     forecasts: ForecastTable | LatchedForecastTable | None = None,
-    outages: ReplayedOutages | None = None,
+    outages: OutageSampler | None = None,
     run_dir: str | os.PathLike | None = None,
     logger=None,
     resume: bool = False,
 ) -> dict[str, float]:
-    """Clone the demonstrations' actions into ``policy`` (torchrl's `BCLoss`, mean squared error;
-    an action-chunk policy: `ActionChunkLoss` on the next k actions; a ``"gmm"`` policy:
-    `GMMActionLoss`, the mixture's negative log-likelihood of the action or chunk) with the
+    """Clone the demonstrations' actions into ``policy`` (by its `BCPolicy.loss`) with the
     project's `Trainer`: ``config`` sets steps, batch size, optimiser, schedule, seed (the batch
     order and the dropout draws), evaluation and checkpoints (under ``run_dir/checkpoints``;
     ``resume`` continues the last one). ``dropout`` removes sensors per sample (see
     `DemonstrationLoader`); ``forecasts`` must cover those outages when the policy reads
-    forecasts. ``outages`` (with ``dropout={}``): each sample's outage is a replay of the env's
-    outage processes instead (`ReplayedOutages`, replayed with the policy's forecast transform when
-    it reads forecasts); validation still removes each subset of the sensors it drops, with
-    ``forecasts``.
+    forecasts. ``outages`` (with ``dropout={}``): each sample's outage is drawn by this
+    `OutageSampler` instead, made for what the policy reads; validation still removes each subset
+    of the sensors it drops, with ``forecasts``.
 
     Args:
         policy (BCPolicy): the policy, trained in place.
@@ -770,7 +722,7 @@ def train_bc(
             ``DEFAULT_DROPOUT`` (image and force at 0.3).
         forecasts (ForecastTable | LatchedForecastTable, optional): the forecasts under each outage,
             for a policy that reads them.
-        outages (ReplayedOutages, optional): replayed env outages instead of ``dropout``.
+        outages (OutageSampler, optional): drawn outages instead of ``dropout``.
         run_dir (str | os.PathLike, optional): where ``checkpoints/`` go; ``None``: none.
         logger (torchrl.record.loggers.Logger, optional): where to log.
         resume (bool, optional): continue the last checkpoint under ``run_dir``. Defaults to ``False``.
@@ -781,11 +733,11 @@ def train_bc(
 
     Raises:
         ValueError: forecasts that do not fit the policy (missing or unread, of another latch rule, or
-            not covering the frames or the removed sensors), replayed outages with ``dropout`` or served
-            through another window or forecast than the policy reads, or ``resume`` without
+            not covering the frames or the removed sensors), an outage sampler with ``dropout`` or made
+            for another window or forecast than the policy reads, or ``resume`` without
             ``run_dir``.
     """
-    _check_replayed_outages(policy, outages, dropout)
+    _check_outages(policy, outages, dropout)
     removed = list(dropout) if outages is None else list(outages.droppable)
     _check_training_inputs(policy, demonstrations, removed, forecasts)
     chunk = policy.config.action_chunk
@@ -802,7 +754,7 @@ def train_bc(
     with warnings.catch_warnings():
         # torchrl 0.13 warns that a loss without a target network declares none.
         warnings.filterwarnings("ignore", message="The name target_actor_network_params")
-        loss = _bc_loss(policy)
+        loss = policy.loss()
 
     def evaluate(model: BCPolicy) -> dict[str, float]:
         errors = validation_errors(model, demonstrations, "val", removed, forecasts)

@@ -10,7 +10,7 @@ policy cloned from these windows therefore sees in closed loop the windows it wa
 The object's pose column is read too, for a diagnostic policy told where the object is (a `BCConfig`
 option); a batch carries it under the key the env emits it with.
 `Demonstrations.with_episodes` adds episodes played in the env (DAgger's labelled states,
-`mmf_rl.rl.dagger`) to the training split.
+`benchmarks/push/dagger.py`) to the training split.
 
 `ForecastTable` holds a trained forecaster's forecast of every demonstration frame, once per
 set of modalities a training outage may remove (:func:`drop_sets`), computed from the same
@@ -20,8 +20,8 @@ added episodes).
 
 `DemonstrationLoader` serves batches with the `WindowLoader` protocol (one epoch per iteration,
 deterministic given ``set_epoch``) for `mmf_rl.trainers.Trainer`, with seeded per-sample
-modality dropout, and for an action-chunk policy the demonstrator's next k actions of each
-frame's episode (`Demonstrations.action_chunks`).
+modality dropout (or each sample's outage drawn by an `OutageSampler`), and for an action-chunk
+policy the demonstrator's next k actions of each frame's episode (`Demonstrations.action_chunks`).
 """
 
 from __future__ import annotations
@@ -30,11 +30,11 @@ import copy
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import NestedKey, TensorDict, TensorDictBase
 from torch import nn
 
 from mmf_rl import keys
@@ -46,9 +46,6 @@ from mmf_rl.keys import ModalitySpec
 from mmf_rl.models.rows import compute_on_rows
 from mmf_rl.record import ACTION_KEY, GOAL_KEY, OBJECT_POSE_KEY
 from mmf_rl.rl.transforms import trained_per_step_presence
-
-if TYPE_CHECKING:  # it replays these demonstrations: imported for the annotation only
-    from mmf_rl.rl.replayed_outages import ReplayedOutages
 
 ACTION = "action"  # torchrl's action key: what a policy writes and `BCLoss` reads
 # An action-chunk policy's targets (`Demonstrations.action_chunks`): the demonstrator's next k
@@ -246,7 +243,7 @@ class Demonstrations:
                     f"Demonstrations.with_episodes: episode {index} has {key!r} "
                     f"{None if given is None else (given.dtype, list(given.shape[1:]))}, the recording "
                     f"{(values.dtype, list(values.shape[1:]))} per frame; add frames as the push env "
-                    "emits them (mmf_rl.rl.dagger.demonstration_frames)"
+                    "emits them (demonstration_frames of benchmarks/push/dagger.py)"
                 )
         labels = torch.cat([frames.get(GOAL), frames.get(ACTION)], -1)
         if len(frames) == 0 or not bool(labels.isfinite().all()):
@@ -575,6 +572,29 @@ class ForecastTable:
         )
 
 
+class OutageSampler(Protocol):
+    """Each training sample's outage, drawn in place of `DemonstrationLoader`'s independent
+    ``dropout``, with what a policy that reads forecasts is served under it. The push experiment's
+    replays of the env's outage processes are one (``benchmarks/push/replayed_outages.py``)."""
+
+    @property
+    def droppable(self) -> tuple[str, ...]:
+        """The modalities some draw removes (validation removes each subset of them)."""
+
+    def draw(
+        self, frames: torch.Tensor, generator: torch.Generator, with_forecasts: bool
+    ) -> tuple[dict[str, torch.Tensor], dict[NestedKey, torch.Tensor]]:
+        """The modalities each sample of ``frames`` lacks (``{m: bool [B]}``) and, ``with_forecasts``,
+        the forecast entries it is served (``{key: [B, ...]}``)."""
+
+    def check_reads(self, policy) -> None:
+        """Raise unless the draws were made for what the `BCPolicy` ``policy`` reads (its window, its
+        forecast)."""
+
+    def checkpoint_meta(self) -> dict:
+        """What a policy's checkpoint records of the outages it was trained on."""
+
+
 class DemonstrationLoader:
     """Behaviour-cloning batches of one split, with the `WindowLoader` protocol.
 
@@ -592,9 +612,9 @@ class DemonstrationLoader:
         forecasts (ForecastTable, optional): a `ForecastTable` covering the outages: batches then carry
             ``("forecast", "loc"/"scale")`` of the outage each sample is under (a
             `mmf_rl.rl.latched_forecast.LatchedForecastTable`: the latched forecast and its age).
-        outages (ReplayedOutages, optional): a `mmf_rl.rl.replayed_outages.ReplayedOutages` instead of
-            ``dropout``: each sample's outage is one replay of the env's outage processes, with the forecast
-            served there (when ``forecasts`` is given: the policy reads forecasts).
+        outages (OutageSampler, optional): an `OutageSampler` instead of ``dropout``: each sample's
+            outage is its draw, with the forecast served there (when ``forecasts`` is given: the
+            policy reads forecasts).
         action_chunk (int, optional): k > 1: batches carry the next k demonstrated actions and their mask
             (`Demonstrations.action_chunks`), an action-chunk policy's targets.
         shuffle (bool, optional): shuffle each epoch; ``None`` (default): for ``"train"``.
@@ -617,7 +637,7 @@ class DemonstrationLoader:
         dropout: Mapping[str, float] | None = None,
         absent: Sequence[str] = (),
         forecasts: ForecastTable | None = None,
-        outages: ReplayedOutages | None = None,
+        outages: OutageSampler | None = None,
         action_chunk: int = 1,
         shuffle: bool | None = None,
         seed: int = 0,
@@ -639,7 +659,7 @@ class DemonstrationLoader:
         self.demonstrations, self.split, self.batch_size = demonstrations, split, batch_size
         if outages is not None and (dropout or absent):
             raise ValueError(
-                "DemonstrationLoader: replayed outages replace dropout and absent; give one or the other"
+                "DemonstrationLoader: drawn outages replace dropout and absent; give one or the other"
             )
         self.dropout, self.absent, self.forecasts = dropout, tuple(absent), forecasts
         self.outages = outages

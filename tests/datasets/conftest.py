@@ -10,14 +10,14 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import numpy as np
 import pytest
 
-from mmf_rl.datasets.config import DataConfig
-from mmf_rl.datasets.synthetic import (
+from benchmarks.synthetic.dataset import (
     FORCE_FEATURE,
     IMAGE_FEATURE,
     POSE_FEATURE,
     STATE_FEATURE,
     make_synthetic_dataset,
 )
+from mmf_rl.datasets.config import DataConfig
 
 # The shared real recordings sit beside the repository (../shared/data), in CI as here;
 # MMF_RL_SHARED_DATA points elsewhere (e.g. from a git worktree).

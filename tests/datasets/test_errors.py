@@ -14,9 +14,9 @@ import pytest
 import torch
 
 import mmf_rl.datasets.cache as cache
+from benchmarks.synthetic.dataset import IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl import temp_dirs
 from mmf_rl.datasets.lerobot_source import V21_CONVERTER
-from mmf_rl.datasets.synthetic import IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
 from tests.datasets.conftest import EPISODE_LENGTHS, synthetic_config
 

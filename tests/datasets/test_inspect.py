@@ -8,6 +8,13 @@ import numpy as np
 import pytest
 import yaml
 
+from benchmarks.synthetic.dataset import (
+    FORCE_FEATURE,
+    IMAGE_FEATURE,
+    IMAGE_VALID_FEATURE,
+    POSE_FEATURE,
+    STATE_FEATURE,
+)
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.inspect import (
@@ -20,13 +27,6 @@ from mmf_rl.datasets.inspect import (
     suggested_data_config,
 )
 from mmf_rl.datasets.provenance import PROVENANCE_FILE
-from mmf_rl.datasets.synthetic import (
-    FORCE_FEATURE,
-    IMAGE_FEATURE,
-    IMAGE_VALID_FEATURE,
-    POSE_FEATURE,
-    STATE_FEATURE,
-)
 from mmf_rl.datasets.windows import WindowDataset
 from tests.datasets.conftest import (
     CLOCK_OFFSET_S,

@@ -14,9 +14,9 @@ import torch
 from safetensors.torch import load_file, save_file
 from tensordict import TensorDict
 
+from benchmarks.synthetic.dataset import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.splits import Normalizer
-from mmf_rl.datasets.synthetic import FORCE_FEATURE, IMAGE_FEATURE, POSE_FEATURE, STATE_FEATURE
 from mmf_rl.datasets.windows import WindowDataset
 from mmf_rl.keys import (
     FUTURE_ACTION,

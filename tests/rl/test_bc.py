@@ -11,6 +11,9 @@ from tensordict import TensorDict
 from torchrl.envs import Compose, InitTracker, SerialEnv, TransformedEnv
 from torchrl.envs.utils import step_mdp
 
+from benchmarks.push.bc_evaluation import bc_env
+from benchmarks.push.dagger import EXPERT_ACTION, demonstration_frames, labelled_episodes
+from benchmarks.push.outage_evaluation import Condition
 from mmf_rl import keys
 from mmf_rl.checkpoint import CheckpointError
 from mmf_rl.datasets import DataConfig, WindowDataset
@@ -29,11 +32,8 @@ from mmf_rl.rl import (
 )
 from mmf_rl.rl.action_chunks import ACTION_CHUNK, PAST_CHUNKS, PAST_CHUNKS_FILLED
 from mmf_rl.rl.bc import BCConfig
-from mmf_rl.rl.bc_evaluation import bc_env
-from mmf_rl.rl.dagger import EXPERT_ACTION, demonstration_frames, labelled_episodes
 from mmf_rl.rl.demonstrations import DEMONSTRATED_CHUNK, DEMONSTRATED_CHUNK_MASK
 from mmf_rl.rl.latched_forecast import LatchedForecastTable, LatchedForecastTransform
-from mmf_rl.rl.outage_evaluation import Condition
 from mmf_rl.trainers.trainer import TrainerConfig, seed_everything
 from tests.rl.test_action_chunks import act_ensemble
 
@@ -489,6 +489,27 @@ def test_without_the_option_a_policy_keeps_its_parameters_and_an_old_checkpoint_
     assert loaded.config == ordinary.config and loaded.in_keys == ordinary.in_keys
     batch = demonstrations.batch(demonstrations.split_frames["val"][:4])
     torch.testing.assert_close(loaded(batch.clone()).get("action"), ordinary(batch.clone()).get("action"))
+
+
+def test_a_checkpoint_of_the_time_the_config_named_its_head_loads_as_the_regression_policy(
+    demonstrations, tmp_path
+):
+    """``action_head: "mse"`` and ``gmm_components`` in a checkpoint's config (written while the package
+    had the mixture head, now benchmarks/push/gmm_head.py's) are the regression policy's; a mixture's
+    config is refused."""
+    policy = make_policy(demonstrations, seed=3).eval()
+    path = policy.save(tmp_path / "old")
+    meta = json.loads((path / "meta.json").read_text())
+    meta["bc_config"] |= {"action_head": "mse", "gmm_components": 5}
+    (path / "meta.json").write_text(json.dumps(meta))
+    loaded = BCPolicy.from_checkpoint(tmp_path / "old")
+    assert loaded.config == policy.config and loaded.mode is None and loaded.out_keys == ["action"]
+    batch = demonstrations.batch(demonstrations.split_frames["val"][:4])
+    torch.testing.assert_close(loaded(batch.clone()).get("action"), policy(batch.clone()).get("action"))
+    meta["bc_config"]["action_head"] = "gmm"
+    (path / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="unknown keys \\['action_head', 'gmm_components'\\]"):
+        BCPolicy.from_checkpoint(tmp_path / "old")
 
 
 def test_a_privileged_policy_trains_and_its_offline_batches_are_what_it_read_online(
