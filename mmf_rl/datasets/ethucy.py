@@ -29,6 +29,10 @@ where it was not annotated and nothing is interpolated or zero-filled there. Per
 
 The target is ``observation.trajectory`` dims ``[0, 1]``, relative to the last observed step.
 
+A fold's windows are every 8 + 12 consecutive steps of one track segment: the test set Trajectron++ and
+AgentFormer score on. Social-GAN and Social-STGCNN score on fewer, only the windows another person is
+annotated in throughout; `window_set_ids` cuts a split to either set (`WINDOW_SETS`).
+
 The files are written by one process per core (``--workers``), each a contiguous share of them
 into a shard dataset, joined in order by lerobot's `aggregate_datasets`: lerobot's per-frame and
 per-episode writes cost the time, and the dataset is the same for any number of processes. All of
@@ -362,7 +366,8 @@ def social_gan_windows(first_frames: np.ndarray) -> np.ndarray:
     Social-GAN slides 20 frames over a file and keeps them when more than one person is annotated in
     every one of them, one window per such person. A window of `track_windows` is one person annotated
     throughout, so two windows share their 20 frames exactly when they start at the same frame.
-    Written here: the rule is part of Social-GAN's training script (its data loader), not of a library.
+    Written here: the rule lives in Social-GAN's own data loader, which is no installable library, and
+    the libraries this project uses do not have it.
 
     Args:
         first_frames (np.ndarray): ``[N]`` each window's first frame, the windows of one file.
