@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/ethucy.py --quick      # 3 folds, short training (QUICK)
     .venv/bin/python benchmarks/ethucy.py              # the 5 folds (FULL)
     .venv/bin/python benchmarks/ethucy.py --seed 1 --out runs/bench_ethucy_seed1   # another training seed
+    .venv/bin/python benchmarks/ethucy.py --window-set social_gan --out runs/bench_ethucy_sgan
     mmf-rl bench ethucy --quick --out runs/bench_ethucy_quick
 
 For each fold (its test scene held out; train/val from the other scenes' ``_train``/``_val`` files):
@@ -20,18 +21,26 @@ from ``p(z | X)``. Every model is scored in four modes (all modalities, without 
 minADE20/minFDE20 per agent over 20 samples
 (:mod:`benchmarks.pedestrians.scoring`).
 
+``--window-set`` chooses the val and test windows every row is scored on, as the literature does in
+two ways (``mmf_rl.datasets.ethucy.WINDOW_SETS``): ``trajectron`` (the default), every window of 20
+annotated steps of one person, as Trajectron++ and AgentFormer score; ``social_gan``, only those
+another person is annotated in throughout, as Social-GAN and Social-STGCNN score. A published figure
+compares with a row on its own set only. The models train on every window of the training split
+either way.
+
 The data is converted into ``--data`` when its fold configs are absent (``mmf-rl import ethucy``);
 the window cache is built once for all folds (``--data``/cache). Completed runs
 (``<out>/<fold>/<model>/scores.json``) are reused, so an interrupted benchmark resumes; delete
 ``--out`` to start over. Each ``scores.json`` records its recipe (a trained model's training
-overrides, a constant-velocity row's heading noise grid: `benchmarks.pedestrians.recipe`), and before
-anything runs a completed run whose recipe differs from this invocation's (another mode, or a recipe
-changed since), or records none, is refused with the settings that differ: train it into another
-``--out``, or delete its directory to compute it again. Writes ``<out>/results.md``,
+overrides, a constant-velocity row's heading noise grid, the window set:
+`benchmarks.pedestrians.recipe`), and before anything runs a completed run whose recipe differs from
+this invocation's (another mode or window set, or a recipe changed since), or records none, is
+refused with the settings that differ: train it into another ``--out``, or delete its directory to
+compute it again. Writes ``<out>/results.md``,
 ``<out>/results.json`` and one figure per fold (``<out>/<fold>/forecasts.png``), and ends with one
 line:
 ``summary: paper model minADE20/minFDE20 avg A/F (without scene A/F, without neighbours A/F);
-constant velocity A/F; best baseline NAME A/F (MODE)``.
+constant velocity A/F; best baseline NAME A/F (MODE; window set WINDOW_SET)``.
 """
 
 from __future__ import annotations
@@ -49,7 +58,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.pedestrians.recipe import (
     CV,
     CV_NOISE,
-    CV_RECIPES,
     FULL,
     HEADING_NOISE_GRID,
     IMAGE_SIZE,
@@ -61,6 +69,7 @@ from benchmarks.pedestrians.recipe import (
     Budget,
     check_reused,
     completed,
+    constant_velocity_recipe,
     recipe,
     slug,
     train_overrides,
@@ -71,10 +80,13 @@ REPO = Path(__file__).resolve().parents[1]
 # handler of its own on the root logger would print every library message a second time.
 logger = logging.getLogger("mmf_rl.benchmarks.ethucy")
 DETERMINISTIC = ("LF-LSTM", "MulT", CV)
+SCORED_SPLITS = ("val", "test")  # test for every row, val for the heading noise's std
 FIGURE_WINDOWS = 4
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    from mmf_rl.datasets.ethucy import WINDOW_SETS
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="3 folds, short training (QUICK)")
     parser.add_argument("--raw", type=Path, default=REPO.parent / "shared" / "data" / "ethucy")
@@ -85,6 +97,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--batch-size", type=int, default=512, help="evaluation batch size")
+    parser.add_argument(
+        "--window-set",
+        choices=sorted(WINDOW_SETS),
+        default="trajectron",
+        help="the val and test windows every row is scored on: trajectron, every window of 20 annotated "
+        "steps (Trajectron++, AgentFormer); social_gan, those another person is annotated in throughout "
+        "(Social-GAN, Social-STGCNN). The models train on every training window either way; another "
+        "window set: another --out",
+    )
     return parser.parse_args(argv)
 
 
@@ -113,16 +134,21 @@ def check_planar_declared(path: Path) -> None:
 
 
 def fold_data(args: argparse.Namespace, fold: str):
-    """The fold's windows (normalised with its training split) and its data config dict."""
+    """The fold's windows (normalised with its training split), its val and test splits cut to the
+    invocation's window set, and its data config dict."""
     import yaml
 
-    from mmf_rl.datasets import DataConfig, WindowDataset
+    from mmf_rl.datasets import DataConfig, WindowDataset, ethucy
 
     config = yaml.safe_load((args.data / f"{fold}.yaml").read_text()) | {
         "cache_dir": str(args.data / "cache"),
         "image_size": [IMAGE_SIZE, IMAGE_SIZE],
     }
-    return WindowDataset(DataConfig.from_dict(config)), config
+    data = WindowDataset(DataConfig.from_dict(config))
+    # Scoring reads the splits' windows from here; training reads its own WindowDataset of the config.
+    for split in SCORED_SPLITS:
+        data.split_windows[split] = ethucy.window_set_ids(data, split, args.window_set)
+    return data, config
 
 
 def val_curve(run_dir: Path) -> list[tuple[int, float]]:
@@ -188,7 +214,7 @@ def run_constant_velocity(args: argparse.Namespace, fold: str, data) -> dict[str
     start = time.perf_counter()
     results[CV] = {
         "scores": score(constant_velocity_model(data, 0.0), data, "test", args, deterministic=True),
-        "recipe": CV_RECIPES[CV],
+        "recipe": constant_velocity_recipe(args, CV),
     }
     results[CV]["seconds"] = time.perf_counter() - start
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -198,7 +224,7 @@ def run_constant_velocity(args: argparse.Namespace, fold: str, data) -> dict[str
     results[CV_NOISE] = {
         "scores": score(constant_velocity_model(data, sigma), data, "test", args),
         "heading_noise": sigma,
-        "recipe": CV_RECIPES[CV_NOISE],
+        "recipe": constant_velocity_recipe(args, CV_NOISE),
         "val_min_ade_k": on_val,
         "seconds": time.perf_counter() - start,
     }
@@ -258,10 +284,17 @@ def average_section(title: str, average: dict) -> list[str]:
     return lines + ([f"minADE20 rise against all modalities: {rises}.\n"] if rises else [])
 
 
-def markdown(per_fold: dict, averages: dict[str, dict], budget: Budget, seconds: dict) -> str:
+def markdown(
+    per_fold: dict, averages: dict[str, dict], budget: Budget, window_set: str, seconds: dict
+) -> str:
     from benchmarks.pedestrians.scoring import published_table, scores_table
+    from mmf_rl.datasets.ethucy import WINDOW_SETS
 
     parts = [f"# ETH/UCY ({budget.name})\n"]
+    parts += [
+        f"Every row is scored on the `{window_set}` window set: {WINDOW_SETS[window_set]}. The models "
+        "train on every window of the training split.\n"
+    ]
     for title, average in averages.items():
         parts += average_section(title, average)
     for fold, rows in per_fold.items():
@@ -271,7 +304,8 @@ def markdown(per_fold: dict, averages: dict[str, dict], budget: Budget, seconds:
         parts += [f"## {fold} ({windows} test windows; heading noise std {sigma} rad, chosen on val)\n"]
         parts += [scores_table(scores, DETERMINISTIC), ""]
         parts += [f"![forecasts]({fold}/forecasts.png)\n"] if fold in budget.folds else []
-    parts += ["## Published (minADE20 / minFDE20, average of the 5 scenes)\n", published_table(), ""]
+    parts += ["## Published (minADE20 / minFDE20, average of the 5 scenes, on their window set)\n"]
+    parts += [published_table(), ""]
     parts += [f"Wall time in s (upper bounds: a shared, loaded machine): {json.dumps(seconds)}\n"]
     return "\n".join(parts)
 
@@ -297,13 +331,22 @@ def main(argv: list[str] | None = None) -> int:
     average = average_over_scenes(scores, budget.folds)
     averages = {f"Average over the trained folds ({', '.join(budget.folds)})": average}
     if set(budget.folds) != set(per_fold):
-        averages["Constant velocity, average over the 5 scenes (the protocol check)"] = average_over_scenes(
-            scores
+        check = (
+            f"Constant velocity, average over the 5 scenes (the protocol check, {args.window_set} windows)"
         )
-    summary = summary_line(average, PAPER, CV, ["LF-LSTM", "MulT", CV, CV_NOISE], budget.name)
-    results = {"mode": budget.name, "folds": per_fold, "averages": averages, "seconds": seconds}
+        averages[check] = average_over_scenes(scores)
+    run = f"{budget.name}; window set {args.window_set}"
+    summary = summary_line(average, PAPER, CV, ["LF-LSTM", "MulT", CV, CV_NOISE], run)
+    results = {
+        "mode": budget.name,
+        "window_set": args.window_set,
+        "folds": per_fold,
+        "averages": averages,
+        "seconds": seconds,
+    }
     write_json(args.out / "results.json", results)
-    write_text(args.out / "results.md", markdown(per_fold, averages, budget, seconds) + f"\n{summary}\n")
+    page = markdown(per_fold, averages, budget, args.window_set, seconds)
+    write_text(args.out / "results.md", page + f"\n{summary}\n")
     print(summary)
     return 0
 

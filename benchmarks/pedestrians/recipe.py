@@ -3,8 +3,9 @@ with this invocation's recipe.
 
 A row's recipe is what its numbers depend on besides the data: a trained model's training overrides
 (the mode's budget, the model, the augmentation, the seed), a constant-velocity row's heading-noise
-grid. Each run records its recipe in its ``scores.json``; before anything runs, the benchmark refuses
-to reuse a completed run whose recipe differs, or that records none.
+grid, and for every row the window set it is scored on. Each run records its recipe in its
+``scores.json``; before anything runs, the benchmark refuses to reuse a completed run whose recipe
+differs, or that records none.
 """
 
 from __future__ import annotations
@@ -139,16 +140,30 @@ MACHINE_CONFIG_KEYS = frozenset({"data.root", "data.cache_dir", "run_dir", "devi
 
 
 def recipe(args: argparse.Namespace, budget: Budget, fold: str, label: str) -> list[str]:
-    """What a row's numbers depend on besides the data, as ``key=value`` settings."""
+    """What a row's numbers depend on besides the data, as ``key=value`` settings: how its model is made
+    and the windows it is scored on."""
     if label in CV_RECIPES:
-        return CV_RECIPES[label]
+        return constant_velocity_recipe(args, label)
     overrides = train_overrides(args, budget, fold, label, args.out / fold / slug(label))
-    return [o for o in overrides if o.split("=", 1)[0] not in MACHINE_SETTINGS]
+    return [*(o for o in overrides if o.split("=", 1)[0] not in MACHINE_SETTINGS), scored_on(args)]
 
 
-# Settings the benchmark began to override after runs had recorded their recipes, with the value those
-# runs trained with (the configuration's default then): a recipe without one of them had that value.
+def constant_velocity_recipe(args: argparse.Namespace, label: str) -> list[str]:
+    """A constant-velocity row's recipe (``label`` a key of ``CV_RECIPES``): no training, its heading
+    noise and the windows it is scored on."""
+    return [*CV_RECIPES[label], scored_on(args)]
+
+
+def scored_on(args: argparse.Namespace) -> str:
+    """The recipe's setting naming the window set every row is scored on (the models train on every
+    window of the training split whatever it is)."""
+    return f"window_set={args.window_set}"
+
+
+# Settings the benchmark began to override or record after runs had recorded their recipes, with the
+# value those runs had (the configuration's default then): a recipe without one of them had that value.
 IMPLIED_BEFORE_OVERRIDDEN = {
+    "window_set": "trajectron",
     "trainer.seed": "0",
     "augment.rotation": "0",
     "model.learned_samples": "0",

@@ -29,6 +29,10 @@ where it was not annotated and nothing is interpolated or zero-filled there. Per
 
 The target is ``observation.trajectory`` dims ``[0, 1]``, relative to the last observed step.
 
+A fold's windows are every 8 + 12 consecutive steps of one track segment: the test set Trajectron++ and
+AgentFormer score on. Social-GAN and Social-STGCNN score on fewer, only the windows another person is
+annotated in throughout; `window_set_ids` cuts a split to either set (`WINDOW_SETS`).
+
 The files are written by one process per core (``--workers``), each a contiguous share of them
 into a shard dataset, joined in order by lerobot's `aggregate_datasets`: lerobot's per-frame and
 per-episode writes cost the time, and the dataset is the same for any number of processes. All of
@@ -46,6 +50,7 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -55,6 +60,11 @@ from mmf_rl.configuration import report_command_error, write_text_atomic
 from mmf_rl.datasets.config import DataConfig
 from mmf_rl.shards import ShardError, join_shards, run_shards
 from mmf_rl.temp_dirs import staging_dir
+
+if TYPE_CHECKING:
+    import torch
+
+    from mmf_rl.datasets.windows import WindowDataset
 
 logger = logging.getLogger(__name__)
 
@@ -102,6 +112,14 @@ SCENE_OF = {
 # UCY trajectories are an exact affine map of the pixel annotations (top-left origin).
 UCY_COL = (360.0, 7.5767, 0.021047)
 UCY_ROW = (288.0, 6.8734, 0.023866)
+# The windows a fold is scored on. Both sets are the literature's; a published figure compares with a
+# score on its own set only (docs/benchmarks/ethucy.md).
+WINDOW_SETS = {
+    "trajectron": "every window of 20 consecutive annotated steps of one agent (Trajectron++, AgentFormer)",
+    "social_gan": "the trajectron windows whose 20 frames another agent is annotated in throughout "
+    "(Social-GAN, Social-STGCNN)",
+}
+SOCIAL_GAN_MIN_AGENTS = 2  # Social-GAN keeps frames with more than `min_ped = 1` person in all of them
 
 
 class ConversionError(RuntimeError):
@@ -323,6 +341,91 @@ def sequence_episodes(
             }
         )
     return episodes
+
+
+def track_windows(table: pd.DataFrame, span: int = HISTORY + HORIZON) -> pd.DataFrame:
+    """The ``trajectron`` windows of one file: every ``span`` consecutive annotated steps of one agent's
+    track segment (`with_velocities`), as that agent and the window's first frame.
+
+    Args:
+        table (pd.DataFrame): the file, as `read_sequence` gives it.
+        span (int, optional): steps per window. Defaults to ``HISTORY + HORIZON``.
+
+    Returns:
+        ``agent, frame`` per window, by agent, then segment, then first frame.
+    """
+    tracks = with_velocities(table).sort_values(["agent", "segment", "frame"])
+    steps_after = tracks.groupby(["agent", "segment"]).cumcount(ascending=False)
+    return tracks.loc[steps_after >= span - 1, ["agent", "frame"]].reset_index(drop=True)
+
+
+def social_gan_windows(first_frames: np.ndarray) -> np.ndarray:
+    """Which of one file's ``trajectron`` windows Social-GAN keeps: those that another agent's window
+    of the file shares their frames with.
+
+    Social-GAN slides 20 frames over a file and keeps them when more than one person is annotated in
+    every one of them, one window per such person. A window of `track_windows` is one person annotated
+    throughout, so two windows share their 20 frames exactly when they start at the same frame.
+    Written here: the rule lives in Social-GAN's own data loader, which is no installable library, and
+    the libraries this project uses do not have it.
+
+    Args:
+        first_frames (np.ndarray): ``[N]`` each window's first frame, the windows of one file.
+
+    Returns:
+        ``bool [N]``, True for a window Social-GAN keeps.
+    """
+    _, window_group, group_size = np.unique(first_frames, return_inverse=True, return_counts=True)
+    return group_size[window_group] >= SOCIAL_GAN_MIN_AGENTS
+
+
+def window_set_ids(data: WindowDataset, split: str, window_set: str) -> torch.Tensor:
+    """The window ids of ``split`` of a converted ETH/UCY fold ``data`` that ``window_set`` scores.
+
+    A split holds one file per sequence at most (its whole file, or its ``_train`` or ``_val`` part),
+    so its windows of one sequence (an episode's task) are one file's.
+
+    Args:
+        data (WindowDataset): a fold of `convert`'s dataset.
+        split (str): ``"train"``, ``"val"`` or ``"test"``.
+        window_set (str): a key of `WINDOW_SETS`.
+
+    Returns:
+        ``long [N]``: the ids, a subset of ``data.split_windows[split]`` in its order.
+
+    Raises:
+        ValueError: an unknown ``window_set``.
+    """
+    if window_set not in WINDOW_SETS:
+        raise ValueError(f"unknown ETH/UCY window set {window_set!r}; expected one of {sorted(WINDOW_SETS)}")
+    ids = data.split_windows[split]
+    if window_set == "trajectron":
+        return ids
+    import torch
+
+    from mmf_rl.datasets.lerobot_source import open_metadata, read_frame_columns
+
+    columns = read_frame_columns(
+        open_metadata(data.config), ["episode_index", "frame_index", "task_index", FRAME_KEY]
+    )
+    frames = pd.DataFrame(
+        {
+            "episode": columns["episode_index"],
+            "step": columns["frame_index"],
+            "task": columns["task_index"],
+            "frame": columns[FRAME_KEY].ravel(),
+        }
+    )
+    first_row = {episode: start for episode, start, _ in data.report["episodes"]}  # in the window cache
+    episodes = data.window_episode[ids].numpy()
+    steps = data.window_start[ids].numpy() - np.array([first_row[e] for e in episodes], dtype=np.int64)
+    windows = pd.DataFrame({"episode": episodes, "step": steps}).merge(
+        frames, on=["episode", "step"], how="left", validate="one_to_one"
+    )
+    kept = np.zeros(len(windows), dtype=bool)
+    for rows in windows.groupby("task").indices.values():
+        kept[rows] = social_gan_windows(windows["frame"].to_numpy()[rows])
+    return ids[torch.from_numpy(kept)]
 
 
 def fold_files(raw_dir: Path, fold: str) -> dict[str, list[tuple[str, Path]]]:

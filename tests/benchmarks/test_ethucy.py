@@ -24,10 +24,12 @@ from benchmarks.pedestrians.recipe import (
     check_reused,
     recipe,
     recipe_differences,
+    scored_on,
     slug,
     stale_runs,
     train_overrides,
 )
+from benchmarks.pedestrians.scoring import METRICS, MODES
 from mmf_rl.configuration import compose_config, save_config, to_container
 from mmf_rl.models import check_loss_settings
 from mmf_rl.objectives import LossConfig, default_loss_config
@@ -246,10 +248,13 @@ def test_fold_configs_converted_before_the_planar_dims_were_declared_are_refused
 @pytest.mark.parametrize("budget", [QUICK, FULL])
 @pytest.mark.parametrize("label", list(TRAINED))
 def test_every_trained_model_is_given_only_loss_settings_its_loss_reads(tmp_path, budget, label):
-    """The recipe is the training overrides but where the data and the run live: composed on the default
-    data, the trainer's check of the loss settings sees what the benchmark's training sees."""
-    settings = recipe(bench_args(tmp_path, "out"), budget, "eth", label)
-    cfg = compose_config("train", settings)
+    """The recipe is the training overrides but where the data and the run live, and the windows the row
+    is scored on: composed on the default data, the trainer's check of the loss settings sees what the
+    benchmark's training sees."""
+    args = bench_args(tmp_path, "out")
+    settings = recipe(args, budget, "eth", label)
+    assert settings[-1] == scored_on(args) == "window_set=trajectron"
+    cfg = compose_config("train", settings[:-1])
     check_loss_settings(
         to_container(cfg.model), LossConfig.from_dict(to_container(cfg.loss)), default_loss_config()
     )
@@ -274,3 +279,53 @@ def test_a_baselines_recipe_with_the_kl_warmup_it_never_read_is_reused(tmp_path)
     assert stale_runs(args, QUICK, ["hotel"]) == [
         f"{args.out / 'hotel' / slug(PAPER)}: loss.kl_warmup_steps: expected 160, found 60"
     ]
+
+
+def test_rows_scored_on_another_window_set_are_refused_and_older_ones_were_on_trajectrons(tmp_path):
+    args = bench_args(tmp_path, "out", "--quick")
+    complete_fold(args, QUICK, "eth")
+    social_gan = bench_args(tmp_path, "out", "--quick", "--window-set", "social_gan")
+    assert stale_runs(social_gan, QUICK, ["eth"]) == [
+        f"{args.out / 'eth' / slug(label)}: window_set: expected social_gan, found trajectron"
+        for label in ALL_ROWS
+    ]
+    # Rows recorded before the window set was: scored on every window, Trajectron++'s set.
+    for label in ALL_ROWS:
+        settings = [s for s in recipe(args, QUICK, "hotel", label) if not s.startswith("window_set=")]
+        write_scores(
+            args, "hotel", label, recipe=settings, **({"prior_scores": {}} if label == PAPER else {})
+        )
+    assert stale_runs(args, QUICK, ["hotel"]) == []
+    assert len(stale_runs(social_gan, QUICK, ["hotel"])) == len(ALL_ROWS)
+
+
+def _scores(value: float) -> dict:
+    return {mode: {m: value for m in METRICS} | {"windows": 181.0} for mode in MODES}
+
+
+def test_the_page_says_which_window_set_each_row_is_scored_on(tmp_path):
+    rows = {label: {"scores": _scores(0.5)} for label in [*TRAINED, PAPER_PRIOR, CV, CV_NOISE]}
+    rows[CV_NOISE]["heading_noise"] = 0.1
+    per_fold = {"eth": rows}
+    averages = {"Average": {label: row["scores"] for label, row in rows.items()}}
+    page = bench.markdown(per_fold, averages, QUICK, "social_gan", {})
+    assert "Every row is scored on the `social_gan` window set: the trajectron windows whose" in page
+    assert "## eth (181 test windows;" in page
+    assert "| Social-STGCNN | 0.44 / 0.75 | social_gan |" in page
+    assert "| AgentFormer (leak fixed) | 0.23 / 0.39 | trajectron |" in page
+
+
+def test_the_folds_val_and_test_windows_are_cut_to_the_window_set_its_training_ones_not(tmp_path):
+    from mmf_rl.datasets import ethucy
+    from tests.datasets.conftest import SHARED_DATA, cut_ethucy_raw
+
+    if not (SHARED_DATA / "ethucy" / "trajectories").is_dir():
+        pytest.skip(f"ETH/UCY data not at {SHARED_DATA / 'ethucy'} (set MMF_RL_SHARED_DATA)")
+    args = bench_args(tmp_path, "out", "--window-set", "social_gan")
+    ethucy.convert(cut_ethucy_raw(tmp_path, steps=40, agents=8), ["eth"], args.data, workers=1)
+    data, _ = bench.fold_data(args, "eth")
+    every, _ = bench.fold_data(bench_args(tmp_path, "out"), "eth")
+    assert data.split_windows["train"].equal(every.split_windows["train"])
+    for split in bench.SCORED_SPLITS:
+        assert 0 < len(data.split_windows[split]) < len(every.split_windows[split])
+        assert data.split_windows[split].equal(ethucy.window_set_ids(every, split, "social_gan"))

@@ -324,17 +324,43 @@ def test_heading_up_crops_show_what_lies_ahead_above_the_centre():
     assert ethucy.headings(np.zeros((2, 2)))[0] == pytest.approx(np.pi / 2)  # never moved: north up
 
 
-# Windows of 8 + 12 steps in each fold's test files: the sizes the literature's test sets have.
-TEST_WINDOWS = {"eth": 364, "hotel": 1197, "univ": 24334, "zara1": 2356, "zara2": 5910}
+# Windows of 8 + 12 steps in each fold's test files: the sizes the literature's test sets have, every
+# window (Trajectron++, AgentFormer) and those Social-GAN keeps (its published test set, one window per
+# person in each of its 20-frame sequences).
+TEST_WINDOWS = {
+    "trajectron": {"eth": 364, "hotel": 1197, "univ": 24334, "zara1": 2356, "zara2": 5910},
+    "social_gan": {"eth": 181, "hotel": 1053, "univ": 24334, "zara1": 2253, "zara2": 5833},
+}
 
 
 @pytest.mark.parametrize("fold", sorted(ethucy.FOLDS))
-def test_each_fold_has_the_standard_number_of_test_windows(fold):
-    windows = 0
+def test_each_fold_has_the_standard_number_of_test_windows_in_both_sets(fold):
+    windows = {"trajectron": 0, "social_gan": 0}
     for _, path in ethucy.fold_files(RAW, fold)["test"]:
-        tracks = ethucy.with_velocities(ethucy.read_sequence(path)).groupby(["agent", "segment"]).size()
-        windows += int((tracks - (ethucy.HISTORY + ethucy.HORIZON - 1)).clip(lower=0).sum())
-    assert windows == TEST_WINDOWS[fold]
+        first_frames = ethucy.track_windows(ethucy.read_sequence(path))["frame"].to_numpy()
+        windows["trajectron"] += len(first_frames)
+        windows["social_gan"] += int(ethucy.social_gan_windows(first_frames).sum())
+    assert windows == {name: counts[fold] for name, counts in TEST_WINDOWS.items()}
+
+
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_the_social_gan_windows_of_a_converted_split_are_those_of_its_file(converted, split):
+    """On the eth slice (a lone pedestrian first) and on zara01 with an agent leaving for two steps."""
+    root, config, info = converted
+    data = WindowDataset(DataConfig.from_dict(config), num_workers=0)
+    [(_, table)] = info["tables"][split]
+    expected = ethucy.track_windows(table)
+    expected = expected[ethucy.social_gan_windows(expected["frame"].to_numpy())]
+    ids = ethucy.window_set_ids(data, split, "social_gan")
+    assert 0 < len(ids) < len(data.split_windows[split])
+    # Every episode is selected, so a window's first row in the cache is its global frame index.
+    frames = _frames(root).sort_values("index", ignore_index=True)
+    first = frames.iloc[data.window_start[ids].numpy()]
+    got = np.stack([_column(first, ethucy.AGENT_KEY)[:, 0], _column(first, ethucy.FRAME_KEY)[:, 0]], 1)
+    assert sorted(map(tuple, got.tolist())) == sorted(map(tuple, expected.values.tolist()))
+    assert ethucy.window_set_ids(data, split, "trajectron").equal(data.split_windows[split])
+    with pytest.raises(ValueError, match="unknown ETH/UCY window set 'sgan'; expected one of"):
+        ethucy.window_set_ids(data, split, "sgan")
 
 
 def test_raw_dims_outside_the_feature_are_refused(converted):
