@@ -57,7 +57,9 @@ from mmf_rl.models.loading import RUN_EXPORT_DIR
 from mmf_rl.models.scale_calibration import pattern_name
 
 DEFAULT_MIN_WINDOWS = 32
-FACTORS_KEY = "scale_calibration.factors"  # the factors' name in a registered model's state dict
+# The factors' names in a registered model's state dict.
+FACTORS_KEY = "scale_calibration.factors"
+STEP_FACTORS_KEY = "scale_calibration.step_factors"
 # The level the coverage fit holds, and the coverage the fit reports: the 90% the README promises.
 LEVEL_90 = COVERAGE_LEVELS["coverage_90"]
 HALF_WIDTH_90 = central_half_width(LEVEL_90)
@@ -298,8 +300,8 @@ def fit_table(fits: list[PatternFit], split: str) -> str:
 
 def _same_weights(model, state: dict[str, torch.Tensor]) -> bool:
     """``state`` holds the weights of ``model``, whatever its scale factors."""
-    own = {k: v for k, v in model.state_dict().items() if k != FACTORS_KEY}
-    theirs = {k: v for k, v in state.items() if k != FACTORS_KEY}
+    own = {k: v for k, v in model.state_dict().items() if k not in (FACTORS_KEY, STEP_FACTORS_KEY)}
+    theirs = {k: v for k, v in state.items() if k not in (FACTORS_KEY, STEP_FACTORS_KEY)}
     return own.keys() == theirs.keys() and all(torch.equal(v.cpu(), theirs[k]) for k, v in own.items())
 
 

@@ -38,7 +38,7 @@ class FixedGaussian(TensorDictModuleBase):
     def __init__(self, sigma: torch.Tensor):
         super().__init__()
         self.modalities = list(SMALL_MODALITIES)
-        self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
+        self.scale_calibration = PresenceScaleCalibration(len(self.modalities), HORIZON)
         self.sigma = sigma
         self.in_keys, self.out_keys = [], [keys.FORECAST_LOC, keys.FORECAST_SCALE]
 
