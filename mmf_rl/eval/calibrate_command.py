@@ -1,6 +1,6 @@
-"""`mmf-rl calibrate checkpoint=DIR [split=val] [method=coverage] [min_windows=32]`: recalibrate a
-trained model's forecast scale per presence pattern, on held-out windows, and store the factors with
-the model.
+"""`mmf-rl calibrate checkpoint=DIR [split=val] [method=coverage] [per_step=false] [min_windows=32]`:
+recalibrate a trained model's forecast scale per presence pattern, on held-out windows, and store the
+factors with the model.
 
     mmf-rl calibrate checkpoint=runs/forecaster              # fit on its val split, write back
     mmf-rl eval checkpoint=runs/forecaster                   # then scores the calibrated model
@@ -10,11 +10,13 @@ or a ``save_pretrained`` directory), opened on its own data config and normalisa
 (``data_root`` when the dataset is elsewhere). The factors are fitted in closed form from the
 uncalibrated scale (:mod:`mmf_rl.eval.scale_fit`; a refit replaces earlier factors), by
 ``method``: ``coverage`` (the default; the 90% intervals cover 90% of the split's values) or
-``temperature`` (the NLL-optimal temperature, which heavy-tailed errors inflate), printed as
-a table (pattern, windows, factor, 90% coverage on the split before -> after), and written
-atomically into the checkpoint (re-saved at its step) or the ``save_pretrained`` directory, and
-into the run's other copy of the same weights (``RUN_DIR/model`` or the last checkpoint). A later
-``mmf-rl eval`` uses them without any flag, and its results say so.
+``temperature`` (the NLL-optimal temperature, which heavy-tailed errors inflate); ``per_step=true``
+also fits each horizon step of a pattern (errors that grow with the horizon faster than the scale
+does; a pattern with fewer than ``min_windows`` windows keeps the pooled factor at every step). They
+are printed as a table (pattern, windows, factor, with ``per_step`` each step's, 90% coverage on the
+split before -> after), and written atomically into the checkpoint (re-saved at its step) or the
+``save_pretrained`` directory, and into the run's other copy of the same weights (``RUN_DIR/model``
+or the last checkpoint). A later ``mmf-rl eval`` uses them without any flag, and its results say so.
 
 From Python: :func:`mmf_rl.eval.calibration.calibrate`, which returns what the command prints.
 
@@ -31,6 +33,7 @@ EXAMPLES = [
     "mmf-rl calibrate checkpoint=runs/forecaster                 # its val split; then mmf-rl eval",
     "mmf-rl calibrate checkpoint=exports/g1 data_root=/data/g1 min_windows=64",
     "mmf-rl calibrate checkpoint=runs/forecaster method=temperature   # the NLL-optimal temperature",
+    "mmf-rl calibrate checkpoint=runs/forecaster per_step=true        # and a factor per horizon step",
 ]
 
 
@@ -38,7 +41,7 @@ def show(fitted: dict) -> None:
     """The factors fitted per presence pattern, notes on the patterns fitted together, the files written."""
     print(
         f"{fitted['checkpoint']}: forecast scale factors fitted on the {fitted['split']} split "
-        f"(method={fitted['method']})\n"
+        f"(method={fitted['method']}{', per horizon step' if fitted['per_step'] else ''})\n"
     )
     print(fitted["table"])
     for note in fitted["notes"]:

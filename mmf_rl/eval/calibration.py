@@ -38,6 +38,7 @@ class CalibrateConfig:
     data_root: str | None
     split: str
     method: str
+    per_step: bool
     min_windows: int
     batch_size: int
     device: str
@@ -61,8 +62,8 @@ def calibrate(config: DictConfig | None = None, *, overrides: Sequence[str] = ()
         overrides: Hydra overrides, as on the command line (``key=value``); only without ``config``.
 
     Returns:
-        What the command prints: ``checkpoint``, ``split``, ``method``, the ``fits``, their ``table``,
-        ``notes`` on the patterns fitted together, and the paths ``written``.
+        What the command prints: ``checkpoint``, ``split``, ``method``, ``per_step``, the ``fits``, their
+        ``table``, ``notes`` on the patterns fitted together, and the paths ``written``.
 
     Examples:
         >>> from mmf_rl.eval.calibration import calibrate
@@ -89,30 +90,41 @@ def calibrate(config: DictConfig | None = None, *, overrides: Sequence[str] = ()
     every_window = data.loader(
         calibrate_cfg.split, calibrate_cfg.batch_size, shuffle=False
     )  # train's loader would drop its tail
-    fits = fit_scale_calibration(model, every_window, calibrate_cfg.min_windows, device, calibrate_cfg.method)
+    fits = fit_scale_calibration(
+        model, every_window, calibrate_cfg.min_windows, device, calibrate_cfg.method, calibrate_cfg.per_step
+    )
     model.calibration = calibration_record(
-        model, fits, calibrate_cfg.split, calibrate_cfg.min_windows, data.config.root, calibrate_cfg.method
+        model,
+        fits,
+        calibrate_cfg.split,
+        calibrate_cfg.min_windows,
+        data.config.root,
+        calibrate_cfg.method,
+        calibrate_cfg.per_step,
     )
     written = save_calibration(model.cpu(), source)
     return {
         "checkpoint": str(source.path),
         "split": calibrate_cfg.split,
         "method": calibrate_cfg.method,
+        "per_step": calibrate_cfg.per_step,
         "fits": fits,
         "table": fit_table(fits, calibrate_cfg.split),
-        "notes": fallback_notes(fits, calibrate_cfg.min_windows, calibrate_cfg.split),
+        "notes": fallback_notes(fits, calibrate_cfg.min_windows, calibrate_cfg.split, calibrate_cfg.per_step),
         "written": [str(p) for p in written],
     }
 
 
-def fallback_notes(fits, min_windows: int, split: str) -> list[str]:
-    """What the patterns with fewer than ``min_windows`` windows got instead of their own fit."""
+def fallback_notes(fits, min_windows: int, split: str, per_step: bool = False) -> list[str]:
+    """What the patterns with fewer than ``min_windows`` windows got instead of their own fit (with
+    ``per_step``: instead of a factor per horizon step)."""
     notes = []
     pooled = [fit.pattern for fit in fits if fit.pooled]
     if pooled:
+        at_every_step = ", one factor at every horizon step" if per_step else ""
         notes.append(
-            f"the pooled fit of every pattern (fewer than min_windows={min_windows} {split} windows): "
-            + ", ".join(pooled)
+            f"the pooled fit of every pattern{at_every_step} (fewer than min_windows={min_windows} "
+            f"{split} windows): " + ", ".join(pooled)
         )
     kept = [fit.pattern for fit in fits if not fit.fitted and not fit.pooled]
     if kept:

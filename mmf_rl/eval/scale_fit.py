@@ -23,6 +23,15 @@ are reset to ones first), so refitting replaces earlier factors. A pattern seen 
 factor from a handful of windows would be noise; when even those are fewer, it keeps the factor 1.
 Fit on the validation split (``mmf-rl calibrate`` does): the test split must stay unseen.
 
+``per_step=True`` also fits each horizon step ``t`` of a pattern on its own (the same method on the
+values of step ``t`` alone), stored as the step factors relative to the pattern's factor, so that
+errors growing with the horizon faster than the scale does are matched at every step, where the
+pattern's one factor widens the early steps' intervals and narrows the late ones'. A window holds
+every step, so a pattern's steps have its window count and the same ``min_windows`` applies: a
+pattern with fewer windows falls back to its pooled factor at every step. A step's fit rests on
+``1 / T`` of the pattern's values (still one per window and target dimension), so its quantile is
+noisier: off by default.
+
 :func:`save_calibration` writes the factors where the model was loaded from (a checkpoint is
 re-saved at its step, a ``save_pretrained`` directory rewritten) and into its twin, the run's
 ``model/`` export or last checkpoint, when that holds the same weights; each write is atomic.
@@ -57,7 +66,9 @@ from mmf_rl.models.loading import RUN_EXPORT_DIR
 from mmf_rl.models.scale_calibration import pattern_name
 
 DEFAULT_MIN_WINDOWS = 32
-FACTORS_KEY = "scale_calibration.factors"  # the factors' name in a registered model's state dict
+# The factors' names in a registered model's state dict.
+FACTORS_KEY = "scale_calibration.factors"
+STEP_FACTORS_KEY = "scale_calibration.step_factors"
 # The level the coverage fit holds, and the coverage the fit reports: the 90% the README promises.
 LEVEL_90 = COVERAGE_LEVELS["coverage_90"]
 HALF_WIDTH_90 = central_half_width(LEVEL_90)
@@ -92,7 +103,9 @@ DEFAULT_METHOD = "coverage"
 class PatternFit:
     """One presence pattern's fit: its windows, factor, and 90% coverage before and after on the
     fitted windows. ``fitted=False``: fewer than ``min_windows`` windows, the factor is the pooled
-    fit's (``pooled=True``) or 1 (also in records written before the pooled fit existed)."""
+    fit's (``pooled=True``) or 1 (also in records written before the pooled fit existed).
+    ``step_factors``: with ``per_step``, the factor of each horizon step (the pattern's factor times
+    its step's); ``None`` when the pattern has one factor for every step."""
 
     pattern: str
     index: int
@@ -102,6 +115,7 @@ class PatternFit:
     coverage_90_before: float
     coverage_90_after: float
     pooled: bool = False
+    step_factors: list[float] | None = None
 
 
 def _calibration_module(model):
@@ -133,11 +147,12 @@ def fit_scale_calibration(
     min_windows: int = DEFAULT_MIN_WINDOWS,
     device: torch.device | str = "cpu",
     method: str = DEFAULT_METHOD,
+    per_step: bool = False,
 ) -> list[PatternFit]:
     """Fit ``model.scale_calibration`` in place (see module docstring); one entry per pattern seen.
 
     ``batches``: CPU batches with ``"target"`` (e.g. ``WindowDataset.loader("val", ...)``);
-    ``method``: a key of :data:`CALIBRATION_METHODS`."""
+    ``method``: a key of :data:`CALIBRATION_METHODS`; ``per_step``: also fit the step factors."""
     calibration = _calibration_module(model)
     if min_windows < 1:
         raise ValueError(f"min_windows must be >= 1, found {min_windows}")
@@ -152,14 +167,20 @@ def fit_scale_calibration(
     windows, residuals = _standardised_residuals(model, calibration, batches, names, device)
     if not windows:
         raise ValueError("no window to fit the scale factors on: the batches are empty")
-    magnitudes = {index: torch.cat(parts) for index, parts in residuals.items()}
+    magnitudes = {index: torch.cat(parts) for index, parts in residuals.items()}  # [windows, T, ...]
     pooled = sum(windows.values()) >= min_windows
-    pooled_factor = factor_of(torch.cat(list(magnitudes.values()))) if pooled else 1.0
+    pooled_factor = factor_of(torch.cat([m.flatten() for m in magnitudes.values()])) if pooled else 1.0
     fits = []
     for index in sorted(windows):
         fitted = windows[index] >= min_windows
-        factor = factor_of(magnitudes[index]) if fitted else pooled_factor
+        values = magnitudes[index]
+        factor = factor_of(values.flatten()) if fitted else pooled_factor
         calibration.factors[index] = factor
+        if per_step and fitted:
+            by_step = torch.tensor([factor_of(values[:, step].flatten()) for step in range(values.shape[1])])
+            calibration.step_factors[index] = by_step / factor
+        applied = calibration.factors[index] * calibration.step_factors[index]  # as the model multiplies
+        covered = values <= HALF_WIDTH_90 * applied.double().view(1, -1, *[1] * (values.dim() - 2))
         fits.append(
             PatternFit(
                 pattern=pattern_name(index, names),
@@ -167,17 +188,19 @@ def fit_scale_calibration(
                 windows=windows[index],
                 factor=float(calibration.factors[index]),
                 fitted=fitted,
-                coverage_90_before=float((magnitudes[index] <= HALF_WIDTH_90).double().mean()),
-                coverage_90_after=float((magnitudes[index] <= HALF_WIDTH_90 * factor).double().mean()),
+                coverage_90_before=float((values <= HALF_WIDTH_90).double().mean()),
+                coverage_90_after=float(covered.double().mean()),
                 pooled=not fitted and pooled,
+                step_factors=applied.tolist() if per_step and fitted else None,
             )
         )
     return fits
 
 
 def _standardised_residuals(model, calibration, batches, names: list[str], device):
-    """Per presence pattern: the window count and every ``|z|`` (``z = (y - loc) / scale``), over
-    every (window, pattern) pair the evaluation's presence subsets give, each once."""
+    """Per presence pattern: the window count and every ``|z|`` (``z = (y - loc) / scale``) as
+    ``[windows, T, ...]``, over every (window, pattern) pair the evaluation's presence subsets give,
+    each once."""
     subsets = list(presence_subsets(names))
     bits = calibration.bits.cpu()
     windows = defaultdict(int)
@@ -200,57 +223,81 @@ def _standardised_residuals(model, calibration, batches, names: list[str], devic
             # The presence the model used (nonfinite="absent" may have made a modality absent).
             pattern = calibration.pattern_index(_presence(out, names, "the model's output")).cpu()
             loc, scale = out.get(keys.FORECAST_LOC).cpu(), out.get(keys.FORECAST_SCALE).cpu()
-            z = ((window.get(keys.TARGET) - loc) / scale).flatten(1).double()
+            z = ((window.get(keys.TARGET) - loc) / scale).double()
             for index in pattern.unique().tolist():
                 mine = pattern == index
                 windows[index] += int(mine.sum())
-                residuals[index].append(z[mine].abs().flatten())
+                residuals[index].append(z[mine].abs())
     return windows, residuals
 
 
 def calibration_record(
-    model, fits: list[PatternFit], split: str, min_windows: int, data_root, method: str
+    model,
+    fits: list[PatternFit],
+    split: str,
+    min_windows: int,
+    data_root,
+    method: str,
+    per_step: bool = False,
 ) -> dict:
     """What is stored with the model about its fit (``model.calibration``): the split, the
     settings, every pattern's fit and the factors it describes (so a reader can tell whether the
     weights still hold them)."""
+    calibration = _calibration_module(model)
     return {
         "split": split,
         "method": method,
+        "per_step": per_step,
         "min_windows": min_windows,
         "data_root": str(data_root),
         "eval_latent": getattr(model.config, "eval_latent", None),
         "patterns": [asdict(fit) for fit in fits],
-        "factors": _calibration_module(model).factors.tolist(),
+        "factors": calibration.factors.tolist(),
+        "step_factors": calibration.step_factors.tolist(),
     }
+
+
+def _describes(record: dict, calibration) -> bool:
+    """``record`` holds the factors ``calibration`` holds (a record written before the step factors
+    existed: with step factors of ones, the factors then)."""
+    factors, steps = calibration.factors.cpu(), calibration.step_factors.cpu()
+    recorded_steps = record.get("step_factors")
+    return torch.equal(torch.tensor(record.get("factors", []), dtype=factors.dtype), factors) and (
+        torch.equal(torch.tensor(recorded_steps, dtype=steps.dtype), steps)
+        if recorded_steps is not None
+        else bool((steps == 1).all())
+    )
 
 
 def calibration_in_use(model) -> dict | None:
     """``model.calibration`` if it describes the factors the model holds now; ``None`` when the
     factors are ones and no fit is recorded. Factors without a matching record (written by hand,
     or the record of another fit) give ``{"split": None, ...}``: recalibrated, fit unknown."""
-    factors = _calibration_module(model).factors
+    calibration = _calibration_module(model)
     record = getattr(model, "calibration", None)
-    if record is not None and torch.equal(
-        torch.tensor(record.get("factors", []), dtype=factors.dtype), factors.cpu()
-    ):
+    if record is not None and _describes(record, calibration):
         return record
-    if _calibration_module(model).is_identity():
+    if calibration.is_identity():
         return None
-    return {"split": None, "factors": factors.tolist()}
+    return {
+        "split": None,
+        "per_step": not bool((calibration.step_factors == 1).all()),
+        "factors": calibration.factors.tolist(),
+        "step_factors": calibration.step_factors.tolist(),
+    }
 
 
 def calibration_header(record: dict | None) -> str:
     """The results.md line saying how the forecast's scale was calibrated ("" when it was not)."""
     if record is None:
         return ""
+    # Records written before the step factors existed fitted one factor per pattern.
+    scope = "per presence pattern and horizon step" if record.get("per_step") else "per presence pattern"
     if record["split"] is None:
-        return (
-            "Forecast scale: recalibrated per presence pattern (the fit is not recorded with the model)\n\n"
-        )
+        return f"Forecast scale: recalibrated {scope} (the fit is not recorded with the model)\n\n"
     fitted = sum(p["fitted"] for p in record["patterns"])
     return (
-        f"Forecast scale: recalibrated per presence pattern on the {record['split']} split "
+        f"Forecast scale: recalibrated {scope} on the {record['split']} split "
         f"(`mmf-rl calibrate`, method={record_method(record)}; {fitted} of {len(record['patterns'])} "
         f"patterns fitted, min_windows={record['min_windows']})\n\n"
     )
@@ -278,17 +325,21 @@ def unfit_for_latent(model) -> str | None:
 
 
 def fit_table(fits: list[PatternFit], split: str) -> str:
-    """The per-pattern table ``mmf-rl calibrate`` prints."""
-    lines = [
-        f"| pattern | {split} windows | factor | coverage 90% before -> after |",
-        "|---|---|---|---|",
-    ]
+    """The per-pattern table ``mmf-rl calibrate`` prints; with step factors, a column of each step's
+    factor."""
+    per_step = any(fit.step_factors is not None for fit in fits)
+    columns = ["pattern", f"{split} windows", "factor", *["factor per step"] * per_step]
+    columns.append("coverage 90% before -> after")
+    lines = [f"| {' | '.join(columns)} |", "|" + "---|" * len(columns)]
     for fit in fits:
         factor = f"{fit.factor:.3f}"
         if fit.pooled:
             factor += " (pooled: too few windows)"
         elif not fit.fitted:
             factor = "1 (kept: too few windows)"
+        if per_step:
+            steps = ", ".join(f"{f:.2f}" for f in fit.step_factors) if fit.step_factors else "as the factor"
+            factor += f" | {steps}"
         lines.append(
             f"| {fit.pattern} | {fit.windows} | {factor} | "
             f"{fit.coverage_90_before:.3f} -> {fit.coverage_90_after:.3f} |"
@@ -298,8 +349,8 @@ def fit_table(fits: list[PatternFit], split: str) -> str:
 
 def _same_weights(model, state: dict[str, torch.Tensor]) -> bool:
     """``state`` holds the weights of ``model``, whatever its scale factors."""
-    own = {k: v for k, v in model.state_dict().items() if k != FACTORS_KEY}
-    theirs = {k: v for k, v in state.items() if k != FACTORS_KEY}
+    own = {k: v for k, v in model.state_dict().items() if k not in (FACTORS_KEY, STEP_FACTORS_KEY)}
+    theirs = {k: v for k, v in state.items() if k not in (FACTORS_KEY, STEP_FACTORS_KEY)}
     return own.keys() == theirs.keys() and all(torch.equal(v.cpu(), theirs[k]) for k, v in own.items())
 
 

@@ -34,6 +34,7 @@ from huggingface_hub import PyTorchModelHubMixin, hf_hub_download
 from huggingface_hub.constants import CONFIG_NAME, SAFETENSORS_SINGLE_FILE
 
 from mmf_rl.checkpoint import CheckpointError, known_mismatch, state_mismatch, state_with_defaults
+from mmf_rl.models.registry import config_from_saved
 
 NORMALIZATION_FILE = "normalization.safetensors"
 DATA_CONFIG_FILE = "data_config.json"
@@ -175,7 +176,7 @@ class PretrainedModel(PyTorchModelHubMixin, library_name="mmf-rl", tags=["mmf-rl
                 f"({cls.model_name!r}); "
                 "load it with mmf_rl.models.from_pretrained"
             )
-        model = cls(cls.config_class.from_dict(fields))
+        model = cls(config_from_saved(cls.config_class, fields))
         # A model saved before some state existed (e.g. the scale factors) loads with the value that
         # reproduces its behaviour then.
         weights = state_with_defaults(

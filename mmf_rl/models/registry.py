@@ -39,10 +39,11 @@ MODELS: dict[str, ModelEntry] = {}
 def register_model(name: str, config_class: type, *, loss: Sequence[str]):
     """Class decorator: the model class it decorates is the model ``name`` (``model.name=...``).
 
-    ``config_class`` has ``from_dict``/``to_dict`` and takes the data's ``modalities``, ``history``,
-    ``horizon`` and ``target_dim``; ``loss`` names the loss terms the model trains with
-    (``@register_loss_term``). Sets the class's ``model_name`` and ``config_class``, which its
-    checkpoints and ``save_pretrained`` directories record.
+    ``config_class`` has ``from_dict``/``to_dict`` (and may have ``from_saved_dict``, see
+    :func:`config_from_saved`) and takes the data's ``modalities``, ``history``, ``horizon`` and
+    ``target_dim``; ``loss`` names the loss terms the model trains with (``@register_loss_term``). Sets
+    the class's ``model_name`` and ``config_class``, which its checkpoints and ``save_pretrained``
+    directories record.
 
     Args:
         name (str): the model's name (``model.name=...``).
@@ -247,18 +248,38 @@ def saved_config(name: str, model: nn.Module) -> dict:
     return {"name": name, **model.config.to_dict()}
 
 
+def config_from_saved(config_cls: type, fields: dict):
+    """The config of a saved model: ``config_cls.from_saved_dict(fields)`` when the class has it (a
+    config whose defaults changed since a model could be saved without a setting: such a saved config
+    describes the model of its time, e.g.
+    :meth:`~mmf_rl.models.ForecasterConfig.from_saved_dict`), else ``from_dict``.
+
+    Args:
+        config_cls (type): the model's config class.
+        fields (dict): the saved config's fields, without its ``name``.
+
+    Returns:
+        The config.
+
+    Raises:
+        ValueError: an unknown key or an invalid value.
+    """
+    return getattr(config_cls, "from_saved_dict", config_cls.from_dict)(fields)
+
+
 def model_from_saved_config(saved: dict) -> nn.Module:
     """Rebuild a model from the ``model_config`` a checkpoint stores (see :func:`saved_config`).
 
     Args:
-        saved (dict): the saved config (its ``name``, default ``"forecaster"``, and fields).
+        saved (dict): the saved config (its ``name``, default ``"forecaster"``, and fields), read by
+            :func:`config_from_saved`.
 
     Returns:
         The model, with fresh weights.
     """
     cfg = dict(saved)
     entry = model_entry(cfg.pop("name", DEFAULT_MODEL))
-    return entry.model_cls(entry.config_cls.from_dict(cfg))
+    return entry.model_cls(config_from_saved(entry.config_cls, cfg))
 
 
 def _settings(config_cls: type) -> set[str]:
@@ -294,7 +315,7 @@ def model_config_with_overrides(saved: dict, overrides: dict | None, where) -> d
         )
     config = {**saved, **overrides}
     try:
-        entry.config_cls.from_dict({key: value for key, value in config.items() if key != "name"})
+        config_from_saved(entry.config_cls, {key: value for key, value in config.items() if key != "name"})
     except ValueError as err:
         raise ConfigError(f"{given} for the {name!r} model of {where}: {err}") from None
     return config

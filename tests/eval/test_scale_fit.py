@@ -2,6 +2,7 @@
 end to end on a recorded push dataset: train, calibrate, eval."""
 
 import json
+import math
 
 import pytest
 import torch
@@ -12,10 +13,12 @@ from mmf_rl import keys
 from mmf_rl.checkpoint import LAST_POINTER, list_checkpoints, load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import DataConfig, WindowDataset
+from mmf_rl.eval.calibration import fallback_notes
 from mmf_rl.eval.metrics import interval_coverage
 from mmf_rl.eval.scale_fit import (
     CALIBRATION_METHODS,
     HALF_WIDTH_90,
+    LEVEL_90,
     calibration_header,
     calibration_in_use,
     calibration_record,
@@ -29,6 +32,7 @@ from tests.conftest import HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch, pu
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 FACTORS = "scale_calibration.factors"
+STEP_FACTORS = "scale_calibration.step_factors"
 
 
 class FixedGaussian(TensorDictModuleBase):
@@ -38,7 +42,7 @@ class FixedGaussian(TensorDictModuleBase):
     def __init__(self, sigma: torch.Tensor):
         super().__init__()
         self.modalities = list(SMALL_MODALITIES)
-        self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
+        self.scale_calibration = PresenceScaleCalibration(len(self.modalities), HORIZON)
         self.sigma = sigma
         self.in_keys, self.out_keys = [], [keys.FORECAST_LOC, keys.FORECAST_SCALE]
 
@@ -110,6 +114,71 @@ def test_heavy_tailed_errors_the_coverage_fit_holds_90_percent_where_the_tempera
     assert coverage.coverage_90_after == pytest.approx(0.9, abs=0.01)
     assert coverage_unseen == pytest.approx(0.9, abs=0.03)
     assert coverage.factor < temperature.factor / 2
+
+
+# The std of the errors at each horizon step, where the forecast's scale is 1 at every step.
+GROWTH = torch.linspace(0.4, 2.0, HORIZON)
+
+
+def growing_with_the_horizon(data):
+    """``data`` with targets ``N(0, GROWTH_t²)`` at step ``t``: errors growing with the horizon."""
+    for batch in data:
+        batch.set(keys.TARGET, batch.get(keys.TARGET) * GROWTH.view(1, -1, 1))
+    return data
+
+
+def step_coverage(model, data) -> torch.Tensor:
+    """``[T]``: the share of the values of ``data`` inside the model's 90% intervals, at each step."""
+    covered = [
+        (b.get(keys.TARGET) - o.get(keys.FORECAST_LOC)).abs() <= HALF_WIDTH_90 * o.get(keys.FORECAST_SCALE)
+        for b in data
+        for o in [model(b.exclude(keys.TARGET))]
+    ]
+    return torch.cat(covered).double().mean(dim=(0, 2))
+
+
+def test_errors_growing_with_the_horizon_per_step_factors_hold_90_percent_at_every_step():
+    model = FixedGaussian(torch.ones(8))
+    fitted_on = growing_with_the_horizon(batches(8))
+    unseen = growing_with_the_horizon(batches(16, seed=100))
+    fit_scale_calibration(model, fitted_on, min_windows=32)
+    pooled = step_coverage(model, unseen)
+    # One factor for every step covers 90% on average: too wide early, too narrow late.
+    assert float(pooled.mean()) == pytest.approx(0.9, abs=0.02)
+    assert pooled[0] > 0.97 and pooled[-1] < 0.8
+    fits = fit_scale_calibration(model, fitted_on, min_windows=32, per_step=True)
+    assert step_coverage(model, unseen).tolist() == pytest.approx([0.9] * HORIZON, abs=0.03)
+    calibration = model.scale_calibration
+    for fit in fits:
+        assert fit.fitted and fit.coverage_90_after == pytest.approx(0.9, abs=0.01)
+        # Each step's factor undoes its error's growth; the model applies the pattern's factor times
+        # its step's, as the fit reports.
+        assert fit.step_factors == pytest.approx(GROWTH.tolist(), rel=0.1)
+        applied = calibration.factors[fit.index] * calibration.step_factors[fit.index]
+        assert applied.tolist() == fit.step_factors
+    # A refit without per_step starts from ones: the step factors are gone.
+    fit_scale_calibration(model, fitted_on, min_windows=32)
+    assert torch.equal(calibration.step_factors, torch.ones(8, HORIZON))
+
+
+def test_per_step_patterns_with_too_few_windows_keep_the_pooled_factor_at_every_step():
+    model = FixedGaussian(torch.ones(8))
+    # As in the pooled test below: the camera's patterns have 40 windows, the others 80.
+    data = growing_with_the_horizon(batches(1, 40) + batches(1, 40, without_image=True, seed=5))
+    fits = fit_scale_calibration(model, data, min_windows=50, per_step=True)
+    factors, steps = model.scale_calibration.factors, model.scale_calibration.step_factors
+    for fit in fits:
+        if "image" in fit.pattern:
+            assert fit.pooled and fit.step_factors is None and factors[fit.index] == factors[1]
+            assert torch.equal(steps[fit.index], torch.ones(HORIZON))
+        else:
+            assert fit.fitted and fit.step_factors == pytest.approx(GROWTH.tolist(), rel=0.15)
+    table = fit_table(fits, "val")
+    assert "| pattern | val windows | factor | factor per step | coverage 90% before -> after |" in table
+    assert table.count("(pooled: too few windows) | as the factor |") == 4
+    [note] = fallback_notes(fits, 50, "val", per_step=True)
+    assert note.startswith("the pooled fit of every pattern, one factor at every horizon step (fewer than")
+    assert note.endswith("image, image+force, image+proprio, image+force+proprio")
 
 
 def test_the_coverage_fit_is_the_corrected_quantile_of_the_standardised_errors():
@@ -190,6 +259,21 @@ def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
     older = {k: v for k, v in record.items() if k != "method"}
     assert "method=temperature;" in calibration_header(older)
     assert unfit_for_latent(model) is None
+    # A record written before the step factors existed describes factors with step factors of ones.
+    assert calibration_in_use(model) == record and record["per_step"] is False
+    model.calibration = {k: v for k, v in record.items() if k not in ("step_factors", "per_step")}
+    assert calibration_in_use(model) is model.calibration
+    step_fits = fit_scale_calibration(model, batches(1), min_windows=32, per_step=True)
+    model.calibration = calibration_record(model, step_fits, "val", 32, "/data/push", "coverage", True)
+    assert "recalibrated per presence pattern and horizon step on the val split" in calibration_header(
+        calibration_in_use(model)
+    )
+    model.scale_calibration.step_factors[3, 0] = 5.0  # step factors that the record does not describe
+    unrecorded = calibration_in_use(model)
+    assert unrecorded["split"] is None and unrecorded["step_factors"][3][0] == 5.0
+    assert "per presence pattern and horizon step (the fit is not recorded" in calibration_header(unrecorded)
+    fits = fit_scale_calibration(model, batches(1), min_windows=32)
+    model.calibration = calibration_record(model, fits, "val", 32, "/data/push", "coverage")
     model.scale_calibration.factors[3] = 5.0  # factors that the record does not describe
     assert "fit is not recorded" in calibration_header(calibration_in_use(model))
     # Scored under another eval latent than the fit's: the factors describe another forecast.
@@ -311,3 +395,36 @@ def test_calibrate_method_temperature_stores_the_nll_fit(push_run, capsys):
     record = load_checkpoint(push_run / "checkpoints", with_trainer_state=False).meta["calibration"]
     assert record["method"] == "temperature"
     assert "method=temperature;" in calibration_header(record)
+
+
+def test_calibrate_per_step_on_the_recording_holds_90_percent_at_every_step_and_travels(push_run, capsys):
+    assert cli(["calibrate", f"checkpoint={push_run}", "min_windows=4", "per_step=true"]) == 0
+    out = capsys.readouterr().out
+    assert "(method=coverage, per horizon step)" in out and "| factor per step |" in out
+    checkpoint, exported = stored_factors(push_run)
+    record = checkpoint.meta["calibration"]
+    steps = checkpoint.model_state[STEP_FACTORS]
+    assert record["per_step"] and steps.tolist() == record["step_factors"]
+    assert torch.equal(load_file(push_run / "model" / "model.safetensors")[STEP_FACTORS], steps)
+    assert torch.equal(exported, checkpoint.model_state[FACTORS])
+    assert not torch.equal(steps, torch.ones_like(steps))
+    model, _, data_config = load_trained_model(push_run / "model")
+    assert torch.equal(model.scale_calibration.step_factors, steps)
+
+    # On the val windows it was fitted on (no sensor fails in this recording: every sensor present is
+    # one pattern), each step's 90% intervals hold the corrected quantile's share of the step's values.
+    data = WindowDataset(DataConfig.from_dict(data_config))
+    val = list(data.loader("val", 256, shuffle=False))
+    every = {spec.name for spec in model.modalities}
+    every_sensor = next(p for p in record["patterns"] if set(p["pattern"].split("+")) == every)
+    values = every_sensor["windows"] * val[0].get(keys.TARGET).shape[-1]
+    assert values == sum(b.shape[0] for b in val) * val[0].get(keys.TARGET).shape[-1]
+    rank = min(math.ceil((values + 1) * LEVEL_90), values)
+    assert step_coverage(model, val).tolist() == pytest.approx([rank / values] * steps.shape[1], abs=1e-9)
+
+    assert cli(["eval", f"checkpoint={push_run}", "split=val", "num_samples=0", "plots=false"]) == 0
+    capsys.readouterr()
+    assert (
+        "Forecast scale: recalibrated per presence pattern and horizon step on the val split"
+        in (push_run / "eval" / "results.md").read_text()
+    )

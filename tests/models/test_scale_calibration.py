@@ -29,6 +29,7 @@ from tests.conftest import (
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 FACTORS = "scale_calibration.factors"
+STEP_FACTORS = "scale_calibration.step_factors"
 
 
 def every_pattern_batch():
@@ -44,8 +45,9 @@ def eval_scale(model, batch):
 
 
 def test_pattern_index_and_names_cover_every_presence_pattern():
-    calibration = PresenceScaleCalibration(3)
+    calibration = PresenceScaleCalibration(3, HORIZON)
     assert calibration.factors.shape == (8,) and torch.equal(calibration.factors, torch.ones(8))
+    assert torch.equal(calibration.step_factors, torch.ones(8, HORIZON)) and calibration.is_identity()
     present = torch.tensor([[a, b, c] for c in (0, 1) for b in (0, 1) for a in (0, 1)], dtype=torch.bool)
     assert calibration.pattern_index(present).tolist() == list(range(8))
     assert [pattern_name(i, NAMES) for i in (1, 2, 4, 5, 7)] == [
@@ -74,6 +76,12 @@ def test_each_window_gets_its_patterns_factor_in_eval_mode_only(name):
     assert scaled.shape == (len(index), HORIZON, TARGET_DIM)
     assert torch.allclose(scaled, expected * factors[index].view(-1, 1, 1), rtol=1e-6)
     assert torch.equal(model(batch.clone()).get(keys.FORECAST_LOC), expected_loc)
+    # The step factors refine each pattern's factor per horizon step.
+    steps = torch.linspace(0.5, 2.0, HORIZON)
+    model.scale_calibration.step_factors.copy_(torch.outer(torch.ones(8), steps))
+    model.scale_calibration.step_factors[index[0]] = 3.0
+    per_step = factors[index].view(-1, 1, 1) * model.scale_calibration.step_factors[index].unsqueeze(-1)
+    assert torch.allclose(eval_scale(model, batch), expected * per_step, rtol=1e-6)
     # Training sees the head's own scale, whatever the factors (a deterministic baseline's forward
     # in train mode is its eval forward).
     if name in ("lf_lstm", "mult"):
@@ -108,7 +116,8 @@ def test_a_state_saved_before_the_factors_loads_as_ones_and_forecasts_the_same(n
     model = small_registered_model(name)
     batch, _ = every_pattern_batch()
     expected = model(batch.clone())
-    old = {k: v for k, v in model.state_dict().items() if k != FACTORS}  # what older mmf-rl saved
+    # What older mmf-rl saved: neither the factors nor the step factors.
+    old = {k: v for k, v in model.state_dict().items() if k not in (FACTORS, STEP_FACTORS)}
 
     # A checkpoint of `mmf-rl train`.
     save_checkpoint(tmp_path / "ckpt", 3, old, meta={"model_config": saved_config(name, model)})
@@ -121,7 +130,7 @@ def test_a_state_saved_before_the_factors_loads_as_ones_and_forecasts_the_same(n
     assert FACTORS not in load_file(tmp_path / "export" / "model.safetensors")
     check_state_dict(small_registered_model(name), old, "old weights")
     for loaded in (restored.eval(), from_pretrained(tmp_path / "export")):
-        assert torch.equal(loaded.scale_calibration.factors, torch.ones(8))
+        assert loaded.scale_calibration.is_identity()
         out = loaded(batch.clone())
         for key in (keys.FORECAST_LOC, keys.FORECAST_SCALE):
             assert torch.equal(out.get(key), expected.get(key))
@@ -146,3 +155,23 @@ def test_saved_factors_and_fit_record_travel_with_the_export(tmp_path):
     small_registered_model("lf_lstm").save_pretrained(tmp_path / "export")
     assert not (tmp_path / "export" / "calibration.json").exists()
     assert from_pretrained(tmp_path / "export").calibration is None
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_a_state_with_per_pattern_factors_only_loads_them_with_step_factors_of_ones(name, tmp_path):
+    """What a model calibrated before the step factors existed saved: its factors, applied as fitted."""
+    model = small_registered_model(name)
+    model.scale_calibration.factors.copy_(torch.linspace(0.5, 2.0, 8))
+    batch, _ = every_pattern_batch()
+    expected = eval_scale(model, batch)
+    old = {k: v for k, v in model.state_dict().items() if k != STEP_FACTORS}
+    save_checkpoint(tmp_path / "ckpt", 3, old, meta={"model_config": saved_config(name, model)})
+    restored = small_registered_model(name)
+    restored.scale_calibration.step_factors.fill_(2.0)  # must come back to ones
+    load_model_state(restored, load_checkpoint(tmp_path / "ckpt"))
+    model.save_pretrained(tmp_path / "export")
+    save_file(old, tmp_path / "export" / "model.safetensors")
+    for loaded in (restored.eval(), from_pretrained(tmp_path / "export")):
+        assert torch.equal(loaded.scale_calibration.factors, model.scale_calibration.factors)
+        assert torch.equal(loaded.scale_calibration.step_factors, torch.ones(8, HORIZON))
+        assert torch.equal(eval_scale(loaded, batch), expected)

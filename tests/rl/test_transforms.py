@@ -44,6 +44,7 @@ def write_checkpoint(
     prior: str = "standard",
     seed: int = 0,
     partial_windows: bool | None = None,
+    decoder_input: str = "mixed",
 ):
     """A checkpoint of an untrained forecaster; ``partial_windows`` (``None``: no key, an older run)
     is its run's ``data.partial_windows``."""
@@ -57,6 +58,7 @@ def write_checkpoint(
             "mlp_hidden": 32,
             "head_hidden": 32,
             "prior": prior,
+            "decoder_input": decoder_input,
         },
         specs,
         HISTORY,
@@ -326,7 +328,8 @@ def synthetic_steps(num_envs: int = RECORDED_ENVS, length: int = 32, seed: int =
 
 # Sums over horizon and target dims of the forecasts per env at steps 0, 11, 21 and 31 of
 # `synthetic_steps` with `with_outages`, written by the transform whose history was a host-side
-# dict of tensors (before it became buffers): the forecasts must not change.
+# dict of tensors (before it became buffers): the forecasts must not change. Its forecaster read
+# the raw tokens (what `build_model` built then without `decoder_input`).
 HOST_HISTORY_FORECASTS = {
     0: ([-8.4109, -8.2584, -8.3146], [7.6015, 7.4677, 7.5475]),
     11: ([-8.6139, -8.3611, -8.2798], [7.73, 7.5582, 7.6711]),
@@ -337,7 +340,7 @@ HOST_HISTORY_FORECASTS = {
 
 @pytest.mark.parametrize("trace", [True, False])
 def test_forecasts_are_unchanged_by_keeping_the_history_in_buffers(tmp_path, trace):
-    checkpoint = write_checkpoint(tmp_path, PUSH_SPECS)
+    checkpoint = write_checkpoint(tmp_path, PUSH_SPECS, decoder_input="tokens")
     outputs = replay(
         ForecastTransform.from_checkpoint(checkpoint, trace=trace),
         with_outages(synthetic_steps(), RECORDED_ENVS),

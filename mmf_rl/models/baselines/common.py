@@ -200,7 +200,7 @@ class DeterministicForecaster(TensorDictModuleBase, PretrainedModel):
         super().__init__()
         self.config = config
         self.modalities = list(config.modalities)
-        self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
+        self.scale_calibration = PresenceScaleCalibration(len(self.modalities), config.horizon)
         self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
         self.out_keys = [keys.FORECAST_LOC, keys.FORECAST_SCALE]
 

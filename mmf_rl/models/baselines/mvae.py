@@ -127,7 +127,7 @@ class MVAE(TensorDictModuleBase, PretrainedModel):
         self.encoders = nn.ModuleDict({s.name: build_encoder(s, config.history, d) for s in self.modalities})
         self.experts = nn.ModuleDict({s.name: nn.Linear(d, 2 * dz) for s in self.modalities})
         self.decoder = mlp(dz, config.head_hidden, 2 * config.horizon * config.target_dim)
-        self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
+        self.scale_calibration = PresenceScaleCalibration(len(self.modalities), config.horizon)
         self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
         self.out_keys = [
             keys.FORECAST_LOC,

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
@@ -80,12 +80,13 @@ class ForecasterConfig:
             decoder reads: ``"mixed"`` (default: the unimodal encoders' tokens after the multimodal encoder's
             self-attention layers, so the fusion acts on every forecast whatever the prior; a fusion without
             such layers passes them through) or ``"tokens"`` (the paper read literally: the raw tokens, and
-            under the standard prior the fusion shapes only training). A saved config without it loads as
-            ``"tokens"``. ``"pair_streams"`` (MulT's streams): for each ordered pair ``(i, j)`` of modalities,
-            a cross-modal layer of its own lets ``i``'s last present token attend to ``j``'s present tokens;
-            the decoder reads the ``M × M`` readouts (absent when ``i`` or ``j`` is), each with ``p^D_i``
-            (:class:`~mmf_rl.models.attention.PairStreams`). ``"mixed_pair_streams"``: the same streams over
-            the mixed tokens, so the fusion acts on every forecast.
+            under the standard prior the fusion shapes only training). A saved model's config without it
+            loads as ``"tokens"`` (:meth:`from_saved_dict`). ``"pair_streams"`` (MulT's streams): for each
+            ordered pair ``(i, j)`` of modalities, a cross-modal layer of its own lets ``i``'s last present
+            token attend to ``j``'s present tokens; the decoder reads the ``M × M`` readouts (absent when
+            ``i`` or ``j`` is), each with ``p^D_i`` (:class:`~mmf_rl.models.attention.PairStreams`).
+            ``"mixed_pair_streams"``: the same streams over the mixed tokens, so the fusion acts on every
+            forecast.
         pair_self (str, optional): the self pairs ``i <- i`` of the pair streams:
             ``"always"`` read (default) or only when ``i`` is the only present modality (``"alone"``: with two
             or more, the decoder reads MulT's ``M (M - 1)`` cross pairs alone; the self-pair layers then learn
@@ -95,7 +96,7 @@ class ForecasterConfig:
             enter the decoder's tokens ``H0``: ``"joint"`` (default, the paper: the shared MLP over
             ``[x̄ + p^D, z (, a)]``), ``"linear"`` (``H0 = x̄ + p^D + W [z (, a)]``: no MLP over every token)
             or ``"none"`` (a deterministic decoder that ignores ``z``; the actions still enter, linearly). A
-            saved config without it loads as ``"joint"``.
+            saved model's config without it loads as ``"joint"``, the default.
         action_dim (int, optional): ``A``; with ``action_steps``, makes the model an action-conditioned world
             model that reads ``"future_action"`` ``[B, action_steps, A]`` (the actions applied
             over the horizon). ``0`` (default): no action input, the paper's forecaster.
@@ -127,6 +128,10 @@ class ForecasterConfig:
         (['camera', 'force'], True)
         >>> ForecasterConfig.from_dict(config.to_dict()) == config
         True
+        >>> fresh = ForecasterConfig.from_dict({"modalities": [force]})  # today's defaults
+        >>> saved_before = {k: v for k, v in fresh.to_dict().items() if k != "decoder_input"}
+        >>> fresh.decoder_input, ForecasterConfig.from_saved_dict(saved_before).decoder_input
+        ('mixed', 'tokens')
         >>> ForecasterConfig(modalities=config.modalities, d_model=30, num_heads=4)
         Traceback (most recent call last):
             ...
@@ -156,6 +161,9 @@ class ForecasterConfig:
     action_dim: int = 0
     action_steps: int = 0
     nonfinite: NonFiniteRule = "raise"
+    # The settings whose default changed since a config without them could be saved, at the value
+    # that config described (to_dict writes every setting: a saved config lacks one only if older).
+    SAVED_BEFORE: ClassVar[dict[str, str]] = {"decoder_input": "tokens"}
 
     def __post_init__(self):
         self.modalities = [
@@ -279,11 +287,11 @@ class ForecasterConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> ForecasterConfig:
-        """Build from plain data (a saved config, or the Hydra model config's sizes).
+        """Build from plain data: the settings given, today's defaults for the others (the Hydra model
+        config's sizes, a config written by hand).
 
         Args:
-            d (dict): the fields; a config saved before ``decoder_input`` existed loads as
-                ``"tokens"``, the decoder it described.
+            d (dict): the fields (modalities as :class:`ModalitySpec` or their dicts).
 
         Returns:
             The config.
@@ -292,5 +300,21 @@ class ForecasterConfig:
             ValueError: an unknown key or an invalid value.
         """
         reject_unknown_keys(cls, d, "ForecasterConfig")
-        # A config saved before decoder_input existed describes a decoder that read the raw tokens.
-        return cls(**{"decoder_input": "tokens", **d})
+        return cls(**d)
+
+    @classmethod
+    def from_saved_dict(cls, d: dict) -> ForecasterConfig:
+        """Build from a saved model's config (a checkpoint's ``model_config``, a ``config.json``): a
+        setting it lacks did not exist when it was saved, and takes the value that describes the model
+        saved then (:attr:`SAVED_BEFORE`: ``decoder_input="tokens"``), not today's default.
+
+        Args:
+            d (dict): the saved fields (:meth:`to_dict`'s form).
+
+        Returns:
+            The config of the saved model.
+
+        Raises:
+            ValueError: an unknown key or an invalid value.
+        """
+        return cls.from_dict({**cls.SAVED_BEFORE, **d})

@@ -326,7 +326,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         tokens = encoder_shape.num_tokens if self.pair_streams is None else len(self.pair_streams.pairs)
         decoder_shape = dataclasses.replace(encoder_shape, role="decoder", num_tokens=tokens)
         self.decoder = ModalitySpecificDecoder(config, decoder_shape)
-        self.scale_calibration = PresenceScaleCalibration(len(self.modalities))
+        self.scale_calibration = PresenceScaleCalibration(len(self.modalities), config.horizon)
         self.action_encoder = (
             mlp(config.action_steps * config.action_dim, config.head_hidden, config.d_model)
             if config.action_dim
