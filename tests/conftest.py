@@ -42,6 +42,21 @@ def run_bench(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
     )
 
 
+# The slow tier: `make test` runs every test, `make test-fast` (-m "not slow") leaves these out. A test
+# reading a recorded or converted dataset (directly or through a run trained on it) is slow by its
+# fixture: the session's push recording, tests/test_record.py's and tests/eval/test_eval_command.py's
+# recordings, tests/benchmarks/pedestrians/test_scoring.py's converted ETH/UCY fold. The other slow
+# tests (subprocesses, scripts run end to end, the docs' build, long training) are marked where they are
+# written.
+SLOW_FIXTURES = {"recorded_push_root", "recorded", "policy_recorded", "faulty_push_root", "eth_fold"}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if SLOW_FIXTURES.intersection(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
+
+
 HISTORY = 4
 HORIZON = 5
 TARGET_DIM = 2

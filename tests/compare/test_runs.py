@@ -55,10 +55,11 @@ def test_the_kl_warmup_goes_to_the_entries_whose_loss_has_a_kl(tmp_path):
     no_kl = Entry("paper, no KL", "ablation", ("model=forecaster", "loss=no_mis", "loss.kl_weight=0"))
     chosen = (*entries.CATALOGUE, no_kl)
     s = dataclasses.replace(study(tmp_path, chosen), budget=Budget(steps=100, batch_size=32, seeds=(0,)))
-    warmup = {e.label: runs.compose_train(e, 0, s, tmp_path / "run").loss.kl_warmup_steps for e in chosen}
+    composed = {e.label: runs.compose_train(e, 0, s, tmp_path / "run") for e in chosen}
+    warmup = {label: cfg.loss.kl_warmup_steps for label, cfg in composed.items()}
     # LF-LSTM's and MulT's entries (zero-fill, retrained, trained for missing sensors, the recommended
     # preset) train without a KL.
-    models = {e.label: runs.compose_train(e, 0, s, tmp_path / "run").model.name for e in chosen}
+    models = {label: cfg.model.name for label, cfg in composed.items()}
     not_warmed = {label for label, name in models.items() if name in ("lf_lstm", "mult")} | {no_kl.label}
     assert len(not_warmed) == 12
     assert {label for label, steps in warmup.items() if steps != 100 // 5} == not_warmed

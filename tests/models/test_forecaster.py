@@ -428,6 +428,7 @@ def trained_world_model_error(train: TensorDict, test: TensorDict, steps: int = 
         return float((model(test.clone()).get(keys.FORECAST_LOC) - test.get(keys.TARGET)).square().mean())
 
 
+@pytest.mark.slow
 def test_world_model_learns_what_the_actions_do():
     """Same data, model and budget: trained and tested with each window's own actions, the forecast
     error falls far below the control's, trained and tested with the actions shuffled among the windows
