@@ -199,16 +199,12 @@ def restored_registries():
 
 
 @pytest.fixture(scope="session")
-def docs_runs(recorded_push_root, push_world_model_run, tmp_path_factory) -> Path:
-    """A directory holding the runs the pages' examples name: a tiny push forecaster trained by
-    `mmf-rl train` on the recorded push data (``runs/push``, ``runs/demo``, ``runs/mine``) and the
-    session's tiny world model (``runs/world_model``)."""
-    from mmf_rl.cli import main as cli
-    from tests.conftest import push_train_overrides
-
+def docs_runs(push_forecaster_run, push_world_model_run, tmp_path_factory) -> Path:
+    """A directory holding the runs the pages' examples name: a copy of the session's tiny push
+    forecaster, which the examples may evaluate into (``runs/push``, ``runs/demo``, ``runs/mine``), and
+    the session's tiny world model (``runs/world_model``)."""
     root = tmp_path_factory.mktemp("docs_runs")
-    run = root / "runs" / "push"
-    assert cli(["train", *push_train_overrides(recorded_push_root, root / "cache", run, steps=6)]) == 0
+    run = Path(shutil.copytree(push_forecaster_run, root / "runs" / "push"))
     for name in ("demo", "mine"):
         (root / "runs" / name).symlink_to(run, target_is_directory=True)
     (root / "runs" / "world_model").symlink_to(push_world_model_run, target_is_directory=True)
