@@ -308,6 +308,7 @@ def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_
     trained = {p: p.stat().st_mtime_ns for p in without.rglob("*")}
     in_sample_with = work / "bc_with_forecasts_seed0"
     trained_with = {p: p.stat().st_mtime_ns for p in in_sample_with.rglob("*")}
+    assert trained and trained_with, "the plain run trained both policies: what must be left alone"
     ordinary_results = (work / "results.json").read_text()
 
     assert cli(tiny_argv(recorded_push_root, push_cache_dir, work, forecaster="held-out")) == 0
@@ -483,6 +484,7 @@ def test_bc_push_given_forecaster_trains_its_own_with_policy_and_refuses_another
     work = copied_work(plain_run, tmp_path)  # the in-sample policies, trained
     in_sample_with = work / "bc_with_forecasts_seed0"
     trained = {p: p.stat().st_mtime_ns for p in in_sample_with.rglob("*")}
+    assert trained, "the plain run trained the in-sample with policy: what must be left alone"
     ordinary_results = (work / "results.json").read_text()
     for name in ("mine", "other"):  # a user's forecasters, here copies of the in-sample one
         shutil.copytree(work / "forecaster", tmp_path / name)
