@@ -2,7 +2,7 @@
 VENV_PY := .venv/bin/python
 export MUJOCO_GL ?= egl
 
-.PHONY: setup test demo bench docs
+.PHONY: setup test test-fast demo bench docs
 
 setup:
 	@bash scripts/setup.sh
@@ -12,6 +12,12 @@ test: setup
 	.venv/bin/ruff check .
 	.venv/bin/ruff format --check .
 	$(VENV_PY) -m pytest -q --durations=25 tests
+
+# The fast tier, for the edit-test loop: no recordings, subprocesses, end-to-end scripts, docs build or
+# long training (the tests marked `slow`, tests/conftest.py); `make test` runs those too.
+test-fast: setup
+	.venv/bin/ruff check .
+	$(VENV_PY) -m pytest -q -m "not slow" --durations=25 tests
 
 demo: setup
 	$(VENV_PY) -m mmf_rl.cli demo

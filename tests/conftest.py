@@ -42,6 +42,21 @@ def run_bench(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
     )
 
 
+# The slow tier: `make test` runs every test, `make test-fast` (-m "not slow") leaves these out. A test
+# reading a recorded or converted dataset (directly or through a run trained on it) is slow by its
+# fixture: the session's push recording, tests/test_record.py's and tests/eval/test_eval_command.py's
+# recordings, tests/benchmarks/pedestrians/test_scoring.py's converted ETH/UCY fold. The other slow
+# tests (subprocesses, scripts run end to end, the docs' build, long training) are marked where they are
+# written.
+SLOW_FIXTURES = {"recorded_push_root", "recorded", "policy_recorded", "faulty_push_root", "eth_fold"}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if SLOW_FIXTURES.intersection(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
+
+
 HISTORY = 4
 HORIZON = 5
 TARGET_DIM = 2
@@ -274,13 +289,42 @@ class InMemoryLoader:
             yield self.data[order[i * self.batch_size : (i + 1) * self.batch_size]]
 
 
+def file_states(root: Path) -> dict[str, tuple[int, int]]:
+    """Every file under ``root`` by its path relative to it: its size and modification time (ns)."""
+    return {
+        str(path.relative_to(root)): (path.stat().st_size, path.stat().st_mtime_ns)
+        for path in root.rglob("*")
+        if path.is_file()
+    }
+
+
+@contextlib.contextmanager
+def left_unchanged(root: Path, what: str):
+    """Yields ``root``; after the block, fails naming the files a test added, changed or removed under
+    it. The session's recording and trained runs are shared by every test that reads them: a test that
+    writes into one must copy it first (into its ``tmp_path``)."""
+    before = file_states(root)
+    yield root
+    after = file_states(root)
+    changed = sorted(name for name in before.keys() | after.keys() if before.get(name) != after.get(name))
+    assert not changed, f"a test wrote into the session's {what} {root} (copy it first): {changed[:10]}"
+
+
 @pytest.fixture(scope="session")
 def recorded_push_root(tmp_path_factory):
     """A small multimodal push dataset recorded by the project's own recorder (real MuJoCo data)."""
     from mmf_rl.record import RecordConfig, record
 
-    root = tmp_path_factory.mktemp("recorded") / "push"
-    return record(RecordConfig(out=root, episodes=6, steps=40, image_size=32, seed=3))
+    out = tmp_path_factory.mktemp("recorded") / "push"
+    root = record(RecordConfig(out=out, episodes=6, steps=40, image_size=32, seed=3))
+    with left_unchanged(root, "recording"):
+        yield root
+
+
+@pytest.fixture(scope="session")
+def push_cache_dir(tmp_path_factory) -> Path:
+    """One window cache directory for the runs on the recording: entries are keyed by dataset and config."""
+    return tmp_path_factory.mktemp("window-cache")
 
 
 def push_train_overrides(root, cache_dir, run_dir, steps: int = 6) -> list[str]:
@@ -311,6 +355,18 @@ def push_train_overrides(root, cache_dir, run_dir, steps: int = 6) -> list[str]:
 
 
 @pytest.fixture(scope="session")
+def push_forecaster_run(recorded_push_root, push_cache_dir, tmp_path_factory):
+    """A tiny forecaster trained by `mmf-rl train` (data=push, `push_train_overrides`' 6 steps, calibrated
+    at the end) on the recorded push data: the one trained run of every test that only reads one."""
+    from mmf_rl.cli import main as cli
+
+    run = tmp_path_factory.mktemp("push_forecaster") / "run"
+    assert cli(["train", *push_train_overrides(recorded_push_root, push_cache_dir, run)]) == 0
+    with left_unchanged(run, "trained run"):
+        yield run
+
+
+@pytest.fixture(scope="session")
 def push_world_model_run(recorded_push_root, tmp_path_factory):
     """A tiny action-conditioned world model trained by `mmf-rl train data=push_world_model` on the
     recorded push data (H = 4, T = 3, 32 px): the real pipeline end to end, for the RL glue tests."""
@@ -328,7 +384,8 @@ def push_world_model_run(recorded_push_root, tmp_path_factory):
         )
         == 0
     )
-    return run
+    with left_unchanged(run, "world model run"):
+        yield run
 
 
 @pytest.fixture(scope="session")

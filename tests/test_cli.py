@@ -145,6 +145,7 @@ def test_a_script_run_by_the_cli_keeps_its_level_and_run_alone_shows_progress():
         configure_logging(logging.INFO)
 
 
+@pytest.mark.slow
 def test_a_library_logging_on_the_root_logger_does_not_print_mmf_rl_records_twice():
     """In a fresh process (pytest configures the root logger): a root-logger call, as lerobot makes,
     gives the root its default handler; an ``mmf_rl`` record still prints once, another library's

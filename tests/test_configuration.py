@@ -215,6 +215,7 @@ def test_the_readmes_override_command_composes_what_it_says():
         assert data["root"] == given["data.root"]
 
 
+@pytest.mark.slow
 def test_the_configs_ship_in_the_wheel(tmp_path):
     """A wheel built from the repository (setuptools, no network) holds every config file."""
     source = tmp_path / "src"

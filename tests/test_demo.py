@@ -1,3 +1,5 @@
+import pytest
+
 from mmf_rl.cli import main as cli
 from tests.conftest import push_train_overrides
 
@@ -30,6 +32,7 @@ def test_demo_trains_evaluates_and_reruns_without_starting_over(recorded_push_ro
     assert "has checkpoints: resuming" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_demo_records_when_the_dataset_is_absent(tmp_path, capsys):
     data = tmp_path / "push"
     args = [

@@ -47,6 +47,7 @@ def mkdocs_build(root: Path, site: Path) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow
 def test_the_site_builds_strict(tmp_path):
     build = mkdocs_build(REPO, tmp_path / "site")
     assert build.returncode == 0, build.stdout[-2000:] + build.stderr[-4000:]
@@ -68,6 +69,7 @@ def site_copy(tmp_path: Path) -> Path:
     return root
 
 
+@pytest.mark.slow
 def test_the_strict_build_fails_on_a_broken_link_or_anchor_a_page_off_the_nav_or_a_bad_docstring(tmp_path):
     """One build of a copy holding four breakages: strict mode reports every warning before it aborts."""
     root = site_copy(tmp_path)
@@ -91,6 +93,7 @@ def test_the_strict_build_fails_on_a_broken_link_or_anchor_a_page_off_the_nav_or
         assert expected in output, f"the build did not report {breakage}:\n{output[-3000:]}"
 
 
+@pytest.mark.slow
 def test_the_strict_build_fails_on_an_api_page_of_a_module_that_does_not_exist(tmp_path):
     root = site_copy(tmp_path)
     (root / "docs" / "api" / "keys.md").write_text("# keys\n\n::: mmf_rl.no_such_module\n")
@@ -108,6 +111,7 @@ def benchmark_scripts() -> list[str]:
     )
 
 
+@pytest.mark.slow
 def test_every_benchmark_has_a_page_in_the_nav_whose_first_table_names_its_commit():
     scripts = benchmark_scripts()
     assert len(scripts) >= 10, scripts
@@ -195,23 +199,29 @@ def restored_registries():
 
 
 @pytest.fixture(scope="session")
-def docs_runs(recorded_push_root, push_world_model_run, tmp_path_factory) -> Path:
-    """A directory holding the runs the pages' examples name: a tiny push forecaster trained by
-    `mmf-rl train` on the recorded push data (``runs/push``, ``runs/demo``, ``runs/mine``) and the
-    session's tiny world model (``runs/world_model``)."""
-    from mmf_rl.cli import main as cli
-    from tests.conftest import push_train_overrides
-
+def docs_runs(push_forecaster_run, push_world_model_run, tmp_path_factory) -> Path:
+    """A directory holding the runs the pages' examples name: a copy of the session's tiny push
+    forecaster, which the examples may evaluate into (``runs/push``, ``runs/demo``, ``runs/mine``), and
+    the session's tiny world model (``runs/world_model``)."""
     root = tmp_path_factory.mktemp("docs_runs")
-    run = root / "runs" / "push"
-    assert cli(["train", *push_train_overrides(recorded_push_root, root / "cache", run, steps=6)]) == 0
+    run = Path(shutil.copytree(push_forecaster_run, root / "runs" / "push"))
     for name in ("demo", "mine"):
         (root / "runs" / name).symlink_to(run, target_is_directory=True)
     (root / "runs" / "world_model").symlink_to(push_world_model_run, target_is_directory=True)
     return root
 
 
-@pytest.mark.parametrize("page", PAGES_WITH_CODE, ids=lambda page: page.relative_to(REPO).as_posix())
+# A page whose blocks read trained runs waits for the session's recording and runs: the slow tier.
+@pytest.mark.parametrize(
+    "page",
+    [
+        pytest.param(page, marks=pytest.mark.slow)
+        if any(marker == TRAINED_RUNS for _, marker in python_blocks(page))
+        else page
+        for page in PAGES_WITH_CODE
+    ],
+    ids=lambda page: page.relative_to(REPO).as_posix(),
+)
 def test_a_pages_python_blocks_run(page, request, restored_registries, tmp_path, monkeypatch):
     blocks = python_blocks(page)
     if any(marker == TRAINED_RUNS for _, marker in blocks):

@@ -246,7 +246,17 @@ def test_main_entry_points_have_examples():
 WITH_EXAMPLES = sorted(name for name, obj in PUBLIC.items() if any(t.examples for t in doctests(obj, name)))
 
 
-@pytest.mark.parametrize("name", WITH_EXAMPLES)
+# These examples record a tiny push dataset and train on it: the slow tier.
+RECORDING_EXAMPLES = {"mmf_rl.train", "mmf_rl.evaluate"}
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(name, marks=pytest.mark.slow) if name in RECORDING_EXAMPLES else name
+        for name in WITH_EXAMPLES
+    ],
+)
 def test_examples_run(name):
     with torch.random.fork_rng(devices=[]):  # an example that seeds torch leaves the other tests' draws alone
         count, failures = run_examples(PUBLIC[name], name)

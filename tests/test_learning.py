@@ -8,6 +8,8 @@ from mmf_rl.models import ForecasterConfig, MultimodalForecaster
 from mmf_rl.objectives import CombinedLoss, ELBOLoss, MissingModalityLoss
 from tests.conftest import SYNTH_DT, SYNTH_MODALITIES
 
+pytestmark = pytest.mark.slow  # two models trained for STEPS steps
+
 STEPS = 200
 BATCH = 128
 

@@ -9,6 +9,7 @@ import mmf_rl
 from mmf_rl.configuration import compose_config
 
 
+@pytest.mark.slow
 def test_import_mmf_rl_loads_no_torch():
     script = "import sys, mmf_rl; assert 'torch' not in sys.modules, 'torch imported'; print(dir(mmf_rl))"
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True).stdout

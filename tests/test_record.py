@@ -168,6 +168,7 @@ def test_a_recording_says_how_it_was_made(recorded, capsys):
     ]
 
 
+@pytest.mark.slow
 def test_a_steady_recording_says_so_and_not_its_worker_count(config, tmp_path):
     steady = replace(config, out=tmp_path / "steady", steady=True, steps=3, workers=2, seed=7)
     provenance = read_recording_provenance(record(steady))
@@ -176,6 +177,7 @@ def test_a_steady_recording_says_so_and_not_its_worker_count(config, tmp_path):
     assert json.loads((steady.out / PROVENANCE_FILE).read_text()) == provenance
 
 
+@pytest.mark.slow
 def test_faults_are_written_as_data(config, push_env, tmp_path):
     # Seed 5 draws force dropouts and camera outages in both of its first two episodes.
     faulty = replace(config, out=tmp_path / "faulty", seed=5, faults=True)
@@ -306,6 +308,7 @@ class UnloadablePolicy:
         raise ValueError("no world model in runs/missing")
 
 
+@pytest.mark.slow
 def test_a_failing_worker_is_a_one_line_error_naming_its_episodes(tmp_path, capsys):
     args = record_module.build_parser().parse_args(
         ["--out", str(tmp_path / "push"), "--episodes", "4", "--workers", "2", "--steps", "3"]

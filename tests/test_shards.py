@@ -11,6 +11,8 @@ import pytest
 
 from mmf_rl.shards import ShardError, run_shards
 
+pytestmark = pytest.mark.slow  # every test spawns shard workers
+
 # Shard workers: module functions, so that a spawned process imports them by name (this module
 # imports little at its top, so that the spawned processes start fast).
 

@@ -4,6 +4,8 @@ both policies, plays, writes the results and ends with the summary line."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import logging
 import re
@@ -32,9 +34,10 @@ from mmf_rl.rl import BCPolicy
 from tests.conftest import push_train_overrides
 
 
-def assert_one_outage_summary(capsys) -> None:
-    """The run's last stdout line is bc_push's summary line for one outage type (``--outage episode``)."""
-    last = capsys.readouterr().out.strip().splitlines()[-1]
+def assert_one_outage_summary(out: str) -> None:
+    """The run's last stdout line (of ``out``) is bc_push's summary line for one outage type
+    (``--outage episode``)."""
+    last = out.strip().splitlines()[-1]
     pct = r"\d+%/\d+%"
     assert re.fullmatch(
         rf"summary: BC success all {pct}, no-camera {pct}, no-force {pct} \(without/with forecasts\); "
@@ -44,14 +47,27 @@ def assert_one_outage_summary(capsys) -> None:
     ), last
 
 
-@pytest.mark.parametrize("latched", [None, "precision"])
-def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
-    recorded_push_root, tmp_path, capsys, latched
-):
-    work = tmp_path / "work"
-    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
-    assert cli([*argv, *(("--latched-forecast", latched) if latched else ())]) == 0
-    assert_one_outage_summary(capsys)
+@pytest.fixture(scope="module")
+def plain_run(recorded_push_root, push_cache_dir, tmp_path_factory) -> tuple[Path, str]:
+    """`tiny_argv`'s plain run without DAgger, played once for the module: its --work directory and its
+    stdout. Read by the tests of what a run builds; a test that runs more in that work copies it first
+    (`copied_work`)."""
+    work = tmp_path_factory.mktemp("bc_push_plain") / "work"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert cli(tiny_argv(recorded_push_root, push_cache_dir, work, dagger=False)) == 0
+    return work, out.getvalue()
+
+
+def copied_work(plain_run, tmp_path) -> Path:
+    """A copy of the plain run's --work directory (modification times kept) in ``tmp_path``."""
+    return Path(shutil.copytree(plain_run[0], tmp_path / "work"))
+
+
+def assert_built_what_it_lacked(work: Path, out: str, latched: str | None) -> None:
+    """A run without DAgger (``--latched-forecast latched``) in the empty ``work`` built the forecaster and
+    both policies, played every condition, wrote the results and ended with the summary line."""
+    assert_one_outage_summary(out)
     results = json.loads((work / "results.json").read_text())
     conditions = ["all", "no-camera (episode)", "no-force (episode)"]
     expected = {f"BC {v} forecasts | {c}" for v in ("without", "with") for c in conditions} | {
@@ -64,6 +80,19 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(
     for run in ("bc_without_forecasts_seed0", with_run):
         assert (work / run / "checkpoints" / "last").is_file()
     assert BCPolicy.from_checkpoint(work / with_run / "checkpoints").config.latched_forecast == latched
+
+
+def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(plain_run):
+    assert_built_what_it_lacked(*plain_run, latched=None)
+
+
+def test_bc_push_with_a_latched_forecast_builds_what_it_lacks_and_ends_with_the_summary(
+    recorded_push_root, push_cache_dir, tmp_path, capsys
+):
+    work = tmp_path / "work"
+    argv = tiny_argv(recorded_push_root, push_cache_dir, work, dagger=False)
+    assert cli([*argv, "--latched-forecast", "precision"]) == 0
+    assert_built_what_it_lacked(work, capsys.readouterr().out, latched="precision")
 
 
 # The plain policies: a style drawn per episode, one action per step, the forecast of the live sensors
@@ -81,7 +110,7 @@ PLAIN = [
 
 
 def tiny_argv(
-    recorded_push_root, tmp_path, work, *, forecaster: str | Path = "in-sample", data=True, dagger=True
+    recorded_push_root, cache_dir, work, *, forecaster: str | Path = "in-sample", data=True, dagger=True
 ) -> list[str]:
     """`mmf-rl bench bc` at sizes that run in seconds. ``forecaster``: ``"in-sample"``, trained on the
     policies' recording; ``"held-out"``, the default, trained on a recording the script makes; or the
@@ -89,7 +118,7 @@ def tiny_argv(
     are the test's only in-sample with ``--data``; otherwise the script's. ``data=False``: no
     ``--data``, the script records 4 episodes for the policies; ``dagger``: one DAgger round. The
     policies are the plain ones (`PLAIN`), not the script's defaults, which tests below cover."""
-    overrides = push_train_overrides(recorded_push_root, tmp_path / "cache", work / "forecaster", steps=3)
+    overrides = push_train_overrides(recorded_push_root, cache_dir, work / "forecaster", steps=3)
     if forecaster != "in-sample" or not data:
         overrides = [o for o in overrides if not o.startswith(("data.root=", "run_dir="))]
     kind = {"in-sample": ["--in-sample-forecaster"], "held-out": []}
@@ -110,10 +139,10 @@ def tiny_argv(
 
 
 def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
-    recorded_push_root, tmp_path, capsys
+    recorded_push_root, push_cache_dir, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    argv = tiny_argv(recorded_push_root, tmp_path, work)
+    argv = tiny_argv(recorded_push_root, push_cache_dir, work)
     assert cli(argv) == 0
     assert not (work / "results.json").exists(), "round 0's results are not written over"
     first = json.loads((work / "dagger1" / "results.json").read_text())
@@ -142,11 +171,11 @@ def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
 
 
 def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_own(
-    recorded_push_root, tmp_path, capsys
+    recorded_push_root, push_cache_dir, tmp_path, capsys
 ):
     work = tmp_path / "work"
     argv = [
-        *tiny_argv(recorded_push_root, tmp_path, work),
+        *tiny_argv(recorded_push_root, push_cache_dir, work),
         "--privileged-object",
         "--variants",
         "without",
@@ -175,10 +204,12 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
     assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
 
 
-def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(recorded_push_root, tmp_path, capsys):
+def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(
+    recorded_push_root, push_cache_dir, tmp_path, capsys
+):
     work = tmp_path / "work"
-    assert cli([*tiny_argv(recorded_push_root, tmp_path, work), "--action-chunk", "2"]) == 0
-    assert_one_outage_summary(capsys)
+    assert cli([*tiny_argv(recorded_push_root, push_cache_dir, work), "--action-chunk", "2"]) == 0
+    assert_one_outage_summary(capsys.readouterr().out)
     assert not (work / "results.json").exists(), "the per-step policies' results are left alone"
     assert json.loads((work / "chunk2_dagger1" / "results.json").read_text())["action_chunk"] == 2
     for run in (
@@ -192,11 +223,13 @@ def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(recorded_
     assert not (work / "dagger_markov_seed0_round1").exists()
 
 
-def test_bc_push_gmm_head_reaches_every_policy_in_runs_of_their_own(recorded_push_root, tmp_path, capsys):
+def test_bc_push_gmm_head_reaches_every_policy_in_runs_of_their_own(
+    recorded_push_root, push_cache_dir, tmp_path, capsys
+):
     work = tmp_path / "work"
-    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    argv = tiny_argv(recorded_push_root, push_cache_dir, work, dagger=False)
     assert cli([*argv, "--action-head", "gmm", "--action-chunk", "2"]) == 0
-    assert_one_outage_summary(capsys)
+    assert_one_outage_summary(capsys.readouterr().out)
     assert not (work / "results.json").exists(), "the regression policies' results are left alone"
     results = json.loads((work / "chunk2_gmm" / "results.json").read_text())
     assert results["action_head"] == "gmm" and results["action_chunk"] == 2
@@ -208,13 +241,13 @@ def test_bc_push_gmm_head_reaches_every_policy_in_runs_of_their_own(recorded_pus
 
 
 def test_bc_push_replayed_outages_train_both_variants_in_runs_of_their_own(
-    recorded_push_root, tmp_path, capsys
+    recorded_push_root, push_cache_dir, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    argv = tiny_argv(recorded_push_root, push_cache_dir, work, dagger=False)
     replayed = [*argv, "--train-outages", "replayed", "--latched-forecast", "precision"]
     assert cli([*replayed, "--replay-draws", "1"]) == 0
-    assert_one_outage_summary(capsys)
+    assert_one_outage_summary(capsys.readouterr().out)
     assert not (work / "results.json").exists(), "the independently trained policies' results are left alone"
     results = json.loads((work / "replayed" / "results.json").read_text())
     assert results["train_outages"] == "replayed" and "replay the training outages" in results["phases_s"]
@@ -240,12 +273,12 @@ def test_bc_push_replayed_outages_train_both_variants_in_runs_of_their_own(
 
 
 def test_bc_push_forecast_steps_reach_only_the_with_policies_in_runs_of_their_own(
-    recorded_push_root, tmp_path, capsys
+    recorded_push_root, push_cache_dir, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
+    argv = tiny_argv(recorded_push_root, push_cache_dir, work, dagger=False)
     assert cli([*argv, "--forecast-steps", "1"]) == 0
-    assert_one_outage_summary(capsys)
+    assert_one_outage_summary(capsys.readouterr().out)
     assert not (work / "results.json").exists(), (
         "the results of the policies reading every step are left alone"
     )
@@ -265,21 +298,21 @@ def first_goal(root) -> np.ndarray:
 
 
 def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_of_their_own(
-    recorded_push_root, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys
 ):
     from mmf_rl.envs.push import MultimodalPushEnv
     from mmf_rl.envs.scripted import episode_generator, reset_for_push
 
-    work = tmp_path / "work"
-    argv = tiny_argv(recorded_push_root, tmp_path, work, dagger=False)
-    assert cli([*argv, "--variants", "without"]) == 0
+    work = copied_work(plain_run, tmp_path)  # the ordinary (in-sample) policies, trained
     without = work / "bc_without_forecasts_seed0" / "checkpoints"
     trained = {p: p.stat().st_mtime_ns for p in without.rglob("*")}
+    in_sample_with = work / "bc_with_forecasts_seed0"
+    trained_with = {p: p.stat().st_mtime_ns for p in in_sample_with.rglob("*")}
+    assert trained and trained_with, "the plain run trained both policies: what must be left alone"
     ordinary_results = (work / "results.json").read_text()
 
-    capsys.readouterr()
-    assert cli(tiny_argv(recorded_push_root, tmp_path, work, forecaster="held-out")) == 0
-    assert_one_outage_summary(capsys)
+    assert cli(tiny_argv(recorded_push_root, push_cache_dir, work, forecaster="held-out")) == 0
+    assert_one_outage_summary(capsys.readouterr().out)
     recording = work / "push_forecaster"
     info = json.loads((recording / "meta" / "info.json").read_text())
     source = json.loads((recorded_push_root / "meta" / "info.json").read_text())
@@ -311,19 +344,19 @@ def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_
     assert f"trained on the recording `{recording.resolve()}` (recorded here with seed 1" in page
     for run in ("bc_with_heldout_forecasts_seed0", "dagger_markov_heldout_seed0_round1/bc_with_forecasts"):
         assert (work / run / "checkpoints" / "last").is_file(), run
-    assert not (work / "bc_with_forecasts_seed0").exists()
+    assert {p: p.stat().st_mtime_ns for p in in_sample_with.rglob("*")} == trained_with
     assert "train BC without seed 0" not in results["phases_s"], "the ordinary without policy is reused"
     assert {p: p.stat().st_mtime_ns for p in without.rglob("*")} == trained
 
 
 def test_bc_push_steady_demonstrations_are_recorded_by_the_steady_pusher_in_runs_of_their_own(
-    recorded_push_root, tmp_path, capsys
+    recorded_push_root, push_cache_dir, tmp_path, capsys
 ):
     from mmf_rl.envs.push import MultimodalPushEnv
     from mmf_rl.envs.scripted import rollout
 
     work = tmp_path / "work"
-    argv = tiny_argv(recorded_push_root, tmp_path, work, data=False, dagger=False)
+    argv = tiny_argv(recorded_push_root, push_cache_dir, work, data=False, dagger=False)
     assert cli([*argv, "--steady-demonstrations", "--variants", "without"]) == 0
     parquets = sorted((work / "push_steady" / "data").glob("*/*.parquet"))
     frames = pd.concat(pd.read_parquet(p) for p in parquets)
@@ -385,11 +418,11 @@ def test_bc_push_refuses_a_reused_recording_of_another_kind_and_warns_when_it_ca
 
 
 def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_untagged_runs(
-    recorded_push_root, tmp_path, capsys
+    recorded_push_root, push_cache_dir, tmp_path, capsys
 ):
     work = tmp_path / "work"
-    assert cli(tiny_argv(recorded_push_root, tmp_path, work, data=False, dagger=False)) == 0
-    assert_one_outage_summary(capsys)
+    assert cli(tiny_argv(recorded_push_root, push_cache_dir, work, data=False, dagger=False)) == 0
+    assert_one_outage_summary(capsys.readouterr().out)
     recording = (work / "push").resolve()
     config = yaml.safe_load((work / "forecaster" / "config.yaml").read_text())
     assert config["data"]["root"] == str(recording)
@@ -446,20 +479,19 @@ def test_bc_push_with_run_records_its_forecaster_and_refuses_another(tmp_path):
 
 
 def test_bc_push_given_forecaster_trains_its_own_with_policy_and_refuses_another_in_the_same_work(
-    recorded_push_root, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys
 ):
-    work = tmp_path / "work"
-    assert cli(tiny_argv(recorded_push_root, tmp_path, work, dagger=False)) == 0
+    work = copied_work(plain_run, tmp_path)  # the in-sample policies, trained
     in_sample_with = work / "bc_with_forecasts_seed0"
     trained = {p: p.stat().st_mtime_ns for p in in_sample_with.rglob("*")}
+    assert trained, "the plain run trained the in-sample with policy: what must be left alone"
     ordinary_results = (work / "results.json").read_text()
     for name in ("mine", "other"):  # a user's forecasters, here copies of the in-sample one
         shutil.copytree(work / "forecaster", tmp_path / name)
     mine, other = (tmp_path / name / "checkpoints" for name in ("mine", "other"))
 
-    capsys.readouterr()
-    assert cli(tiny_argv(recorded_push_root, tmp_path, work, forecaster=mine, dagger=False)) == 0
-    assert_one_outage_summary(capsys)
+    assert cli(tiny_argv(recorded_push_root, push_cache_dir, work, forecaster=mine, dagger=False)) == 0
+    assert_one_outage_summary(capsys.readouterr().out)
     results = json.loads((work / "given" / "results.json").read_text())
     assert "train BC with seed 0" in results["phases_s"]
     assert "train BC without seed 0" not in results["phases_s"], "the ordinary without policy is reused"
@@ -470,7 +502,7 @@ def test_bc_push_given_forecaster_trains_its_own_with_policy_and_refuses_another
     assert (work / "results.json").read_text() == ordinary_results, "the in-sample results are left alone"
 
     capsys.readouterr()
-    assert cli(tiny_argv(recorded_push_root, tmp_path, work, forecaster=other, dagger=False)) == 1
+    assert cli(tiny_argv(recorded_push_root, push_cache_dir, work, forecaster=other, dagger=False)) == 1
     err = capsys.readouterr().err
     refusal = err.strip().splitlines()[-1]  # after the in-sample warning's log line
     assert refusal.startswith("bc_push: error: ") and "use another --work" in refusal
@@ -504,9 +536,9 @@ def test_bc_push_warns_when_a_given_forecaster_was_trained_on_the_policies_recor
     ],
 )
 def test_bc_push_refuses_a_forecaster_whose_training_data_contradicts_its_options(
-    recorded_push_root, tmp_path, capsys, extra, refusal
+    recorded_push_root, push_cache_dir, tmp_path, capsys, extra, refusal
 ):
-    argv = tiny_argv(recorded_push_root, tmp_path, tmp_path / "work", forecaster="held-out")
+    argv = tiny_argv(recorded_push_root, push_cache_dir, tmp_path / "work", forecaster="held-out")
     extra = [a.replace("DATA", str(recorded_push_root)) for a in extra]
     assert cli([*argv, *extra]) == 2
     assert refusal in capsys.readouterr().err

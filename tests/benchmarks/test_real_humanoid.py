@@ -39,6 +39,7 @@ def test_a_missing_recording_is_a_clear_error(tmp_path):
     assert run.returncode == 2 and "no LeRobot dataset there (meta/info.json missing)" in run.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     not (G1 / "meta" / "info.json").is_file(),
     reason=f"real G1 recording not found at {G1} (set MMF_RL_SHARED_DATA)",

@@ -55,10 +55,11 @@ def test_the_kl_warmup_goes_to_the_entries_whose_loss_has_a_kl(tmp_path):
     no_kl = Entry("paper, no KL", "ablation", ("model=forecaster", "loss=no_mis", "loss.kl_weight=0"))
     chosen = (*entries.CATALOGUE, no_kl)
     s = dataclasses.replace(study(tmp_path, chosen), budget=Budget(steps=100, batch_size=32, seeds=(0,)))
-    warmup = {e.label: runs.compose_train(e, 0, s, tmp_path / "run").loss.kl_warmup_steps for e in chosen}
+    composed = {e.label: runs.compose_train(e, 0, s, tmp_path / "run") for e in chosen}
+    warmup = {label: cfg.loss.kl_warmup_steps for label, cfg in composed.items()}
     # LF-LSTM's and MulT's entries (zero-fill, retrained, trained for missing sensors, the recommended
     # preset) train without a KL.
-    models = {e.label: runs.compose_train(e, 0, s, tmp_path / "run").model.name for e in chosen}
+    models = {label: cfg.model.name for label, cfg in composed.items()}
     not_warmed = {label for label, name in models.items() if name in ("lf_lstm", "mult")} | {no_kl.label}
     assert len(not_warmed) == 12
     assert {label for label, steps in warmup.items() if steps != 100 // 5} == not_warmed
@@ -144,18 +145,6 @@ def test_training_rate_is_the_last_logged_throughput(tmp_path):
     assert runs.training_rate(tmp_path) == 402.25
 
 
-@pytest.fixture(scope="module")
-def push_run(recorded_push_root, tmp_path_factory) -> Path:
-    """A run trained a few steps on data recorded by the project's recorder."""
-    from mmf_rl.configuration import compose_config
-    from mmf_rl.trainers.training import train
-    from tests.conftest import push_train_overrides
-
-    base = tmp_path_factory.mktemp("compare_run")
-    train(compose_config("train", push_train_overrides(recorded_push_root, base / "cache", base / "run")))
-    return base / "run"
-
-
 def evaluation(run: Path, *overrides: str) -> dict:
     from mmf_rl.configuration import compose_config
     from mmf_rl.eval.evaluation import evaluate
@@ -163,13 +152,13 @@ def evaluation(run: Path, *overrides: str) -> dict:
     return evaluate(compose_config("eval", [f"checkpoint={run}", "plots=false", "num_samples=0", *overrides]))
 
 
-def test_window_errors_average_to_the_evaluations_mse_on_recorded_push_data(push_run, tmp_path):
+def test_window_errors_average_to_the_evaluations_mse_on_recorded_push_data(push_forecaster_run, tmp_path):
     """The comparison's own pass over the test windows (per-window errors, with their episodes) scores
     the same windows the same way as `mmf-rl eval`, on data recorded by the project's recorder."""
     from mmf_rl.checkpoint import load_checkpoint
     from mmf_rl.datasets import DataConfig, WindowDataset
 
-    run = push_run
+    run = push_forecaster_run
     summary = evaluation(run, f"out_dir={tmp_path / 'eval'}", "allow_outside_run_dir=true")
     errors = runs.window_errors(run, "cpu", batch_size=7)  # batches that do not divide the split
     assert set(errors) == set(summary["subsets"])
@@ -188,22 +177,21 @@ def test_window_errors_average_to_the_evaluations_mse_on_recorded_push_data(push
         runs.check_agreement(run, errors, summary)
 
 
-def test_train_mse_scores_training_windows_as_eval_does_on_recorded_push_data(push_run, tmp_path):
+def test_train_mse_scores_training_windows_as_eval_does_on_recorded_push_data(push_forecaster_run, tmp_path):
     """All training windows drawn: the evaluation's MSE of the train split with every sensor. Fewer: a
     subset drawn the same way every time."""
     from mmf_rl.checkpoint import load_checkpoint
     from mmf_rl.datasets import DataConfig, WindowDataset
 
+    run = push_forecaster_run
     out = [f"out_dir={tmp_path / 'eval'}", "allow_outside_run_dir=true"]
-    expected = evaluation(push_run, "split=train", *out)["subsets"]["all"]
-    trained = load_checkpoint(push_run / "checkpoints", with_trainer_state=False).meta["config"]["data"]
+    expected = evaluation(run, "split=train", *out)["subsets"]["all"]
+    trained = load_checkpoint(run / "checkpoints", with_trainer_state=False).meta["config"]["data"]
     windows = len(WindowDataset(DataConfig.from_dict(trained)).split_windows["train"])
     assert expected["windows"] == windows
-    assert runs.train_mse(push_run, "cpu", windows=windows, batch_size=7) == pytest.approx(
+    assert runs.train_mse(run, "cpu", windows=windows, batch_size=7) == pytest.approx(
         expected["mse"], rel=1e-5
     )
-    drawn = runs.train_mse(push_run, "cpu", windows=windows // 2)
-    assert drawn == pytest.approx(
-        runs.train_mse(push_run, "cpu", windows=windows // 2, batch_size=5), rel=1e-6
-    )
+    drawn = runs.train_mse(run, "cpu", windows=windows // 2)
+    assert drawn == pytest.approx(runs.train_mse(run, "cpu", windows=windows // 2, batch_size=5), rel=1e-6)
     assert drawn != pytest.approx(expected["mse"], rel=1e-6)

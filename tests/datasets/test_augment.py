@@ -65,6 +65,7 @@ def test_deterministic_under_the_seed_and_independent_of_the_global_generator():
         assert not torch.equal(out.get(obs_key("image")), first.get(obs_key("image"))), other
 
 
+@pytest.mark.slow  # augment=lerobot augments in a worker process
 def test_training_loader_only_and_off_by_default(dataset):
     assert not AugmentConfig.from_dict(to_container(compose_config("train", []).augment)).enable
     cfg = to_container(compose_config("train", ["augment=lerobot"]).augment)
@@ -85,6 +86,7 @@ def epoch_of(loader, epoch: int, batches: int | None = None) -> list:
     return [batch for _, batch in zip(range(batches or len(loader)), loader, strict=False)]
 
 
+@pytest.mark.slow
 def test_augmenting_in_workers_gives_the_training_threads_batches_bit_for_bit(dataset):
     cfg = to_container(compose_config("train", ["augment=lerobot"]).augment)
     loaders = {
@@ -117,6 +119,7 @@ def test_augmenting_in_workers_gives_the_training_threads_batches_bit_for_bit(da
     assert not torch.equal(here[0].get(obs_key("image")), plain[0].get(obs_key("image")))
 
 
+@pytest.mark.slow
 def test_a_killed_worker_stops_the_epoch_with_an_error_naming_the_fix(dataset):
     cfg = to_container(compose_config("train", ["augment=lerobot"]).augment)
     loader = dataset.loader(
@@ -149,7 +152,7 @@ def test_bad_augment_configs_are_named(overrides, message):
         TrainingAugmentation(AugmentConfig.from_dict({"enable": True, **overrides}), SMALL_MODALITIES, 0)
 
 
-@pytest.mark.parametrize("workers", [0, 1])
+@pytest.mark.parametrize("workers", [0, pytest.param(1, marks=pytest.mark.slow)])  # 1: a worker process
 def test_a_transform_that_resizes_is_named(workers):
     augment = TrainingAugmentation(
         AugmentConfig.from_dict(

@@ -26,6 +26,7 @@ def test_windows_checked_in_chunks_equal_windows_checked_at_once(synthetic_root,
     assert whole.report["skipped"] == chunked.report["skipped"]
 
 
+@pytest.mark.slow
 def test_images_decoded_by_two_processes_build_the_cache_of_one(broken_images_root, tmp_path, monkeypatch):
     """Two processes with four jobs per camera, or one process with one job per camera: the same frame
     table (resized, undecodable images absent) and the same report, byte for byte."""

@@ -61,7 +61,7 @@ def test_images_in_the_parquet_are_cached_exactly_rgb_and_depth(image_only_root,
     assert torch.equal(batch.get(obs_key("depth")), recorded(1)[rows])
 
 
-@pytest.mark.parametrize("workers", [1, 2])
+@pytest.mark.parametrize("workers", [1, pytest.param(2, marks=pytest.mark.slow)])  # 2: a pool of processes
 def test_an_undecodable_image_is_an_absent_frame_named_in_the_report(broken_images_root, tmp_path, workers):
     with pytest.warns(
         UserWarning, match=r"'wrist'.*episode 0 frame 1 \(undecodable: RuntimeError: Unsupported"
@@ -113,6 +113,7 @@ def test_video_and_image_cameras_in_one_dataset(mixed_cameras_root, tmp_path):
     assert all(batch.get(present_key(n)).all() for n in ("wrist", "depth", "top", "joints"))
 
 
+@pytest.mark.slow  # a training run end to end over every camera storage
 def test_training_reads_every_camera_storage_with_augmentation(mixed_cameras_root, tmp_path):
     cfg = compose_config(
         "train",

@@ -219,6 +219,7 @@ def make_temp_dir(cache_dir: Path, name: str, age_s: float = 0.0) -> Path:
     return directory
 
 
+@pytest.mark.slow
 def test_stale_build_dirs_are_removed_live_ones_kept(synthetic_root, tmp_path, monkeypatch):
     config = synthetic_config(synthetic_root, tmp_path)
     seen = []
@@ -305,6 +306,7 @@ with _locked(Path({cache_dir!r})):  # no main guard: a spawned worker runs this 
 """
 
 
+@pytest.mark.slow
 def test_a_worker_re_running_an_unguarded_script_is_refused_not_deadlocked(tmp_path):
     cache_dir = tmp_path / "cache"
     cache_dir.mkdir()

@@ -281,6 +281,7 @@ def test_import_command_names_the_missing_files(tmp_path, capsys):
     assert not (tmp_path / "out" / ethucy.DATASET_NAME).exists()
 
 
+@pytest.mark.slow
 def test_train_and_eval_through_the_cli_report_metres_and_best_of_20(converted, tmp_path):
     """The normal `mmf-rl train data=FILE` / `mmf-rl eval` path on the converted slice, windows turned."""
     import json
@@ -402,6 +403,7 @@ def _convert_spied(monkeypatch, raw: Path, out: Path, workers: int) -> tuple[dic
     return seen["parts"], seen["shards"]
 
 
+@pytest.mark.slow
 def test_a_conversion_in_two_processes_equals_one_in_this_process(tmp_path, monkeypatch):
     import warnings
 
@@ -445,6 +447,7 @@ def _dead_pid() -> int:
     return process.pid
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("broken", ["scene image", "trajectory file"])
 def test_a_broken_file_is_named_and_leaves_no_dataset(tmp_path, capsys, broken):
     from mmf_rl.cli import main
@@ -514,6 +517,7 @@ def test_turned_windows_keep_velocities_the_steps_of_positions(converted):
     assert config["modalities"]["scene"]["top_down"] and not torch.equal(scene, plain.get(obs_key("scene")))
 
 
+@pytest.mark.slow
 def test_neighbour_tracks_train_through_the_cli_with_the_slot_size_the_config_names(tmp_path):
     """`--neighbour-steps`: the data config hands the agent-slot encoder its slot size (one neighbour's
     steps), and the trained model keeps it."""

@@ -401,6 +401,7 @@ def test_killed_build_never_reads_as_a_cache(synthetic_root, tmp_path, monkeypat
     assert open_quietly(config).built
 
 
+@pytest.mark.slow
 def test_pool_build_equals_in_process_build(synthetic_root, tmp_path):
     in_process = open_quietly(synthetic_config(synthetic_root, tmp_path / "a"), num_workers=1)
     pooled = open_quietly(synthetic_config(synthetic_root, tmp_path / "b"), num_workers=2)
@@ -512,6 +513,7 @@ def test_vector_kind_and_required_vector_modality(synthetic_root, tmp_path):
     assert dataset.presence["force"][in_splits].all() and len(in_splits) == len(dataset) - absent
 
 
+@pytest.mark.slow
 def test_drifting_timestamps_lose_the_camera_with_an_error_unless_synced_by_frame_index(
     drifting_g1_root, g1_root, tmp_path
 ):

@@ -13,6 +13,8 @@ import torch
 
 from mmf_rl.datasets.worker_pool import WorkerPool
 
+pytestmark = pytest.mark.slow  # every test starts worker processes
+
 
 def scale(frames: torch.Tensor, factor: int) -> torch.Tensor:
     if factor < 0:

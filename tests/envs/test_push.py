@@ -92,6 +92,7 @@ def test_registered_gymnasium_id():
         env.close()
 
 
+@pytest.mark.slow
 def test_importing_the_envs_prints_no_adroit_note():
     """gymnasium-robotics' note on its Adroit envs is held back; its other output is not."""
     code = (

@@ -3,6 +3,8 @@ end to end on a recorded push dataset: train, calibrate, eval."""
 
 import json
 import math
+import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -28,7 +30,7 @@ from mmf_rl.eval.scale_fit import (
 )
 from mmf_rl.models import load_trained_model
 from mmf_rl.models.scale_calibration import PresenceScaleCalibration, pattern_name
-from tests.conftest import HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch, push_train_overrides
+from tests.conftest import HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 FACTORS = "scale_calibration.factors"
@@ -287,12 +289,10 @@ def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
 
 
 @pytest.fixture(scope="module")
-def push_run(recorded_push_root, tmp_path_factory):
-    """A tiny forecaster trained by `mmf-rl train` (calibrate=true by default) on recorded pushes."""
-    base = tmp_path_factory.mktemp("calibrate")
-    run = base / "run"
-    assert cli(["train", *push_train_overrides(recorded_push_root, base / "cache", run)]) == 0
-    return run
+def push_run(push_forecaster_run, tmp_path_factory):
+    """A copy of the session's tiny forecaster (`mmf-rl train` calibrated it: calibrate=true by
+    default), which this module's tests recalibrate and evaluate into."""
+    return Path(shutil.copytree(push_forecaster_run, tmp_path_factory.mktemp("calibrate") / "run"))
 
 
 def stored_factors(run):

@@ -1,6 +1,5 @@
 import contextlib
 import dataclasses
-import statistics
 
 import pytest
 import torch
@@ -365,7 +364,7 @@ def test_world_model_trains_with_both_losses(world_model):
     assert_a_few_steps_reduce_the_loss(world_model, loss, action_shape=ACTION_SHAPE)
 
 
-def action_task(num_samples: int, seed: int, history: int = 6, horizon: int = 6) -> TensorDict:
+def action_task(num_samples: int, seed: int, history: int = 2, horizon: int = 6) -> TensorDict:
     """A point whose future is its velocity plus what the (random) actions push it by: the past
     shows the velocity, only the actions show the rest."""
     g = torch.Generator().manual_seed(seed)
@@ -388,51 +387,63 @@ def action_task(num_samples: int, seed: int, history: int = 6, horizon: int = 6)
     )
 
 
-def test_world_model_learns_what_the_actions_do():
-    """Same data, same budget: with the actions as input the forecast error falls far below the
-    best a forecaster without them can do (which must guess the pushes).
+def with_shuffled_actions(td: TensorDict, seed: int) -> TensorDict:
+    """``td`` with its windows' actions permuted among them: actions as varied as before that say
+    nothing of the window's pushes."""
+    td = td.clone()
+    order = torch.randperm(td.shape[0], generator=torch.Generator().manual_seed(seed))
+    td.set(keys.FUTURE_ACTION, td.get(keys.FUTURE_ACTION)[order])
+    return td
 
-    A 300-step training of this tiny model now and then lands where the world model has not yet
-    picked up the actions (seeds 0-9 at one thread: world/plain error ratios 0.09-0.31, and 0.79 once),
-    and which seed does depends on the kernels' summation order; a single seed made the test flaky. The
-    claim is judged on the median over five seeds."""
+
+def trained_world_model_error(train: TensorDict, test: TensorDict, steps: int = 100) -> float:
+    """The test MSE of a small world model after ``steps`` Adam steps on ``train`` (seed 0)."""
     from mmf_rl.models import build_loss
 
-    train, test = action_task(2048, seed=0), action_task(512, seed=1)
-    specs = [ModalitySpec("vel", "sequence", (2,)), ModalitySpec("noise", "sequence", (2,))]
-    ratios = []
-    for seed in range(5):
-        errors = {}
-        for name, action_shape in [("plain", None), ("world", (6, 2))]:
-            torch.manual_seed(seed)
-            cfg = ForecasterConfig(
-                modalities=specs,
-                history=6,
-                horizon=6,
-                target_dim=2,
-                d_model=32,
-                d_latent=4,
-                num_heads=2,
-                mlp_hidden=64,
-                head_hidden=64,
-                **({} if action_shape is None else {"action_steps": 6, "action_dim": 2}),
-            )
-            model = MultimodalForecaster(cfg)
-            loss = build_loss("forecaster", model, LossConfig())
-            optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
-            g = torch.Generator().manual_seed(seed)
-            for _ in range(300):
-                rows = torch.randint(0, 2048, (128,), generator=g)
-                optimizer.zero_grad()
-                sum(v for k, v in loss(train[rows]).items() if k.startswith("loss_")).backward()
-                optimizer.step()
-            model.eval()
-            with torch.no_grad():
-                errors[name] = float(
-                    (model(test.clone()).get(keys.FORECAST_LOC) - test.get(keys.TARGET)).square().mean()
-                )
-        ratios.append(errors["world"] / errors["plain"])
-    assert statistics.median(ratios) < 0.5, ratios
+    torch.manual_seed(0)
+    cfg = ForecasterConfig(
+        modalities=[ModalitySpec("vel", "sequence", (2,)), ModalitySpec("noise", "sequence", (2,))],
+        history=2,
+        horizon=6,
+        target_dim=2,
+        d_model=16,
+        d_latent=4,
+        num_heads=2,
+        mlp_hidden=32,
+        head_hidden=32,
+        action_steps=6,
+        action_dim=2,
+    )
+    model = MultimodalForecaster(cfg)
+    loss = build_loss("forecaster", model, LossConfig())
+    optimizer = torch.optim.Adam(model.parameters(), lr=5e-3)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(steps):
+        rows = torch.randint(0, train.shape[0], (64,), generator=g)
+        optimizer.zero_grad()
+        sum(v for k, v in loss(train[rows]).items() if k.startswith("loss_")).backward()
+        optimizer.step()
+    model.eval()
+    with torch.no_grad():
+        return float((model(test.clone()).get(keys.FORECAST_LOC) - test.get(keys.TARGET)).square().mean())
+
+
+@pytest.mark.slow
+def test_world_model_learns_what_the_actions_do():
+    """Same data, model and budget: trained and tested with each window's own actions, the forecast
+    error falls far below the control's, trained and tested with the actions shuffled among the windows
+    (which then must guess the pushes). A model that ignored its actions would score like the control.
+
+    One seed: at this size 100 steps pick the actions up on every seed tried (seeds 0-9 at one and at
+    two threads: error ratios 0.25-0.35); the earlier 300 steps at d_model 32 now and then did not
+    (0.79 once in ten seeds), which took a median over five seeds."""
+    train, test = action_task(1024, seed=0), action_task(256, seed=1)
+    own = trained_world_model_error(train, test)
+    control = trained_world_model_error(with_shuffled_actions(train, 2), with_shuffled_actions(test, 3))
+    # The control learned what the past shows (the velocity): the comparison is of two trained models.
+    forecasting_zero = float(test.get(keys.TARGET).square().mean())
+    assert control < 0.5 * forecasting_zero, (control, forecasting_zero)
+    assert own < 0.5 * control, (own, control)
 
 
 def test_with_raw_tokens_the_forecast_from_the_prior_does_not_depend_on_the_fusion(small_config, batch):

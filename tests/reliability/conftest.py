@@ -1,4 +1,4 @@
-"""Fixtures for the fault-injection tests: a shared window cache, subprocess helpers."""
+"""Fixtures for the fault-injection tests: subprocess helpers, a private copy of the recording."""
 
 from __future__ import annotations
 
@@ -20,12 +20,6 @@ from benchmarks.kill_loop import subprocess_env
 from mmf_rl.datasets import DataConfig
 
 POLL_S = 0.02
-
-
-@pytest.fixture(scope="session")
-def push_cache_dir(tmp_path_factory) -> Path:
-    """One window cache directory for all tests: entries are keyed by dataset and config."""
-    return tmp_path_factory.mktemp("window-cache")
 
 
 @contextlib.contextmanager

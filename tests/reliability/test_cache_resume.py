@@ -96,6 +96,7 @@ def test_a_killed_cache_build_resumes_and_matches_a_full_build(push_copy, tmp_pa
     assert resumed.report["undecodable_files"] == full.report["undecodable_files"] == {}
 
 
+@pytest.mark.slow
 def test_a_killed_build_resumes_after_its_finished_image_jobs(tmp_path, monkeypatch, caplog):
     root = break_images(make_camera_dataset(tmp_path / "images", use_videos=False), BROKEN_ROWS)
     cache_dir = tmp_path / "cache"

@@ -5,6 +5,8 @@ test_pickled_code_in_trainer_state_is_refused (weights are safetensors, never pi
 """
 
 import json
+import shutil
+from pathlib import Path
 
 import pytest
 import yaml
@@ -14,10 +16,9 @@ from tests.conftest import push_train_overrides
 
 
 @pytest.fixture
-def trained_run(recorded_push_root, push_cache_dir, tmp_path):
-    run = tmp_path / "run"
-    assert cli(["train", *push_train_overrides(recorded_push_root, push_cache_dir, run, steps=2)]) == 0
-    return run
+def trained_run(push_forecaster_run, tmp_path):
+    """A copy of the session's tiny forecaster: the test evaluates into it."""
+    return Path(shutil.copytree(push_forecaster_run, tmp_path / "run"))
 
 
 def evaluate(run, *overrides) -> int:

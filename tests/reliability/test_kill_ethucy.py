@@ -44,6 +44,7 @@ def _shards_started(out: Path) -> bool:
     return len(list(out.glob(f"{ethucy.STAGING_PREFIX}*/shard-*/meta/info.json"))) == 2
 
 
+@pytest.mark.slow
 def test_killed_conversion_leaves_no_dataset_and_the_next_one_completes(tmp_path, caplog):
     raw, out = cut_ethucy_raw(tmp_path, steps=40, agents=8), tmp_path / "out"
     command = cli_command("import", "ethucy", str(raw), "--out", str(out), "--fold", "eth", "--workers", "2")

@@ -12,6 +12,7 @@ from mmf_rl.temp_dirs import owned_temp_prefix
 from tests.reliability.conftest import background, cli_command, wait_for
 
 
+@pytest.mark.slow
 def test_killed_recording_is_never_read_and_the_next_recording_removes_it(tmp_path, caplog):
     out = tmp_path / "push"
     partials = lambda: sorted(tmp_path.glob(f"{partial_prefix(out)}*"))  # noqa: E731

@@ -10,7 +10,6 @@ from mmf_rl import keys
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.models.loading import load_trained_model
 from mmf_rl.rl import Demonstrations, ForecastTable
-from tests.conftest import push_train_overrides
 
 RECORDED_ENVS = 3
 BC_DROPPABLE = ("image", "force")  # the sensors the BC tests' policies may lose
@@ -47,19 +46,9 @@ def recorded_steps(recorded_push_root) -> list[TensorDict]:
 
 
 @pytest.fixture(scope="module")
-def forecaster_run(recorded_push_root, tmp_path_factory):
-    """A tiny forecaster trained by `mmf-rl train` (data=push) on the recorded push data."""
-    from mmf_rl.cli import main as cli
-
-    base = tmp_path_factory.mktemp("bc_forecaster")
-    run = base / "run"
-    assert cli(["train", *push_train_overrides(recorded_push_root, base / "cache", run, steps=4)]) == 0
-    return run
-
-
-@pytest.fixture(scope="module")
-def forecaster(forecaster_run):
-    return load_trained_model(forecaster_run / "checkpoints")
+def forecaster(push_forecaster_run):
+    """The session's tiny forecaster, loaded (once per module: a test may change the model it holds)."""
+    return load_trained_model(push_forecaster_run / "checkpoints")
 
 
 @pytest.fixture(scope="module")

@@ -259,7 +259,7 @@ def test_training_reduces_the_bc_loss_on_recorded_pushes(demonstrations, forecas
     )
 
 
-def test_save_and_load_round_trip(demonstrations, forecasts, forecaster_run, tmp_path):
+def test_save_and_load_round_trip(demonstrations, forecasts, push_forecaster_run, tmp_path):
     policy = make_policy(demonstrations, forecasts, seed=3).eval()
     policy.save(tmp_path / "policy")
     loaded = BCPolicy.from_checkpoint(tmp_path / "policy")
@@ -271,7 +271,7 @@ def test_save_and_load_round_trip(demonstrations, forecasts, forecaster_run, tmp
     )
     torch.testing.assert_close(loaded(batch.clone()).get("action"), policy(batch.clone()).get("action"))
     with pytest.raises(CheckpointError, match="not a behaviour-cloning policy"):
-        BCPolicy.from_checkpoint(forecaster_run / "checkpoints")
+        BCPolicy.from_checkpoint(push_forecaster_run / "checkpoints")
 
 
 def test_transforms_refuse_a_forecast_the_policy_was_not_trained_with(demonstrations, forecasts, forecaster):

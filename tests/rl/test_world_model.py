@@ -59,8 +59,8 @@ def test_a_window_without_sensors_forecasts_the_marginal_mean_and_spread(push_wo
     assert torch.equal(scale, stats["target/std"].expand_as(scale))
 
 
-def test_a_checkpoint_of_a_forecaster_without_actions_is_refused_by_path(forecaster_run):
-    path = forecaster_run / "checkpoints"
+def test_a_checkpoint_of_a_forecaster_without_actions_is_refused_by_path(push_forecaster_run):
+    path = push_forecaster_run / "checkpoints"
     with pytest.raises(ValueError, match=re.escape(f"{path}: WorldModel needs an action-conditioned")):
         WorldModel.from_checkpoint(path)
 

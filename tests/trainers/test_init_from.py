@@ -13,18 +13,13 @@ from mmf_rl.models import load_trained_model
 from tests.conftest import push_train_overrides
 
 
-@pytest.fixture(scope="module")
-def trained_run(recorded_push_root, tmp_path_factory):
-    base = tmp_path_factory.mktemp("source")
-    assert cli(["train", *push_train_overrides(recorded_push_root, base / "cache", base / "run")]) == 0
-    return base
-
-
-def test_fine_tuning_starts_from_the_weights_at_step_zero(trained_run, recorded_push_root, tmp_path, capsys):
-    source = load_checkpoint(trained_run / "run" / "checkpoints")
-    overrides = push_train_overrides(recorded_push_root, trained_run / "cache", tmp_path / "tuned", steps=3)
+def test_fine_tuning_starts_from_the_weights_at_step_zero(
+    push_forecaster_run, push_cache_dir, recorded_push_root, tmp_path, capsys
+):
+    source = load_checkpoint(push_forecaster_run / "checkpoints")
+    overrides = push_train_overrides(recorded_push_root, push_cache_dir, tmp_path / "tuned", steps=3)
     # lr = 0: the weights after fine-tuning are the ones it started from
-    assert cli(["train", *overrides, f"init_from={trained_run / 'run'}", "trainer.lr=0.0"]) == 0
+    assert cli(["train", *overrides, f"init_from={push_forecaster_run}", "trainer.lr=0.0"]) == 0
     assert "fine-tuning from" in capsys.readouterr().err
     tuned = load_checkpoint(tmp_path / "tuned" / "checkpoints")
     assert tuned.step == 3, "a fine-tuning run counts its own steps from 0"
@@ -38,7 +33,7 @@ def test_fine_tuning_starts_from_the_weights_at_step_zero(trained_run, recorded_
                 "train",
                 *overrides,
                 f"run_dir={tmp_path / 'again'}",
-                f"init_from={trained_run / 'run' / 'model'}",
+                f"init_from={push_forecaster_run / 'model'}",
                 "trainer.lr=0.0",
             ]
         )
@@ -46,8 +41,8 @@ def test_fine_tuning_starts_from_the_weights_at_step_zero(trained_run, recorded_
     )
     again = load_checkpoint(tmp_path / "again" / "checkpoints")
     assert all(torch.equal(again.model_state[k], v) for k, v in source.model_state.items())
-    exported, stats, data = load_trained_model(trained_run / "run" / "model")
-    checkpointed, _, data_from_checkpoint = load_trained_model(trained_run / "run")
+    exported, stats, data = load_trained_model(push_forecaster_run / "model")
+    checkpointed, _, data_from_checkpoint = load_trained_model(push_forecaster_run)
     assert data["image_size"] == data_from_checkpoint["image_size"] == [32, 32]
     assert torch.equal(stats["target/std"], source.tensors["target/std"])
     batch = next(iter(WindowDataset(DataConfig.from_dict(data)).loader("val", 8)))
@@ -55,13 +50,15 @@ def test_fine_tuning_starts_from_the_weights_at_step_zero(trained_run, recorded_
     assert torch.equal(*forecasts)
 
 
-def test_a_sampler_is_never_copied_and_a_run_may_add_one(trained_run, recorded_push_root, tmp_path):
+def test_a_sampler_is_never_copied_and_a_run_may_add_one(
+    push_forecaster_run, push_cache_dir, recorded_push_root, tmp_path
+):
     """A run with a learned sampler starts from a source without one (its forecaster copied, its sampler
     trained anew), and a run without one starts from that run: only the forecaster's weights travel."""
-    source = load_checkpoint(trained_run / "run" / "checkpoints")
-    overrides = push_train_overrides(recorded_push_root, trained_run / "cache", tmp_path / "with", steps=3)
+    source = load_checkpoint(push_forecaster_run / "checkpoints")
+    overrides = push_train_overrides(recorded_push_root, push_cache_dir, tmp_path / "with", steps=3)
     sampler = ["model.learned_samples=4", "sampler.steps=4", "sampler.batch_size=8"]
-    assert cli(["train", *overrides, *sampler, f"init_from={trained_run / 'run'}", "trainer.lr=0.0"]) == 0
+    assert cli(["train", *overrides, *sampler, f"init_from={push_forecaster_run}", "trainer.lr=0.0"]) == 0
     with_sampler = load_checkpoint(tmp_path / "with" / "checkpoints")
     assert with_sampler.meta["learned_sampler"]["steps"] == 4
     sampler_keys = {k for k in with_sampler.model_state if k.startswith("latent_sampler.")}
@@ -90,13 +87,15 @@ def test_a_sampler_is_never_copied_and_a_run_may_add_one(trained_run, recorded_p
         (["model=lf_lstm"], r"holds a 'forecaster' model, but this run builds 'lf_lstm'"),
     ],
 )
-def test_mismatches_are_named(trained_run, recorded_push_root, tmp_path, capsys, args, message):
-    overrides = push_train_overrides(recorded_push_root, trained_run / "cache", tmp_path / "tuned", steps=2)
+def test_mismatches_are_named(
+    push_forecaster_run, push_cache_dir, recorded_push_root, tmp_path, capsys, args, message
+):
+    overrides = push_train_overrides(recorded_push_root, push_cache_dir, tmp_path / "tuned", steps=2)
     if args == ["model=lf_lstm"]:
         overrides = [
             o for o in overrides if not o.startswith(("model.d_latent", "model.num_heads", "model.mlp"))
         ]
-    assert cli(["train", *overrides, *args, f"init_from={trained_run / 'run'}"]) == 1
+    assert cli(["train", *overrides, *args, f"init_from={push_forecaster_run}"]) == 1
     err = capsys.readouterr().err.strip().splitlines()[-1]  # after any cache-building progress bar
     assert err.startswith("mmf-rl train: error:") and re.search(message, err), err
 

@@ -132,6 +132,7 @@ class TinyRegression(torch.nn.Module):
         return TensorDict({"loss_mse": ((self.model(batch["x"]) - batch["y"]) ** 2).mean()})
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(
     shutil.which("c++") is None and shutil.which("g++") is None,
     reason="torch.compile's inductor needs a C++ compiler",

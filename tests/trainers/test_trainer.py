@@ -370,6 +370,7 @@ def data_parallel_by_definition() -> dict[str, torch.Tensor]:
             return model.state_dict()
 
 
+@pytest.mark.slow
 def test_two_gloo_ranks_average_gradients_skip_and_stop_together(tmp_path):
     mp.spawn(train_rank, args=(str(tmp_path / "store"), str(tmp_path)), nprocs=2)
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(2)]

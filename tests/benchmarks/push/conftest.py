@@ -1,3 +1,3 @@
 """The push experiments' tests read the RL tests' tiny recording, forecaster and demonstrations."""
 
-from tests.rl.conftest import demonstrations, forecaster, forecaster_run, forecasts, recorded_steps  # noqa: F401
+from tests.rl.conftest import demonstrations, forecaster, forecasts, recorded_steps  # noqa: F401
