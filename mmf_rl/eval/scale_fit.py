@@ -265,7 +265,7 @@ def _describes(record: dict, calibration) -> bool:
     return torch.equal(torch.tensor(record.get("factors", []), dtype=factors.dtype), factors) and (
         torch.equal(torch.tensor(recorded_steps, dtype=steps.dtype), steps)
         if recorded_steps is not None
-        else bool((steps == 1).all())
+        else not calibration.has_step_factors()
     )
 
 
@@ -281,7 +281,7 @@ def calibration_in_use(model) -> dict | None:
         return None
     return {
         "split": None,
-        "per_step": not bool((calibration.step_factors == 1).all()),
+        "per_step": calibration.has_step_factors(),
         "factors": calibration.factors.tolist(),
         "step_factors": calibration.step_factors.tolist(),
     }

@@ -62,8 +62,12 @@ class PresenceScaleCalibration(nn.Module):
         self.factors.fill_(1.0)
         self.step_factors.fill_(1.0)
 
+    def has_step_factors(self) -> bool:
+        """Whether a horizon step is scaled apart from its pattern (a ``per_step`` fit)."""
+        return bool((self.step_factors != 1).any())
+
     def is_identity(self) -> bool:
-        return bool((self.factors == 1).all() and (self.step_factors == 1).all())
+        return bool((self.factors == 1).all()) and not self.has_step_factors()
 
     def state_defaults(self) -> dict[str, torch.Tensor]:
         """What a state saved before the factors or the step factors existed lacks: ones, its behaviour
