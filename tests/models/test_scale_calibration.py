@@ -111,6 +111,19 @@ def test_the_forecasters_lean_and_world_model_paths_apply_the_factors(small_conf
     assert torch.allclose(calibrated, raw * (index + 1).float().view(-1, 1, 1, 1), rtol=1e-6)
 
 
+def loaded_from_old_state(name, model, old, tmp_path, stale):
+    """``model`` loaded back from a checkpoint of `mmf-rl train` and from a ``save_pretrained``
+    directory that hold the older state ``old``, in eval mode. The checkpoint loads into a model whose
+    ``stale`` buffer (a state-dict key) is filled with 2: loading must bring it back to ones."""
+    save_checkpoint(tmp_path / "ckpt", 3, old, meta={"model_config": saved_config(name, model)})
+    restored = small_registered_model(name)
+    restored.get_buffer(stale).fill_(2.0)
+    load_model_state(restored, load_checkpoint(tmp_path / "ckpt"))
+    model.save_pretrained(tmp_path / "export")
+    save_file(old, tmp_path / "export" / "model.safetensors")
+    return restored.eval(), from_pretrained(tmp_path / "export")
+
+
 @pytest.mark.parametrize("name", sorted(MODELS))
 def test_a_state_saved_before_the_factors_loads_as_ones_and_forecasts_the_same(name, tmp_path):
     model = small_registered_model(name)
@@ -119,17 +132,10 @@ def test_a_state_saved_before_the_factors_loads_as_ones_and_forecasts_the_same(n
     # What older mmf-rl saved: neither the factors nor the step factors.
     old = {k: v for k, v in model.state_dict().items() if k not in (FACTORS, STEP_FACTORS)}
 
-    # A checkpoint of `mmf-rl train`.
-    save_checkpoint(tmp_path / "ckpt", 3, old, meta={"model_config": saved_config(name, model)})
-    restored = small_registered_model(name)
-    restored.scale_calibration.factors.fill_(2.0)  # must come back to ones
-    load_model_state(restored, load_checkpoint(tmp_path / "ckpt"))
-    # A save_pretrained directory.
-    model.save_pretrained(tmp_path / "export")
-    save_file(old, tmp_path / "export" / "model.safetensors")
+    restored, exported = loaded_from_old_state(name, model, old, tmp_path, stale=FACTORS)
     assert FACTORS not in load_file(tmp_path / "export" / "model.safetensors")
     check_state_dict(small_registered_model(name), old, "old weights")
-    for loaded in (restored.eval(), from_pretrained(tmp_path / "export")):
+    for loaded in (restored, exported):
         assert loaded.scale_calibration.is_identity()
         out = loaded(batch.clone())
         for key in (keys.FORECAST_LOC, keys.FORECAST_SCALE):
@@ -165,13 +171,7 @@ def test_a_state_with_per_pattern_factors_only_loads_them_with_step_factors_of_o
     batch, _ = every_pattern_batch()
     expected = eval_scale(model, batch)
     old = {k: v for k, v in model.state_dict().items() if k != STEP_FACTORS}
-    save_checkpoint(tmp_path / "ckpt", 3, old, meta={"model_config": saved_config(name, model)})
-    restored = small_registered_model(name)
-    restored.scale_calibration.step_factors.fill_(2.0)  # must come back to ones
-    load_model_state(restored, load_checkpoint(tmp_path / "ckpt"))
-    model.save_pretrained(tmp_path / "export")
-    save_file(old, tmp_path / "export" / "model.safetensors")
-    for loaded in (restored.eval(), from_pretrained(tmp_path / "export")):
+    for loaded in loaded_from_old_state(name, model, old, tmp_path, stale=STEP_FACTORS):
         assert torch.equal(loaded.scale_calibration.factors, model.scale_calibration.factors)
         assert torch.equal(loaded.scale_calibration.step_factors, torch.ones(8, HORIZON))
         assert torch.equal(eval_scale(loaded, batch), expected)
