@@ -24,6 +24,7 @@ from mmf_rl.cli import main as cli
 from mmf_rl.configuration import compose_config, config_dir, to_container
 from mmf_rl.datasets import WindowDataset
 from mmf_rl.models import build_loss, load_trained_model
+from mmf_rl.objectives import output_distribution_of
 from mmf_rl.trainers.training import TrainRunConfig, check_loss_settings_read
 from tests.conftest import push_train_overrides, small_registered_model
 from tests.reliability.conftest import edit_frames, push_data_config
@@ -61,6 +62,31 @@ def test_train_then_eval_writes_checkpoint_logs_table_and_plots(overrides, tmp_p
         assert (run / "eval" / plot).stat().st_size > 1000
     # The standard prior decodes every test forecast from z = 0: there is no latent to plot, and it says so.
     assert not (run / "eval" / "latent_tsne.png").exists() and "no latent t-SNE" in out
+
+
+def test_train_with_an_output_family_then_eval_and_calibrate_read_it_from_the_run(
+    overrides, tmp_path, capsys
+):
+    """``model.output_distribution`` is written once, at training: the checkpoint's config carries it, and
+    the calibration at the end, `mmf-rl calibrate` and `mmf-rl eval` read the forecast with it."""
+    family = ["model.output_distribution=student_t", "model.output_df=3"]
+    assert cli(["train", *overrides("run"), *family]) == 0
+    run = tmp_path / "run"
+    checkpoint = load_checkpoint(run / "checkpoints")
+    saved = checkpoint.meta["model_config"]
+    assert (saved["output_distribution"], saved["output_df"]) == ("student_t", 3)
+    assert checkpoint.meta["calibration"]["output_distribution"] == "student_t (df 3)"
+    assert output_distribution_of(load_trained_model(run / "model")[0]).describe() == "student_t (df 3)"
+    assert cli(["calibrate", f"checkpoint={run}", "min_windows=4"]) == 0
+    assert (
+        load_checkpoint(run / "checkpoints").meta["calibration"]["output_distribution"] == "student_t (df 3)"
+    )
+    assert cli(["eval", f"checkpoint={run}", "num_samples=0", "plots=false"]) == 0
+    capsys.readouterr()
+    assert (
+        json.loads((run / "eval" / "results.json").read_text())["output_distribution"] == "student_t (df 3)"
+    )
+    assert "Forecast distribution: student_t (df 3)" in (run / "eval" / "results.md").read_text()
 
 
 def test_existing_run_is_never_overwritten_and_resume_needs_same_config(overrides, tmp_path, capsys):
