@@ -7,7 +7,8 @@ Replays the held-out (test) episodes of the checkpoint's own dataset through
 (camera frames from the window cache, raw force and proprioception). The camera dies at step
 ``d`` for the rest of the episode (each ``--die-at``); from then on, at every step with a full
 future in the episode, the forecast is scored against the truth in the target's own frame (ADE
-and FDE in the target's units, metres for the push data; the Gaussian NLL) for each rule
+and FDE in the target's units, metres for the push data; the NLL under the run's output
+distribution, ``model.output_distribution``) for each rule
 (`RULES`), and for the fresh forecast with per-step presence (the partial window). ``camera on``
 scores the same steps with the camera never lost: the ceiling. Errors are also split by the
 latch's age.
@@ -25,6 +26,7 @@ from mmf_rl.datasets.config import DataConfig
 from mmf_rl.datasets.windows import WindowDataset
 from mmf_rl.log import configure_logging
 from mmf_rl.models.loading import load_trained_model
+from mmf_rl.objectives import output_distribution_of
 from mmf_rl.rl.latched_forecast import RULES, LatchedForecastTransform
 
 AGE_BUCKETS = ((1, 5), (6, 10), (11, 1000))
@@ -73,9 +75,10 @@ def replay(transform, steps: TensorDict, die_at: int | None) -> list[TensorDict]
     return outputs
 
 
-def score(dataset, outputs, target, reference, die_at) -> dict[str, float]:
-    """ADE, FDE and the Gaussian NLL per step and dim (of the truth under the forecast's ``loc``,
-    ``scale``) over the outage steps with a full future, and ADE per age bucket (of the latch)."""
+def score(dataset, outputs, target, reference, die_at, family) -> dict[str, float]:
+    """ADE, FDE and the NLL per step and dim (of the truth under the forecast's ``loc``, ``scale``, read
+    by the run's output ``family``) over the outage steps with a full future, and ADE per age bucket (of
+    the latch)."""
     span = dataset.config.stride * dataset.config.horizon
     ade, fde, nll, ages = [], [], [], []
     for t in range(die_at, target.shape[0] - span):
@@ -84,7 +87,7 @@ def score(dataset, outputs, target, reference, die_at) -> dict[str, float]:
         error = (loc - future).norm(dim=-1)
         ade.append(error.mean(1))
         fde.append(error[:, -1])
-        nll.append(-torch.distributions.Normal(loc, scale).log_prob(future).mean((1, 2)))
+        nll.append(family.nll(future, loc, scale).mean((1, 2)))
         ages.append(torch.full_like(error[:, 0], t - die_at + 1))
     ade, fde, nll, ages = torch.cat(ade), torch.cat(fde), torch.cat(nll), torch.cat(ages)
     result = {"ade": ade.mean().item(), "fde": fde.mean().item(), "nll": nll.mean().item()}
@@ -109,6 +112,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     model, stats, data_config = load_trained_model(args.checkpoint)
+    family = output_distribution_of(model)
     dataset = WindowDataset(DataConfig.from_dict(data_config))
     episodes = dataset.split_episodes[args.split]
     steps, target, reference = episode_frames(dataset, episodes)
@@ -117,12 +121,12 @@ def main() -> None:
     rows: dict[str, list[dict[str, float]]] = {}
     ceiling = replay(LatchedForecastTransform.from_checkpoint(args.checkpoint), steps, None)
     for die_at in args.die_at:
-        rows.setdefault("camera on", []).append(score(dataset, ceiling, target, reference, die_at))
+        rows.setdefault("camera on", []).append(score(dataset, ceiling, target, reference, die_at, family))
         for name, options in variants.items():
             outputs = replay(
                 LatchedForecastTransform.from_checkpoint(args.checkpoint, **options), steps, die_at
             )
-            rows.setdefault(name, []).append(score(dataset, outputs, target, reference, die_at))
+            rows.setdefault(name, []).append(score(dataset, outputs, target, reference, die_at, family))
     frame = data_config["target"]
     print(
         f"{args.checkpoint}: target {frame['feature']} {frame['dims']} (relative={frame.get('relative')}, "

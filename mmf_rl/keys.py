@@ -17,7 +17,8 @@ key                                  shape                meaning
 ``"future_action"``                  ``[B, S, A]``        actions applied over the horizon (``S = T·stride``
                                                           frames from the last observed one; normalised),
                                                           read by action-conditioned models (world models)
-``("forecast", "loc" | "scale")``    ``[B, T, D]``        diagonal-Gaussian forecast
+``("forecast", "loc" | "scale")``    ``[B, T, D]``        forecast location and scale (a diagonal Gaussian
+                                                          unless the model's ``output_distribution`` says)
 ``("forecast", "samples")``          ``[B, K, T, D]``     K forecasts, one per latent sample (best-of-K)
 ``("forecast", "valid")``            ``[B]`` bool         False where no modality was present (RL glue: the
                                                           forecast is then the target's training prior)

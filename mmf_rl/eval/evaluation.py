@@ -37,6 +37,7 @@ from mmf_rl.eval.report import (
 from mmf_rl.eval.scale_fit import calibration_header, calibration_in_use, unfit_for_latent
 from mmf_rl.models import TrainedModelSource, load_trained_model, locate_trained_model
 from mmf_rl.models.loading import TRAINED_MODEL_KINDS
+from mmf_rl.objectives import output_distribution_of
 
 LATENT_SETTINGS = ("eval_latent", "predictive_samples")  # model settings an eval may override
 logger = logging.getLogger(__name__)
@@ -147,10 +148,23 @@ def latent_header(used: dict) -> str:
     return f"{line} ({f'set by this eval: {origin}' if origin else 'as trained'})\n\n"
 
 
+def distribution_header(summary: dict) -> str:
+    """The results.md line naming the forecast's output family when it is not the Gaussian (its NLL,
+    intervals and CRPS are the family's)."""
+    family = summary.get("output_distribution", "normal")
+    if family == "normal":
+        return ""
+    return f"Forecast distribution: {family} (NLL, interval coverage and width, CRPS under it)\n\n"
+
+
 def headers(summary: dict) -> str:
-    """The lines above the results table: how the forecasts were decoded, how their scale was
-    calibrated."""
-    return latent_header(summary) + calibration_header(summary["scale_calibration"])
+    """The lines above the results table: the forecast's distribution (when not the Gaussian), how the
+    forecasts were decoded, how their scale was calibrated."""
+    return (
+        distribution_header(summary)
+        + latent_header(summary)
+        + calibration_header(summary["scale_calibration"])
+    )
 
 
 def evaluation_notes(
@@ -293,6 +307,7 @@ def evaluate(config: DictConfig | None = None, *, overrides: Sequence[str] = ())
         "data_root": str(data.config.root),
         "num_samples": eval_cfg.num_samples,
         **latent_used(model, latent),
+        "output_distribution": output_distribution_of(model).describe(),
         "scale_calibration": calibration_in_use(model),
         "subsets": results,
         "constant_velocity": baseline,

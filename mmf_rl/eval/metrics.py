@@ -11,13 +11,13 @@ Per window, then averaged over windows:
 * ``min_mse_k``, ``min_ade_k``, ``min_fde_k`` (with ``num_samples = K > 0``): the smallest MSE
   (normalised), ADE and FDE (units) over ``K`` forecasts decoded from prior samples, each minimum
   taken independently (the sample with the best ADE need not have the best FDE).
-* ``nll``: Gaussian NLL of the normalised target under the point forecast's distribution
-  (summed over ``T × D``).
+* ``nll``: NLL of the normalised target under the point forecast's distribution (summed over
+  ``T × D``).
 * ``coverage_50`` / ``coverage_90``: share of the ``T × D`` target values inside the central
-  50% / 90% interval of the forecast's Gaussian: a calibrated scale gives 0.5 / 0.9.
+  50% / 90% interval of the forecast's distribution: a calibrated scale gives 0.5 / 0.9.
 * ``width_90``: mean width of those central 90% intervals, in the target's units: of two forecasts
   that cover as well, the narrower says more (an interval can cover by being uselessly wide).
-* ``crps``: the continuous ranked probability score of the forecast's Gaussian, in the normalised
+* ``crps``: the continuous ranked probability score of the forecast's distribution, in the normalised
   target frame, averaged over the ``T × D`` values: a proper score, rewarding calibration and
   sharpness at once (lower is better; for a point forecast it is the absolute error).
 * ``kl`` (latent models): ``KL(q(z | X[, y]) || p(z | X))`` in nats, summed over ``d_z``: what the
@@ -25,6 +25,10 @@ Per window, then averaged over windows:
   depend on it.
 * ``cv_*`` (``with_baseline``): the errors of a constant-velocity extrapolation of the target's
   own past (needs ``"target_past"``), a reference every model should beat.
+
+The forecast's distribution is the model's output family (its config's ``output_distribution``,
+:func:`~mmf_rl.objectives.output_distribution_of`): ``N(loc, scale²)`` by default, or a Laplace or
+Student-t with that location and scale; the NLL, the intervals and the CRPS are its.
 
 :func:`evaluate_presence_subsets` scores the named presence subsets **paired**: every subset row
 is averaged over the same windows, those in which each compared subset keeps a present modality.
@@ -34,7 +38,6 @@ different window set, and a subset that removes a sensor could even look better 
 
 from __future__ import annotations
 
-import math
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Mapping
 
@@ -43,7 +46,8 @@ from tensordict import TensorDictBase
 
 from mmf_rl import keys
 from mmf_rl.datasets.protocols import apply_presence_subset
-from mmf_rl.objectives.common import gaussian_kl, gaussian_nll
+from mmf_rl.objectives.common import gaussian_kl
+from mmf_rl.objectives.distributions import OutputDistribution, output_distribution, output_distribution_of
 
 COVERAGE_LEVELS = {"coverage_50": 0.5, "coverage_90": 0.9}
 BASELINE_PREFIX = "cv_"
@@ -99,26 +103,47 @@ def constant_velocity(target_past: torch.Tensor, horizon: int) -> torch.Tensor:
     return target_past[:, -1:] + velocity[:, None] * steps[None, :, None]
 
 
-def central_half_width(level: float) -> float:
-    """The half width of the central ``level`` interval of ``N(0, 1)``."""
-    return torch.distributions.Normal(0.0, 1.0).icdf(torch.tensor(0.5 + level / 2)).item()
+NORMAL = output_distribution("normal")
+
+
+def central_half_width(level: float, family: OutputDistribution = NORMAL) -> float:
+    """The half width of the central ``level`` interval of the standard member of ``family`` (by
+    default ``N(0, 1)``)."""
+    return family.half_width(level)
 
 
 def interval_coverage(
-    target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, level: float
+    target: torch.Tensor,
+    loc: torch.Tensor,
+    scale: torch.Tensor,
+    level: float,
+    family: OutputDistribution = NORMAL,
 ) -> torch.Tensor:
-    """Per window ``[B]``: the share of ``target`` values inside the central ``level`` interval of
-    ``N(loc, scale²)`` (``[B, T, D]`` each)."""
-    return ((target - loc).abs() <= central_half_width(level) * scale).flatten(1).float().mean(-1)
+    """Per window ``[B]``: the share of ``target`` values inside the central ``level`` interval of the
+    ``family`` member at ``(loc, scale)`` (``[B, T, D]`` each; by default ``N(loc, scale²)``):
+    ``|target - loc| <= half_width(level) · scale``."""
+    return ((target - loc).abs() <= family.half_width(level) * scale).flatten(1).float().mean(-1)
 
 
 def interval_width(
-    loc: torch.Tensor, scale: torch.Tensor, level: float, denormalize: Callable[[torch.Tensor], torch.Tensor]
+    loc: torch.Tensor,
+    scale: torch.Tensor,
+    level: float,
+    denormalize: Callable[[torch.Tensor], torch.Tensor],
+    family: OutputDistribution = NORMAL,
 ) -> torch.Tensor:
-    """Per window ``[B]``: the mean width in units of the central ``level`` intervals of
-    ``N(loc, scale²)`` (``[B, T, D]`` each, normalised)."""
-    half = central_half_width(level) * scale
+    """Per window ``[B]``: the mean width in units of the central ``level`` intervals of the ``family``
+    members at ``(loc, scale)`` (``[B, T, D]`` each, normalised; by default ``N(loc, scale²)``)."""
+    half = family.half_width(level) * scale
     return (denormalize(loc + half) - denormalize(loc - half)).flatten(1).mean(-1)
+
+
+def forecast_crps(
+    target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, family: OutputDistribution = NORMAL
+) -> torch.Tensor:
+    """Per window ``[B]``: the mean over ``T × D`` values of the CRPS of the ``family`` member at
+    ``(loc, scale)`` at ``target``, in the family's closed form (:meth:`OutputDistribution.crps`)."""
+    return family.crps(target, loc, scale).flatten(1).mean(-1)
 
 
 def gaussian_crps(target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -126,10 +151,7 @@ def gaussian_crps(target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) 
     ``target``, in closed form (Gneiting & Raftery 2007),
     ``scale · (z (2 Φ(z) - 1) + 2 φ(z) - 1 / sqrt(pi))`` with ``z = (target - loc) / scale``; one
     line, so no scoring library (properscoring, scoringrules) is needed."""
-    z = (target - loc) / scale
-    normal = torch.distributions.Normal(0.0, 1.0)
-    crps = scale * (z * (2 * normal.cdf(z) - 1) + 2 * normal.log_prob(z).exp() - 1 / math.sqrt(math.pi))
-    return crps.flatten(1).mean(-1)
+    return forecast_crps(target, loc, scale, NORMAL)
 
 
 def best_of_samples(
@@ -159,12 +181,15 @@ def window_metrics(
     inputs = batch.exclude(keys.TARGET)
     out = model(inputs.clone(False))
     loc, scale = out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
+    family = output_distribution_of(model)
     target_units = denormalize(target)
     metrics = point_errors(loc, target, denormalize(loc), target_units)
-    metrics["nll"] = gaussian_nll(target, loc, scale).flatten(1).sum(-1)
-    metrics |= {name: interval_coverage(target, loc, scale, level) for name, level in COVERAGE_LEVELS.items()}
-    metrics["width_90"] = interval_width(loc, scale, COVERAGE_LEVELS["coverage_90"], denormalize)
-    metrics["crps"] = gaussian_crps(target, loc, scale)
+    metrics["nll"] = family.nll(target, loc, scale).flatten(1).sum(-1)
+    metrics |= {
+        name: interval_coverage(target, loc, scale, level, family) for name, level in COVERAGE_LEVELS.items()
+    }
+    metrics["width_90"] = interval_width(loc, scale, COVERAGE_LEVELS["coverage_90"], denormalize, family)
+    metrics["crps"] = forecast_crps(target, loc, scale, family)
     kl = latent_kl(model, batch, out)
     if kl is not None:
         metrics["kl"] = kl

@@ -6,14 +6,21 @@ T × D future values of the windows with pattern ``p``, by one of two methods:
 
 * ``coverage`` (the default): split-conformal. ``s_p`` is the ``⌈(n + 1) · 0.9⌉``-th smallest of the
   ``n`` values ``|z|`` (halfway to the next one), divided by the half width of the central 90%
-  interval of ``N(0, 1)``: the scaled 90% intervals then hold that share of the fitted values,
-  each value counted as ``coverage_90`` counts them (:mod:`mmf_rl.eval.metrics`). ``n`` counts
-  values, not windows: a window's values are not independent, so the finite-sample correction is
-  approximate, and negligible from a few windows on.
+  interval of the output family's standard member (``N(0, 1)`` by default): the scaled 90% intervals
+  then hold that share of the fitted values, each value counted as ``coverage_90`` counts them
+  (:mod:`mmf_rl.eval.metrics`); a factor of 1 means the forecast was calibrated at 90% under its
+  family. ``n`` counts values, not windows: a window's values are not independent, so the
+  finite-sample correction is approximate, and negligible from a few windows on.
   A few large errors (contact, a camera glitch) move a quantile by a few values only.
-* ``temperature``: the NLL-optimal scalar temperature of the Gaussian forecast,
-  ``s_p² = mean(z²)``. Large errors dominate the mean: on heavy-tailed errors it widens every
+* ``temperature``: the NLL-optimal scalar temperature of the forecast under its output family:
+  ``s_p² = mean(z²)`` for the Gaussian, ``s_p = mean(|z|)`` for the Laplace, a 1-D minimisation of the
+  mean NLL for the Student-t (no closed form; :meth:`~mmf_rl.objectives.OutputDistribution.temperature`).
+  Under the Gaussian, large errors dominate the mean: on heavy-tailed errors it widens every
   interval to fit the outliers, and the intervals over-cover.
+
+The output family is the model's (its config's ``output_distribution``,
+:func:`~mmf_rl.objectives.output_distribution_of`): on errors heavier-tailed than a Gaussian, one
+Gaussian factor fitted at 90% over-covers the 50% intervals, a heavier-tailed family can hold both.
 
 The errors are taken on every window of the batches under every presence subset of the evaluation
 (:func:`~mmf_rl.datasets.presence_subsets`, applied as :func:`~mmf_rl.datasets.apply_presence_subset`
@@ -64,6 +71,7 @@ from mmf_rl.eval.metrics import COVERAGE_LEVELS, central_half_width
 from mmf_rl.models import TrainedModelSource
 from mmf_rl.models.loading import RUN_EXPORT_DIR
 from mmf_rl.models.scale_calibration import pattern_name
+from mmf_rl.objectives.distributions import OutputDistribution, output_distribution, output_distribution_of
 
 DEFAULT_MIN_WINDOWS = 32
 # The factors' names in a registered model's state dict.
@@ -71,11 +79,13 @@ FACTORS_KEY = "scale_calibration.factors"
 STEP_FACTORS_KEY = "scale_calibration.step_factors"
 # The level the coverage fit holds, and the coverage the fit reports: the 90% the README promises.
 LEVEL_90 = COVERAGE_LEVELS["coverage_90"]
-HALF_WIDTH_90 = central_half_width(LEVEL_90)
+HALF_WIDTH_90 = central_half_width(LEVEL_90)  # the Gaussian's; a family's is family.half_width(LEVEL_90)
+NORMAL = output_distribution("normal")
 
 
-def coverage_factor(magnitudes: torch.Tensor) -> float:
-    """The split-conformal factor of the values ``|z|`` (see module docstring).
+def coverage_factor(magnitudes: torch.Tensor, family: OutputDistribution = NORMAL) -> float:
+    """The split-conformal factor of the values ``|z|`` under the output ``family`` (see module
+    docstring; by default the Gaussian).
 
     A hand-written quantile, not MAPIE, crepes or torchcp: they wrap a regressor and compute its
     conformity scores themselves, where the scores here are the model's standardised errors, and
@@ -87,12 +97,14 @@ def coverage_factor(magnitudes: torch.Tensor) -> float:
     # Any factor from the rank-th value up to the next covers the same fitted values; halfway,
     # float32 rounding in the calibrated forecast cannot move the rank-th one out of its interval.
     quantile = (ordered[rank - 1] + ordered[min(rank, n - 1)]) / 2
-    return float(quantile) / HALF_WIDTH_90
+    return float(quantile) / family.half_width(LEVEL_90)
 
 
-def temperature_factor(magnitudes: torch.Tensor) -> float:
-    """The NLL-optimal temperature ``sqrt(mean(z²))`` of the values ``|z|``."""
-    return math.sqrt(float(magnitudes.square().mean()))
+def temperature_factor(magnitudes: torch.Tensor, family: OutputDistribution = NORMAL) -> float:
+    """The NLL-optimal temperature of the values ``|z|`` under the output ``family``: ``sqrt(mean(z²))``
+    for the Gaussian (the default), ``mean(|z|)`` for the Laplace, a 1-D minimisation of the NLL for a
+    family without a closed form (:meth:`~mmf_rl.objectives.OutputDistribution.temperature`)."""
+    return family.temperature(magnitudes)
 
 
 CALIBRATION_METHODS = {"coverage": coverage_factor, "temperature": temperature_factor}
@@ -160,7 +172,12 @@ def fit_scale_calibration(
         raise ValueError(
             f"unknown calibration method {method!r}: choose among {', '.join(CALIBRATION_METHODS)}"
         )
-    factor_of = CALIBRATION_METHODS[method]
+    family = output_distribution_of(model)
+
+    def factor_of(values: torch.Tensor) -> float:
+        return CALIBRATION_METHODS[method](values, family)
+
+    half_width_90 = family.half_width(LEVEL_90)
     names = [s.name for s in model.modalities]
     calibration.reset()
     model.to(device).eval()
@@ -180,7 +197,7 @@ def fit_scale_calibration(
             by_step = torch.tensor([factor_of(values[:, step].flatten()) for step in range(values.shape[1])])
             calibration.step_factors[index] = by_step / factor
         applied = calibration.factors[index] * calibration.step_factors[index]  # as the model multiplies
-        covered = values <= HALF_WIDTH_90 * applied.double().view(1, -1, *[1] * (values.dim() - 2))
+        covered = values <= half_width_90 * applied.double().view(1, -1, *[1] * (values.dim() - 2))
         fits.append(
             PatternFit(
                 pattern=pattern_name(index, names),
@@ -188,7 +205,7 @@ def fit_scale_calibration(
                 windows=windows[index],
                 factor=float(calibration.factors[index]),
                 fitted=fitted,
-                coverage_90_before=float((values <= HALF_WIDTH_90).double().mean()),
+                coverage_90_before=float((values <= half_width_90).double().mean()),
                 coverage_90_after=float(covered.double().mean()),
                 pooled=not fitted and pooled,
                 step_factors=applied.tolist() if per_step and fitted else None,
@@ -251,6 +268,7 @@ def calibration_record(
         "min_windows": min_windows,
         "data_root": str(data_root),
         "eval_latent": getattr(model.config, "eval_latent", None),
+        "output_distribution": output_distribution_of(model).describe(),
         "patterns": [asdict(fit) for fit in fits],
         "factors": calibration.factors.tolist(),
         "step_factors": calibration.step_factors.tolist(),

@@ -104,6 +104,8 @@ def build_model(
     horizon: int,
     target_dim: int,
     action_shape: tuple[int, int] | None = None,
+    *,
+    saved: bool = False,
 ) -> nn.Module:
     """Build a registered model from its config group's settings and the data's shapes.
 
@@ -117,6 +119,11 @@ def build_model(
         action_shape (tuple[int, int], optional): ``(S, A)`` when the data config sets ``action``: builds
             an action-conditioned world model; only a model whose config has ``action_steps`` and
             ``action_dim`` (the paper's forecaster) has that option.
+
+    Keyword Args:
+        saved (bool, optional): ``model_cfg`` is a saved run's model group (a resumed run's): a setting
+            it lacks takes the value describing the model saved then (:func:`config_from_saved`), not
+            today's default. Defaults to ``False`` (a new model: today's defaults).
 
     Returns:
         The model (in train mode).
@@ -154,7 +161,9 @@ def build_model(
                 "use model=forecaster, or remove `action` from the data config"
             )
         fields.update(action_steps=action_shape[0], action_dim=action_shape[1])
-    return entry.model_cls(entry.config_cls.from_dict(fields))
+    return entry.model_cls(
+        config_from_saved(entry.config_cls, fields) if saved else entry.config_cls.from_dict(fields)
+    )
 
 
 def trained_loss_terms(name: str, loss_cfg: LossConfig) -> tuple[str, ...]:
@@ -170,13 +179,19 @@ def trained_loss_terms(name: str, loss_cfg: LossConfig) -> tuple[str, ...]:
     return tuple(loss_cfg.terms) if loss_cfg.terms is not None else model_entry(name).loss_terms
 
 
-def model_settings_from_group(model_cfg: Mapping) -> dict:
+def model_settings_from_group(model_cfg: Mapping, *, saved: bool = False) -> dict:
     """The settings the model config group ``model_cfg`` gives its model (its ``name``, else
     ``DEFAULT_MODEL``): its config class's defaults under the group's values, before the data fixes the
-    rest and the model is built."""
+    rest and the model is built.
+
+    With ``saved=True`` the group is a saved run's: a setting it lacks that its config class's
+    ``SAVED_BEFORE`` names takes that value (what :func:`config_from_saved` reads it as), not the
+    default."""
     config_cls = model_entry(model_cfg.get("name", DEFAULT_MODEL)).config_cls
     fields = dataclasses.fields(config_cls)
     defaults = {field.name: field.default for field in fields if field.default is not dataclasses.MISSING}
+    if saved:
+        defaults |= getattr(config_cls, "SAVED_BEFORE", {})
     return {**defaults, **{key: value for key, value in model_cfg.items() if key != "name"}}
 
 

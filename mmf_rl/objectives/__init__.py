@@ -7,6 +7,16 @@ from mmf_rl.objectives.common import (
     model_settings_of,
 )
 from mmf_rl.objectives.config import LossConfig, default_loss_config
+from mmf_rl.objectives.distributions import (
+    OUTPUT_DISTRIBUTIONS,
+    LaplaceOutput,
+    NormalOutput,
+    OutputDistribution,
+    StudentTOutput,
+    output_distribution,
+    output_distribution_of,
+    register_output_distribution,
+)
 from mmf_rl.objectives.diverse_sampling import DiverseSamplingLoss
 from mmf_rl.objectives.elbo import ELBOLoss
 from mmf_rl.objectives.missing_modality import MissingModalityLoss
@@ -31,9 +41,14 @@ __all__ = [
     "GLOBAL_LOSS_SETTINGS",
     "GaussianNLLLoss",
     "LOSS_TERMS",
+    "LaplaceOutput",
     "LossConfig",
     "MissingModalityLoss",
     "ModalityDropout",
+    "NormalOutput",
+    "OUTPUT_DISTRIBUTIONS",
+    "OutputDistribution",
+    "StudentTOutput",
     "build_loss_terms",
     "check_settings_read",
     "default_loss_config",
@@ -42,7 +57,10 @@ __all__ = [
     "gaussian_nll",
     "loss_term",
     "model_settings_of",
+    "output_distribution",
+    "output_distribution_of",
     "register_loss_term",
+    "register_output_distribution",
     "resolve_observed_dropout",
     "settings_read",
     "terms_reading",

@@ -1,4 +1,5 @@
-"""The CVAE evidence lower bound: Gaussian NLL of the future + KL of the posterior to the prior."""
+"""The CVAE evidence lower bound: NLL of the future (under the forecast's distribution) + KL of the
+posterior to the prior."""
 
 from __future__ import annotations
 
@@ -14,10 +15,10 @@ from mmf_rl.objectives.common import (
     best_of_k_mse,
     gaussian_kl,
     gaussian_kl_to_standard,
-    gaussian_nll,
     reduce_batch,
 )
 from mmf_rl.objectives.config import check_count
+from mmf_rl.objectives.distributions import output_distribution_of
 from mmf_rl.objectives.registry import register_loss_term
 
 
@@ -29,7 +30,9 @@ class ELBOLoss(ForecasterLossBase):
     ``p(z | X)``, or ``N(0, I)`` for the paper's standard prior); a model that writes none is
     taken to use ``N(0, I)``. Both terms are summed over their dims (``T × D`` for the NLL,
     ``d_z`` for the KL) and reduced over the batch. The KL is analytic; ``z`` is drawn by the
-    forecaster with the reparameterisation trick, one sample per row.
+    forecaster with the reparameterisation trick, one sample per row. ``p(y | X, z)`` is the
+    forecaster's output distribution (its config's ``output_distribution``: a Gaussian by default,
+    or a Laplace or Student-t with the forecast's loc and scale); the latents stay Gaussian.
 
     With ``gsnn_weight > 0`` the loss adds Sohn et al.'s (2015) GSNN term ``loss_gsnn = w ·
     E_{p(z|X)}[-log p(y | X, z)]``: :meth:`prepare` asks the forecaster (``"decode_from_prior"``)
@@ -159,6 +162,7 @@ class ELBOLoss(ForecasterLossBase):
         self.gsnn_weight = gsnn_weight
         self.best_of_k_weight = best_of_k_weight
         self.best_of_k_samples = best_of_k_samples
+        self.output_distribution = output_distribution_of(forecaster)
         self.register_buffer("num_updates", torch.zeros((), dtype=torch.long))
 
     @classmethod
@@ -231,7 +235,9 @@ class ELBOLoss(ForecasterLossBase):
         k = self.tensor_keys
         target = self._get(td, k.target)
         nll = (
-            gaussian_nll(target, self._get(td, k.forecast_loc), self._get(td, k.forecast_scale))
+            self.output_distribution.nll(
+                target, self._get(td, k.forecast_loc), self._get(td, k.forecast_scale)
+            )
             .flatten(1)
             .sum(-1)
         )
@@ -257,7 +263,8 @@ class ELBOLoss(ForecasterLossBase):
         """The terms scored on forecasts decoded from prior draws, those switched on: GSNN, best-of-K."""
         k, terms = self.tensor_keys, {}
         if self.gsnn_weight:
-            gsnn = gaussian_nll(target, self._get(td, k.from_prior_loc), self._get(td, k.from_prior_scale))
+            loc, scale = self._get(td, k.from_prior_loc), self._get(td, k.from_prior_scale)
+            gsnn = self.output_distribution.nll(target, loc, scale)
             terms["loss_gsnn"] = self.gsnn_weight * reduce_batch(gsnn.flatten(1).sum(-1), self.reduction)
         if self.best_of_k_weight:
             best = best_of_k_mse(target, self._get(td, k.from_prior_samples))

@@ -13,12 +13,12 @@ from mmf_rl import keys
 from mmf_rl.objectives.common import (
     ForecasterLossBase,
     gaussian_kl,
-    gaussian_nll,
     has_learned_prior,
     model_settings_of,
     reduce_batch,
 )
 from mmf_rl.objectives.config import STEP_CUTS
+from mmf_rl.objectives.distributions import output_distribution_of
 from mmf_rl.objectives.registry import register_loss_term
 
 
@@ -35,6 +35,11 @@ class MissingModalityLoss(ForecasterLossBase):
     average. ``max_dropped=1`` (the default) is the paper's setting: exactly one modality;
     ``max_dropped=None`` lets any sample be reduced to a single modality, so single-modality
     inputs are trained.
+
+    ``p(y | ·, z)`` is the forecaster's output distribution (its config's ``output_distribution``,
+    :func:`~mmf_rl.objectives.output_distribution_of`): the KL between two Gaussians by default, between
+    two Laplace distributions in closed form, between two Student-t distributions by quadrature
+    (:class:`~mmf_rl.objectives.StudentTOutput`).
 
     **Tail cuts** (``step_drop_prob > 0``, not in the paper): a sensor that dies part-way through a
     window leaves its last steps absent. With probability ``step_drop_prob`` a sample's drop is a
@@ -69,8 +74,8 @@ class MissingModalityLoss(ForecasterLossBase):
             Detaching leaves the full-input forecast to the ELBO.
         max_dropped (int, optional): the most modalities dropped from one sample (``>= 1``; default ``1``),
             ``None``: no cap (up to ``M_i - 1``).
-        dropped_nll_weight (float, optional): weight of ``loss_mis_nll``, the Gaussian NLL of the target under
-            the degraded forecast (0, the default: no such term).
+        dropped_nll_weight (float, optional): weight of ``loss_mis_nll``, the NLL of the target under the
+            degraded forecast (0, the default: no such term).
         prior_weight (float, optional): weight of ``loss_mis_prior`` (used only with a learned prior).
             Defaults to ``1.0``.
         step_drop_prob (float, optional): probability (in ``[0, 1]``) that a sample's drop is a tail cut of
@@ -227,6 +232,7 @@ class MissingModalityLoss(ForecasterLossBase):
         # Only a learned prior depends on the present modalities; N(0, I) has nothing to tie.
         self.prior_weight = prior_weight if has_learned_prior(model_settings_of(forecaster)) else 0.0
         self.modality_names = [spec.name for spec in forecaster.modalities]
+        self.output_distribution = output_distribution_of(forecaster)
 
     @classmethod
     def from_config(cls, forecaster, loss_cfg) -> MissingModalityLoss | None:
@@ -388,7 +394,8 @@ class MissingModalityLoss(ForecasterLossBase):
         if self.detach_teacher:
             teacher_loc, teacher_scale = teacher_loc.detach(), teacher_scale.detach()
         student_loc, student_scale = self._get(td, k.dropped_loc), self._get(td, k.dropped_scale)
-        kl = gaussian_kl(teacher_loc, teacher_scale, student_loc, student_scale).flatten(1).sum(-1)
+        kl = self.output_distribution.kl(teacher_loc, teacher_scale, student_loc, student_scale)
+        kl = kl.flatten(1).sum(-1)
         dropped = torch.stack([self._get(td, keys.drop_key(m)) for m in self.modality_names], dim=1)
         cut = torch.zeros_like(dropped[:, 0])  # samples whose student lost steps (tail cuts)
         for key in self._drop_steps_keys():
@@ -397,7 +404,8 @@ class MissingModalityLoss(ForecasterLossBase):
         loss = self._per_eligible(kl, eligible)
         out = TensorDict(loss_mis=self.weight * loss)
         if self.dropped_nll_weight:
-            nll = gaussian_nll(self._get(td, k.target), student_loc, student_scale).flatten(1).sum(-1)
+            nll = self.output_distribution.nll(self._get(td, k.target), student_loc, student_scale)
+            nll = nll.flatten(1).sum(-1)
             out.set("loss_mis_nll", self.dropped_nll_weight * self._per_eligible(nll, eligible))
         if self.prior_weight:
             prior_loc, prior_scale = self._get(td, k.prior_loc), self._get(td, k.prior_scale)

@@ -1,4 +1,5 @@
-"""Gaussian negative log-likelihood of the future: the loss of the deterministic baselines."""
+"""Negative log-likelihood of the future under the forecast's distribution: the loss of the deterministic
+baselines."""
 
 from __future__ import annotations
 
@@ -8,16 +9,19 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 
 from mmf_rl import keys
-from mmf_rl.objectives.common import ForecasterLossBase, gaussian_nll, reduce_batch
+from mmf_rl.objectives.common import ForecasterLossBase, reduce_batch
+from mmf_rl.objectives.distributions import output_distribution_of
 from mmf_rl.objectives.registry import register_loss_term
 
 
 @register_loss_term("nll")
 class GaussianNLLLoss(ForecasterLossBase):
-    """``-log N(y; loc, scale²)`` summed over ``T × D`` and reduced over the batch.
+    """``-log p(y; loc, scale)`` summed over ``T × D`` and reduced over the batch.
 
     For forecasters without a latent (LF-LSTM, MulT): the same likelihood term as the ELBO's
-    ``loss_nll``, so every model is fitted to the same objective on the forecast.
+    ``loss_nll``, so every model is fitted to the same objective on the forecast. ``p`` is the
+    forecaster's output distribution (its config's ``output_distribution``,
+    :func:`~mmf_rl.objectives.output_distribution_of`): ``N(loc, scale²)`` by default, hence the name.
 
     Args:
         forecaster (nn.Module): any module writing ``("forecast", "loc"/"scale")``.
@@ -65,8 +69,8 @@ class GaussianNLLLoss(ForecasterLossBase):
             target (NestedKey): the future ``y``, ``[B, T, D]``. Defaults to ``"target"``.
             forecast_loc (NestedKey): the forecast's mean, ``[B, T, D]``. Defaults to
                 ``("forecast", "loc")``.
-            forecast_scale (NestedKey): the forecast's standard deviation, ``[B, T, D]``. Defaults
-                to ``("forecast", "scale")``.
+            forecast_scale (NestedKey): the forecast's scale (the Gaussian's standard deviation),
+                ``[B, T, D]``. Defaults to ``("forecast", "scale")``.
         """
 
         target: NestedKey = keys.TARGET
@@ -76,13 +80,17 @@ class GaussianNLLLoss(ForecasterLossBase):
     default_keys = _AcceptedKeys
     out_keys = ["loss_nll"]
 
+    def __init__(self, forecaster, reduction: str = "mean"):
+        super().__init__(forecaster, reduction)
+        self.output_distribution = output_distribution_of(forecaster)
+
     def _loss_in_keys(self) -> list:
         k = self.tensor_keys
         return [k.target, k.forecast_loc, k.forecast_scale]
 
     def loss_from_outputs(self, td: TensorDictBase) -> TensorDict:
         k = self.tensor_keys
-        nll = gaussian_nll(
+        nll = self.output_distribution.nll(
             self._get(td, k.target), self._get(td, k.forecast_loc), self._get(td, k.forecast_scale)
         )
         return TensorDict(loss_nll=reduce_batch(nll.flatten(1).sum(-1), self.reduction))

@@ -387,9 +387,9 @@ class ForecastTransform(_WindowTransform):
             rounding).
 
     Written every step (env batch ``[*batch]``): ``("forecast", "loc")`` and ``("forecast",
-    "scale")`` ``float32 [*batch, T, D]`` (the model's deterministic eval forecast, a diagonal
-    Gaussian), ``("forecast", "samples")`` when ``num_samples > 0``, and ``("forecast",
-    "valid")`` ``bool [*batch]``.
+    "scale")`` ``float32 [*batch, T, D]`` (the model's deterministic eval forecast: the location and
+    scale of its output family, a diagonal Gaussian by default), ``("forecast", "samples")`` when
+    ``num_samples > 0``, and ``("forecast", "valid")`` ``bool [*batch]``.
 
     The window follows the data pipeline (`mmf_rl.datasets.windows`): vector observations are
     normalised with ``stats``; images are resized to the model's size the way the cache resizes

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
 
@@ -13,6 +14,7 @@ from mmf_rl.datasets.splits import Normalizer
 from mmf_rl.models.forecaster import MultimodalForecaster
 from mmf_rl.models.loading import load_trained_model
 from mmf_rl.models.rows import compute_on_rows
+from mmf_rl.objectives import output_distribution_of
 from mmf_rl.rl.transforms import RUN_STATS_FIX, HistoryWindow, require_stats, trained_per_step_presence
 
 
@@ -105,6 +107,8 @@ class WorldModel:
         # How its history window counts a sensor lost for some steps (as the run trained it).
         self.per_step_presence = per_step_presence
         self.action_steps, self.action_dim = model.config.action_shape
+        # How the forecast's scale is read (the run's model.output_distribution, saved with it).
+        self.output_distribution = output_distribution_of(model)
         self.horizon, self.target_dim = model.config.horizon, model.config.target_dim
 
     @classmethod
@@ -213,8 +217,10 @@ class WorldModel:
         self, tokens: torch.Tensor, present: torch.Tensor, valid: torch.Tensor, actions: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`forecast` and its standard deviation, both ``[n, N, T, D]`` in target units, from the
-        same decode. The standard deviation is the decoder's predictive one (times the checkpoint's
-        ``scale_calibration`` factors when it was calibrated) scaled by the target's training std:
+        same decode. The standard deviation is the decoder's predictive one (its scale times the
+        checkpoint's ``scale_calibration`` factors when it was calibrated, read as the model's output
+        family says: the scale itself for the Gaussian, ``sqrt(2)`` times it for the Laplace,
+        ``sqrt(df / (df - 2))`` times it for the Student-t) scaled by the target's training std:
         a forecast's spread has no offset, also for a target relative to now. Rows that cannot be
         encoded get the target's training std (the marginal, beside the marginal mean).
 
@@ -228,7 +234,8 @@ class WorldModel:
             ``(forecast, std)``, each ``[n, N, T, D]``.
         """
         normalized, scale = self._decode(tokens, present, valid, actions)
-        return self.normalizer.denormalize_target(normalized), self.normalizer.denormalize_target_scale(scale)
+        std = self.output_distribution.stddev(scale)
+        return self.normalizer.denormalize_target(normalized), self.normalizer.denormalize_target_scale(std)
 
     def _decode(
         self, tokens: torch.Tensor, present: torch.Tensor, valid: torch.Tensor, actions: torch.Tensor
@@ -243,4 +250,6 @@ class WorldModel:
             scaled = scaled.masked_fill(self.constant_action_dims, 0.0)
             return self.model.decode_under_actions(tokens[index], present[index], scaled)
 
-        return compute_on_rows(valid, decode, (prior_loc, torch.ones_like(prior_loc)))
+        # Rows that cannot be encoded: the marginal, a standard deviation of one (normalised).
+        marginal_scale = torch.full_like(prior_loc, 1 / math.sqrt(self.output_distribution.variance))
+        return compute_on_rows(valid, decode, (prior_loc, marginal_scale))

@@ -46,7 +46,7 @@ from mmf_rl.models import (
 )
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.loading import RUN_EXPORT_DIR
-from mmf_rl.models.registry import DEFAULT_MODEL
+from mmf_rl.models.registry import DEFAULT_MODEL, model_settings_from_group
 from mmf_rl.objectives import LossConfig, default_loss_config, resolve_observed_dropout
 from mmf_rl.trainers.latent_sampler import SamplerConfig, check_sampler_settings, train_latent_sampler
 from mmf_rl.trainers.trainer import Trainer, TrainerConfig, seed_everything
@@ -226,12 +226,19 @@ def check_resumable(run: TrainRunConfig) -> None:
     added, changed = config_changes(saved, run.settings, RESUMABLE_CHANGES)
     # Settings a newer mmf-rl added since the run started: the saved config cannot hold them, and
     # refusing them would make every run unresumable after an upgrade. They are taken as composed
-    # now (their defaults, unless set on this command line) and named.
+    # now (their defaults, unless set on this command line) and named; but the model's are read as
+    # the saved model's (resumed_run): it continues the model it trained.
     if added:
+        model = model_settings_from_group(saved.get("model", {}), saved=True)
+        used = {
+            k: model.get(k.removeprefix("model."), v) if k.startswith("model.") else v
+            for k, v in added.items()
+        }
         warnings.warn(
             f"resuming {run.run_dir}: its {saved_path.name} predates the settings "
-            + ", ".join(f"{k}={v!r}" for k, v in added.items())
-            + "; the resumed run uses these values",
+            + ", ".join(f"{k}={v!r}" for k, v in used.items())
+            + "; the resumed run uses these values (a model setting: the value describing the model the run "
+            "trained, not today's default)",
             stacklevel=2,
         )
     if changed:
@@ -242,9 +249,22 @@ def check_resumable(run: TrainRunConfig) -> None:
         )
 
 
-def prepare_run_dir(run: TrainRunConfig, rank: int) -> None:
+def resumed_run(run: TrainRunConfig) -> TrainRunConfig:
+    """``run`` as it resumes the run in its ``run_dir``: with the model group that run saved
+    (``config.yaml``), which :func:`build_model_and_loss` reads as a saved model's (``build_model(...,
+    saved=True)``, :func:`~mmf_rl.models.registry.config_from_saved`), so that a model setting added to
+    mmf-rl since the run began takes the value describing the model it trained (e.g. ``decoder_input=
+    tokens``), not today's default composed now. :func:`check_resumable` has compared every other
+    setting with the saved ones."""
+    saved = OmegaConf.to_container(load_config(run.run_dir / RUN_CONFIG))
+    model = saved.get("model", run.model)
+    return dataclasses.replace(run, model=model, settings={**run.settings, "model": model})
+
+
+def prepare_run_dir(run: TrainRunConfig, rank: int) -> TrainRunConfig:
     """On rank 0: ``run_dir`` cleaned of a killed save's leftovers, checked against the run it would
-    resume or overwrite, and given the config."""
+    resume or overwrite, and given the config. Returns the run to train: a resumed run's
+    (:func:`resumed_run`) on every rank."""
     if rank == 0:
         for leftover in remove_leftovers(run.run_dir / "checkpoints"):
             logger.info("removed %s: left by a run killed while saving or pruning a checkpoint", leftover)
@@ -255,7 +275,10 @@ def prepare_run_dir(run: TrainRunConfig, rank: int) -> None:
                 f"{run.run_dir} already holds a trained run; pass resume=true to continue it, or "
                 "choose another run_dir (nothing was overwritten)"
             )
-        save_config(run.settings, run.run_dir / RUN_CONFIG)
+    trained = resumed_run(run) if run.resume else run
+    if rank == 0:
+        save_config(trained.settings, run.run_dir / RUN_CONFIG)
+    return trained
 
 
 def open_windows(run: TrainRunConfig, world_size: int) -> WindowDataset:
@@ -289,6 +312,7 @@ def build_model_and_loss(run: TrainRunConfig, data: WindowDataset, rank: int, de
         data.config.horizon,
         data.target_dim,
         action_shape=data.action_shape,
+        saved=run.resume,  # a resumed run rebuilds the model it trained (resumed_run)
     ).to(device)
     model_name = run.model.get("name", DEFAULT_MODEL)
     if run.init_from is not None and not run.resume:  # resuming restores the run's own weights
@@ -444,7 +468,7 @@ def train(config: DictConfig | None = None, *, overrides: Sequence[str] = ()) ->
     rank, world_size = init_distributed(device)
     check_loss_settings_read(run)
     check_sampler_settings(int(run.model.get("learned_samples", 0)), run.sampler)
-    prepare_run_dir(run, rank)
+    run = prepare_run_dir(run, rank)
     data = open_windows(run, world_size)
     model, model_name, loss = build_model_and_loss(run, data, rank, device)
     trainer = make_trainer(run, model, model_name, loss, data, (rank, world_size), device)

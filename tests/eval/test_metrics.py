@@ -1,4 +1,5 @@
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -16,6 +17,7 @@ from mmf_rl.eval.metrics import (
     interval_coverage,
 )
 from mmf_rl.eval.report import markdown_table
+from mmf_rl.objectives import output_distribution
 
 # The fake forecasters below read the future from here: the metrics hide "target" from the model.
 ORACLE = "oracle"
@@ -250,3 +252,31 @@ def test_paired_baseline_row_uses_the_shared_windows():
     )
     assert baseline["windows"] == 1 and baseline["mse"] == pytest.approx(4.0)
     assert not math.isnan(baseline["ade"])
+
+
+class FamilyForecaster(FixedForecaster):
+    """`FixedForecaster` whose forecast is read with the output family its config names."""
+
+    def __init__(self, offset: float, family: str, **settings):
+        super().__init__(offset)
+        self.config = SimpleNamespace(output_distribution=family, **settings)
+
+
+@pytest.mark.parametrize("family, settings", [("laplace", {}), ("student_t", {"output_df": 3.0})])
+def test_the_nll_intervals_and_crps_are_the_models_output_familys(family, settings):
+    """Errors 0.3 or -1.5, scale 1 (normalised), 10 units a normalised unit."""
+    model = FamilyForecaster(0.0, family, **settings)
+    data = batches()
+    errors = torch.tensor([0.3, -1.5]).repeat(3, 4, 5, 1)
+    for i, batch in enumerate(data):
+        batch.set(ORACLE, batch.get(keys.TARGET) + errors[i])
+    metrics = evaluate_forecasts(model, data, denormalize=lambda t: t * 10.0)
+    found = output_distribution(family, **settings)
+    values, loc, scale = torch.tensor([0.3, -1.5]), torch.zeros(2), torch.ones(2)
+    assert metrics["nll"] == pytest.approx(5 * float(found.nll(values, loc, scale).sum()), rel=1e-5)
+    assert metrics["crps"] == pytest.approx(float(found.crps(values, loc, scale).mean()), rel=1e-5)
+    # |0.3| is inside every central 50% interval of these families, |-1.5| outside; both inside the 90% ones.
+    assert found.half_width(0.5) > 0.3 and found.half_width(0.5) < 1.5 < found.half_width(0.9)
+    assert metrics["coverage_50"] == 0.5 and metrics["coverage_90"] == 1.0
+    assert metrics["width_90"] == pytest.approx(2 * found.half_width(0.9) * 10.0, rel=1e-5)
+    assert found.half_width(0.9) != pytest.approx(1.6449, rel=1e-2)  # not the Gaussian's

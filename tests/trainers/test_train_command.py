@@ -12,11 +12,19 @@ import torch
 from safetensors.torch import load_file
 
 from mmf_rl import keys
-from mmf_rl.checkpoint import CheckpointError, load_checkpoint, read_meta, resolve_checkpoint
+from mmf_rl.checkpoint import (
+    LAST_POINTER,
+    CheckpointError,
+    list_checkpoints,
+    load_checkpoint,
+    read_meta,
+    resolve_checkpoint,
+)
 from mmf_rl.cli import main as cli
 from mmf_rl.configuration import compose_config, config_dir, to_container
 from mmf_rl.datasets import WindowDataset
 from mmf_rl.models import build_loss, load_trained_model
+from mmf_rl.objectives import output_distribution_of
 from mmf_rl.trainers.training import TrainRunConfig, check_loss_settings_read
 from tests.conftest import push_train_overrides, small_registered_model
 from tests.reliability.conftest import edit_frames, push_data_config
@@ -56,6 +64,31 @@ def test_train_then_eval_writes_checkpoint_logs_table_and_plots(overrides, tmp_p
     assert not (run / "eval" / "latent_tsne.png").exists() and "no latent t-SNE" in out
 
 
+def test_train_with_an_output_family_then_eval_and_calibrate_read_it_from_the_run(
+    overrides, tmp_path, capsys
+):
+    """``model.output_distribution`` is written once, at training: the checkpoint's config carries it, and
+    the calibration at the end, `mmf-rl calibrate` and `mmf-rl eval` read the forecast with it."""
+    family = ["model.output_distribution=student_t", "model.output_df=3"]
+    assert cli(["train", *overrides("run"), *family]) == 0
+    run = tmp_path / "run"
+    checkpoint = load_checkpoint(run / "checkpoints")
+    saved = checkpoint.meta["model_config"]
+    assert (saved["output_distribution"], saved["output_df"]) == ("student_t", 3)
+    assert checkpoint.meta["calibration"]["output_distribution"] == "student_t (df 3)"
+    assert output_distribution_of(load_trained_model(run / "model")[0]).describe() == "student_t (df 3)"
+    assert cli(["calibrate", f"checkpoint={run}", "min_windows=4"]) == 0
+    assert (
+        load_checkpoint(run / "checkpoints").meta["calibration"]["output_distribution"] == "student_t (df 3)"
+    )
+    assert cli(["eval", f"checkpoint={run}", "num_samples=0", "plots=false"]) == 0
+    capsys.readouterr()
+    assert (
+        json.loads((run / "eval" / "results.json").read_text())["output_distribution"] == "student_t (df 3)"
+    )
+    assert "Forecast distribution: student_t (df 3)" in (run / "eval" / "results.md").read_text()
+
+
 def test_existing_run_is_never_overwritten_and_resume_needs_same_config(overrides, tmp_path, capsys):
     assert cli(["train", *overrides("run")]) == 0
     assert cli(["train", *overrides("run")]) == 1
@@ -82,6 +115,34 @@ def test_a_run_saved_before_a_setting_existed_resumes_with_a_warning_naming_it(o
     config.write_text(yaml.safe_dump(saved))
     with pytest.warns(UserWarning, match=r"predates the settings model\.predictive_samples=16"):
         assert cli(["train", *overrides("run"), "resume=true"]) == 0
+
+
+def test_a_run_saved_before_decoder_input_resumes_the_tokens_decoder_it_trained(overrides, tmp_path):
+    """A run begun before ``model.decoder_input`` existed trained the paper's ``tokens`` decoder, and its
+    config.yaml and checkpoints lack the setting. Resumed half-way, it continues that decoder: the run's
+    model group is read as a saved model's (``SAVED_BEFORE``), not as today's default ``mixed`` built on
+    the weights trained with ``tokens``."""
+    import yaml
+
+    assert cli(["train", *overrides("run"), "model.decoder_input=tokens"]) == 0  # checkpoints at 3 and 6
+    run = tmp_path / "run"
+    config = run / "config.yaml"
+    saved = yaml.safe_load(config.read_text())
+    del saved["model"]["decoder_input"]  # as an older mmf-rl wrote it
+    config.write_text(yaml.safe_dump(saved))
+    checkpoints = list_checkpoints(run / "checkpoints")
+    for checkpoint in checkpoints:
+        meta = json.loads((checkpoint / "meta.json").read_text())
+        del meta["model_config"]["decoder_input"], meta["config"]["model"]["decoder_input"]
+        (checkpoint / "meta.json").write_text(json.dumps(meta))
+    shutil.rmtree(checkpoints[-1])  # killed after step 3: steps 4-6 are trained again
+    (run / "checkpoints" / LAST_POINTER).write_text(checkpoints[0].name + "\n")
+    with pytest.warns(UserWarning, match=r"predates the settings .*model\.decoder_input='tokens'"):
+        assert cli(["train", *overrides("run"), "resume=true"]) == 0
+    assert load_checkpoint(run / "checkpoints").step == 6
+    assert load_checkpoint(run / "checkpoints").meta["model_config"]["decoder_input"] == "tokens"
+    assert json.loads((run / "model" / "config.json").read_text())["decoder_input"] == "tokens"
+    assert "decoder_input" not in yaml.safe_load(config.read_text())["model"]  # still read as saved
 
 
 def lf_lstm_overrides(overrides, run: str, **kw) -> list[str]:

@@ -2,8 +2,9 @@
 ``L_mis`` student pass.
 
 Every baseline follows the batch contract of :mod:`mmf_rl.keys`: it reads ``("obs", m)`` and
-``("present", m)`` and writes a diagonal Gaussian ``("forecast", "loc"/"scale")`` ``[B, T, D]``,
-whose scale is multiplied in eval mode by its presence pattern's factor (``scale_calibration``,
+``("present", m)`` and writes ``("forecast", "loc"/"scale")`` ``[B, T, D]``, the location and scale of
+its output distribution (``output_distribution``: a diagonal Gaussian by default), whose scale is
+multiplied in eval mode by its presence pattern's factor (``scale_calibration``,
 :mod:`mmf_rl.models.scale_calibration`).
 """
 
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 from functools import partial
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -24,6 +26,11 @@ from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
 from mmf_rl.models.encoders import ImageWindowEncoder, check_encoder, with_encoder_kwargs
 from mmf_rl.models.hub import PretrainedModel
 from mmf_rl.models.scale_calibration import PresenceScaleCalibration
+from mmf_rl.objectives.distributions import (
+    DEFAULT_OUTPUT_DF,
+    DEFAULT_OUTPUT_DISTRIBUTION,
+    output_distribution_of,
+)
 
 
 @dataclass
@@ -37,14 +44,18 @@ class BaselineConfig:
         target_dim (int, optional): ``D``, dims of the forecast variable. Defaults to ``2``.
         d_model (int, optional): width of every per-modality representation. Defaults to ``64``.
         head_hidden (int, optional): hidden width of the output head. Defaults to ``256``.
-        min_scale (float, optional): floor added to every predicted standard deviation. Defaults to
+        min_scale (float, optional): floor added to every predicted scale. Defaults to
             ``1e-3``.
         nonfinite (str, optional): NaN/Inf under a present modality: ``"raise"`` (default) or
             ``"absent"`` (read as absent), as :func:`mmf_rl.keys.mark_nonfinite_absent` applies it.
+        output_distribution (str, optional): the family the forecast's ``(loc, scale)`` is read with:
+            ``"normal"`` (default), ``"laplace"`` or ``"student_t"`` (:mod:`mmf_rl.objectives.distributions`).
+        output_df (float, optional): the degrees of freedom of ``"student_t"`` (``> 2``). Defaults to ``4``.
 
     Raises:
-        ValueError: no modality, duplicate names, an unknown encoder, a size below 1, ``min_scale <= 0``
-            or an unknown ``nonfinite`` (the message names the config class and field).
+        ValueError: no modality, duplicate names, an unknown encoder, a size below 1, ``min_scale <= 0``,
+            an unknown ``nonfinite`` or ``output_distribution``, or ``output_df <= 2`` with ``"student_t"``
+            (the message names the config class and field).
     """
 
     modalities: list[ModalitySpec] = field(default_factory=list)
@@ -55,6 +66,11 @@ class BaselineConfig:
     head_hidden: int = 256
     min_scale: float = 1e-3
     nonfinite: NonFiniteRule = "raise"
+    output_distribution: str = DEFAULT_OUTPUT_DISTRIBUTION
+    output_df: float = DEFAULT_OUTPUT_DF
+    # What a config saved before a setting existed read as (to_dict writes every setting: a saved config
+    # lacks one only if older): the model of its time, whatever the default becomes.
+    SAVED_BEFORE: ClassVar[dict[str, object]] = {"output_distribution": "normal"}
 
     def __post_init__(self):
         self.modalities = [
@@ -79,6 +95,10 @@ class BaselineConfig:
             raise ValueError(
                 f"{name}.min_scale must be > 0 (the floor of every forecast scale), found {self.min_scale!r}"
             )
+        try:
+            output_distribution_of(self)
+        except ValueError as error:
+            raise ValueError(f"{name}: {error}") from None
 
     def to_dict(self) -> dict:
         """The config as plain data (modalities as dicts), what :meth:`from_dict` reads back."""
@@ -101,6 +121,23 @@ class BaselineConfig:
         """
         reject_unknown_keys(cls, d, cls.__name__)
         return cls(**d)
+
+    @classmethod
+    def from_saved_dict(cls, d: dict):
+        """Build from a saved model's config (a checkpoint's ``model_config``, a ``config.json``): a
+        setting it lacks did not exist when it was saved, and takes the value that describes the model
+        saved then (:attr:`SAVED_BEFORE`: ``output_distribution="normal"``), not today's default.
+
+        Args:
+            d (dict): the saved fields (:meth:`to_dict`'s form).
+
+        Returns:
+            The config of the saved model.
+
+        Raises:
+            ValueError: an unknown key or an invalid value.
+        """
+        return cls.from_dict({**cls.SAVED_BEFORE, **d})
 
 
 def zero_filled(td: TensorDictBase, spec: ModalitySpec) -> torch.Tensor:

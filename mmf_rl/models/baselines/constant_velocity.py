@@ -36,19 +36,23 @@ class ConstantVelocityConfig(BaselineConfig):
         target_dim (int, optional): ``D``, dims of the forecast variable. Defaults to ``2``.
         d_model (int, optional): width of every per-modality representation. Defaults to ``64``.
         head_hidden (int, optional): hidden width of the output head. Defaults to ``256``.
-        min_scale (float, optional): floor added to every predicted standard deviation. Defaults to
+        min_scale (float, optional): floor added to every predicted scale. Defaults to
             ``1e-3``.
         nonfinite (str, optional): NaN/Inf under a present modality: ``"raise"`` (default) or
             ``"absent"`` (read as absent), as :func:`mmf_rl.keys.mark_nonfinite_absent` applies it.
+        output_distribution (str, optional): the family the forecast's ``(loc, scale)`` is read with:
+            ``"normal"`` (default), ``"laplace"`` or ``"student_t"`` (:mod:`mmf_rl.objectives.distributions`).
+        output_df (float, optional): the degrees of freedom of ``"student_t"`` (``> 2``). Defaults to ``4``.
         heading_noise (float, optional): radians, the std of the turn of each sample (``0``, the default:
             every sample is the point forecast); needs ``target_dim = 2``.
         target_scale (list[float], optional): the per-dim std of the normalised target, so the turn is
             made in the target's units; ``None``: 1.
 
     Raises:
-        ValueError: no modality, duplicate names, an unknown encoder, a size below 1, ``min_scale <= 0`` or an
-            unknown ``nonfinite``, a negative ``heading_noise``, ``heading_noise`` with ``target_dim != 2``,
-            or ``target_scale`` not ``target_dim`` positive numbers.
+        ValueError: no modality, duplicate names, an unknown encoder, a size below 1, ``min_scale <= 0``, an
+            unknown ``nonfinite`` or ``output_distribution``, ``output_df <= 2`` with ``"student_t"``, a
+            negative ``heading_noise``, ``heading_noise`` with ``target_dim != 2``, or ``target_scale`` not
+            ``target_dim`` positive numbers.
     """
 
     heading_noise: float = 0.0

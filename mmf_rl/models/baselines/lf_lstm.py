@@ -35,14 +35,17 @@ class LFLSTMConfig(BaselineConfig):
         target_dim (int, optional): ``D``, dims of the forecast variable. Defaults to ``2``.
         d_model (int, optional): width of every per-modality representation. Defaults to ``64``.
         head_hidden (int, optional): hidden width of the output head. Defaults to ``256``.
-        min_scale (float, optional): floor added to every predicted standard deviation. Defaults to
+        min_scale (float, optional): floor added to every predicted scale. Defaults to
             ``1e-3``.
         nonfinite (str, optional): NaN/Inf under a present modality: ``"raise"`` (default) or
             ``"absent"`` (read as absent), as :func:`mmf_rl.keys.mark_nonfinite_absent` applies it.
+        output_distribution (str, optional): the family the forecast's ``(loc, scale)`` is read with:
+            ``"normal"`` (default), ``"laplace"`` or ``"student_t"`` (:mod:`mmf_rl.objectives.distributions`).
+        output_df (float, optional): the degrees of freedom of ``"student_t"`` (``> 2``). Defaults to ``4``.
 
     Raises:
-        ValueError: no modality, duplicate names, an unknown encoder, a size below 1, ``min_scale <= 0``
-            or an unknown ``nonfinite``.
+        ValueError: no modality, duplicate names, an unknown encoder, a size below 1, ``min_scale <= 0``,
+            an unknown ``nonfinite`` or ``output_distribution``, or ``output_df <= 2`` with ``"student_t"``.
     """
 
 

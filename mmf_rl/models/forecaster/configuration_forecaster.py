@@ -9,6 +9,11 @@ from mmf_rl.configuration import reject_unknown_keys
 from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.fusion import check_fusion
+from mmf_rl.objectives.distributions import (
+    DEFAULT_OUTPUT_DF,
+    DEFAULT_OUTPUT_DISTRIBUTION,
+    output_distribution_of,
+)
 
 EVAL_LATENTS = ("mean", "sample", "predictive", "posterior")
 DECODER_INPUTS = ("tokens", "mixed", "pair_streams", "mixed_pair_streams")
@@ -35,8 +40,7 @@ class ForecasterConfig:
         mlp_hidden (int, optional): hidden width of the Transformer MLPs and the decoder's shared MLP.
             Defaults to ``128``.
         head_hidden (int, optional): hidden width of the posterior and output heads. Defaults to ``256``.
-        min_scale (float, optional): floor added to every predicted standard deviation. Defaults to
-            ``1e-3``.
+        min_scale (float, optional): floor added to every predicted scale. Defaults to ``1e-3``.
         prior (str, optional): ``"standard"`` (default, the paper's fixed
             ``N(0, I)``) or ``"learned"``: a conditional prior ``p(z|X)`` computed by a head on the multimodal
             encoder's fused representation of the present modalities, so the fusion shapes every test-time
@@ -104,14 +108,21 @@ class ForecasterConfig:
         nonfinite (str, optional): NaN/Inf under a present modality of an input batch: ``"raise"``
             (default; the error names the key and the samples) or ``"absent"`` (those samples' modality is
             read as absent). See :func:`mmf_rl.keys.validate_batch`.
+        output_distribution (str, optional): the family the forecast's ``(loc, scale)`` is read with, by
+            the losses, the evaluation and the scale calibration: ``"normal"`` (default, ``N(loc,
+            scale²)``), ``"laplace"`` or ``"student_t"`` (heavier tails;
+            :mod:`mmf_rl.objectives.distributions`). The decoder is the same; a saved model's config without
+            it loads as ``"normal"``.
+        output_df (float, optional): the degrees of freedom of ``"student_t"`` (``> 2``; unused by the other
+            families). Defaults to ``4``.
 
     Raises:
         ValueError: no modality or duplicate names, an unknown encoder or fusion, a size below 1,
             ``d_model`` not divisible by ``num_heads``, ``min_scale <= 0``, an option outside its choices,
             ``predictive_samples`` odd or below 2, ``action_dim`` and ``action_steps`` not both set or both
-            0, or a latent setup that cannot work (``prior="learned"`` with
-            ``posterior_uses_target=False``, ``eval_latent="posterior"`` with a posterior that reads the
-            target); the message names the field.
+            0, an unknown ``output_distribution``, ``output_df <= 2`` with ``"student_t"``, or a latent setup
+            that cannot work (``prior="learned"`` with ``posterior_uses_target=False``,
+            ``eval_latent="posterior"`` with a posterior that reads the target); the message names the field.
 
     Examples:
         >>> from mmf_rl.keys import ModalitySpec
@@ -161,9 +172,12 @@ class ForecasterConfig:
     action_dim: int = 0
     action_steps: int = 0
     nonfinite: NonFiniteRule = "raise"
-    # The settings whose default changed since a config without them could be saved, at the value
-    # that config described (to_dict writes every setting: a saved config lacks one only if older).
-    SAVED_BEFORE: ClassVar[dict[str, str]] = {"decoder_input": "tokens"}
+    output_distribution: str = DEFAULT_OUTPUT_DISTRIBUTION
+    output_df: float = DEFAULT_OUTPUT_DF
+    # The settings a config saved without them reads at the value that config described (to_dict
+    # writes every setting: a saved config lacks one only if older), whose default changed since
+    # (decoder_input) or may change (output_distribution).
+    SAVED_BEFORE: ClassVar[dict[str, str]] = {"decoder_input": "tokens", "output_distribution": "normal"}
 
     def __post_init__(self):
         self.modalities = [
@@ -259,6 +273,10 @@ class ForecasterConfig:
                 f"ForecasterConfig.nonfinite must be one of {NONFINITE_RULES}, found {self.nonfinite!r}"
             )
         check_fusion(self.fusion)
+        try:
+            output_distribution_of(self)
+        except ValueError as error:
+            raise ValueError(f"ForecasterConfig: {error}") from None
         options = {"decoder_input": DECODER_INPUTS, "decoder_latent": DECODER_LATENTS, "pair_self": PAIR_SELF}
         for name, allowed in options.items():
             if (value := getattr(self, name)) not in allowed:
@@ -306,7 +324,8 @@ class ForecasterConfig:
     def from_saved_dict(cls, d: dict) -> ForecasterConfig:
         """Build from a saved model's config (a checkpoint's ``model_config``, a ``config.json``): a
         setting it lacks did not exist when it was saved, and takes the value that describes the model
-        saved then (:attr:`SAVED_BEFORE`: ``decoder_input="tokens"``), not today's default.
+        saved then (:attr:`SAVED_BEFORE`: ``decoder_input="tokens"``, ``output_distribution="normal"``),
+        not today's default.
 
         Args:
             d (dict): the saved fields (:meth:`to_dict`'s form).

@@ -17,12 +17,13 @@ Pipeline for a batch ``[B]`` with ``M`` modalities (paper, "Model Architecture")
    its place, and the decoder's aggregation's with it.
 3. **Decoder**: ``[(x̄_m + p^D_m) ⊕ z]`` per token -> shared MLP -> ``H0``; ``H1 = MHA(LN(P^D),
    LN(H0), LN(H0)) + P^D``; ``H2 = MHA(LN(H1), LN(H0), LN(H0)) + H1``; flatten, MLP -> ``loc``,
-   ``scale`` of a diagonal Gaussian over the ``T × D`` future, in the normalised frame of the
-   target. With ``decoder_input="mixed"`` its tokens are those after the multimodal encoder's
-   Transformer layers, so the fusion shapes every forecast; with ``"pair_streams"``, MulT's ``M × M``
-   pair readouts (:class:`~mmf_rl.models.attention.PairStreams`), each with ``p^D`` of its query
-   modality. ``decoder_latent`` chooses how ``z`` enters ``H0``: the shared MLP (the paper), a linear
-   map added to each token, or not at all.
+   ``scale`` of the output distribution over the ``T × D`` future (a diagonal Gaussian by default;
+   ``output_distribution`` says how they are read), in the normalised frame of the target. With
+   ``decoder_input="mixed"`` its tokens are those after the multimodal encoder's Transformer layers,
+   so the fusion shapes every forecast; with ``"pair_streams"``, MulT's ``M × M`` pair readouts
+   (:class:`~mmf_rl.models.attention.PairStreams`), each with ``p^D`` of its query modality.
+   ``decoder_latent`` chooses how ``z`` enters ``H0``: the shared MLP (the paper), a linear map
+   added to each token, or not at all.
 
 Open points of the paper, and what this implementation does:
 
@@ -41,11 +42,12 @@ Open points of the paper, and what this implementation does:
   default (deterministic forecasts for RL and metrics); :meth:`sample` draws ``K`` latents for
   best-of-K. ``eval_latent="predictive"`` decodes ``K`` fixed prior draws in one batched pass
   and writes the moment-matched Gaussian of their mixture (mean of the means; variance = mean
-  variance + variance of the means): the forecast's scale then carries the spread of ``p(z|X)``,
-  which the decoder's own scale, trained on posterior draws that know ``y``, misses (a learned
-  prior decoded at its mean is overconfident). No retraining: ``mmf-rl eval`` can apply it to
-  any checkpoint. With the paper's standard prior ``N(0, I)`` (``prior="standard"``) the multimodal
-  encoder feeds only the posterior, so a forecast decoded from the prior does not depend on it:
+  variance + variance of the means; for another output family, its member with these moments): the
+  forecast's scale then carries the spread of ``p(z|X)``, which the decoder's own scale, trained on
+  posterior draws that know ``y``, misses (a learned prior decoded at its mean is overconfident). No
+  retraining: ``mmf-rl eval`` can apply it to any checkpoint. With the paper's standard prior
+  ``N(0, I)`` (``prior="standard"``) the multimodal encoder feeds only the posterior, so a forecast
+  decoded from the prior does not depend on it:
   it shapes the model through training alone (see docs/results.md). The paper's eq. (15)
   integrates over ``p(z | X)`` and says the prior can be learned: ``prior="learned"`` is that
   conditional prior, a head on the fused representation of the present modalities, so the
@@ -109,6 +111,7 @@ from mmf_rl.models.latent_sampler import LatentSampler
 from mmf_rl.models.registry import register_model
 from mmf_rl.models.rows import compute_on_rows
 from mmf_rl.models.scale_calibration import PresenceScaleCalibration
+from mmf_rl.objectives.distributions import output_distribution_of
 
 
 def antithetic_normal(num: int, dim: int) -> torch.Tensor:
@@ -124,16 +127,22 @@ def antithetic_normal(num: int, dim: int) -> torch.Tensor:
     return torch.cat([half, -half])
 
 
-def moment_match(loc: torch.Tensor, scale: torch.Tensor, draws: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The Gaussian with the mean and variance of the equal-weight mixture of ``draws`` Gaussians.
+def moment_match(
+    loc: torch.Tensor, scale: torch.Tensor, draws: int, variance: float = 1.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The member of the output family with the mean and variance of the equal-weight mixture of
+    ``draws`` members (the Gaussian of a Gaussian mixture).
 
     ``loc``, ``scale`` ``[draws × N, ...]`` (row ``k * N + n`` is component ``k`` of ``n``) ->
-    ``[N, ...]``: ``mean_k μ_k`` and ``sqrt(mean_k σ_k² + var_k μ_k)`` (population variance)."""
+    ``[N, ...]``: ``mean_k μ_k`` and ``sqrt(mean_k σ_k² + var_k μ_k / v)`` (population variance), ``v``
+    the ``variance`` of the family's standard member (1 for the Gaussian; a member of scale ``σ`` has
+    variance ``v σ²``)."""
     if draws == 1:
         return loc, scale
     loc, scale = loc.unflatten(0, (draws, -1)), scale.unflatten(0, (draws, -1))
-    variance = scale.square().mean(0) + loc.var(0, correction=0)
-    return loc.mean(0), variance.sqrt()
+    # Dividing by 1.0 is exact: the Gaussian's moment matching is what it was.
+    scale_variance = scale.square().mean(0) + loc.var(0, correction=0) / variance
+    return loc.mean(0), scale_variance.sqrt()
 
 
 def latent_gaussian(raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -255,6 +264,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         super().__init__()
         self.config = config
         self.modalities = list(config.modalities)
+        # The variance of the output family's standard member: eval_latent="predictive" moment-matches
+        # in its units.
+        self.output_variance = output_distribution_of(config).variance
         d = config.d_model
         self.encoders = nn.ModuleDict({s.name: build_encoder(s, config.history, d) for s in self.modalities})
         # Keep this order: parameters draw their initial values in creation order, so a reorder changes
@@ -570,7 +582,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         z = self._eval_latent(*self.eval_distribution(tokens, present, prepared))
         draws = z.shape[0] // tokens.shape[0]  # K with eval_latent="predictive", else 1
         loc, scale = moment_match(
-            *self._decode_prepared(prepared.repeat(draws, 1, 1), present.repeat(draws, 1), z), draws
+            *self._decode_prepared(prepared.repeat(draws, 1, 1), present.repeat(draws, 1), z),
+            draws,
+            self.output_variance,
         )
         return loc, self.scale_calibration(scale, self.modality_presence(present))
 
@@ -678,7 +692,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         if draws:  # kept apart, not mixed: the loss scores each draw's forecast
             samples = decoded.pop()[0]
             td.set(keys.FORECAST_FROM_PRIOR_SAMPLES, samples.unflatten(0, (draws, batch)).transpose(0, 1))
-        forecasts = [moment_match(loc, scale, loc.shape[0] // batch) for loc, scale in decoded]
+        forecasts = [
+            moment_match(loc, scale, loc.shape[0] // batch, self.output_variance) for loc, scale in decoded
+        ]
         td.set(keys.FORECAST_LOC, forecasts[0][0])
         td.set(keys.FORECAST_SCALE, self.scale_calibration(forecasts[0][1], self.modality_presence(present)))
         if kept is not None:
@@ -933,6 +949,7 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                 embedded.repeat(draws, 1),
             ),
             draws,
+            self.output_variance,
         )
         scale = self.scale_calibration(scale, self.modality_presence(present))
         return loc.view(batch, candidates, *loc.shape[1:]), scale.view(batch, candidates, *scale.shape[1:])
