@@ -65,7 +65,13 @@ def score(model, data, split: str, args: argparse.Namespace, deterministic: bool
     from benchmarks.pedestrians.scoring import MODES, score_split
 
     return score_split(
-        model, data, split, args.batch_size, args.device, deterministic=deterministic, modes=modes or MODES
+        model,
+        data,
+        split,
+        args.batch_size,
+        args.device,
+        deterministic=deterministic,
+        modes=tuple(modes or MODES),
     )
 
 

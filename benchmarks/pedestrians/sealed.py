@@ -78,6 +78,12 @@ def held_out_score(
     return result["held_out"][scene]["all"]["min_ade_k"]
 
 
+def pair_scene_data(args: argparse.Namespace, pair: str, scene: str):
+    """``scene``'s windows (one of the pair) normalised with the pair's training split, as its models
+    read them."""
+    return scene_data(args, fold_config(args, pair), scene)
+
+
 def inner_scores(args: argparse.Namespace, budget: Budget, fold: str) -> dict[str, dict[str, dict]]:
     """``{model: {candidate: {scene: minADE20}}}`` on ``fold``'s inner splits: each of its training scenes
     scored by the models trained with it and ``fold`` held out, trained first when needed."""
@@ -90,7 +96,7 @@ def inner_scores(args: argparse.Namespace, budget: Budget, fold: str) -> dict[st
     for pair, scene in inner_splits(FOLDS, fold):
         # The scene's windows under the pair's training split: built once, and only if a run is still
         # to be scored on it.
-        data = cache(partial(scene_data, args, fold_config(args, pair), scene))
+        data = cache(partial(pair_scene_data, args, pair, scene))
         for label in labels:
             for candidate in candidates(args.select, label):
                 inner_run(args, budget, pair, label, candidate)
