@@ -80,8 +80,9 @@ def sampler_overrides(value: str) -> tuple[str, ...]:
 #   target and the north-up crop together), as Trajectron++ trains on these files: otherwise a model
 #   learns the training scenes' walking directions, which the held-out scene need not share.
 # - sampler: the learned sampler's diversity, AgentFormer's setting for hotel, zara1 and zara2, chosen
-#   over its univ and eth settings on the folds' validation scenes. Named, so that a run trained with
-#   other weights is never reused.
+#   over its univ and eth settings on the folds' val files (the training scenes', not a held-out one),
+#   with the test scenes' numbers printed beside. Named, so that a run trained with other weights is
+#   never reused.
 OPTIONS = {
     "augment": Option(tuple(TRAINED), "lerobot", augment_group, lambda value: (f"augment={value}",)),
     "augment.rotation": Option(
