@@ -5,6 +5,8 @@
     .venv/bin/python benchmarks/ethucy.py --seed 1 --out runs/bench_ethucy_seed1   # another training seed
     .venv/bin/python benchmarks/ethucy.py --window-set social_gan --out runs/bench_ethucy_sgan
     mmf-rl bench ethucy --quick --out runs/bench_ethucy_quick
+    mmf-rl bench ethucy --select augment=lerobot,none --select augment.rotation=0,180 \
+        --select sampler=5/5,20/10 --out runs/bench_ethucy_sealed      # the sealed protocol
 
 For each fold (its test scene held out; train/val from the other scenes' ``_train``/``_val`` files):
 the paper model (the attention CVAE with ``model.prior=learned``; the fold's data config: ``deepsets``
@@ -21,6 +23,19 @@ from ``p(z | X)``. Every model is scored in four modes (all modalities, without 
 minADE20/minFDE20 per agent over 20 samples
 (:mod:`benchmarks.pedestrians.scoring`).
 
+The recipe's options (`benchmarks.pedestrians.recipe.OPTIONS`: the image augmentation, the rotation of
+training windows, the learned sampler's diversity) were chosen while test scenes were printed: given by
+hand, a row is a *probe* that has seen the test. ``--select OPTION=V1,V2`` (repeated) runs the *sealed*
+protocol (`benchmarks.pedestrians.sealed`): before a fold's final stage, each of its four training
+scenes is held out in turn and each model's candidates (the joint grid of the selected options it
+reads) are trained on the other three scenes at the invocation's budget and scored on the held-out
+scene's whole file; the lowest mean all-modality minADE20 is chosen (of equal means, the value listed
+first), and so is constant velocity's heading noise std. The test scene is read only by the final
+stage, once. A model trained with two scenes held out serves both their folds: a candidate costs ten
+trainings for the five folds. ``<out>/<fold>/selection.json`` records the candidates, the inner scores
+and the choices; every trained row records its protocol (``sealed`` when every option it reads was
+selected, else ``probe``), its candidates and its choice in its recipe.
+
 ``--window-set`` chooses the val and test windows every row is scored on, as the literature does in
 two ways (``mmf_rl.datasets.ethucy.WINDOW_SETS``): ``trajectron`` (the default), every window of 20
 annotated steps of one person, as Trajectron++ and AgentFormer score; ``social_gan``, only those
@@ -30,7 +45,8 @@ either way.
 
 The data is converted into ``--data`` when its fold configs are absent (``mmf-rl import ethucy``);
 the window cache is built once for all folds (``--data``/cache). Completed runs
-(``<out>/<fold>/<model>/scores.json``) are reused, so an interrupted benchmark resumes; delete
+(``<out>/<fold>/<model>/scores.json``, the selection's ``<out>/select/<pair>/<model>/<values>/``) are
+reused, so an interrupted benchmark resumes; delete
 ``--out`` to start over. Each ``scores.json`` records its recipe (a trained model's training
 overrides, a constant-velocity row's heading noise grid, the window set:
 `benchmarks.pedestrians.recipe`), and before anything runs a completed run whose recipe differs from
@@ -40,7 +56,8 @@ compute it again. Writes ``<out>/results.md``,
 ``<out>/results.json`` and one figure per fold (``<out>/<fold>/forecasts.png``), and ends with one
 line:
 ``summary: paper model minADE20/minFDE20 avg A/F (without scene A/F, without neighbours A/F);
-constant velocity A/F; best baseline NAME A/F (MODE; window set WINDOW_SET)``.
+constant velocity A/F; best baseline NAME A/F (MODE; window set WINDOW_SET; PROTOCOL)``, PROTOCOL
+``sealed`` or ``probe, seen test: OPTION=VALUE, ... given by hand``.
 """
 
 from __future__ import annotations
@@ -60,8 +77,8 @@ from benchmarks.pedestrians.recipe import (
     CV_NOISE,
     FULL,
     HEADING_NOISE_GRID,
-    IMAGE_SIZE,
     NUM_SAMPLES,
+    OPTIONS,
     PAPER,
     PAPER_PRIOR,
     QUICK,
@@ -70,17 +87,23 @@ from benchmarks.pedestrians.recipe import (
     check_reused,
     completed,
     constant_velocity_recipe,
+    given_by_hand,
+    options_read,
+    parse_select,
+    protocol,
     recipe,
+    recipe_differences,
+    run_path,
     slug,
-    train_overrides,
 )
+from benchmarks.pedestrians.runs import fold_data, score, train_run, val_curve
+from benchmarks.pedestrians.sealed import select_fold, write_held_out_configs
 
 REPO = Path(__file__).resolve().parents[1]
 # Under mmf_rl, so that the library's logging setup (`mmf-rl bench`, or this script's own) shows it; a
 # handler of its own on the root logger would print every library message a second time.
 logger = logging.getLogger("mmf_rl.benchmarks.ethucy")
 DETERMINISTIC = ("LF-LSTM", "MulT", CV)
-SCORED_SPLITS = ("val", "test")  # test for every row, val for the heading noise's std
 FIGURE_WINDOWS = 4
 
 
@@ -106,7 +129,23 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "(Social-GAN, Social-STGCNN). The models train on every training window either way; another "
         "window set: another --out",
     )
-    return parser.parse_args(argv)
+    parser.add_argument(
+        "--select",
+        action="append",
+        default=[],
+        metavar="OPTION=V1,V2",
+        help="the sealed protocol: choose OPTION per fold among the values, on the fold's training scenes "
+        "each held out in turn (trained on the other three), never on its test scene; repeat for several "
+        "options (their joint grid is tried; a tie goes to the value listed first). Options: "
+        + "; ".join(f"{name} (given by hand: {option.default})" for name, option in OPTIONS.items())
+        + ". A model some of whose options are given by hand is a probe",
+    )
+    args = parser.parse_args(argv)
+    try:
+        args.select = parse_select(args.select)
+    except ValueError as error:
+        parser.error(str(error))
+    return args
 
 
 def ensure_data(args: argparse.Namespace, folds: tuple[str, ...]) -> float:
@@ -133,66 +172,31 @@ def check_planar_declared(path: Path) -> None:
         )
 
 
-def fold_data(args: argparse.Namespace, fold: str):
-    """The fold's windows (normalised with its training split), its val and test splits cut to the
-    invocation's window set, and its data config dict."""
-    import yaml
-
-    from mmf_rl.datasets import DataConfig, WindowDataset, ethucy
-
-    config = yaml.safe_load((args.data / f"{fold}.yaml").read_text()) | {
-        "cache_dir": str(args.data / "cache"),
-        "image_size": [IMAGE_SIZE, IMAGE_SIZE],
-    }
-    data = WindowDataset(DataConfig.from_dict(config))
-    # Scoring reads the splits' windows from here; training reads its own WindowDataset of the config.
-    for split in SCORED_SPLITS:
-        data.split_windows[split] = ethucy.window_set_ids(data, split, args.window_set)
-    return data, config
-
-
-def val_curve(run_dir: Path) -> list[tuple[int, float]]:
-    """``(step, val ADE in metres)`` the trainer logged at each of the budget's evaluations: the only
-    evidence the budget is read from (the test scene is never looked at for it)."""
-    path = run_dir / "logs" / "scalars" / "val" / "ade.csv"
-    if not path.is_file():
-        return []
-    return [(int(float(s)), float(v)) for s, v in (row.split(",")[:2] for row in path.read_text().split())]
-
-
-def score(model, data, split: str, args: argparse.Namespace, deterministic: bool = False) -> dict:
-    """``model``'s scores on ``split`` at the invocation's batch size and device."""
-    from benchmarks.pedestrians.scoring import score_split
-
-    return score_split(model, data, split, args.batch_size, args.device, deterministic=deterministic)
-
-
 def prior_scores(model, data, args: argparse.Namespace) -> dict:
     """The paper model's scores with 20 draws from its prior instead of its learned sampler's codes."""
     with model.drawing_from_the_prior():
         return score(model, data, "test", args)
 
 
-def run_trained(args: argparse.Namespace, budget: Budget, fold: str, label: str, data) -> dict:
-    """Train one model on the fold, score it on the test scene; ``scores.json`` written last."""
-    import shutil
-
-    import mmf_rl
-    from mmf_rl.configuration import compose_config
+def run_trained(
+    args: argparse.Namespace,
+    budget: Budget,
+    fold: str,
+    label: str,
+    data,
+    chosen: dict[str, str] | None = None,
+) -> dict:
+    """Train one model on the fold (its options ``chosen``'s or given by hand), score it on the test
+    scene; ``scores.json`` written last."""
     from mmf_rl.eval.report import write_json
-    from mmf_rl.models import load_trained_model
 
-    run_dir = args.out / fold / slug(label)
-    if run_dir.exists():  # an interrupted run: start it again
-        shutil.rmtree(run_dir)
     start = time.perf_counter()
-    mmf_rl.train(compose_config("train", train_overrides(args, budget, fold, label, run_dir)))
-    trained = time.perf_counter() - start
-    model, _, _ = load_trained_model(run_dir / "checkpoints", map_location=args.device)
+    model, trained = train_run(args, budget, fold, label, chosen)
+    run_dir = run_path(args, fold, label)
     result = {
         "scores": score(model, data, "test", args, deterministic=label != PAPER),
         **({"prior_scores": prior_scores(model, data, args)} if label == PAPER else {}),
-        "recipe": recipe(args, budget, fold, label),
+        "recipe": recipe(args, budget, fold, label, chosen),
         "train_seconds": trained,
         "val_ade": val_curve(run_dir),
     }
@@ -204,8 +208,25 @@ def run_trained(args: argparse.Namespace, budget: Budget, fold: str, label: str,
     return result
 
 
-def run_constant_velocity(args: argparse.Namespace, fold: str, data) -> dict[str, dict]:
-    """Both constant-velocity rows; the sampler's angle std is the val split's best minADE20."""
+def reused(args: argparse.Namespace, budget: Budget, fold: str, label: str, chosen) -> dict | None:
+    """A completed row to reuse, None: none. Before the selection ran, a row was checked with the choice
+    it records; one the selection would now choose otherwise (its inner runs computed again) is refused."""
+    done = completed(args, fold, label)
+    if done and (
+        differences := recipe_differences(recipe(args, budget, fold, label, chosen), done["recipe"])
+    ):
+        raise SystemExit(
+            f"ethucy: {run_path(args, fold, label)} was trained with another choice than the selection "
+            f"makes now: {'; '.join(differences)}; delete it to train it with this one (nothing was deleted)"
+        )
+    return done
+
+
+def run_constant_velocity(
+    args: argparse.Namespace, fold: str, data, sigma: float | None = None
+) -> dict[str, dict]:
+    """Both constant-velocity rows; the sampler's angle std ``sigma`` (the selection stage's), else the
+    val split's best minADE20."""
     from benchmarks.pedestrians.scoring import best_heading_noise, constant_velocity_model
     from mmf_rl.eval.report import write_json
 
@@ -220,12 +241,15 @@ def run_constant_velocity(args: argparse.Namespace, fold: str, data) -> dict[str
     run_dir.mkdir(parents=True, exist_ok=True)
     write_json(run_dir / "scores.json", results[CV])
     start = time.perf_counter()
-    sigma, on_val = best_heading_noise(data, HEADING_NOISE_GRID, args.batch_size, args.device)
+    on_val = {}  # with sigma given, its evidence is the selection's (selection.json)
+    if sigma is None:
+        sigma, scores = best_heading_noise(data, HEADING_NOISE_GRID, args.batch_size, args.device)
+        on_val = {"val_min_ade_k": scores}
     results[CV_NOISE] = {
         "scores": score(constant_velocity_model(data, sigma), data, "test", args),
         "heading_noise": sigma,
         "recipe": constant_velocity_recipe(args, CV_NOISE),
-        "val_min_ade_k": on_val,
+        **on_val,
         "seconds": time.perf_counter() - start,
     }
     (args.out / fold / slug(CV_NOISE)).mkdir(parents=True, exist_ok=True)
@@ -251,20 +275,31 @@ def draw_fold(args: argparse.Namespace, fold: str, data) -> Path:
 
 
 def run_fold(args: argparse.Namespace, budget: Budget, fold: str) -> dict[str, dict]:
-    """Every model's scores on the fold: the trained ones only in ``budget.folds``."""
+    """Every model's scores on the fold: the trained ones only in ``budget.folds``. With ``--select``,
+    the selection stage first, then the final stage, the only one that reads the fold's test scene."""
+    chosen, sigma = select_fold(args, budget, fold) if args.select else ({}, None)
     data, _ = fold_data(args, fold)
     results = {}
     for label in TRAINED if fold in budget.folds else ():
-        results[label] = completed(args, fold, label) or run_trained(args, budget, fold, label, data)
+        choice = chosen.get(label)
+        results[label] = reused(args, budget, fold, label, choice) or run_trained(
+            args, budget, fold, label, data, choice
+        )
     if PAPER in results:
         results[PAPER_PRIOR] = {"scores": results[PAPER]["prior_scores"]}
     if completed(args, fold, CV) and completed(args, fold, CV_NOISE):
         results |= {label: completed(args, fold, label) for label in (CV, CV_NOISE)}
     else:
-        results |= run_constant_velocity(args, fold, data)
+        results |= run_constant_velocity(args, fold, data, sigma)
     if fold in budget.folds and not (args.out / fold / "forecasts.png").is_file():
         draw_fold(args, fold, data)
     return results
+
+
+def protocol_summary(args: argparse.Namespace, budget: Budget) -> str:
+    """The summary line's protocol: ``sealed``, or ``probe, seen test: OPTION=VALUE ... given by hand``."""
+    given = given_by_hand(args, TRAINED if budget.folds else ())
+    return f"probe, seen test: {', '.join(given)} given by hand" if given else "sealed"
 
 
 def average_section(title: str, average: dict) -> list[str]:
@@ -284,8 +319,47 @@ def average_section(title: str, average: dict) -> list[str]:
     return lines + ([f"minADE20 rise against all modalities: {rises}.\n"] if rises else [])
 
 
+def protocol_section(args: argparse.Namespace, budget: Budget) -> tuple[str, ...]:
+    """The page's protocol: for each trained model, sealed (every option it reads chosen on held-out
+    training scenes) or a probe (some given by hand, chosen while the test scenes were printed)."""
+    lines = ["## Protocol\n"]
+    for label in TRAINED if budget.folds else ():
+        read = options_read(label)
+        if protocol(args, label) == "sealed":
+            status = f"sealed: {', '.join(read)} chosen per fold on its training scenes held out in turn"
+        else:
+            status = f"probe, seen test: {', '.join(given_by_hand(args, [label]))} given by hand"
+        lines.append(f"- {label}: {status}")
+    where = "the fold's training scenes held out" if args.select else "the fold's val split"
+    lines.append(f"- {CV_NOISE}: its std chosen on {where}")
+    selection = "; the candidates, inner scores and choices in `<fold>/selection.json`" if args.select else ""
+    return (*lines, f"\nOptions: {', '.join(OPTIONS)}{selection}.\n")
+
+
+def choice_text(rows: dict) -> str:
+    """``model: option=value ...`` of each row the selection chose for, from the recipes it records."""
+    chosen = {
+        label: " ".join(s.removeprefix("chosen.") for s in row.get("recipe", []) if s.startswith("chosen."))
+        for label, row in rows.items()
+    }
+    return "; ".join(f"{label}: {text}" for label, text in chosen.items() if text)
+
+
+def heading_noise_text(row: dict) -> str:
+    """The heading noise's std of a fold and where it was chosen (rows recorded before: on val)."""
+    settings = dict(setting.split("=", 1) for setting in row.get("recipe", []))
+    held_out = settings.get("heading_noise_chosen_on") == "held_out_scenes"
+    where = "the held-out training scenes" if held_out else "val"
+    return f"heading noise std {row['heading_noise']} rad, chosen on {where}"
+
+
 def markdown(
-    per_fold: dict, averages: dict[str, dict], budget: Budget, window_set: str, seconds: dict
+    per_fold: dict,
+    averages: dict[str, dict],
+    budget: Budget,
+    window_set: str,
+    seconds: dict,
+    protocol_lines: tuple[str, ...] = (),
 ) -> str:
     from benchmarks.pedestrians.scoring import published_table, scores_table
     from mmf_rl.datasets.ethucy import WINDOW_SETS
@@ -295,13 +369,14 @@ def markdown(
         f"Every row is scored on the `{window_set}` window set: {WINDOW_SETS[window_set]}. The models "
         "train on every window of the training split.\n"
     ]
+    parts += protocol_lines
     for title, average in averages.items():
         parts += average_section(title, average)
     for fold, rows in per_fold.items():
         scores = {label: r["scores"] for label, r in rows.items()}
         windows = int(scores[CV]["all"]["windows"])
-        sigma = rows[CV_NOISE]["heading_noise"]
-        parts += [f"## {fold} ({windows} test windows; heading noise std {sigma} rad, chosen on val)\n"]
+        parts += [f"## {fold} ({windows} test windows; {heading_noise_text(rows[CV_NOISE])})\n"]
+        parts += [f"Chosen on the held-out training scenes: {text}.\n"] if (text := choice_text(rows)) else []
         parts += [scores_table(scores, DETERMINISTIC), ""]
         parts += [f"![forecasts]({fold}/forecasts.png)\n"] if fold in budget.folds else []
     parts += ["## Published (minADE20 / minFDE20, average of the 5 scenes, on their window set)\n"]
@@ -321,6 +396,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     seconds = {"convert": ensure_data(args, tuple(ethucy.FOLDS))}
+    if args.select:
+        write_held_out_configs(args, budget)
     per_fold = {}
     for fold in sorted(ethucy.FOLDS):
         fold_start = time.perf_counter()
@@ -335,17 +412,19 @@ def main(argv: list[str] | None = None) -> int:
             f"Constant velocity, average over the 5 scenes (the protocol check, {args.window_set} windows)"
         )
         averages[check] = average_over_scenes(scores)
-    run = f"{budget.name}; window set {args.window_set}"
+    run = f"{budget.name}; window set {args.window_set}; {protocol_summary(args, budget)}"
     summary = summary_line(average, PAPER, CV, ["LF-LSTM", "MulT", CV, CV_NOISE], run)
     results = {
         "mode": budget.name,
         "window_set": args.window_set,
+        "protocol": {label: protocol(args, label) for label in TRAINED if budget.folds},
+        "select": args.select,
         "folds": per_fold,
         "averages": averages,
         "seconds": seconds,
     }
     write_json(args.out / "results.json", results)
-    page = markdown(per_fold, averages, budget, args.window_set, seconds)
+    page = markdown(per_fold, averages, budget, args.window_set, seconds, protocol_section(args, budget))
     write_text(args.out / "results.md", page + f"\n{summary}\n")
     print(summary)
     return 0

@@ -29,6 +29,7 @@ from benchmarks.pedestrians.recipe import (
     stale_runs,
     train_overrides,
 )
+from benchmarks.pedestrians.runs import SCORED_SPLITS
 from benchmarks.pedestrians.scoring import METRICS, MODES
 from mmf_rl.configuration import compose_config, save_config, to_container
 from mmf_rl.models import check_loss_settings
@@ -248,13 +249,13 @@ def test_fold_configs_converted_before_the_planar_dims_were_declared_are_refused
 @pytest.mark.parametrize("budget", [QUICK, FULL])
 @pytest.mark.parametrize("label", list(TRAINED))
 def test_every_trained_model_is_given_only_loss_settings_its_loss_reads(tmp_path, budget, label):
-    """The recipe is the training overrides but where the data and the run live, and the windows the row
-    is scored on: composed on the default data, the trainer's check of the loss settings sees what the
-    benchmark's training sees."""
+    """The recipe is the training overrides but where the data and the run live, the protocol, and the
+    windows the row is scored on: composed on the default data, the trainer's check of the loss settings
+    sees what the benchmark's training sees."""
     args = bench_args(tmp_path, "out")
     settings = recipe(args, budget, "eth", label)
-    assert settings[-1] == scored_on(args) == "window_set=trajectron"
-    cfg = compose_config("train", settings[:-1])
+    assert settings[-2:] == ["protocol=probe", scored_on(args)] == ["protocol=probe", "window_set=trajectron"]
+    cfg = compose_config("train", settings[:-2])
     check_loss_settings(
         to_container(cfg.model), LossConfig.from_dict(to_container(cfg.loss)), default_loss_config()
     )
@@ -326,6 +327,6 @@ def test_the_folds_val_and_test_windows_are_cut_to_the_window_set_its_training_o
     data, _ = bench.fold_data(args, "eth")
     every, _ = bench.fold_data(bench_args(tmp_path, "out"), "eth")
     assert data.split_windows["train"].equal(every.split_windows["train"])
-    for split in bench.SCORED_SPLITS:
+    for split in SCORED_SPLITS:
         assert 0 < len(data.split_windows[split]) < len(every.split_windows[split])
         assert data.split_windows[split].equal(ethucy.window_set_ids(every, split, "social_gan"))
