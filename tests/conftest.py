@@ -12,6 +12,14 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
+# pytest-xdist runs the suite in worker processes (`make test`: `-n 2`, one per core of a 2-core
+# machine); each worker then runs on one thread, and so does every process it starts (the CLI
+# subprocesses, torchrun's ranks, spawned workers read OMP_NUM_THREADS): two workers of two threads
+# each would oversubscribe the cores, and OpenMP threads spin-wait for a busy core. Set before torch and
+# numpy are imported, which size their thread pools from it. Run alone (no xdist), the tests use up to
+# 2 threads (TEST_THREADS).
+os.environ.update({"OMP_NUM_THREADS": "1"} if "PYTEST_XDIST_WORKER" in os.environ else {})
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -23,13 +31,7 @@ from mmf_rl.models import ForecasterConfig, MultimodalForecaster
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-# pytest-xdist runs the suite in worker processes (`make test`: `-n 2`, one per core of a 2-core
-# machine); each worker then runs torch on one thread, and so does every process it starts (the CLI
-# subprocesses, torchrun's ranks, dataloader workers read OMP_NUM_THREADS): two workers of two threads
-# each would oversubscribe the cores. Run alone (no xdist), the tests use up to 2 threads.
 XDIST_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
-if XDIST_WORKER is not None:
-    os.environ["OMP_NUM_THREADS"] = "1"
 TEST_THREADS = 1 if XDIST_WORKER is not None else min(2, os.cpu_count() or 1)
 torch.set_num_threads(TEST_THREADS)
 
