@@ -7,17 +7,23 @@ export MUJOCO_GL ?= egl
 setup:
 	@bash scripts/setup.sh
 
-# --durations: every log lists the slowest tests, so the suite's time budget can be kept.
+# pytest-xdist: TEST_WORKERS processes (one per core of the 2-core machine the budget is measured on),
+# each running torch on one thread; --dist loadgroup hands out the tests one by one, keeping together
+# those of one xdist_group (a file with a module-scoped fixture; tests/conftest.py). TEST_WORKERS=0
+# runs in this process. --durations: every log lists the slowest tests, so the time budget can be kept.
+TEST_WORKERS ?= 2
+PYTEST := $(VENV_PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup --durations=25
+
 test: setup
 	.venv/bin/ruff check .
 	.venv/bin/ruff format --check .
-	$(VENV_PY) -m pytest -q --durations=25 tests
+	$(PYTEST) tests
 
 # The fast tier, for the edit-test loop: no recordings, subprocesses, end-to-end scripts, docs build or
 # long training (the tests marked `slow`, tests/conftest.py); `make test` runs those too.
 test-fast: setup
 	.venv/bin/ruff check .
-	$(VENV_PY) -m pytest -q -m "not slow" --durations=25 tests
+	$(PYTEST) -m "not slow" tests
 
 demo: setup
 	$(VENV_PY) -m mmf_rl.cli demo

@@ -6,9 +6,19 @@ import contextlib
 import io
 import itertools
 import os
+import shutil
 import subprocess
 import traceback
+from collections.abc import Callable
 from pathlib import Path
+
+# pytest-xdist runs the suite in worker processes (`make test`: `-n 2`, one per core of a 2-core
+# machine); each worker then runs on one thread, and so does every process it starts (the CLI
+# subprocesses, torchrun's ranks, spawned workers read OMP_NUM_THREADS): two workers of two threads
+# each would oversubscribe the cores, and OpenMP threads spin-wait for a busy core. Set before torch and
+# numpy are imported, which size their thread pools from it. Run alone (no xdist), the tests use up to
+# 2 threads (TEST_THREADS).
+os.environ.update({"OMP_NUM_THREADS": "1"} if "PYTEST_XDIST_WORKER" in os.environ else {})
 
 import pytest
 import torch
@@ -20,7 +30,10 @@ from mmf_rl.models import ForecasterConfig, MultimodalForecaster
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("MUJOCO_GL", "egl")
-torch.set_num_threads(min(2, os.cpu_count() or 1))
+
+XDIST_WORKER = os.environ.get("PYTEST_XDIST_WORKER")
+TEST_THREADS = 1 if XDIST_WORKER is not None else min(2, os.cpu_count() or 1)
+torch.set_num_threads(TEST_THREADS)
 
 
 def run_bench(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -51,10 +64,31 @@ def run_bench(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
 SLOW_FIXTURES = {"recorded_push_root", "recorded", "policy_recorded", "faulty_push_root", "eth_fold"}
 
 
+def module_fixture_group(item: pytest.Item) -> str | None:
+    """The test's file when it uses a module- or class-scoped fixture, else None."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return None
+    for name in info.names_closure:
+        definitions = info.name2fixturedefs.get(name)
+        if definitions and definitions[-1].scope in ("module", "class"):
+            return item.nodeid.split("::")[0]
+    return None
+
+
+# tryfirst: pytest-xdist's own hook reads the `xdist_group` marks added here.
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if SLOW_FIXTURES.intersection(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
+        # Under `pytest -n 2 --dist loadgroup` (`make test`) the tests are handed to the workers one by
+        # one, except those of one xdist_group, which one worker runs. A module-scoped fixture (a
+        # recording, a trained run, an env) is built once per worker that runs a test of its module:
+        # the tests of a file that uses one form a group, so it is built once.
+        group = module_fixture_group(item)
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
 
 
 HISTORY = 4
@@ -310,21 +344,53 @@ def left_unchanged(root: Path, what: str):
     assert not changed, f"a test wrote into the session's {what} {root} (copy it first): {changed[:10]}"
 
 
+def built_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> Path:
+    """A directory ``build(directory)`` filled once for the whole test session, ``directory`` returned.
+
+    Alone, that is a session fixture's ``tmp_path_factory.mktemp(name)``. Under pytest-xdist every
+    worker process runs the session fixtures of its own: the recording and the trained runs would be
+    made once per worker, each costing its worker tens of seconds. So, as pytest-xdist documents, the
+    directory sits in the temp root all workers of one run share (the parent of each worker's basetemp),
+    built under a file lock: the first worker to need it builds it while the others wait, then they all
+    read the same one. The ``.built`` marker, created only after ``build`` returned, tells a finished
+    directory from one a failed build left (a later worker removes that and builds again, failing with
+    the same error in its own tests).
+    """
+    if XDIST_WORKER is None:
+        directory = tmp_path_factory.mktemp(name)
+        build(directory)
+        return directory
+    from filelock import FileLock
+
+    directory = tmp_path_factory.getbasetemp().parent / name
+    built = directory / ".built"
+    with FileLock(f"{directory}.lock"):
+        if not built.is_file():
+            shutil.rmtree(directory, ignore_errors=True)
+            directory.mkdir()
+            build(directory)
+            built.touch()
+    return directory
+
+
 @pytest.fixture(scope="session")
 def recorded_push_root(tmp_path_factory):
     """A small multimodal push dataset recorded by the project's own recorder (real MuJoCo data)."""
     from mmf_rl.record import RecordConfig, record
 
-    out = tmp_path_factory.mktemp("recorded") / "push"
-    root = record(RecordConfig(out=out, episodes=6, steps=40, image_size=32, seed=3))
+    def record_push(directory: Path) -> None:
+        record(RecordConfig(out=directory / "push", episodes=6, steps=40, image_size=32, seed=3))
+
+    root = built_once(tmp_path_factory, "recorded", record_push) / "push"
     with left_unchanged(root, "recording"):
         yield root
 
 
 @pytest.fixture(scope="session")
 def push_cache_dir(tmp_path_factory) -> Path:
-    """One window cache directory for the runs on the recording: entries are keyed by dataset and config."""
-    return tmp_path_factory.mktemp("window-cache")
+    """One window cache directory for the runs on the recording: entries are keyed by dataset and config
+    (and locked: the xdist workers share this one, each reading the caches the first one built)."""
+    return built_once(tmp_path_factory, "window-cache", lambda directory: None)
 
 
 def push_train_overrides(root, cache_dir, run_dir, steps: int = 6) -> list[str]:
@@ -360,8 +426,11 @@ def push_forecaster_run(recorded_push_root, push_cache_dir, tmp_path_factory):
     at the end) on the recorded push data: the one trained run of every test that only reads one."""
     from mmf_rl.cli import main as cli
 
-    run = tmp_path_factory.mktemp("push_forecaster") / "run"
-    assert cli(["train", *push_train_overrides(recorded_push_root, push_cache_dir, run)]) == 0
+    def train(directory: Path) -> None:
+        run = directory / "run"
+        assert cli(["train", *push_train_overrides(recorded_push_root, push_cache_dir, run)]) == 0
+
+    run = built_once(tmp_path_factory, "push_forecaster", train) / "run"
     with left_unchanged(run, "trained run"):
         yield run
 
@@ -372,18 +441,11 @@ def push_world_model_run(recorded_push_root, tmp_path_factory):
     recorded push data (H = 4, T = 3, 32 px): the real pipeline end to end, for the RL glue tests."""
     from mmf_rl.cli import main as cli
 
-    base = tmp_path_factory.mktemp("world_model")
-    run = base / "run"
-    assert (
-        cli(
-            [
-                "train",
-                "data=push_world_model",
-                *push_train_overrides(recorded_push_root, base / "cache", run, steps=6),
-            ]
-        )
-        == 0
-    )
+    def train(base: Path) -> None:
+        overrides = push_train_overrides(recorded_push_root, base / "cache", base / "run", steps=6)
+        assert cli(["train", "data=push_world_model", *overrides]) == 0
+
+    run = built_once(tmp_path_factory, "world_model", train) / "run"
     with left_unchanged(run, "world model run"):
         yield run
 

@@ -31,7 +31,7 @@ from mmf_rl.checkpoint import list_checkpoints
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets.provenance import PROVENANCE_FILE, read_recording_provenance
 from mmf_rl.rl import BCPolicy
-from tests.conftest import push_train_overrides
+from tests.conftest import TEST_THREADS, push_train_overrides
 
 
 def assert_one_outage_summary(out: str) -> None:
@@ -133,6 +133,9 @@ def tiny_argv(
         *kind.get(forecaster, ["--forecaster", str(forecaster)]),
         *(("--dagger", "1", "--dagger-episodes", "1") if dagger else ()),
         *(("--workers", "1") if records else ()),
+        # The suite's threads (1 in an xdist worker), not the script's 2: OpenMP threads spin-wait
+        # for a busy core, so 2 beside the other worker run far slower than 1.
+        *("--threads", str(TEST_THREADS)),
         *PLAIN[2:],
         *(PLAIN[:2] if not data else ()),
     ]

@@ -4,9 +4,8 @@ import re
 import subprocess
 import sys
 
-import torch
-
 from mmf_rl.cli import main as cli
+from tests.reliability.conftest import single_thread
 from tests.trainers.test_train_command import final_weights, free_port, subprocess_env
 
 STEPS = 4
@@ -69,12 +68,9 @@ def test_two_nodes_build_the_cache_once_and_train_the_weights_of_one_process(rec
     gap = re.search(r"2 ranks agree after 4 steps \(max weight difference (\S+)\)", log)
     assert gap is not None and float(gap.group(1)) == 0.0, log[-3000:]
 
-    torch.set_num_threads(1)  # the kernels of the single-threaded node processes
-    try:
+    with single_thread():  # the kernels of the single-threaded node processes
         run = deterministic_run(recorded_push_root, tmp_path / "cache", tmp_path / "one", batch_size=32)
         assert cli(["train", *run]) == 0
-    finally:
-        torch.set_num_threads(2)
     two_nodes, one_process = final_weights(tmp_path / "nodes"), final_weights(tmp_path / "one")
     deltas = {name: float((two_nodes[name] - value).abs().max()) for name, value in one_process.items()}
     # Two ranks' mean gradient and one batch's differ in summation order (and, on some CPUs, in the

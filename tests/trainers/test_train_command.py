@@ -27,7 +27,7 @@ from mmf_rl.models import build_loss, load_trained_model
 from mmf_rl.objectives import output_distribution_of
 from mmf_rl.trainers.training import TrainRunConfig, check_loss_settings_read
 from tests.conftest import push_train_overrides, small_registered_model
-from tests.reliability.conftest import edit_frames, push_data_config
+from tests.reliability.conftest import edit_frames, push_data_config, single_thread
 
 
 @pytest.fixture
@@ -267,11 +267,8 @@ def final_weights(run_dir):
 
 def test_killed_training_resumes_to_the_weights_of_an_uninterrupted_run(overrides, tmp_path):
     steps = ["trainer.total_steps=40", "trainer.checkpoint_every=1", "trainer.eval_every=100"]
-    torch.set_num_threads(1)  # the same kernels as the single-threaded subprocess
-    try:
+    with single_thread():  # the same kernels as the single-threaded subprocess
         assert cli(["train", *overrides("reference"), *steps]) == 0
-    finally:
-        torch.set_num_threads(min(2, os.cpu_count() or 1))
     killed = tmp_path / "killed"
     command = [sys.executable, "-m", "mmf_rl.cli", "train", *overrides("killed"), *steps]
     process = subprocess.Popen(
@@ -290,11 +287,8 @@ def test_killed_training_resumes_to_the_weights_of_an_uninterrupted_run(override
         process.wait()
     interrupted_at = load_checkpoint(killed / "checkpoints").step
     assert 3 <= interrupted_at < 40
-    torch.set_num_threads(1)
-    try:
+    with single_thread():
         assert cli(["train", *overrides("killed"), *steps, "resume=true"]) == 0
-    finally:
-        torch.set_num_threads(min(2, os.cpu_count() or 1))
     reference, resumed = final_weights(tmp_path / "reference"), final_weights(killed)
     for name, value in reference.items():
         torch.testing.assert_close(resumed[name], value, rtol=1e-5, atol=1e-6, msg=name)
