@@ -138,6 +138,13 @@ def test_every_benchmark_has_a_page_in_the_nav_whose_first_table_names_its_commi
                 assert found.returncode == 0, f"{page.name} names {commit}, which is not a commit"
 
 
+def test_the_readme_is_a_users_page_of_at_most_300_lines_without_dates():
+    text = (REPO / "README.md").read_text()
+    assert len(text.splitlines()) <= 300, "README.md: at most 300 lines; move the detail to docs/"
+    dated = re.findall(r"\b20\d\d-\d\d-\d\d\b", text)
+    assert not dated, f"README.md names dates {dated}: history belongs in the notes, not the user's page"
+
+
 def python_blocks(page: Path) -> list[tuple[str, str | None]]:
     """The page's ```python blocks in order, each as (code, marker): marker None, ``TRAINED_RUNS``, or
     ``"skip"`` for a block marked not executed (its reason is required)."""
