@@ -43,7 +43,8 @@ METRICS = {"ade": "ADE", "fde": "FDE", "min_ade_k": "minADE20", "min_fde_k": "mi
 NUM_SAMPLES = 20
 # minADE20 / minFDE20 in metres, average of the five scenes (leak-free versions): method, value, the
 # window set it is scored on (`mmf_rl.datasets.ethucy.WINDOW_SETS`, from its published data loader;
-# "not checked": its loader was not read), source.
+# "not checked": no ETH/UCY loader of its own is published, PECNet's and LED's repositories have none),
+# source.
 PUBLISHED = (
     (
         "constant velocity (deterministic)",
@@ -61,7 +62,7 @@ PUBLISHED = (
     ),
     ("PECNet", "0.29 / 0.48", "not checked", "Mangalam et al. 2020"),
     ("AgentFormer (leak fixed)", "0.23 / 0.39", "trajectron", "its README"),
-    ("SocialVAE", "0.24 / 0.42", "not checked", "Xu et al. 2022"),
+    ("SocialVAE", "0.24 / 0.42", "trajectron", "Xu et al. 2022; its data.py, on these test files"),
     ("LED", "0.21 / 0.33", "not checked", "Mao et al. 2023, Table 4"),
 )
 

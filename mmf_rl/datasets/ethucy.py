@@ -366,6 +366,9 @@ def social_gan_windows(first_frames: np.ndarray) -> np.ndarray:
     Social-GAN slides 20 frames over a file and keeps them when more than one person is annotated in
     every one of them, one window per such person. A window of `track_windows` is one person annotated
     throughout, so two windows share their 20 frames exactly when they start at the same frame.
+    Social-GAN's frames are those the file annotates anyone in, so its 20 could span a frame number
+    nobody has, which no window here does; on the ETH/UCY files no kept sequence does either (every
+    file gives Social-GAN's windows: tests/datasets/test_ethucy.py).
     Written here: the rule lives in Social-GAN's own data loader, which is no installable library, and
     the libraries this project uses do not have it.
 

@@ -344,6 +344,42 @@ def test_each_fold_has_the_standard_number_of_test_windows_in_both_sets(fold):
     assert windows == {name: counts[fold] for name, counts in TEST_WINDOWS.items()}
 
 
+def _social_gan_sequences(table: pd.DataFrame, span: int = ethucy.HISTORY + ethucy.HORIZON) -> pd.DataFrame:
+    """Social-GAN's rule as its data loader states it (``sgan/data/trajectories.py``, ``skip=1``,
+    ``min_ped=1``): ``span`` consecutive frames *of those the file annotates anyone in* (a frame number
+    nobody has is not a step), a person counted when annotated in every one, a sequence kept with more
+    than one counted; ``agent, frame`` (its first frame) per counted person of each kept sequence."""
+    frames = np.unique(table["frame"])
+    step = pd.Series(np.arange(len(frames)), index=frames)[table["frame"]].to_numpy()
+    tracks = table.assign(step=step).sort_values(["agent", "step"])
+    last = tracks.groupby("agent")["step"].shift(-(span - 1))
+    counted = tracks.loc[last - tracks["step"] == span - 1, ["agent", "step"]]
+    kept = counted[counted.groupby("step")["agent"].transform("size") > 1]
+    return pd.DataFrame({"agent": kept["agent"].to_numpy(), "frame": frames[kept["step"].to_numpy()]})
+
+
+def test_social_gan_windows_are_those_its_own_rule_gives_on_every_file():
+    """Over annotated frames (the loader's) and over steps of 10 frames (the library's windows) the two
+    rules agree on these files: no 20 annotated frames with two people in them span an empty frame.
+    Every file, the whole ones and the _train/_val parts; one sequence per distinct first frame."""
+    sequences = {}
+    for path in sorted((RAW / "trajectories").glob("*/*.txt")):
+        table = ethucy.read_sequence(path)
+        windows = ethucy.track_windows(table)
+        ours = windows[ethucy.social_gan_windows(windows["frame"].to_numpy())]
+        theirs = _social_gan_sequences(table)
+        assert sorted(map(tuple, ours.values.tolist())) == sorted(map(tuple, theirs.values.tolist())), path
+        sequences[path.stem] = theirs["frame"].nunique()
+    # Social-GAN's test sets count people: eth's 181 windows are 70 sequences of 2 people or more.
+    assert {k: sequences[k] for k in ("biwi_eth", "biwi_hotel", "crowds_zara01", "crowds_zara02")} == {
+        "biwi_eth": 70,
+        "biwi_hotel": 301,
+        "crowds_zara01": 602,
+        "crowds_zara02": 921,
+    }
+    assert sequences["students001"] + sequences["students003"] == 947
+
+
 @pytest.mark.parametrize("split", ["train", "test"])
 def test_the_social_gan_windows_of_a_converted_split_are_those_of_its_file(converted, split):
     """On the eth slice (a lone pedestrian first) and on zara01 with an agent leaving for two steps."""
