@@ -4,7 +4,7 @@ The factors (:class:`~mmf_rl.models.scale_calibration.PresenceScaleCalibration`)
 form, for each presence pattern ``p``, on the standardised errors ``z = (y - loc) / scale`` of the
 T × D future values of the windows with pattern ``p``, by one of three methods:
 
-* ``coverage`` (the default): split-conformal. ``s_p`` is the ``⌈(n + 1) · 0.9⌉``-th smallest of the
+* ``coverage``: split-conformal. ``s_p`` is the ``⌈(n + 1) · 0.9⌉``-th smallest of the
   ``n`` values ``|z|`` (halfway to the next one), divided by the half width of the central 90%
   interval of the output family's standard member (``N(0, 1)`` by default): the scaled 90% intervals
   then hold that share of the fitted values, each value counted as ``coverage_90`` counts them
@@ -12,7 +12,7 @@ T × D future values of the windows with pattern ``p``, by one of three methods:
   family. ``n`` counts values, not windows: a window's values are not independent, so the
   finite-sample correction is approximate, and negligible from a few windows on.
   A few large errors (contact, a camera glitch) move a quantile by a few values only.
-* ``levels``: the ``coverage`` factor, and a level curve per pattern
+* ``levels`` (the default): the ``coverage`` factor, and a level curve per pattern
   (:mod:`mmf_rl.models.scale_calibration`): at each central level ``L_k`` of
   :data:`~mmf_rl.models.scale_calibration.LEVELS` (10% to 90% by tenths, 95%, 99%) the same
   finite-sample-corrected quantile of the values ``|z| / s_p``, at rank ``⌈(n + 1) · L_k⌉``, divided
@@ -152,7 +152,7 @@ CALIBRATION_METHODS = {
     "temperature": temperature_factor,
 }
 LEVEL_CURVE_METHODS = ("levels",)
-DEFAULT_METHOD = "coverage"
+DEFAULT_METHOD = "levels"
 
 
 @dataclass(frozen=True)
@@ -385,14 +385,14 @@ def calibration_header(record: dict | None) -> str:
         return ""
     # Records written before the step factors existed fitted one factor per pattern.
     scope = "per presence pattern and horizon step" if record.get("per_step") else "per presence pattern"
-    if record.get("level_curve", record_method(record) in LEVEL_CURVE_METHODS):
-        scope += ", with a level curve per pattern (intervals and CRPS at every level read it)"
+    curve = record.get("level_curve", record_method(record) in LEVEL_CURVE_METHODS)
+    curve = "; a level curve per pattern, read by the intervals and the CRPS" if curve else ""
     if record["split"] is None:
-        return f"Forecast scale: recalibrated {scope} (the fit is not recorded with the model)\n\n"
+        return f"Forecast scale: recalibrated {scope} (the fit is not recorded with the model{curve})\n\n"
     fitted = sum(p["fitted"] for p in record["patterns"])
     return (
         f"Forecast scale: recalibrated {scope} on the {record['split']} split "
-        f"(`mmf-rl calibrate`, method={record_method(record)}; {fitted} of {len(record['patterns'])} "
+        f"(`mmf-rl calibrate`, method={record_method(record)}{curve}; {fitted} of {len(record['patterns'])} "
         f"patterns fitted, min_windows={record['min_windows']})\n\n"
     )
 

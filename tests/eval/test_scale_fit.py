@@ -178,7 +178,9 @@ def test_fitted_at_90_on_heavy_tailed_errors_the_50_percent_interval_holds_only_
     the evaluation's metrics under the same family: both hold 90%, but at 50% the Gaussian over-covers,
     its 50% half width (0.674) too large a share of its 90% one (1.645) for these errors."""
     model = FixedForecast(torch.ones(8), family, **settings)
-    fits = fit_scale_calibration(model, student_t_windows(HEAVY_DF, seed=0), min_windows=32)
+    fits = fit_scale_calibration(
+        model, student_t_windows(HEAVY_DF, seed=0), min_windows=32, method="coverage"
+    )
     assert all(fit.coverage_90_after == pytest.approx(0.9, abs=0.005) for fit in fits)
     test = evaluate_forecasts(model, student_t_windows(HEAVY_DF, seed=100), lambda t: t)
     assert test["windows"] == 2000 and test["coverage_90"] == pytest.approx(0.9, abs=0.01)
@@ -412,7 +414,7 @@ def test_per_step_patterns_with_too_few_windows_keep_the_pooled_factor_at_every_
     model = FixedGaussian(torch.ones(8))
     # As in the pooled test below: the camera's patterns have 40 windows, the others 80.
     data = growing_with_the_horizon(batches(1, 40) + batches(1, 40, without_image=True, seed=5))
-    fits = fit_scale_calibration(model, data, min_windows=50, per_step=True)
+    fits = fit_scale_calibration(model, data, min_windows=50, method="coverage", per_step=True)
     factors, steps = model.scale_calibration.factors, model.scale_calibration.step_factors
     for fit in fits:
         if "image" in fit.pattern:
@@ -499,7 +501,7 @@ def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
     model = FixedGaussian(torch.full((8,), 0.5))
     model.config = type("Config", (), {"eval_latent": "mean"})()
     assert calibration_in_use(model) is None and calibration_header(None) == ""
-    fits = fit_scale_calibration(model, batches(1), min_windows=32)
+    fits = fit_scale_calibration(model, batches(1), min_windows=32, method="coverage")
     model.calibration = calibration_record(model, fits, "val", 32, "/data/push", "coverage")
     record = calibration_in_use(model)
     assert record["split"] == "val"
@@ -513,7 +515,7 @@ def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
     assert calibration_in_use(model) == record and record["per_step"] is False
     model.calibration = {k: v for k, v in record.items() if k not in ("step_factors", "per_step")}
     assert calibration_in_use(model) is model.calibration
-    step_fits = fit_scale_calibration(model, batches(1), min_windows=32, per_step=True)
+    step_fits = fit_scale_calibration(model, batches(1), min_windows=32, method="coverage", per_step=True)
     model.calibration = calibration_record(model, step_fits, "val", 32, "/data/push", "coverage", True)
     assert "recalibrated per presence pattern and horizon step on the val split" in calibration_header(
         calibration_in_use(model)
@@ -523,7 +525,7 @@ def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
     assert unrecorded["split"] is None and unrecorded["step_factors"][3][0] == 5.0
     assert "per presence pattern and horizon step (the fit is not recorded" in calibration_header(unrecorded)
     # A record written before the level curves existed describes curves of ones.
-    fits = fit_scale_calibration(model, batches(1), min_windows=32)
+    fits = fit_scale_calibration(model, batches(1), min_windows=32, method="coverage")
     record = calibration_record(model, fits, "val", 32, "/data/push", "coverage")
     model.calibration = {k: v for k, v in record.items() if k not in ("levels", "level_factors")}
     assert calibration_in_use(model) is model.calibration
@@ -531,12 +533,17 @@ def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
     level_fits = fit_scale_calibration(model, heavy_tailed(batches(1)), min_windows=32, method="levels")
     model.calibration = calibration_record(model, level_fits, "val", 32, "/data/push", "levels")
     assert calibration_in_use(model)["level_factors"] == model.scale_calibration.level_factors.tolist()
-    assert "per presence pattern, with a level curve per pattern" in calibration_header(model.calibration)
+    assert (
+        "method=levels; a level curve per pattern, read by the intervals and the CRPS;"
+        in calibration_header(model.calibration)
+    )
     model.scale_calibration.level_factors[3, 0] = 5.0  # a curve that the record does not describe
     unrecorded = calibration_in_use(model)
     assert unrecorded["split"] is None and unrecorded["level_curve"]
-    assert "with a level curve per pattern (intervals and CRPS" in calibration_header(unrecorded)
-    fits = fit_scale_calibration(model, batches(1), min_windows=32)
+    assert "(the fit is not recorded with the model; a level curve per pattern" in calibration_header(
+        unrecorded
+    )
+    fits = fit_scale_calibration(model, batches(1), min_windows=32, method="coverage")
     model.calibration = calibration_record(model, fits, "val", 32, "/data/push", "coverage")
     model.scale_calibration.factors[3] = 5.0  # factors that the record does not describe
     assert "fit is not recorded" in calibration_header(calibration_in_use(model))
@@ -565,7 +572,7 @@ def stored_factors(run):
 def test_training_ends_with_a_calibration_on_val_stored_in_checkpoint_and_export(push_run):
     checkpoint, exported = stored_factors(push_run)
     record = checkpoint.meta["calibration"]
-    assert record["split"] == "val" and record["min_windows"] == 32 and record["method"] == "coverage"
+    assert record["split"] == "val" and record["min_windows"] == 32 and record["method"] == "levels"
     assert torch.equal(checkpoint.model_state[FACTORS], exported)
     assert exported.tolist() == record["factors"]
     assert json.loads((push_run / "model" / "calibration.json").read_text()) == record
@@ -578,8 +585,9 @@ def test_calibrate_refits_writes_back_and_eval_scores_with_the_factors(push_run,
     steps = list_checkpoints(push_run / "checkpoints")
     assert cli(["calibrate", f"checkpoint={push_run}", "min_windows=4"]) == 0
     out = capsys.readouterr().out
+    # The default method, levels: each pattern's level curve beside its factor.
     assert (
-        "| pattern | val windows | factor | coverage 50% before -> after | coverage 90% before -> after |"
+        "| pattern | val windows | factor | level curve (10, 20, 30, 40, 50, 60, 70, 80, 90, 95, 99%) |"
         in out
     )
     assert f"written: {steps[-1]}" in out and f"written: {push_run / 'model'}" in out
@@ -662,12 +670,18 @@ def test_calibrate_method_temperature_stores_the_nll_fit(push_run, capsys):
     assert "method=temperature;" in calibration_header(record)
 
 
-def test_calibrate_method_levels_stores_the_curves_and_eval_scores_both_levels_with_them(push_run, capsys):
-    assert cli(["calibrate", f"checkpoint={push_run}", "min_windows=4", "method=levels"]) == 0
+def recalibrated(push_run, capsys, *arguments):
+    """`mmf-rl calibrate` the run with ``arguments``: what it printed, the checkpoint, the exported
+    factors and the recorded fit."""
+    assert cli(["calibrate", f"checkpoint={push_run}", "min_windows=4", *arguments]) == 0
     out = capsys.readouterr().out
-    assert "(method=levels)" in out and "| level curve (10, 20, 30, 40, 50, 60, 70, 80, 90, 95, 99%) |" in out
     checkpoint, exported = stored_factors(push_run)
-    record = checkpoint.meta["calibration"]
+    return out, checkpoint, exported, checkpoint.meta["calibration"]
+
+
+def test_calibrate_method_levels_stores_the_curves_and_eval_scores_both_levels_with_them(push_run, capsys):
+    out, checkpoint, _, record = recalibrated(push_run, capsys, "method=levels")
+    assert "(method=levels)" in out and "| level curve (10, 20, 30, 40, 50, 60, 70, 80, 90, 95, 99%) |" in out
     curves = checkpoint.model_state[LEVEL_FACTORS]
     assert record["method"] == "levels" and record["levels"] == list(LEVELS)
     assert curves.tolist() == record["level_factors"] and not torch.equal(curves, torch.ones_like(curves))
@@ -683,7 +697,7 @@ def test_calibrate_method_levels_stores_the_curves_and_eval_scores_both_levels_w
     capsys.readouterr()
     results = json.loads((push_run / "eval" / "results.json").read_text())
     assert results["scale_calibration"]["method"] == "levels"
-    assert "with a level curve per pattern" in (push_run / "eval" / "results.md").read_text()
+    assert "method=levels; a level curve per pattern" in (push_run / "eval" / "results.md").read_text()
     for subset, name in {"all": {"image", "force", "proprio"}, "only_force": {"force"}}.items():
         row, fit = results["subsets"][subset], fitted[frozenset(name)]
         assert row["coverage_50"] == pytest.approx(fit["coverage_50_after"], abs=1e-6)
@@ -691,11 +705,8 @@ def test_calibrate_method_levels_stores_the_curves_and_eval_scores_both_levels_w
 
 
 def test_calibrate_per_step_on_the_recording_holds_90_percent_at_every_step_and_travels(push_run, capsys):
-    assert cli(["calibrate", f"checkpoint={push_run}", "min_windows=4", "per_step=true"]) == 0
-    out = capsys.readouterr().out
-    assert "(method=coverage, per horizon step)" in out and "| factor per step |" in out
-    checkpoint, exported = stored_factors(push_run)
-    record = checkpoint.meta["calibration"]
+    out, checkpoint, exported, record = recalibrated(push_run, capsys, "per_step=true")
+    assert "(method=levels, per horizon step)" in out and "| factor per step |" in out
     steps = checkpoint.model_state[STEP_FACTORS]
     assert record["per_step"] and steps.tolist() == record["step_factors"]
     assert torch.equal(load_file(push_run / "model" / "model.safetensors")[STEP_FACTORS], steps)
