@@ -23,7 +23,8 @@ test futures in every presence subset): does a per-presence-pattern scale recali
 validation split (``mmf-rl calibrate``) get there? For each run and latent it writes copies of
 the model under ``--out/<group>/<run>/<latent>/`` (``save_pretrained``; the run itself is not
 touched): ``raw``, its scale factors reset to ones (the scale as trained), and one per
-``--methods`` entry (``coverage``, the default fit, and ``temperature``, the NLL-optimal one),
+``--methods`` entry (``levels``, the default fit: the 90% factor and a level curve per pattern;
+``coverage``, the 90% factor alone; ``temperature``, the NLL-optimal one),
 fitted by it on the run's val split with ``--min-windows``; each is scored on ``--split``, as the
 rows ``<latent>:raw`` and ``<latent>:<method>``.
 

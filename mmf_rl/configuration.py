@@ -31,7 +31,7 @@ import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import TypeVar
+from typing import ClassVar, Self, TypeVar
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 
@@ -84,6 +84,52 @@ def reject_unknown_keys(cls, d: dict, where: str) -> None:
     unknown = sorted(set(d) - known)
     if unknown:
         raise ValueError(f"{where}: unknown keys {unknown}; expected a subset of {sorted(known)}")
+
+
+class SavedConfigMixin:
+    """A dataclass config read from plain data, fresh or saved with a model: :meth:`from_dict` and
+    :meth:`from_saved_dict` (the model configs, :class:`~mmf_rl.models.ForecasterConfig` and the
+    baselines' :class:`~mmf_rl.models.baselines.common.BaselineConfig`).
+
+    ``SAVED_BEFORE`` (a class attribute): the settings a saved config may lack because they did not
+    exist when it was saved, and the value that describes the model saved then (not today's default).
+    """
+
+    SAVED_BEFORE: ClassVar[dict[str, object]] = {}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Self:
+        """Build from plain data: the settings given, today's defaults for the others (a Hydra model
+        config, a config written by hand).
+
+        Args:
+            d (dict): the fields (modalities as :class:`~mmf_rl.keys.ModalitySpec` or their dicts).
+
+        Returns:
+            The config.
+
+        Raises:
+            ValueError: an unknown key or an invalid value.
+        """
+        reject_unknown_keys(cls, d, cls.__name__)
+        return cls(**d)
+
+    @classmethod
+    def from_saved_dict(cls, d: dict) -> Self:
+        """Build from a saved model's config (a checkpoint's ``model_config``, a ``config.json``): a
+        setting it lacks did not exist when it was saved, and takes the value :attr:`SAVED_BEFORE`
+        gives it, the one that describes the model saved then, not today's default.
+
+        Args:
+            d (dict): the saved fields (the config's ``to_dict`` form).
+
+        Returns:
+            The config of the saved model.
+
+        Raises:
+            ValueError: an unknown key or an invalid value.
+        """
+        return cls.from_dict({**cls.SAVED_BEFORE, **d})
 
 
 def config_groups(config_dirs: list[Path] = ()) -> dict[str, list[str]]:

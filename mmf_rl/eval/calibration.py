@@ -122,8 +122,9 @@ def fallback_notes(fits, min_windows: int, split: str, per_step: bool = False) -
     pooled = [fit.pattern for fit in fits if fit.pooled]
     if pooled:
         at_every_step = ", one factor at every horizon step" if per_step else ""
+        curve = " and its level curve" if any(fit.level_factors for fit in fits if fit.pooled) else ""
         notes.append(
-            f"the pooled fit of every pattern{at_every_step} (fewer than min_windows={min_windows} "
+            f"the pooled fit of every pattern{curve}{at_every_step} (fewer than min_windows={min_windows} "
             f"{split} windows): " + ", ".join(pooled)
         )
     kept = [fit.pattern for fit in fits if not fit.fitted and not fit.pooled]

@@ -12,7 +12,8 @@ Per window, then averaged over windows:
   (normalised), ADE and FDE (units) over ``K`` forecasts decoded from prior samples, each minimum
   taken independently (the sample with the best ADE need not have the best FDE).
 * ``nll``: NLL of the normalised target under the point forecast's distribution (summed over
-  ``T × D``).
+  ``T × D``): the output family at the forecast's scale, with a level curve too (the family at the
+  pattern's 90% scale; the curve changes the intervals, not the density the NLL reads).
 * ``coverage_50`` / ``coverage_90``: share of the ``T × D`` target values inside the central
   50% / 90% interval of the forecast's distribution: a calibrated scale gives 0.5 / 0.9.
 * ``width_90``: mean width of those central 90% intervals, in the target's units: of two forecasts
@@ -28,7 +29,13 @@ Per window, then averaged over windows:
 
 The forecast's distribution is the model's output family (its config's ``output_distribution``,
 :func:`~mmf_rl.objectives.output_distribution_of`): ``N(loc, scale²)`` by default, or a Laplace or
-Student-t with that location and scale; the NLL, the intervals and the CRPS are its.
+Student-t with that location and scale; the NLL, the intervals and the CRPS are its. A model
+calibrated with a level curve (``mmf-rl calibrate method=levels``,
+:mod:`mmf_rl.models.scale_calibration`) has the intervals of its window's presence pattern's curve
+instead: ``coverage_50``, ``coverage_90`` and ``width_90`` read the curve's half widths, and ``crps``
+is the CRPS of the recalibrated quantile function, the integral of the quantile (pinball) score over
+the levels, ``2 ∫ ρ_τ(y - Q(τ)) dτ``, by the midpoint rule on :data:`CRPS_QUANTILES` levels
+(within 0.05% of the closed form per value under the family's own curve, where the closed form is used).
 
 :func:`evaluate_presence_subsets` scores the named presence subsets **paired**: every subset row
 is averaged over the same windows, those in which each compared subset keeps a present modality.
@@ -46,10 +53,16 @@ from tensordict import TensorDictBase
 
 from mmf_rl import keys
 from mmf_rl.datasets.protocols import apply_presence_subset
+from mmf_rl.models.scale_calibration import level_half_widths
 from mmf_rl.objectives.common import gaussian_kl
 from mmf_rl.objectives.distributions import OutputDistribution, output_distribution, output_distribution_of
 
 COVERAGE_LEVELS = {"coverage_50": 0.5, "coverage_90": 0.9}
+# The quantile levels of the CRPS under a level curve, by the midpoint rule: within 0.05% of the
+# closed forms of the Gaussian, Laplace and Student-t (df 2.5) at 400.
+CRPS_QUANTILES = 400
+# Values x quantile levels per chunk of the CRPS's quadrature (a bound on its memory).
+CRPS_CHUNK = 2**22
 BASELINE_PREFIX = "cv_"
 
 
@@ -112,17 +125,28 @@ def central_half_width(level: float, family: OutputDistribution = NORMAL) -> flo
     return family.half_width(level)
 
 
+def _half_width(level: float, family: OutputDistribution, curve: torch.Tensor | None, dims: int):
+    """The central ``level`` half width in units of scale: the family's (a float), or per window
+    under the level curves ``curve`` ``[B, len(LEVELS)]``, shaped ``[B, 1, ...]`` for ``dims``-dim values."""
+    if curve is None:
+        return family.half_width(level)
+    return level_half_widths(curve, [level], family).view(-1, *[1] * (dims - 1))
+
+
 def interval_coverage(
     target: torch.Tensor,
     loc: torch.Tensor,
     scale: torch.Tensor,
     level: float,
     family: OutputDistribution = NORMAL,
+    curve: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Per window ``[B]``: the share of ``target`` values inside the central ``level`` interval of the
     ``family`` member at ``(loc, scale)`` (``[B, T, D]`` each; by default ``N(loc, scale²)``):
-    ``|target - loc| <= half_width(level) · scale``."""
-    return ((target - loc).abs() <= family.half_width(level) * scale).flatten(1).float().mean(-1)
+    ``|target - loc| <= half_width(level) · scale``; with ``curve``, each window's level curve
+    ``[B, len(LEVELS)]``, its half width (:func:`~mmf_rl.models.scale_calibration.level_half_widths`)."""
+    half = _half_width(level, family, curve, target.dim())
+    return ((target - loc).abs() <= half * scale).flatten(1).float().mean(-1)
 
 
 def interval_width(
@@ -131,19 +155,33 @@ def interval_width(
     level: float,
     denormalize: Callable[[torch.Tensor], torch.Tensor],
     family: OutputDistribution = NORMAL,
+    curve: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Per window ``[B]``: the mean width in units of the central ``level`` intervals of the ``family``
-    members at ``(loc, scale)`` (``[B, T, D]`` each, normalised; by default ``N(loc, scale²)``)."""
-    half = family.half_width(level) * scale
+    members at ``(loc, scale)`` (``[B, T, D]`` each, normalised; by default ``N(loc, scale²)``; with
+    ``curve``, each window's level curve's intervals)."""
+    half = _half_width(level, family, curve, loc.dim()) * scale
     return (denormalize(loc + half) - denormalize(loc - half)).flatten(1).mean(-1)
 
 
 def forecast_crps(
-    target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor, family: OutputDistribution = NORMAL
+    target: torch.Tensor,
+    loc: torch.Tensor,
+    scale: torch.Tensor,
+    family: OutputDistribution = NORMAL,
+    curve: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Per window ``[B]``: the mean over ``T × D`` values of the CRPS of the ``family`` member at
-    ``(loc, scale)`` at ``target``, in the family's closed form (:meth:`OutputDistribution.crps`)."""
-    return family.crps(target, loc, scale).flatten(1).mean(-1)
+    ``(loc, scale)`` at ``target``, in the family's closed form (:meth:`OutputDistribution.crps`); with
+    ``curve`` (each window's level curve ``[B, len(LEVELS)]``), of its recalibrated quantile function
+    (:func:`quantile_crps`) where a window's curve is not the family's own (all ones)."""
+    closed = family.crps(target, loc, scale).flatten(1).mean(-1)
+    if curve is None:
+        return closed
+    own = (curve == 1).all(-1)
+    if bool(own.all()):
+        return closed
+    return torch.where(own, closed, quantile_crps(target, loc, scale, curve, family).flatten(1).mean(-1))
 
 
 def gaussian_crps(target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -152,6 +190,40 @@ def gaussian_crps(target: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) 
     ``scale · (z (2 Φ(z) - 1) + 2 φ(z) - 1 / sqrt(pi))`` with ``z = (target - loc) / scale``; one
     line, so no scoring library (properscoring, scoringrules) is needed."""
     return forecast_crps(target, loc, scale, NORMAL)
+
+
+def quantile_crps(
+    target: torch.Tensor,
+    loc: torch.Tensor,
+    scale: torch.Tensor,
+    curve: torch.Tensor,
+    family: OutputDistribution,
+    quantiles: int = CRPS_QUANTILES,
+) -> torch.Tensor:
+    """Elementwise CRPS ``[B, T, ...]`` of the forecast whose quantile at level ``τ`` is ``loc + scale ·
+    sign(τ - 1/2) · h(|2τ - 1|)``, ``h`` the half widths of each window's level curve ``curve`` ``[B,
+    len(LEVELS)]`` (:func:`~mmf_rl.models.scale_calibration.level_half_widths`): ``2 ∫ ρ_τ(y - Q(τ)) dτ``
+    over ``(0, 1)``, ``ρ_τ(u) = u (τ - 1{u < 0})`` the pinball loss, by the midpoint rule on
+    ``quantiles`` levels (an even number; symmetric pairs ``τ``, ``1 - τ`` share a half width).
+    Under ones (the family's own curve) it is the family's CRPS within the rule's error."""
+    if quantiles < 2 or quantiles % 2:
+        raise ValueError(f"quantiles must be an even number >= 2, found {quantiles}")
+    pairs = quantiles // 2
+    upper = 0.5 + (torch.arange(pairs, dtype=torch.float64) + 0.5) / quantiles  # tau in (1/2, 1)
+    half = level_half_widths(curve.double(), (2 * upper - 1).tolist(), family)  # [B, pairs]
+    z = ((target - loc) / scale).double()
+    flat = z.reshape(z.shape[0], -1, 1)  # [B, V, 1]
+    total = torch.zeros_like(flat[..., 0])
+    step = max(1, CRPS_CHUNK // max(1, flat[0].numel() * flat.shape[0]))
+    upper = upper.to(z.device)
+    half = half.to(z.device)
+    for start in range(0, pairs, step):
+        tau = upper[start : start + step]  # [C]
+        h = half[:, None, start : start + step]  # [B, 1, C]
+        above, below = flat - h, flat + h  # y - Q(tau), y - Q(1 - tau)
+        score = above * (tau - (above < 0).double()) + below * ((1 - tau) - (below < 0).double())
+        total += score.sum(-1)
+    return (2 * total / quantiles).view_as(z).to(target.dtype) * scale
 
 
 def best_of_samples(
@@ -182,14 +254,19 @@ def window_metrics(
     out = model(inputs.clone(False))
     loc, scale = out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
     family = output_distribution_of(model)
+    curve = level_curves(model, out)
     target_units = denormalize(target)
     metrics = point_errors(loc, target, denormalize(loc), target_units)
+    # The family at the forecast's scale (a pattern's 90% scale when calibrated), curve or not.
     metrics["nll"] = family.nll(target, loc, scale).flatten(1).sum(-1)
     metrics |= {
-        name: interval_coverage(target, loc, scale, level, family) for name, level in COVERAGE_LEVELS.items()
+        name: interval_coverage(target, loc, scale, level, family, curve)
+        for name, level in COVERAGE_LEVELS.items()
     }
-    metrics["width_90"] = interval_width(loc, scale, COVERAGE_LEVELS["coverage_90"], denormalize, family)
-    metrics["crps"] = forecast_crps(target, loc, scale, family)
+    metrics["width_90"] = interval_width(
+        loc, scale, COVERAGE_LEVELS["coverage_90"], denormalize, family, curve
+    )
+    metrics["crps"] = forecast_crps(target, loc, scale, family, curve)
     kl = latent_kl(model, batch, out)
     if kl is not None:
         metrics["kl"] = kl
@@ -199,6 +276,17 @@ def window_metrics(
     if with_baseline:
         metrics |= baseline_metrics(batch, denormalize)
     return {name: value.detach().float().cpu() for name, value in metrics.items()}
+
+
+def level_curves(model, out: TensorDictBase) -> torch.Tensor | None:
+    """``[B, len(LEVELS)]``: the level curve of each window's presence pattern (the presence the model
+    used, in its output), or ``None`` when the model has none but the family's (uncalibrated, a
+    ``coverage`` or ``temperature`` fit, a model without ``scale_calibration``)."""
+    calibration = getattr(model, "scale_calibration", None)
+    if calibration is None or not calibration.has_level_curve():
+        return None
+    present = torch.stack([out.get(keys.present_key(spec.name)) for spec in model.modalities], dim=1)
+    return calibration.level_curve(present.to(calibration.level_factors.device))
 
 
 def latent_kl(model, batch: TensorDictBase, out: TensorDictBase) -> torch.Tensor | None:

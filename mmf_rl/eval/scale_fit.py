@@ -2,9 +2,9 @@
 
 The factors (:class:`~mmf_rl.models.scale_calibration.PresenceScaleCalibration`) are fitted in closed
 form, for each presence pattern ``p``, on the standardised errors ``z = (y - loc) / scale`` of the
-T × D future values of the windows with pattern ``p``, by one of two methods:
+T × D future values of the windows with pattern ``p``, by one of three methods:
 
-* ``coverage`` (the default): split-conformal. ``s_p`` is the ``⌈(n + 1) · 0.9⌉``-th smallest of the
+* ``coverage``: split-conformal. ``s_p`` is the ``⌈(n + 1) · 0.9⌉``-th smallest of the
   ``n`` values ``|z|`` (halfway to the next one), divided by the half width of the central 90%
   interval of the output family's standard member (``N(0, 1)`` by default): the scaled 90% intervals
   then hold that share of the fitted values, each value counted as ``coverage_90`` counts them
@@ -12,6 +12,16 @@ T × D future values of the windows with pattern ``p``, by one of two methods:
   family. ``n`` counts values, not windows: a window's values are not independent, so the
   finite-sample correction is approximate, and negligible from a few windows on.
   A few large errors (contact, a camera glitch) move a quantile by a few values only.
+* ``levels`` (the default): the ``coverage`` factor, and a level curve per pattern
+  (:mod:`mmf_rl.models.scale_calibration`): at each central level ``L_k`` of
+  :data:`~mmf_rl.models.scale_calibration.LEVELS` (10% to 90% by tenths, 95%, 99%) the same
+  finite-sample-corrected quantile of the values ``|z| / s_p``, at rank ``⌈(n + 1) · L_k⌉``, divided
+  by the family's ``L_k`` half width (the coverage factor generalised to a level), their half widths
+  made nondecreasing by a running maximum. The factor still holds 90% (the curve is 1 there), so
+  whatever reads one scale (the NLL, the world model, the transforms) is the family at the pattern's
+  90% scale; the intervals at any level, and the CRPS, read the curve (``eval``,
+  :mod:`mmf_rl.eval.metrics`). On errors more peaked or heavier-tailed than the family, where one
+  factor fitted at 90% over-covers the 50% intervals, the curve holds both.
 * ``temperature``: the NLL-optimal scalar temperature of the forecast under its output family:
   ``s_p² = mean(z²)`` for the Gaussian, ``s_p = mean(|z|)`` for the Laplace, a 1-D minimisation of the
   mean NLL for the Student-t (no closed form; :meth:`~mmf_rl.objectives.OutputDistribution.temperature`).
@@ -26,8 +36,9 @@ The errors are taken on every window of the batches under every presence subset 
 (:func:`~mmf_rl.datasets.presence_subsets`, applied as :func:`~mmf_rl.datasets.apply_presence_subset`
 does), each (window, pattern) pair once. The fit starts from the uncalibrated scale (the factors
 are reset to ones first), so refitting replaces earlier factors. A pattern seen in fewer than
-``min_windows`` windows gets the pooled fit, the same method on every (window, pattern) pair, as a
-factor from a handful of windows would be noise; when even those are fewer, it keeps the factor 1.
+``min_windows`` windows gets the pooled fit, the same method on every (window, pattern) pair (its
+factor and, by ``levels``, its curve), as a fit from a handful of windows would be noise; when even
+those are fewer, it keeps the factor 1 and the family's own curve.
 Fit on the validation split (``mmf-rl calibrate`` does): the test split must stay unseen.
 
 ``per_step=True`` also fits each horizon step ``t`` of a pattern on its own (the same method on the
@@ -37,7 +48,9 @@ pattern's one factor widens the early steps' intervals and narrows the late ones
 every step, so a pattern's steps have its window count and the same ``min_windows`` applies: a
 pattern with fewer windows falls back to its pooled factor at every step. A step's fit rests on
 ``1 / T`` of the pattern's values (still one per window and target dimension), so its quantile is
-noisier: off by default.
+noisier: off by default. With ``levels`` the curve stays one per pattern, fitted on the values
+``|z|`` divided by their step's factor (the pattern's factor times its step's), so it describes the
+errors' shape once the step factors have matched their growth.
 
 :func:`save_calibration` writes the factors where the model was loaded from (a checkpoint is
 re-saved at its step, a ``save_pretrained`` directory rewritten) and into its twin, the run's
@@ -48,7 +61,7 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -70,34 +83,59 @@ from mmf_rl.datasets import apply_presence_subset, presence_subsets
 from mmf_rl.eval.metrics import COVERAGE_LEVELS, central_half_width
 from mmf_rl.models import TrainedModelSource
 from mmf_rl.models.loading import RUN_EXPORT_DIR
-from mmf_rl.models.scale_calibration import pattern_name
+from mmf_rl.models.scale_calibration import LEVELS, level_half_widths, pattern_name
 from mmf_rl.objectives.distributions import OutputDistribution, output_distribution, output_distribution_of
 
 DEFAULT_MIN_WINDOWS = 32
 # The factors' names in a registered model's state dict.
 FACTORS_KEY = "scale_calibration.factors"
 STEP_FACTORS_KEY = "scale_calibration.step_factors"
+LEVEL_FACTORS_KEY = "scale_calibration.level_factors"
+CALIBRATION_KEYS = (FACTORS_KEY, STEP_FACTORS_KEY, LEVEL_FACTORS_KEY)
 # The level the coverage fit holds, and the coverage the fit reports: the 90% the README promises.
 LEVEL_90 = COVERAGE_LEVELS["coverage_90"]
+LEVEL_50 = COVERAGE_LEVELS["coverage_50"]
 HALF_WIDTH_90 = central_half_width(LEVEL_90)  # the Gaussian's; a family's is family.half_width(LEVEL_90)
 NORMAL = output_distribution("normal")
 
 
-def coverage_factor(magnitudes: torch.Tensor, family: OutputDistribution = NORMAL) -> float:
+def conformal_quantiles(magnitudes: torch.Tensor, levels: Sequence[float]) -> torch.Tensor:
+    """``[len(levels)]`` float64: the split-conformal quantile of the values ``|z|`` at each level: the
+    ``⌈(n + 1) · level⌉``-th smallest of the ``n`` values (the largest when there are too few), halfway
+    to the next one."""
+    ordered = magnitudes.flatten().double().sort().values
+    n = len(ordered)
+    quantiles = []
+    for level in levels:
+        # Fewer than 1 / (1 - level) - 1 values: the corrected rank is past the largest; take that.
+        # (The tolerance: (n + 1) * level is a whole number in exact arithmetic more often than in
+        # floating point, e.g. 1000 * 0.3.)
+        rank = min(math.ceil((n + 1) * level - 1e-9), n)
+        # Any factor from the rank-th value up to the next covers the same fitted values; halfway,
+        # float32 rounding in the calibrated forecast cannot move the rank-th one out of its interval.
+        quantiles.append((ordered[rank - 1] + ordered[min(rank, n - 1)]) / 2)
+    return torch.stack(quantiles)
+
+
+def coverage_factor(
+    magnitudes: torch.Tensor, family: OutputDistribution = NORMAL, level: float = LEVEL_90
+) -> float:
     """The split-conformal factor of the values ``|z|`` under the output ``family`` (see module
-    docstring; by default the Gaussian).
+    docstring; by default the Gaussian) at the central ``level`` (by default 90%).
 
     A hand-written quantile, not MAPIE, crepes or torchcp: they wrap a regressor and compute its
     conformity scores themselves, where the scores here are the model's standardised errors, and
     the fit is this one order statistic."""
-    ordered = magnitudes.sort().values
-    n = len(ordered)
-    # Fewer than 1 / (1 - level) - 1 values: the corrected rank is past the largest; take that.
-    rank = min(math.ceil((n + 1) * LEVEL_90), n)
-    # Any factor from the rank-th value up to the next covers the same fitted values; halfway,
-    # float32 rounding in the calibrated forecast cannot move the rank-th one out of its interval.
-    quantile = (ordered[rank - 1] + ordered[min(rank, n - 1)]) / 2
-    return float(quantile) / family.half_width(LEVEL_90)
+    return float(conformal_quantiles(magnitudes, [level])[0]) / family.half_width(level)
+
+
+def level_curve(magnitudes: torch.Tensor, family: OutputDistribution = NORMAL) -> torch.Tensor:
+    """``[len(LEVELS)]`` float64: the level curve of the values ``|z|`` (already divided by their
+    scale factor) under ``family``: at each level of :data:`~mmf_rl.models.scale_calibration.LEVELS`,
+    the split-conformal quantile (:func:`conformal_quantiles`), made nondecreasing over the levels by
+    a running maximum, divided by the family's half width there (see module docstring)."""
+    heights = conformal_quantiles(magnitudes, LEVELS).cummax(0).values
+    return heights / torch.tensor([family.half_width(level) for level in LEVELS], dtype=torch.float64)
 
 
 def temperature_factor(magnitudes: torch.Tensor, family: OutputDistribution = NORMAL) -> float:
@@ -107,17 +145,26 @@ def temperature_factor(magnitudes: torch.Tensor, family: OutputDistribution = NO
     return family.temperature(magnitudes)
 
 
-CALIBRATION_METHODS = {"coverage": coverage_factor, "temperature": temperature_factor}
-DEFAULT_METHOD = "coverage"
+# Each method's scale factor; the methods of LEVEL_CURVE_METHODS also fit each pattern's level curve.
+CALIBRATION_METHODS = {
+    "coverage": coverage_factor,
+    "levels": coverage_factor,
+    "temperature": temperature_factor,
+}
+LEVEL_CURVE_METHODS = ("levels",)
+DEFAULT_METHOD = "levels"
 
 
 @dataclass(frozen=True)
 class PatternFit:
-    """One presence pattern's fit: its windows, factor, and 90% coverage before and after on the
-    fitted windows. ``fitted=False``: fewer than ``min_windows`` windows, the factor is the pooled
-    fit's (``pooled=True``) or 1 (also in records written before the pooled fit existed).
-    ``step_factors``: with ``per_step``, the factor of each horizon step (the pattern's factor times
-    its step's); ``None`` when the pattern has one factor for every step."""
+    """One presence pattern's fit: its windows, factor, and 50% and 90% coverage before and after on
+    the fitted windows (after: under the level curve when the method fits one). ``fitted=False``: fewer
+    than ``min_windows`` windows, the factor (and curve) is the pooled fit's (``pooled=True``) or 1
+    (also in records written before the pooled fit existed). ``step_factors``: with ``per_step``, the
+    factor of each horizon step (the pattern's factor times its step's); ``None`` when the pattern has
+    one factor for every step. ``level_factors``: by ``levels``, the pattern's level curve (one entry a
+    level of :data:`~mmf_rl.models.scale_calibration.LEVELS`); ``None`` for the family's own.
+    ``coverage_50_*``: ``None`` in records written before they were reported."""
 
     pattern: str
     index: int
@@ -128,6 +175,9 @@ class PatternFit:
     coverage_90_after: float
     pooled: bool = False
     step_factors: list[float] | None = None
+    coverage_50_before: float | None = None
+    coverage_50_after: float | None = None
+    level_factors: list[float] | None = None
 
 
 def _calibration_module(model):
@@ -173,11 +223,11 @@ def fit_scale_calibration(
             f"unknown calibration method {method!r}: choose among {', '.join(CALIBRATION_METHODS)}"
         )
     family = output_distribution_of(model)
+    with_curve = method in LEVEL_CURVE_METHODS
 
     def factor_of(values: torch.Tensor) -> float:
         return CALIBRATION_METHODS[method](values, family)
 
-    half_width_90 = family.half_width(LEVEL_90)
     names = [s.name for s in model.modalities]
     calibration.reset()
     model.to(device).eval()
@@ -186,7 +236,9 @@ def fit_scale_calibration(
         raise ValueError("no window to fit the scale factors on: the batches are empty")
     magnitudes = {index: torch.cat(parts) for index, parts in residuals.items()}  # [windows, T, ...]
     pooled = sum(windows.values()) >= min_windows
-    pooled_factor = factor_of(torch.cat([m.flatten() for m in magnitudes.values()])) if pooled else 1.0
+    every_value = torch.cat([m.flatten() for m in magnitudes.values()])
+    pooled_factor = factor_of(every_value) if pooled else 1.0
+    pooled_curve = level_curve(every_value / pooled_factor, family) if pooled and with_curve else None
     fits = []
     for index in sorted(windows):
         fitted = windows[index] >= min_windows
@@ -197,7 +249,14 @@ def fit_scale_calibration(
             by_step = torch.tensor([factor_of(values[:, step].flatten()) for step in range(values.shape[1])])
             calibration.step_factors[index] = by_step / factor
         applied = calibration.factors[index] * calibration.step_factors[index]  # as the model multiplies
-        covered = values <= half_width_90 * applied.double().view(1, -1, *[1] * (values.dim() - 2))
+        applied = applied.double().view(1, -1, *[1] * (values.dim() - 2))
+        curve = level_curve(values / applied, family) if fitted and with_curve else pooled_curve
+        if curve is not None:
+            calibration.level_factors[index] = curve
+        half_widths = level_half_widths(
+            calibration.level_factors[index].double(), (LEVEL_50, LEVEL_90), family
+        )
+        before = [family.half_width(level) for level in (LEVEL_50, LEVEL_90)]
         fits.append(
             PatternFit(
                 pattern=pattern_name(index, names),
@@ -205,10 +264,13 @@ def fit_scale_calibration(
                 windows=windows[index],
                 factor=float(calibration.factors[index]),
                 fitted=fitted,
-                coverage_90_before=float((values <= half_width_90).double().mean()),
-                coverage_90_after=float(covered.double().mean()),
+                coverage_90_before=float((values <= before[1]).double().mean()),
+                coverage_90_after=float((values <= half_widths[1] * applied).double().mean()),
                 pooled=not fitted and pooled,
-                step_factors=applied.tolist() if per_step and fitted else None,
+                step_factors=applied.flatten().tolist() if per_step and fitted else None,
+                coverage_50_before=float((values <= before[0]).double().mean()),
+                coverage_50_after=float((values <= half_widths[0] * applied).double().mean()),
+                level_factors=calibration.level_factors[index].tolist() if curve is not None else None,
             )
         )
     return fits
@@ -272,19 +334,28 @@ def calibration_record(
         "patterns": [asdict(fit) for fit in fits],
         "factors": calibration.factors.tolist(),
         "step_factors": calibration.step_factors.tolist(),
+        "levels": list(LEVELS),
+        "level_factors": calibration.level_factors.tolist(),
     }
 
 
 def _describes(record: dict, calibration) -> bool:
-    """``record`` holds the factors ``calibration`` holds (a record written before the step factors
-    existed: with step factors of ones, the factors then)."""
-    factors, steps = calibration.factors.cpu(), calibration.step_factors.cpu()
-    recorded_steps = record.get("step_factors")
-    return torch.equal(torch.tensor(record.get("factors", []), dtype=factors.dtype), factors) and (
-        torch.equal(torch.tensor(recorded_steps, dtype=steps.dtype), steps)
-        if recorded_steps is not None
-        else not calibration.has_step_factors()
-    )
+    """``record`` holds the factors ``calibration`` holds (a record written before the step factors or
+    the level curves existed: with step factors, or level curves, of ones, the factors then)."""
+    factors = calibration.factors.cpu()
+    if not torch.equal(torch.tensor(record.get("factors", []), dtype=factors.dtype), factors):
+        return False
+    for name, held in (
+        ("step_factors", calibration.step_factors),
+        ("level_factors", calibration.level_factors),
+    ):
+        recorded = record.get(name)
+        held = held.cpu()
+        if recorded is None and not bool((held == 1).all()):
+            return False
+        if recorded is not None and not torch.equal(torch.tensor(recorded, dtype=held.dtype), held):
+            return False
+    return True
 
 
 def calibration_in_use(model) -> dict | None:
@@ -300,8 +371,11 @@ def calibration_in_use(model) -> dict | None:
     return {
         "split": None,
         "per_step": calibration.has_step_factors(),
+        "level_curve": calibration.has_level_curve(),
         "factors": calibration.factors.tolist(),
         "step_factors": calibration.step_factors.tolist(),
+        "levels": list(LEVELS),
+        "level_factors": calibration.level_factors.tolist(),
     }
 
 
@@ -311,12 +385,14 @@ def calibration_header(record: dict | None) -> str:
         return ""
     # Records written before the step factors existed fitted one factor per pattern.
     scope = "per presence pattern and horizon step" if record.get("per_step") else "per presence pattern"
+    curve = record.get("level_curve", record_method(record) in LEVEL_CURVE_METHODS)
+    curve = "; a level curve per pattern, read by the intervals and the CRPS" if curve else ""
     if record["split"] is None:
-        return f"Forecast scale: recalibrated {scope} (the fit is not recorded with the model)\n\n"
+        return f"Forecast scale: recalibrated {scope} (the fit is not recorded with the model{curve})\n\n"
     fitted = sum(p["fitted"] for p in record["patterns"])
     return (
         f"Forecast scale: recalibrated {scope} on the {record['split']} split "
-        f"(`mmf-rl calibrate`, method={record_method(record)}; {fitted} of {len(record['patterns'])} "
+        f"(`mmf-rl calibrate`, method={record_method(record)}{curve}; {fitted} of {len(record['patterns'])} "
         f"patterns fitted, min_windows={record['min_windows']})\n\n"
     )
 
@@ -344,10 +420,14 @@ def unfit_for_latent(model) -> str | None:
 
 def fit_table(fits: list[PatternFit], split: str) -> str:
     """The per-pattern table ``mmf-rl calibrate`` prints; with step factors, a column of each step's
-    factor."""
+    factor; with level curves, a column of each pattern's curve (its half width at each level of
+    :data:`~mmf_rl.models.scale_calibration.LEVELS` over the family's, 2 decimals)."""
     per_step = any(fit.step_factors is not None for fit in fits)
+    curves = any(fit.level_factors is not None for fit in fits)
+    percents = ", ".join(f"{100 * level:g}" for level in LEVELS)
     columns = ["pattern", f"{split} windows", "factor", *["factor per step"] * per_step]
-    columns.append("coverage 90% before -> after")
+    columns += [f"level curve ({percents}%)"] * curves
+    columns += ["coverage 50% before -> after", "coverage 90% before -> after"]
     lines = [f"| {' | '.join(columns)} |", "|" + "---|" * len(columns)]
     for fit in fits:
         factor = f"{fit.factor:.3f}"
@@ -358,17 +438,23 @@ def fit_table(fits: list[PatternFit], split: str) -> str:
         if per_step:
             steps = ", ".join(f"{f:.2f}" for f in fit.step_factors) if fit.step_factors else "as the factor"
             factor += f" | {steps}"
-        lines.append(
-            f"| {fit.pattern} | {fit.windows} | {factor} | "
-            f"{fit.coverage_90_before:.3f} -> {fit.coverage_90_after:.3f} |"
-        )
+        if curves:
+            curve = " ".join(f"{f:.2f}" for f in fit.level_factors) if fit.level_factors else "the family's"
+            factor += f" | {curve}{' (pooled)' if fit.pooled and fit.level_factors else ''}"
+        cover_50 = _before_after(fit.coverage_50_before, fit.coverage_50_after)
+        cover_90 = _before_after(fit.coverage_90_before, fit.coverage_90_after)
+        lines.append(f"| {fit.pattern} | {fit.windows} | {factor} | {cover_50} | {cover_90} |")
     return "\n".join(lines)
+
+
+def _before_after(before: float | None, after: float | None) -> str:
+    return "-" if before is None else f"{before:.3f} -> {after:.3f}"
 
 
 def _same_weights(model, state: dict[str, torch.Tensor]) -> bool:
     """``state`` holds the weights of ``model``, whatever its scale factors."""
-    own = {k: v for k, v in model.state_dict().items() if k not in (FACTORS_KEY, STEP_FACTORS_KEY)}
-    theirs = {k: v for k, v in state.items() if k not in (FACTORS_KEY, STEP_FACTORS_KEY)}
+    own = {k: v for k, v in model.state_dict().items() if k not in CALIBRATION_KEYS}
+    theirs = {k: v for k, v in state.items() if k not in CALIBRATION_KEYS}
     return own.keys() == theirs.keys() and all(torch.equal(v.cpu(), theirs[k]) for k, v in own.items())
 
 

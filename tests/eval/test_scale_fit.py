@@ -18,7 +18,13 @@ from mmf_rl.checkpoint import LAST_POINTER, list_checkpoints, load_checkpoint
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets import DataConfig, WindowDataset
 from mmf_rl.eval.calibration import fallback_notes
-from mmf_rl.eval.metrics import evaluate_forecasts, interval_coverage
+from mmf_rl.eval.metrics import (
+    evaluate_forecasts,
+    forecast_crps,
+    interval_coverage,
+    level_curves,
+    quantile_crps,
+)
 from mmf_rl.eval.scale_fit import (
     CALIBRATION_METHODS,
     HALF_WIDTH_90,
@@ -29,17 +35,25 @@ from mmf_rl.eval.scale_fit import (
     coverage_factor,
     fit_scale_calibration,
     fit_table,
+    level_curve,
     temperature_factor,
     unfit_for_latent,
 )
 from mmf_rl.models import load_trained_model
-from mmf_rl.models.scale_calibration import PresenceScaleCalibration, pattern_name
-from mmf_rl.objectives import output_distribution
+from mmf_rl.models.scale_calibration import (
+    LEVELS,
+    PresenceScaleCalibration,
+    family_half_widths,
+    level_half_widths,
+    pattern_name,
+)
+from mmf_rl.objectives import output_distribution, output_distribution_of
 from tests.conftest import HORIZON, SMALL_MODALITIES, TARGET_DIM, make_batch
 
 NAMES = [s.name for s in SMALL_MODALITIES]
 FACTORS = "scale_calibration.factors"
 STEP_FACTORS = "scale_calibration.step_factors"
+LEVEL_FACTORS = "scale_calibration.level_factors"
 
 
 class FixedGaussian(TensorDictModuleBase):
@@ -164,12 +178,174 @@ def test_fitted_at_90_on_heavy_tailed_errors_the_50_percent_interval_holds_only_
     the evaluation's metrics under the same family: both hold 90%, but at 50% the Gaussian over-covers,
     its 50% half width (0.674) too large a share of its 90% one (1.645) for these errors."""
     model = FixedForecast(torch.ones(8), family, **settings)
-    fits = fit_scale_calibration(model, student_t_windows(HEAVY_DF, seed=0), min_windows=32)
+    fits = fit_scale_calibration(
+        model, student_t_windows(HEAVY_DF, seed=0), min_windows=32, method="coverage"
+    )
     assert all(fit.coverage_90_after == pytest.approx(0.9, abs=0.005) for fit in fits)
     test = evaluate_forecasts(model, student_t_windows(HEAVY_DF, seed=100), lambda t: t)
     assert test["windows"] == 2000 and test["coverage_90"] == pytest.approx(0.9, abs=0.01)
     low, high = covers_50
     assert low <= test["coverage_50"] <= high, test["coverage_50"]
+
+
+def coverage_at(model, data, level: float) -> float:
+    """The share of the values of ``data`` inside the model's central ``level`` intervals, as ``eval``
+    counts them (under the pattern's level curve when the model has one)."""
+    covered = []
+    for batch in data:
+        out = model(batch.exclude(keys.TARGET))
+        loc, scale = out.get(keys.FORECAST_LOC), out.get(keys.FORECAST_SCALE)
+        curve = level_curves(model, out)
+        family = output_distribution_of(model)
+        covered.append(interval_coverage(batch.get(keys.TARGET), loc, scale, level, family, curve))
+    return float(torch.cat(covered).mean())
+
+
+def scale_mixture(data, seed: int = 0):
+    """``data`` with targets ``N(0, 0.3²)`` for 60% of the values and ``N(0, 2²)`` for the others:
+    errors more peaked and heavier-tailed than one Gaussian (a sensor precise most of the time, far off
+    some of it)."""
+    g = torch.Generator().manual_seed(seed)
+    for batch in data:
+        target = batch.get(keys.TARGET)
+        precise = torch.rand(target.shape, generator=g) < 0.6
+        batch.set(keys.TARGET, target * torch.where(precise, 0.3, 2.0))
+    return data
+
+
+@pytest.mark.parametrize("errors", ["student_t", "scale_mixture"])
+def test_the_level_curve_holds_50_and_90_percent_where_one_factor_over_covers_at_50(errors):
+    """Errors more peaked and heavier-tailed than the Gaussian family (Student-t with 2.2 degrees of
+    freedom; a mixture of two Gaussians): the coverage fit at 90% over-covers
+    the 50% intervals of unseen windows, the level curve holds both levels and every level of its grid,
+    with the same 90% intervals and the same NLL (the family at the 90% scale), and a lower CRPS."""
+    if errors == "student_t":
+        fitted_on, unseen = student_t_windows(HEAVY_DF, seed=0), student_t_windows(HEAVY_DF, seed=100)
+    else:
+        fitted_on, unseen = scale_mixture(batches(40)), scale_mixture(batches(40, seed=100), seed=1)
+    model = FixedGaussian(torch.ones(8))
+    fit_scale_calibration(model, fitted_on, min_windows=32, method="coverage")
+    one_factor = evaluate_forecasts(model, unseen, lambda t: t)
+    assert one_factor["coverage_90"] == pytest.approx(0.9, abs=0.015)
+    assert one_factor["coverage_50"] > 0.6
+    assert not model.scale_calibration.has_level_curve()
+
+    fits = fit_scale_calibration(model, fitted_on, min_windows=32, method="levels")
+    calibration = model.scale_calibration
+    assert calibration.has_level_curve() and [fit.index for fit in fits] == list(range(1, 8))
+    for fit in fits:
+        assert fit.fitted and fit.level_factors == calibration.level_factors[fit.index].tolist()
+        # On the fitted windows: the corrected quantile's share of the values, at either level.
+        assert fit.coverage_50_after == pytest.approx(0.5, abs=0.002)
+        assert fit.coverage_90_after == pytest.approx(0.9, abs=0.002)
+        # The curve is 1 at 90% (the factor holds it), under 1 in the body, nondecreasing half widths.
+        assert fit.level_factors[LEVELS.index(0.9)] == pytest.approx(1.0, abs=1e-6)
+        assert fit.level_factors[LEVELS.index(0.5)] < 0.9
+        half_widths = torch.tensor(fit.level_factors) * family_half_widths(
+            output_distribution("normal"), LEVELS
+        )
+        assert bool((half_widths.diff() >= 0).all())
+    # Unseen windows: both levels hold, and every grid level within its tolerance.
+    curve = evaluate_forecasts(model, unseen, lambda t: t)
+    assert curve["coverage_50"] == pytest.approx(0.5, abs=0.015)
+    assert curve["coverage_90"] == pytest.approx(0.9, abs=0.015)
+    for level in LEVELS:
+        assert coverage_at(model, unseen, level) == pytest.approx(level, abs=0.02), level
+    # One scale for whatever reads one: the 90% intervals and the NLL are the coverage fit's.
+    assert curve["width_90"] == pytest.approx(one_factor["width_90"], rel=1e-5)
+    assert curve["nll"] == pytest.approx(one_factor["nll"], rel=1e-6)
+    assert curve["crps"] < one_factor["crps"]
+
+
+def test_patterns_with_too_few_windows_get_the_pooled_level_curve_and_the_table_says_so():
+    model = FixedGaussian(torch.ones(8))
+    # As in the pooled test below: the camera's patterns have 40 windows, the others 80.
+    data = heavy_tailed(batches(1, 40) + batches(1, 40, without_image=True, seed=5))
+    fits = fit_scale_calibration(model, data, min_windows=50, method="levels")
+    curves = model.scale_calibration.level_factors
+    pooled = [fit for fit in fits if "image" in fit.pattern]
+    own = [fit for fit in fits if "image" not in fit.pattern]
+    assert all(fit.pooled and fit.level_factors is not None for fit in pooled)
+    assert all(torch.equal(curves[fit.index], curves[pooled[0].index]) for fit in pooled)
+    assert all(fit.fitted and not torch.equal(curves[fit.index], curves[pooled[0].index]) for fit in own)
+    table = fit_table(fits, "val")
+    levels = ", ".join(f"{100 * level:g}" for level in LEVELS)
+    assert table.splitlines()[0] == (
+        f"| pattern | val windows | factor | level curve ({levels}%) | coverage 50% before -> after | "
+        "coverage 90% before -> after |"
+    )
+    assert table.count("(pooled: too few windows) |") == 4 and table.count(" (pooled) |") == 4
+    [note] = fallback_notes(fits, 50, "val")
+    assert note.startswith("the pooled fit of every pattern and its level curve (fewer than min_windows=50")
+    # Even every pattern together has too few windows: the family's own curve.
+    fits = fit_scale_calibration(model, data, min_windows=1000, method="levels")
+    assert model.scale_calibration.is_identity() and all(fit.level_factors is None for fit in fits)
+    assert "level curve" not in fit_table(fits, "val")
+
+
+def test_per_step_factors_with_a_level_curve_hold_90_percent_at_every_step_and_50_overall():
+    model = FixedGaussian(torch.ones(8))
+    fitted_on = growing_with_the_horizon(student_t_windows(HEAVY_DF, seed=0))
+    unseen = growing_with_the_horizon(student_t_windows(HEAVY_DF, seed=100))
+    fits = fit_scale_calibration(model, fitted_on, min_windows=32, method="levels", per_step=True)
+    assert all(fit.step_factors is not None and fit.level_factors is not None for fit in fits)
+    assert all(fit.coverage_50_after == pytest.approx(0.5, abs=0.01) for fit in fits)
+    # The curve describes the errors once each step's factor has matched their growth: 1 at 90%.
+    assert all(fit.level_factors[LEVELS.index(0.9)] == pytest.approx(1.0, abs=0.02) for fit in fits)
+    covered = []
+    for batch in unseen:
+        out = model(batch.exclude(keys.TARGET))
+        half = level_half_widths(level_curves(model, out), [0.5, 0.9], output_distribution("normal"))
+        error = (batch.get(keys.TARGET) - out.get(keys.FORECAST_LOC)).abs() / out.get(keys.FORECAST_SCALE)
+        covered.append(error.unsqueeze(-1) <= half.view(-1, 1, 1, 2))
+    by_step = torch.cat(covered).double().mean(dim=(0, 2))  # [T, 2]
+    assert by_step[:, 1].tolist() == pytest.approx([0.9] * HORIZON, abs=0.03)
+    assert float(by_step[:, 0].mean()) == pytest.approx(0.5, abs=0.02)
+
+
+def test_the_level_curves_half_widths_are_monotone_and_the_familys_under_ones():
+    normal = output_distribution("normal")
+    fine = torch.linspace(0.001, 0.999, 999).tolist()
+    assert torch.allclose(
+        level_half_widths(torch.ones(len(LEVELS), dtype=torch.float64), fine, normal),
+        family_half_widths(normal, tuple(fine)),
+        rtol=1e-12,
+    )
+    # A curve whose half widths would fall between levels: the running maximum keeps them monotone.
+    jagged = torch.tensor([[1.5, 0.4, 1.0, 0.3, 1.0, 1.0, 1.0, 0.5, 1.0, 2.0, 0.6]])
+    assert bool((level_half_widths(jagged, fine, normal).diff() >= 0).all())
+    # The fit's curve: the corrected quantiles at every level over the family's half widths.
+    magnitudes = torch.arange(1.0, 1000.0, dtype=torch.float64)  # n = 999: rank 1000 L, halfway up
+    expected = torch.tensor([round(1000 * level) + 0.5 for level in LEVELS], dtype=torch.float64)
+    assert torch.allclose(level_curve(magnitudes, normal) * family_half_widths(normal, LEVELS), expected)
+
+
+@pytest.mark.parametrize(
+    "name, settings",
+    [("normal", {}), ("laplace", {}), ("student_t", {"output_df": 4.0}), ("student_t", {"output_df": 2.5})],
+)
+def test_the_crps_of_the_quantile_function_is_the_closed_form_under_the_familys_own_curve(name, settings):
+    family = output_distribution(name, **settings)
+    g = torch.Generator().manual_seed(0)
+    target = 3 * torch.randn(16, HORIZON, TARGET_DIM, generator=g)
+    loc = torch.randn(16, HORIZON, TARGET_DIM, generator=g)
+    scale = 0.2 + torch.rand(16, HORIZON, TARGET_DIM, generator=g)
+    ones = torch.ones(16, len(LEVELS))
+    closed = family.crps(target, loc, scale)
+    assert torch.allclose(quantile_crps(target, loc, scale, ones, family), closed, rtol=5e-4)
+    # eval takes the closed form where a window's curve is the family's.
+    assert torch.equal(forecast_crps(target, loc, scale, family, ones), closed.flatten(1).mean(-1))
+
+
+def test_the_crps_under_a_curve_is_the_crps_of_the_distribution_it_describes():
+    """A Gaussian forecast whose curve holds the Laplace's half widths at every grid level is, to the
+    interpolation between them, the Laplace: its CRPS is the Laplace's closed form within 1%."""
+    normal, laplace = output_distribution("normal"), output_distribution("laplace")
+    curve = (family_half_widths(laplace, LEVELS) / family_half_widths(normal, LEVELS)).float()
+    z = torch.linspace(-10, 10, 201).view(1, -1, 1)
+    one = torch.ones(())
+    crps = quantile_crps(z, 0 * one, one, curve.view(1, -1), normal)
+    assert torch.allclose(crps, laplace.crps(z, 0 * one, one), rtol=0.01)
 
 
 def test_a_factor_of_1_is_calibrated_at_90_percent_under_the_family():
@@ -238,7 +414,7 @@ def test_per_step_patterns_with_too_few_windows_keep_the_pooled_factor_at_every_
     model = FixedGaussian(torch.ones(8))
     # As in the pooled test below: the camera's patterns have 40 windows, the others 80.
     data = growing_with_the_horizon(batches(1, 40) + batches(1, 40, without_image=True, seed=5))
-    fits = fit_scale_calibration(model, data, min_windows=50, per_step=True)
+    fits = fit_scale_calibration(model, data, min_windows=50, method="coverage", per_step=True)
     factors, steps = model.scale_calibration.factors, model.scale_calibration.step_factors
     for fit in fits:
         if "image" in fit.pattern:
@@ -247,7 +423,10 @@ def test_per_step_patterns_with_too_few_windows_keep_the_pooled_factor_at_every_
         else:
             assert fit.fitted and fit.step_factors == pytest.approx(GROWTH.tolist(), rel=0.15)
     table = fit_table(fits, "val")
-    assert "| pattern | val windows | factor | factor per step | coverage 90% before -> after |" in table
+    assert table.splitlines()[0] == (
+        "| pattern | val windows | factor | factor per step | coverage 50% before -> after | "
+        "coverage 90% before -> after |"
+    )
     assert table.count("(pooled: too few windows) | as the factor |") == 4
     [note] = fallback_notes(fits, 50, "val", per_step=True)
     assert note.startswith("the pooled fit of every pattern, one factor at every horizon step (fewer than")
@@ -308,7 +487,7 @@ def test_bad_input_is_a_one_line_error():
     with pytest.raises(ValueError, match="min_windows must be >= 1"):
         fit_scale_calibration(model, batches(1), min_windows=0)
     with pytest.raises(
-        ValueError, match="unknown calibration method 'nll': choose among coverage, temperature"
+        ValueError, match="unknown calibration method 'nll': choose among coverage, levels, temperature"
     ):
         fit_scale_calibration(model, batches(1), method="nll")
     with pytest.raises(ValueError, match="no window to fit"):
@@ -322,7 +501,7 @@ def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
     model = FixedGaussian(torch.full((8,), 0.5))
     model.config = type("Config", (), {"eval_latent": "mean"})()
     assert calibration_in_use(model) is None and calibration_header(None) == ""
-    fits = fit_scale_calibration(model, batches(1), min_windows=32)
+    fits = fit_scale_calibration(model, batches(1), min_windows=32, method="coverage")
     model.calibration = calibration_record(model, fits, "val", 32, "/data/push", "coverage")
     record = calibration_in_use(model)
     assert record["split"] == "val"
@@ -336,7 +515,7 @@ def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
     assert calibration_in_use(model) == record and record["per_step"] is False
     model.calibration = {k: v for k, v in record.items() if k not in ("step_factors", "per_step")}
     assert calibration_in_use(model) is model.calibration
-    step_fits = fit_scale_calibration(model, batches(1), min_windows=32, per_step=True)
+    step_fits = fit_scale_calibration(model, batches(1), min_windows=32, method="coverage", per_step=True)
     model.calibration = calibration_record(model, step_fits, "val", 32, "/data/push", "coverage", True)
     assert "recalibrated per presence pattern and horizon step on the val split" in calibration_header(
         calibration_in_use(model)
@@ -345,7 +524,26 @@ def test_the_results_header_says_whether_and_where_the_scale_was_recalibrated():
     unrecorded = calibration_in_use(model)
     assert unrecorded["split"] is None and unrecorded["step_factors"][3][0] == 5.0
     assert "per presence pattern and horizon step (the fit is not recorded" in calibration_header(unrecorded)
-    fits = fit_scale_calibration(model, batches(1), min_windows=32)
+    # A record written before the level curves existed describes curves of ones.
+    fits = fit_scale_calibration(model, batches(1), min_windows=32, method="coverage")
+    record = calibration_record(model, fits, "val", 32, "/data/push", "coverage")
+    model.calibration = {k: v for k, v in record.items() if k not in ("levels", "level_factors")}
+    assert calibration_in_use(model) is model.calibration
+    assert "level curve" not in calibration_header(model.calibration)
+    level_fits = fit_scale_calibration(model, heavy_tailed(batches(1)), min_windows=32, method="levels")
+    model.calibration = calibration_record(model, level_fits, "val", 32, "/data/push", "levels")
+    assert calibration_in_use(model)["level_factors"] == model.scale_calibration.level_factors.tolist()
+    assert (
+        "method=levels; a level curve per pattern, read by the intervals and the CRPS;"
+        in calibration_header(model.calibration)
+    )
+    model.scale_calibration.level_factors[3, 0] = 5.0  # a curve that the record does not describe
+    unrecorded = calibration_in_use(model)
+    assert unrecorded["split"] is None and unrecorded["level_curve"]
+    assert "(the fit is not recorded with the model; a level curve per pattern" in calibration_header(
+        unrecorded
+    )
+    fits = fit_scale_calibration(model, batches(1), min_windows=32, method="coverage")
     model.calibration = calibration_record(model, fits, "val", 32, "/data/push", "coverage")
     model.scale_calibration.factors[3] = 5.0  # factors that the record does not describe
     assert "fit is not recorded" in calibration_header(calibration_in_use(model))
@@ -374,7 +572,7 @@ def stored_factors(run):
 def test_training_ends_with_a_calibration_on_val_stored_in_checkpoint_and_export(push_run):
     checkpoint, exported = stored_factors(push_run)
     record = checkpoint.meta["calibration"]
-    assert record["split"] == "val" and record["min_windows"] == 32 and record["method"] == "coverage"
+    assert record["split"] == "val" and record["min_windows"] == 32 and record["method"] == "levels"
     assert torch.equal(checkpoint.model_state[FACTORS], exported)
     assert exported.tolist() == record["factors"]
     assert json.loads((push_run / "model" / "calibration.json").read_text()) == record
@@ -387,7 +585,11 @@ def test_calibrate_refits_writes_back_and_eval_scores_with_the_factors(push_run,
     steps = list_checkpoints(push_run / "checkpoints")
     assert cli(["calibrate", f"checkpoint={push_run}", "min_windows=4"]) == 0
     out = capsys.readouterr().out
-    assert "| pattern | val windows | factor | coverage 90% before -> after |" in out
+    # The default method, levels: each pattern's level curve beside its factor.
+    assert (
+        "| pattern | val windows | factor | level curve (10, 20, 30, 40, 50, 60, 70, 80, 90, 95, 99%) |"
+        in out
+    )
     assert f"written: {steps[-1]}" in out and f"written: {push_run / 'model'}" in out
     assert (push_run / "checkpoints" / LAST_POINTER).read_text() == last
     assert list_checkpoints(push_run / "checkpoints") == steps
@@ -432,7 +634,7 @@ def test_calibrate_refits_writes_back_and_eval_scores_with_the_factors(push_run,
     "arguments, message",
     [
         (["checkpoint=RUN", "split=test"], "split='test': the scale factors are fitted on val or train"),
-        (["checkpoint=RUN", "method=nll"], "method='nll': choose among coverage, temperature"),
+        (["checkpoint=RUN", "method=nll"], "method='nll': choose among coverage, levels, temperature"),
         (["checkpoint=/nowhere/run"], "/nowhere/run does not exist"),
         ([], "checkpoint=PATH is required"),
     ],
@@ -468,12 +670,43 @@ def test_calibrate_method_temperature_stores_the_nll_fit(push_run, capsys):
     assert "method=temperature;" in calibration_header(record)
 
 
-def test_calibrate_per_step_on_the_recording_holds_90_percent_at_every_step_and_travels(push_run, capsys):
-    assert cli(["calibrate", f"checkpoint={push_run}", "min_windows=4", "per_step=true"]) == 0
+def recalibrated(push_run, capsys, *arguments):
+    """`mmf-rl calibrate` the run with ``arguments``: what it printed, the checkpoint, the exported
+    factors and the recorded fit."""
+    assert cli(["calibrate", f"checkpoint={push_run}", "min_windows=4", *arguments]) == 0
     out = capsys.readouterr().out
-    assert "(method=coverage, per horizon step)" in out and "| factor per step |" in out
     checkpoint, exported = stored_factors(push_run)
-    record = checkpoint.meta["calibration"]
+    return out, checkpoint, exported, checkpoint.meta["calibration"]
+
+
+def test_calibrate_method_levels_stores_the_curves_and_eval_scores_both_levels_with_them(push_run, capsys):
+    out, checkpoint, _, record = recalibrated(push_run, capsys, "method=levels")
+    assert "(method=levels)" in out and "| level curve (10, 20, 30, 40, 50, 60, 70, 80, 90, 95, 99%) |" in out
+    curves = checkpoint.model_state[LEVEL_FACTORS]
+    assert record["method"] == "levels" and record["levels"] == list(LEVELS)
+    assert curves.tolist() == record["level_factors"] and not torch.equal(curves, torch.ones_like(curves))
+    assert torch.equal(load_file(push_run / "model" / "model.safetensors")[LEVEL_FACTORS], curves)
+    model, _, _ = load_trained_model(push_run / "model")
+    assert torch.equal(model.scale_calibration.level_factors, curves)
+    fitted = {frozenset(p["pattern"].split("+")): p for p in record["patterns"]}
+    assert all(p["level_factors"] == curves[p["index"]].tolist() for p in fitted.values())
+
+    # On val (every subset one pattern on every window, as above) eval's 50% and 90% coverage are the
+    # fit's "after", read through the level curve, and its header says so.
+    assert cli(["eval", f"checkpoint={push_run}", "split=val", "num_samples=0", "plots=false"]) == 0
+    capsys.readouterr()
+    results = json.loads((push_run / "eval" / "results.json").read_text())
+    assert results["scale_calibration"]["method"] == "levels"
+    assert "method=levels; a level curve per pattern" in (push_run / "eval" / "results.md").read_text()
+    for subset, name in {"all": {"image", "force", "proprio"}, "only_force": {"force"}}.items():
+        row, fit = results["subsets"][subset], fitted[frozenset(name)]
+        assert row["coverage_50"] == pytest.approx(fit["coverage_50_after"], abs=1e-6)
+        assert row["coverage_90"] == pytest.approx(fit["coverage_90_after"], abs=1e-6)
+
+
+def test_calibrate_per_step_on_the_recording_holds_90_percent_at_every_step_and_travels(push_run, capsys):
+    out, checkpoint, exported, record = recalibrated(push_run, capsys, "per_step=true")
+    assert "(method=levels, per horizon step)" in out and "| factor per step |" in out
     steps = checkpoint.model_state[STEP_FACTORS]
     assert record["per_step"] and steps.tolist() == record["step_factors"]
     assert torch.equal(load_file(push_run / "model" / "model.safetensors")[STEP_FACTORS], steps)

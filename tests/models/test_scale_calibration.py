@@ -17,7 +17,7 @@ from mmf_rl.models import (
     saved_config,
 )
 from mmf_rl.models.hub import check_state_dict
-from mmf_rl.models.scale_calibration import PresenceScaleCalibration, pattern_name
+from mmf_rl.models.scale_calibration import LEVELS, PresenceScaleCalibration, pattern_name
 from tests.conftest import (
     HORIZON,
     SMALL_MODALITIES,
@@ -30,6 +30,7 @@ from tests.conftest import (
 NAMES = [s.name for s in SMALL_MODALITIES]
 FACTORS = "scale_calibration.factors"
 STEP_FACTORS = "scale_calibration.step_factors"
+LEVEL_FACTORS = "scale_calibration.level_factors"
 
 
 def every_pattern_batch():
@@ -48,6 +49,12 @@ def test_pattern_index_and_names_cover_every_presence_pattern():
     calibration = PresenceScaleCalibration(3, HORIZON)
     assert calibration.factors.shape == (8,) and torch.equal(calibration.factors, torch.ones(8))
     assert torch.equal(calibration.step_factors, torch.ones(8, HORIZON)) and calibration.is_identity()
+    assert torch.equal(calibration.level_factors, torch.ones(8, len(LEVELS)))
+    calibration.level_factors[3, 2] = 0.5
+    assert calibration.has_level_curve() and not calibration.is_identity()
+    assert calibration.level_curve(torch.tensor([[True, True, False]]))[0, 2] == 0.5
+    calibration.reset()
+    assert calibration.is_identity()
     present = torch.tensor([[a, b, c] for c in (0, 1) for b in (0, 1) for a in (0, 1)], dtype=torch.bool)
     assert calibration.pattern_index(present).tolist() == list(range(8))
     assert [pattern_name(i, NAMES) for i in (1, 2, 4, 5, 7)] == [
@@ -129,8 +136,8 @@ def test_a_state_saved_before_the_factors_loads_as_ones_and_forecasts_the_same(n
     model = small_registered_model(name)
     batch, _ = every_pattern_batch()
     expected = model(batch.clone())
-    # What older mmf-rl saved: neither the factors nor the step factors.
-    old = {k: v for k, v in model.state_dict().items() if k not in (FACTORS, STEP_FACTORS)}
+    # What older mmf-rl saved: neither the factors nor the step factors nor the level curves.
+    old = {k: v for k, v in model.state_dict().items() if k not in (FACTORS, STEP_FACTORS, LEVEL_FACTORS)}
 
     restored, exported = loaded_from_old_state(name, model, old, tmp_path, stale=FACTORS)
     assert FACTORS not in load_file(tmp_path / "export" / "model.safetensors")
@@ -170,8 +177,32 @@ def test_a_state_with_per_pattern_factors_only_loads_them_with_step_factors_of_o
     model.scale_calibration.factors.copy_(torch.linspace(0.5, 2.0, 8))
     batch, _ = every_pattern_batch()
     expected = eval_scale(model, batch)
-    old = {k: v for k, v in model.state_dict().items() if k != STEP_FACTORS}
+    old = {k: v for k, v in model.state_dict().items() if k not in (STEP_FACTORS, LEVEL_FACTORS)}
     for loaded in loaded_from_old_state(name, model, old, tmp_path, stale=STEP_FACTORS):
         assert torch.equal(loaded.scale_calibration.factors, model.scale_calibration.factors)
         assert torch.equal(loaded.scale_calibration.step_factors, torch.ones(8, HORIZON))
+        assert not loaded.scale_calibration.has_level_curve()
         assert torch.equal(eval_scale(loaded, batch), expected)
+
+
+@pytest.mark.parametrize("name", ["forecaster", "lf_lstm"])
+def test_a_state_saved_before_the_level_curves_loads_them_as_the_familys_own(name, tmp_path):
+    """What a model calibrated before the level curves existed saved: its factors and step factors,
+    applied as fitted, and the family's own intervals (curves of ones)."""
+    model = small_registered_model(name)
+    model.scale_calibration.factors.copy_(torch.linspace(0.5, 2.0, 8))
+    model.scale_calibration.step_factors.copy_(torch.linspace(0.8, 1.2, HORIZON).expand(8, -1))
+    batch, _ = every_pattern_batch()
+    expected = eval_scale(model, batch)
+    old = {k: v for k, v in model.state_dict().items() if k != LEVEL_FACTORS}
+    for loaded in loaded_from_old_state(name, model, old, tmp_path, stale=LEVEL_FACTORS):
+        assert torch.equal(loaded.scale_calibration.step_factors, model.scale_calibration.step_factors)
+        assert torch.equal(loaded.scale_calibration.level_factors, torch.ones(8, len(LEVELS)))
+        assert not loaded.scale_calibration.has_level_curve()
+        assert torch.equal(eval_scale(loaded, batch), expected)
+    # A fitted curve travels with the weights, and leaves the forecast's (loc, scale) alone.
+    model.scale_calibration.level_factors.copy_(torch.linspace(0.6, 1.4, len(LEVELS)).expand(8, -1))
+    model.save_pretrained(tmp_path / "curved")
+    curved = from_pretrained(tmp_path / "curved")
+    assert torch.equal(curved.scale_calibration.level_factors, model.scale_calibration.level_factors)
+    assert torch.equal(eval_scale(curved, batch), expected)

@@ -21,7 +21,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 
 from mmf_rl import keys
-from mmf_rl.configuration import reject_unknown_keys
+from mmf_rl.configuration import SavedConfigMixin
 from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
 from mmf_rl.models.encoders import ImageWindowEncoder, check_encoder, with_encoder_kwargs
 from mmf_rl.models.hub import PretrainedModel
@@ -34,7 +34,7 @@ from mmf_rl.objectives.distributions import (
 
 
 @dataclass
-class BaselineConfig:
+class BaselineConfig(SavedConfigMixin):
     """Sizes shared by every baseline; each baseline's config adds its own fields.
 
     Args:
@@ -105,39 +105,6 @@ class BaselineConfig:
         d = asdict(self)
         d["modalities"] = [m.to_dict() for m in self.modalities]
         return d
-
-    @classmethod
-    def from_dict(cls, d: dict):
-        """Build from plain data.
-
-        Args:
-            d (dict): the fields (modalities as :class:`ModalitySpec` or their dicts).
-
-        Returns:
-            The config.
-
-        Raises:
-            ValueError: an unknown key or an invalid value.
-        """
-        reject_unknown_keys(cls, d, cls.__name__)
-        return cls(**d)
-
-    @classmethod
-    def from_saved_dict(cls, d: dict):
-        """Build from a saved model's config (a checkpoint's ``model_config``, a ``config.json``): a
-        setting it lacks did not exist when it was saved, and takes the value that describes the model
-        saved then (:attr:`SAVED_BEFORE`: ``output_distribution="normal"``), not today's default.
-
-        Args:
-            d (dict): the saved fields (:meth:`to_dict`'s form).
-
-        Returns:
-            The config of the saved model.
-
-        Raises:
-            ValueError: an unknown key or an invalid value.
-        """
-        return cls.from_dict({**cls.SAVED_BEFORE, **d})
 
 
 def zero_filled(td: TensorDictBase, spec: ModalitySpec) -> torch.Tensor:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import ClassVar, Literal
 
-from mmf_rl.configuration import reject_unknown_keys
+from mmf_rl.configuration import SavedConfigMixin
 from mmf_rl.keys import NONFINITE_RULES, ModalitySpec, NonFiniteRule
 from mmf_rl.models.encoders import check_encoder
 from mmf_rl.models.fusion import check_fusion
@@ -22,7 +22,7 @@ PAIR_SELF = ("always", "alone")
 
 
 @dataclass
-class ForecasterConfig:
+class ForecasterConfig(SavedConfigMixin):
     """Sizes and choices of :class:`MultimodalForecaster`.
 
     Args:
@@ -177,7 +177,7 @@ class ForecasterConfig:
     # The settings a config saved without them reads at the value that config described (to_dict
     # writes every setting: a saved config lacks one only if older), whose default changed since
     # (decoder_input) or may change (output_distribution).
-    SAVED_BEFORE: ClassVar[dict[str, str]] = {"decoder_input": "tokens", "output_distribution": "normal"}
+    SAVED_BEFORE: ClassVar[dict[str, object]] = {"decoder_input": "tokens", "output_distribution": "normal"}
 
     def __post_init__(self):
         self.modalities = [
@@ -302,38 +302,3 @@ class ForecasterConfig:
         d = asdict(self)
         d["modalities"] = [m.to_dict() for m in self.modalities]
         return d
-
-    @classmethod
-    def from_dict(cls, d: dict) -> ForecasterConfig:
-        """Build from plain data: the settings given, today's defaults for the others (the Hydra model
-        config's sizes, a config written by hand).
-
-        Args:
-            d (dict): the fields (modalities as :class:`ModalitySpec` or their dicts).
-
-        Returns:
-            The config.
-
-        Raises:
-            ValueError: an unknown key or an invalid value.
-        """
-        reject_unknown_keys(cls, d, "ForecasterConfig")
-        return cls(**d)
-
-    @classmethod
-    def from_saved_dict(cls, d: dict) -> ForecasterConfig:
-        """Build from a saved model's config (a checkpoint's ``model_config``, a ``config.json``): a
-        setting it lacks did not exist when it was saved, and takes the value that describes the model
-        saved then (:attr:`SAVED_BEFORE`: ``decoder_input="tokens"``, ``output_distribution="normal"``),
-        not today's default.
-
-        Args:
-            d (dict): the saved fields (:meth:`to_dict`'s form).
-
-        Returns:
-            The config of the saved model.
-
-        Raises:
-            ValueError: an unknown key or an invalid value.
-        """
-        return cls.from_dict({**cls.SAVED_BEFORE, **d})
