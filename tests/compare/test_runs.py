@@ -3,6 +3,7 @@ and the training rate of a run."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import runpy
@@ -24,10 +25,13 @@ from tests.compare.helpers import PUSH_MODALITIES
 REPO = Path(__file__).resolve().parents[2]
 
 
+STEPS = 100  # a warm-up of min(200, 100 // 5) = 20 steps, not the loss config's 200
+
+
 def study(tmp_path: Path, chosen=(entries.PAPER,), image_size: int | None = 32) -> Study:
     return Study(
         out=tmp_path / "out",
-        budget=Budget(steps=1000, batch_size=32, seeds=(0,), image_size=image_size),
+        budget=Budget(steps=STEPS, batch_size=32, seeds=(0,), image_size=image_size),
         entries=tuple(chosen),
         modalities=tuple(PUSH_MODALITIES),
         data_overrides=(f"data.root={tmp_path / 'data'}",),
@@ -44,18 +48,38 @@ def test_the_data_overrides_follow_the_entrys_and_the_budget_follows_them(tmp_pa
         f"data.cache_dir={tmp_path / 'out' / 'cache'}",
     ]
     cfg = runs.compose_train(entries.MULT, 3, s, tmp_path / "run")
-    assert (cfg.trainer.total_steps, cfg.trainer.batch_size, cfg.trainer.seed) == (1000, 32, 3)
+    assert (cfg.trainer.total_steps, cfg.trainer.batch_size, cfg.trainer.seed) == (STEPS, 32, 3)
     assert list(cfg.data.image_size) == [32, 32] and cfg.model.name == "mult"
     default_size = runs.compose_train(entries.PAPER, 0, study(tmp_path, image_size=None), tmp_path / "run")
     assert list(default_size.data.image_size) == [64, 64]  # the data config's
 
 
-def test_the_kl_warmup_goes_to_the_entries_whose_loss_has_a_kl(tmp_path):
+@pytest.fixture(scope="module")
+def composed_once(tmp_path_factory):
+    """A directory for the studies of the tests below that only compose entries; while this module runs,
+    ``runs.compose_train`` composes each distinct run config once (Hydra takes ~0.3 s a config; the
+    catalogue, the benchmarks' entries and the catalogue again in ``check_entries`` are ~180) and hands
+    every later call with the same overrides a copy of it."""
+    compose_train, composed = runs.compose_train, {}
+
+    def composed_once(entry, seed, s, run_dir, extra=()):
+        key = (tuple(runs.train_overrides(entry, seed, s, run_dir, extra)), s.config_dirs, s.budget.steps)
+        if key not in composed:
+            composed[key] = compose_train(entry, seed, s, run_dir, extra)
+        return copy.deepcopy(composed[key])
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(runs, "compose_train", composed_once)
+        yield tmp_path_factory.mktemp("composed")
+
+
+def test_the_kl_warmup_goes_to_the_entries_whose_loss_has_a_kl(composed_once):
     # A KL weighted 0 (mult_gap's deterministic paper model) has none to warm up.
     no_kl = Entry("paper, no KL", "ablation", ("model=forecaster", "loss=no_mis", "loss.kl_weight=0"))
     chosen = (*entries.CATALOGUE, no_kl)
-    s = dataclasses.replace(study(tmp_path, chosen), budget=Budget(steps=100, batch_size=32, seeds=(0,)))
-    composed = {e.label: runs.compose_train(e, 0, s, tmp_path / "run") for e in chosen}
+    s = study(composed_once, chosen)
+    runs.check_entries(s)  # the catalogue composes, and sets only what its models read
+    composed = {e.label: runs.compose_train(e, 0, s, s.out / "check") for e in chosen}  # as checked
     warmup = {label: cfg.loss.kl_warmup_steps for label, cfg in composed.items()}
     # LF-LSTM's and MulT's entries (zero-fill, retrained, trained for missing sensors, the recommended
     # preset) train without a KL.
@@ -64,20 +88,19 @@ def test_the_kl_warmup_goes_to_the_entries_whose_loss_has_a_kl(tmp_path):
     assert len(not_warmed) == 12
     assert {label for label, steps in warmup.items() if steps != 100 // 5} == not_warmed
     assert {warmup[label] for label in not_warmed} == {default_loss_config().kl_warmup_steps}
-    runs.check_entries(s)
 
 
-def test_entries_are_checked_against_the_configs_before_any_training(tmp_path):
-    runs.check_entries(study(tmp_path, entries.CATALOGUE))
+def test_entries_are_checked_against_the_configs_before_any_training(composed_once):
+    runs.check_entries(study(composed_once, entries.CATALOGUE))
     bogus = Entry("paper typo", "variant", ("model=forecaster", "model.fusoin=sum"))
     with pytest.raises(ValueError, match=r"'paper typo' \(model=forecaster model.fusoin=sum\)"):
-        runs.check_entries(study(tmp_path, (entries.PAPER, bogus)))
+        runs.check_entries(study(composed_once, (entries.PAPER, bogus)))
     ignored = Entry("MulT best-of-K", "zero-fill", ("model=mult", "loss.best_of_k_weight=1"))
     with pytest.raises(
         ValueError,
         match=r"'MulT best-of-K' \(model=mult loss.best_of_k_weight=1\): loss.best_of_k_weight=1 is",
     ):
-        runs.check_entries(study(tmp_path, (entries.PAPER, ignored)))
+        runs.check_entries(study(composed_once, (entries.PAPER, ignored)))
 
 
 @pytest.fixture
@@ -91,11 +114,13 @@ def benchmark_entries():
 
 
 @pytest.mark.parametrize("benchmark", ["accuracy", "mult_gap", "real_humanoid"])
-def test_every_benchmark_entry_sets_only_loss_options_its_model_reads(benchmark, benchmark_entries, tmp_path):
-    runs.check_entries(study(tmp_path, benchmark_entries(benchmark)))
+def test_every_benchmark_entry_sets_only_loss_options_its_model_reads(
+    benchmark, benchmark_entries, composed_once
+):
+    runs.check_entries(study(composed_once, benchmark_entries(benchmark)))
 
 
-def complete_run(s: Study, entry: Entry, steps: int = 1000, **changes) -> Path:
+def complete_run(s: Study, entry: Entry, steps: int = STEPS, **changes) -> Path:
     """A completed run of ``entry`` (seed 0) in ``s.out`` as ``run_one`` leaves it, its composed config
     with ``changes`` (dotted keys) applied."""
     run_dir = s.out / entries.slug(entry.label) / "seed0"
