@@ -13,10 +13,11 @@ from mmf_rl.envs.modality_dropout import (
     replay_outages,
 )
 from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
-from tests.envs.conftest import IMAGE_SIZE
 from tests.envs.stamp_env import stamp_envs
 
 
+# A rollout's time grows with its env-steps, the fewer steps of a batch of more envs the cheaper: the
+# statistics below draw as many observations from 16 envs as they did from 4 over 4 times the steps.
 def dropout_rollout(dropout: ModalityDropout, num_envs: int = 4, steps: int = 120, max_steps: int = 1000):
     env = TransformedEnv(stamp_envs(num_envs, max_steps), dropout)
     try:
@@ -75,7 +76,7 @@ def test_dropout_is_reproducible_from_its_seed_and_independent_per_env():
 @pytest.mark.parametrize("bursts", [UniformBursts(2, 4), GeometricBursts(3.0)])
 def test_dropout_bursts_have_the_configured_lengths(bursts):
     td = dropout_rollout(
-        ModalityDropout(["force"], outage_prob=0.15, bursts=bursts, seed=1), num_envs=4, steps=300
+        ModalityDropout(["force"], outage_prob=0.15, bursts=bursts, seed=1), num_envs=16, steps=75
     )
     lengths = torch.tensor(runs_of_absence(presence_over_time(td, "force")))
     assert len(lengths) > 40
@@ -94,7 +95,7 @@ def test_replay_outages_gives_each_modality_its_measured_fraction_and_bursts():
     }
     replay = replay_outages(outages, seed=3)
     assert [t.modalities for t in replay] == [["force"], ["image"]]  # nothing to replay for proprio
-    td = dropout_rollout(replay, num_envs=4, steps=600)
+    td = dropout_rollout(replay, num_envs=16, steps=150)
     for name in ("force", "image"):
         present = presence_over_time(td, name)
         assert abs((~present).float().mean().item() - outages[name]["fraction"]) < 0.04, name
@@ -197,8 +198,18 @@ def test_dropout_dies_is_seeded_and_revived_by_a_reset():
     assert len(set(first.flatten().tolist())) > 3, "each env and episode draws its own death step"
 
 
+@pytest.fixture(scope="module")
+def push_envs():
+    """Two real MuJoCo push envs of 12-step episodes, one pair (and GL contexts, ~1 s each) for the
+    outage types below: each wraps it in a `TransformedEnv` of its own (which leaves its base env open)
+    and seeds it. 8 px frames: the smallest the env renders; a frame is never all zero at any size."""
+    env = SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=8, max_episode_steps=12))
+    yield env
+    env.close()
+
+
 @pytest.mark.parametrize("outage", ["bursts", "episode", "dies"])
-def test_every_outage_type_on_the_push_env(outage):
+def test_every_outage_type_on_the_push_env(outage, push_envs):
     """The real MuJoCo env: outages zero the sensor's data and clear its flag; the type shapes when."""
     dropout = ModalityDropout(
         ["image", "force"],
@@ -208,15 +219,10 @@ def test_every_outage_type_on_the_push_env(outage):
         dies_after=UniformBursts(3, 8),
         seed=1,
     )
-    env = TransformedEnv(
-        SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE, max_episode_steps=12)), dropout
-    )
-    try:
-        env.set_seed(0)
-        torch.manual_seed(0)
-        td = env.rollout(36, break_when_any_done=False)
-    finally:
-        env.close()
+    env = TransformedEnv(push_envs, dropout)
+    env.set_seed(0)
+    torch.manual_seed(0)
+    td = env.rollout(36, break_when_any_done=False)
     for name in ("image", "force"):
         present = td[keys.present_key(name)]  # [2, 36]: 3 episodes of 12 observations from the reset on
         absent = ~td["next", keys.PRESENT, name]

@@ -3,6 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mmf_rl.envs.push import MultimodalPushEnv
 from mmf_rl.envs.scripted import (
     MIN_START_DISTANCE,
     MarkovPusher,
@@ -12,10 +13,44 @@ from mmf_rl.envs.scripted import (
     rollout,
 )
 
+# No pusher reads the image: the env renders the smallest frame it allows (rendering is most of a step).
+IMAGE_SIZE = 8
+
+
+@pytest.fixture(scope="module")
+def push_env():
+    env = MultimodalPushEnv(image_size=IMAGE_SIZE)
+    yield env
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def episode(push_env):
+    """``rollout(push_env, seed, episode_index, steps, **options)``, run once per distinct arguments for
+    the tests of this module that only read an episode (read-only arrays). An episode depends only on
+    its arguments (``test_episode_depends_only_on_seed_and_index``, the ``again`` rollouts below), and a
+    shorter one is this one's first frames: the loop records one frame a step."""
+    episodes = {}
+
+    def get(seed: int, episode_index: int, steps: int, **options) -> dict[str, np.ndarray]:
+        key = (
+            seed,
+            episode_index,
+            steps,
+            tuple(sorted({"exploration": 0.0, "steady": False, **options}.items())),
+        )
+        if key not in episodes:
+            episodes[key] = rollout(push_env, seed, episode_index, steps, **options)
+            for array in episodes[key].values():
+                array.flags.writeable = False
+        return episodes[key]
+
+    return get
+
 
 def test_rollout_shapes(push_env):
     episode = rollout(push_env, seed=0, episode_index=0, steps=7)
-    assert episode["image"].shape == (7, 32, 32, 3) and episode["image"].dtype == np.uint8
+    assert episode["image"].shape == (7, IMAGE_SIZE, IMAGE_SIZE, 3) and episode["image"].dtype == np.uint8
     for key, width in (("force", 6), ("proprio", 17), ("object_pose", 7), ("goal", 3), ("action", 4)):
         assert episode[key].shape == (7, width) and episode[key].dtype == np.float32, key
     assert np.all(np.abs(episode["action"]) <= 1.0)
@@ -33,8 +68,8 @@ def test_episode_depends_only_on_seed_and_index(push_env):
     assert not np.array_equal(first["object_pose"], other["object_pose"])
 
 
-def test_pusher_reaches_the_goal(push_env):
-    episodes = [rollout(push_env, seed=0, episode_index=i, steps=50) for i in range(4)]
+def test_pusher_reaches_the_goal(episode):
+    episodes = [episode(seed=0, episode_index=i, steps=50) for i in range(4)]
     assert sum(e["success"][-1] for e in episodes) >= 3
     for e in episodes:
         start = np.linalg.norm(e["goal"][0, :2] - e["object_pose"][0, :2])
@@ -69,17 +104,17 @@ def test_exploration_adds_seeded_random_bursts_and_zero_changes_nothing(push_env
     )
 
 
-def test_steady_pusher_pushes_in_one_style_without_pauses_or_noise(push_env):
+def test_steady_pusher_pushes_in_one_style_without_pauses_or_noise(push_env, episode):
     pusher = ScriptedPusher(steady=True)
     for index in range(3):
         pusher.reset(episode_generator(0, index))
         assert pusher.style == PusherStyle.steady()
-    episodes = [rollout(push_env, seed=0, episode_index=i, steps=50, steady=True) for i in range(4)]
+    episodes = [episode(seed=0, episode_index=i, steps=50, steady=True) for i in range(4)]
     assert sum(e["success"][-1] for e in episodes) >= 3
     for e in episodes:
         moving = ~e["success"]
         assert not np.any(np.all(e["action"][moving, :3] == 0, axis=1)), "no pause before the goal"
-    noisy = rollout(push_env, seed=0, episode_index=0, steps=50)
+    noisy = episode(seed=0, episode_index=0, steps=50)
     assert not np.array_equal(noisy["action"], episodes[0]["action"])
     np.testing.assert_array_equal(episodes[0]["action"], rollout(push_env, 0, 0, 50, steady=True)["action"])
 
@@ -132,21 +167,15 @@ def test_exploration_bursts_override_an_actor_that_still_sees_every_step(push_en
         (0.2, 0, [6.86445637, -4.20149413, 1.0888861], [10.00392242, 8.35013045, 12.59291902]),
     ],
 )
-def test_the_recorded_pushes_stay_what_they_were(push_env, exploration, episode_index, sums, abs_sums):
+def test_the_recorded_pushes_stay_what_they_were(episode, exploration, episode_index, sums, abs_sums):
     """The pusher's actions in two seeded episodes, pinned: a change to the pusher's code that
-    changes a recording shows here (the tolerance only absorbs a platform's rounding)."""
-    actions = rollout(push_env, 0, episode_index, 30, exploration=exploration)["action"].astype(np.float64)
+    changes a recording shows here (the tolerance only absorbs a platform's rounding). The first 30
+    frames of the 50-frame episodes the tests above read (without exploration)."""
+    steps = 50 if exploration == 0 else 30
+    actions = episode(0, episode_index, steps, exploration=exploration)["action"][:30].astype(np.float64)
     np.testing.assert_allclose(actions[:, :3].sum(0), sums, atol=1e-5)
     np.testing.assert_allclose(np.abs(actions[:, :3]).sum(0), abs_sums, atol=1e-5)
     assert not actions[:, 3].any()
-
-
-class SteadyPusher(ScriptedPusher):
-    """The stateful pusher with `PusherStyle.steady`: no noise, pauses or re-approach whims."""
-
-    def reset(self, rng):
-        super().reset(rng)
-        self.style = PusherStyle.steady()
 
 
 def labels(labeller, episode, frames) -> np.ndarray:
@@ -165,30 +194,31 @@ def labels(labeller, episode, frames) -> np.ndarray:
     )
 
 
-def test_the_markov_pusher_labels_the_steady_pushers_own_episodes_as_it_acted(push_env):
+def test_the_markov_pusher_labels_the_steady_pushers_own_episodes_as_it_acted(episode):
+    # The stateful pusher in its steady style (no noise, pauses or re-approach whims).
     agree, steps = 0, 0
     for i in range(6):
-        episode = rollout(push_env, seed=0, episode_index=i, steps=50, actor=SteadyPusher())
-        labelled = labels(MarkovPusher(), episode, range(50))
-        agree += int(np.all(np.abs(labelled - episode["action"]) < 1e-3, axis=1).sum())
+        steady = episode(seed=0, episode_index=i, steps=50, steady=True)
+        labelled = labels(MarkovPusher(), steady, range(50))
+        agree += int(np.all(np.abs(labelled - steady["action"]) < 1e-3, axis=1).sum())
         steps += 50
     # They differ near the goal, where the stateful push keeps the bearing it took from afar (which
     # the state does not hold) and the labeller pushes along, or holds off, the state's own.
     assert agree / steps >= 0.9, f"{agree}/{steps}"
 
 
-def test_a_markov_label_does_not_depend_on_the_calls_before(push_env):
-    episode = rollout(push_env, seed=3, episode_index=0, steps=50)
-    forward = labels(MarkovPusher(), episode, range(50))
-    backward = labels(MarkovPusher(), episode, reversed(range(50)))[::-1]
+def test_a_markov_label_does_not_depend_on_the_calls_before(episode):
+    pushed = episode(seed=0, episode_index=0, steps=50)
+    forward = labels(MarkovPusher(), pushed, range(50))
+    backward = labels(MarkovPusher(), pushed, reversed(range(50)))[::-1]
     np.testing.assert_array_equal(forward, backward)
     labeller = MarkovPusher()
     labeller.reset(episode_generator(9, 9))  # a reset draws nothing that changes a label
-    np.testing.assert_array_equal(labels(labeller, episode, [40, 10, 25]), forward[[40, 10, 25]])
+    np.testing.assert_array_equal(labels(labeller, pushed, [40, 10, 25]), forward[[40, 10, 25]])
     # The stateful pusher, asked the same states in another order, labels them otherwise.
     stateful = ScriptedPusher()
-    stateful.reset(episode_generator(3, 0))
-    assert not np.allclose(labels(stateful, episode, reversed(range(50)))[::-1], episode["action"])
+    stateful.reset(episode_generator(0, 0))
+    assert not np.allclose(labels(stateful, pushed, reversed(range(50)))[::-1], pushed["action"])
 
 
 def test_the_markov_pusher_pushes_to_the_goal(push_env):
