@@ -134,14 +134,21 @@ def test_pushes_show_contact_forces(recorded):
         assert np.count_nonzero(np.linalg.norm(force[:, :3], axis=1) > 1.0) >= 2, episode
 
 
-def test_worker_count_does_not_change_the_episodes(recorded, config, tmp_path):
-    two_workers = record(replace(config, out=tmp_path / "push", workers=2))
-    one, two = load(recorded), load(two_workers)
+@pytest.fixture(scope="module")
+def two_workers_recorded(config) -> Path:
+    """``config`` recorded again by 2 worker processes (spawned, each importing torch and lerobot)."""
+    return record(replace(config, out=config.out.parent / "two_workers", workers=2))
+
+
+def test_worker_count_does_not_change_the_episodes(recorded, two_workers_recorded):
+    one, two = load(recorded), load(two_workers_recorded)
     assert two.num_episodes == EPISODES and two.num_frames == EPISODES * STEPS
     for episode in range(EPISODES):
         a, b = columns(one, episode), columns(two, episode)
         for key in a:
             np.testing.assert_array_equal(a[key], b[key], err_msg=f"episode {episode} {key}")
+    # Nor what the recording says of itself.
+    assert read_recording_provenance(two_workers_recorded) == read_recording_provenance(recorded)
 
 
 def test_a_recording_says_how_it_was_made(recorded, capsys):
@@ -169,12 +176,15 @@ def test_a_recording_says_how_it_was_made(recorded, capsys):
 
 
 @pytest.mark.slow
-def test_a_steady_recording_says_so_and_not_its_worker_count(config, tmp_path):
-    steady = replace(config, out=tmp_path / "steady", steady=True, steps=3, workers=2, seed=7)
+def test_a_steady_recording_says_so_and_not_its_worker_count(config, two_workers_recorded, tmp_path):
+    # In this process; the worker count is left out of the 2-worker recording's provenance (above).
+    steady = replace(config, out=tmp_path / "steady", steady=True, steps=3, seed=7)
     provenance = read_recording_provenance(record(steady))
     assert provenance["steady"] is True and provenance["seed"] == 7 and provenance["steps"] == 3
     assert "workers" not in provenance and "overwrite" not in provenance
     assert json.loads((steady.out / PROVENANCE_FILE).read_text()) == provenance
+    two_workers = read_recording_provenance(two_workers_recorded)
+    assert "workers" not in two_workers and "overwrite" not in two_workers
 
 
 @pytest.mark.slow
