@@ -7,6 +7,8 @@ import time
 from pathlib import Path
 
 from benchmarks.kill_loop import run_overrides
+from mmf_rl.checkpoint import load_checkpoint
+from mmf_rl.models import load_trained_model
 from tests.reliability.conftest import background, free_port, output, wait_for
 
 DIST_TIMEOUT_S = 30
@@ -55,3 +57,9 @@ def test_a_killed_rank_ends_the_run_with_a_clear_error_well_within_the_timeout(
     # ... and rank 0 either says why in one line or was stopped by torchrun first, never a traceback.
     assert "mmf-rl train: error: rank 0 of 2 stopped" in log or "Signal 15 (SIGTERM)" in log, log[-3000:]
     assert "[rank0]: Traceback" not in log, log[-3000:]
+    # What the two ranks of one node (torchrun --nproc_per_node=2) checkpointed before the kill: one
+    # run, with both ranks' generators and the plain model's weights (no DDP wrapper names).
+    checkpoint = load_checkpoint(checkpoints)
+    assert checkpoint.step >= 1 and checkpoint.meta["world_size"] == 2
+    assert len(checkpoint.trainer_state["rng"]) == 2
+    load_trained_model(checkpoints)

@@ -1,12 +1,16 @@
-"""Two torchrun "nodes" on this machine (c10d rendezvous, gloo, one process each), started for real."""
+"""Two torchrun "nodes" on this machine (c10d rendezvous, gloo, one process each), started for real:
+the ranks train in lockstep, agree, and checkpoint as one run. (One node of two ranks is started in
+tests/reliability/test_distributed_faults.py.)"""
 
 import re
 import subprocess
 import sys
 
+from benchmarks.kill_loop import final_weights, subprocess_env
+from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.cli import main as cli
-from tests.reliability.conftest import single_thread
-from tests.trainers.test_train_command import final_weights, free_port, subprocess_env
+from mmf_rl.models import load_trained_model
+from tests.reliability.conftest import free_port, single_thread
 
 STEPS = 4
 LR = 1e-3  # the trainer's default learning rate
@@ -65,8 +69,13 @@ def test_two_nodes_build_the_cache_once_and_train_the_weights_of_one_process(rec
     log = "\n".join(errors)
     assert log.count("window cache built") == 1 and log.count("window cache opened") == 1, log[-3000:]
     # Each rank's weights against rank 0's, after the last step (Trainer.check_replicas_agree).
-    gap = re.search(r"2 ranks agree after 4 steps \(max weight difference (\S+)\)", log)
+    gap = re.search(r"data parallel: 2 ranks agree after 4 steps \(max weight difference (\S+)\)", log)
     assert gap is not None and float(gap.group(1)) == 0.0, log[-3000:]
+    # The checkpoint of the two ranks: both ranks' generators, the plain model's weights (no DDP names).
+    checkpoint = load_checkpoint(tmp_path / "nodes" / "checkpoints")
+    assert checkpoint.step == STEPS and checkpoint.meta["world_size"] == 2
+    assert len(checkpoint.trainer_state["rng"]) == 2
+    load_trained_model(tmp_path / "nodes" / "checkpoints")
 
     with single_thread():  # the kernels of the single-threaded node processes
         run = deterministic_run(recorded_push_root, tmp_path / "cache", tmp_path / "one", batch_size=32)

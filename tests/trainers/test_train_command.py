@@ -1,24 +1,15 @@
 import json
-import os
 import shutil
-import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 import torch
-from safetensors.torch import load_file
 
 from mmf_rl import keys
 from mmf_rl.checkpoint import (
     LAST_POINTER,
-    CheckpointError,
     list_checkpoints,
     load_checkpoint,
-    read_meta,
-    resolve_checkpoint,
 )
 from mmf_rl.cli import main as cli
 from mmf_rl.configuration import compose_config, config_dir, to_container
@@ -26,8 +17,8 @@ from mmf_rl.datasets import WindowDataset
 from mmf_rl.models import build_loss, load_trained_model
 from mmf_rl.objectives import output_distribution_of
 from mmf_rl.trainers.training import TrainRunConfig, check_loss_settings_read
-from tests.conftest import push_train_overrides, small_registered_model
-from tests.reliability.conftest import edit_frames, push_data_config, single_thread
+from tests.conftest import file_states, push_train_overrides, small_registered_model
+from tests.reliability.conftest import edit_frames, push_data_config
 
 
 @pytest.fixture
@@ -37,9 +28,17 @@ def overrides(recorded_push_root, tmp_path):
     )
 
 
-def test_train_then_eval_writes_checkpoint_logs_table_and_plots(overrides, tmp_path, capsys):
-    assert cli(["train", *overrides("run")]) == 0
-    run = tmp_path / "run"
+@pytest.fixture
+def trained(push_forecaster_run, recorded_push_root, push_cache_dir, tmp_path):
+    """The session's tiny run (`mmf-rl train` with `push_train_overrides`, 6 steps) copied to
+    ``tmp_path / "run"``, and the overrides that trained it there: for the tests that would train that
+    run themselves only to read, evaluate, resume or damage it."""
+    run = Path(shutil.copytree(push_forecaster_run, tmp_path / "run"))
+    return run, push_train_overrides(recorded_push_root, push_cache_dir, run)
+
+
+def test_train_then_eval_writes_checkpoint_logs_table_and_plots(trained, capsys):
+    run, _ = trained
     checkpoint = load_checkpoint(run / "checkpoints")
     assert checkpoint.step == 6 and checkpoint.meta["model_config"]["name"] == "forecaster"
     assert {"target/mean", "target/std", "force/mean"} <= set(checkpoint.tensors)
@@ -89,13 +88,15 @@ def test_train_with_an_output_family_then_eval_and_calibrate_read_it_from_the_ru
     assert "Forecast distribution: student_t (df 3)" in (run / "eval" / "results.md").read_text()
 
 
-def test_existing_run_is_never_overwritten_and_resume_needs_same_config(overrides, tmp_path, capsys):
-    assert cli(["train", *overrides("run")]) == 0
-    assert cli(["train", *overrides("run")]) == 1
+def test_existing_run_is_never_overwritten_and_resume_needs_same_config(trained, capsys):
+    run, overrides = trained
+    before = file_states(run)
+    assert cli(["train", *overrides]) == 1
     assert "already holds a trained run; pass resume=true" in capsys.readouterr().err
-    assert cli(["train", *overrides("run"), "resume=true", "model.d_latent=6"]) == 1
+    assert cli(["train", *overrides, "resume=true", "model.d_latent=6"]) == 1
     err = capsys.readouterr().err
     assert "differs from" in err and "model.d_latent: 4 -> 6" in err
+    assert file_states(run) == before, "neither command changed the run"
 
 
 def test_augment_workers_may_change_when_a_run_resumes(overrides, tmp_path):
@@ -105,16 +106,17 @@ def test_augment_workers_may_change_when_a_run_resumes(overrides, tmp_path):
     assert cli([*augmented, "augment.max_num_transforms=2", "resume=true"]) == 1
 
 
-def test_a_run_saved_before_a_setting_existed_resumes_with_a_warning_naming_it(overrides, tmp_path):
+def test_a_run_saved_before_a_setting_existed_resumes_with_a_warning_naming_it(trained):
     import yaml
 
-    assert cli(["train", *overrides("run")]) == 0
-    config = tmp_path / "run" / "config.yaml"
+    run, overrides = trained
+    config = run / "config.yaml"
     saved = yaml.safe_load(config.read_text())
     del saved["model"]["predictive_samples"]  # as an older mmf-rl wrote it
     config.write_text(yaml.safe_dump(saved))
     with pytest.warns(UserWarning, match=r"predates the settings model\.predictive_samples=16"):
-        assert cli(["train", *overrides("run"), "resume=true"]) == 0
+        assert cli(["train", *overrides, "resume=true"]) == 0
+    assert load_checkpoint(run / "checkpoints").step == 6
 
 
 def test_a_run_saved_before_decoder_input_resumes_the_tokens_decoder_it_trained(overrides, tmp_path):
@@ -242,92 +244,16 @@ def test_bad_train_inputs_are_one_line_errors(overrides, args, message, capsys):
     assert err.startswith("mmf-rl train: error:") and message in err and "Traceback" not in err
 
 
-def test_eval_errors_for_missing_and_corrupted_checkpoints(overrides, tmp_path, capsys):
+def test_eval_errors_for_missing_and_corrupted_checkpoints(trained, tmp_path, capsys):
     assert cli(["eval"]) == 1
     assert "checkpoint=PATH is required" in capsys.readouterr().err
     assert cli(["eval", f"checkpoint={tmp_path / 'nothing'}"]) == 1
     assert "does not exist" in capsys.readouterr().err
-    assert cli(["train", *overrides("run")]) == 0
-    weights = load_checkpoint(tmp_path / "run" / "checkpoints").path / "model.safetensors"
+    run, _ = trained
+    weights = load_checkpoint(run / "checkpoints").path / "model.safetensors"
     weights.write_bytes(weights.read_bytes()[:100])
-    assert cli(["eval", f"checkpoint={tmp_path / 'run'}"]) == 1
+    assert cli(["eval", f"checkpoint={run}"]) == 1
     assert "corrupted or truncated" in capsys.readouterr().err
-
-
-def subprocess_env():
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([os.getcwd(), env.get("PYTHONPATH", "")])
-    env["OMP_NUM_THREADS"] = "1"
-    return env
-
-
-def final_weights(run_dir):
-    return load_file(load_checkpoint(run_dir / "checkpoints").path / "model.safetensors")
-
-
-def test_killed_training_resumes_to_the_weights_of_an_uninterrupted_run(overrides, tmp_path):
-    steps = ["trainer.total_steps=40", "trainer.checkpoint_every=1", "trainer.eval_every=100"]
-    with single_thread():  # the same kernels as the single-threaded subprocess
-        assert cli(["train", *overrides("reference"), *steps]) == 0
-    killed = tmp_path / "killed"
-    command = [sys.executable, "-m", "mmf_rl.cli", "train", *overrides("killed"), *steps]
-    process = subprocess.Popen(
-        command, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
-    try:
-        deadline = time.monotonic() + 300
-        # The `last` pointer, which resume and the assertion below read, moves after each checkpoint
-        # is complete: wait on it, not on the checkpoint directories.
-        while last_step(killed / "checkpoints") < 3:
-            assert process.poll() is None, "training ended before it could be killed"
-            assert time.monotonic() < deadline
-            time.sleep(0.02)
-        process.kill()  # SIGKILL: no cleanup, no final checkpoint
-    finally:
-        process.wait()
-    interrupted_at = load_checkpoint(killed / "checkpoints").step
-    assert 3 <= interrupted_at < 40
-    with single_thread():
-        assert cli(["train", *overrides("killed"), *steps, "resume=true"]) == 0
-    reference, resumed = final_weights(tmp_path / "reference"), final_weights(killed)
-    for name, value in reference.items():
-        torch.testing.assert_close(resumed[name], value, rtol=1e-5, atol=1e-6, msg=name)
-
-
-def last_step(directory: Path) -> int:
-    """The step of the checkpoint ``directory``'s ``last`` pointer names (-1: none yet)."""
-    try:
-        return int(read_meta(resolve_checkpoint(directory))["step"])
-    except CheckpointError:
-        return -1
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def test_two_gloo_ranks_train_in_lockstep_and_agree(overrides, tmp_path):
-    command = [
-        sys.executable,
-        "-m",
-        "torch.distributed.run",
-        "--nproc_per_node=2",
-        f"--master_port={free_port()}",
-        "--master_addr=127.0.0.1",
-        "-m",
-        "mmf_rl.cli",
-        "train",
-        *overrides("ddp"),
-    ]
-    result = subprocess.run(command, env=subprocess_env(), capture_output=True, text=True, timeout=600)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert "data parallel: 2 ranks agree after 6 steps" in result.stderr
-    checkpoint = load_checkpoint(tmp_path / "ddp" / "checkpoints")
-    assert checkpoint.step == 6 and checkpoint.meta["world_size"] == 2
-    assert len(checkpoint.trainer_state["rng"]) == 2
-    load_trained_model(tmp_path / "ddp" / "checkpoints")  # the plain model's weights, no DDP wrapper names
 
 
 def camera_outage_mid_episode(frames) -> None:
