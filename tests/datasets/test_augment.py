@@ -65,10 +65,10 @@ def test_deterministic_under_the_seed_and_independent_of_the_global_generator():
         assert not torch.equal(out.get(obs_key("image")), first.get(obs_key("image"))), other
 
 
-@pytest.mark.slow  # augment=lerobot augments in a worker process
 def test_training_loader_only_and_off_by_default(dataset):
     assert not AugmentConfig.from_dict(to_container(compose_config("train", []).augment)).enable
-    cfg = to_container(compose_config("train", ["augment=lerobot"]).augment)
+    # augment=lerobot, on the training thread: a worker process gives the same batches (below).
+    cfg = to_container(compose_config("train", ["augment=lerobot", "augment.workers=0"]).augment)
     augment = TrainingAugmentation(AugmentConfig.from_dict(cfg), dataset.specs, seed=0)
     plain = next(iter(dataset.loader("train", 8, seed=1)))
     augmented = next(iter(dataset.loader("train", 8, seed=1, augment=augment)))

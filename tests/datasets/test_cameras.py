@@ -133,6 +133,7 @@ def test_training_reads_every_camera_storage_with_augmentation(mixed_cameras_roo
             "logger=none",
             "num_workers=0",
             "augment=crop",
+            "augment.workers=0",  # on the training thread: a worker process gives the same batches
             f"data.image_size=[{CAMERA_HEIGHT},{CAMERA_WIDTH}]",
         ],
     )
