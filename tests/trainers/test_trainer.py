@@ -1,3 +1,4 @@
+import functools
 import itertools
 import multiprocessing
 from datetime import timedelta
@@ -139,14 +140,20 @@ def push_windows(recorded_push_root, tmp_path_factory) -> WindowDataset:
     return WindowDataset(push_data_config(recorded_push_root, tmp_path_factory.mktemp("cache")))
 
 
-def augmented_run(data: WindowDataset, run_dir, seen_images: list) -> Trainer:
-    """A trainer over ``data`` augmented in a worker process, recording the images of each step."""
+@functools.cache
+def lerobot_augment() -> dict:
+    return to_container(compose_config("train", ["augment=lerobot"]).augment)
+
+
+def augmented_run(data: WindowDataset, run_dir, seen_images: list, workers: int = 1) -> Trainer:
+    """A trainer over ``data`` augmented in ``workers`` worker processes (0: on the training thread),
+    recording the images of each step."""
     seed_everything(0)
     model = build_model({"name": "forecaster", **SMALL_MODEL_SIZES["forecaster"]}, data.specs, 4, 3, 2)
-    augment = to_container(compose_config("train", ["augment=lerobot", "augment.workers=1"]).augment)
-    loader = data.loader(
-        "train", 16, seed=0, augment=TrainingAugmentation(AugmentConfig.from_dict(augment), data.specs, 0)
+    augment = TrainingAugmentation(
+        AugmentConfig.from_dict({**lerobot_augment(), "workers": workers}), data.specs, 0
     )
+    loader = data.loader("train", 16, seed=0, augment=augment)
     # 4 batches per epoch: the run resumes inside epoch 1 and crosses into epoch 2.
     config = trainer_config(total_steps=10, checkpoint_every=5, eval_every=100)
     trainer = Trainer(model, build_loss("forecaster", model, LossConfig()), loader, config, run_dir=run_dir)
@@ -157,13 +164,15 @@ def augmented_run(data: WindowDataset, run_dir, seen_images: list) -> Trainer:
 
 
 def test_a_resumed_run_replays_the_batches_augmented_in_a_worker(push_windows, tmp_path):
+    # The uninterrupted run augments on the training thread: a worker process makes the same batches
+    # (tests/datasets/test_augment.py), and its model the same draws.
     reference_images, images = [], []
-    reference = augmented_run(push_windows, tmp_path / "a", reference_images)
-    assert len(reference.loader) == 4 and reference.prefetching  # "auto": a thread waits on the worker
+    reference = augmented_run(push_windows, tmp_path / "a", reference_images, workers=0)
+    assert len(reference.loader) == 4
     reference.train()
 
     interrupted = augmented_run(push_windows, tmp_path / "b", images)
-
+    assert interrupted.prefetching  # "auto": a thread waits on the worker
     train_until_interrupted(interrupted, 7)  # checkpoint at 5, two more steps are lost
     assert not multiprocessing.active_children(), "the interrupted run left its worker running"
     assert all(torch.equal(a, b) for a, b in zip(images, reference_images[:7], strict=True))
