@@ -23,10 +23,11 @@ def count(start: int, stop: int, progress) -> list[int]:
     return [start, stop]
 
 
-def torch_threads(progress) -> int:
+def count_in_threads(start: int, stop: int, progress) -> list[int]:
+    """`count`'s result, and the worker's torch thread count."""
     import torch
 
-    return torch.get_num_threads()
+    return [*count(start, stop, progress), torch.get_num_threads()]
 
 
 def sleep_forever(directory: str, progress) -> None:
@@ -63,17 +64,14 @@ def die(how: str, progress) -> None:
 # ---------------------------------------------------------------------------------------------------
 
 
-def test_results_and_progress_come_back_per_shard_in_order():
+def test_results_and_progress_come_back_per_shard_in_order_from_workers_of_one_torch_thread(monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")  # what torch would run in a spawned process
     messages = []
-    results = run_shards(count, [(0, 3), (10, 12)], lambda shard, m: messages.append((shard, m)))
-    assert results == [[0, 3], [10, 12]]
+    results = run_shards(count_in_threads, [(0, 3), (10, 12)], lambda shard, m: messages.append((shard, m)))
+    assert [result[:2] for result in results] == [[0, 3], [10, 12]]
     assert [m for s, m in messages if s == 0] == [0, 1, 2]
     assert [m for s, m in messages if s == 1] == [10, 11]
-
-
-def test_each_worker_runs_one_torch_thread(monkeypatch):
-    monkeypatch.setenv("OMP_NUM_THREADS", "3")  # what torch would run in a spawned process
-    assert run_shards(torch_threads, [(), ()]) == [1, 1]
+    assert [result[2] for result in results] == [1, 1], "each worker runs one torch thread"
 
 
 def test_a_worker_that_raises_is_named_and_the_others_are_stopped(tmp_path):

@@ -32,8 +32,9 @@ def pool_children() -> list:
     return [p for p in multiprocessing.active_children() if p.name.startswith("mmf-rl-test-pool")]
 
 
-def test_results_come_in_request_order_and_errors_are_raised_at_their_turn():
+def test_results_come_in_request_order_a_result_never_taken_is_skipped_and_closed_workers_exit_cleanly():
     pool = WorkerPool(make_scale, 2, role="test pool", fix="fix it")
+    workers = pool_children()
     try:
         frames = torch.arange(6, dtype=torch.uint8)
         tickets = [pool.submit(frames, factor) for factor in (1, 2, -1, 3)]
@@ -42,22 +43,19 @@ def test_results_come_in_request_order_and_errors_are_raised_at_their_turn():
         with pytest.raises(ValueError, match="negative factor -1"):
             pool.result(tickets[2])
         assert torch.equal(pool.result(tickets[3]), frames * 3)
+        # Requests go round-robin: 4 and 6 to one worker, 5 and 7 to the other.
+        pool.submit(frames, 5)  # its consumer stopped early
+        assert torch.equal(pool.result(pool.submit(frames, 6)), frames * 6)
+        assert torch.equal(pool.result(pool.submit(frames, 7)), frames * 7)  # 5's answer skipped
+        unread = pool.submit(frames, 9)
+        _, connection = pool._workers[unread % 2]
+        assert connection.poll(60), "no answer"
     finally:
-        pool.close()
+        pool.close()  # with an answer not read: the worker's end of the socket is reset, not at EOF
+    assert len(workers) == 2 and [w.exitcode for w in workers] == [0, 0], (
+        "a worker ended in an error instead of seeing the pool closed"
+    )
     assert not pool_children()
-
-
-def test_a_result_never_taken_is_skipped_and_a_closed_worker_exits_cleanly():
-    pool = WorkerPool(make_scale, 1, role="test pool", fix="fix it")
-    frames = torch.ones(4)
-    pool.submit(frames, 5)  # its consumer stopped early
-    assert torch.equal(pool.result(pool.submit(frames, 7)), frames * 7)
-    pool.submit(frames, 9)
-    (worker,) = pool_children()
-    ((_, connection),) = pool._workers
-    assert connection.poll(60), "no answer"
-    pool.close()  # with an answer not read: the worker's end of the socket is reset, not at EOF
-    assert worker.exitcode == 0, "the worker ended in an error instead of seeing the pool closed"
 
 
 def test_a_dead_worker_is_an_error_naming_it_and_the_pool_closes():
