@@ -51,13 +51,19 @@ def test_compare_runs_from_an_installed_wheel_on_a_recorded_dataset(recorded_pus
         cmd = [sys.executable, "-m", "mmf_rl.cli", "compare", *args]
         return subprocess.run(cmd, cwd=work, env=env, capture_output=True, text=True, timeout=300)
 
-    probe = "import mmf_rl.compare, mmf_rl.configuration as c; print(mmf_rl.compare.__file__, c.config_dir())"
-    where = subprocess.run(
-        [sys.executable, "-c", probe], cwd=work, env=env, capture_output=True, text=True, check=True
-    ).stdout.split()
-    assert all(Path(p).is_relative_to(site) for p in where), where  # the wheel, not the checkout
-    usage = compare("--help")
-    assert usage.returncode == 0 and "'LF-LSTM (retrained)'" in usage.stdout and "data=" in usage.stdout
+    # Where the package and its configs come from, then `mmf-rl compare --help`, in one process (each
+    # start imports torch; the run below starts `python -m mmf_rl.cli compare`).
+    probe = (
+        "import sys, mmf_rl.compare, mmf_rl.configuration as c\n"
+        "print(mmf_rl.compare.__file__, c.config_dir())\n"
+        "from mmf_rl.cli import main\n"
+        "sys.exit(main(['compare', '--help']))"
+    )
+    usage = subprocess.run([sys.executable, "-c", probe], cwd=work, env=env, capture_output=True, text=True)
+    assert usage.returncode == 0, usage.stderr[-3000:]
+    where, help_text = usage.stdout.split("\n", 1)
+    assert all(Path(p).is_relative_to(site) for p in where.split()), where  # the wheel, not the checkout
+    assert "'LF-LSTM (retrained)'" in help_text and "data=" in help_text
     data = [
         f"data.root={recorded_push_root}",
         "data.history=4",
