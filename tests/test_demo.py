@@ -13,27 +13,10 @@ def small_overrides(root, tmp_path):
     ]
 
 
-def test_demo_trains_evaluates_and_reruns_without_starting_over(recorded_push_root, tmp_path, capsys):
-    args = [
-        "demo",
-        "--data",
-        str(recorded_push_root),
-        "--run-dir",
-        str(tmp_path / "demo"),
-        "--",
-        *small_overrides(recorded_push_root, tmp_path),
-    ]
-    assert cli(args) == 0
-    out, err = capsys.readouterr()
-    assert f"using the recording in {recorded_push_root}" in err
-    assert "| all |" in out and "| constant velocity |" in out and "all modalities: MSE" in out
-    assert (tmp_path / "demo" / "eval" / "forecasts.png").is_file()
-    assert cli(args) == 0
-    assert "has checkpoints: resuming" in capsys.readouterr().err
-
-
 @pytest.mark.slow
-def test_demo_records_when_the_dataset_is_absent(tmp_path, capsys):
+def test_demo_records_when_the_dataset_is_absent_then_reruns_on_it_without_starting_over(tmp_path, capsys):
+    """The first run records (as `make demo` on a fresh clone), trains and evaluates; the second uses that
+    recording and resumes the finished run."""
     data = tmp_path / "push"
     args = [
         "demo",
@@ -51,5 +34,14 @@ def test_demo_records_when_the_dataset_is_absent(tmp_path, capsys):
         "data.split_fractions=[0.34,0.33,0.33]",
     ]
     assert cli(args) == 0
-    assert "recording 3 push episodes" in capsys.readouterr().err
+    out, err = capsys.readouterr()
+    assert "recording 3 push episodes" in err
     assert (data / "meta" / "info.json").is_file()
+    assert "| all |" in out and "| constant velocity |" in out and "all modalities: MSE" in out
+    assert (tmp_path / "demo" / "eval" / "forecasts.png").is_file()
+
+    assert cli(args) == 0
+    err = capsys.readouterr().err
+    assert f"using the recording in {data}" in err
+    assert "recording 3 push episodes" not in err, "a recording there is not made again"
+    assert "has checkpoints: resuming" in err
