@@ -10,7 +10,9 @@ from tests.conftest import SYNTH_DT, SYNTH_MODALITIES
 
 pytestmark = pytest.mark.slow  # two models trained for STEPS steps
 
-STEPS = 200
+# At 100 steps (200 before) the margins stay wide: the loss falls by 17-24 (> 5), the MSE is 0.07-0.09
+# of constant velocity's (< 0.5), with L_mis 0.09-0.10 of the MSE without it (< 0.7).
+STEPS = 100
 BATCH = 128
 
 
