@@ -393,8 +393,9 @@ def push_cache_dir(tmp_path_factory) -> Path:
     return built_once(tmp_path_factory, "window-cache", lambda directory: None)
 
 
-def push_train_overrides(root, cache_dir, run_dir, steps: int = 6) -> list[str]:
-    """`mmf-rl train` overrides for a tiny, fast run on ``recorded_push_root``."""
+def push_train_overrides(root, cache_dir, run_dir, steps: int = 6, every: int = 3) -> list[str]:
+    """`mmf-rl train` overrides for a tiny, fast run on ``recorded_push_root``: validated and checkpointed
+    ``every`` steps."""
     return [
         f"data.root={root}",
         f"data.cache_dir={cache_dir}",
@@ -411,8 +412,8 @@ def push_train_overrides(root, cache_dir, run_dir, steps: int = 6) -> list[str]:
         f"trainer.total_steps={steps}",
         "trainer.batch_size=16",
         "trainer.log_every=2",
-        "trainer.eval_every=3",
-        "trainer.checkpoint_every=3",
+        f"trainer.eval_every={every}",
+        f"trainer.checkpoint_every={every}",
         "trainer.warmup_steps=2",
         "trainer.progress_bar=false",
         "logger=csv",

@@ -44,7 +44,7 @@ def learned_prior_run(faulty_push_root, tmp_path_factory):
     base = tmp_path_factory.mktemp("learned_prior")
     run = base / "run"
     overrides = [
-        *push_train_overrides(faulty_push_root, base / "cache", run, steps=40),
+        *push_train_overrides(faulty_push_root, base / "cache", run, steps=40, every=20),
         "model.prior=learned",
         "loss.max_dropped=null",
         "loss.gsnn_weight=0.5",
