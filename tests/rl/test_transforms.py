@@ -93,21 +93,27 @@ def checkpoint(tmp_path_factory):
     return write_checkpoint(tmp_path_factory.mktemp("ckpt"), PUSH_SPECS)
 
 
-def test_forecast_env_passes_check_env_specs(checkpoint):
+@pytest.fixture(scope="module")
+def push_envs():
+    """Two real push envs (a GL context each, about a second to make), for the tests below that wrap
+    them in a `TransformedEnv` of their own (which leaves its base env open) and seed them."""
+    env = SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE))
+    yield env
+    env.close()
+
+
+def test_forecast_env_passes_check_env_specs(checkpoint, push_envs):
     env = TransformedEnv(
-        SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)),
+        push_envs,
         Compose(
             ModalityDropout(["image", "force"], outage_prob=0.3, seed=0),
             ForecastTransform.from_checkpoint(checkpoint, num_samples=3),
         ),
     )
-    try:
-        check_env_specs(env, seed=0)
-        spec = env.observation_spec
-        assert spec[keys.FORECAST_LOC].shape == (2, HORIZON, TARGET_DIM)
-        assert spec[keys.FORECAST_SAMPLES].shape == (2, 3, HORIZON, TARGET_DIM)
-    finally:
-        env.close()
+    check_env_specs(env, seed=0)
+    spec = env.observation_spec
+    assert spec[keys.FORECAST_LOC].shape == (2, HORIZON, TARGET_DIM)
+    assert spec[keys.FORECAST_SAMPLES].shape == (2, 3, HORIZON, TARGET_DIM)
 
 
 def hand_built_window(frames: list, normalizer: Normalizer, t: int) -> TensorDict:
@@ -135,21 +141,18 @@ def hand_built_window(frames: list, normalizer: Normalizer, t: int) -> TensorDic
     return window
 
 
-def test_forecast_equals_the_model_on_the_window_built_by_hand(checkpoint):
+def test_forecast_equals_the_model_on_the_window_built_by_hand(checkpoint, push_envs):
     forecast = ForecastTransform.from_checkpoint(checkpoint)
     model, normalizer = forecast.model, forecast.normalizer
     env = TransformedEnv(
-        SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)),
+        push_envs,
         Compose(
             ModalityDropout(["image", "force"], outage_prob=0.25, bursts=UniformBursts(1, 3), seed=2),
             forecast,
         ),
     )
-    try:
-        env.set_seed(0)
-        td = env.rollout(6, break_when_any_done=False)
-    finally:
-        env.close()
+    env.set_seed(0)
+    td = env.rollout(6, break_when_any_done=False)
     frames = [td[:, 0].exclude("next")] + [td["next"][:, t] for t in range(td.shape[1])]
     saw_absent = False
     for t in range(1, len(frames)):
@@ -494,28 +497,25 @@ def test_stats_without_a_modality_are_refused(checkpoint):
 # -- HistoryWindow -------------------------------------------------------------------------------
 
 
-def test_history_window_is_the_model_batch_built_by_hand(checkpoint):
+def test_history_window_is_the_model_batch_built_by_hand(checkpoint, push_envs):
     forecast = ForecastTransform.from_checkpoint(checkpoint)
     history = HistoryWindow.for_model(forecast.model, forecast.normalizer.stats)
     env = TransformedEnv(
-        SerialEnv(2, lambda: MultimodalPushTorchEnv(image_size=IMAGE_SIZE)),
+        push_envs,
         Compose(
             ModalityDropout(["image", "force"], outage_prob=0.25, bursts=UniformBursts(1, 3), seed=2), history
         ),
     )
-    try:
-        check_env_specs(env, seed=0)
-        assert env.observation_spec[keys.HISTORY, keys.OBS, "image"].shape == (
-            2,
-            HISTORY,
-            3,
-            MODEL_IMAGE,
-            MODEL_IMAGE,
-        )
-        env.set_seed(0)
-        td = env.rollout(6, break_when_any_done=False)
-    finally:
-        env.close()
+    check_env_specs(env, seed=0)
+    assert env.observation_spec[keys.HISTORY, keys.OBS, "image"].shape == (
+        2,
+        HISTORY,
+        3,
+        MODEL_IMAGE,
+        MODEL_IMAGE,
+    )
+    env.set_seed(0)
+    td = env.rollout(6, break_when_any_done=False)
     frames = [td[:, 0].exclude("next")] + [td["next"][:, t] for t in range(td.shape[1])]
     for t in range(1, len(frames)):
         expected = hand_built_window(frames, forecast.normalizer, t)
@@ -616,14 +616,14 @@ def test_an_explicit_presence_rule_overrides_the_run_and_warns_when_it_contradic
     assert f"data.partial_windows={partial_windows}" in record.getMessage()
 
 
-def test_the_recommended_preset_trains_and_forecasts_in_an_env(recorded_push_root, tmp_path):
+def test_the_recommended_preset_trains_and_forecasts_in_an_env(recorded_push_root, push_cache_dir, tmp_path):
     """``experiment=robust_mult`` (MulT trained for missing sensors) drops into the TorchRL env as the
     paper model does: trained by ``mmf-rl train``, loaded by ``ForecastTransform.from_checkpoint``."""
     from mmf_rl.cli import main as cli
     from tests.conftest import push_train_overrides
 
     run = tmp_path / "run"
-    base = push_train_overrides(recorded_push_root, tmp_path / "cache", run, steps=3)
+    base = push_train_overrides(recorded_push_root, push_cache_dir, run, steps=3)
     sizes = ["model.d_model=16", "model.head_hidden=32", "model.num_heads=2", "model.mlp_hidden=32"]
     assert (
         cli(["train", "experiment=robust_mult", *(o for o in base if not o.startswith("model.")), *sizes])

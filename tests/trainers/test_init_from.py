@@ -100,7 +100,7 @@ def test_mismatches_are_named(
     assert err.startswith("mmf-rl train: error:") and re.search(message, err), err
 
 
-def test_init_from_a_missing_run_is_a_one_line_error(recorded_push_root, tmp_path, capsys):
-    overrides = push_train_overrides(recorded_push_root, tmp_path / "cache", tmp_path / "tuned", steps=2)
+def test_init_from_a_missing_run_is_a_one_line_error(recorded_push_root, push_cache_dir, tmp_path, capsys):
+    overrides = push_train_overrides(recorded_push_root, push_cache_dir, tmp_path / "tuned", steps=2)
     assert cli(["train", *overrides, f"init_from={tmp_path / 'nowhere'}"]) == 1
     assert "does not exist" in capsys.readouterr().err

@@ -18,15 +18,12 @@ SAMPLER = ["model.learned_samples=4", "sampler.steps=8", "sampler.batch_size=8"]
 
 
 @pytest.fixture(scope="module")
-def runs(recorded_push_root, tmp_path_factory):
-    """The same tiny run without and with a learned sampler."""
-    base = tmp_path_factory.mktemp("sampler_runs")
-    made = {}
-    for name, extra in (("plain", []), ("sampler", SAMPLER)):
-        made[name] = base / name
-        overrides = push_train_overrides(recorded_push_root, base / "cache", made[name])
-        assert cli(["train", *overrides, *extra]) == 0
-    return made
+def runs(push_forecaster_run, recorded_push_root, push_cache_dir, tmp_path_factory):
+    """The same tiny run without a learned sampler (the session's, `push_train_overrides`) and with one."""
+    sampler = tmp_path_factory.mktemp("sampler_runs") / "sampler"
+    overrides = push_train_overrides(recorded_push_root, push_cache_dir, sampler)
+    assert cli(["train", *overrides, *SAMPLER]) == 0
+    return {"plain": push_forecaster_run, "sampler": sampler}
 
 
 def test_the_forecaster_is_the_run_without_a_sampler_and_the_sampler_learned(runs):
@@ -55,10 +52,10 @@ def test_the_exported_model_samples_the_learned_codes(runs):
     assert samples.std(1).mean() > 0  # four different forecasts
 
 
-def test_a_finished_run_resumed_keeps_its_trained_sampler(runs, recorded_push_root, caplog):
+def test_a_finished_run_resumed_keeps_its_trained_sampler(runs, recorded_push_root, push_cache_dir, caplog):
     path = list_checkpoints(runs["sampler"] / "checkpoints")[-1]
     before = load_checkpoint(path).model_state
-    overrides = push_train_overrides(recorded_push_root, runs["sampler"].parent / "cache", runs["sampler"])
+    overrides = push_train_overrides(recorded_push_root, push_cache_dir, runs["sampler"])
     with caplog.at_level(logging.INFO, logger="mmf_rl"):
         assert cli(["train", *overrides, *SAMPLER, "resume=true"]) == 0
     assert "learned sampler already trained" in caplog.text

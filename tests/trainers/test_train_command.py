@@ -22,10 +22,10 @@ from tests.reliability.conftest import edit_frames, push_data_config
 
 
 @pytest.fixture
-def overrides(recorded_push_root, tmp_path):
-    return lambda run, **kw: push_train_overrides(
-        recorded_push_root, tmp_path / "cache", tmp_path / run, **kw
-    )
+def overrides(recorded_push_root, push_cache_dir, tmp_path):
+    """Overrides of a tiny run in ``tmp_path / run`` on the session's recording, reading the session's
+    window cache (built once: these tests are not about building it)."""
+    return lambda run, **kw: push_train_overrides(recorded_push_root, push_cache_dir, tmp_path / run, **kw)
 
 
 @pytest.fixture
@@ -282,8 +282,8 @@ def test_training_on_partial_windows_through_a_camera_outage_has_a_finite_loss(
     assert bool((present & ~steps.all(1)).any()), "some windows hold the camera for some steps only"
 
 
-def small_mult_overrides(root, tmp_path, run) -> list[str]:
-    base = push_train_overrides(root, tmp_path / "cache", run, steps=4)
+def small_mult_overrides(root, cache_dir, run) -> list[str]:
+    base = push_train_overrides(root, cache_dir, run, steps=4)
     sizes = ["model.d_model=16", "model.head_hidden=32", "model.num_heads=2", "model.mlp_hidden=32"]
     return [*(o for o in base if not o.startswith("model.")), "model=mult", *sizes]
 
@@ -293,9 +293,11 @@ def logged(run: Path, name: str) -> torch.Tensor:
     return torch.tensor([float(row.split(",")[-1]) for row in rows])
 
 
-def test_mult_trains_for_missing_sensors_with_modality_dropout_and_l_mis(recorded_push_root, tmp_path):
+def test_mult_trains_for_missing_sensors_with_modality_dropout_and_l_mis(
+    recorded_push_root, push_cache_dir, tmp_path
+):
     run = tmp_path / "run"
-    args = [*small_mult_overrides(recorded_push_root, tmp_path, run), "loss.modality_dropout=subsets"]
+    args = [*small_mult_overrides(recorded_push_root, push_cache_dir, run), "loss.modality_dropout=subsets"]
     assert cli(["train", *args, "loss.terms=[nll,mis]"]) == 0
     for name in ("loss_nll", "loss_mis", "dropout_fraction"):
         assert len(logged(run, name)) and torch.isfinite(logged(run, name)).all(), name
@@ -303,14 +305,15 @@ def test_mult_trains_for_missing_sensors_with_modality_dropout_and_l_mis(recorde
 
 
 def test_observed_modality_dropout_replays_the_recordings_own_absence_rate(
-    recorded_push_root, tmp_path, capsys
+    recorded_push_root, push_cache_dir, tmp_path, capsys
 ):
     run = tmp_path / "complete"
-    args = [*small_mult_overrides(recorded_push_root, tmp_path, run), "loss.modality_dropout=observed"]
+    args = [*small_mult_overrides(recorded_push_root, push_cache_dir, run), "loss.modality_dropout=observed"]
     assert cli(["train", *args]) == 1
     assert "no modality is ever absent in the training split" in capsys.readouterr().err
     root = Path(shutil.copytree(recorded_push_root, tmp_path / "push"))
     edit_frames(root, camera_outage_mid_episode)  # the camera out on 3 frames of every episode
     run = tmp_path / "outage"
-    assert cli(["train", *small_mult_overrides(root, tmp_path, run), "loss.modality_dropout=observed"]) == 0
+    edited = small_mult_overrides(root, tmp_path / "cache", run)
+    assert cli(["train", *edited, "loss.modality_dropout=observed"]) == 0
     assert float(logged(run, "dropout_fraction").max()) > 0
