@@ -64,6 +64,9 @@ def test_episode_depends_only_on_seed_and_index(push_env):
     again = rollout(push_env, seed=5, episode_index=3, steps=30)
     for key in first:
         np.testing.assert_array_equal(first[key], again[key], err_msg=key)
+    shorter = rollout(push_env, seed=5, episode_index=3, steps=10)  # the longer one's first frames
+    for key in first:
+        np.testing.assert_array_equal(shorter[key], first[key][:10], err_msg=key)
     other = rollout(push_env, seed=6, episode_index=3, steps=30)
     assert not np.array_equal(first["object_pose"], other["object_pose"])
 
