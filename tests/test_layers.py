@@ -5,6 +5,7 @@ module is the CLI's alone; the benchmarks sit on top: they import the package, w
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 
@@ -32,13 +33,20 @@ RANK = {name: rank for rank, layer in enumerate(LAYERS) for name in layer}
 def imported_modules(path: Path) -> set[str]:
     """The modules ``path`` imports by absolute name, at its top or inside a function; ``from a import
     b`` gives ``a`` and ``a.b`` (``b`` may be a module)."""
+    return set(_imported_modules(path.read_text(), str(path)))
+
+
+@functools.cache
+def _imported_modules(source: str, filename: str) -> frozenset[str]:
+    """``imported_modules`` of a file's text (each text parsed once: the tests below read the package's
+    files again and again)."""
     modules = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+    for node in ast.walk(ast.parse(source, filename=filename)):
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             modules |= {node.module} | {f"{node.module}.{a.name}" for a in node.names}
         elif isinstance(node, ast.Import):
             modules |= {a.name for a in node.names}
-    return modules
+    return frozenset(modules)
 
 
 def import_edges(package: Path) -> set[tuple[str, str, str]]:
