@@ -13,16 +13,58 @@ import pytest
 # and results go, what a re-run reuses) does not depend on the episodes' length, and every step renders
 # a frame and runs the forecaster and the policy.
 TEST_EPISODE_STEPS = 10
+# The push envs closed by the benchmarks, by their settings: the next one asked for with the same
+# settings is one of these (see `short_push_episodes`).
+_CLOSED_PUSH_ENVS: dict[tuple, list] = {}
+
+
+@functools.cache
+def _reused_push_env_class() -> type:
+    from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
+
+    class ReusedPushEnv(MultimodalPushTorchEnv):
+        """`MultimodalPushTorchEnv` whose ``close`` keeps it, open, for the next benchmark env of its
+        settings (`_CLOSED_PUSH_ENVS`)."""
+
+        settings: tuple = ()
+
+        def close(self, *, raise_if_closed: bool = True) -> None:
+            _CLOSED_PUSH_ENVS.setdefault(self.settings, []).append(self)
+
+    return ReusedPushEnv
+
+
+def _short_push_env(image_size: int = 64, **options):
+    """A push env of `TEST_EPISODE_STEPS` steps and these settings: one the benchmarks closed, else a
+    new one."""
+    settings = (image_size, *sorted(options.items()))
+    if closed := _CLOSED_PUSH_ENVS.get(settings):
+        return closed.pop()
+    env = _reused_push_env_class()(image_size=image_size, max_episode_steps=TEST_EPISODE_STEPS, **options)
+    env.settings = settings
+    return env
 
 
 def short_push_episodes(patch: pytest.MonkeyPatch) -> None:
     """Every push env `benchmarks.push.closed_loop.push_env` makes (the episodes the benchmarks play,
-    DAgger's included) ends after `TEST_EPISODE_STEPS` steps."""
+    DAgger's and MPC's included) ends after `TEST_EPISODE_STEPS` steps, and is one the benchmarks closed
+    when there is one of its settings: a new env costs most of a short episode (its renderer's GL
+    context), and every episode starts from a reset with its own seed (`closed_loop.play`,
+    `dagger.labelled_episodes`), the same in a used env as in a new one."""
     from benchmarks.push import closed_loop
-    from mmf_rl.envs.torchrl_env import MultimodalPushTorchEnv
 
-    short = functools.partial(MultimodalPushTorchEnv, max_episode_steps=TEST_EPISODE_STEPS)
-    patch.setattr(closed_loop, "MultimodalPushTorchEnv", short)
+    patch.setattr(closed_loop, "MultimodalPushTorchEnv", _short_push_env)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _close_reused_push_envs():
+    """At the session's end, the push envs kept for reuse are closed (their GL contexts freed while the
+    GL library is still there)."""
+    yield
+    for envs in _CLOSED_PUSH_ENVS.values():
+        while envs:
+            env = envs.pop()
+            super(type(env), env).close()
 
 
 @pytest.fixture
