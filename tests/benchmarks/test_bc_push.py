@@ -1,13 +1,20 @@
 """benchmarks/bc_push.py end to end with tiny budgets, run as a user runs it (``mmf-rl bench bc``, in
 this process: a subprocess would add its imports to the test's time): builds the forecaster and
-both policies, plays, writes the results and ends with the summary line."""
+both policies, plays, writes the results and ends with the summary line.
+
+Every episode played ends after `TEST_EPISODE_STEPS` steps (`short_push_episodes`). The plain run is
+played once for the module (`plain_run`); a test of an option whose runs are its own runs it in a copy
+of that work directory, where the forecaster it would train is there already, and checks that the
+plain run's files are left as they were (`assert_plain_run_left_alone`)."""
 
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import io
 import json
 import logging
+import os
 import re
 import shutil
 from pathlib import Path
@@ -19,6 +26,7 @@ import yaml
 
 from benchmarks.bc_push import parse_args
 from benchmarks.push.bc_experiment import (
+    FORECASTER_RECORD,
     Forecaster,
     build_recording,
     forecaster_run_dir,
@@ -31,6 +39,7 @@ from mmf_rl.checkpoint import list_checkpoints
 from mmf_rl.cli import main as cli
 from mmf_rl.datasets.provenance import PROVENANCE_FILE, read_recording_provenance
 from mmf_rl.rl import BCPolicy
+from tests.benchmarks.conftest import TEST_EPISODE_STEPS, short_push_episodes
 from tests.conftest import TEST_THREADS, push_train_overrides
 
 
@@ -54,14 +63,39 @@ def plain_run(recorded_push_root, push_cache_dir, tmp_path_factory) -> tuple[Pat
     (`copied_work`)."""
     work = tmp_path_factory.mktemp("bc_push_plain") / "work"
     out = io.StringIO()
-    with contextlib.redirect_stdout(out):
+    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(out):
+        short_push_episodes(patch)
         assert cli(tiny_argv(recorded_push_root, push_cache_dir, work, dagger=False)) == 0
     return work, out.getvalue()
 
 
 def copied_work(plain_run, tmp_path) -> Path:
-    """A copy of the plain run's --work directory (modification times kept) in ``tmp_path``."""
-    return Path(shutil.copytree(plain_run[0], tmp_path / "work"))
+    """A copy of the plain run's --work directory (modification times kept) in ``tmp_path``. Its
+    forecaster moved with it: the ``with`` runs' record of their forecaster says so, as a refusal to
+    reuse them asks (`record_or_check_forecaster`), its modification time kept too."""
+    work = Path(shutil.copytree(plain_run[0], tmp_path / "work"))
+    for record in work.glob(f"*/{FORECASTER_RECORD}"):
+        times = record.stat()
+        moved = json.loads(record.read_text())["checkpoints"].replace(str(plain_run[0]), str(work))
+        record.write_text(json.dumps({"checkpoints": moved}))
+        os.utime(record, ns=(times.st_atime_ns, times.st_mtime_ns))
+    return work
+
+
+def made_in(work: Path, plain_run) -> list[str]:
+    """The names of what a run in ``work``, a `copied_work` of the plain run, made at its top level."""
+    return sorted({p.name for p in work.iterdir()} - {p.name for p in plain_run[0].iterdir()})
+
+
+def assert_plain_run_left_alone(work: Path, plain_run, but: tuple[str, ...] = ()) -> None:
+    """Every file of the plain run (its forecaster, policies and results) in ``work``, a `copied_work`
+    of it, is as the copy left it (its modification time), but those under the top-level names ``but``."""
+    plain = plain_run[0]
+    files = [p.relative_to(plain) for p in plain.rglob("*") if p.is_file()]
+    assert files
+    for path in files:
+        if path.parts[0] not in but:
+            assert (work / path).stat().st_mtime_ns == (plain / path).stat().st_mtime_ns, path
 
 
 def assert_built_what_it_lacked(work: Path, out: str, latched: str | None) -> None:
@@ -87,12 +121,15 @@ def test_bc_push_builds_what_it_lacks_and_ends_with_the_summary(plain_run):
 
 
 def test_bc_push_with_a_latched_forecast_builds_what_it_lacks_and_ends_with_the_summary(
-    recorded_push_root, push_cache_dir, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
-    work = tmp_path / "work"
+    work = copied_work(plain_run, tmp_path)  # the forecaster and the policy without forecasts are there
     argv = tiny_argv(recorded_push_root, push_cache_dir, work, dagger=False)
     assert cli([*argv, "--latched-forecast", "precision"]) == 0
     assert_built_what_it_lacked(work, capsys.readouterr().out, latched="precision")
+    assert made_in(work, plain_run) == ["bc_with_latched_precision_forecasts_seed0"]
+    # The latched with policy's run is its own; the results of a run without DAgger go to WORK.
+    assert_plain_run_left_alone(work, plain_run, but=("results.json", "results.md"))
 
 
 # The plain policies: a style drawn per episode, one action per step, the forecast of the live sensors
@@ -142,12 +179,13 @@ def tiny_argv(
 
 
 def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
-    recorded_push_root, push_cache_dir, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
-    work = tmp_path / "work"
+    work = copied_work(plain_run, tmp_path)  # round 0: the plain run's policies
     argv = tiny_argv(recorded_push_root, push_cache_dir, work)
     assert cli(argv) == 0
-    assert not (work / "results.json").exists(), "round 0's results are not written over"
+    assert_plain_run_left_alone(work, plain_run)  # round 0's policies and results are not written over
+    assert made_in(work, plain_run) == ["dagger1", "dagger_markov_seed0_round1"]
     first = json.loads((work / "dagger1" / "results.json").read_text())
     rows = first["dagger"]
     assert [(r["bc_seed"], r["round"], r["variant"], r["episodes"]) for r in rows] == [
@@ -155,7 +193,7 @@ def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
         (0, 1, "with", 1),
     ]
     recorded_frames = rows[0]["frames_trained_on"] - sum(r["frames_added"] for r in rows)
-    assert recorded_frames > 0 and all(0 < r["frames_added"] <= 50 for r in rows)
+    assert recorded_frames > 0 and all(0 < r["frames_added"] <= TEST_EPISODE_STEPS for r in rows)
     assert first["forecaster_calibration"]["split"] == "val"  # mmf-rl train fitted it
     round_dir = work / "dagger_markov_seed0_round1"
     for variant in ("without", "with"):
@@ -174,9 +212,9 @@ def test_bc_push_dagger_adds_labelled_episodes_and_a_rerun_reuses_every_round(
 
 
 def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_own(
-    recorded_push_root, push_cache_dir, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
-    work = tmp_path / "work"
+    work = copied_work(plain_run, tmp_path)  # its forecaster is there
     argv = [
         *tiny_argv(recorded_push_root, push_cache_dir, work),
         "--privileged-object",
@@ -191,7 +229,7 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
         r"\(target with <= without/2: met for 0 of 1 outage types\)",
         last,
     ), last
-    assert not (work / "results.json").exists(), "the ordinary policies' results are left alone"
+    assert_plain_run_left_alone(work, plain_run)  # the ordinary policies and their results
     results = json.loads((work / "privileged_dagger1" / "results.json").read_text())
     assert {r for r in results["rows"] if r.startswith("BC")} == {
         f"BC without forecasts | {c}" for c in ("all", "no-camera (episode)", "no-force (episode)")
@@ -204,16 +242,17 @@ def test_bc_push_privileged_object_trains_only_the_variant_asked_in_runs_of_its_
         "dagger_markov_privileged_without_seed0_round1/bc_without_forecasts",
     ):
         assert BCPolicy.from_checkpoint(work / run / "checkpoints").config.privileged_object
-    assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
+    made = made_in(work, plain_run)
+    assert not fnmatch.filter(made, "bc_with*") and not fnmatch.filter(made, "bc_without*"), made
 
 
 def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(
-    recorded_push_root, push_cache_dir, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
-    work = tmp_path / "work"
+    work = copied_work(plain_run, tmp_path)  # its forecaster is there
     assert cli([*tiny_argv(recorded_push_root, push_cache_dir, work), "--action-chunk", "2"]) == 0
     assert_one_outage_summary(capsys.readouterr().out)
-    assert not (work / "results.json").exists(), "the per-step policies' results are left alone"
+    assert_plain_run_left_alone(work, plain_run)  # the per-step policies and their results
     assert json.loads((work / "chunk2_dagger1" / "results.json").read_text())["action_chunk"] == 2
     for run in (
         "bc_chunk2_without_forecasts_seed0",
@@ -222,36 +261,38 @@ def test_bc_push_action_chunks_reach_every_policy_in_runs_of_their_own(
         "dagger_markov_chunk2_seed0_round1/bc_with_forecasts",
     ):
         assert BCPolicy.from_checkpoint(work / run / "checkpoints").config.action_chunk == 2, run
-    assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
+    made = made_in(work, plain_run)
+    assert not fnmatch.filter(made, "bc_with*") and not fnmatch.filter(made, "bc_without*"), made
     assert not (work / "dagger_markov_seed0_round1").exists()
 
 
 def test_bc_push_gmm_head_reaches_every_policy_in_runs_of_their_own(
-    recorded_push_root, push_cache_dir, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
-    work = tmp_path / "work"
+    work = copied_work(plain_run, tmp_path)  # its forecaster is there
     argv = tiny_argv(recorded_push_root, push_cache_dir, work, dagger=False)
     assert cli([*argv, "--action-head", "gmm", "--action-chunk", "2"]) == 0
     assert_one_outage_summary(capsys.readouterr().out)
-    assert not (work / "results.json").exists(), "the regression policies' results are left alone"
+    assert_plain_run_left_alone(work, plain_run)  # the regression policies and their results
     results = json.loads((work / "chunk2_gmm" / "results.json").read_text())
     assert results["action_head"] == "gmm" and results["action_chunk"] == 2
     for run in ("bc_chunk2_gmm_without_forecasts_seed0", "bc_chunk2_gmm_with_forecasts_seed0"):
         config = GMMPolicy.from_checkpoint(work / run / "checkpoints").config
         assert config.action_chunk == 2, run
-    assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
-    assert not list(work.glob("bc_chunk2_with*")) and not list(work.glob("bc_chunk2_without*"))
+    made = made_in(work, plain_run)
+    assert not fnmatch.filter(made, "bc_with*") and not fnmatch.filter(made, "bc_without*"), made
+    assert not fnmatch.filter(made, "bc_chunk2_with*") and not fnmatch.filter(made, "bc_chunk2_without*")
 
 
 def test_bc_push_replayed_outages_train_both_variants_in_runs_of_their_own(
-    recorded_push_root, push_cache_dir, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
-    work = tmp_path / "work"
+    work = copied_work(plain_run, tmp_path)  # its forecaster is there
     argv = tiny_argv(recorded_push_root, push_cache_dir, work, dagger=False)
     replayed = [*argv, "--train-outages", "replayed", "--latched-forecast", "precision"]
     assert cli([*replayed, "--replay-draws", "1"]) == 0
     assert_one_outage_summary(capsys.readouterr().out)
-    assert not (work / "results.json").exists(), "the independently trained policies' results are left alone"
+    assert_plain_run_left_alone(work, plain_run)  # the independently trained policies and their results
     results = json.loads((work / "replayed" / "results.json").read_text())
     assert results["train_outages"] == "replayed" and "replay the training outages" in results["phases_s"]
     fractions = results["replayed_absent_fraction"]
@@ -262,7 +303,8 @@ def test_bc_push_replayed_outages_train_both_variants_in_runs_of_their_own(
     for run in ("bc_replayed_without_forecasts_seed0", "bc_replayed_with_latched_precision_forecasts_seed0"):
         meta = json.loads((list_checkpoints(work / run / "checkpoints")[-1] / "meta.json").read_text())
         assert meta["replayed_outages"] == ["all", "no-camera (episode)", "no-force (episode)"], run
-    assert not list(work.glob("bc_with*")) and not list(work.glob("bc_without*"))
+    made = made_in(work, plain_run)
+    assert not fnmatch.filter(made, "bc_with*") and not fnmatch.filter(made, "bc_without*"), made
     assert cli([*replayed, "--replay-draws", "1"]) == 0  # the policies are reused: nothing is replayed
     again = json.loads((work / "replayed" / "results.json").read_text())
     assert (
@@ -276,22 +318,21 @@ def test_bc_push_replayed_outages_train_both_variants_in_runs_of_their_own(
 
 
 def test_bc_push_forecast_steps_reach_only_the_with_policies_in_runs_of_their_own(
-    recorded_push_root, push_cache_dir, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
-    work = tmp_path / "work"
+    work = copied_work(plain_run, tmp_path)  # the forecaster and the policy without forecasts are there
     argv = tiny_argv(recorded_push_root, push_cache_dir, work, dagger=False)
     assert cli([*argv, "--forecast-steps", "1"]) == 0
     assert_one_outage_summary(capsys.readouterr().out)
-    assert not (work / "results.json").exists(), (
-        "the results of the policies reading every step are left alone"
-    )
+    # The policies reading every step of the forecast and their results are left alone.
+    assert_plain_run_left_alone(work, plain_run)
+    assert made_in(work, plain_run) == ["bc_with_first1_forecasts_seed0", "first1"]
     assert json.loads((work / "first1" / "results.json").read_text())["forecast_steps"] == 1
     read = {
         run: BCPolicy.from_checkpoint(work / run / "checkpoints").config.forecast_steps
         for run in ("bc_with_first1_forecasts_seed0", "bc_without_forecasts_seed0")
     }
     assert read == {"bc_with_first1_forecasts_seed0": 1, "bc_without_forecasts_seed0": None}
-    assert not (work / "bc_with_forecasts_seed0").exists()
 
 
 def first_goal(root) -> np.ndarray:
@@ -301,7 +342,7 @@ def first_goal(root) -> np.ndarray:
 
 
 def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_of_their_own(
-    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
     from mmf_rl.envs.push import MultimodalPushEnv
     from mmf_rl.envs.scripted import episode_generator, reset_for_push
@@ -353,7 +394,7 @@ def test_bc_push_held_out_forecaster_learns_from_a_recording_of_its_own_in_runs_
 
 
 def test_bc_push_steady_demonstrations_are_recorded_by_the_steady_pusher_in_runs_of_their_own(
-    recorded_push_root, push_cache_dir, tmp_path, capsys
+    recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
     from mmf_rl.envs.push import MultimodalPushEnv
     from mmf_rl.envs.scripted import rollout
@@ -421,7 +462,7 @@ def test_bc_push_refuses_a_reused_recording_of_another_kind_and_warns_when_it_ca
 
 
 def test_bc_push_in_sample_forecaster_learns_from_the_policies_recording_in_untagged_runs(
-    recorded_push_root, push_cache_dir, tmp_path, capsys
+    recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
     work = tmp_path / "work"
     assert cli(tiny_argv(recorded_push_root, push_cache_dir, work, data=False, dagger=False)) == 0
@@ -482,7 +523,7 @@ def test_bc_push_with_run_records_its_forecaster_and_refuses_another(tmp_path):
 
 
 def test_bc_push_given_forecaster_trains_its_own_with_policy_and_refuses_another_in_the_same_work(
-    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys
+    plain_run, recorded_push_root, push_cache_dir, tmp_path, capsys, short_episodes
 ):
     work = copied_work(plain_run, tmp_path)  # the in-sample policies, trained
     in_sample_with = work / "bc_with_forecasts_seed0"

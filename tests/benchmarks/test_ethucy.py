@@ -35,6 +35,7 @@ from mmf_rl.configuration import compose_config, save_config, to_container
 from mmf_rl.models import check_loss_settings
 from mmf_rl.objectives import LossConfig, default_loss_config
 from mmf_rl.trainers.training import RUN_CONFIG
+from tests.benchmarks.conftest import ethucy_fold_configs
 from tests.conftest import run_bench
 
 REPO = Path(__file__).resolve().parents[2]
@@ -316,14 +317,12 @@ def test_the_page_says_which_window_set_each_row_is_scored_on(tmp_path):
     assert "| AgentFormer (leak fixed) | 0.23 / 0.39 | trajectron |" in page
 
 
-def test_the_folds_val_and_test_windows_are_cut_to_the_window_set_its_training_ones_not(tmp_path):
+@pytest.mark.slow  # a converted ETH/UCY dataset (`ethucy_cut`), as every test reading one
+def test_the_folds_val_and_test_windows_are_cut_to_the_window_set_its_training_ones_not(tmp_path, ethucy_cut):
     from mmf_rl.datasets import ethucy
-    from tests.datasets.conftest import SHARED_DATA, cut_ethucy_raw
 
-    if not (SHARED_DATA / "ethucy" / "trajectories").is_dir():
-        pytest.skip(f"ETH/UCY data not at {SHARED_DATA / 'ethucy'} (set MMF_RL_SHARED_DATA)")
     args = bench_args(tmp_path, "out", "--window-set", "social_gan")
-    ethucy.convert(cut_ethucy_raw(tmp_path, steps=40, agents=8), ["eth"], args.data, workers=1)
+    ethucy_fold_configs(ethucy_cut[1], args.data)
     data, _ = bench.fold_data(args, "eth")
     every, _ = bench.fold_data(bench_args(tmp_path, "out"), "eth")
     assert data.split_windows["train"].equal(every.split_windows["train"])

@@ -46,7 +46,7 @@ def test_the_static_model_is_sure_so_the_uncertainty_penalty_changes_no_plan(
     assert torch.equal(plans[0], plans[1])
 
 
-def test_an_ensemble_plays_as_one_agent_in_both_planners(push_world_model_run):
+def test_an_ensemble_plays_as_one_agent_in_both_planners(push_world_model_run, short_episodes):
     checkpoint = push_world_model_run / "checkpoints"
     sizes = {"num_candidates": 8, "num_iterations": 1, "num_elites": 2}
     rows, raw = evaluate_mpc(
