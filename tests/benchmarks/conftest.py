@@ -106,3 +106,14 @@ def ethucy_fold_configs(data: Path, into: Path) -> Path:
     for config in data.glob("*.yaml"):
         shutil.copy2(config, into / config.name)
     return into
+
+
+def study_out(tmp_path: Path, cache_dir: Path) -> Path:
+    """``tmp_path/out`` for a benchmark's ``--out``, its window cache (``out/cache``, where
+    `mmf_rl.compare` keeps it) the session's ``cache_dir`` (`push_cache_dir`): the benchmarks run on the
+    recording share its windows, as the tests' own trainings do (the cache's entries are keyed by
+    dataset and config)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "cache").symlink_to(cache_dir, target_is_directory=True)
+    return out

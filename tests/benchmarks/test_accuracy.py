@@ -14,6 +14,7 @@ import pytest
 from benchmarks import accuracy as bench
 from mmf_rl.compare import entries as catalogue
 from mmf_rl.configuration import compose_config, to_container
+from tests.benchmarks.conftest import study_out
 from tests.conftest import run_bench
 
 SUMMARY = re.compile(
@@ -26,8 +27,8 @@ def accuracy(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return run_bench("accuracy", *args, cwd=cwd)
 
 
-def test_a_tiny_run_writes_the_report_and_the_summary_line(recorded_push_root, tmp_path):
-    out = tmp_path / "out"
+def test_a_tiny_run_writes_the_report_and_the_summary_line(recorded_push_root, push_cache_dir, tmp_path):
+    out = study_out(tmp_path, push_cache_dir)
     budget = ["--tiny", "--entries", "paper", "LF-LSTM", "--seeds", "0", "--steps", "2"]
     run = accuracy(*budget, "--data", str(recorded_push_root), "--out", str(out), cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]

@@ -28,7 +28,7 @@ def calibration(argv: list[str]) -> int:
 
 
 @pytest.fixture(scope="module")
-def learned_runs(recorded_push_root, tmp_path_factory):
+def learned_runs(recorded_push_root, push_cache_dir, tmp_path_factory):
     """Two seeds of a tiny learned-prior forecaster, as a benchmark entry's ``<entry>/seed<k>``."""
     from mmf_rl.configuration import compose_config
     from mmf_rl.trainers.training import train
@@ -38,7 +38,7 @@ def learned_runs(recorded_push_root, tmp_path_factory):
     runs = []
     for seed in (0, 1):
         run = base / "learned" / f"seed{seed}"
-        overrides = push_train_overrides(recorded_push_root, base / "cache", run)
+        overrides = push_train_overrides(recorded_push_root, push_cache_dir, run)
         train(compose_config("train", [*overrides, "model.prior=learned", f"trainer.seed={seed}"]))
         runs.append(run)
     return runs

@@ -9,6 +9,7 @@ import re
 import pytest
 
 from mmf_rl.models import MODELS
+from tests.benchmarks.conftest import study_out
 from tests.conftest import run_bench
 
 NUMBER = r"(\d+\.\d{3}|-)"
@@ -28,8 +29,10 @@ def registered_models():
     MODELS.update(before)
 
 
-def test_a_tiny_run_writes_every_row_and_the_summary_line(recorded_push_root, tmp_path, registered_models):
-    out = tmp_path / "out"
+def test_a_tiny_run_writes_every_row_and_the_summary_line(
+    recorded_push_root, push_cache_dir, tmp_path, registered_models
+):
+    out = study_out(tmp_path, push_cache_dir)
     run = run_bench("mult_gap", "--tiny", "--data", str(recorded_push_root), "--out", str(out), cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]
     line = run.stdout.strip().splitlines()[-1]

@@ -12,6 +12,7 @@ import pytest
 
 from mmf_rl.compare.entries import Budget, Study
 from mmf_rl.compare.runs import compose_train
+from tests.benchmarks.conftest import study_out
 from tests.conftest import run_bench
 
 SCRIPT = runpy.run_path(str(Path(__file__).parents[2] / "benchmarks" / "robust_training.py"))
@@ -49,8 +50,10 @@ def test_the_recommendation_is_the_cell_closest_to_the_best_in_its_worst_subset(
     assert pick == "b" and ratio == pytest.approx(1.1)
 
 
-def test_a_tiny_run_writes_the_grid_the_val_choice_and_the_summary_line(recorded_push_root, tmp_path):
-    out = tmp_path / "out"
+def test_a_tiny_run_writes_the_grid_the_val_choice_and_the_summary_line(
+    recorded_push_root, push_cache_dir, tmp_path
+):
+    out = study_out(tmp_path, push_cache_dir)
     run = run_bench(
         "robust_training", "--tiny", "--data", str(recorded_push_root), "--out", str(out), cwd=tmp_path
     )

@@ -19,13 +19,15 @@ from benchmarks.push.aggregation import (
 from tests.conftest import push_train_overrides
 
 
-def test_aggregate_records_merges_retrains_and_a_rerun_reuses_it_all(recorded_push_root, tmp_path):
+def test_aggregate_records_merges_retrains_and_a_rerun_reuses_it_all(
+    recorded_push_root, push_cache_dir, tmp_path
+):
     work = tmp_path / "work"
     work.mkdir()
     (work / "push_explore").symlink_to(recorded_push_root)  # the first recording: 6 scripted episodes
     tiny = [
         o
-        for o in push_train_overrides(recorded_push_root, tmp_path / "cache", "unused")
+        for o in push_train_overrides(recorded_push_root, push_cache_dir, "unused")
         if not o.startswith(("data.root=", "run_dir="))  # train_world_model sets them
     ]
     config = AggregationConfig(
