@@ -84,6 +84,21 @@ def evaluate(run_dir: Path, latent: str, args, out_dir: Path | None = None) -> d
     return summary
 
 
+def has_eval_latent(run_dir: Path) -> bool:
+    """Whether the run's model has an ``eval_latent`` setting (the forecaster, MVAE; not MulT, LF-LSTM):
+    checked before any scoring, so that a latent is not refused halfway through the runs."""
+    import dataclasses
+
+    import yaml
+
+    from mmf_rl.models.registry import DEFAULT_MODEL, model_entry
+
+    name = (yaml.safe_load((run_dir / "config.yaml").read_text()).get("model") or {}).get(
+        "name", DEFAULT_MODEL
+    )
+    return "eval_latent" in {f.name for f in dataclasses.fields(model_entry(name).config_cls)}
+
+
 def recalibrated_copies(run_dir: Path, latent: str, args) -> dict[str, Path]:
     """The run's model under ``latent`` as the ``raw`` copy and one per ``--methods`` entry (see the
     module docstring), written once under ``--out``; the run is only read."""
@@ -221,6 +236,12 @@ def main(argv: list[str] | None = None) -> int:
     missing = [str(r) for r in args.runs if not (r / "checkpoints").is_dir()]
     if missing:
         parser.error(f"not `mmf-rl train` run directories (no checkpoints/ inside): {missing}")
+    latentless = [str(r) for r in args.runs if not has_eval_latent(r)]
+    if latentless and set(args.latents) != {"as-trained"}:
+        parser.error(
+            f"--latents {' '.join(args.latents)}: these runs' models have no eval latent: {latentless}; "
+            "score them with --latents as-trained (in an invocation of their own, or with every run)"
+        )
 
     started = time.perf_counter()
     groups: dict[str, dict[str, list[dict]]] = {}

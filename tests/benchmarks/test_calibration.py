@@ -86,6 +86,18 @@ def test_a_directory_that_is_not_a_run_is_refused(tmp_path, capsys):
     assert "not `mmf-rl train` run directories (no checkpoints/ inside)" in capsys.readouterr().err
 
 
+def test_a_latent_a_run_s_model_lacks_is_refused_before_any_scoring(learned_runs, tmp_path, capsys):
+    """A MulT run has no eval latent: the default --latents are refused for it up front, naming it."""
+    mult = tmp_path / "mult" / "seed0"
+    (mult / "checkpoints").mkdir(parents=True)
+    (mult / "config.yaml").write_text("model:\n  name: mult\n")
+    out = tmp_path / "out"
+    assert calibration([str(learned_runs[0]), str(mult), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"--latents mean predictive: these runs' models have no eval latent: ['{mult}']" in err
+    assert "--latents as-trained" in err and not out.exists()  # nothing scored
+
+
 def test_recalibrate_scores_raw_and_a_val_recalibrated_copy_per_method_and_leaves_the_run_alone(
     learned_runs, tmp_path, capsys
 ):
