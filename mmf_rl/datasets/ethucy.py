@@ -35,7 +35,8 @@ annotated in throughout; `window_set_ids` cuts a split to either set (`WINDOW_SE
 
 The files are written by one process per core (``--workers``), each a contiguous share of them
 into a shard dataset, joined in order by lerobot's `aggregate_datasets`: lerobot's per-frame and
-per-episode writes cost the time, and the dataset is the same for any number of processes. All of
+per-episode writes cost the time, and the dataset is the same for any number of processes. By
+default a process needs `MIN_ROWS_PER_WORKER` rows to start: a small input is written in this one. All of
 it happens in a temp dir under ``--out`` renamed into place, so a failed or killed conversion
 leaves no dataset; the next one removes what a killed one left and starts over.
 """
@@ -80,6 +81,11 @@ FRAME_KEY = "ethucy.frame"
 HISTORY, HORIZON = 8, 12
 DATASET_NAME = "ethucy"  # the dataset folder under --out
 STAGING_PREFIX = f".{DATASET_NAME}.partial-"  # a conversion's temp dir under --out, renamed when done
+# Rows (annotated agent steps) per conversion process for the default to start one: each process
+# imports torch and lerobot and aggregate_datasets joins their shards, seconds a small input does not
+# win back. Chosen from one process / two: 8 s / 17 s on the tests' 940-row cut, 6 / 3 min on all
+# 141k rows (about 2.5 ms a row, 10 s more for two): even at about 8000 rows, so two from 10000.
+MIN_ROWS_PER_WORKER = 5000
 # numpy's histogram (lerobot's episode stats) warns once per episode about the bool scene flag.
 BOOL_STATS_WARNING = re.escape("Converting input from bool to <class 'numpy.uint8'>")
 
@@ -630,9 +636,10 @@ def write_parts(
     return dataset, parts
 
 
-def default_workers() -> int:
-    """One conversion process per core this process may run on."""
-    return len(os.sched_getaffinity(0))
+def default_workers(rows: int) -> int:
+    """One conversion process per `MIN_ROWS_PER_WORKER` of the input's ``rows``, at most one per core
+    this process may run on; 1 (in this process) for a small input."""
+    return max(1, min(len(os.sched_getaffinity(0)), rows // MIN_ROWS_PER_WORKER))
 
 
 def convert(
@@ -646,8 +653,9 @@ def convert(
     """Convert the files of ``folds`` once into ``out/ethucy/``; write each fold's data config to
     ``out/<fold>.yaml`` (returned), every config selecting all the dataset's episodes.
 
-    ``workers`` processes (default one per core, never more than the files; 1: in this process)
-    write the files in contiguous shards; the dataset is the same whatever their number. It is
+    ``workers`` processes (1: in this process; default: one per `MIN_ROWS_PER_WORKER` rows of the
+    files, at most one per core, so a small input is converted in this process; never more than the
+    files) write the files in contiguous shards; the dataset is the same whatever their number. It is
     built in a temp dir under ``out`` and renamed into place, so a failed or killed conversion
     leaves no ``out/ethucy`` (the next conversion removes what a killed one left).
     """
@@ -659,7 +667,8 @@ def convert(
         raise ValueError(f"--workers {workers}: expected at least 1 conversion process")
     files = part_files(raw_dir, folds)  # checks every file before anything is written
     tables = {part: [(sequence, read_sequence(path))] for part, (sequence, path) in files.items()}
-    workers = min(workers or default_workers(), len(tables))
+    rows = sum(len(table) for part in tables.values() for _, table in part)
+    workers = min(workers or default_workers(rows), len(tables))
     with staging_dir(out, STAGING_PREFIX, "choose a writable --out") as work:
         dataset, parts = write_parts(work, tables, files, raw_dir, neighbours, crop, workers)
         os.rename(dataset, root)
@@ -724,8 +733,9 @@ def build_parser() -> argparse.ArgumentParser:
     ethucy.add_argument(
         "--workers",
         type=int,
-        help="conversion processes, each writing a contiguous share of the files (default one per "
-        "core, never more than the files; 1: no extra process); the dataset is the same for any number",
+        help="conversion processes, each writing a contiguous share of the files (default: one per "
+        f"{MIN_ROWS_PER_WORKER} rows of the files, at most one per core; never more than the files; 1: "
+        "no extra process); the dataset is the same for any number",
     )
     return parser
 

@@ -10,10 +10,15 @@ its video utilities.
 
 from __future__ import annotations
 
+import collections
+import copy
 import itertools
 import json
 import os
 import shlex
+import stat
+import threading
+import time
 import warnings
 from dataclasses import dataclass
 from importlib.metadata import version as package_version
@@ -109,13 +114,54 @@ def open_dataset_metadata(root: str | Path | None, repo_id: str):
         return meta
     root = Path(root)
     _check_local_dataset(root)
+    key = (root.resolve(), repo_id, _meta_fingerprint(root))
+    with _META_MEMO_LOCK:
+        memo = _META_MEMO.get(key)
+        if memo is not None:
+            _META_MEMO.move_to_end(key)
+    if memo is not None:
+        meta = copy.deepcopy(memo)  # callers get copies: none can change what the next one gets
+        meta.root = root
+        return meta
     try:
-        return LeRobotDatasetMetadata(repo_id, root=root)
+        meta = LeRobotDatasetMetadata(repo_id, root=root)
     except Exception as error:  # noqa: BLE001 - whatever lerobot trips on, report it by directory
         raise ValueError(
             f"{root / 'meta'}: lerobot {package_version('lerobot')} could not read the dataset metadata "
             f"({_one_line(error)}); restore meta/ from the original dataset or re-record it"
         ) from None
+    if time.time_ns() - max(mtime for _, _, mtime in key[2]) >= META_MEMO_SETTLED_NS:
+        memo = copy.deepcopy(meta)
+        with _META_MEMO_LOCK:
+            _META_MEMO[key] = memo
+            while len(_META_MEMO) > META_MEMO_SIZE:
+                _META_MEMO.popitem(last=False)
+    return meta
+
+
+# Opened local metadata, newest last. lerobot re-reads and re-validates every meta/ parquet file
+# (through `datasets`) on each construction, 0.15-0.4 s, and a run or a study opens the same dataset
+# many times. Keyed by the resolved root, repo_id and meta/'s fingerprint, so any change on disk
+# reloads; failures are never stored. A fingerprint is trusted only once meta/'s files are older than
+# META_MEMO_SETTLED_NS: a file rewritten within one filesystem timestamp tick keeps size and mtime.
+_META_MEMO: collections.OrderedDict = collections.OrderedDict()
+_META_MEMO_LOCK = threading.Lock()
+META_MEMO_SIZE = 8
+META_MEMO_SETTLED_NS = 2 * 10**9
+
+
+def _meta_fingerprint(root: Path) -> tuple[tuple[str, int, int], ...]:
+    """(relative path, size, mtime_ns) of every file under ``root/meta``, sorted."""
+    meta = root / "meta"
+    found = []
+    for path in meta.rglob("*"):
+        try:
+            info = path.stat()
+        except FileNotFoundError:  # removed meanwhile: the fingerprint is of what is left
+            continue
+        if stat.S_ISREG(info.st_mode):
+            found.append((path.relative_to(meta).as_posix(), info.st_size, info.st_mtime_ns))
+    return tuple(sorted(found))
 
 
 def _one_line(error: BaseException) -> str:

@@ -417,7 +417,7 @@ def test_parts_are_sharded_in_order_by_rows():
     assert ethucy.shard_parts([1, 100], 3) == [range(0, 1), range(1, 2)]
 
 
-def _convert_spied(monkeypatch, raw: Path, out: Path, workers: int) -> tuple[dict, list[int]]:
+def _convert_spied(monkeypatch, raw: Path, out: Path, workers: int | None) -> tuple[dict, list[int]]:
     """Convert fold eth; the episodes per part and the shard count of the processes' path (0: none)."""
     seen: dict = {"shards": [0]}
 
@@ -447,7 +447,8 @@ def test_a_conversion_in_two_processes_equals_one_in_this_process(tmp_path, monk
     raw = cut_ethucy_raw(tmp_path)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        alone, no_shards = _convert_spied(monkeypatch, raw, tmp_path / "one", workers=1)
+        # The default: in this process, the cut being far too small to pay for worker processes.
+        alone, no_shards = _convert_spied(monkeypatch, raw, tmp_path / "one", workers=None)
     assert not [w for w in caught if "Converting input from bool" in str(w.message)]
     shared, shards = _convert_spied(monkeypatch, raw, tmp_path / "two", workers=2)
     assert (no_shards, shards) == ([0], [2])
@@ -506,6 +507,12 @@ def test_a_broken_file_is_named_and_leaves_no_dataset(tmp_path, capsys, broken):
     assert not (out / ethucy.DATASET_NAME).exists() and not (out / "eth.yaml").exists()
     leftovers = list(out.glob(f"{ethucy.STAGING_PREFIX}*"))
     assert leftovers == ([] if broken == "scene image" else [stale]), "staging removed, stale ones too"
+
+
+def test_the_default_starts_a_process_per_core_only_for_enough_rows_for_each(monkeypatch):
+    monkeypatch.setattr(ethucy.os, "sched_getaffinity", lambda pid: {0, 1})
+    rows = ethucy.MIN_ROWS_PER_WORKER
+    assert [ethucy.default_workers(n) for n in (0, 1, 2 * rows - 1, 2 * rows, 100 * rows)] == [1, 1, 1, 2, 2]
 
 
 def test_fewer_than_one_worker_is_refused(tmp_path):
