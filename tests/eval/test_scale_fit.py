@@ -337,6 +337,30 @@ def test_the_crps_of_the_quantile_function_is_the_closed_form_under_the_familys_
     assert torch.equal(forecast_crps(target, loc, scale, family, ones), closed.flatten(1).mean(-1))
 
 
+def test_the_quantile_crps_is_the_midpoint_rule_summed_level_by_level():
+    """The closed-form sum over the levels equals the midpoint rule written out, one pinball loss per
+    level (ties included: targets on a quantile), for any curve and an odd batch of windows."""
+    family = output_distribution("laplace")
+    g = torch.Generator().manual_seed(1)
+    target = 3 * torch.randn(7, HORIZON, TARGET_DIM, generator=g, dtype=torch.float64)
+    target[0] = 0.0  # on the median
+    loc = torch.randn(7, HORIZON, TARGET_DIM, generator=g, dtype=torch.float64)
+    scale = 0.2 + torch.rand(7, HORIZON, TARGET_DIM, generator=g, dtype=torch.float64)
+    loc[0] = 0.0
+    curve = 0.5 + torch.rand(7, len(LEVELS), generator=g, dtype=torch.float64)  # not monotone
+    for quantiles in (2, 10, 400):
+        tau = (torch.arange(quantiles, dtype=torch.float64) + 0.5) / quantiles
+        upper = tau[quantiles // 2 :]
+        half = level_half_widths(curve, (2 * upper - 1).tolist(), family)  # [B, pairs]
+        q = torch.cat([-half.flip(-1), half], -1)[:, None, None, :]  # [B, 1, 1, quantiles]
+        u = ((target - loc) / scale)[..., None] - q
+        pinball = u * (tau - (u < 0).double())
+        expected = 2 * pinball.mean(-1) * scale
+        torch.testing.assert_close(
+            quantile_crps(target, loc, scale, curve, family, quantiles), expected, rtol=1e-10, atol=1e-12
+        )
+
+
 def test_the_crps_under_a_curve_is_the_crps_of_the_distribution_it_describes():
     """A Gaussian forecast whose curve holds the Laplace's half widths at every grid level is, to the
     interpolation between them, the Laplace: its CRPS is the Laplace's closed form within 1%."""
