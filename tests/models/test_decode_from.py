@@ -11,6 +11,7 @@ import torch
 import yaml
 
 from mmf_rl import keys
+from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.eval.metrics import baseline_metrics, point_errors
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster, build_model
 from mmf_rl.models.baselines.constant_velocity import constant_velocity
@@ -178,3 +179,37 @@ def test_the_option_is_checked_and_a_config_saved_without_it_decodes_from_zero(d
         dataclasses.replace(config, history=1)
     with pytest.raises(ValueError, match=r"not supported by a world model .*decode_under_actions"):
         dataclasses.replace(config, action_dim=2, action_steps=config.horizon)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)  # the fold's conversion, 3 steps and an evaluation: over 10 min under heavy load
+def test_a_few_training_steps_on_the_fold_train_and_evaluate(eth, tmp_path):
+    import mmf_rl
+
+    path, config = eth
+    run = tmp_path / "run"
+    mmf_rl.train(
+        overrides=[
+            f"data={path}",
+            f"data.cache_dir={config['cache_dir']}",
+            f"data.image_size=[{IMAGE},{IMAGE}]",
+            *[f"model.{k}={v}" for k, v in SMALL.items()],
+            "model.decode_from=constant_velocity",
+            f"run_dir={run}",
+            "trainer.total_steps=3",
+            "trainer.batch_size=16",
+            "trainer.eval_every=3",
+            "trainer.checkpoint_every=3",
+            "trainer.warmup_steps=1",
+            "trainer.progress_bar=false",
+            "calibrate=false",
+            "logger=csv",
+            "num_workers=1",
+        ]
+    )
+    assert load_checkpoint(run / "checkpoints").meta["model_config"]["decode_from"] == "constant_velocity"
+    summary = mmf_rl.evaluate(
+        overrides=[f"checkpoint={run}", "num_samples=3", "plots=false", "batch_size=64"]
+    )
+    row, reference = summary["subsets"]["all"], summary["constant_velocity"]
+    assert torch.isfinite(torch.tensor([row["ade"], row["min_ade_k"], reference["ade"]])).all()
