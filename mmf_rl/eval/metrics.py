@@ -53,6 +53,7 @@ from tensordict import TensorDictBase
 
 from mmf_rl import keys
 from mmf_rl.datasets.protocols import apply_presence_subset
+from mmf_rl.models.baselines.constant_velocity import constant_velocity
 from mmf_rl.models.scale_calibration import level_half_widths
 from mmf_rl.objectives.common import gaussian_kl
 from mmf_rl.objectives.distributions import OutputDistribution, output_distribution, output_distribution_of
@@ -97,21 +98,6 @@ def point_errors(
         "ade": ade,
         "fde": fde,
     }
-
-
-def constant_velocity(target_past: torch.Tensor, horizon: int) -> torch.Tensor:
-    """Extrapolate the last step of a past trajectory over the horizon.
-
-    Args:
-        target_past (torch.Tensor): ``[B, H, D]``, ``H >= 2``.
-        horizon (int): ``T``, steps to extrapolate.
-
-    Returns:
-        ``[B, T, D]``: the last position plus ``1..T`` times the last step.
-    """
-    velocity = target_past[:, -1] - target_past[:, -2]
-    steps = torch.arange(1, horizon + 1, dtype=target_past.dtype, device=target_past.device)
-    return target_past[:, -1:] + velocity[:, None] * steps[None, :, None]
 
 
 NORMAL = output_distribution("normal")

@@ -25,6 +25,48 @@ from mmf_rl.models.baselines.common import BaselineConfig, DeterministicForecast
 from mmf_rl.models.registry import register_model
 
 
+def constant_velocity(target_past: torch.Tensor, horizon: int) -> torch.Tensor:
+    """Extrapolate the last step of a past trajectory over the horizon.
+
+    In the normalised target frame this is the normalised extrapolation in the target's units: each
+    forecast step ``x_H + k (x_H - x_{H-1})`` is an affine combination of two past positions (weights
+    ``1 + k`` and ``-k``, summing to 1), so it commutes with the per-dim ``(x - mean) / std`` of the
+    :class:`~mmf_rl.datasets.splits.Normalizer` (and with the anchor a relative target subtracts).
+
+    Args:
+        target_past (torch.Tensor): ``[B, H, D]``, ``H >= 2``.
+        horizon (int): ``T``, steps to extrapolate.
+
+    Returns:
+        ``[B, T, D]``: the last position plus ``1..T`` times the last step.
+
+    Examples:
+        >>> import torch
+        >>> from mmf_rl.models.baselines.constant_velocity import constant_velocity
+        >>> constant_velocity(torch.tensor([[[0.0, 0.0], [1.0, 0.5]]]), 2)
+        tensor([[[2.0000, 1.0000],
+                 [3.0000, 1.5000]]])
+    """
+    velocity = target_past[:, -1] - target_past[:, -2]
+    steps = torch.arange(1, horizon + 1, dtype=target_past.dtype, device=target_past.device)
+    return target_past[:, -1:] + velocity[:, None] * steps[None, :, None]
+
+
+def target_past_of(td: TensorDictBase, reader: str, target_dim: int | None = None) -> torch.Tensor:
+    """``td``'s ``"target_past"`` ``[B, H >= 2, D]``, or a ``KeyError`` naming ``reader`` (what needs it)
+    and the data config key that adds it (``include_target_past: true``)."""
+    past = td.get(keys.TARGET_PAST, None)
+    dims_ok = past is not None and (target_dim is None or past.shape[-1] == target_dim)
+    if past is None or past.dim() != 3 or past.shape[1] < 2 or not dims_ok:
+        expected = "D" if target_dim is None else str(target_dim)
+        raise KeyError(
+            f"{reader} needs {keys.TARGET_PAST!r} [B, H >= 2, {expected}] in the batch, found "
+            f"{None if past is None else list(past.shape)}; set include_target_past: true in the data "
+            "config"
+        )
+    return past
+
+
 @dataclass
 class ConstantVelocityConfig(BaselineConfig):
     """:class:`BaselineConfig` of :class:`ConstantVelocity`, plus its sampler's settings.
@@ -108,13 +150,7 @@ class ConstantVelocity(DeterministicForecaster):
         self.register_buffer("target_scale", torch.tensor(scale))
 
     def _last_step(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        past = td.get(keys.TARGET_PAST, None)
-        if past is None or past.dim() != 3 or past.shape[1] < 2:
-            raise KeyError(
-                f"constant velocity needs {keys.TARGET_PAST!r} [B, H >= 2, D] in the batch, found "
-                f"{None if past is None else list(past.shape)}; set include_target_past: true in the data "
-                "config"
-            )
+        past = target_past_of(td, "constant velocity")
         return past[:, -1], past[:, -1] - past[:, -2]
 
     def _extrapolate(self, position: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
@@ -123,8 +159,7 @@ class ConstantVelocity(DeterministicForecaster):
         return position.unsqueeze(-2) + velocity.unsqueeze(-2) * steps[:, None]
 
     def forecast(self, td):
-        position, velocity = self._last_step(td)
-        loc = self._extrapolate(position, velocity)
+        loc = constant_velocity(target_past_of(td, "constant velocity"), self.config.horizon)
         return loc, torch.ones_like(loc)
 
     def sample(self, td: TensorDictBase, num_samples: int = 20) -> TensorDictBase:

@@ -19,6 +19,7 @@ EVAL_LATENTS = ("mean", "sample", "predictive", "posterior")
 DECODER_INPUTS = ("tokens", "mixed", "pair_streams", "mixed_pair_streams")
 DECODER_LATENTS = ("joint", "linear", "none")
 PAIR_SELF = ("always", "alone")
+DECODE_FROM = ("zero", "constant_velocity")
 
 
 @dataclass
@@ -115,13 +116,25 @@ class ForecasterConfig(SavedConfigMixin):
             it loads as ``"normal"``.
         output_df (float, optional): the degrees of freedom of ``"student_t"`` (``> 2``; unused by the other
             families). Defaults to ``4``.
+        decode_from (str, optional): what the decoder's ``loc`` is an offset from: ``"zero"`` (default,
+            the paper: the decoder predicts the future itself) or ``"constant_velocity"``: the forecast's
+            ``loc``, and every decoded mean (prior and learned-sampler samples, the ``"predictive"``
+            mixture, the L_mis and GSNN decodes), is the decoder's output plus the constant-velocity
+            extrapolation of the target's own past (``"target_past"``: the data config needs
+            ``include_target_past: true``, which ETH/UCY's and ``mmf-rl inspect``'s configs set). The
+            decoder then learns corrections to constant velocity, and a decoder whose output is near
+            zero forecasts constant velocity (Schöller et al. 2020). The scale is the decoder's, unchanged.
+            Use it for trajectories (pedestrians, vehicles) where constant velocity is a strong
+            reference the plain decoder does not reach; it needs ``history >= 2``, and a world model
+            (``action_dim > 0``) refuses it. A saved model's config without it loads as ``"zero"``.
 
     Raises:
         ValueError: no modality or duplicate names, an unknown encoder or fusion, a size below 1,
             ``d_model`` not divisible by ``num_heads``, ``min_scale <= 0``, an option outside its choices,
             ``predictive_samples`` odd or below 2, ``action_dim`` and ``action_steps`` not both set or both
-            0, an unknown ``output_distribution``, ``output_df <= 2`` with ``"student_t"``, or a latent setup
-            that cannot work (``prior="learned"`` with ``posterior_uses_target=False``,
+            0, ``decode_from="constant_velocity"`` with ``history < 2`` or a world model, an unknown
+            ``output_distribution``, ``output_df <= 2`` with ``"student_t"``, or a latent setup that cannot
+            work (``prior="learned"`` with ``posterior_uses_target=False``,
             ``eval_latent="posterior"`` with a posterior that reads the target); the message names the field.
 
     Examples:
@@ -174,10 +187,15 @@ class ForecasterConfig(SavedConfigMixin):
     nonfinite: NonFiniteRule = "raise"
     output_distribution: str = DEFAULT_OUTPUT_DISTRIBUTION
     output_df: float = DEFAULT_OUTPUT_DF
+    decode_from: Literal["zero", "constant_velocity"] = "zero"
     # The settings a config saved without them reads at the value that config described (to_dict
     # writes every setting: a saved config lacks one only if older), whose default changed since
     # (decoder_input) or may change (output_distribution).
-    SAVED_BEFORE: ClassVar[dict[str, object]] = {"decoder_input": "tokens", "output_distribution": "normal"}
+    SAVED_BEFORE: ClassVar[dict[str, object]] = {
+        "decoder_input": "tokens",
+        "output_distribution": "normal",
+        "decode_from": "zero",
+    }
 
     def __post_init__(self):
         self.modalities = [
@@ -277,10 +295,26 @@ class ForecasterConfig(SavedConfigMixin):
             output_distribution_of(self)
         except ValueError as error:
             raise ValueError(f"ForecasterConfig: {error}") from None
-        options = {"decoder_input": DECODER_INPUTS, "decoder_latent": DECODER_LATENTS, "pair_self": PAIR_SELF}
+        options = {
+            "decoder_input": DECODER_INPUTS,
+            "decoder_latent": DECODER_LATENTS,
+            "pair_self": PAIR_SELF,
+            "decode_from": DECODE_FROM,
+        }
         for name, allowed in options.items():
             if (value := getattr(self, name)) not in allowed:
                 raise ValueError(f"ForecasterConfig.{name} must be one of {allowed}, found {value!r}")
+        if self.decode_from == "constant_velocity" and self.history < 2:
+            raise ValueError(
+                f"ForecasterConfig: decode_from='constant_velocity' extrapolates the last step of the "
+                f"target's past, which needs history >= 2, found history={self.history}"
+            )
+        if self.decode_from == "constant_velocity" and self.action_dim:
+            raise ValueError(
+                "ForecasterConfig: decode_from='constant_velocity' is not supported by a world model "
+                "(action_dim > 0): its forecasts under candidate actions (decode_under_actions) read no "
+                "target past; set decode_from=zero"
+            )
 
     @property
     def modality_names(self) -> list[str]:

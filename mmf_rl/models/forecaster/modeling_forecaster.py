@@ -88,6 +88,14 @@ Open points of the paper, and what this implementation does:
   (:class:`~mmf_rl.objectives.DiverseSamplingLoss`); :meth:`MultimodalForecaster.sample` decodes them
   when asked for ``K`` samples. Independent prior draws cover the futures unevenly, which best-of-``K``
   metrics punish; the point forecast is unchanged.
+* **Decoding from constant velocity (not in the paper).** With ``decode_from="constant_velocity"``
+  every decoded mean is the decoder's output plus the constant-velocity extrapolation of
+  ``"target_past"`` (in the normalised target frame, which is the normalised extrapolation in the
+  target's units: :func:`~mmf_rl.models.baselines.constant_velocity.constant_velocity`): the decoder
+  learns corrections to constant velocity. The shift is common to the ``K`` decodes of a row, so the
+  moment-matched scale is unchanged. :meth:`MultimodalForecaster.decode` stays the decoder's own
+  output (the offset); :meth:`MultimodalForecaster.forecast_from_tokens`, which reads no target past,
+  refuses such a model.
 """
 
 from __future__ import annotations
@@ -103,6 +111,7 @@ from torch import nn
 
 from mmf_rl import keys
 from mmf_rl.models.attention import FixedQueryAttention, PairStreams
+from mmf_rl.models.baselines.constant_velocity import constant_velocity, target_past_of
 from mmf_rl.models.encoders import build_encoder, mlp, num_tokens
 from mmf_rl.models.forecaster.configuration_forecaster import ForecasterConfig
 from mmf_rl.models.fusion import FusionShape, build_fusion
@@ -215,11 +224,11 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
 
     Reads ``("obs", m)``, ``("present", m)`` for every modality, ``"target"`` when training
     (and, if present, in eval, to report the posterior), optional ``("present_steps", m)``,
-    ``("drop", m)``, ``("drop_steps", m)``, ``"decode_from_prior"`` and ``"decode_prior_draws"``;
-    writes ``("forecast", "loc"/"scale")``, ``"latent"``, ``("prior", ...)``, ``("posterior", ...)``
-    (when ``"target"`` is given or not needed), ``("forecast_dropped", ...)`` and, with the learned
-    prior, ``("prior_dropped", ...)`` (when ``("drop", m)`` is given), and ``("forecast_from_prior",
-    ...)`` (when requested).
+    ``("drop", m)``, ``("drop_steps", m)``, ``"decode_from_prior"`` and ``"decode_prior_draws"``, and
+    ``"target_past"`` with ``decode_from="constant_velocity"``; writes ``("forecast", "loc"/"scale")``,
+    ``"latent"``, ``("prior", ...)``, ``("posterior", ...)`` (when ``"target"`` is given or not needed),
+    ``("forecast_dropped", ...)`` and, with the learned prior, ``("prior_dropped", ...)`` (when
+    ``("drop", m)`` is given), and ``("forecast_from_prior", ...)`` (when requested).
 
     In train mode ``z`` is sampled from the posterior (reparameterised); in eval mode it is the
     prior's mean (``eval_latent="mean"``; ``0`` under the standard prior), a prior draw
@@ -361,6 +370,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.in_keys = [s.obs_key for s in self.modalities] + [s.present_key for s in self.modalities]
         if self.config.action_dim:
             self.in_keys.append(keys.FUTURE_ACTION)
+        if self.config.decode_from == "constant_velocity":
+            self.in_keys.append(keys.TARGET_PAST)
         self.out_keys = [
             keys.FORECAST_LOC,
             keys.FORECAST_SCALE,
@@ -407,6 +418,17 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         )
         if self.config.nonfinite == "absent":
             keys.mark_nonfinite_absent(td, self.modalities)
+        self.decode_origin(td)
+
+    def decode_origin(self, td: TensorDictBase) -> torch.Tensor | None:
+        """What every decoded mean of ``td``'s windows is an offset from: ``None`` with
+        ``decode_from="zero"``; with ``"constant_velocity"``, the constant-velocity extrapolation
+        ``[B, T, D]`` of ``td``'s ``"target_past"`` (a ``KeyError`` naming ``include_target_past`` when
+        the batch lacks it)."""
+        if self.config.decode_from == "zero":
+            return None
+        past = target_past_of(td, "decode_from='constant_velocity'", self.config.target_dim)
+        return constant_velocity(past, self.config.horizon)
 
     def encode(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Unimodal encoders -> tokens ``[B, N, d]`` (zeros where absent; ``N`` is the sum of the
@@ -578,6 +600,12 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             raise ValueError(
                 "forecast_from_tokens: a world model forecasts under given actions; use decode_under_actions"
             )
+        if self.config.decode_from != "zero":
+            raise ValueError(
+                f"forecast_from_tokens: decode_from={self.config.decode_from!r} offsets the forecast by the "
+                "target's past, which encoded tokens do not carry; call the model on a batch with "
+                f"{keys.TARGET_PAST!r} instead"
+            )
         prepared = self.decoder_tokens(tokens, present)
         z = self._eval_latent(*self.eval_distribution(tokens, present, prepared))
         draws = z.shape[0] // tokens.shape[0]  # K with eval_latent="predictive", else 1
@@ -689,6 +717,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                 (present, prepared, prior_loc.repeat(draws, 1) + prior_scale.repeat(draws, 1) * noise)
             )
         decoded = self._decode_all(decodes, self.embed_actions(td), batch)
+        origin = self.decode_origin(td)
+        if origin is not None:  # every decode of row b (rows k * B + b) is an offset from row b's origin
+            decoded = [(loc + origin.repeat(loc.shape[0] // batch, 1, 1), scale) for loc, scale in decoded]
         if draws:  # kept apart, not mixed: the loss scores each draw's forecast
             samples = decoded.pop()[0]
             td.set(keys.FORECAST_FROM_PRIOR_SAMPLES, samples.unflatten(0, (draws, batch)).transpose(0, 1))
@@ -852,7 +883,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             z,
             None if action is None else action.repeat(draws, 1),
         )
-        return loc.view(draws, batch, *loc.shape[1:]).transpose(0, 1)
+        means = loc.view(draws, batch, *loc.shape[1:]).transpose(0, 1)
+        origin = self.decode_origin(td)
+        return means if origin is None else means + origin.unsqueeze(1)
 
     def learned_samples(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The learned sampler's ``K`` forecasts of ``td``'s histories: their means ``[B, K, T, D]``, and
