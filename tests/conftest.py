@@ -473,3 +473,29 @@ def push_history_env(push_world_model):
     env.set_seed(0)
     yield env
     env.close()
+
+
+@pytest.fixture(scope="session")
+def ethucy_cut(tmp_path_factory) -> tuple[Path, Path]:
+    """``(raw, data)``: a cut of the real ETH/UCY files (`cut_ethucy_raw`: 8 agents within the first 40
+    steps of each file) and its conversion, every fold, made once for the session (every xdist worker
+    reads the same one) by benchmarks/ethucy.py from ``--raw`` as its first invocation makes it (the
+    conversion takes tens of seconds); skipped without the files. Both read only: a benchmark run writes
+    its window cache and held-out configs beside the fold configs, so a test running one reads a copy of
+    them (tests/benchmarks/conftest.py: `ethucy_fold_configs`); a test of one fold reads its config with
+    a window cache of its own."""
+    from benchmarks import ethucy as bench
+    from mmf_rl.datasets import ethucy
+    from tests.datasets.conftest import SHARED_DATA, cut_ethucy_raw
+
+    if not (SHARED_DATA / "ethucy" / "trajectories").is_dir():
+        pytest.skip(f"ETH/UCY data not at {SHARED_DATA / 'ethucy'} (set MMF_RL_SHARED_DATA)")
+
+    def convert(directory: Path) -> None:
+        raw = cut_ethucy_raw(directory, steps=40, agents=8)
+        args = bench.parse_args(["--raw", str(raw), "--data", str(directory / "data")])
+        assert bench.ensure_data(args, tuple(ethucy.FOLDS)) > 0  # converted: no fold config was there
+        assert bench.ensure_data(args, tuple(ethucy.FOLDS)) == 0.0  # found: not converted again
+
+    directory = built_once(tmp_path_factory, "ethucy_cut", convert)
+    return directory / "raw", directory / "data"

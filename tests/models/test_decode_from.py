@@ -15,24 +15,18 @@ from mmf_rl.checkpoint import load_checkpoint
 from mmf_rl.eval.metrics import baseline_metrics, point_errors
 from mmf_rl.models import ForecasterConfig, MultimodalForecaster, build_model
 from mmf_rl.models.baselines.constant_velocity import constant_velocity
-from tests.datasets.conftest import SHARED_DATA, cut_ethucy_raw
 
 IMAGE = 16  # the scene crops, resized small
 SMALL = {"d_model": 16, "d_latent": 4, "num_heads": 2, "mlp_hidden": 32, "head_hidden": 32}
 
 
 @pytest.fixture(scope="module")
-def eth(tmp_path_factory) -> tuple[Path, dict]:
-    """The eth fold of a cut of the real ETH/UCY files: its data config file and dict (small scene crops,
-    the window cache beside it)."""
-    from mmf_rl.datasets import ethucy
-
-    if not (SHARED_DATA / "ethucy" / "trajectories").is_dir():
-        pytest.skip(f"ETH/UCY data not at {SHARED_DATA / 'ethucy'} (set MMF_RL_SHARED_DATA)")
-    tmp = tmp_path_factory.mktemp("decode_from")
-    [path] = ethucy.convert(cut_ethucy_raw(tmp, steps=40, agents=8), ["eth"], tmp / "out", workers=1)
+def eth(ethucy_cut, tmp_path_factory) -> tuple[Path, dict]:
+    """The eth fold of the session's cut of the real ETH/UCY files: its data config file and dict (small
+    scene crops, a window cache of its own)."""
+    path = ethucy_cut[1] / "eth.yaml"
     config = yaml.safe_load(path.read_text()) | {
-        "cache_dir": str(tmp / "cache"),
+        "cache_dir": str(tmp_path_factory.mktemp("decode_from") / "cache"),
         "image_size": [IMAGE, IMAGE],
     }
     return path, config

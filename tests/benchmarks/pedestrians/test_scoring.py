@@ -94,19 +94,16 @@ def test_examples_are_placed_in_the_world_and_drawn_on_the_image(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def eth_fold(tmp_path_factory):
-    """The eth fold's windows, converted from a cut of the real ETH/UCY files (skipped without them)."""
+def eth_fold(ethucy_cut, tmp_path_factory):
+    """The eth fold's windows, of the session's cut of the real ETH/UCY files (skipped without them),
+    with a window cache of its own."""
     import yaml
 
-    from mmf_rl.datasets import DataConfig, WindowDataset, ethucy
-    from tests.datasets.conftest import SHARED_DATA, cut_ethucy_raw
+    from mmf_rl.datasets import DataConfig, WindowDataset
 
-    if not (SHARED_DATA / "ethucy" / "trajectories").is_dir():
-        pytest.skip(f"ETH/UCY data not at {SHARED_DATA / 'ethucy'} (set MMF_RL_SHARED_DATA)")
-    tmp = tmp_path_factory.mktemp("eth_fold")
-    [path] = ethucy.convert(cut_ethucy_raw(tmp, steps=40, agents=8), ["eth"], tmp / "out", workers=1)
-    config = yaml.safe_load(path.read_text()) | {"cache_dir": str(tmp / "cache"), "image_size": [16, 16]}
-    return WindowDataset(DataConfig.from_dict(config))
+    config = yaml.safe_load((ethucy_cut[1] / "eth.yaml").read_text())
+    cache = tmp_path_factory.mktemp("eth_fold") / "cache"
+    return WindowDataset(DataConfig.from_dict(config | {"cache_dir": str(cache), "image_size": [16, 16]}))
 
 
 def test_constant_velocity_of_a_real_fold_scores_again_the_same_and_repeats_its_sample(eth_fold):
