@@ -477,7 +477,7 @@ def push_history_env(push_world_model):
 
 @pytest.fixture(scope="session")
 def ethucy_cut(tmp_path_factory) -> tuple[Path, Path]:
-    """``(raw, data)``: a cut of the real ETH/UCY files (`cut_ethucy_raw`: 8 agents within the first 40
+    """``(raw, data)``: a cut of the real ETH/UCY files (`cut_ethucy_raw`: 6 agents within the first 30
     steps of each file) and its conversion, every fold, made once for the session (every xdist worker
     reads the same one) by benchmarks/ethucy.py from ``--raw`` as its first invocation makes it (the
     conversion takes tens of seconds); skipped without the files. Both read only: a benchmark run writes
@@ -492,7 +492,7 @@ def ethucy_cut(tmp_path_factory) -> tuple[Path, Path]:
         pytest.skip(f"ETH/UCY data not at {SHARED_DATA / 'ethucy'} (set MMF_RL_SHARED_DATA)")
 
     def convert(directory: Path) -> None:
-        raw = cut_ethucy_raw(directory, steps=40, agents=8)
+        raw = cut_ethucy_raw(directory, steps=30, agents=6)
         args = bench.parse_args(["--raw", str(raw), "--data", str(directory / "data")])
         assert bench.ensure_data(args, tuple(ethucy.FOLDS)) > 0  # converted: no fold config was there
         assert bench.ensure_data(args, tuple(ethucy.FOLDS)) == 0.0  # found: not converted again
