@@ -3,7 +3,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmf_rl.envs.push import MultimodalPushEnv
 from mmf_rl.envs.scripted import (
     MIN_START_DISTANCE,
     MarkovPusher,
@@ -13,15 +12,9 @@ from mmf_rl.envs.scripted import (
     rollout,
 )
 
-# No pusher reads the image: the env renders the smallest frame it allows (rendering is most of a step).
+# No pusher reads the image: the module's `push_env` (tests/envs/conftest.py) renders the smallest frame
+# it allows (rendering is most of a step).
 IMAGE_SIZE = 8
-
-
-@pytest.fixture(scope="module")
-def push_env():
-    env = MultimodalPushEnv(image_size=IMAGE_SIZE)
-    yield env
-    env.close()
 
 
 @pytest.fixture(scope="module")
