@@ -10,14 +10,13 @@ its video utilities.
 
 from __future__ import annotations
 
-import collections
 import copy
+import functools
 import itertools
 import json
 import os
 import shlex
 import stat
-import threading
 import time
 import warnings
 from dataclasses import dataclass
@@ -105,49 +104,50 @@ def open_dataset_metadata(root: str | Path | None, repo_id: str):
     problem is reported by file instead of as a traceback from deep inside lerobot or pyarrow,
     and so lerobot never falls back to downloading into ``root`` when a metadata file is absent.
     """
-    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-
     if root is None:
+        from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
         meta = LeRobotDatasetMetadata(repo_id)
         # The hub path: fetch data and videos the way lerobot does; absent videos stay absent.
         meta.pull_from_repo(allow_patterns=["data/*", "videos/*"])
         return meta
     root = Path(root)
     _check_local_dataset(root)
-    key = (root.resolve(), repo_id, _meta_fingerprint(root))
-    with _META_MEMO_LOCK:
-        memo = _META_MEMO.get(key)
-        if memo is not None:
-            _META_MEMO.move_to_end(key)
-    if memo is not None:
-        meta = copy.deepcopy(memo)  # callers get copies: none can change what the next one gets
-        meta.root = root
-        return meta
+    fingerprint = _meta_fingerprint(root)
+    if time.time_ns() - max(mtime for *_, mtime in fingerprint) < META_MEMO_SETTLED_NS:
+        return _read_metadata(root, repo_id)
+    # A copy each: no caller changes what the next one gets.
+    meta = copy.deepcopy(_settled_metadata(root.resolve(), repo_id, fingerprint))
+    meta.root = root
+    return meta
+
+
+def _read_metadata(root: Path, repo_id: str):
+    """lerobot's ``LeRobotDatasetMetadata`` of the checked local dataset at ``root``."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
     try:
-        meta = LeRobotDatasetMetadata(repo_id, root=root)
+        return LeRobotDatasetMetadata(repo_id, root=root)
     except Exception as error:  # noqa: BLE001 - whatever lerobot trips on, report it by directory
         raise ValueError(
             f"{root / 'meta'}: lerobot {package_version('lerobot')} could not read the dataset metadata "
             f"({_one_line(error)}); restore meta/ from the original dataset or re-record it"
         ) from None
-    if time.time_ns() - max(mtime for _, _, mtime in key[2]) >= META_MEMO_SETTLED_NS:
-        memo = copy.deepcopy(meta)
-        with _META_MEMO_LOCK:
-            _META_MEMO[key] = memo
-            while len(_META_MEMO) > META_MEMO_SIZE:
-                _META_MEMO.popitem(last=False)
-    return meta
 
 
-# Opened local metadata, newest last. lerobot re-reads and re-validates every meta/ parquet file
-# (through `datasets`) on each construction, 0.15-0.4 s, and a run or a study opens the same dataset
-# many times. Keyed by the resolved root, repo_id and meta/'s fingerprint, so any change on disk
-# reloads; failures are never stored. A fingerprint is trusted only once meta/'s files are older than
-# META_MEMO_SETTLED_NS: a file rewritten within one filesystem timestamp tick keeps size and mtime.
-_META_MEMO: collections.OrderedDict = collections.OrderedDict()
-_META_MEMO_LOCK = threading.Lock()
+# lerobot re-reads and re-validates every meta/ parquet file (through `datasets`) on each construction,
+# 0.15-0.4 s, and a run or a study opens the same dataset many times. The memo is keyed by meta/'s
+# fingerprint too, so any change on disk reloads; failures are never stored (lru_cache keeps no
+# exception). A fingerprint is trusted only once meta/'s files are older than META_MEMO_SETTLED_NS: a
+# file rewritten within one filesystem timestamp tick keeps its size and mtime.
 META_MEMO_SIZE = 8
 META_MEMO_SETTLED_NS = 2 * 10**9
+
+
+@functools.lru_cache(maxsize=META_MEMO_SIZE)
+def _settled_metadata(root: Path, repo_id: str, fingerprint: tuple) -> object:
+    """`_read_metadata`, remembered per ``(root, repo_id, fingerprint)`` (the fingerprint: only the key)."""
+    return _read_metadata(root, repo_id)
 
 
 def _meta_fingerprint(root: Path) -> tuple[tuple[str, int, int], ...]:

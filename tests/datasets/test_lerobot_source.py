@@ -1,7 +1,6 @@
 """Reading a LeRobot dataset for the window cache: memory that stays proportional to the columns read,
 metadata opened once per state of meta/."""
 
-import collections
 import json
 import os
 import shutil
@@ -110,8 +109,9 @@ def so101_copy(tmp_path, monkeypatch):
             super().__init__(repo_id, root=root, **options)
 
     monkeypatch.setattr(lerobot_dataset, "LeRobotDatasetMetadata", Counted)
-    monkeypatch.setattr(lerobot_source, "_META_MEMO", collections.OrderedDict())
-    return SimpleNamespace(root=root, constructed=constructed)
+    lerobot_source._settled_metadata.cache_clear()
+    yield SimpleNamespace(root=root, constructed=constructed)
+    lerobot_source._settled_metadata.cache_clear()  # it holds this test's objects
 
 
 def age(path: Path, seconds: float = 60) -> None:
