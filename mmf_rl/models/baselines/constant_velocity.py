@@ -47,9 +47,13 @@ def constant_velocity(target_past: torch.Tensor, horizon: int) -> torch.Tensor:
         tensor([[[2.0000, 1.0000],
                  [3.0000, 1.5000]]])
     """
-    velocity = target_past[:, -1] - target_past[:, -2]
-    steps = torch.arange(1, horizon + 1, dtype=target_past.dtype, device=target_past.device)
-    return target_past[:, -1:] + velocity[:, None] * steps[None, :, None]
+    return extrapolate(target_past[:, -1], target_past[:, -1] - target_past[:, -2], horizon)
+
+
+def extrapolate(position: torch.Tensor, velocity: torch.Tensor, horizon: int) -> torch.Tensor:
+    """``[..., D]`` position and velocity -> ``[..., T, D]`` positions ``1..T`` steps ahead."""
+    steps = torch.arange(1, horizon + 1, dtype=position.dtype, device=position.device)
+    return position.unsqueeze(-2) + velocity.unsqueeze(-2) * steps[:, None]
 
 
 def target_past_of(td: TensorDictBase, reader: str, target_dim: int | None = None) -> torch.Tensor:
@@ -153,11 +157,6 @@ class ConstantVelocity(DeterministicForecaster):
         past = target_past_of(td, "constant velocity")
         return past[:, -1], past[:, -1] - past[:, -2]
 
-    def _extrapolate(self, position: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
-        """``[..., D]`` position and velocity -> ``[..., T, D]`` positions."""
-        steps = torch.arange(1, self.config.horizon + 1, dtype=position.dtype, device=position.device)
-        return position.unsqueeze(-2) + velocity.unsqueeze(-2) * steps[:, None]
-
     def forecast(self, td):
         loc = constant_velocity(target_past_of(td, "constant velocity"), self.config.horizon)
         return loc, torch.ones_like(loc)
@@ -187,6 +186,8 @@ class ConstantVelocity(DeterministicForecaster):
         turned = torch.stack(
             [cos * vx[:, None] - sin * vy[:, None], sin * vx[:, None] + cos * vy[:, None]], -1
         )
-        samples = self._extrapolate(position[:, None].expand_as(turned), turned / self.target_scale)
+        samples = extrapolate(
+            position[:, None].expand_as(turned), turned / self.target_scale, self.config.horizon
+        )
         td.set(keys.FORECAST_SAMPLES, samples)
         return td
