@@ -418,7 +418,8 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         )
         if self.config.nonfinite == "absent":
             keys.mark_nonfinite_absent(td, self.modalities)
-        self.decode_origin(td)
+        if self.config.decode_from == "constant_velocity":
+            self._target_past(td)  # checked before any encoding; extrapolated where decoded
 
     def decode_origin(self, td: TensorDictBase) -> torch.Tensor | None:
         """What every decoded mean of ``td``'s windows is an offset from: ``None`` with
@@ -427,8 +428,10 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         the batch lacks it)."""
         if self.config.decode_from == "zero":
             return None
-        past = target_past_of(td, "decode_from='constant_velocity'", self.config.target_dim)
-        return constant_velocity(past, self.config.horizon)
+        return constant_velocity(self._target_past(td), self.config.horizon)
+
+    def _target_past(self, td: TensorDictBase) -> torch.Tensor:
+        return target_past_of(td, "decode_from='constant_velocity'", self.config.target_dim)
 
     def encode(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """Unimodal encoders -> tokens ``[B, N, d]`` (zeros where absent; ``N`` is the sum of the
