@@ -87,16 +87,14 @@ def evaluate(run_dir: Path, latent: str, args, out_dir: Path | None = None) -> d
 def has_eval_latent(run_dir: Path) -> bool:
     """Whether the run's model has an ``eval_latent`` setting (the forecaster, MVAE; not MulT, LF-LSTM):
     checked before any scoring, so that a latent is not refused halfway through the runs."""
-    import dataclasses
-
     import yaml
 
-    from mmf_rl.models.registry import DEFAULT_MODEL, model_entry
+    from mmf_rl.models.registry import DEFAULT_MODEL, config_settings, model_entry
 
     name = (yaml.safe_load((run_dir / "config.yaml").read_text()).get("model") or {}).get(
         "name", DEFAULT_MODEL
     )
-    return "eval_latent" in {f.name for f in dataclasses.fields(model_entry(name).config_cls)}
+    return "eval_latent" in config_settings(model_entry(name).config_cls)
 
 
 def recalibrated_copies(run_dir: Path, latent: str, args) -> dict[str, Path]:

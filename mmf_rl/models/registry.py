@@ -155,7 +155,7 @@ def build_model(
         "target_dim": target_dim,
     }
     if action_shape is not None:
-        if not {"action_steps", "action_dim"} <= _settings(entry.config_cls):
+        if not {"action_steps", "action_dim"} <= config_settings(entry.config_cls):
             raise ValueError(
                 f"model {name!r} has no action input, but the data config sets `action` (a world model); "
                 "use model=forecaster, or remove `action` from the data config"
@@ -297,7 +297,8 @@ def model_from_saved_config(saved: dict) -> nn.Module:
     return entry.model_cls(config_from_saved(entry.config_cls, cfg))
 
 
-def _settings(config_cls: type) -> set[str]:
+def config_settings(config_cls: type) -> set[str]:
+    """The setting names of a model config class (its dataclass fields)."""
     return {f.name for f in dataclasses.fields(config_cls)}
 
 
@@ -321,9 +322,9 @@ def model_config_with_overrides(saved: dict, overrides: dict | None, where) -> d
     name = saved.get("name", DEFAULT_MODEL)
     entry = model_entry(name)
     given = ", ".join(f"{key}={value}" for key, value in overrides.items())
-    unknown = [key for key in overrides if key not in _settings(entry.config_cls)]
+    unknown = [key for key in overrides if key not in config_settings(entry.config_cls)]
     if unknown:
-        having = sorted(n for n, e in MODELS.items() if set(unknown) <= _settings(e.config_cls))
+        having = sorted(n for n, e in MODELS.items() if set(unknown) <= config_settings(e.config_cls))
         raise ConfigError(
             f"{given}: the {name!r} model of {where} has no setting {', '.join(unknown)}; remove it"
             + (f" (models that have it: {', '.join(having)})" if having else "")
