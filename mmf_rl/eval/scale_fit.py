@@ -202,7 +202,56 @@ def _presence(batch: TensorDictBase, names: list[str], where: str) -> torch.Tens
     return torch.stack([batch.get(keys.present_key(n)).cpu() for n in names], dim=1)
 
 
+@dataclass
+class StandardisedErrors:
+    """A model's standardised errors ``|z|`` under its scale as trained, per presence pattern (the
+    index of :class:`~mmf_rl.models.scale_calibration.PresenceScaleCalibration`): ``windows`` counts
+    each pattern's windows, ``magnitudes`` holds its values ``[windows, T, ...]``; ``names``: the
+    modalities the pattern indices are over."""
+
+    names: list[str]
+    windows: dict[int, int]
+    magnitudes: dict[int, torch.Tensor]
+
+    def pooled(self, other: StandardisedErrors) -> StandardisedErrors:
+        """These errors and ``other``'s together, pattern by pattern (the same modalities, the same
+        horizon and target size)."""
+        if other.names != self.names:
+            raise ValueError(
+                f"errors over modalities {other.names} cannot be pooled with errors over {self.names}: "
+                "the presence patterns would not mean the same"
+            )
+        patterns = sorted(self.windows.keys() | other.windows.keys())
+        magnitudes = {}
+        for index in patterns:
+            parts = [e.magnitudes[index] for e in (self, other) if index in e.magnitudes]
+            if len({part.shape[1:] for part in parts}) > 1:
+                raise ValueError(
+                    f"errors of shapes {[tuple(part.shape[1:]) for part in parts]} (horizon, target) cannot "
+                    "be pooled: the models forecast different futures"
+                )
+            magnitudes[index] = torch.cat(parts)
+        windows = {i: self.windows.get(i, 0) + other.windows.get(i, 0) for i in patterns}
+        return StandardisedErrors(self.names, windows, magnitudes)
+
+
 @torch.no_grad()
+def standardised_errors(
+    model, batches: Iterable[TensorDictBase], device: torch.device | str = "cpu"
+) -> StandardisedErrors:
+    """``model``'s standardised errors on ``batches`` (CPU batches with ``"target"``) under its scale as
+    trained: its factors are reset to ones first. Each (window, pattern) pair the evaluation's
+    presence subsets give counts once."""
+    calibration = _calibration_module(model)
+    names = [s.name for s in model.modalities]
+    calibration.reset()
+    model.to(device).eval()
+    windows, residuals = _standardised_residuals(model, calibration, batches, names, device)
+    if not windows:
+        raise ValueError("no window to fit the scale factors on: the batches are empty")
+    return StandardisedErrors(names, dict(windows), {i: torch.cat(parts) for i, parts in residuals.items()})
+
+
 def fit_scale_calibration(
     model,
     batches: Iterable[TensorDictBase],
@@ -211,30 +260,50 @@ def fit_scale_calibration(
     method: str = DEFAULT_METHOD,
     per_step: bool = False,
 ) -> list[PatternFit]:
-    """Fit ``model.scale_calibration`` in place (see module docstring); one entry per pattern seen.
+    """Fit ``model.scale_calibration`` in place on its own errors on ``batches`` (see module docstring);
+    one entry per pattern seen.
 
     ``batches``: CPU batches with ``"target"`` (e.g. ``WindowDataset.loader("val", ...)``);
     ``method``: a key of :data:`CALIBRATION_METHODS`; ``per_step``: also fit the step factors."""
-    calibration = _calibration_module(model)
+    _check_fit_settings(model, min_windows, method)
+    return fit_to_errors(model, standardised_errors(model, batches, device), min_windows, method, per_step)
+
+
+def _check_fit_settings(model, min_windows: int, method: str) -> None:
+    _calibration_module(model)
     if min_windows < 1:
         raise ValueError(f"min_windows must be >= 1, found {min_windows}")
     if method not in CALIBRATION_METHODS:
         raise ValueError(
             f"unknown calibration method {method!r}: choose among {', '.join(CALIBRATION_METHODS)}"
         )
+
+
+def fit_to_errors(
+    model,
+    errors: StandardisedErrors,
+    min_windows: int = DEFAULT_MIN_WINDOWS,
+    method: str = DEFAULT_METHOD,
+    per_step: bool = False,
+) -> list[PatternFit]:
+    """Fit ``model.scale_calibration`` in place to standardised ``errors``: its own
+    (:func:`fit_scale_calibration`), or those of models like it on data none of them trained on, when
+    the data the model will meet differs from its val split as a held-out scene differs from the
+    training scenes (a cross-fit: the factors say how much wider than its trained scale such a model's
+    errors are there). One entry per pattern of ``errors``; the coverages are those of ``errors``."""
+    calibration = _calibration_module(model)
+    _check_fit_settings(model, min_windows, method)
+    names = [s.name for s in model.modalities]
+    if errors.names != names:
+        raise ValueError(f"errors over modalities {errors.names} cannot calibrate a model of {names}")
     family = output_distribution_of(model)
     with_curve = method in LEVEL_CURVE_METHODS
 
     def factor_of(values: torch.Tensor) -> float:
         return CALIBRATION_METHODS[method](values, family)
 
-    names = [s.name for s in model.modalities]
     calibration.reset()
-    model.to(device).eval()
-    windows, residuals = _standardised_residuals(model, calibration, batches, names, device)
-    if not windows:
-        raise ValueError("no window to fit the scale factors on: the batches are empty")
-    magnitudes = {index: torch.cat(parts) for index, parts in residuals.items()}  # [windows, T, ...]
+    windows, magnitudes = errors.windows, errors.magnitudes
     pooled = sum(windows.values()) >= min_windows
     every_value = torch.cat([m.flatten() for m in magnitudes.values()])
     pooled_factor = factor_of(every_value) if pooled else 1.0

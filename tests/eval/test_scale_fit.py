@@ -35,7 +35,9 @@ from mmf_rl.eval.scale_fit import (
     coverage_factor,
     fit_scale_calibration,
     fit_table,
+    fit_to_errors,
     level_curve,
+    standardised_errors,
     temperature_factor,
     unfit_for_latent,
 )
@@ -109,6 +111,35 @@ def test_the_fit_recovers_a_known_miscalibration_per_pattern(method):
     # A refit starts from the uncalibrated scale: the same factors, not their square.
     again = fit_scale_calibration(model, data, min_windows=32, method=method)
     assert [f.factor for f in again] == [f.factor for f in fits]
+
+
+def test_a_cross_fit_calibrates_a_model_by_the_errors_of_others_on_data_none_trained_on():
+    # Two models as wide as each other, the one fitted on the other's errors on wider data (a held-out
+    # scene) and on a third's: its factors are theirs, not those of its own (narrower) val errors.
+    sigma = torch.full((8,), 0.5)
+    shifted = [batches(2, seed=10 * i) for i in (1, 2)]
+    for data in shifted:
+        for batch in data:
+            batch.set(keys.TARGET, 2 * batch.get(keys.TARGET))  # errors twice the val ones
+    first, second = (standardised_errors(FixedGaussian(sigma), data) for data in shifted)
+    pooled = first.pooled(second)
+    assert pooled.windows == {i: 200 for i in range(1, 8)}
+    assert all(pooled.magnitudes[i].shape == (200, HORIZON, TARGET_DIM) for i in range(1, 8))
+    model = FixedGaussian(sigma)
+    fit_scale_calibration(model, batches(4), min_windows=32, method="levels")
+    own = model.scale_calibration.factors.clone()
+    fits = fit_to_errors(model, pooled, min_windows=32, method="levels")
+    assert [f.windows for f in fits] == [200] * 7
+    assert torch.allclose(model.scale_calibration.factors[1:], 2 * own[1:], rtol=0.08)
+    # Pooling errors over other modalities, or of another horizon, is refused with what differs.
+    other = SimpleNamespace(names=NAMES[::-1], windows={}, magnitudes={})
+    with pytest.raises(ValueError, match="cannot be pooled"):
+        first.pooled(other)
+    longer = type(first)(NAMES, {1: 3}, {1: torch.ones(3, HORIZON + 1, TARGET_DIM)})
+    with pytest.raises(ValueError, match=r"shapes .* cannot be pooled"):
+        first.pooled(longer)
+    with pytest.raises(ValueError, match="cannot calibrate a model of"):
+        fit_to_errors(model, type(first)(NAMES[:1], first.windows, first.magnitudes))
 
 
 def test_heavy_tailed_errors_the_coverage_fit_holds_90_percent_where_the_temperature_over_covers():
