@@ -120,25 +120,84 @@ def test_learned_sampler_samples_shift_alike(data, windows):
     torch.testing.assert_close(moved, samples + origin_of(shifted, windows)[:, None])
 
 
-def test_training_decodes_shift_alike(data, windows):
-    """Train mode: the posterior decode, the L_mis student's, the GSNN and best-of-K prior decodes."""
-    plain, shifted = same_weights(data, prior="learned")
+@pytest.mark.parametrize("posterior_reads", ["residual", "target"])
+def test_training_decodes_shift_alike(data, windows, posterior_reads):
+    """Train mode: the posterior decode, the L_mis student's, the GSNN and best-of-K prior decodes. The
+    model decoding from zero reads the future its twin's posterior reads: the residual, or the target."""
+    plain, shifted = same_weights(data, prior="learned", posterior_reads=posterior_reads)
+    cv = origin_of(shifted, windows)
     td = windows.clone()
     for i, spec in enumerate(plain.modalities):
         td.set(keys.drop_key(spec.name), torch.full((td.shape[0],), i == 0))
     td.set(keys.DECODE_FROM_PRIOR, torch.ones(td.shape[0], dtype=torch.bool))
     td.set(keys.DECODE_PRIOR_DRAWS, torch.ones(td.shape[0], 2, dtype=torch.bool))
+    plain_td = td.clone()
+    if posterior_reads == "residual":
+        plain_td.set(keys.TARGET, td[keys.TARGET] - cv)
     outs = []
-    for model in (plain, shifted):
+    for model, batch in ((plain, plain_td), (shifted, td)):
         model.train()
         torch.manual_seed(2)
         with torch.no_grad():
-            outs.append(model(td.clone()))
-    cv = origin_of(shifted, windows)
+            outs.append(model(batch.clone()))
+    torch.testing.assert_close(outs[1][keys.POSTERIOR_LOC], outs[0][keys.POSTERIOR_LOC])
     for key in (keys.FORECAST_LOC, keys.FORECAST_DROPPED_LOC, keys.FORECAST_FROM_PRIOR_LOC):
         torch.testing.assert_close(outs[1][key], outs[0][key] + cv)
     torch.testing.assert_close(
         outs[1][keys.FORECAST_FROM_PRIOR_SAMPLES], outs[0][keys.FORECAST_FROM_PRIOR_SAMPLES] + cv[:, None]
+    )
+
+
+def with_another_extrapolation(windows) -> tuple[torch.Tensor, torch.Tensor]:
+    """``windows`` with the last step of ``"target_past"`` moved (a new velocity, so a new extrapolation)
+    and ``"target"`` moved by as much as the extrapolation: the same residual future."""
+    moved = windows.clone()
+    past = moved[keys.TARGET_PAST].clone()
+    past[:, -1] += torch.tensor([0.5, -0.3])
+    moved.set(keys.TARGET_PAST, past)
+    horizon = windows[keys.TARGET].shape[1]
+    shift = constant_velocity(past, horizon) - constant_velocity(windows[keys.TARGET_PAST], horizon)
+    assert shift.abs().min() > 0.1
+    moved.set(keys.TARGET, windows[keys.TARGET] + shift)
+    return moved
+
+
+@pytest.mark.parametrize("posterior_reads", ["residual", "target"])
+def test_the_posterior_reads_the_residual_future_by_default(data, windows, posterior_reads):
+    """Two batches whose futures differ by their extrapolations: the posterior that reads the residual is
+    the same for both; the one that reads the target is not."""
+    model = forecaster(
+        data, decode_from="constant_velocity", prior="learned", posterior_reads=posterior_reads
+    )
+    with torch.no_grad():
+        a, b = model(windows.clone()), model(with_another_extrapolation(windows))
+    torch.testing.assert_close(b[keys.PRIOR_LOC], a[keys.PRIOR_LOC])  # X is the same
+    same = torch.allclose(b[keys.POSTERIOR_LOC], a[keys.POSTERIOR_LOC], atol=1e-5)
+    assert same == (posterior_reads == "residual")
+
+
+def test_a_few_elbo_steps_on_the_fold_with_a_posterior_of_the_residual(data, windows):
+    """The posterior of the residual trains: on real windows the ELBO falls, its KL stays finite and
+    positive, and the posterior's target encoder learns."""
+    from mmf_rl.objectives import ELBOLoss
+
+    model = forecaster(data, decode_from="constant_velocity", prior="learned").train()
+    loss = ELBOLoss(model)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    encoder_before = [p.detach().clone() for p in model.target_encoder.parameters()]
+    totals = []
+    for step in range(8):
+        torch.manual_seed(step)
+        out = loss(windows.clone())
+        total = out["loss_nll"] + out["loss_kl"]
+        assert torch.isfinite(total) and out["kl"] > 0
+        totals.append(total.item())
+        optimizer.zero_grad()
+        total.backward()
+        optimizer.step()
+    assert totals[-1] < totals[0]
+    assert any(
+        not torch.equal(p, q) for p, q in zip(model.target_encoder.parameters(), encoder_before, strict=True)
     )
 
 
@@ -166,9 +225,17 @@ def test_the_option_is_checked_and_a_config_saved_without_it_decodes_from_zero(d
     config = forecaster(data, decode_from="constant_velocity").config
     saved = {k: v for k, v in config.to_dict().items() if k != "decode_from"}
     assert ForecasterConfig.from_saved_dict(saved).decode_from == "zero"
+    # A model saved before posterior_reads existed read the target: it loads reading it still.
+    saved = {k: v for k, v in config.to_dict().items() if k != "posterior_reads"}
+    assert (config.posterior_reads, ForecasterConfig.from_saved_dict(saved).posterior_reads) == (
+        "residual",
+        "target",
+    )
     assert ForecasterConfig.from_dict(config.to_dict()) == config
     with pytest.raises(ValueError, match=r"decode_from must be one of \('zero', 'constant_velocity'\)"):
         dataclasses.replace(config, decode_from="cv")
+    with pytest.raises(ValueError, match=r"posterior_reads must be one of \('target', 'residual'\)"):
+        dataclasses.replace(config, posterior_reads="offset")
     with pytest.raises(ValueError, match=r"needs history >= 2, found history=1"):
         dataclasses.replace(config, history=1)
     with pytest.raises(ValueError, match=r"not supported by a world model .*decode_under_actions"):
@@ -189,6 +256,7 @@ def test_a_few_training_steps_on_the_fold_train_and_evaluate(eth, tmp_path):
             f"data.image_size=[{IMAGE},{IMAGE}]",
             *[f"model.{k}={v}" for k, v in SMALL.items()],
             "model.decode_from=constant_velocity",
+            "model.prior=learned",  # its posterior reads the future: the residual one
             f"run_dir={run}",
             "trainer.total_steps=3",
             "trainer.batch_size=16",
@@ -201,9 +269,10 @@ def test_a_few_training_steps_on_the_fold_train_and_evaluate(eth, tmp_path):
             "num_workers=1",
         ]
     )
-    assert load_checkpoint(run / "checkpoints").meta["model_config"]["decode_from"] == "constant_velocity"
+    saved = load_checkpoint(run / "checkpoints").meta["model_config"]
+    assert (saved["decode_from"], saved["posterior_reads"]) == ("constant_velocity", "residual")
     summary = mmf_rl.evaluate(
         overrides=[f"checkpoint={run}", "num_samples=3", "plots=false", "batch_size=64"]
     )
     row, reference = summary["subsets"]["all"], summary["constant_velocity"]
-    assert torch.isfinite(torch.tensor([row["ade"], row["min_ade_k"], reference["ade"]])).all()
+    assert torch.isfinite(torch.tensor([row["ade"], row["min_ade_k"], row["kl"], reference["ade"]])).all()

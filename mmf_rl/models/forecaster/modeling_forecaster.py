@@ -37,7 +37,10 @@ Open points of the paper, and what this implementation does:
   ``y`` as input". By default we follow the equations: ``q(z|X)``. With
   ``posterior_uses_target=True``, ``y`` (flattened ``T × D``) goes through an MLP to a
   ``d``-vector concatenated to the flattened modality-agnostic output before the posterior head
-  (a CVAE's ``q(z|X, y)``; ``ForecasterConfig`` says why it is not the default).
+  (a CVAE's ``q(z|X, y)``; ``ForecasterConfig`` says why it is not the default). That ``y`` is what
+  the decoder must produce (:meth:`MultimodalForecaster.posterior_future`): with
+  ``decode_from="constant_velocity"``, its offset from the extrapolation (``posterior_reads="residual"``,
+  the default; ``"target"``, the raw ``y``, is how models saved before the setting load).
 * **Inference.** ``z`` from the prior: ``forward`` in eval mode uses the prior's mean by
   default (deterministic forecasts for RL and metrics); :meth:`sample` draws ``K`` latents for
   best-of-K. ``eval_latent="predictive"`` decodes ``K`` fixed prior draws in one batched pass
@@ -93,9 +96,10 @@ Open points of the paper, and what this implementation does:
   ``"target_past"`` (in the normalised target frame, which is the normalised extrapolation in the
   target's units: :func:`~mmf_rl.models.baselines.constant_velocity.constant_velocity`): the decoder
   learns corrections to constant velocity. The shift is common to the ``K`` decodes of a row, so the
-  moment-matched scale is unchanged. :meth:`MultimodalForecaster.decode` stays the decoder's own
-  output (the offset); :meth:`MultimodalForecaster.forecast_from_tokens`, which reads no target past,
-  refuses such a model.
+  moment-matched scale is unchanged. A posterior that reads ``y`` reads its offset from the
+  extrapolation, what the decoder produces (reading ``y`` itself, the latent fell silent on ETH/UCY).
+  :meth:`MultimodalForecaster.decode` stays the decoder's own output (the offset);
+  :meth:`MultimodalForecaster.forecast_from_tokens`, which reads no target past, refuses such a model.
 """
 
 from __future__ import annotations
@@ -537,9 +541,10 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             return self.fusion.mix(tokens, self.token_absent(present), self.token_modality)
         return tokens
 
-    def posterior(self, tokens: torch.Tensor, present: torch.Tensor, target: torch.Tensor | None):
-        """``q(z | X[, y])``: ``loc``, ``scale`` ``[B, d_z]``."""
-        return self._posterior_from(self.fuse(tokens, present), target)
+    def posterior(self, tokens: torch.Tensor, present: torch.Tensor, future: torch.Tensor | None):
+        """``q(z | X[, y])``: ``loc``, ``scale`` ``[B, d_z]``. ``future`` is the target as the posterior
+        reads it, :meth:`posterior_future` of the batch (``None`` for a posterior of ``X`` alone)."""
+        return self._posterior_from(self.fuse(tokens, present), future)
 
     def prior(
         self, tokens: torch.Tensor, present: torch.Tensor, decoder_tokens: torch.Tensor | None = None
@@ -550,14 +555,23 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
             return self._prior_from(None, tokens.shape[0], tokens.device)
         return self._prior_from(self.fuse(tokens, present, decoder_tokens), tokens.shape[0], tokens.device)
 
-    def _posterior_from(self, features: torch.Tensor, target: torch.Tensor | None):
+    def posterior_future(self, td: TensorDictBase, origin: torch.Tensor | None = None) -> torch.Tensor | None:
+        """What the posterior ``q(z | X, y)`` reads of ``td``'s future ``[B, T, D]``: its ``"target"``, or
+        with ``posterior_reads="residual"`` the target minus ``origin`` (:meth:`decode_origin`, computed
+        when not given), the offset the decoder must produce; ``None`` when ``td`` has no target."""
+        target = td.get(keys.TARGET, None)
+        if target is None or self.config.posterior_reads == "target" or self.config.decode_from == "zero":
+            return target
+        return target - (self.decode_origin(td) if origin is None else origin)
+
+    def _posterior_from(self, features: torch.Tensor, future: torch.Tensor | None):
         if self.target_encoder is not None:
-            if target is None:
+            if future is None:
                 raise KeyError(
                     f"the posterior q(z|X, y) needs {keys.TARGET!r} in the batch (in eval mode the "
                     "forecast needs no target; in training it does)"
                 )
-            features = torch.cat([features, self.target_encoder(target.flatten(1))], dim=-1)
+            features = torch.cat([features, self.target_encoder(future.flatten(1))], dim=-1)
         return latent_gaussian(self.posterior_head(features))
 
     def _prior_from(self, features: torch.Tensor | None, rows: int, device: torch.device):
@@ -687,8 +701,9 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         self.validate(td, require_target=self.training and self.target_encoder is not None)
         tokens, present = self.encode(td)
         tokens_kept, kept = self._student_input(td, tokens, present)
-        target = td.get(keys.TARGET, None)
-        wants_posterior = target is not None or self.target_encoder is None
+        origin = self.decode_origin(td)
+        future = self.posterior_future(td, origin)
+        wants_posterior = future is not None or self.target_encoder is None
         prepared = self.decoder_tokens(tokens, present)
         prepared_kept = None
         if kept is not None:
@@ -696,14 +711,15 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         features, prior_loc, prior_scale = self._fuse_with_prior(
             td, (tokens, present, prepared), (tokens_kept, kept, prepared_kept), wants_posterior
         )
-        z = self._forward_latent(td, features, target, wants_posterior, (prior_loc, prior_scale))
-        self._decode_into(td, (present, prepared), (kept, prepared_kept), z, (prior_loc, prior_scale))
+        z = self._forward_latent(td, features, future, wants_posterior, (prior_loc, prior_scale))
+        self._decode_into(td, (present, prepared), (kept, prepared_kept), z, (prior_loc, prior_scale), origin)
         return td
 
-    def _decode_into(self, td: TensorDictBase, full, student, z: torch.Tensor, prior) -> None:
+    def _decode_into(self, td: TensorDictBase, full, student, z: torch.Tensor, prior, origin) -> None:
         """Every decode of this pass, in one decoder call, written to ``td``: the full input at ``z``;
-        the L_mis student at the same ``z``; the requested prior draws. ``full`` and ``student`` are
-        (token presence, decoder tokens), the student's ``(None, None)`` without ``("drop", m)``."""
+        the L_mis student at the same ``z``; the requested prior draws; each an offset from ``origin``
+        (:meth:`decode_origin`). ``full`` and ``student`` are (token presence, decoder tokens), the
+        student's ``(None, None)`` without ``("drop", m)``."""
         (present, prepared), (kept, prepared_kept), (prior_loc, prior_scale) = full, student, prior
         batch = present.shape[0]
         # A decode is a presence [B, M], its decoder tokens and its latents, B rows or K blocks of B.
@@ -720,7 +736,6 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
                 (present, prepared, prior_loc.repeat(draws, 1) + prior_scale.repeat(draws, 1) * noise)
             )
         decoded = self._decode_all(decodes, self.embed_actions(td), batch)
-        origin = self.decode_origin(td)
         if origin is not None:  # every decode of row b (rows k * B + b) is an offset from row b's origin
             decoded = [(loc + origin.repeat(loc.shape[0] // batch, 1, 1), scale) for loc, scale in decoded]
         if draws:  # kept apart, not mixed: the loss scores each draw's forecast
@@ -795,13 +810,13 @@ class MultimodalForecaster(TensorDictModuleBase, PretrainedModel):
         return features, prior_loc, prior_scale
 
     def _forward_latent(
-        self, td: TensorDictBase, features, target, wants_posterior: bool, prior
+        self, td: TensorDictBase, features, future, wants_posterior: bool, prior
     ) -> torch.Tensor:
         """The latent the forward decodes (a posterior draw in training, else ``eval_latent``'s),
-        with the posterior written to ``td`` when it is computed."""
+        with the posterior (of ``future``, :meth:`posterior_future`) written to ``td`` when it is computed."""
         prior_loc, prior_scale = prior
         if wants_posterior:
-            post_loc, post_scale = self._posterior_from(features, target)
+            post_loc, post_scale = self._posterior_from(features, future)
             td.set(keys.POSTERIOR_LOC, post_loc)
             td.set(keys.POSTERIOR_SCALE, post_scale)
         if self.training:
