@@ -1,5 +1,5 @@
-"""`mmf-rl bench accuracy|bc|calibration|data|ethucy|humanoid|latch|model|mpc|mult_gap|robust_training|
-step_cost [args]`: the scripts of command line.
+"""`mmf-rl bench accuracy|bc|calibration|data|ethucy|ethucy_calibration|humanoid|latch|model|mpc|mult_gap|
+robust_training|step_cost [args]`: the scripts of command line.
 
 Each runs ``benchmarks/<script>.py`` of the repository checkout with the arguments that follow
 (``mmf-rl bench data --help`` shows them) and ends with that script's summary line. The scripts
@@ -38,6 +38,10 @@ BENCHMARKS = {
         "architecture x training for missing sensors; the forecaster best in every subset, chosen on val",
     ),
     "ethucy": ("ethucy.py", "ETH/UCY pedestrians, 5 leave-one-scene-out folds: minADE20/minFDE20 in metres"),
+    "ethucy_calibration": (
+        "ethucy_calibration.py",
+        "ETH/UCY: interval coverage on the held-out scene, fitted on val or on held-out training scenes",
+    ),
 }
 EXAMPLES = [
     "mmf-rl bench model --steps 5",

@@ -55,7 +55,7 @@ def test_bench_names_the_benchmarks_and_refuses_unknown_ones(capsys):
     assert "invalid choice: 'speed'" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("benchmark", ["data", "model", "mpc", "bc", "accuracy"])
+@pytest.mark.parametrize("benchmark", ["data", "model", "mpc", "bc", "accuracy", "ethucy_calibration"])
 def test_bench_passes_help_to_the_script(benchmark, capsys):
     assert cli(["bench", benchmark, "--help"]) == 0
     assert capsys.readouterr().out.startswith(f"usage: {BENCHMARKS[benchmark][0]}")  # runpy names the script
