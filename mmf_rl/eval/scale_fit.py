@@ -279,6 +279,7 @@ def _check_fit_settings(model, min_windows: int, method: str) -> None:
         )
 
 
+@torch.no_grad()  # the factors are written in place: never from values carrying a graph
 def fit_to_errors(
     model,
     errors: StandardisedErrors,
@@ -296,6 +297,13 @@ def fit_to_errors(
     names = [s.name for s in model.modalities]
     if errors.names != names:
         raise ValueError(f"errors over modalities {errors.names} cannot calibrate a model of {names}")
+    if not errors.windows:
+        raise ValueError("no window to fit the scale factors on: the errors are empty")
+    horizon = calibration.step_factors.shape[1]
+    if other := sorted({m.shape[1] for m in errors.magnitudes.values()} - {horizon}):
+        raise ValueError(
+            f"errors over {other[0]} horizon steps cannot calibrate a model forecasting {horizon} steps"
+        )
     family = output_distribution_of(model)
     with_curve = method in LEVEL_CURVE_METHODS
 
