@@ -326,12 +326,13 @@ def fit_to_errors(
             by_step = torch.tensor([factor_of(values[:, step].flatten()) for step in range(values.shape[1])])
             calibration.step_factors[index] = by_step / factor
         applied = calibration.factors[index] * calibration.step_factors[index]  # as the model multiplies
-        applied = applied.double().view(1, -1, *[1] * (values.dim() - 2))
+        # On the CPU, where the errors are: the model (its factors) may be on another device.
+        applied = applied.double().cpu().view(1, -1, *[1] * (values.dim() - 2))
         curve = level_curve(values / applied, family) if fitted and with_curve else pooled_curve
         if curve is not None:
             calibration.level_factors[index] = curve
         half_widths = level_half_widths(
-            calibration.level_factors[index].double(), (LEVEL_50, LEVEL_90), family
+            calibration.level_factors[index].double().cpu(), (LEVEL_50, LEVEL_90), family
         )
         before = [family.half_width(level) for level in (LEVEL_50, LEVEL_90)]
         fits.append(
