@@ -18,10 +18,12 @@ of held-out scenes (`benchmarks.pedestrians.sealed`: three training scenes). The
    scored on the test scene in the benchmark's four modes: 50% and 90% coverage, 90% width (m), CRPS.
 
 Completed runs under ``--out`` are reused when their recipe is this one (as ``bench ethucy`` checks
-them); ``--out`` can be a ``bench ethucy --select`` output, whose inner runs of the unselected recipe
-are the pair models. Writes ``<out>/calibration.md`` and ``<out>/calibration.json``; ends with one line:
-``summary: test 90% coverage (val fit | held-out-scene fit) FOLD a-b | c-d ...; within 0.85-0.95: N | M
-of 5 folds; 90% factor each scene needs: SCENE x-y ...``.
+them); ``--out`` can be a ``bench ethucy --quick`` output. A ``bench ethucy --select`` output is refused
+when the selection chose an option the paper model reads (its fold rows record the choice, which this
+recipe does not make), though its inner runs of the unselected values would serve as the pair models.
+Writes ``<out>/calibration.md`` and ``<out>/calibration.json``; ends with one line: ``summary: test 90%
+coverage (val | held-out scenes fit) FOLD a-b | c-d ...; within 0.85-0.95: N | M of 5 folds; 90% factor
+each scene needs: SCENE x-y ...``.
 """
 
 from __future__ import annotations
