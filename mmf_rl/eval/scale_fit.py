@@ -240,8 +240,9 @@ def standardised_errors(
     model, batches: Iterable[TensorDictBase], device: torch.device | str = "cpu"
 ) -> StandardisedErrors:
     """``model``'s standardised errors on ``batches`` (CPU batches with ``"target"``) under its scale as
-    trained: its factors are reset to ones first. Each (window, pattern) pair the evaluation's
-    presence subsets give counts once."""
+    trained: its factors are reset to ones first, in place (the model is left uncalibrated, moved to
+    ``device`` and in eval mode). Each (window, pattern) pair the evaluation's presence subsets give
+    counts once."""
     calibration = _calibration_module(model)
     names = [s.name for s in model.modalities]
     calibration.reset()
