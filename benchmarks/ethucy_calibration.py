@@ -18,10 +18,12 @@ of held-out scenes (`benchmarks.pedestrians.sealed`: three training scenes). The
    scored on the test scene in the benchmark's four modes: 50% and 90% coverage, 90% width (m), CRPS.
 
 Completed runs under ``--out`` are reused when their recipe is this one (as ``bench ethucy`` checks
-them); ``--out`` can be a ``bench ethucy --select`` output, whose inner runs of the unselected recipe
-are the pair models. Writes ``<out>/calibration.md`` and ``<out>/calibration.json``; ends with one line:
-``summary: test 90% coverage (val fit | held-out-scene fit) FOLD a-b | c-d ...; within 0.85-0.95: N | M
-of 5 folds; 90% factor each scene needs: SCENE x-y ...``.
+them); ``--out`` can be a ``bench ethucy --quick`` output. A ``bench ethucy --select`` output is refused
+when the selection chose an option the paper model reads (its fold rows record the choice, which this
+recipe does not make), though its inner runs of the unselected values would serve as the pair models.
+Writes ``<out>/calibration.md`` and ``<out>/calibration.json``; ends with one line: ``summary: test 90%
+coverage (val | held-out scenes fit) FOLD a-b | c-d ...; within 0.85-0.95: N | M of 5 folds; 90% factor
+each scene needs: SCENE x-y ...``.
 """
 
 from __future__ import annotations
@@ -36,8 +38,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks import ethucy as bench  # noqa: E402
-from benchmarks.pedestrians.recipe import PAPER, QUICK, completed, recipe, run_path, stale_run  # noqa: E402
-from benchmarks.pedestrians.runs import fold_config, fold_data, scene_data, train_run  # noqa: E402
+from benchmarks.pedestrians.recipe import PAPER, QUICK, completed, run_path, stale_run  # noqa: E402
+from benchmarks.pedestrians.runs import fold_config, fold_data, scene_data  # noqa: E402
 from benchmarks.pedestrians.scoring import MODES  # noqa: E402
 from benchmarks.pedestrians.sealed import inner_run, write_held_out_configs  # noqa: E402
 from benchmarks.pedestrians.selection import held_out_pairs, inner_splits, pair_scenes  # noqa: E402
@@ -66,7 +68,6 @@ def train_all(args: argparse.Namespace) -> None:
     """Every fold's model and every pair's, trained unless completed; completed runs of another recipe
     refused before anything trains."""
     from mmf_rl.datasets.ethucy import FOLDS
-    from mmf_rl.eval.report import write_json
 
     budget = replace(QUICK, folds=tuple(FOLDS))
     runs = [(fold, None) for fold in FOLDS] + [(pair, {}) for pair in held_out_pairs(FOLDS, FOLDS)]
@@ -80,9 +81,9 @@ def train_all(args: argparse.Namespace) -> None:
         if candidate is not None:
             inner_run(args, budget, run, PAPER, candidate)
         elif completed(args, run, PAPER) is None:
-            _, seconds = train_run(args, budget, run, PAPER, None)
-            result = {"recipe": recipe(args, budget, run, PAPER), "train_seconds": seconds}
-            write_json(run_path(args, run, PAPER) / "scores.json", result)
+            # As `bench ethucy` trains and scores a fold's row: its scores.json is that benchmark's, which
+            # reuses it (a record without the scores would break its table).
+            bench.run_trained(args, budget, run, PAPER, fold_data(args, run)[0])
 
 
 def held_out_errors(args: argparse.Namespace) -> dict[tuple[str, str], object]:

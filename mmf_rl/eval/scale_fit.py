@@ -240,8 +240,9 @@ def standardised_errors(
     model, batches: Iterable[TensorDictBase], device: torch.device | str = "cpu"
 ) -> StandardisedErrors:
     """``model``'s standardised errors on ``batches`` (CPU batches with ``"target"``) under its scale as
-    trained: its factors are reset to ones first. Each (window, pattern) pair the evaluation's
-    presence subsets give counts once."""
+    trained: its factors are reset to ones first, in place (the model is left uncalibrated, moved to
+    ``device`` and in eval mode). Each (window, pattern) pair the evaluation's presence subsets give
+    counts once."""
     calibration = _calibration_module(model)
     names = [s.name for s in model.modalities]
     calibration.reset()
@@ -279,6 +280,7 @@ def _check_fit_settings(model, min_windows: int, method: str) -> None:
         )
 
 
+@torch.no_grad()  # the factors are written in place: never from values carrying a graph
 def fit_to_errors(
     model,
     errors: StandardisedErrors,
@@ -296,6 +298,13 @@ def fit_to_errors(
     names = [s.name for s in model.modalities]
     if errors.names != names:
         raise ValueError(f"errors over modalities {errors.names} cannot calibrate a model of {names}")
+    if not errors.windows:
+        raise ValueError("no window to fit the scale factors on: the errors are empty")
+    horizon = calibration.step_factors.shape[1]
+    if other := sorted({m.shape[1] for m in errors.magnitudes.values()} - {horizon}):
+        raise ValueError(
+            f"errors over {other[0]} horizon steps cannot calibrate a model forecasting {horizon} steps"
+        )
     family = output_distribution_of(model)
     with_curve = method in LEVEL_CURVE_METHODS
 
@@ -318,12 +327,13 @@ def fit_to_errors(
             by_step = torch.tensor([factor_of(values[:, step].flatten()) for step in range(values.shape[1])])
             calibration.step_factors[index] = by_step / factor
         applied = calibration.factors[index] * calibration.step_factors[index]  # as the model multiplies
-        applied = applied.double().view(1, -1, *[1] * (values.dim() - 2))
+        # On the CPU, where the errors are: the model (its factors) may be on another device.
+        applied = applied.double().cpu().view(1, -1, *[1] * (values.dim() - 2))
         curve = level_curve(values / applied, family) if fitted and with_curve else pooled_curve
         if curve is not None:
             calibration.level_factors[index] = curve
         half_widths = level_half_widths(
-            calibration.level_factors[index].double(), (LEVEL_50, LEVEL_90), family
+            calibration.level_factors[index].double().cpu(), (LEVEL_50, LEVEL_90), family
         )
         before = [family.half_width(level) for level in (LEVEL_50, LEVEL_90)]
         fits.append(

@@ -51,3 +51,21 @@ def test_a_fold_is_within_the_band_only_when_every_mode_is():
     assert line.endswith("90% factor each scene needs: eth 7.20-7.90 hotel 2.30-2.50")
     page = bench.markdown(factors, folds)
     assert "| eth | 7.20-7.90 |" in page and "| hotel | held-out scenes | 0.50-0.50 | 0.90-0.96 |" in page
+
+
+def test_a_fold_run_is_trained_and_scored_as_bench_ethucy_does_so_that_it_can_reuse_it(tmp_path, monkeypatch):
+    # bench ethucy reuses a completed fold row by its scores.json, scores and all: this benchmark's fold
+    # runs are made by the same function; the pair models are the selection's inner runs.
+    args = bench.parse_args(["--out", str(tmp_path / "out"), "--data", str(tmp_path / "data")])
+    made = []
+    monkeypatch.setattr(bench.bench, "ensure_data", lambda *a: 0.0)
+    monkeypatch.setattr(bench, "write_held_out_configs", lambda *a: None)
+    monkeypatch.setattr(bench, "fold_data", lambda args, fold: (f"data of {fold}", {}))
+    monkeypatch.setattr(bench, "inner_run", lambda args, budget, pair, *rest: made.append(("inner", pair)))
+    monkeypatch.setattr(
+        bench.bench, "run_trained", lambda args, budget, fold, label, data: made.append((label, data))
+    )
+    bench.train_all(args)
+    folds = [m for m in made if m[0] != "inner"]
+    assert folds == [(bench.PAPER, f"data of {fold}") for fold in ("eth", "hotel", "univ", "zara1", "zara2")]
+    assert len(made) - len(folds) == 10

@@ -140,6 +140,15 @@ def test_a_cross_fit_calibrates_a_model_by_the_errors_of_others_on_data_none_tra
         first.pooled(longer)
     with pytest.raises(ValueError, match="cannot calibrate a model of"):
         fit_to_errors(model, type(first)(NAMES[:1], first.windows, first.magnitudes))
+    # Errors of another horizon than the model's, or none, are refused with what is wrong.
+    with pytest.raises(ValueError, match=f"over {HORIZON + 1} horizon steps .* forecasting {HORIZON}"):
+        fit_to_errors(model, longer)
+    with pytest.raises(ValueError, match="the errors are empty"):
+        fit_to_errors(model, type(first)(NAMES, {}, {}))
+    # Errors carrying a graph leave the factors plain buffers.
+    carrying = {i: m.clone().requires_grad_() for i, m in pooled.magnitudes.items()}
+    fit_to_errors(model, type(first)(NAMES, pooled.windows, carrying), min_windows=32, method="levels")
+    assert not any(b.requires_grad for b in model.scale_calibration.buffers())
 
 
 def test_heavy_tailed_errors_the_coverage_fit_holds_90_percent_where_the_temperature_over_covers():
