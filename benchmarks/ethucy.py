@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/ethucy.py --quick      # 3 folds, short training (QUICK)
     .venv/bin/python benchmarks/ethucy.py              # the 5 folds (FULL)
     .venv/bin/python benchmarks/ethucy.py --seed 1 --out runs/bench_ethucy_seed1   # another training seed
+    .venv/bin/python benchmarks/ethucy.py --seeds 0 1 2 --out runs/bench_ethucy_seeds   # over 3 seeds
     .venv/bin/python benchmarks/ethucy.py --window-set social_gan --out runs/bench_ethucy_sgan
     mmf-rl bench ethucy --quick --out runs/bench_ethucy_quick
     mmf-rl bench ethucy --select augment=lerobot,none --select augment.rotation=0,180 \
@@ -57,7 +58,13 @@ compute it again. Writes ``<out>/results.md``,
 line:
 ``summary: paper model minADE20/minFDE20 avg A/F (without scene A/F, without neighbours A/F);
 constant velocity A/F; best baseline NAME A/F (MODE; window set WINDOW_SET; PROTOCOL)``, PROTOCOL
-``sealed`` or ``probe, seen test: OPTION=VALUE, ... given by hand``.
+``sealed`` or ``probe, seen test: OPTION=VALUE, ... given by hand``. ``--seeds N ...`` runs each seed
+as ``--seed N --out <out>/seed<N>`` does (completed runs reused), then writes ``<out>/results.{md,json}``
+with, per scene and of each average over scenes (the per-seed averages'), the mean and the range
+(max - min: with three seeds no std is claimed) over the seeds, and the seeds' summary lines; its line:
+``summary: paper model minADE20/minFDE20 avg A/F ±a/f over seeds 0,1,2 (without scene A/F ±a/f, without
+neighbours A/F ±a/f); constant velocity A/F; best baseline NAME A/F ±a/f (MODE; window set WINDOW_SET;
+PROTOCOL; ± range: max - min over the seeds)``, each A/F a mean over the seeds, each a/f its range.
 """
 
 from __future__ import annotations
