@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/ethucy.py --quick      # 3 folds, short training (QUICK)
     .venv/bin/python benchmarks/ethucy.py              # the 5 folds (FULL)
     .venv/bin/python benchmarks/ethucy.py --seed 1 --out runs/bench_ethucy_seed1   # another training seed
+    .venv/bin/python benchmarks/ethucy.py --seeds 0 1 2 --out runs/bench_ethucy_seeds   # over 3 seeds
     .venv/bin/python benchmarks/ethucy.py --window-set social_gan --out runs/bench_ethucy_sgan
     mmf-rl bench ethucy --quick --out runs/bench_ethucy_quick
     mmf-rl bench ethucy --select augment=lerobot,none --select augment.rotation=0,180 \
@@ -57,7 +58,13 @@ compute it again. Writes ``<out>/results.md``,
 line:
 ``summary: paper model minADE20/minFDE20 avg A/F (without scene A/F, without neighbours A/F);
 constant velocity A/F; best baseline NAME A/F (MODE; window set WINDOW_SET; PROTOCOL)``, PROTOCOL
-``sealed`` or ``probe, seen test: OPTION=VALUE, ... given by hand``.
+``sealed`` or ``probe, seen test: OPTION=VALUE, ... given by hand``. ``--seeds N ...`` runs each seed
+as ``--seed N --out <out>/seed<N>`` does (completed runs reused), then writes ``<out>/results.{md,json}``
+with, per scene and of each average over scenes (the per-seed averages'), the mean and the range
+(max - min: with three seeds no std is claimed) over the seeds, and the seeds' summary lines; its line:
+``summary: paper model minADE20/minFDE20 avg A/F ±a/f over seeds 0,1,2 (without scene A/F ±a/f, without
+neighbours A/F ±a/f); constant velocity A/F; best baseline NAME A/F ±a/f (MODE; window set WINDOW_SET;
+PROTOCOL; ± range: max - min over the seeds)``, each A/F a mean over the seeds, each a/f its range.
 """
 
 from __future__ import annotations
@@ -115,8 +122,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--raw", type=Path, default=REPO.parent / "shared" / "data" / "ethucy")
     parser.add_argument("--data", type=Path, default=REPO / "data" / "ethucy", help="converted dataset")
     parser.add_argument("--out", type=Path, default=REPO / "runs" / "bench_ethucy")
-    parser.add_argument(
+    seeds = parser.add_mutually_exclusive_group()
+    seeds.add_argument(
         "--seed", type=int, default=0, help="training seed of every model (another seed: another --out)"
+    )
+    seeds.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        metavar="N",
+        help="run the benchmark once per seed into <out>/seed<N> (each as --seed N --out <out>/seed<N>), "
+        "then write the mean and the range (max - min) over the seeds per scene and of the average",
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--batch-size", type=int, default=512, help="evaluation batch size")
@@ -141,6 +157,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         + ". A model some of whose options are given by hand is a probe",
     )
     args = parser.parse_args(argv)
+    if args.seeds and len(set(args.seeds)) < len(args.seeds):
+        parser.error(f"--seeds: a seed given twice: {' '.join(map(str, args.seeds))}")
     try:
         args.select = parse_select(args.select)
     except ValueError as error:
@@ -385,12 +403,13 @@ def markdown(
     return "\n".join(parts)
 
 
-def main(argv: list[str] | None = None) -> int:
-    from benchmarks.pedestrians.scoring import average_over_scenes, summary_line
+def run_seed(args: argparse.Namespace) -> tuple[dict, str]:
+    """The benchmark of one seed (``args.seed``) into ``args.out``: its results (as ``results.json``
+    holds them) and its summary line, both written and the line printed."""
+    from benchmarks.pedestrians.scoring import summary_line
     from mmf_rl.datasets import ethucy
     from mmf_rl.eval.report import write_json, write_text
 
-    args = parse_args(argv)
     budget = QUICK if args.quick else FULL
     check_reused(args, budget, ethucy.FOLDS)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -405,15 +424,9 @@ def main(argv: list[str] | None = None) -> int:
         seconds[fold] = round(time.perf_counter() - fold_start)
     seconds["total"] = round(time.perf_counter() - start)
     scores = {f: {m: r["scores"] for m, r in rows.items()} for f, rows in per_fold.items()}
-    average = average_over_scenes(scores, budget.folds)
-    averages = {f"Average over the trained folds ({', '.join(budget.folds)})": average}
-    if set(budget.folds) != set(per_fold):
-        check = (
-            f"Constant velocity, average over the 5 scenes (the protocol check, {args.window_set} windows)"
-        )
-        averages[check] = average_over_scenes(scores)
-    run = f"{budget.name}; window set {args.window_set}; {protocol_summary(args, budget)}"
-    summary = summary_line(average, PAPER, CV, ["LF-LSTM", "MulT", CV, CV_NOISE], run)
+    averages = averages_of(scores, budget, args.window_set)
+    average = next(iter(averages.values()))
+    summary = summary_line(average, PAPER, CV, BASELINES, run_text(args, budget))
     results = {
         "mode": budget.name,
         "window_set": args.window_set,
@@ -422,11 +435,99 @@ def main(argv: list[str] | None = None) -> int:
         "folds": per_fold,
         "averages": averages,
         "seconds": seconds,
+        "summary": summary,
     }
     write_json(args.out / "results.json", results)
     page = markdown(per_fold, averages, budget, args.window_set, seconds, protocol_section(args, budget))
     write_text(args.out / "results.md", page + f"\n{summary}\n")
     print(summary)
+    return results, summary
+
+
+BASELINES = ["LF-LSTM", "MulT", CV, CV_NOISE]
+
+
+def averages_of(scores: dict, budget: Budget, window_set: str) -> dict[str, dict]:
+    """``{title: average over scenes}``: the trained folds' first, then (folds without trained rows)
+    constant velocity's over the five scenes."""
+    from benchmarks.pedestrians.scoring import average_over_scenes
+
+    trained = f"Average over the trained folds ({', '.join(budget.folds)})"
+    averages = {trained: average_over_scenes(scores, budget.folds)}
+    if set(budget.folds) != set(scores):
+        check = f"Constant velocity, average over the 5 scenes (the protocol check, {window_set} windows)"
+        averages[check] = average_over_scenes(scores)
+    return averages
+
+
+def run_text(args: argparse.Namespace, budget: Budget) -> str:
+    """The summary line's run: mode, window set, protocol."""
+    return f"{budget.name}; window set {args.window_set}; {protocol_summary(args, budget)}"
+
+
+def seed_run_args(args: argparse.Namespace, seed: int) -> argparse.Namespace:
+    """``args`` of the one-seed run ``--seed seed --out <out>/seed<seed>``."""
+    return argparse.Namespace(**{**vars(args), "seed": seed, "seeds": None, "out": args.out / f"seed{seed}"})
+
+
+def run_seeds(args: argparse.Namespace) -> str:
+    """Each of ``args.seeds``'s benchmark into ``<out>/seed<N>`` (completed ones reused), then their
+    mean and range per scene and of each average over scenes into ``<out>/results.{json,md}``; returns
+    the summary line."""
+    from benchmarks.pedestrians.scoring import summary_line
+    from benchmarks.pedestrians.seeds import SPREAD, over_seeds, per_scene_over_seeds, statistic
+    from mmf_rl.eval.report import write_json, write_text
+
+    runs = {seed: run_seed(seed_run_args(args, seed)) for seed in args.seeds}
+    scores = {
+        seed: {f: {m: r["scores"] for m, r in rows.items()} for f, rows in results["folds"].items()}
+        for seed, (results, _) in runs.items()
+    }
+    folds = per_scene_over_seeds(scores)
+    titles = list(runs[args.seeds[0]][0]["averages"])
+    averages = {t: over_seeds({seed: r["averages"][t] for seed, (r, _) in runs.items()}) for t in titles}
+    average = averages[titles[0]]
+    budget = QUICK if args.quick else FULL
+    run = f"{run_text(args, budget)}; ± {SPREAD}"
+    summary = summary_line(
+        statistic(average, "mean"), PAPER, CV, BASELINES, run, statistic(average, "range"), args.seeds
+    )
+    per_seed = {seed: line for seed, (_, line) in runs.items()}
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = {"seeds": args.seeds, "spread": SPREAD, "summaries": per_seed, "folds": folds}
+    write_json(args.out / "results.json", results | {"averages": averages, "summary": summary})
+    write_text(args.out / "results.md", seeds_markdown(args, budget, folds, averages, per_seed, summary))
+    print(summary)
+    return summary
+
+
+def seeds_markdown(args, budget: Budget, folds: dict, averages: dict, per_seed: dict, summary: str) -> str:
+    """The page of a run over seeds: each average's and each scene's mean (range) table, each seed's
+    summary line, the summary over the seeds."""
+    from benchmarks.pedestrians.seeds import seeds_table
+
+    seeds = ", ".join(map(str, args.seeds))
+    parts = [f"# ETH/UCY ({budget.name}), over training seeds {seeds}\n"]
+    parts += [
+        f"Each cell: the mean over the seeds, then in brackets the range (max - min over the seeds; with "
+        f"{len(args.seeds)} seeds no std is claimed). An average over scenes: each seed's own average, its "
+        f"range that of the per-seed averages. Window set `{args.window_set}`; each seed's page: "
+        "`seed<N>/results.md`.\n"
+    ]
+    for title, stats in averages.items():
+        parts += [f"## {title}\n", seeds_table(stats, DETERMINISTIC), ""]
+    for fold, stats in folds.items():
+        parts += [f"## {fold}\n", seeds_table(stats, DETERMINISTIC), ""]
+    parts += ["## Each seed\n", *(f"- seed {seed}: `{line}`" for seed, line in per_seed.items()), ""]
+    return "\n".join(parts) + f"\n{summary}\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.seeds:
+        run_seeds(args)
+    else:
+        run_seed(args)
     return 0
 
 

@@ -179,19 +179,32 @@ def ade_fde_text(scores: Mapping[str, float], point: bool = False) -> str:
 
 
 def summary_line(
-    average: Mapping[str, Scores], paper: str, cv: str, baselines: Sequence[str], mode: str
+    average: Mapping[str, Scores],
+    paper: str,
+    cv: str,
+    baselines: Sequence[str],
+    mode: str,
+    spread: Mapping[str, Scores] | None = None,
+    seeds: Sequence[int] = (),
 ) -> str:
     """The benchmark's last line: the paper model's minADE20/minFDE20 in three modes, constant velocity
     and the best baseline (lowest all-modality minADE20), then ``mode``, the run it came from (the
-    benchmark names its mode and window set)."""
+    benchmark names its mode and window set). With ``spread`` (``average``'s models' spread over
+    ``seeds``, ``average`` their mean), the paper model's and the best baseline's numbers are followed
+    by ``±`` their spread, and the paper model's first by the seeds."""
     best = min(baselines, key=lambda name: average[name]["all"]["min_ade_k"])
-    p = average[paper]
+
+    def text(model: str, m: str) -> str:
+        plain = ade_fde_text(average[model][m])
+        return f"{plain} ±{ade_fde_text(spread[model][m])}" if spread else plain
+
+    over = f" over seeds {','.join(map(str, seeds))}" if spread else ""
     return (
-        f"summary: paper model minADE20/minFDE20 avg {ade_fde_text(p['all'])} "
-        f"(without scene {ade_fde_text(p['without_scene'])}, "
-        f"without neighbours {ade_fde_text(p['without_neighbours'])}); "
+        f"summary: paper model minADE20/minFDE20 avg {text(paper, 'all')}{over} "
+        f"(without scene {text(paper, 'without_scene')}, "
+        f"without neighbours {text(paper, 'without_neighbours')}); "
         f"constant velocity {ade_fde_text(average[cv]['all'])}; "
-        f"best baseline {best} {ade_fde_text(average[best]['all'])} ({mode})"
+        f"best baseline {best} {text(best, 'all')} ({mode})"
     )
 
 
