@@ -266,12 +266,11 @@ def fit_scale_calibration(
 
     ``batches``: CPU batches with ``"target"`` (e.g. ``WindowDataset.loader("val", ...)``);
     ``method``: a key of :data:`CALIBRATION_METHODS`; ``per_step``: also fit the step factors."""
-    _check_fit_settings(model, min_windows, method)
+    _check_fit_settings(min_windows, method)  # before the pass over the batches
     return fit_to_errors(model, standardised_errors(model, batches, device), min_windows, method, per_step)
 
 
-def _check_fit_settings(model, min_windows: int, method: str) -> None:
-    _calibration_module(model)
+def _check_fit_settings(min_windows: int, method: str) -> None:
     if min_windows < 1:
         raise ValueError(f"min_windows must be >= 1, found {min_windows}")
     if method not in CALIBRATION_METHODS:
@@ -294,7 +293,7 @@ def fit_to_errors(
     training scenes (a cross-fit: the factors say how much wider than its trained scale such a model's
     errors are there). One entry per pattern of ``errors``; the coverages are those of ``errors``."""
     calibration = _calibration_module(model)
-    _check_fit_settings(model, min_windows, method)
+    _check_fit_settings(min_windows, method)
     names = [s.name for s in model.modalities]
     if errors.names != names:
         raise ValueError(f"errors over modalities {errors.names} cannot calibrate a model of {names}")
