@@ -423,7 +423,7 @@ def run_seed(args: argparse.Namespace) -> tuple[dict, str]:
         per_fold[fold] = run_fold(args, budget, fold)
         seconds[fold] = round(time.perf_counter() - fold_start)
     seconds["total"] = round(time.perf_counter() - start)
-    scores = {f: {m: r["scores"] for m, r in rows.items()} for f, rows in per_fold.items()}
+    scores = fold_scores(per_fold)
     averages = averages_of(scores, budget, args.window_set)
     average = next(iter(averages.values()))
     summary = summary_line(average, PAPER, CV, BASELINES, run_text(args, budget))
@@ -445,6 +445,11 @@ def run_seed(args: argparse.Namespace) -> tuple[dict, str]:
 
 
 BASELINES = ["LF-LSTM", "MulT", CV, CV_NOISE]
+
+
+def fold_scores(per_fold: dict) -> dict[str, dict[str, dict]]:
+    """``{fold: {model: scores}}`` of ``{fold: {model: row}}`` (a row as ``results.json`` holds it)."""
+    return {fold: {model: row["scores"] for model, row in rows.items()} for fold, rows in per_fold.items()}
 
 
 def averages_of(scores: dict, budget: Budget, window_set: str) -> dict[str, dict]:
@@ -479,10 +484,7 @@ def run_seeds(args: argparse.Namespace) -> str:
     from mmf_rl.eval.report import write_json, write_text
 
     runs = {seed: run_seed(seed_run_args(args, seed)) for seed in args.seeds}
-    scores = {
-        seed: {f: {m: r["scores"] for m, r in rows.items()} for f, rows in results["folds"].items()}
-        for seed, (results, _) in runs.items()
-    }
+    scores = {seed: fold_scores(results["folds"]) for seed, (results, _) in runs.items()}
     folds = per_scene_over_seeds(scores)
     titles = list(runs[args.seeds[0]][0]["averages"])
     averages = {t: over_seeds({seed: r["averages"][t] for seed, (r, _) in runs.items()}) for t in titles}

@@ -49,6 +49,7 @@ logger = logging.getLogger("mmf_rl.benchmarks.ethucy_calibration")
 FITS = ("val", "held-out scenes")
 NOMINAL_90 = (0.85, 0.95)  # the band #54 asks of every subset's test 90% coverage
 MIN_WINDOWS = 32
+INTERVAL_METRICS = ("coverage_50", "coverage_90", "width_90", "crps")  # the table's columns, in order
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -128,6 +129,7 @@ def score_fits(args: argparse.Namespace, fold: str, errors: dict) -> dict[str, d
     pooled = None
     for pair, scene in inner_splits(FOLDS, fold):
         pooled = errors[pair, scene] if pooled is None else pooled.pooled(errors[pair, scene])
+    modes = [(mode, MODES[mode]) for mode in MODES]
     scores = {}
     for fit in FITS:
         if fit == "val":
@@ -136,13 +138,10 @@ def score_fits(args: argparse.Namespace, fold: str, errors: dict) -> dict[str, d
         else:
             fit_to_errors(model, pooled, MIN_WINDOWS, "levels")
         test = data.loader("test", args.batch_size, shuffle=False)
-        modes = [(mode, MODES[mode]) for mode in MODES]
         rows, _ = evaluate_presence_subsets(
             model, test, modes, data.normalizer.denormalize_target, device=args.device
         )
-        scores[fit] = {
-            m: {k: rows[m][k] for k in ("coverage_50", "coverage_90", "width_90", "crps")} for m in rows
-        }
+        scores[fit] = {m: {k: rows[m][k] for k in INTERVAL_METRICS} for m in rows}
     return scores
 
 
@@ -168,9 +167,7 @@ def markdown(factors: dict[str, list[float]], folds: dict[str, dict]) -> str:
     ]
     for fold, by_fit in folds.items():
         for fit, rows in by_fit.items():
-            cells = [
-                span(r[k] for r in rows.values()) for k in ("coverage_50", "coverage_90", "width_90", "crps")
-            ]
+            cells = [span(r[k] for r in rows.values()) for k in INTERVAL_METRICS]
             lines.append(f"| {fold} | {fit} | {' | '.join(cells)} |")
     return "\n".join(lines) + "\n"
 
@@ -205,8 +202,9 @@ def main(argv: list[str] | None = None) -> int:
     factors = scene_factors(errors)
     folds = {fold: score_fits(args, fold, errors) for fold in FOLDS}
     write_json(args.out / "calibration.json", {"scene_factors_90": factors, "test": folds})
-    write_text_atomic(args.out / "calibration.md", markdown(factors, folds))
-    print(markdown(factors, folds))
+    page = markdown(factors, folds)
+    write_text_atomic(args.out / "calibration.md", page)
+    print(page)
     print(summary(factors, folds))
     return 0
 
